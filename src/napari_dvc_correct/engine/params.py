@@ -1,0 +1,103 @@
+"""Parameters of a DVC run, validated once at the boundary."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CorrelationParams:
+    """Parameters of local subvolume DVC. The self-correction reuses them unchanged.
+
+    Parameters
+    ----------
+    subvolume : int
+        Odd subvolume edge ``2M + 1`` in voxels.
+    step : int
+        POI spacing in voxels (same along z, y, x).
+    order : {1, 2}
+        Shape function order: 1 = affine (12 parameters), 2 = quadratic (30 parameters).
+    search_radius : int or None
+        Largest displacement (voxels) the integer search should find around the global rigid
+        shift estimated from the whole volume. None picks ``max(8, subvolume // 2)``; radii larger
+        than the subvolume use a coarse-to-fine pyramid.
+    max_iterations : int
+        IC-GN iteration limit per POI.
+    tolerance : float
+        Convergence threshold (voxels) on the largest displacement of the incremental warp at the
+        subvolume corners.
+    min_mask_fraction : float
+        A POI is matched only if at least this fraction of its subvolume is inside the mask.
+    min_texture : float
+        Subvolumes whose gray standard deviation is below this fraction of the volume's gray
+        standard deviation are flagged ``LOW_TEXTURE`` and not matched.
+    min_zncc : float
+        Matches that converge with a ZNCC below this are flagged ``LOW_ZNCC``.
+    batch_size : int
+        POIs per progress batch.
+    """
+
+    subvolume: int = 31
+    step: int = 8
+    order: int = 1
+    search_radius: int | None = None
+    max_iterations: int = 50
+    tolerance: float = 1e-3
+    min_mask_fraction: float = 0.5
+    min_texture: float = 0.05
+    min_zncc: float = 0.5
+    batch_size: int = 256
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not isinstance(self.subvolume, (int, np.integer)) or self.subvolume < 5:
+            problems.append(f"subvolume must be an odd integer >= 5, got {self.subvolume!r}")
+        elif self.subvolume % 2 == 0:
+            problems.append(f"subvolume must be odd (2M+1), got {self.subvolume}")
+        if not isinstance(self.step, (int, np.integer)) or self.step < 1:
+            problems.append(f"step must be an integer >= 1, got {self.step!r}")
+        if self.order not in (1, 2):
+            problems.append(f"order must be 1 or 2, got {self.order!r}")
+        if self.search_radius is not None and (
+            not isinstance(self.search_radius, (int, np.integer)) or self.search_radius < 0
+        ):
+            problems.append(f"search_radius must be an integer >= 0, got {self.search_radius!r}")
+        if not isinstance(self.max_iterations, (int, np.integer)) or self.max_iterations < 1:
+            problems.append(f"max_iterations must be >= 1, got {self.max_iterations!r}")
+        if not (np.isfinite(self.tolerance) and self.tolerance > 0):
+            problems.append(f"tolerance must be > 0, got {self.tolerance!r}")
+        if not 0.0 < self.min_mask_fraction <= 1.0:
+            problems.append(f"min_mask_fraction must be in (0, 1], got {self.min_mask_fraction!r}")
+        if not 0.0 <= self.min_texture < 1.0:
+            problems.append(f"min_texture must be in [0, 1), got {self.min_texture!r}")
+        if not -1.0 <= self.min_zncc <= 1.0:
+            problems.append(f"min_zncc must be in [-1, 1], got {self.min_zncc!r}")
+        if not isinstance(self.batch_size, (int, np.integer)) or self.batch_size < 1:
+            problems.append(f"batch_size must be >= 1, got {self.batch_size!r}")
+        if problems:
+            raise ValueError("; ".join(problems))
+
+    @property
+    def half(self) -> int:
+        """Subvolume half-size ``M`` in voxels."""
+        return self.subvolume // 2
+
+    @property
+    def effective_search_radius(self) -> int:
+        if self.search_radius is not None:
+            return int(self.search_radius)
+        return max(8, self.half)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> CorrelationParams:
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in values.items() if k in names})
+
+    def replace(self, **changes) -> CorrelationParams:
+        return dataclasses.replace(self, **changes)

@@ -1,0 +1,38 @@
+"""Progress reports yielded by the engine's long-running generators."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One progress report.
+
+    Attributes
+    ----------
+    stage : str
+        What runs now, e.g. ``"prefilter"``, ``"initial guess"``, ``"IC-GN"``, ``"correction pass 2"``.
+    done, total : int
+        Units of work finished and planned in this stage (POIs, chunks...).
+    message : str
+        A short sentence for a status bar.
+    """
+
+    stage: str
+    done: int
+    total: int
+    message: str = ""
+
+    @property
+    def fraction(self) -> float:
+        return 1.0 if self.total <= 0 else min(1.0, self.done / self.total)
+
+
+def run_to_completion(generator):
+    """Drive an engine generator to its end and return its result (discarding progress)."""
+    while True:
+        try:
+            next(generator)
+        except StopIteration as stop:
+            return stop.value

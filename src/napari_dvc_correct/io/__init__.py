@@ -1,0 +1,1 @@
+"""Readers and writers for volumes and displacement fields (no Qt, no napari)."""

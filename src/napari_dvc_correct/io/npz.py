@@ -1,0 +1,102 @@
+"""The ``.npz`` field file: the native, versioned format of :class:`DisplacementField`.
+
+Besides the grid arrays the file holds flat ``points`` (N, 3) and ``displacement`` (N, 3) in
+(z, y, x) reference voxels, so any tool can read it with ``numpy.load`` alone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+
+import numpy as np
+
+from ..engine.field import DisplacementField, Provenance, Status
+from .atomic import atomic_path
+
+FORMAT_NAME = "napari-dvc-correct field"
+FORMAT_VERSION = 1
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (set, tuple)):
+        return list(value)
+    return str(value)
+
+
+def save_field(field: DisplacementField, path: str | os.PathLike) -> None:
+    """Write ``field`` to ``path`` (``.npz``) atomically: a failed write leaves ``path`` as it was."""
+    arrays = {
+        "format": np.array(FORMAT_NAME),
+        "format_version": np.array(FORMAT_VERSION),
+        "origin": np.asarray(field.origin, np.float64),
+        "step": np.asarray(field.step, np.float64),
+        "u": field.u,
+        "zncc": field.zncc,
+        "status": field.status,
+        "iterations": field.iterations,
+        "provenance": field.provenance,
+        "points": field.points,
+        "displacement": field.displacement,
+        "status_names": np.array([s.name for s in Status]),
+        "provenance_names": np.array([p.name for p in Provenance]),
+        "params_json": np.array(json.dumps(field.params, default=_json_default)),
+        "metadata_json": np.array(json.dumps(field.metadata, default=_json_default)),
+    }
+    if field.gradient is not None:
+        arrays["gradient"] = field.gradient
+    with atomic_path(path) as temp:
+        with open(temp, "wb") as stream:
+            np.savez_compressed(stream, **arrays)
+
+
+def load_field(path: str | os.PathLike) -> DisplacementField:
+    """Read a field file written by :func:`save_field`.
+
+    Raises
+    ------
+    ValueError
+        If the file is not a field file, is broken, or was written by a newer format version.
+    FileNotFoundError
+        If ``path`` does not exist.
+    """
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"field file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            contents = {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as error:
+        raise ValueError(f"{path} is not a readable .npz field file ({error})") from error
+    if "format" not in contents or str(contents["format"]) != FORMAT_NAME:
+        raise ValueError(f"{path} is not a napari-dvc-correct field file (no format marker)")
+    version = int(contents.get("format_version", -1))
+    if version > FORMAT_VERSION:
+        raise ValueError(
+            f"{path} has field format version {version}, newer than this version of "
+            f"napari-dvc-correct understands ({FORMAT_VERSION}): upgrade the package"
+        )
+    if version < 1:
+        raise ValueError(f"{path} has an invalid field format version {version}")
+    missing = [k for k in ("origin", "step", "u") if k not in contents]
+    if missing:
+        raise ValueError(f"{path} is a broken field file: missing {', '.join(missing)}")
+    try:
+        return DisplacementField(
+            origin=contents["origin"],
+            step=contents["step"],
+            u=contents["u"],
+            zncc=contents.get("zncc"),
+            status=contents.get("status"),
+            iterations=contents.get("iterations"),
+            provenance=contents.get("provenance"),
+            gradient=contents.get("gradient"),
+            params=json.loads(str(contents.get("params_json", "{}"))),
+            metadata=json.loads(str(contents.get("metadata_json", "{}"))),
+        )
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{path} is a broken field file: {error}") from error

@@ -1,0 +1,111 @@
+"""Reading volumes for the engine: TIFF (memory-mapped where possible), ``.npy`` and ``.npz``."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+VOLUME_SUFFIXES = (".tif", ".tiff", ".npy", ".npz")
+
+
+def read_volume(path: str | os.PathLike, mmap: bool = True) -> np.ndarray:
+    """Read a 3-D volume ``(z, y, x)`` from a TIFF stack, a folder of TIFF slices, ``.npy`` or ``.npz``.
+
+    TIFF and ``.npy`` files are memory-mapped when their layout allows it, so only the regions
+    the engine touches are read. An ``.npz`` must hold exactly one array (or one named ``volume``).
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ValueError
+        If the file is not what its name claims, or does not hold a 3-D real-valued volume.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"volume not found: {path}")
+    if path.is_dir():
+        volume = _read_tiff_folder(path)
+    else:
+        suffix = path.suffix.lower()
+        if suffix in (".tif", ".tiff"):
+            volume = _read_tiff(path, mmap)
+        elif suffix == ".npy":
+            try:
+                volume = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+            except (ValueError, OSError) as error:
+                raise ValueError(f"{path} is not a readable .npy file ({error})") from error
+        elif suffix == ".npz":
+            volume = _read_npz(path)
+        else:
+            raise ValueError(
+                f"{path}: unsupported volume format {suffix!r} (use .tif, .tiff, .npy, .npz "
+                "or a folder of .tif slices)"
+            )
+    return validate_volume(volume, str(path))
+
+
+def _read_tiff(path: Path, mmap: bool) -> np.ndarray:
+    import tifffile
+
+    try:
+        if mmap:
+            try:
+                return tifffile.memmap(path, mode="r")
+            except (ValueError, OSError):
+                pass  # compressed or tiled: fall back to reading
+        return tifffile.imread(path)
+    except (tifffile.TiffFileError, ValueError, OSError) as error:
+        raise ValueError(f"{path} is not a readable TIFF file ({error})") from error
+
+
+def _read_tiff_folder(path: Path) -> np.ndarray:
+    import tifffile
+
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+    if not files:
+        raise ValueError(f"{path} is a folder with no .tif slices")
+    try:
+        return tifffile.imread(files)
+    except (tifffile.TiffFileError, ValueError, OSError) as error:
+        raise ValueError(f"{path}: the TIFF slices could not be read as one stack ({error})") from error
+
+
+def _read_npz(path: Path) -> np.ndarray:
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            names = list(data.files)
+            if "volume" in names:
+                return data["volume"]
+            if len(names) != 1:
+                raise ValueError(
+                    f"{path} holds {len(names)} arrays ({', '.join(names[:5])}); "
+                    "store one array, or name it 'volume'"
+                )
+            return data[names[0]]
+    except (zipfile.BadZipFile, OSError, EOFError) as error:
+        raise ValueError(f"{path} is not a readable .npz file ({error})") from error
+
+
+def validate_volume(volume, name: str = "volume", check_finite: bool = True) -> np.ndarray:
+    """Check that ``volume`` is a non-empty 3-D real array (finite values); return it unchanged.
+
+    Large memory-mapped volumes are checked for NaN slab by slab so they are not loaded whole.
+    """
+    volume = np.asanyarray(volume)
+    if volume.ndim != 3:
+        raise ValueError(f"{name} must be a 3-D volume (z, y, x), got shape {volume.shape}")
+    if min(volume.shape) < 1:
+        raise ValueError(f"{name} is empty (shape {volume.shape})")
+    if volume.dtype.kind not in "uif" and volume.dtype != np.bool_:
+        raise ValueError(f"{name} must hold real numbers, got dtype {volume.dtype}")
+    if check_finite and volume.dtype.kind == "f":
+        slab = max(1, int(2**24 // max(1, volume.shape[1] * volume.shape[2])))
+        for start in range(0, volume.shape[0], slab):
+            if not np.all(np.isfinite(volume[start : start + slab])):
+                raise ValueError(f"{name} contains NaN or infinite values")
+    return volume
