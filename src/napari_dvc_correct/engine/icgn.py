@@ -1,0 +1,469 @@
+"""Subvolume matching by the inverse-compositional Gauss–Newton (IC-GN) algorithm.
+
+For a POI at reference position ``c`` and local coordinates ``ξ`` in the subvolume ``[-M, M]³``,
+the shape function maps ``ξ`` to the deformed position ``c + W(ξ; p)`` with
+
+``W_k(ξ; p) = ξ_k + Σ_j p[k, j] · b_j(ξ)``,
+
+where ``b(ξ)`` are monomials of the local coordinates: ``(1, ξz, ξy, ξx)`` for the first-order
+(affine, 12 parameters) shape function and additionally ``(ξz², ξy², ξx², ξzξy, ξyξx, ξzξx)`` for the
+second-order one (30 parameters). So ``p[k, 0]`` is the displacement ``u_k`` at the POI and
+``p[k, 1 + l] = ∂u_k/∂X_l``.
+
+The criterion is ZNSSD (reported as ZNCC = 1 − ZNSSD/2). IC-GN precomputes the reference-side
+steepest-descent images ``J = ∇G · ∂W/∂p`` and the Hessian ``H = Σ JᵀJ`` once per POI; each
+iteration samples the deformed volume at the current warp (tricubic B-spline), solves
+``H Δp = -Σ Jᵀ [(G − Ḡ) − (ΔG/ΔF)(F − F̄)]`` and updates ``W(p) ← W(p) ∘ W(Δp)⁻¹``. Warps are
+composed and inverted in the matrix representation that maps the monomial vector ``b(ξ)`` to
+``b(W(ξ))`` (exact for the affine warp, truncated at degree 2 for the quadratic one).
+
+Iterations stop when the incremental warp moves every subvolume corner by less than the tolerance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from ._numba_setup import KERNEL_OPTIONS
+from .field import Status
+from .interpolation import gradient_at_voxel, in_interior, sample_interior, sample_mirrored
+
+_CONVERGED = int(Status.CONVERGED)
+_DIVERGED = int(Status.DIVERGED)
+_LOW_TEXTURE = int(Status.LOW_TEXTURE)
+_MASKED = int(Status.MASKED)
+_MAX_ITERATIONS = int(Status.MAX_ITERATIONS)
+_OUT_OF_BOUNDS = int(Status.OUT_OF_BOUNDS)
+_SINGULAR = int(Status.SINGULAR)
+
+# Monomials: 0:1 1:z 2:y 3:x 4:zz 5:yy 6:xx 7:zy 8:yx 9:zx  (local coordinates, voxels)
+_QUAD_AXES = np.array([[0, 0], [1, 1], [2, 2], [0, 1], [1, 2], [0, 2]], dtype=np.int64)
+
+
+def n_monomials(order: int) -> int:
+    return 4 if order == 1 else 10
+
+
+def n_parameters(order: int) -> int:
+    """12 for the first-order shape function, 30 for the second-order one."""
+    return 3 * n_monomials(order)
+
+
+def _product_table() -> np.ndarray:
+    """``table[i, j]`` = index of monomial i × monomial j if its degree is ≤ 2, else -1."""
+    exponents = np.zeros((10, 3), dtype=np.int64)
+    for axis in range(3):
+        exponents[1 + axis, axis] = 1
+    for q, (a, b) in enumerate(_QUAD_AXES):
+        exponents[4 + q, a] += 1
+        exponents[4 + q, b] += 1
+    table = -np.ones((10, 10), dtype=np.int64)
+    for i in range(10):
+        for j in range(10):
+            e = exponents[i] + exponents[j]
+            if e.sum() <= 2:
+                table[i, j] = int(np.where((exponents == e).all(axis=1))[0][0])
+    return table
+
+
+PRODUCT_TABLE = _product_table()
+QUAD_AXES = _QUAD_AXES
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def monomials(z, y, x, nb, out):
+    out[0] = 1.0
+    out[1] = z
+    out[2] = y
+    out[3] = x
+    if nb == 10:
+        out[4] = z * z
+        out[5] = y * y
+        out[6] = x * x
+        out[7] = z * y
+        out[8] = y * x
+        out[9] = z * x
+
+
+@njit(**KERNEL_OPTIONS)
+def warp_matrix(p, nb, product_table, quad_axes):
+    """Matrix ``M`` (nb × nb) with ``b(W(ξ; p)) ≈ M b(ξ)`` (truncated at degree 2)."""
+    m = np.zeros((nb, nb))
+    m[0, 0] = 1.0
+    for k in range(3):
+        for j in range(nb):
+            m[1 + k, j] = p[k * nb + j]
+        m[1 + k, 1 + k] += 1.0
+    if nb == 10:
+        for q in range(6):
+            a = quad_axes[q, 0]
+            b = quad_axes[q, 1]
+            row = 4 + q
+            for i in range(nb):
+                ci = m[1 + a, i]
+                if ci == 0.0:
+                    continue
+                for j in range(nb):
+                    target = product_table[i, j]
+                    if target >= 0:
+                        m[row, target] += ci * m[1 + b, j]
+    return m
+
+
+@njit(**KERNEL_OPTIONS)
+def parameters_from_matrix(m, nb, p):
+    for k in range(3):
+        for j in range(nb):
+            p[k * nb + j] = m[1 + k, j]
+        p[k * nb + 1 + k] -= 1.0
+
+
+@njit(**KERNEL_OPTIONS)
+def _cholesky_solve_setup(h, m):
+    """In-place Cholesky factor of the m×m SPD matrix ``h``; returns False if not positive definite.
+
+    Also fails when the smallest pivot is tiny relative to the largest (ill-conditioned Hessian).
+    """
+    low = np.zeros((m, m))
+    largest = 0.0
+    smallest = np.inf
+    for j in range(m):
+        s = h[j, j]
+        for k in range(j):
+            s -= low[j, k] * low[j, k]
+        if not (s > 0.0):
+            return False, low
+        d = np.sqrt(s)
+        low[j, j] = d
+        largest = max(largest, s)
+        smallest = min(smallest, s)
+        for i in range(j + 1, m):
+            t = h[i, j]
+            for k in range(j):
+                t -= low[i, k] * low[j, k]
+            low[i, j] = t / d
+    if smallest < 1e-12 * largest:
+        return False, low
+    return True, low
+
+
+@njit(**KERNEL_OPTIONS)
+def _cholesky_solve(low, rhs, m, out):
+    y = np.empty(m)
+    for i in range(m):
+        s = rhs[i]
+        for k in range(i):
+            s -= low[i, k] * y[k]
+        y[i] = s / low[i, i]
+    for i in range(m - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, m):
+            s -= low[k, i] * out[k]
+        out[i] = s / low[i, i]
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def gradient_volume(coefficients):
+    """Gradient of the B-spline interpolant at every voxel, shape (3, nz, ny, nx), float32."""
+    nz, ny, nx = coefficients.shape
+    out = np.empty((3, nz, ny, nx), np.float32)
+    for iz in prange(nz):
+        for iy in range(ny):
+            for ix in range(nx):
+                gz, gy, gx = gradient_at_voxel(coefficients, iz, iy, ix)
+                out[0, iz, iy, ix] = gz
+                out[1, iz, iy, ix] = gy
+                out[2, iz, iy, ix] = gx
+    return out
+
+
+@njit(**KERNEL_OPTIONS)
+def match_one(
+    reference,
+    gradient,
+    coef_deformed,
+    mask,
+    use_mask,
+    cz,
+    cy,
+    cx,
+    half,
+    nb,
+    p,
+    max_iterations,
+    tolerance,
+    min_std,
+    min_mask_fraction,
+    max_update,
+    product_table,
+    quad_axes,
+):
+    """Match one subvolume by IC-GN; ``p`` (3·nb) is the initial guess in and the result out.
+
+    Returns ``(zncc, status, iterations)``. Kernels assume valid input: the reference subvolume
+    lies inside the reference volume.
+    """
+    m_par = 3 * nb
+    edge = 2 * half + 1
+    n_total = edge * edge * edge
+    g = np.empty(n_total)
+    grad = np.empty((n_total, 3))
+    xi = np.empty((n_total, 3))
+    count = 0
+    for dz in range(-half, half + 1):
+        z = cz + dz
+        for dy in range(-half, half + 1):
+            y = cy + dy
+            for dx in range(-half, half + 1):
+                x = cx + dx
+                if use_mask and not mask[z, y, x]:
+                    continue
+                g[count] = reference[z, y, x]
+                grad[count, 0] = gradient[0, z, y, x]
+                grad[count, 1] = gradient[1, z, y, x]
+                grad[count, 2] = gradient[2, z, y, x]
+                xi[count, 0] = dz
+                xi[count, 1] = dy
+                xi[count, 2] = dx
+                count += 1
+    if count < min_mask_fraction * n_total or count < m_par + 1:
+        return np.nan, _MASKED, 0
+
+    mean_g = 0.0
+    for i in range(count):
+        mean_g += g[i]
+    mean_g /= count
+    ss_g = 0.0
+    for i in range(count):
+        d = g[i] - mean_g
+        ss_g += d * d
+    delta_g = np.sqrt(ss_g)
+    if delta_g <= min_std * np.sqrt(count) or delta_g == 0.0:
+        return np.nan, _LOW_TEXTURE, 0
+
+    # Reference-side sums: Hessian H, Σ J, Σ J (g - ḡ)
+    hessian = np.zeros((m_par, m_par))
+    sum_j = np.zeros(m_par)
+    sum_jg = np.zeros(m_par)
+    jac = np.empty(m_par)
+    b = np.empty(10)
+    for i in range(count):
+        monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+        for k in range(3):
+            for j in range(nb):
+                jac[k * nb + j] = grad[i, k] * b[j]
+        dg = g[i] - mean_g
+        for r in range(m_par):
+            jr = jac[r]
+            sum_j[r] += jr
+            sum_jg[r] += jr * dg
+            for c in range(r + 1):
+                hessian[r, c] += jr * jac[c]
+    for r in range(m_par):
+        for c in range(r):
+            hessian[c, r] = hessian[r, c]
+    ok, low = _cholesky_solve_setup(hessian, m_par)
+    if not ok:
+        return np.nan, _SINGULAR, 0
+
+    start = np.empty(3)
+    for k in range(3):
+        start[k] = p[k * nb]
+    sum_jf = np.empty(m_par)
+    rhs = np.empty(m_par)
+    dp = np.empty(m_par)
+    corner = np.empty(10)
+    zncc = np.nan
+    nz, ny, nx = coef_deformed.shape
+    for iteration in range(1, max_iterations + 1):
+        for r in range(m_par):
+            sum_jf[r] = 0.0
+        sum_f = 0.0
+        sum_ff = 0.0
+        sum_gf = 0.0
+        for i in range(count):
+            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+            wz = cz + xi[i, 0]
+            wy = cy + xi[i, 1]
+            wx = cx + xi[i, 2]
+            for j in range(nb):
+                wz += p[j] * b[j]
+                wy += p[nb + j] * b[j]
+                wx += p[2 * nb + j] * b[j]
+            if in_interior(coef_deformed, wz, wy, wx):
+                f = sample_interior(coef_deformed, wz, wy, wx)
+            elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
+                f = sample_mirrored(coef_deformed, wz, wy, wx)
+            else:
+                return zncc, _OUT_OF_BOUNDS, iteration
+            sum_f += f
+            sum_ff += f * f
+            sum_gf += (g[i] - mean_g) * f
+            for k in range(3):
+                gf = grad[i, k] * f
+                for j in range(nb):
+                    sum_jf[k * nb + j] += gf * b[j]
+        mean_f = sum_f / count
+        ss_f = sum_ff - count * mean_f * mean_f
+        if not (ss_f > 0.0):
+            return np.nan, _DIVERGED, iteration
+        delta_f = np.sqrt(ss_f)
+        zncc = sum_gf / (delta_g * delta_f)
+        ratio = delta_g / delta_f
+        for r in range(m_par):
+            rhs[r] = -(sum_jg[r] - ratio * (sum_jf[r] - mean_f * sum_j[r]))
+        _cholesky_solve(low, rhs, m_par, dp)
+
+        # W(p) <- W(p) o W(dp)^-1
+        m_current = warp_matrix(p, nb, product_table, quad_axes)
+        m_update = warp_matrix(dp, nb, product_table, quad_axes)
+        m_new = m_current @ np.linalg.inv(m_update)
+        parameters_from_matrix(m_new, nb, p)
+
+        largest = 0.0
+        for sz in (-half, half):
+            for sy in (-half, half):
+                for sx in (-half, half):
+                    monomials(float(sz), float(sy), float(sx), nb, corner)
+                    norm2 = 0.0
+                    for k in range(3):
+                        moved = 0.0
+                        for j in range(nb):
+                            moved += dp[k * nb + j] * corner[j]
+                        norm2 += moved * moved
+                    largest = max(largest, norm2)
+        finite = True
+        for r in range(m_par):
+            if not np.isfinite(p[r]):
+                finite = False
+        moved_far = False
+        for k in range(3):
+            if abs(p[k * nb] - start[k]) > max_update:
+                moved_far = True
+        if not finite or moved_far:
+            return zncc, _DIVERGED, iteration
+        if np.sqrt(largest) < tolerance:
+            return zncc, _CONVERGED, iteration
+    return zncc, _MAX_ITERATIONS, max_iterations
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def match_many(
+    reference,
+    gradient,
+    coef_deformed,
+    mask,
+    use_mask,
+    centers,
+    half,
+    nb,
+    params,
+    zncc,
+    status,
+    iterations,
+    max_iterations,
+    tolerance,
+    min_std,
+    min_mask_fraction,
+    max_update,
+    product_table,
+    quad_axes,
+):
+    """IC-GN for many POIs in parallel. ``params`` (N, 3·nb) holds guesses in, results out."""
+    for i in prange(centers.shape[0]):
+        p = params[i].copy()
+        value, code, its = match_one(
+            reference,
+            gradient,
+            coef_deformed,
+            mask,
+            use_mask,
+            centers[i, 0],
+            centers[i, 1],
+            centers[i, 2],
+            half,
+            nb,
+            p,
+            max_iterations,
+            tolerance,
+            min_std,
+            min_mask_fraction,
+            max_update,
+            product_table,
+            quad_axes,
+        )
+        params[i, :] = p
+        zncc[i] = value
+        status[i] = code
+        iterations[i] = its
+
+
+@njit(**KERNEL_OPTIONS)
+def match_many_serial(
+    reference,
+    gradient,
+    coef_deformed,
+    mask,
+    use_mask,
+    centers,
+    half,
+    nb,
+    params,
+    zncc,
+    status,
+    iterations,
+    max_iterations,
+    tolerance,
+    min_std,
+    min_mask_fraction,
+    max_update,
+    product_table,
+    quad_axes,
+):
+    """Same as :func:`match_many` on one thread (for small batches, e.g. reliability repair)."""
+    for i in range(centers.shape[0]):
+        p = params[i].copy()
+        value, code, its = match_one(
+            reference,
+            gradient,
+            coef_deformed,
+            mask,
+            use_mask,
+            centers[i, 0],
+            centers[i, 1],
+            centers[i, 2],
+            half,
+            nb,
+            p,
+            max_iterations,
+            tolerance,
+            min_std,
+            min_mask_fraction,
+            max_update,
+            product_table,
+            quad_axes,
+        )
+        params[i, :] = p
+        zncc[i] = value
+        status[i] = code
+        iterations[i] = its
+
+
+def params_to_displacement(params: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split shape-function parameters (N, 3·nb) into displacement (N, 3) and gradient (N, 3, 3)."""
+    nb = n_monomials(order)
+    shaped = params.reshape(-1, 3, nb)
+    return shaped[:, :, 0].copy(), shaped[:, :, 1:4].copy()
+
+
+def displacement_to_params(
+    displacement: np.ndarray, gradient: np.ndarray | None, order: int
+) -> np.ndarray:
+    """Shape-function parameters (N, 3·nb) from displacement (N, 3) and optional gradient."""
+    nb = n_monomials(order)
+    params = np.zeros((len(displacement), 3, nb))
+    params[:, :, 0] = displacement
+    if gradient is not None:
+        params[:, :, 1:4] = gradient
+    return params.reshape(len(displacement), 3 * nb)

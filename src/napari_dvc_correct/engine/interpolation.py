@@ -1,0 +1,266 @@
+"""Tricubic B-spline interpolation of volumes.
+
+A volume is prefiltered once into cubic B-spline coefficients (``scipy.ndimage.spline_filter``,
+mirror boundary); sampling then sums 4×4×4 coefficients weighted by the cubic B-spline basis.
+The interpolant passes through the voxel values and has continuous second derivatives, which keeps
+the IC-GN's sub-voxel bias low (a trilinear interpolant biases sub-voxel estimates towards integers).
+
+Positions are ``(z, y, x)`` in voxels; voxel ``(i, j, k)`` sits at integer position ``(i, j, k)``.
+Valid positions lie in ``[0, n - 1]`` along each axis; coefficients outside are mirrored, matching
+``scipy.ndimage.map_coordinates(volume, ..., order=3, mode="mirror")``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+from scipy import ndimage
+
+from ._numba_setup import KERNEL_OPTIONS
+
+
+def prefilter(volume: np.ndarray) -> np.ndarray:
+    """Cubic B-spline coefficients of ``volume``.
+
+    Parameters
+    ----------
+    volume : ndarray, shape (nz, ny, nx), any real dtype
+        Gray values.
+
+    Returns
+    -------
+    ndarray, float32, C-contiguous, same shape
+        Coefficients for :func:`sample` and the IC-GN kernels (computed in float64, stored float32).
+    """
+    volume = np.asarray(volume)
+    if volume.ndim != 3:
+        raise ValueError(f"prefilter needs a 3-D volume, got shape {volume.shape}")
+    coefficients = ndimage.spline_filter(volume.astype(np.float64), order=3, mode="mirror")
+    return np.ascontiguousarray(coefficients, dtype=np.float32)
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def bspline_weights(t):
+    """Cubic B-spline weights of the 4 taps ``floor(x) - 1 .. floor(x) + 2`` for ``t = x - floor(x)``."""
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    w0 = s * s * s / 6.0
+    w1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
+    w2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
+    w3 = t3 / 6.0
+    return w0, w1, w2, w3
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def bspline_derivative_weights(t):
+    """Derivatives of :func:`bspline_weights` with respect to ``t``."""
+    s = 1.0 - t
+    d0 = -0.5 * s * s
+    d1 = 0.5 * (3.0 * t * t - 4.0 * t)
+    d2 = 0.5 * (-3.0 * t * t + 2.0 * t + 1.0)
+    d3 = 0.5 * t * t
+    return d0, d1, d2, d3
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _mirror(index, n):
+    if n == 1:
+        return 0
+    period = 2 * (n - 1)
+    index = abs(index) % period
+    if index > n - 1:
+        index = period - index
+    return index
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def in_interior(coefficients, z, y, x):
+    """True when all 64 taps around ``(z, y, x)`` lie inside the array (fast path allowed)."""
+    nz, ny, nx = coefficients.shape
+    return 1.0 <= z < nz - 2.0 and 1.0 <= y < ny - 2.0 and 1.0 <= x < nx - 2.0
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def sample_interior(coefficients, z, y, x):
+    """Value at ``(z, y, x)``; requires :func:`in_interior` (no bounds checks)."""
+    iz = int(z)
+    iy = int(y)
+    ix = int(x)
+    wz0, wz1, wz2, wz3 = bspline_weights(z - iz)
+    wy0, wy1, wy2, wy3 = bspline_weights(y - iy)
+    wx0, wx1, wx2, wx3 = bspline_weights(x - ix)
+    total = 0.0
+    for a in range(4):
+        wz = wz0 if a == 0 else (wz1 if a == 1 else (wz2 if a == 2 else wz3))
+        plane = coefficients[iz - 1 + a]
+        inner = 0.0
+        for b in range(4):
+            wy = wy0 if b == 0 else (wy1 if b == 1 else (wy2 if b == 2 else wy3))
+            row = plane[iy - 1 + b]
+            inner += wy * (
+                wx0 * row[ix - 1] + wx1 * row[ix] + wx2 * row[ix + 1] + wx3 * row[ix + 2]
+            )
+        total += wz * inner
+    return total
+
+
+@njit(**KERNEL_OPTIONS)
+def sample_mirrored(coefficients, z, y, x):
+    """Value at any ``(z, y, x)`` with mirrored taps (slow path near the border)."""
+    nz, ny, nx = coefficients.shape
+    fz = np.floor(z)
+    fy = np.floor(y)
+    fx = np.floor(x)
+    wz = bspline_weights(z - fz)
+    wy = bspline_weights(y - fy)
+    wx = bspline_weights(x - fx)
+    iz = int(fz)
+    iy = int(fy)
+    ix = int(fx)
+    total = 0.0
+    for a in range(4):
+        za = _mirror(iz - 1 + a, nz)
+        inner = 0.0
+        for b in range(4):
+            yb = _mirror(iy - 1 + b, ny)
+            row = 0.0
+            for c in range(4):
+                row += wx[c] * coefficients[za, yb, _mirror(ix - 1 + c, nx)]
+            inner += wy[b] * row
+        total += wz[a] * inner
+    return total
+
+
+@njit(**KERNEL_OPTIONS)
+def sample_point(coefficients, z, y, x, cval):
+    """Value at ``(z, y, x)``; ``cval`` outside ``[0, n - 1]`` along any axis."""
+    nz, ny, nx = coefficients.shape
+    if not (0.0 <= z <= nz - 1 and 0.0 <= y <= ny - 1 and 0.0 <= x <= nx - 1):
+        return cval
+    if in_interior(coefficients, z, y, x):
+        return sample_interior(coefficients, z, y, x)
+    return sample_mirrored(coefficients, z, y, x)
+
+
+@njit(**KERNEL_OPTIONS)
+def gradient_at_voxel(coefficients, iz, iy, ix):
+    """Gradient ``(d/dz, d/dy, d/dx)`` of the interpolant at an integer voxel (mirrored taps).
+
+    At integer positions the cubic B-spline weights are ``(1/6, 4/6, 1/6)`` and the derivative
+    weights ``(-1/2, 0, 1/2)``, so the gradient is a 3×3×3 stencil on the coefficients.
+    """
+    nz, ny, nx = coefficients.shape
+    value_w = (1.0 / 6.0, 4.0 / 6.0, 1.0 / 6.0)
+    deriv_w = (-0.5, 0.0, 0.5)
+    gz = 0.0
+    gy = 0.0
+    gx = 0.0
+    for a in range(3):
+        za = _mirror(iz - 1 + a, nz)
+        for b in range(3):
+            yb = _mirror(iy - 1 + b, ny)
+            for c in range(3):
+                coef = coefficients[za, yb, _mirror(ix - 1 + c, nx)]
+                gz += deriv_w[a] * value_w[b] * value_w[c] * coef
+                gy += value_w[a] * deriv_w[b] * value_w[c] * coef
+                gx += value_w[a] * value_w[b] * deriv_w[c] * coef
+    return gz, gy, gx
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def _sample_many(coefficients, points, cval, out):
+    for i in prange(points.shape[0]):
+        out[i] = sample_point(coefficients, points[i, 0], points[i, 1], points[i, 2], cval)
+
+
+@njit(**KERNEL_OPTIONS)
+def sample_with_gradient_point(coefficients, z, y, x):
+    """Value and gradient ``(v, dz, dy, dx)`` at ``(z, y, x)`` (mirrored taps)."""
+    nz, ny, nx = coefficients.shape
+    fz = np.floor(z)
+    fy = np.floor(y)
+    fx = np.floor(x)
+    wz = bspline_weights(z - fz)
+    wy = bspline_weights(y - fy)
+    wx = bspline_weights(x - fx)
+    dz = bspline_derivative_weights(z - fz)
+    dy = bspline_derivative_weights(y - fy)
+    dx = bspline_derivative_weights(x - fx)
+    iz = int(fz)
+    iy = int(fy)
+    ix = int(fx)
+    v = 0.0
+    gz = 0.0
+    gy = 0.0
+    gx = 0.0
+    for a in range(4):
+        za = _mirror(iz - 1 + a, nz)
+        for b in range(4):
+            yb = _mirror(iy - 1 + b, ny)
+            row_v = 0.0
+            row_d = 0.0
+            for c in range(4):
+                coef = coefficients[za, yb, _mirror(ix - 1 + c, nx)]
+                row_v += wx[c] * coef
+                row_d += dx[c] * coef
+            v += wz[a] * wy[b] * row_v
+            gz += dz[a] * wy[b] * row_v
+            gy += wz[a] * dy[b] * row_v
+            gx += wz[a] * wy[b] * row_d
+    return v, gz, gy, gx
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def _sample_many_with_gradient(coefficients, points, out):
+    for i in prange(points.shape[0]):
+        v, gz, gy, gx = sample_with_gradient_point(
+            coefficients, points[i, 0], points[i, 1], points[i, 2]
+        )
+        out[i, 0] = v
+        out[i, 1] = gz
+        out[i, 2] = gy
+        out[i, 3] = gx
+
+
+def _check_points(points) -> np.ndarray:
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3) in (z, y, x), got {points.shape}")
+    return points
+
+
+def sample(coefficients: np.ndarray, points: np.ndarray, cval: float = np.nan) -> np.ndarray:
+    """Interpolated values at ``points``.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (nz, ny, nx), float32
+        From :func:`prefilter`.
+    points : ndarray, shape (N, 3), float64
+        Positions ``(z, y, x)`` in voxels.
+    cval : float
+        Value returned for points outside ``[0, n - 1]`` along any axis (NaN by default).
+
+    Returns
+    -------
+    ndarray, shape (N,), float32
+    """
+    points = _check_points(points)
+    out = np.empty(points.shape[0], np.float32)
+    _sample_many(np.ascontiguousarray(coefficients, dtype=np.float32), points, float(cval), out)
+    return out
+
+
+def sample_with_gradient(coefficients: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Interpolated values and gradients at ``points`` (mirrored outside the volume).
+
+    Returns
+    -------
+    ndarray, shape (N, 4), float64
+        Columns ``value, d/dz, d/dy, d/dx`` (gray levels per voxel for the derivatives).
+    """
+    points = _check_points(points)
+    out = np.empty((points.shape[0], 4), np.float64)
+    _sample_many_with_gradient(np.ascontiguousarray(coefficients, dtype=np.float32), points, out)
+    return out
