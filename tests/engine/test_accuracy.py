@@ -1,0 +1,246 @@
+"""Phases, background residual (eq. 1), accuracy index (eq. 2) and strain-binned curves."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine.accuracy import (
+    BackgroundResidual,
+    accuracy_index,
+    auto_thresholds,
+    background_residual,
+    bin_residual_by_strain,
+    check_field_fits,
+    corrected_residual,
+    default_phase_pair,
+    phase_contrast,
+    phase_table,
+    phase_thresholds,
+    segment_phases,
+    status_volume,
+    strain_bin_edges,
+    validate_thresholds,
+    zncc_volume,
+)
+from napari_dvc_correct.engine.field import DisplacementField, Status
+from napari_dvc_correct.engine.synthetic import add_noise, two_phase_volume
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return two_phase_volume((48, 48, 48), phase_grays=(100.0, 170.0), texture=4.0, seed=2)
+
+
+def blocks(grays=(40.0, 120.0, 220.0), shape=(12, 16, 20)):
+    """Three slabs along x with exact grays: phases with a known answer."""
+    volume = np.empty(shape, np.float32)
+    thirds = np.array_split(np.arange(shape[2]), len(grays))
+    for gray, columns in zip(grays, thirds):
+        volume[:, :, columns] = gray
+    return volume
+
+
+# --- phases ---------------------------------------------------------------------------------------
+def test_auto_thresholds_split_known_phases_and_table():
+    volume = blocks()
+    thresholds = auto_thresholds(volume, n_phases=3)
+    assert 40 <= thresholds[0] < 120 <= thresholds[1] < 220
+    labels = segment_phases(volume, thresholds)
+    assert labels.dtype == np.uint8
+    assert np.array_equal(np.unique(labels[:, :, 0]), [0])
+    assert np.array_equal(np.unique(labels[:, :, -1]), [2])
+    table = phase_table(volume, labels, thresholds)
+    assert [s.mean_gray for s in table] == pytest.approx([40.0, 120.0, 220.0])
+    assert table[0].lower == 40.0 and table[-1].upper == 220.0
+    assert table[1].lower == thresholds[0] and table[1].upper == thresholds[1]
+    assert sum(s.voxels for s in table) == volume.size
+    assert sum(s.fraction for s in table) == pytest.approx(1.0)
+
+
+def test_auto_thresholds_on_noisy_two_phase_volume(clean):
+    noisy = add_noise(clean, 5.0, seed=3)
+    (threshold,) = phase_thresholds(noisy, "auto", n_phases=2)
+    assert 120 < threshold < 150  # between the phase grays 100 and 170
+    labels = segment_phases(noisy, [threshold])
+    table = phase_table(noisy, labels, [threshold])
+    # the noise averages out: the phase means are those of the clean volume on the same voxels
+    for phase in (0, 1):
+        assert table[phase].mean_gray == pytest.approx(clean[labels == phase].mean(), abs=0.3)
+    assert 0.25 < table[1].fraction < 0.45  # grain fraction 0.35
+
+
+def test_user_thresholds_are_used_as_given():
+    volume = blocks()
+    thresholds = phase_thresholds(volume, [100.0, 150.0])
+    assert np.array_equal(thresholds, [100.0, 150.0])
+    labels = segment_phases(volume, thresholds)
+    assert np.array_equal(np.bincount(labels.ravel()), [12 * 16 * 7, 12 * 16 * 7, 12 * 16 * 6])
+
+
+@pytest.mark.parametrize(
+    ("thresholds", "message"),
+    [
+        ([10.0], "outside the gray range"),
+        ([100.0, 300.0], "outside the gray range"),
+        ([150.0, 100.0], "strictly increasing"),
+        ([100.0, 100.0], "strictly increasing"),
+        ([np.nan], "finite"),
+        ([], "1 to 7"),
+    ],
+)
+def test_bad_thresholds_are_clear_errors(thresholds, message):
+    with pytest.raises(ValueError, match=message):
+        phase_thresholds(blocks(), thresholds, name="reference")
+
+
+def test_phase_with_no_voxels_is_a_clear_error():
+    # thresholds inside the range but nothing between 130 and 200
+    with pytest.raises(
+        ValueError, match=r"phase 2 \(gray 130 .. 200\) has no voxel in the deformed"
+    ):
+        segment_phases(blocks(), [100.0, 130.0, 200.0], name="deformed")
+    validate_thresholds([100.0, 130.0, 200.0], (40.0, 220.0))  # valid as numbers
+    with pytest.raises(ValueError, match="single gray value"):
+        auto_thresholds(np.full((4, 4, 4), 7.0))
+    with pytest.raises(ValueError, match="number of phases"):
+        auto_thresholds(blocks(), n_phases=1)
+
+
+# --- background residual (eq. 1) ------------------------------------------------------------------
+def test_background_residual_is_the_noise_mean(clean):
+    """Two independent noisy scans of the same material with the true (zero) field.
+
+    ``r = |n_F - n_G|`` with ``n ~ N(0, sigma^2)``: ``mean(r) = 2 sigma / sqrt(pi)``.
+    """
+    sigma = 6.0
+    reference = add_noise(clean, sigma, seed=11)
+    deformed = add_noise(clean, sigma, seed=12)
+    residual = np.abs(deformed - reference)
+    thresholds_g = phase_thresholds(reference)
+    thresholds_f = phase_thresholds(deformed)
+    labels_g = segment_phases(reference, thresholds_g)
+    labels_f = segment_phases(deformed, thresholds_f)
+    background = background_residual(residual, labels_g, labels_f)
+    expected = 2.0 * sigma / np.sqrt(np.pi)
+    assert background.mean == pytest.approx(expected, rel=0.10)
+    assert background.voxels > 0.9 * residual.size
+    for phase, mean, voxels in background.per_phase:
+        assert voxels > 1000
+        assert mean == pytest.approx(expected, rel=0.10), phase
+    # with the true field the corrected residual is centred on zero and the index is one
+    assert abs(float(np.mean(corrected_residual(residual, background)))) < 0.05 * expected
+    contrast, pair = phase_contrast(
+        phase_table(reference, labels_g, thresholds_g),
+        phase_table(deformed, labels_f, thresholds_f),
+    )
+    by_hand = [
+        abs(v[lab == 1].mean(dtype=float) - v[lab == 0].mean(dtype=float))
+        for v, lab in ((reference, labels_g), (deformed, labels_f))
+    ]
+    assert pair == (0, 1) and contrast == pytest.approx(np.mean(by_hand), rel=1e-9)
+    assert 50.0 < contrast < 70.0  # phase grays 100 and 170, blurred at the grain edges
+    assert accuracy_index(float(np.mean(residual)), background, contrast) == pytest.approx(
+        1.0, abs=0.005
+    )
+
+
+def test_background_residual_ignores_mismatched_phases_and_nan():
+    residual = np.full((2, 2, 4), 50.0)
+    residual[0] = 3.0
+    residual[0, 0, 0] = np.nan
+    labels_g = np.zeros((2, 2, 4), np.uint8)
+    labels_g[:, :, 2:] = 1
+    labels_f = labels_g.copy()
+    labels_f[1] = 1 - labels_f[1]  # the second slice is misplaced: phases disagree
+    background = background_residual(residual, labels_g, labels_f)
+    assert background.mean == 3.0 and background.voxels == 7
+    assert background.per_phase == ((0, 3.0, 3), (1, 3.0, 4))
+    with pytest.raises(ValueError, match="no voxel holds the same phase"):
+        background_residual(residual, labels_g, 1 - labels_g)
+    with pytest.raises(ValueError, match="same shape"):
+        background_residual(residual[:1], labels_g, labels_f)
+
+
+def test_accuracy_index_formula_and_phase_pair():
+    assert accuracy_index(30.0, 10.0, 80.0) == pytest.approx(0.75)
+    bins = accuracy_index(np.array([10.0, 18.0, np.nan]), BackgroundResidual(10.0, 1, ()), 80.0)
+    assert bins[:2] == pytest.approx([1.0, 0.9]) and np.isnan(bins[2])
+    with pytest.raises(ValueError, match="contrast must be > 0"):
+        accuracy_index(1.0, 0.0, 0.0)
+    volume = blocks(grays=(40.0, 120.0, 220.0), shape=(4, 4, 30))
+    volume[:, :, 18:] = 220.0  # phase 2 most abundant, then phase 0 (10 cols) > phase 1 (8)
+    thresholds = [80.0, 170.0]
+    stats = phase_table(volume, segment_phases(volume, thresholds), thresholds)
+    assert default_phase_pair(stats) == (0, 2)
+    assert phase_contrast(stats)[0] == pytest.approx(180.0)
+    assert phase_contrast(stats, pair=(1, 2))[0] == pytest.approx(100.0)
+    with pytest.raises(ValueError, match="does not exist"):
+        phase_contrast(stats, pair=(0, 5))
+
+
+# --- strain-binned curves -------------------------------------------------------------------------
+def test_binning_uses_the_nearest_node_cell():
+    field = DisplacementField.zeros(origin=(2.0, 2.0, 3.0), step=(4.0, 4.0, 6.0), shape=(3, 2, 2))
+    strain = np.arange(12, dtype=np.float64).reshape(3, 2, 2) / 100.0  # a different strain per node
+    shape = (12, 8, 12)  # cells of 4 x 4 x 6 voxels tile the volume exactly
+    # residual = 1000 * strain of the voxel's nearest node, so every bin's mean is known
+    z, y, x = np.indices(shape)
+    iz, iy, ix = (z - 2 + 2) // 4, (y - 2 + 2) // 4, (x - 3 + 3) // 6
+    residual = (1000.0 * strain[iz, iy, ix]).astype(np.float32)
+    edges = np.array([0.0, 0.035, 0.075, 0.2])
+    bins = bin_residual_by_strain(residual, strain, field, edges)
+    assert bins.voxels.tolist() == [4 * 96, 4 * 96, 4 * 96]
+    assert bins.mean_residual == pytest.approx([15.0, 55.0, 95.0])
+    # NaN strain nodes and NaN residual voxels are left out
+    strain_nan = strain.copy()
+    strain_nan[0, 0, 0] = np.nan
+    residual[11, 7, 11] = np.nan
+    bins = bin_residual_by_strain(residual, strain_nan, field, edges)
+    assert bins.voxels.tolist() == [3 * 96, 4 * 96, 4 * 96 - 1]
+    assert bins.mean_residual[0] == pytest.approx(20.0)
+    assert bins.centers == pytest.approx([0.0175, 0.055, 0.1375])
+
+
+def test_binning_leaves_out_voxels_outside_the_grid_hull():
+    field = DisplacementField.zeros(
+        origin=(10.0, 10.0, 10.0), step=(4.0, 4.0, 4.0), shape=(2, 2, 2)
+    )
+    residual = np.ones((30, 30, 30), np.float32)
+    bins = bin_residual_by_strain(residual, np.zeros((2, 2, 2)), field, [0.0, 1.0])
+    # the cells span 8..15 along each axis (half a step around nodes 10 and 14)
+    assert bins.voxels.tolist() == [8**3]
+    edges = strain_bin_edges([np.array([0.0, 0.1, np.nan]), np.array([0.2])], n_bins=4)
+    assert edges[0] == 0.0 and edges[-1] == pytest.approx(0.2, rel=0.01) and edges.size == 5
+    assert strain_bin_edges([np.zeros(3)], 2)[-1] > 0
+
+
+def test_loaded_state_binning_maps_positions_back():
+    field = DisplacementField.zeros(origin=(2.0, 2.0, 2.0), step=(4.0, 4.0, 4.0), shape=(2, 2, 2))
+    strain = np.zeros((2, 2, 2))
+    strain[1] = 0.5
+    residual = np.zeros((8, 8, 16), np.float32)
+    residual[:, :, 8:] = 7.0  # the material moved by +8 along x
+    bins = bin_residual_by_strain(
+        residual, strain, field, [0.0, 0.25, 1.0], lambda p: p - np.array([0.0, 0.0, 8.0])
+    )
+    assert bins.voxels.tolist() == [256, 256]
+    assert bins.mean_residual == pytest.approx([7.0, 7.0])
+
+
+# --- grid volumes and input checks ----------------------------------------------------------------
+def test_zncc_and_status_volumes_are_ready_to_display():
+    field = DisplacementField.zeros(origin=(5.0, 6.0, 7.0), step=(2.0, 3.0, 4.0), shape=(2, 3, 4))
+    field.zncc[:] = 0.9
+    field.status[0, 0, 0] = Status.DIVERGED
+    data, kwargs, kind = zncc_volume(field)
+    assert kind == "image" and data.shape == (2, 3, 4) and np.all(data == np.float32(0.9))
+    assert kwargs["scale"] == (2.0, 3.0, 4.0) and kwargs["translate"] == (5.0, 6.0, 7.0)
+    labels, kwargs, kind = status_volume(field)
+    assert kind == "labels" and labels[0, 0, 0] == Status.DIVERGED + 1 and labels[1, 1, 1] == 1
+    assert kwargs["metadata"]["status_names"][labels[0, 0, 0]] == "diverged"
+
+
+def test_field_grid_must_fit_the_volume():
+    field = DisplacementField.zeros(origin=(8.0, 8.0, 8.0), step=(8.0, 8.0, 8.0), shape=(4, 4, 4))
+    check_field_fits(field, (40, 40, 40))
+    with pytest.raises(ValueError, match=r"along axis y .* 8..32 voxels but the volume has 30"):
+        check_field_fits(field, (40, 30, 40))
