@@ -1,0 +1,124 @@
+"""npe2 reader: TIFF volumes, folders of TIFF slices, and the plugin's ``.npz`` field files.
+
+A field file opens as the layers of :func:`napari_dvc_correct.layers.field_layers` (vectors,
+``|u|``, components, ZNCC, status, εeq), named after the file. An ``.npz`` that is not a field
+file is not ours: :func:`napari_get_reader` returns None so napari can try other readers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+TIFF_SUFFIXES = (".tif", ".tiff")
+
+
+def _tiff_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in TIFF_SUFFIXES)
+
+
+def is_field_file(path: str | os.PathLike) -> bool:
+    """True if ``path`` is a readable ``.npz`` field file (see :mod:`napari_dvc_correct.io.npz`)."""
+    from .io.npz import FORMAT_NAME
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            if "format.npy" not in archive.namelist():
+                return False
+        with np.load(path, allow_pickle=False) as data:
+            return str(data["format"]) == FORMAT_NAME
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return False
+
+
+def napari_get_reader(path):
+    """Return a reader function for ``path``, or None if this plugin cannot read it.
+
+    Parameters
+    ----------
+    path : str or list of str
+        A file, a folder of TIFF slices, or a list of TIFF slice files (read as one stack).
+    """
+    if isinstance(path, (list, tuple)):
+        paths = [Path(p) for p in path]
+        if len(paths) == 1:
+            return napari_get_reader(str(paths[0]))
+        if paths and all(p.suffix.lower() in TIFF_SUFFIXES and p.is_file() for p in paths):
+            return read_tiff_slices
+        return None
+    path = Path(path)
+    if path.is_dir():
+        return read_tiff_folder if _tiff_files(path) else None
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        return read_field_file if is_field_file(path) else None
+    if suffix in TIFF_SUFFIXES and path.is_file():
+        return read_tiff
+    return None
+
+
+def _placement_from_tiff(tif) -> dict:
+    """``scale``/``translate`` stored by :func:`..io.export.export_volume_tiff`, if any."""
+    metadata = tif.imagej_metadata or {}
+    try:
+        info = json.loads(metadata.get("Info", "{}"))
+    except (TypeError, ValueError):
+        return {}
+    placement = {}
+    for key in ("scale", "translate"):
+        value = info.get(key) if isinstance(info, dict) else None
+        if isinstance(value, list) and len(value) == 3:
+            placement[key] = [float(v) for v in value]
+    return placement
+
+
+def read_tiff(path) -> list[tuple]:
+    """Read one TIFF (memory-mapped when its layout allows) as an Image layer."""
+    import tifffile
+
+    path = Path(path[0] if isinstance(path, (list, tuple)) else path)
+    with tifffile.TiffFile(path) as tif:
+        placement = _placement_from_tiff(tif)
+    try:
+        data = tifffile.memmap(path, mode="r")
+    except (ValueError, OSError):
+        data = tifffile.imread(path)
+    if len(placement.get("scale", [])) != min(data.ndim, 3) or data.ndim != 3:
+        placement = {}
+    return [(data, {"name": path.stem, **placement}, "image")]
+
+
+def read_tiff_folder(path) -> list[tuple]:
+    """Read a folder of 2-D TIFF slices (sorted by name) as one 3-D Image layer."""
+    from .io.volumes import read_volume
+
+    path = Path(path[0] if isinstance(path, (list, tuple)) else path)
+    return [(read_volume(path), {"name": path.name}, "image")]
+
+
+def read_tiff_slices(paths) -> list[tuple]:
+    """Read a list of 2-D TIFF slice files (in the given order) as one 3-D Image layer."""
+    import tifffile
+
+    paths = [Path(p) for p in paths]
+    return [(tifffile.imread(paths), {"name": paths[0].parent.name or paths[0].stem}, "image")]
+
+
+def read_field_file(path) -> list[tuple]:
+    """Read a field file as the plugin's layers (vectors, |u|, components, ZNCC, status, εeq)."""
+    from .engine.strain import equivalent_strain_field
+    from .io.npz import load_field
+    from .layers import field_layers
+
+    path = Path(path[0] if isinstance(path, (list, tuple)) else path)
+    field = load_field(path)
+    voxel_size = field.metadata.get("voxel_size")
+    offset = field.metadata.get("offset")
+    equivalent = equivalent_strain_field(field) if min(field.shape) >= 2 else None
+    return field_layers(
+        field, path.stem, voxel_size=voxel_size, offset=offset, equivalent_strain=equivalent
+    )

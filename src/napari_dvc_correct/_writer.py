@@ -1,0 +1,62 @@
+"""npe2 writer: displacement field files (``.npz``) from the layers the plugin made.
+
+Every field layer the plugin makes (vectors, ``|u|``, components, ZNCC, status, εeq) carries its
+:class:`~napari_dvc_correct.engine.field.DisplacementField` in ``metadata["dvc_correct"]["field"]``;
+the writer saves that field, not the displayed (subsampled) layer data. Selecting layers of
+several fields (e.g. uncorrected and corrected) writes one file per field, named
+``STEM_SOURCE.npz``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def write_fields(path: str, layer_data: list[tuple]) -> list[str]:
+    """Write the fields behind the selected plugin layers.
+
+    Parameters
+    ----------
+    path : str
+        Target file; ``.npz`` is appended when missing.
+    layer_data : list of (data, meta, layer_type)
+        The selected layers, as napari passes them to a multi-layer writer.
+
+    Returns
+    -------
+    list of str
+        Paths written.
+
+    Raises
+    ------
+    ValueError
+        If none of the layers was made by the plugin from a field.
+    """
+    from .io.npz import save_field
+    from .layers import field_of, plugin_metadata
+
+    fields, sources = [], []
+    for _data, meta, _layer_type in layer_data:
+        metadata = meta.get("metadata", {})
+        field = field_of(metadata)
+        if field is not None and not any(field is known for known in fields):
+            fields.append(field)
+            sources.append(str(plugin_metadata(metadata).get("source", "field")))
+    if not fields:
+        names = ", ".join(str(meta.get("name", "?")) for _d, meta, _t in layer_data)
+        raise ValueError(
+            f"none of the selected layers ({names}) holds a displacement field made by the DVC "
+            "plugin; select a displacement, |u|, ZNCC, status or εeq layer"
+        )
+    target = Path(path)
+    if target.suffix.lower() != ".npz":
+        target = target.with_name(target.name + ".npz")
+    written = []
+    for field, source in zip(fields, sources):
+        out = target
+        if len(fields) > 1:
+            safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in source)
+            out = target.with_name(f"{target.stem}_{safe}.npz")
+        save_field(field, out)
+        written.append(str(out))
+    return written

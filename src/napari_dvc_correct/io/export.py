@@ -1,0 +1,454 @@
+"""Exporting fields and volumes: HDF5, VTK image data (ParaView), TIFF stacks, CSV, reports.
+
+Every writer is atomic (see :func:`~napari_dvc_correct.io.atomic.atomic_path`): a failed or
+interrupted export leaves an existing file untouched. No Qt, no napari, no vtk dependency: the VTK
+files are written here directly.
+
+Grid quantities beyond the field itself (equivalent strain, ...) are passed as ``extra``: a dict of
+arrays of the grid shape ``(nz, ny, nx)``, written next to the field's own arrays.
+
+Axis order: numpy arrays are ``(z, y, x)`` as everywhere in the package. VTK wants points with x
+varying fastest (which is numpy's C order of a ``(z, y, x)`` array), dimensions/spacing/origin as
+``(x, y, z)`` and vectors as ``(ux, uy, uz)``: the VTK writers reorder these, nothing else does.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..engine.field import DisplacementField, Provenance, Status
+from .atomic import atomic_path
+from .npz import _json_default, save_field
+
+#: File suffixes :func:`export_field` understands, and what they write.
+FIELD_FORMATS = {
+    ".npz": "napari-dvc-correct field (numpy .npz)",
+    ".h5": "HDF5",
+    ".hdf5": "HDF5",
+    ".vti": "VTK XML image data (ParaView)",
+    ".vtk": "VTK legacy structured points (ParaView)",
+    ".csv": "CSV, one row per POI",
+    ".tif": "TIFF stacks, one file per component",
+    ".tiff": "TIFF stacks, one file per component",
+}
+
+
+def _json(value) -> str:
+    return json.dumps(value, default=_json_default)
+
+
+def _check_extra(field: DisplacementField, extra: dict | None) -> dict[str, np.ndarray]:
+    checked = {}
+    for name, values in (extra or {}).items():
+        array = np.asarray(values)
+        if array.shape != field.shape:
+            raise ValueError(
+                f"extra array {name!r} must have the grid shape {field.shape}, got {array.shape}"
+            )
+        checked[str(name)] = array
+    return checked
+
+
+def _voxel_size(voxel_size) -> np.ndarray:
+    vs = np.ones(3) if voxel_size is None else np.asarray(voxel_size, dtype=np.float64)
+    vs = np.broadcast_to(vs, (3,)).astype(np.float64)
+    if not np.all(np.isfinite(vs) & (vs > 0)):
+        raise ValueError(f"voxel_size must be 3 positive numbers (z, y, x), got {voxel_size!r}")
+    return vs
+
+
+# -- HDF5 --------------------------------------------------------------------------------------
+def export_hdf5(
+    field: DisplacementField,
+    path: str | os.PathLike,
+    *,
+    extra: dict | None = None,
+    volumes: dict | None = None,
+    voxel_size=None,
+) -> Path:
+    """Write the field (and optional grid or dense quantities) to an HDF5 file.
+
+    Layout: group ``/field`` with datasets ``u`` (nz, ny, nx, 3), ``zncc``, ``status``,
+    ``iterations``, ``provenance``, ``gradient`` (if any), ``points`` (N, 3) and ``displacement``
+    (N, 3); attributes ``origin``, ``step``, ``voxel_size`` (z, y, x), ``params`` and ``metadata``
+    (JSON), ``status_names`` and ``provenance_names``. Group ``/grid`` holds the ``extra`` arrays
+    (grid shape), group ``/volumes`` the ``volumes`` (dense, e.g. the gray residual).
+    """
+    import h5py
+
+    extra = _check_extra(field, extra)
+    vs = _voxel_size(voxel_size)
+    path = Path(path)
+    with atomic_path(path) as temp:
+        with h5py.File(temp, "w") as h5:
+            group = h5.create_group("field")
+            options = {"compression": "gzip", "compression_opts": 4}
+            for name in ("u", "zncc", "status", "iterations", "provenance"):
+                group.create_dataset(name, data=getattr(field, name), **options)
+            if field.gradient is not None:
+                group.create_dataset("gradient", data=field.gradient, **options)
+            group.create_dataset("points", data=field.points, **options)
+            group.create_dataset("displacement", data=field.displacement, **options)
+            group.attrs["origin"] = np.asarray(field.origin)
+            group.attrs["step"] = np.asarray(field.step)
+            group.attrs["voxel_size"] = vs
+            group.attrs["axis_order"] = "z, y, x"
+            group.attrs["units"] = "voxels"
+            group.attrs["params"] = _json(field.params)
+            group.attrs["metadata"] = _json(field.metadata)
+            group.attrs["status_names"] = _json({int(s): s.label for s in Status})
+            group.attrs["provenance_names"] = _json({int(p): p.label for p in Provenance})
+            if extra:
+                grid = h5.create_group("grid")
+                for name, values in extra.items():
+                    grid.create_dataset(name, data=values, **options)
+            if volumes:
+                dense = h5.create_group("volumes")
+                for name, values in volumes.items():
+                    dense.create_dataset(str(name), data=np.asarray(values), **options)
+    return path
+
+
+# -- VTK ---------------------------------------------------------------------------------------
+_VTK_TYPES = {
+    np.dtype(np.float32): ("Float32", "float"),
+    np.dtype(np.float64): ("Float64", "double"),
+    np.dtype(np.int32): ("Int32", "int"),
+    np.dtype(np.uint8): ("UInt8", "unsigned_char"),
+}
+
+
+def _vtk_arrays(field: DisplacementField, extra: dict, vs: np.ndarray) -> list[tuple]:
+    """``(name, array (N, components) in VTK point order, n_components)``."""
+    n = field.n_points
+    # displacement in physical units, components reordered to (x, y, z)
+    u = (field.u * vs).reshape(n, 3)[:, ::-1].astype(np.float32)
+    arrays = [
+        ("displacement", np.ascontiguousarray(u), 3),
+        ("magnitude", np.linalg.norm(u, axis=1).astype(np.float32).reshape(n, 1), 1),
+        ("zncc", field.zncc.reshape(n, 1), 1),
+        ("status", field.status.reshape(n, 1), 1),
+        ("iterations", field.iterations.reshape(n, 1), 1),
+        ("provenance", field.provenance.reshape(n, 1), 1),
+    ]
+    for name, values in extra.items():
+        values = np.asarray(values)
+        if values.dtype not in _VTK_TYPES:
+            values = values.astype(np.float32)
+        arrays.append((name.replace(" ", "_"), values.reshape(n, 1), 1))
+    return arrays
+
+
+def export_vtk(
+    field: DisplacementField,
+    path: str | os.PathLike,
+    *,
+    extra: dict | None = None,
+    voxel_size=None,
+) -> Path:
+    """Write the field as VTK image data for ParaView: XML ``.vti`` or legacy ``.vtk``.
+
+    The grid becomes the image (origin and spacing ``origin * voxel_size`` and
+    ``step * voxel_size``, reordered to x, y, z); point data hold ``displacement`` (a 3-vector
+    ``(ux, uy, uz)`` in physical units, ready for ParaView's *Warp By Vector* and *Glyph*),
+    ``magnitude``, ``zncc``, ``status``, ``iterations``, ``provenance`` and the ``extra`` grid
+    arrays.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".vti", ".vtk"):
+        raise ValueError(f"{path}: a VTK export must end in .vti (XML) or .vtk (legacy)")
+    extra = _check_extra(field, extra)
+    vs = _voxel_size(voxel_size)
+    arrays = _vtk_arrays(field, extra, vs)
+    origin = (np.asarray(field.origin) * vs)[::-1]
+    spacing = (np.asarray(field.step) * vs)[::-1]
+    dims = field.shape[::-1]
+    with atomic_path(path) as temp:
+        if suffix == ".vti":
+            _write_vti(temp, dims, origin, spacing, arrays)
+        else:
+            _write_legacy_vtk(temp, dims, origin, spacing, arrays)
+    return path
+
+
+def _fmt(values) -> str:
+    return " ".join(repr(float(v)) for v in values)
+
+
+def _write_vti(path: Path, dims, origin, spacing, arrays) -> None:
+    """XML ImageData with raw appended little-endian binary blocks (UInt64 byte-count headers)."""
+    extent = " ".join(f"0 {n - 1}" for n in dims)
+    lines = [
+        '<?xml version="1.0"?>',
+        '<VTKFile type="ImageData" version="1.0" byte_order="LittleEndian" header_type="UInt64">',
+        f'  <ImageData WholeExtent="{extent}" Origin="{_fmt(origin)}" '
+        f'Spacing="{_fmt(spacing)}" Direction="1 0 0 0 1 0 0 0 1">',
+        f'    <Piece Extent="{extent}">',
+        '      <PointData Scalars="magnitude" Vectors="displacement">',
+    ]
+    blocks, offset = [], 0
+    for name, values, components in arrays:
+        vtk_type = _VTK_TYPES[np.dtype(values.dtype)][0]
+        raw = np.ascontiguousarray(values).astype(values.dtype.newbyteorder("<")).tobytes()
+        lines.append(
+            f'        <DataArray type="{vtk_type}" Name="{name}" '
+            f'NumberOfComponents="{components}" format="appended" offset="{offset}"/>'
+        )
+        block = np.uint64(len(raw)).astype("<u8").tobytes() + raw
+        blocks.append(block)
+        offset += len(block)
+    lines += [
+        "      </PointData>",
+        "    </Piece>",
+        "  </ImageData>",
+        '  <AppendedData encoding="raw">',
+    ]
+    with open(path, "wb") as stream:
+        stream.write(("\n".join(lines) + "\n   _").encode("ascii"))
+        for block in blocks:
+            stream.write(block)
+        stream.write(b"\n  </AppendedData>\n</VTKFile>\n")
+
+
+def _write_legacy_vtk(path: Path, dims, origin, spacing, arrays) -> None:
+    """Legacy ``DATASET STRUCTURED_POINTS``, binary (big-endian) point data."""
+    n = int(np.prod(dims))
+    header = (
+        "# vtk DataFile Version 3.0\n"
+        "napari-dvc-correct displacement field\n"
+        "BINARY\n"
+        "DATASET STRUCTURED_POINTS\n"
+        f"DIMENSIONS {dims[0]} {dims[1]} {dims[2]}\n"
+        f"ORIGIN {_fmt(origin)}\n"
+        f"SPACING {_fmt(spacing)}\n"
+        f"POINT_DATA {n}\n"
+    )
+    with open(path, "wb") as stream:
+        stream.write(header.encode("ascii"))
+        for name, values, components in arrays:
+            legacy_type = _VTK_TYPES[np.dtype(values.dtype)][1]
+            if components == 3:
+                stream.write(f"VECTORS {name} {legacy_type}\n".encode("ascii"))
+            else:
+                stream.write(f"SCALARS {name} {legacy_type} 1\nLOOKUP_TABLE default\n".encode())
+            stream.write(values.astype(values.dtype.newbyteorder(">")).tobytes())
+            stream.write(b"\n")
+
+
+# -- TIFF --------------------------------------------------------------------------------------
+def export_volume_tiff(
+    volume: np.ndarray,
+    path: str | os.PathLike,
+    *,
+    scale=None,
+    translate=None,
+    description: dict | None = None,
+) -> Path:
+    """Write one 3-D volume ``(z, y, x)`` to a TIFF stack (float32 unless integer).
+
+    ``scale`` and ``translate`` (z, y, x, world units per voxel and world position of voxel 0)
+    go into the ImageJ ``spacing``/resolution tags and into a JSON image description, so the
+    stack can be placed back over the volume.
+    """
+    import tifffile
+
+    volume = np.asarray(volume)
+    if volume.ndim != 3:
+        raise ValueError(f"a TIFF volume must be 3-D (z, y, x), got shape {volume.shape}")
+    if volume.dtype.kind == "f" or volume.dtype == np.float64:
+        volume = volume.astype(np.float32)
+    elif volume.dtype.kind == "b":
+        volume = volume.astype(np.uint8)
+    scale = _voxel_size(scale)
+    info = {
+        "axes": "ZYX",
+        "scale": [float(s) for s in scale],
+        "translate": [float(t) for t in (np.zeros(3) if translate is None else translate)],
+        **(description or {}),
+    }
+    path = Path(path)
+    with atomic_path(path) as temp:
+        tifffile.imwrite(
+            temp,
+            volume,
+            imagej=volume.dtype in (np.uint8, np.uint16, np.float32),
+            resolution=(1.0 / scale[2], 1.0 / scale[1]),
+            metadata={"spacing": float(scale[0]), "axes": "ZYX", "Info": _json(info)},
+        )
+    return path
+
+
+def export_tiff(
+    field: DisplacementField,
+    path: str | os.PathLike,
+    *,
+    extra: dict | None = None,
+    voxel_size=None,
+) -> list[Path]:
+    """Write each grid quantity of the field as its own TIFF stack.
+
+    ``path`` names the set: ``result.tif`` writes ``result_uz.tif``, ``result_uy.tif``,
+    ``result_ux.tif``, ``result_magnitude.tif``, ``result_zncc.tif``, ``result_status.tif`` and one
+    file per ``extra`` array. Each stack's scale is ``step * voxel_size`` and its translate
+    ``origin * voxel_size``.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    path = Path(path)
+    extra = _check_extra(field, extra)
+    vs = _voxel_size(voxel_size)
+    suffix = path.suffix if path.suffix.lower() in (".tif", ".tiff") else ".tif"
+    stem = path.with_suffix("") if path.suffix.lower() in (".tif", ".tiff") else path
+    quantities = {
+        "uz": field.u[..., 0].astype(np.float32),
+        "uy": field.u[..., 1].astype(np.float32),
+        "ux": field.u[..., 2].astype(np.float32),
+        "magnitude": field.magnitude.astype(np.float32),
+        "zncc": field.zncc,
+        "status": field.status,
+        **extra,
+    }
+    placement = {
+        "scale": np.asarray(field.step) * vs,
+        "translate": np.asarray(field.origin) * vs,
+    }
+    written = []
+    for name, values in quantities.items():
+        target = stem.parent / f"{stem.name}_{name.replace(' ', '_')}{suffix}"
+        export_volume_tiff(
+            values, target, description={"quantity": name, "units": "voxels"}, **placement
+        )
+        written.append(target)
+    return written
+
+
+# -- CSV ---------------------------------------------------------------------------------------
+def export_csv(
+    field: DisplacementField,
+    path: str | os.PathLike,
+    *,
+    extra: dict | None = None,
+    voxel_size=None,
+) -> Path:
+    """Write one row per POI: position, displacement, quality and any ``extra`` grid arrays.
+
+    Columns: ``z, y, x`` (voxels), ``uz, uy, ux, magnitude`` (voxels), ``zncc``, ``status``
+    (code), ``status_name``, ``provenance``, ``provenance_name``, ``iterations``, then the
+    ``extra`` names; with a ``voxel_size`` also the physical position and displacement
+    (``z_phys``..., ``uz_phys``...). Rows follow the grid's C order.
+    """
+    extra = _check_extra(field, extra)
+    vs = None if voxel_size is None else _voxel_size(voxel_size)
+    points, u = field.points, field.displacement
+    columns = ["z", "y", "x", "uz", "uy", "ux", "magnitude", "zncc", "status", "status_name"]
+    columns += ["provenance", "provenance_name", "iterations", *extra]
+    if vs is not None:
+        columns += ["z_phys", "y_phys", "x_phys", "uz_phys", "uy_phys", "ux_phys"]
+    status_names = {int(s): s.label for s in Status}
+    provenance_names = {int(p): p.label for p in Provenance}
+    status, provenance = field.status.ravel(), field.provenance.ravel()
+    zncc, iterations = field.zncc.ravel(), field.iterations.ravel()
+    magnitude = field.magnitude.ravel()
+    flat_extra = [np.asarray(v).ravel() for v in extra.values()]
+    path = Path(path)
+    with atomic_path(path) as temp:
+        with open(temp, "w", newline="", encoding="utf-8") as stream:
+            writer = csv.writer(stream)
+            writer.writerow(columns)
+            for i in range(field.n_points):
+                row = [*points[i], *u[i], magnitude[i], zncc[i], int(status[i])]
+                row += [status_names.get(int(status[i]), str(status[i]))]
+                row += [int(provenance[i]), provenance_names.get(int(provenance[i]), "")]
+                row += [int(iterations[i]), *(values[i] for values in flat_extra)]
+                if vs is not None:
+                    row += [*(points[i] * vs), *(u[i] * vs)]
+                writer.writerow(
+                    [f"{v:.9g}" if isinstance(v, (float, np.floating)) else v for v in row]
+                )
+    return path
+
+
+# -- reports -----------------------------------------------------------------------------------
+def export_report(report: dict, path: str | os.PathLike) -> Path:
+    """Write an evaluation report: JSON for ``.json``, readable Markdown otherwise.
+
+    Parameters
+    ----------
+    report : dict
+        JSON-serialisable values (numpy scalars and arrays are converted); nested dicts become
+        sections in Markdown.
+    """
+    path = Path(path)
+    with atomic_path(path) as temp:
+        if path.suffix.lower() == ".json":
+            text = json.dumps(report, indent=2, default=_json_default)
+        else:
+            text = _markdown(report)
+        temp.write_text(text + "\n", encoding="utf-8")
+    return path
+
+
+def _markdown(report: dict, level: int = 1) -> str:
+    lines = []
+    title = report.get("title", "DVC evaluation report") if level == 1 else None
+    if title:
+        lines.append(f"# {title}\n")
+    scalars = {k: v for k, v in report.items() if not isinstance(v, dict) and k != "title"}
+    if scalars:
+        lines += ["| quantity | value |", "|---|---|"]
+        for key, value in scalars.items():
+            if isinstance(value, (float, np.floating)):
+                value = f"{value:.6g}"
+            elif isinstance(value, (list, tuple, np.ndarray)):
+                value = ", ".join(
+                    f"{v:.4g}" if isinstance(v, (float, np.floating)) else str(v)
+                    for v in np.asarray(value).ravel()[:50]
+                )
+            lines.append(f"| {key} | {value} |")
+        lines.append("")
+    for key, value in report.items():
+        if isinstance(value, dict):
+            lines.append(f"{'#' * min(level + 1, 6)} {key}\n")
+            lines.append(_markdown(value, level + 1))
+    return "\n".join(lines)
+
+
+# -- dispatch ----------------------------------------------------------------------------------
+def export_field(
+    field: DisplacementField,
+    path: str | os.PathLike,
+    *,
+    extra: dict | None = None,
+    voxel_size=None,
+) -> list[Path]:
+    """Export ``field`` in the format named by the suffix of ``path`` (see :data:`FIELD_FORMATS`).
+
+    Returns
+    -------
+    list of Path
+        The files written (several for TIFF).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        save_field(field, path)  # the native format holds the field only (no extra arrays)
+        return [path]
+    if suffix in (".h5", ".hdf5"):
+        return [export_hdf5(field, path, extra=extra, voxel_size=voxel_size)]
+    if suffix in (".vti", ".vtk"):
+        return [export_vtk(field, path, extra=extra, voxel_size=voxel_size)]
+    if suffix == ".csv":
+        return [export_csv(field, path, extra=extra, voxel_size=voxel_size)]
+    if suffix in (".tif", ".tiff"):
+        return export_tiff(field, path, extra=extra, voxel_size=voxel_size)
+    known = ", ".join(sorted(FIELD_FORMATS))
+    raise ValueError(f"{path}: unknown export format {suffix!r}; use one of {known}")

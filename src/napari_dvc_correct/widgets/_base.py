@@ -1,0 +1,275 @@
+"""What every panel shares: running an engine generator in a thread worker, layer pickers, messages.
+
+:class:`EngineWidget` is the one generic base: a panel builds its form, implements
+:meth:`EngineWidget.prepare` (validate the choices and return the engine generator to run) and
+:meth:`EngineWidget.on_result` (turn the result into layers). The base makes the worker unstarted,
+connects ``yielded``/``returned``/``errored``/``aborted``/``finished`` to bound methods, then starts
+it; it drives the progress bar, the Run/Cancel buttons and the message line. Layers are touched only
+in the main-thread slots, so a cancelled run leaves every earlier layer as it was.
+
+Errors never show a traceback: bad choices (:class:`ValueError` from ``prepare`` or the engine) go
+to the message line and to ``napari.utils.notifications.show_error``; unexpected errors are
+logged with their traceback and shown as one line.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Generator
+
+from napari.utils.notifications import show_error, show_info
+from qtpy.QtCore import Qt, QTimer
+from qtpy.QtWidgets import (
+    QComboBox,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QProgressBar,
+    QPushButton,
+    QVBoxLayout,
+    QWidget,
+)
+from superqt.utils import GeneratorWorker, create_worker
+
+from ..engine.progress import Progress
+
+log = logging.getLogger(__name__)
+
+
+class EngineError(Exception):
+    """An error raised inside a worker (re-raised under this type so the worker reports it).
+
+    superqt's worker treats a :class:`RuntimeError` from the generator as "the worker was
+    deleted" and swallows it; wrapping keeps every failure visible.
+    """
+
+
+def _guarded(generator: Generator) -> Generator:
+    try:
+        return (yield from generator)
+    except ValueError:
+        raise
+    except RuntimeError as error:
+        raise EngineError(str(error)) from error
+
+
+def one_line(error: BaseException) -> str:
+    """A short, single-line message for ``error``."""
+    text = " ".join(str(error).split())
+    return text if text else type(error).__name__
+
+
+class LayerCombo(QComboBox):
+    """A combo box of the viewer's layers that pass ``accept``, kept in sync with the viewer.
+
+    The first entry is ``"(none)"`` when ``optional``. The current choice survives list changes
+    while the layer still exists.
+    """
+
+    def __init__(self, viewer, accept: Callable, optional: bool = False, parent=None) -> None:
+        super().__init__(parent)
+        self._viewer = viewer
+        self._accept = accept
+        self._optional = optional
+        self.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        self.setMinimumContentsLength(12)
+        events = viewer.layers.events
+        for event in (events.inserted, events.removed, events.moved):
+            event.connect(self.refresh)
+        self.refresh()
+
+    def layers(self) -> list:
+        return [layer for layer in self._viewer.layers if self._accept(layer)]
+
+    def refresh(self, event=None) -> None:
+        current = self.currentText()
+        self.blockSignals(True)
+        self.clear()
+        if self._optional:
+            self.addItem("(none)")
+        for layer in self.layers():
+            self.addItem(layer.name)
+            layer.events.name.connect(self._renamed)
+        index = self.findText(current)
+        self.blockSignals(False)
+        if index >= 0:
+            self.setCurrentIndex(index)
+        else:
+            self.currentIndexChanged.emit(self.currentIndex())
+
+    def _renamed(self, event=None) -> None:
+        self.refresh()
+
+    def layer(self):
+        """The chosen layer, or None."""
+        name = self.currentText()
+        if name and name in self._viewer.layers:
+            layer = self._viewer.layers[name]
+            return layer if self._accept(layer) else None
+        return None
+
+    def set_layer(self, layer_or_name) -> bool:
+        """Choose a layer by object or name; False if it is not in the list."""
+        name = getattr(layer_or_name, "name", layer_or_name)
+        index = self.findText(str(name))
+        if index >= 0:
+            self.setCurrentIndex(index)
+        return index >= 0
+
+
+class EngineWidget(QWidget):
+    """Base of the panels that run engine work: form, Run/Cancel, progress bar, message line.
+
+    Subclasses add their controls to :attr:`form` (a ``QFormLayout``) or :attr:`body` (the
+    vertical layout, for anything else), and implement :meth:`prepare` and :meth:`on_result`.
+    """
+
+    run_text = "Run"
+
+    def __init__(self, napari_viewer, parent=None) -> None:
+        super().__init__(parent)
+        self.viewer = napari_viewer
+        self.worker: GeneratorWorker | None = None
+        self.body = QVBoxLayout(self)
+        self.form = QFormLayout()
+        self.body.addLayout(self.form)
+        self.controls = QVBoxLayout()
+        self.body.addLayout(self.controls)
+        buttons = QHBoxLayout()
+        self.run_button = QPushButton(self.run_text)
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.setEnabled(False)
+        buttons.addWidget(self.run_button)
+        buttons.addWidget(self.cancel_button)
+        self.body.addLayout(buttons)
+        self.progress_bar = QProgressBar()
+        self.progress_bar.setRange(0, 1000)
+        self.progress_bar.setValue(0)
+        self.progress_bar.setFormat("%p%")
+        self.body.addWidget(self.progress_bar)
+        self.stage_label = QLabel("")
+        self.body.addWidget(self.stage_label)
+        self.message = QLabel("")
+        self.message.setWordWrap(True)
+        self.message.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.body.addWidget(self.message)
+        self.run_button.clicked.connect(self.run)
+        self.cancel_button.clicked.connect(self.cancel)
+        self.last_error: str | None = None
+
+    # -- what subclasses implement ------------------------------------------------------------
+    def prepare(self) -> Generator:
+        """Validate the choices and return the engine generator to run (raise ValueError)."""
+        raise NotImplementedError
+
+    def on_result(self, result) -> None:
+        """Turn the generator's return value into layers (main thread)."""
+        raise NotImplementedError
+
+    def on_partial(self, value) -> None:
+        """Handle a yielded value that is not a :class:`Progress` (main thread)."""
+
+    # -- messages -----------------------------------------------------------------------------
+    def show_message(self, text: str, error: bool = False) -> None:
+        """Show ``text`` in the dock's message line (red for errors) and as a notification."""
+        self.message.setStyleSheet("color: #e05050;" if error else "")
+        self.message.setText(text)
+        if error:
+            self.last_error = text
+            show_error(text)
+        elif text:
+            show_info(text)
+
+    def clear_message(self) -> None:
+        self.message.setStyleSheet("")
+        self.message.setText("")
+        self.last_error = None
+
+    # -- running ------------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self.worker is not None
+
+    def run(self, checked: bool = False) -> GeneratorWorker | None:
+        """Validate, then start the engine generator in a worker; returns the worker or None."""
+        if self.running:
+            return None
+        self.clear_message()
+        try:
+            generator = self.prepare()
+        except ValueError as error:
+            self.show_message(one_line(error), error=True)
+            return None
+        return self.start(generator)
+
+    def start(self, generator: Generator) -> GeneratorWorker:
+        """Run ``generator`` in a thread worker wired to this panel's slots."""
+        worker = create_worker(_guarded, generator, _start_thread=False)
+        worker.yielded.connect(self._on_yielded)
+        worker.returned.connect(self._on_returned)
+        worker.errored.connect(self._on_errored)
+        worker.aborted.connect(self._on_aborted)
+        worker.finished.connect(self._on_finished)
+        self.worker = worker
+        self.run_button.setEnabled(False)
+        self.cancel_button.setEnabled(True)
+        self.progress_bar.setValue(0)
+        self.stage_label.setText("starting…")
+        worker.start()
+        return worker
+
+    def cancel(self, checked: bool = False) -> None:
+        """Ask the worker to stop at its next progress report; earlier layers stay."""
+        if self.worker is not None:
+            self.stage_label.setText("cancelling…")
+            self.worker.quit()
+
+    def _on_yielded(self, value) -> None:
+        if isinstance(value, Progress):
+            self.progress_bar.setValue(int(round(1000 * value.fraction)))
+            text = value.stage if not value.message else f"{value.stage}: {value.message}"
+            self.stage_label.setText(text)
+        else:
+            self.on_partial(value)
+
+    def _on_returned(self, result) -> None:
+        self.progress_bar.setValue(1000)
+        try:
+            self.on_result(result)
+        except ValueError as error:
+            self.show_message(one_line(error), error=True)
+
+    def _on_errored(self, error: Exception) -> None:
+        if not isinstance(error, ValueError):
+            log.error("DVC run failed", exc_info=(type(error), error, error.__traceback__))
+        self.stage_label.setText("failed")
+        self.show_message(one_line(error), error=True)
+
+    def _on_aborted(self) -> None:
+        self.progress_bar.setValue(0)
+        self.stage_label.setText("cancelled")
+        self.show_message("Cancelled: the layers from earlier runs are unchanged.")
+
+    def _on_finished(self) -> None:
+        self.worker = None
+        self.run_button.setEnabled(True)
+        self.cancel_button.setEnabled(False)
+
+
+class Debouncer:
+    """Call ``callback`` once, ``delay_ms`` after the last :meth:`trigger` (main thread)."""
+
+    def __init__(self, callback: Callable[[], None], delay_ms: int = 150, parent=None) -> None:
+        self.timer = QTimer(parent)
+        self.timer.setSingleShot(True)
+        self.timer.setInterval(delay_ms)
+        self.timer.timeout.connect(callback)
+
+    def trigger(self, *args) -> None:
+        self.timer.start()
+
+    def flush(self) -> None:
+        """Run a pending call now (tests, and before a run)."""
+        if self.timer.isActive():
+            self.timer.stop()
+            self.timer.timeout.emit()

@@ -1,0 +1,415 @@
+"""The Correlate dock: pick the scans and the parameters, preview the POI grid, run DVC."""
+
+from __future__ import annotations
+
+import numpy as np
+from napari.layers import Image, Labels, Shapes
+from qtpy.QtCore import Qt
+from qtpy.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QGroupBox,
+    QLabel,
+    QListWidget,
+    QListWidgetItem,
+    QSpinBox,
+    QVBoxLayout,
+)
+
+from .. import layers as L
+from . import correlate_model as model
+from ._base import Debouncer, EngineWidget, LayerCombo, one_line
+
+MODES = {
+    "pair": "Pair: reference → deformed",
+    "series4d": "Series: one 4-D layer (state, z, y, x)",
+    "series": "Series: several layers (in list order)",
+}
+PREVIEW_POINTS = "POI grid (preview)"
+PREVIEW_BOX = "subvolume (preview)"
+
+
+def _made_by_us(layer) -> bool:
+    """Layers the plugin computed (fields, previews...), as opposed to input scans."""
+    entry = L.plugin_metadata(layer)
+    return entry is not None and "kind" in entry
+
+
+def _role(layer) -> str | None:
+    """``"reference"``, ``"deformed"`` or ``"series"`` for the sample data's layers."""
+    entry = L.plugin_metadata(layer)
+    return entry.get("role") if entry is not None else None
+
+
+def _is_image(layer) -> bool:
+    return isinstance(layer, Image) and not layer.rgb and not _made_by_us(layer)
+
+
+def _is_mask(layer) -> bool:
+    return isinstance(layer, (Labels, Shapes)) and not _made_by_us(layer)
+
+
+class CorrelateWidget(EngineWidget):
+    """Run DVC between two scans (or along a scan series) and show the field as layers."""
+
+    run_text = "Run DVC"
+
+    def __init__(self, napari_viewer, parent=None) -> None:
+        super().__init__(napari_viewer, parent)
+        self.mode = QComboBox()
+        for key, text in MODES.items():
+            self.mode.addItem(text, key)
+        self.form.addRow("Input", self.mode)
+        self.reference = LayerCombo(self.viewer, _is_image)
+        self.deformed = LayerCombo(self.viewer, _is_image)
+        self.form.addRow("Reference (G)", self.reference)
+        self.form.addRow("Deformed (F)", self.deformed)
+        self.series_list = QListWidget()
+        self.series_list.setMaximumHeight(110)
+        self.form.addRow("States", self.series_list)
+        self.strategy = QComboBox()
+        self.strategy.addItem("total (every state against the first)", "total")
+        self.strategy.addItem("incremental (state by state, composed)", "incremental")
+        self.form.addRow("Strategy", self.strategy)
+        self.use_mask = QCheckBox("only inside a mask")
+        self.mask = LayerCombo(self.viewer, _is_mask, optional=True)
+        self.form.addRow(self.use_mask, self.mask)
+
+        self.subvolume = QSpinBox()
+        self.subvolume.setRange(5, 401)
+        self.subvolume.setSingleStep(2)
+        self.subvolume.setValue(31)
+        self.subvolume.setSuffix(" vx")
+        self.subvolume.setToolTip("Subvolume edge 2M+1 (odd), voxels")
+        self.step = QSpinBox()
+        self.step.setRange(1, 400)
+        self.step.setValue(8)
+        self.step.setSuffix(" vx")
+        self.step.setToolTip("Spacing of the points of interest, voxels")
+        self.order = QComboBox()
+        self.order.addItem("1st order (affine, 12 parameters)", 1)
+        self.order.addItem("2nd order (quadratic, 30 parameters)", 2)
+        self.search_radius = QSpinBox()
+        self.search_radius.setRange(0, 2000)
+        self.search_radius.setSpecialValueText("auto")
+        self.search_radius.setSuffix(" vx")
+        self.search_radius.setToolTip("Largest displacement to search for; 0 = auto")
+        self.form.addRow("Subvolume", self.subvolume)
+        self.form.addRow("Step", self.step)
+        self.form.addRow("Shape function", self.order)
+        self.form.addRow("Search radius", self.search_radius)
+        self.preview = QCheckBox("preview the POI grid and one subvolume")
+        self.preview.setChecked(True)
+        self.form.addRow(self.preview)
+        self.estimate_label = QLabel("")
+        self.estimate_label.setWordWrap(True)
+        self.form.addRow("Estimate", self.estimate_label)
+
+        self.poi_box = QGroupBox("Clicked POI")
+        poi_layout = QVBoxLayout(self.poi_box)
+        self.poi_label = QLabel("Click a point of the field to see its values.")
+        self.poi_label.setWordWrap(True)
+        self.poi_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        poi_layout.addWidget(self.poi_label)
+        self.body.addWidget(self.poi_box)
+
+        self._update = Debouncer(self.update_preview, 200, self)
+        for signal in (
+            self.mode.currentIndexChanged,
+            self.reference.currentIndexChanged,
+            self.deformed.currentIndexChanged,
+            self.subvolume.valueChanged,
+            self.step.valueChanged,
+            self.order.currentIndexChanged,
+            self.search_radius.valueChanged,
+            self.preview.toggled,
+            self.series_list.itemChanged,
+        ):
+            signal.connect(self._update.trigger)
+        self.mode.currentIndexChanged.connect(self._mode_changed)
+        self.subvolume.editingFinished.connect(self._make_odd)
+        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
+            event.connect(self._layers_changed)
+        self.viewer.mouse_drag_callbacks.append(self._on_click)
+        self._layers_changed()
+        self._mode_changed()
+
+    # -- choices ------------------------------------------------------------------------------
+    @property
+    def current_mode(self) -> str:
+        return self.mode.currentData()
+
+    def _make_odd(self) -> None:
+        if self.subvolume.value() % 2 == 0:
+            self.subvolume.setValue(self.subvolume.value() + 1)
+
+    def _mode_changed(self, *args) -> None:
+        mode = self.current_mode
+        self.deformed.setEnabled(mode == "pair")
+        self.series_list.setEnabled(mode == "series")
+        self.strategy.setEnabled(mode != "pair")
+        label = self.form.labelForField(self.reference)
+        if label is not None:
+            label.setText("4-D series" if mode == "series4d" else "Reference (G)")
+
+    def _layers_changed(self, event=None) -> None:
+        """Pick sensible inputs: the roles the sample data declares, else two different images."""
+        images = self.reference.layers()
+        inserted = getattr(event, "value", None) if event is not None else None
+        for layer in images if inserted is None else [inserted]:
+            role = _role(layer)
+            if role == "reference":
+                self.reference.set_layer(layer)
+            elif role == "deformed":
+                self.deformed.set_layer(layer)
+            elif role == "series":
+                self.mode.setCurrentIndex(list(MODES).index("series4d"))
+                self.reference.set_layer(layer)
+        if self.reference.layer() is self.deformed.layer():
+            others = [x for x in images if x is not self.reference.layer() and x.ndim == 3]
+            if others:
+                self.deformed.set_layer(others[0])
+        self._refresh_series_list(images)
+        self._update.trigger()
+
+    def _refresh_series_list(self, images) -> None:
+        checked = {
+            self.series_list.item(i).text()
+            for i in range(self.series_list.count())
+            if self.series_list.item(i).checkState() == Qt.CheckState.Checked
+        }
+        self.series_list.blockSignals(True)
+        self.series_list.clear()
+        for layer in images:
+            if layer.ndim != 3:
+                continue
+            item = QListWidgetItem(layer.name)
+            item.setFlags(item.flags() | Qt.ItemFlag.ItemIsUserCheckable)
+            item.setCheckState(
+                Qt.CheckState.Checked if layer.name in checked else Qt.CheckState.Unchecked
+            )
+            self.series_list.addItem(item)
+        self.series_list.blockSignals(False)
+
+    def set_series_layers(self, names) -> None:
+        """Tick the layers of a series (in the viewer's order); for scripts and tests."""
+        for i in range(self.series_list.count()):
+            item = self.series_list.item(i)
+            state = Qt.CheckState.Checked if item.text() in names else Qt.CheckState.Unchecked
+            item.setCheckState(state)
+
+    def params(self):
+        return model.make_params(
+            self.subvolume.value(),
+            self.step.value(),
+            self.order.currentData(),
+            self.search_radius.value(),
+        )
+
+    def job(self) -> model.CorrelationJob:
+        """Check the choices and gather what the engine needs (raises ValueError)."""
+        params = self.params()
+        mode = self.current_mode
+        reference = self.reference.layer()
+        if mode == "pair":
+            deformed = self.deformed.layer()
+            model.check_pair(
+                getattr(reference, "name", None),
+                getattr(reference, "data", np.empty(0)).shape,
+                getattr(deformed, "name", None),
+                getattr(deformed, "data", np.empty(0)).shape,
+            )
+            volumes = [model.layer_volume(reference), model.layer_volume(deformed)]
+            names = [reference.name, deformed.name]
+            strategy = "pair"
+        elif mode == "series4d":
+            if reference is None:
+                raise ValueError("choose the 4-D Image layer that holds the scan series")
+            if reference.ndim != 4:
+                raise ValueError(
+                    f"'{reference.name}' has {reference.ndim} dimensions: the 4-D mode needs "
+                    "(state, z, y, x)"
+                )
+            n_states = reference.data.shape[0]
+            if n_states < 2:
+                raise ValueError(f"'{reference.name}' holds only one state")
+            volumes = [model.layer_volume(reference, t) for t in range(n_states)]
+            names = [f"{reference.name}[{t}]" for t in range(n_states)]
+            strategy = self.strategy.currentData()
+        else:
+            names = [
+                self.series_list.item(i).text()
+                for i in range(self.series_list.count())
+                if self.series_list.item(i).checkState() == Qt.CheckState.Checked
+            ]
+            if len(names) < 2:
+                raise ValueError("tick at least two layers of the series (first = reference)")
+            chosen = [self.viewer.layers[name] for name in names]
+            for layer in chosen:
+                model.check_volume(layer.data.shape, layer.name)
+            if len({layer.data.shape for layer in chosen}) > 1:
+                raise ValueError("the layers of a series must all have the same shape")
+            reference = chosen[0]
+            volumes = [model.layer_volume(layer) for layer in chosen]
+            strategy = self.strategy.currentData()
+        model.check_volume(volumes[0].shape, names[0])
+        if params.subvolume > min(volumes[0].shape):
+            raise ValueError(
+                f"subvolume {params.subvolume} is larger than the volume {volumes[0].shape}"
+            )
+        mask = None
+        if self.use_mask.isChecked():
+            mask_layer = self.mask.layer()
+            if mask_layer is None:
+                raise ValueError(
+                    "'only inside a mask' is ticked but no mask is chosen: pick a Labels or "
+                    "Shapes layer, or untick it"
+                )
+            if isinstance(mask_layer, Shapes):
+                data = mask_layer.to_labels(labels_shape=volumes[0].shape)
+            else:
+                data = mask_layer.data
+            mask = model.check_mask(data, volumes[0].shape, mask_layer.name)
+        voxel_size, offset = model.layer_placement(reference)
+        return model.CorrelationJob(
+            volumes=volumes,
+            params=params,
+            mask=mask,
+            strategy=strategy,
+            voxel_size=voxel_size,
+            offset=offset,
+            names=names,
+        )
+
+    # -- preview and estimate ------------------------------------------------------------------
+    def update_preview(self) -> None:
+        """Redraw the POI grid preview and the estimate (debounced from every change)."""
+        try:
+            job = self.job()
+        except ValueError as error:
+            self.estimate_label.setText(one_line(error))
+            self._set_preview_visible(False)
+            return
+        estimate = model.estimate_run(job.shape, job.params, n_pairs=len(job.volumes) - 1)
+        self.estimate_label.setText(estimate.text())
+        if not self.preview.isChecked():
+            self._set_preview_visible(False)
+            return
+        points, box, _ = model.grid_preview(job.shape, job.params)
+        placement = L.dense_placement(job.voxel_size, job.offset)
+        meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
+        if PREVIEW_POINTS in self.viewer.layers and isinstance(
+            self.viewer.layers[PREVIEW_POINTS].metadata.get(L.MARKER), dict
+        ):
+            layer = self.viewer.layers[PREVIEW_POINTS]
+            layer.data = points
+            layer.scale, layer.translate = placement["scale"], placement["translate"]
+            layer.visible = True
+        else:
+            L.show_layers(
+                self.viewer,
+                [
+                    (
+                        points,
+                        {
+                            "name": PREVIEW_POINTS,
+                            "size": max(1.0, job.params.step / 4),
+                            "face_color": "yellow",
+                            "border_width": 0,
+                            "opacity": 0.7,
+                            "metadata": meta,
+                            **placement,
+                        },
+                        "points",
+                    )
+                ],
+            )
+        if PREVIEW_BOX in self.viewer.layers and isinstance(
+            self.viewer.layers[PREVIEW_BOX].metadata.get(L.MARKER), dict
+        ):
+            layer = self.viewer.layers[PREVIEW_BOX]
+            layer.data = box
+            layer.scale, layer.translate = placement["scale"], placement["translate"]
+            layer.visible = True
+        else:
+            L.show_layers(
+                self.viewer,
+                [
+                    (
+                        box,
+                        {
+                            "name": PREVIEW_BOX,
+                            "shape_type": "rectangle",
+                            "edge_color": "cyan",
+                            "face_color": "transparent",
+                            "edge_width": 0.5,
+                            "metadata": meta,
+                            **placement,
+                        },
+                        "shapes",
+                    )
+                ],
+            )
+
+    def _set_preview_visible(self, visible: bool) -> None:
+        for name in (PREVIEW_POINTS, PREVIEW_BOX):
+            if name in self.viewer.layers and L.plugin_metadata(self.viewer.layers[name]):
+                self.viewer.layers[name].visible = visible
+
+    # -- running ------------------------------------------------------------------------------
+    def prepare(self):
+        self._update.timer.stop()
+        return model.run_job(self.job())
+
+    def on_result(self, result: model.CorrelationResult) -> None:
+        self._set_preview_visible(False)
+        tuples = []
+        for source, field, equivalent in result.fields:
+            tuples += L.field_layers(
+                field,
+                source,
+                voxel_size=result.voxel_size,
+                offset=result.offset,
+                equivalent_strain=equivalent,
+            )
+        L.show_layers(self.viewer, tuples)
+        field = result.fields[-1][1]
+        counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
+        self.show_message(f"Done: {counts}.")
+
+    # -- clicked POI --------------------------------------------------------------------------
+    def _field_layer(self):
+        """The field layer whose values a click shows: the selected one, else the topmost."""
+        active = self.viewer.layers.selection.active
+        if active is not None and L.field_of(active) is not None:
+            return active
+        for layer in reversed(self.viewer.layers):
+            if L.field_of(layer) is not None and layer.visible:
+                return layer
+        return None
+
+    def inspect(self, world_position) -> dict | None:
+        """Show the values of the node nearest to ``world_position`` (z, y, x world units)."""
+        layer = self._field_layer()
+        if layer is None:
+            return None
+        field = L.field_of(layer)
+        entry = L.plugin_metadata(layer)
+        voxel_size = np.asarray(field.metadata.get("voxel_size", (1, 1, 1)), float)
+        offset = np.asarray(field.metadata.get("offset", (0, 0, 0)), float)
+        position = (np.asarray(world_position, float)[-3:] - offset) / voxel_size
+        index = model.nearest_node(field, position)
+        if index is None:
+            return None
+        values = model.describe_poi(field, index)
+        self.poi_label.setText(model.poi_text(values, entry.get("source", "")))
+        return values
+
+    def _on_click(self, viewer, event) -> None:
+        if event.type != "mouse_press" or event.button != 1:
+            return
+        try:
+            self.inspect(event.position)
+        except RuntimeError:  # the dock was closed: stop listening
+            if self._on_click in viewer.mouse_drag_callbacks:
+                viewer.mouse_drag_callbacks.remove(self._on_click)

@@ -1,0 +1,322 @@
+"""The Correlate panel without Qt: checking the choices, previews, estimates and POI read-outs.
+
+Everything here takes plain arrays (or napari layers only through :func:`layer_volume`) and is
+tested without a viewer.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..engine.field import DisplacementField, Provenance, Status, grid_for_volume
+from ..engine.params import CorrelationParams
+
+#: Calibrated cost of one IC-GN iteration per subvolume voxel (seconds, one core; see
+#: :func:`estimate_run`). Measured on the sample data; a conservative round figure.
+SECONDS_PER_VOXEL_ITERATION = 2.0e-8
+#: Typical IC-GN iterations per POI (first order, speckle-poor soil).
+TYPICAL_ITERATIONS = 8
+
+
+@dataclass
+class CorrelationJob:
+    """A checked request: what the Correlate panel hands to the engine.
+
+    Attributes
+    ----------
+    volumes : list of ndarray (nz, ny, nx)
+        Two volumes (reference, deformed) for a pair; more for a scan series, in order.
+    params : CorrelationParams
+    mask : ndarray of bool (nz, ny, nx) or None
+    strategy : {"pair", "total", "incremental"}
+    voxel_size, offset : tuple of 3 floats
+        ``scale`` and ``translate`` (z, y, x) of the reference layer, for display.
+    names : list of str
+        Names of the layers (or states) the volumes come from.
+    """
+
+    volumes: list
+    params: CorrelationParams
+    mask: np.ndarray | None = None
+    strategy: str = "pair"
+    voxel_size: tuple = (1.0, 1.0, 1.0)
+    offset: tuple = (0.0, 0.0, 0.0)
+    names: list = field(default_factory=list)
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(int(n) for n in self.volumes[0].shape)
+
+
+@dataclass
+class CorrelationResult:
+    """What a run returns to the panel: one ``(source, field, equivalent strain)`` per field."""
+
+    fields: list
+    voxel_size: tuple = (1.0, 1.0, 1.0)
+    offset: tuple = (0.0, 0.0, 0.0)
+
+
+def _finish(field: DisplacementField, job: CorrelationJob, names) -> DisplacementField:
+    """Record where the field belongs (for display, export, and the other panels)."""
+    field.metadata.update(
+        voxel_size=list(job.voxel_size),
+        offset=list(job.offset),
+        reference_layer=names[0],
+        deformed_layer=names[1],
+    )
+    return field
+
+
+def run_job(job: CorrelationJob):
+    """Generator run by the panel's worker: yields Progress, returns a :class:`CorrelationResult`.
+
+    A pair gives one field, source ``"uncorrected"``; a series gives one field per state after
+    the first, source ``"state k (total)"`` (or ``incremental``), each from state 0.
+    """
+    from ..engine.correlate import correlate_iter
+    from ..engine.strain import equivalent_strain_field
+
+    results = []
+    if job.strategy == "pair":
+        field = yield from correlate_iter(job.volumes[0], job.volumes[1], job.params, mask=job.mask)
+        field = _finish(field, job, job.names)
+        results.append(("uncorrected", field, equivalent_strain_field(field)))
+    else:
+        fields = yield from run_series(job)
+        for k, field in enumerate(fields, start=1):
+            field = _finish(field, job, [job.names[0], job.names[k]])
+            source = f"state {k} ({job.strategy})"
+            results.append((source, field, equivalent_strain_field(field)))
+    return CorrelationResult(results, job.voxel_size, job.offset)
+
+
+def run_series(job: CorrelationJob):
+    """Correlate a scan series with the total or incremental strategy (engine/series.py)."""
+    from ..engine import series
+
+    return (
+        yield from series.correlate_series_iter(
+            job.volumes, job.params, strategy=job.strategy, mask=job.mask
+        )
+    )
+
+
+def layer_volume(layer, index: int | None = None) -> np.ndarray:
+    """The array of an Image layer (level 0 if multiscale); ``index`` picks a 4-D state."""
+    data = layer.data[0] if getattr(layer, "multiscale", False) else layer.data
+    if index is not None:
+        data = data[index]
+    return data
+
+
+def layer_placement(layer) -> tuple[tuple, tuple]:
+    """``(voxel_size, offset)``: the last three entries of ``scale`` and ``translate``."""
+    return (
+        tuple(float(v) for v in np.asarray(layer.scale)[-3:]),
+        tuple(float(v) for v in np.asarray(layer.translate)[-3:]),
+    )
+
+
+def check_volume(shape, name: str) -> None:
+    """Refuse anything that is not a 3-D volume, with a message that says what to do."""
+    if len(shape) != 3:
+        hint = (
+            " (a 2-D image: DVC needs 3-D volumes)"
+            if len(shape) == 2
+            else " (for a scan series pick the 4-D mode)"
+            if len(shape) == 4
+            else ""
+        )
+        raise ValueError(f"'{name}' has shape {tuple(shape)}, not a 3-D volume (z, y, x){hint}")
+    if min(shape) < 5:
+        raise ValueError(f"'{name}' is too thin for DVC: shape {tuple(shape)}")
+
+
+def check_pair(reference_name, reference_shape, deformed_name, deformed_shape) -> None:
+    """Check a reference/deformed choice: two different 3-D layers of the same shape."""
+    if reference_name is None or deformed_name is None:
+        raise ValueError("choose a reference and a deformed Image layer")
+    if reference_name == deformed_name:
+        raise ValueError(
+            f"the reference and deformed volumes are the same layer ('{reference_name}'): "
+            "choose two different scans"
+        )
+    check_volume(reference_shape, reference_name)
+    check_volume(deformed_shape, deformed_name)
+    if tuple(reference_shape) != tuple(deformed_shape):
+        raise ValueError(
+            f"'{reference_name}' {tuple(reference_shape)} and '{deformed_name}' "
+            f"{tuple(deformed_shape)} differ in shape: DVC needs two scans of the same size"
+        )
+
+
+def check_mask(mask, volume_shape, name: str = "mask") -> np.ndarray:
+    """A boolean mask of the volume's shape that selects something."""
+    mask = np.asarray(mask)
+    if mask.shape != tuple(volume_shape):
+        raise ValueError(
+            f"the mask '{name}' has shape {mask.shape} but the volumes are {tuple(volume_shape)}"
+        )
+    mask = mask != 0
+    if not mask.any():
+        raise ValueError(f"the mask '{name}' is empty: paint the material region first")
+    return mask
+
+
+def make_params(
+    subvolume: int, step: int, order: int, search_radius: int | None
+) -> CorrelationParams:
+    """:class:`CorrelationParams` from the panel's fields (``search_radius`` 0 or None = auto)."""
+    return CorrelationParams(
+        subvolume=int(subvolume),
+        step=int(step),
+        order=int(order),
+        search_radius=None if not search_radius else int(search_radius),
+    )
+
+
+# -- preview ----------------------------------------------------------------------------------
+def grid_preview(volume_shape, params: CorrelationParams, max_points: int = 20000):
+    """Points of the POI grid and the outline of the central POI's subvolume, in voxels.
+
+    Returns
+    -------
+    points : ndarray (N, 3)
+        POI positions (z, y, x), subsampled along each axis so at most ``max_points`` are shown.
+    box : list of ndarray (4, 3)
+        Rectangles (z, y, x corners) stacked along z that outline one subvolume.
+    n_points : int
+        Number of POIs of the full grid.
+    """
+    origin, step, shape = grid_for_volume(volume_shape, params.subvolume, params.step)
+    stride = 1
+    while int(np.prod([-(-n // stride) for n in shape])) > max_points:
+        stride += 1
+    axes = [origin[a] + step[a] * np.arange(0, shape[a], stride) for a in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    centre = np.array([origin[a] + step[a] * (shape[a] // 2) for a in range(3)])
+    half = params.half
+    z_values = np.unique(
+        np.round(np.linspace(centre[0] - half, centre[0] + half, min(9, params.subvolume)))
+    )
+    y0, y1 = centre[1] - half, centre[1] + half
+    x0, x1 = centre[2] - half, centre[2] + half
+    box = [np.array([[z, y0, x0], [z, y0, x1], [z, y1, x1], [z, y1, x0]]) for z in z_values]
+    return grid, box, int(np.prod(shape))
+
+
+# -- estimates --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunEstimate:
+    """Rough size of a run, shown before it starts."""
+
+    n_points: int
+    memory_bytes: int
+    seconds: float
+
+    def text(self) -> str:
+        return (
+            f"{self.n_points:,} POIs · ~{format_bytes(self.memory_bytes)} memory · "
+            f"~{format_seconds(self.seconds)}"
+        )
+
+
+def format_bytes(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if n < 1024 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    raise AssertionError  # pragma: no cover
+
+
+def format_seconds(seconds: float) -> str:
+    if seconds < 1:
+        return "under a second"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def estimate_run(
+    volume_shape, params: CorrelationParams, n_pairs: int = 1, threads: int | None = None
+) -> RunEstimate:
+    """Memory and time of correlating ``n_pairs`` pairs of volumes of ``volume_shape``.
+
+    Memory: the two float32 working copies, the B-spline coefficients of the deformed volume and
+    the gradient of the reference (3 float32 per voxel), plus the field arrays. Time: POIs ×
+    subvolume voxels × :data:`TYPICAL_ITERATIONS` × :data:`SECONDS_PER_VOXEL_ITERATION`, spread over
+    the CPU cores, plus a second per 10⁸ voxels for prefiltering and the initial search.
+    """
+    voxels = float(np.prod(volume_shape))
+    _, _, shape = grid_for_volume(volume_shape, params.subvolume, params.step)
+    n_points = int(np.prod(shape))
+    per_point_bytes = 8 * 3 + 4 + 1 + 4 + 1 + 8 * 9  # u, zncc, status, iterations, prov., gradient
+    memory = voxels * 4 * (2 + 1 + 3) + n_points * per_point_bytes * n_pairs
+    threads = threads or os.cpu_count() or 1
+    params_factor = 1.0 if params.order == 1 else 3.0
+    seconds = (
+        n_points
+        * params.subvolume**3
+        * TYPICAL_ITERATIONS
+        * SECONDS_PER_VOXEL_ITERATION
+        * params_factor
+        / threads
+        + voxels / 1e8
+    ) * n_pairs
+    return RunEstimate(n_points * n_pairs, int(memory), float(seconds))
+
+
+# -- POI read-out -----------------------------------------------------------------------------
+def nearest_node(field: DisplacementField, position) -> tuple[int, int, int] | None:
+    """Grid index of the node nearest to ``position`` (z, y, x voxels), or None if outside.
+
+    A position counts as on the grid when it lies within half a step of a node.
+    """
+    position = np.asarray(position, dtype=np.float64)[-3:]
+    index = np.rint((position - np.asarray(field.origin)) / np.asarray(field.step)).astype(int)
+    if np.any(index < 0) or np.any(index >= np.asarray(field.shape)):
+        return None
+    return tuple(int(i) for i in index)
+
+
+def describe_poi(field: DisplacementField, index) -> dict:
+    """Values at one node, for the dock: position, u, |u|, ZNCC, status, provenance, iterations."""
+    i, j, k = index
+    u = field.u[i, j, k]
+    position = np.asarray(field.origin) + np.asarray(index) * np.asarray(field.step)
+    status, provenance = int(field.status[i, j, k]), int(field.provenance[i, j, k])
+    return {
+        "index": (int(i), int(j), int(k)),
+        "position": tuple(float(p) for p in position),
+        "u": tuple(float(v) for v in u),
+        "magnitude": float(np.linalg.norm(u)),
+        "zncc": float(field.zncc[i, j, k]),
+        "status": Status(status).label if status in Status._value2member_map_ else str(status),
+        "provenance": Provenance(provenance).label
+        if provenance in Provenance._value2member_map_
+        else str(provenance),
+        "iterations": int(field.iterations[i, j, k]),
+    }
+
+
+def poi_text(values: dict, source: str = "") -> str:
+    """The read-out of :func:`describe_poi` as a few lines of text."""
+    uz, uy, ux = values["u"]
+    z, y, x = values["position"]
+    head = f"POI {values['index']} at (z, y, x) = ({z:.0f}, {y:.0f}, {x:.0f})"
+    if source:
+        head += f" — {source}"
+    return "\n".join(
+        [
+            head,
+            f"u = ({uz:+.3f}, {uy:+.3f}, {ux:+.3f}) vx, |u| = {values['magnitude']:.3f} vx",
+            f"ZNCC {values['zncc']:.4f} · status: {values['status']} · "
+            f"provenance: {values['provenance']} · iterations: {values['iterations']}",
+        ]
+    )

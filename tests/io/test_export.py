@@ -1,0 +1,199 @@
+"""Exports: every format read back independently, with axis order and atomicity checked."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import xml.etree.ElementTree as ET
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status
+from napari_dvc_correct.io import export
+from napari_dvc_correct.io.npz import load_field
+
+
+@pytest.fixture
+def field() -> DisplacementField:
+    """A 3x4x5 grid where every value tells where it sits: u = (100 i, 10 j, k) + 0.25 component."""
+    shape = (3, 4, 5)
+    i, j, k = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
+    u = np.stack([100.0 * i + 0.25, 10.0 * j - 0.5, 1.0 * k + 0.125], axis=-1)
+    status = np.zeros(shape, np.uint8)
+    status[0, 0, 1] = Status.DIVERGED
+    provenance = np.zeros(shape, np.uint8)
+    provenance[0, 0, 1] = Provenance.REPLACED
+    return DisplacementField(
+        origin=(7.0, 8.0, 9.0),
+        step=(4.0, 5.0, 6.0),
+        u=u,
+        zncc=np.linspace(0.5, 1.0, 60, dtype=np.float32).reshape(shape),
+        status=status,
+        iterations=np.arange(60, dtype=np.int32).reshape(shape),
+        provenance=provenance,
+        params={"subvolume": 15, "step": 4},
+        metadata={"note": "test"},
+    )
+
+
+def test_hdf5_round_trip(field, tmp_path):
+    strain = np.random.default_rng(0).random(field.shape)
+    residual = np.ones((8, 9, 10), np.float32)
+    path = export.export_hdf5(
+        field,
+        tmp_path / "f.h5",
+        extra={"equivalent strain": strain},
+        volumes={"residual": residual},
+        voxel_size=(2.0, 1.0, 0.5),
+    )
+    with h5py.File(path, "r") as h5:
+        group = h5["field"]
+        np.testing.assert_array_equal(group["u"][()], field.u)
+        np.testing.assert_array_equal(group["status"][()], field.status)
+        np.testing.assert_array_equal(group["iterations"][()], field.iterations)
+        np.testing.assert_array_equal(group["points"][()], field.points)
+        np.testing.assert_array_equal(group.attrs["origin"], field.origin)
+        np.testing.assert_array_equal(group.attrs["step"], field.step)
+        np.testing.assert_array_equal(group.attrs["voxel_size"], [2.0, 1.0, 0.5])
+        assert json.loads(group.attrs["params"]) == field.params
+        assert json.loads(group.attrs["status_names"])[str(int(Status.DIVERGED))] == "diverged"
+        np.testing.assert_array_equal(h5["grid/equivalent strain"][()], strain)
+        np.testing.assert_array_equal(h5["volumes/residual"][()], residual)
+
+
+def _read_vti(path):
+    """Minimal reader for the raw-appended XML ImageData we write (independent of the writer)."""
+    blob = path.read_bytes()
+    start = blob.index(b'<AppendedData encoding="raw">')
+    marker = blob.index(b"_", start) + 1
+    header = blob[:start].decode("ascii") + "</VTKFile>"
+    root = ET.fromstring(header)
+    image = root.find("ImageData")
+    arrays = {}
+    dtypes = {"Float32": "<f4", "Float64": "<f8", "Int32": "<i4", "UInt8": "u1"}
+    for node in image.iter("DataArray"):
+        offset = marker + int(node.get("offset"))
+        nbytes = int(np.frombuffer(blob[offset : offset + 8], "<u8")[0])
+        data = np.frombuffer(blob[offset + 8 : offset + 8 + nbytes], dtypes[node.get("type")])
+        arrays[node.get("Name")] = data.reshape(-1, int(node.get("NumberOfComponents")))
+    return image.attrib, arrays
+
+
+def test_vti_layout_is_what_paraview_expects(field, tmp_path):
+    strain = np.arange(60, dtype=np.float64).reshape(field.shape) / 100
+    path = export.export_vtk(
+        field, tmp_path / "f.vti", extra={"eq strain": strain}, voxel_size=(2.0, 1.0, 0.5)
+    )
+    attrib, arrays = _read_vti(path)
+    # extent, origin and spacing in x, y, z order; physical units
+    assert attrib["WholeExtent"] == "0 4 0 3 0 2"
+    np.testing.assert_allclose([float(v) for v in attrib["Origin"].split()], [4.5, 8.0, 14.0])
+    np.testing.assert_allclose([float(v) for v in attrib["Spacing"].split()], [3.0, 5.0, 8.0])
+    vectors = arrays["displacement"]
+    assert vectors.shape == (60, 3)
+    # VTK point index = k + nx * (j + ny * i): x fastest; vector components (ux, uy, uz)
+    i, j, k = 2, 1, 3
+    index = k + 5 * (j + 4 * i)
+    np.testing.assert_allclose(vectors[index], field.u[i, j, k][::-1] * [0.5, 1.0, 2.0])
+    np.testing.assert_array_equal(arrays["status"].ravel(), field.status.ravel())
+    np.testing.assert_allclose(arrays["eq_strain"].ravel(), strain.ravel())
+    np.testing.assert_allclose(arrays["zncc"].ravel(), field.zncc.ravel())
+
+
+def test_legacy_vtk_layout(field, tmp_path):
+    path = export.export_vtk(field, tmp_path / "f.vtk")
+    blob = path.read_bytes()
+    head = blob[:300].decode("ascii", errors="replace")
+    assert "DATASET STRUCTURED_POINTS" in head
+    assert "DIMENSIONS 5 4 3" in head
+    assert re.search(r"ORIGIN 9\.0 8\.0 7\.0", head)
+    assert re.search(r"SPACING 6\.0 5\.0 4\.0", head)
+    start = blob.index(b"VECTORS displacement float\n") + len(b"VECTORS displacement float\n")
+    vectors = np.frombuffer(blob[start : start + 60 * 12], ">f4").reshape(60, 3)
+    np.testing.assert_allclose(vectors, field.u.reshape(-1, 3)[:, ::-1])
+    start = blob.index(b"SCALARS status unsigned_char 1\nLOOKUP_TABLE default\n")
+    start += len(b"SCALARS status unsigned_char 1\nLOOKUP_TABLE default\n")
+    status = np.frombuffer(blob[start : start + 60], "u1")
+    np.testing.assert_array_equal(status, field.status.ravel())
+
+
+def test_tiff_stacks_per_component(field, tmp_path):
+    written = export.export_tiff(
+        field, tmp_path / "run.tif", extra={"eps": np.full(field.shape, 0.5)}, voxel_size=2.0
+    )
+    names = sorted(p.name for p in written)
+    assert names == sorted(
+        f"run_{q}.tif" for q in ("uz", "uy", "ux", "magnitude", "zncc", "status", "eps")
+    )
+    np.testing.assert_allclose(tifffile.imread(tmp_path / "run_uy.tif"), field.u[..., 1])
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "run_status.tif"), field.status)
+    with tifffile.TiffFile(tmp_path / "run_ux.tif") as tif:
+        info = json.loads(tif.imagej_metadata["Info"])
+        assert tif.imagej_metadata["spacing"] == pytest.approx(8.0)  # step z * voxel size
+    assert info["scale"] == [8.0, 10.0, 12.0]
+    assert info["translate"] == [14.0, 16.0, 18.0]
+
+
+def test_volume_tiff_rejects_2d(tmp_path):
+    with pytest.raises(ValueError, match="3-D"):
+        export.export_volume_tiff(np.zeros((4, 4)), tmp_path / "x.tif")
+    assert not (tmp_path / "x.tif").exists()
+
+
+def test_csv_rows(field, tmp_path):
+    path = export.export_csv(field, tmp_path / "f.csv", extra={"eps": np.full(field.shape, 0.1)})
+    with open(path, newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert len(rows) == field.n_points
+    row = rows[1]  # node (0, 0, 1)
+    assert [float(row[c]) for c in ("z", "y", "x")] == [7.0, 8.0, 15.0]
+    assert [float(row[c]) for c in ("uz", "uy", "ux")] == [0.25, -0.5, 1.125]
+    assert row["status_name"] == "diverged"
+    assert row["provenance_name"] == "replaced"
+    assert float(row["eps"]) == pytest.approx(0.1)
+    assert int(rows[-1]["iterations"]) == 59
+
+
+def test_export_field_dispatch_and_unknown_suffix(field, tmp_path):
+    (written,) = export.export_field(field, tmp_path / "f.npz")
+    np.testing.assert_array_equal(load_field(written).u, field.u)
+    assert len(export.export_field(field, tmp_path / "f.tiff")) == 6
+    with pytest.raises(ValueError, match="unknown export format"):
+        export.export_field(field, tmp_path / "f.xyz")
+
+
+def test_extra_with_wrong_shape_is_refused(field, tmp_path):
+    with pytest.raises(ValueError, match="grid shape"):
+        export.export_csv(field, tmp_path / "f.csv", extra={"bad": np.zeros(3)})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_export_leaves_the_old_file(field, tmp_path, monkeypatch):
+    path = tmp_path / "f.vti"
+    export.export_vtk(field, path)
+    before = path.read_bytes()
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(export, "_write_vti", broken)
+    with pytest.raises(OSError, match="disk full"):
+        export.export_vtk(field.replace(u=field.u * 2), path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.vti"]
+
+
+def test_report_json_and_markdown(tmp_path):
+    report = {
+        "title": "accuracy",
+        "accuracy index": np.float64(0.93),
+        "phases": {"mean gray": [100.0, 170.0]},
+    }
+    data = json.loads(export.export_report(report, tmp_path / "r.json").read_text())
+    assert data["accuracy index"] == pytest.approx(0.93)
+    text = export.export_report(report, tmp_path / "r.md").read_text()
+    assert "# accuracy" in text and "| accuracy index | 0.93 |" in text and "## phases" in text
