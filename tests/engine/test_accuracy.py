@@ -6,23 +6,29 @@ import pytest
 from napari_dvc_correct.engine.accuracy import (
     BackgroundResidual,
     accuracy_index,
-    auto_thresholds,
     background_residual,
     bin_residual_by_strain,
     check_field_fits,
     corrected_residual,
     default_phase_pair,
+    evaluate_field,
+    evaluate_fields,
     phase_contrast,
-    phase_table,
-    phase_thresholds,
-    segment_phases,
     status_volume,
     strain_bin_edges,
-    validate_thresholds,
     zncc_volume,
 )
-from napari_dvc_correct.engine.field import DisplacementField, Status
-from napari_dvc_correct.engine.synthetic import add_noise, two_phase_volume
+from napari_dvc_correct.engine.field import DisplacementField, Status, grid_for_volume
+from napari_dvc_correct.engine.phases import phase_table, phase_thresholds, segment_phases
+from napari_dvc_correct.engine.synthetic import (
+    add_noise,
+    affine,
+    deform_volume,
+    sample_displacement,
+    shear_band,
+    translation,
+    two_phase_volume,
+)
 
 
 @pytest.fixture(scope="module")
@@ -37,72 +43,6 @@ def blocks(grays=(40.0, 120.0, 220.0), shape=(12, 16, 20)):
     for gray, columns in zip(grays, thirds):
         volume[:, :, columns] = gray
     return volume
-
-
-# --- phases ---------------------------------------------------------------------------------------
-def test_auto_thresholds_split_known_phases_and_table():
-    volume = blocks()
-    thresholds = auto_thresholds(volume, n_phases=3)
-    assert 40 <= thresholds[0] < 120 <= thresholds[1] < 220
-    labels = segment_phases(volume, thresholds)
-    assert labels.dtype == np.uint8
-    assert np.array_equal(np.unique(labels[:, :, 0]), [0])
-    assert np.array_equal(np.unique(labels[:, :, -1]), [2])
-    table = phase_table(volume, labels, thresholds)
-    assert [s.mean_gray for s in table] == pytest.approx([40.0, 120.0, 220.0])
-    assert table[0].lower == 40.0 and table[-1].upper == 220.0
-    assert table[1].lower == thresholds[0] and table[1].upper == thresholds[1]
-    assert sum(s.voxels for s in table) == volume.size
-    assert sum(s.fraction for s in table) == pytest.approx(1.0)
-
-
-def test_auto_thresholds_on_noisy_two_phase_volume(clean):
-    noisy = add_noise(clean, 5.0, seed=3)
-    (threshold,) = phase_thresholds(noisy, "auto", n_phases=2)
-    assert 120 < threshold < 150  # between the phase grays 100 and 170
-    labels = segment_phases(noisy, [threshold])
-    table = phase_table(noisy, labels, [threshold])
-    # the noise averages out: the phase means are those of the clean volume on the same voxels
-    for phase in (0, 1):
-        assert table[phase].mean_gray == pytest.approx(clean[labels == phase].mean(), abs=0.3)
-    assert 0.25 < table[1].fraction < 0.45  # grain fraction 0.35
-
-
-def test_user_thresholds_are_used_as_given():
-    volume = blocks()
-    thresholds = phase_thresholds(volume, [100.0, 150.0])
-    assert np.array_equal(thresholds, [100.0, 150.0])
-    labels = segment_phases(volume, thresholds)
-    assert np.array_equal(np.bincount(labels.ravel()), [12 * 16 * 7, 12 * 16 * 7, 12 * 16 * 6])
-
-
-@pytest.mark.parametrize(
-    ("thresholds", "message"),
-    [
-        ([10.0], "outside the gray range"),
-        ([100.0, 300.0], "outside the gray range"),
-        ([150.0, 100.0], "strictly increasing"),
-        ([100.0, 100.0], "strictly increasing"),
-        ([np.nan], "finite"),
-        ([], "1 to 7"),
-    ],
-)
-def test_bad_thresholds_are_clear_errors(thresholds, message):
-    with pytest.raises(ValueError, match=message):
-        phase_thresholds(blocks(), thresholds, name="reference")
-
-
-def test_phase_with_no_voxels_is_a_clear_error():
-    # thresholds inside the range but nothing between 130 and 200
-    with pytest.raises(
-        ValueError, match=r"phase 2 \(gray 130 .. 200\) has no voxel in the deformed"
-    ):
-        segment_phases(blocks(), [100.0, 130.0, 200.0], name="deformed")
-    validate_thresholds([100.0, 130.0, 200.0], (40.0, 220.0))  # valid as numbers
-    with pytest.raises(ValueError, match="single gray value"):
-        auto_thresholds(np.full((4, 4, 4), 7.0))
-    with pytest.raises(ValueError, match="number of phases"):
-        auto_thresholds(blocks(), n_phases=1)
 
 
 # --- background residual (eq. 1) ------------------------------------------------------------------
@@ -244,3 +184,111 @@ def test_field_grid_must_fit_the_volume():
     check_field_fits(field, (40, 40, 40))
     with pytest.raises(ValueError, match=r"along axis y .* 8..32 voxels but the volume has 30"):
         check_field_fits(field, (40, 30, 40))
+
+
+# --- the whole chain on synthetic scans with a known field ----------------------------------------
+SHAPE = (48, 48, 48)
+
+
+def grid_field(function, subvolume=11, step=6):
+    origin, step, shape = grid_for_volume(SHAPE, subvolume, step)
+    base = DisplacementField.zeros(origin, step, shape)
+    return base.replace(u=sample_displacement(function, base.points).reshape((*shape, 3)))
+
+
+@pytest.fixture(scope="module")
+def scans():
+    """Two-phase scans, noise sigma = 3 in both, related by a known affine field."""
+    clean = two_phase_volume(SHAPE, seed=4)
+    gradient = np.array([[-0.02, 0.005, 0.0], [0.0, 0.01, 0.004], [0.003, 0.0, 0.01]])
+    truth = affine(gradient, center=(24.0, 24.0, 24.0), shift=(1.3, -0.7, 2.1))
+    reference = add_noise(clean, 3.0, seed=5)
+    deformed = add_noise(deform_volume(clean, truth), 3.0, seed=6)
+    return reference, deformed, truth
+
+
+def test_background_residual_through_gray_residual_matches_the_noise():
+    """True field (an integer shift, so resampling adds no smoothing): r0 = 2 sigma / sqrt(pi)."""
+    sigma = 4.0
+    clean = two_phase_volume(SHAPE, seed=7)
+    truth = translation((2.0, -1.0, 3.0))
+    reference = add_noise(clean, sigma, seed=8)
+    deformed = add_noise(deform_volume(clean, truth), sigma, seed=9)
+    result = evaluate_field(reference, deformed, grid_field(truth))
+    item = result["field"]
+    expected = 2.0 * sigma / np.sqrt(np.pi)
+    assert item.background.mean == pytest.approx(expected, rel=0.10)
+    assert item.mean_residual == pytest.approx(expected, rel=0.10)
+    assert item.accuracy == pytest.approx(1.0, abs=0.01)
+    assert item.residual.shape == SHAPE and np.isnan(item.residual).any()  # NaN outside the hull
+    assert item.voxels == int(np.isfinite(item.residual).sum())
+    assert result.labels_reference.shape == SHAPE and result.phase_pair == (0, 1)
+
+
+def test_accuracy_index_falls_monotonically_with_a_known_error(scans):
+    reference, deformed, truth = scans
+    exact = grid_field(truth)
+    direction = np.array([0.6, -0.5, 0.6]) / np.linalg.norm([0.6, -0.5, 0.6])
+    errors = [0.0, 0.25, 0.5, 1.0, 1.5, 2.5]
+    fields = {f"error {e}": exact.replace(u=exact.u + e * direction) for e in errors}
+    result = evaluate_fields(reference, deformed, fields, n_bins=3)
+    accuracy = [item.accuracy for item in result.fields]
+    residual = [item.mean_residual for item in result.fields]
+    assert np.all(np.diff(accuracy) < 0), accuracy
+    assert np.all(np.diff(residual) > 0), residual
+    assert accuracy[0] == pytest.approx(1.0, abs=0.01)
+    assert accuracy[-1] < 0.85  # 2.5 voxels off: well below the paper's 0.85 line
+    # one shared noise estimate (the smallest same-phase residual: the exact field's)
+    assert all(item.background_used == result.fields[0].background.mean for item in result.fields)
+    assert result.fields[-1].background.mean > result.fields[0].background.mean
+    # per-field r0 still ranks the fields the same way
+    own = evaluate_fields(reference, deformed, fields, shared_background=False, keep_volumes=False)
+    assert np.all(np.diff([item.accuracy for item in own.fields]) < 0)
+    assert own.fields[0].residual is None and own.labels_reference is None
+
+
+def test_loaded_state_residual_agrees_with_the_reference_frame(scans):
+    reference, deformed, truth = scans
+    exact = grid_field(truth)
+    wrong = exact.replace(u=exact.u + np.array([0.0, 1.0, 0.0]))
+    fields = {"exact": exact, "wrong": wrong}
+    loaded = evaluate_fields(reference, deformed, fields, mode="loaded", n_bins=2)
+    frame = evaluate_fields(reference, deformed, fields, n_bins=2, keep_volumes=False)
+    for name in fields:
+        assert loaded[name].mean_residual == pytest.approx(frame[name].mean_residual, rel=0.05)
+        assert loaded[name].voxels > 0.5 * frame[name].voxels
+    assert loaded["wrong"].accuracy < loaded["exact"].accuracy
+
+
+def test_strain_bins_separate_a_shear_band_from_the_rest():
+    clean = two_phase_volume(SHAPE, seed=10)
+    truth = shear_band(center=(24.0, 24.0, 24.0), width=4.0, slip=4.0)
+    reference = add_noise(clean, 2.0, seed=11)
+    deformed = add_noise(deform_volume(clean, truth), 2.0, seed=12)
+    field = grid_field(truth, step=4)
+    result = evaluate_field(reference, deformed, field, n_bins=4)
+    item = result["field"]
+    peak = 4.0 / (2.0 * np.sqrt(3.0) * 4.0)  # slip / (2 sqrt(3) width)
+    # central differences over +-4 voxels of a band 4 voxels wide flatten the peak by ~10 %
+    assert 0.8 * peak < np.nanmax(item.equivalent_strain) < peak
+    assert item.bins.voxels[0] > 0 and item.bins.voxels[-1] > 0
+    assert item.bins.voxels.sum() == item.voxels
+    assert np.all(np.isfinite(item.bin_accuracy))
+
+
+def test_bad_fields_are_clear_errors(scans):
+    reference, deformed, truth = scans
+    exact = grid_field(truth)
+    too_big = exact.replace(origin=(30.0, 5.0, 5.0))
+    with pytest.raises(ValueError, match="grid does not fit the volume: along axis z"):
+        evaluate_field(reference, deformed, too_big)
+    holes = exact.u.copy()
+    holes[1, 1, 1] = np.nan
+    with pytest.raises(ValueError, match="without a finite value"):
+        evaluate_field(reference, deformed, exact.replace(u=holes))
+    with pytest.raises(ValueError, match="outside the gray range of the reference volume"):
+        evaluate_field(reference, deformed, exact, phases=[1000.0])
+    with pytest.raises(ValueError, match="same number of thresholds"):
+        evaluate_field(reference, deformed, exact, phases=[130.0], phases_deformed=[120.0, 150.0])
+    with pytest.raises(ValueError, match="at least one"):
+        evaluate_fields(reference, deformed, {})

@@ -2,10 +2,9 @@
 
 The pieces, in the order the paper uses them:
 
-1. **Phases.** Each volume is split into ``N`` phases by ``N - 1`` increasing gray thresholds
-   (multi-Otsu by default, as the paper's soil / quartz split; any ``N >= 2``). Label ``k`` holds
-   the voxels with ``T_k <= gray < T_{k+1}`` (``T_0 = -inf``, ``T_N = +inf``). The per-phase gray
-   range and mean gray of each state make the paper's Table 1 (:func:`phase_table`).
+1. **Phases** (:mod:`.phases`). Each volume is split into ``N`` phases by ``N - 1`` increasing
+   gray thresholds (multi-Otsu by default; any ``N >= 2``); the per-phase gray range and mean gray
+   of each state make the paper's Table 1.
 2. **Background residual (eq. 1).** The gray residual ``r(X) = |F(X + u(X)) - G(X)|`` is computed
    by :func:`napari_dvc_correct.engine.warp.gray_residual`. At voxels where the phase of ``G`` and
    the phase of ``F`` mapped by the field agree, the residual is (ideally) imaging noise only; its
@@ -28,49 +27,23 @@ residual; :func:`evaluate_fields` runs the whole chain for one or several fields
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 
 import numpy as np
 
 from .field import DisplacementField, Status
-
-#: Voxels per slab when a volume is processed piecewise (bounds the temporary memory).
-SLAB_VOXELS = 1 << 22
-#: Most voxels fed to multi-Otsu (larger volumes are subsampled on a regular lattice).
-OTSU_SAMPLES = 1 << 22
-#: Histogram bins for multi-Otsu.
-OTSU_BINS = 256
-MAX_PHASES = 8
-
-
-def _slabs(shape, voxels: int = SLAB_VOXELS):
-    """``slice`` objects along z covering a volume with about ``voxels`` voxels each."""
-    plane = max(1, int(shape[1]) * int(shape[2]))
-    depth = max(1, voxels // plane)
-    for start in range(0, int(shape[0]), depth):
-        yield slice(start, min(int(shape[0]), start + depth))
-
-
-def _check_volume(volume, name: str) -> np.ndarray:
-    volume = np.asanyarray(volume)
-    if volume.ndim != 3 or min(volume.shape) < 1:
-        raise ValueError(f"{name} must be a non-empty 3-D volume (z, y, x), got {volume.shape}")
-    if volume.dtype.kind not in "uif":
-        raise ValueError(f"{name} must hold real gray values, got dtype {volume.dtype}")
-    return volume
-
-
-def gray_range(volume: np.ndarray) -> tuple[float, float]:
-    """``(min, max)`` of the finite gray values of ``volume`` (read slab by slab)."""
-    low, high = np.inf, -np.inf
-    for zs in _slabs(volume.shape):
-        slab = np.asarray(volume[zs])
-        if slab.dtype.kind == "f":
-            slab = slab[np.isfinite(slab)]
-        if slab.size:
-            low, high = min(low, float(slab.min())), max(high, float(slab.max()))
-    return low, high
+from .phases import (
+    PhaseStats,
+    label_phases,
+    phase_table,
+    phase_thresholds,
+    segment_phases,
+)
+from .phases import _slabs as _slabs
+from .progress import Progress, run_to_completion
+from .strain import equivalent_strain_field
 
 
 # --- grid quantities ready to display -------------------------------------------------------------
@@ -127,230 +100,6 @@ def check_field_fits(field: DisplacementField, volume_shape, name: str = "field"
                 f"{coords[0]:g}..{coords[-1]:g} voxels but the volume has {n} voxels "
                 f"(0..{n - 1}); was the field computed on another volume?"
             )
-
-
-# --- phases ---------------------------------------------------------------------------------------
-def auto_thresholds(volume: np.ndarray, n_phases: int = 2) -> np.ndarray:
-    """``n_phases - 1`` gray thresholds by multi-Otsu (``skimage.filters.threshold_multiotsu``).
-
-    Volumes larger than :data:`OTSU_SAMPLES` voxels are subsampled on a regular lattice first.
-
-    Returns
-    -------
-    ndarray, shape (n_phases - 1,), float64, increasing
-    """
-    from skimage.filters import threshold_multiotsu
-
-    volume = _check_volume(volume, "volume")
-    n_phases = _check_n_phases(n_phases)
-    stride = max(1, int(np.ceil((volume.size / OTSU_SAMPLES) ** (1.0 / 3.0))))
-    sample = np.asarray(volume[::stride, ::stride, ::stride], dtype=np.float64).ravel()
-    sample = sample[np.isfinite(sample)]
-    if sample.size == 0 or sample.min() == sample.max():
-        raise ValueError("the volume has a single gray value: it cannot be split into phases")
-    counts, edges = np.histogram(sample, bins=OTSU_BINS)
-    centers = 0.5 * (edges[:-1] + edges[1:])
-    try:
-        found = threshold_multiotsu(hist=(counts, centers), classes=n_phases)
-    except ValueError as error:
-        raise ValueError(
-            f"multi-Otsu could not find {n_phases - 1} thresholds ({error}); give the thresholds "
-            "yourself or ask for fewer phases"
-        ) from error
-    # skimage returns the centre of the last bin of the lower class ("upper class: gray > t");
-    # our phases start *at* their threshold, so move each threshold to that bin's upper edge,
-    # which keeps every gray of that bin in the lower phase.
-    index = np.searchsorted(centers, np.asarray(found, dtype=np.float64))
-    return edges[np.clip(index, 0, OTSU_BINS - 1) + 1].astype(np.float64)
-
-
-def _check_n_phases(n_phases) -> int:
-    if not isinstance(n_phases, (int, np.integer)) or not 2 <= n_phases <= MAX_PHASES:
-        raise ValueError(
-            f"the number of phases must be an integer in 2..{MAX_PHASES}, got {n_phases!r}"
-        )
-    return int(n_phases)
-
-
-def validate_thresholds(thresholds, value_range: tuple[float, float], name: str = "volume"):
-    """Check user thresholds: finite, strictly increasing, strictly inside the gray range.
-
-    Parameters
-    ----------
-    thresholds : sequence of float
-        ``N - 1`` thresholds for ``N`` phases (1 to 7 values).
-    value_range : (float, float)
-        ``(min, max)`` gray value of the volume they apply to.
-    name : str
-        Volume name for the error messages.
-
-    Returns
-    -------
-    ndarray, shape (N - 1,), float64
-
-    Raises
-    ------
-    ValueError
-        Naming the offending threshold and what to change.
-    """
-    values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
-    if values.ndim != 1 or not 1 <= values.size <= MAX_PHASES - 1:
-        raise ValueError(
-            f"give 1 to {MAX_PHASES - 1} gray thresholds (N - 1 for N phases), got {thresholds!r}"
-        )
-    if not np.all(np.isfinite(values)):
-        raise ValueError(f"gray thresholds must be finite numbers, got {thresholds!r}")
-    if np.any(np.diff(values) <= 0):
-        raise ValueError(
-            "gray thresholds must be strictly increasing, got "
-            + ", ".join(f"{v:g}" for v in values)
-        )
-    low, high = value_range
-    for value in values:
-        if not low < value <= high:
-            raise ValueError(
-                f"gray threshold {value:g} is outside the gray range of the {name} "
-                f"({low:g}..{high:g}): choose thresholds inside it"
-            )
-    return values
-
-
-def phase_thresholds(volume: np.ndarray, phases="auto", n_phases: int = 2, name: str = "volume"):
-    """Thresholds for ``volume``: multi-Otsu when ``phases`` is ``"auto"``/None, else validated.
-
-    Parameters
-    ----------
-    volume : ndarray, shape (nz, ny, nx)
-    phases : "auto", None or sequence of float
-        ``"auto"`` for ``n_phases`` multi-Otsu phases, or the ``N - 1`` user thresholds.
-    n_phases : int
-        Number of phases for ``"auto"``.
-
-    Returns
-    -------
-    ndarray, shape (N - 1,), float64
-    """
-    volume = _check_volume(volume, name)
-    if phases is None or (isinstance(phases, str) and phases == "auto"):
-        return auto_thresholds(volume, n_phases)
-    if isinstance(phases, str):
-        raise ValueError(f"phases must be 'auto' or a list of thresholds, got {phases!r}")
-    return validate_thresholds(phases, gray_range(volume), name)
-
-
-def segment_phases(volume: np.ndarray, thresholds, name: str = "volume") -> np.ndarray:
-    """Label volume of phases ``0 .. N-1`` from ``N - 1`` increasing thresholds.
-
-    Voxel ``X`` gets label ``k`` when ``thresholds[k-1] <= volume[X] < thresholds[k]``.
-
-    Parameters
-    ----------
-    volume : ndarray, shape (nz, ny, nx)
-        Gray values (any real dtype; read slab by slab, so memory maps stay lazy).
-    thresholds : sequence of float
-        Strictly increasing.
-    name : str
-        Volume name for the error messages.
-
-    Returns
-    -------
-    ndarray, shape (nz, ny, nx), uint8
-
-    Raises
-    ------
-    ValueError
-        If the thresholds are not strictly increasing or a phase holds no voxel.
-    """
-    volume = _check_volume(volume, name)
-    values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
-    if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
-        raise ValueError(f"gray thresholds must be strictly increasing, got {thresholds!r}")
-    labels = np.empty(volume.shape, np.uint8)
-    counts = np.zeros(values.size + 1, np.int64)
-    for zs in _slabs(volume.shape):
-        slab = np.digitize(np.asarray(volume[zs], dtype=np.float64), values).astype(np.uint8)
-        labels[zs] = slab
-        counts += np.bincount(slab.ravel(), minlength=values.size + 1)[: values.size + 1]
-    empty = np.flatnonzero(counts == 0)
-    if empty.size:
-        phase = int(empty[0])
-        low = "-inf" if phase == 0 else f"{values[phase - 1]:g}"
-        high = "+inf" if phase == values.size else f"{values[phase]:g}"
-        raise ValueError(
-            f"phase {phase} (gray {low} .. {high}) has no voxel in the {name}: move the "
-            "thresholds or ask for fewer phases"
-        )
-    return labels
-
-
-@dataclass(frozen=True)
-class PhaseStats:
-    """One row of the paper's Table 1 for one state.
-
-    Attributes
-    ----------
-    phase : int
-        Label value.
-    lower, upper : float
-        Gray range of the phase: from the lower threshold (or the volume's minimum) to the upper
-        threshold (or the volume's maximum).
-    mean_gray : float
-        Mean gray value of its voxels.
-    voxels : int
-        Number of voxels.
-    fraction : float
-        Share of the volume's voxels.
-    """
-
-    phase: int
-    lower: float
-    upper: float
-    mean_gray: float
-    voxels: int
-    fraction: float
-
-
-def phase_table(volume: np.ndarray, labels: np.ndarray, thresholds) -> list[PhaseStats]:
-    """Gray range, mean gray and size of each phase (paper Table 1, one state).
-
-    Parameters
-    ----------
-    volume : ndarray, shape (nz, ny, nx)
-        Gray values.
-    labels : ndarray, shape (nz, ny, nx), integer
-        Phases from :func:`segment_phases` with the same ``thresholds``.
-    thresholds : sequence of float
-        The ``N - 1`` thresholds.
-
-    Returns
-    -------
-    list of PhaseStats, one per phase, in label order.
-    """
-    values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
-    n = values.size + 1
-    if labels.shape != volume.shape:
-        raise ValueError(f"labels {labels.shape} and volume {volume.shape} differ in shape")
-    sums = np.zeros(n)
-    counts = np.zeros(n, np.int64)
-    for zs in _slabs(volume.shape):
-        lab = np.asarray(labels[zs]).ravel()
-        gray = np.asarray(volume[zs], dtype=np.float64).ravel()
-        sums += np.bincount(lab, weights=gray, minlength=n)[:n]
-        counts += np.bincount(lab, minlength=n)[:n]
-    low, high = gray_range(volume)
-    bounds = [low, *values.tolist(), high]
-    total = max(1, int(counts.sum()))
-    return [
-        PhaseStats(
-            phase=k,
-            lower=float(bounds[k]),
-            upper=float(bounds[k + 1]),
-            mean_gray=float(sums[k] / counts[k]) if counts[k] else float("nan"),
-            voxels=int(counts[k]),
-            fraction=float(counts[k] / total),
-        )
-        for k in range(n)
-    ]
 
 
 # --- background residual, eq. 1, and accuracy index, eq. 2 ----------------------------------------
@@ -663,3 +412,323 @@ def bin_residual_by_strain(
         )
     sums, counts = cell_sums(residual, field, reference_positions)
     return bin_cells_by_strain(sums, counts, strain, edges)
+
+
+# --- the whole chain --------------------------------------------------------------------------
+@dataclass
+class FieldEvaluation:
+    """The accuracy evaluation of one displacement field.
+
+    Attributes
+    ----------
+    name : str
+        Label of the field in tables and plots (e.g. ``"uncorrected"``).
+    field : DisplacementField
+        The field evaluated.
+    equivalent_strain : ndarray, shape field.shape, float64
+        Equivalent strain (eq. 3) on the grid, NaN at invalid nodes.
+    mean_residual : float
+        Mean gray residual over the voxels where it is defined (gray levels).
+    voxels : int
+        Voxels where the residual is defined.
+    background : BackgroundResidual
+        This field's own same-phase residual (eq. 1).
+    background_used : float
+        The ``r0`` used for ``r'`` and the index (see :func:`evaluate_iter`, ``shared_background``).
+    accuracy : float
+        Accuracy index (eq. 2) of the whole residual volume.
+    bins : StrainBins
+        Mean residual per equivalent-strain bin.
+    bin_accuracy : ndarray, shape (B,)
+        Accuracy index per bin (NaN for empty bins).
+    residual : ndarray or None
+        Residual volume, float32, NaN where undefined (kept with ``keep_volumes``).
+    labels_mapped : ndarray or None
+        Phases of the other state brought onto the residual's voxels by the field, uint8
+        (:data:`~.phases.NO_PHASE` where undefined; kept with ``keep_volumes``).
+    """
+
+    name: str
+    field: DisplacementField
+    equivalent_strain: np.ndarray
+    mean_residual: float
+    voxels: int
+    background: BackgroundResidual
+    background_used: float
+    accuracy: float
+    bins: StrainBins
+    bin_accuracy: np.ndarray
+    residual: np.ndarray | None = None
+    labels_mapped: np.ndarray | None = None
+
+    @property
+    def mean_corrected_residual(self) -> float:
+        """``mean(r') = mean(r) - r0`` (gray levels)."""
+        return self.mean_residual - self.background_used
+
+
+@dataclass
+class Evaluation:
+    """Phases, contrast and per-field results of :func:`evaluate_fields`.
+
+    Attributes
+    ----------
+    mode : str
+        ``"reference"`` (residual ``|F(X + u) - G(X)|`` on reference voxels) or ``"loaded"``
+        (the paper's ``|F - G'|`` on loaded-state voxels).
+    thresholds_reference, thresholds_deformed : ndarray, shape (N - 1,)
+        Gray thresholds of each state.
+    phases_reference, phases_deformed : list of PhaseStats
+        Table 1 rows of each state.
+    contrast : float
+        ``|g1 - g2|`` (gray levels) of ``phase_pair``, mean over both states.
+    phase_pair : (int, int)
+        Phases whose contrast is used in eq. 2.
+    edges : ndarray, shape (B + 1,)
+        Equivalent-strain bin edges shared by all fields.
+    options : dict
+        The strain and binning options used.
+    fields : list of FieldEvaluation
+    labels_reference, labels_deformed : ndarray or None
+        Phase label volumes (uint8), kept with ``keep_volumes``.
+    """
+
+    mode: str
+    thresholds_reference: np.ndarray
+    thresholds_deformed: np.ndarray
+    phases_reference: list
+    phases_deformed: list
+    contrast: float
+    phase_pair: tuple
+    edges: np.ndarray
+    options: dict
+    fields: list = dataclass_field(default_factory=list)
+    labels_reference: np.ndarray | None = None
+    labels_deformed: np.ndarray | None = None
+
+    def __getitem__(self, name: str) -> FieldEvaluation:
+        for item in self.fields:
+            if item.name == name:
+                return item
+        raise KeyError(f"no field named {name!r} (fields: {[f.name for f in self.fields]})")
+
+
+def _named_fields(fields) -> list[tuple[str, DisplacementField]]:
+    if isinstance(fields, DisplacementField):
+        return [("field", fields)]
+    if isinstance(fields, Mapping):
+        items = [(str(k), v) for k, v in fields.items()]
+    else:
+        items = [(f"field {i + 1}", v) for i, v in enumerate(fields)]
+    if not items:
+        raise ValueError("give at least one displacement field to evaluate")
+    names = [n for n, _ in items]
+    if len(set(names)) != len(names):
+        raise ValueError(f"field names must be unique, got {names}")
+    for name, value in items:
+        if not isinstance(value, DisplacementField):
+            raise TypeError(f"{name!r} is a {type(value).__name__}, not a DisplacementField")
+    return items
+
+
+def evaluate_iter(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    fields: DisplacementField | Mapping[str, DisplacementField] | Sequence[DisplacementField],
+    *,
+    phases="auto",
+    phases_deformed=None,
+    n_phases: int = 2,
+    phase_pair: tuple[int, int] | None = None,
+    mode: str = "reference",
+    strain_measure: str = "small",
+    strain_method: str = "central",
+    strain_window: int = 5,
+    n_bins: int = 10,
+    bin_edges: Sequence[float] | None = None,
+    shared_background: bool = True,
+    keep_volumes: bool = True,
+) -> Iterator[Progress]:
+    """Evaluate one or several fields on the same pair of volumes (generator).
+
+    Yields :class:`~.progress.Progress` per stage and returns an :class:`Evaluation`
+    (``run_to_completion`` or :func:`evaluate_fields` drive it).
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        ``G`` and ``F``, any real dtype.
+    fields : DisplacementField, dict of name -> DisplacementField, or list
+        The fields to compare (e.g. ``{"uncorrected": d, "corrected": d2}``). Their nodes must
+        lie inside the reference volume and hold finite displacements (clean them first).
+    phases : "auto" or sequence of float
+        Thresholds for both states (``"auto"``: multi-Otsu with ``n_phases`` per state).
+    phases_deformed : "auto", sequence of float, or None
+        Thresholds of the deformed state when they differ (default: as ``phases``).
+    n_phases : int
+        Number of phases for ``"auto"``.
+    phase_pair : (int, int), optional
+        Phases whose contrast is used in eq. 2 (default: the two most abundant).
+    mode : {"reference", "loaded"}
+        Where the residual lives (see :func:`~.warp.gray_residual`).
+    strain_measure, strain_method, strain_window
+        Equivalent strain options (:func:`~.strain.strain_tensor`).
+    n_bins : int
+        Number of equivalent-strain bins (ignored with ``bin_edges``).
+    bin_edges : sequence of float, optional
+        Explicit bin edges.
+    shared_background : bool
+        Use one ``r0`` for every field: the smallest of their same-phase residuals. Imaging noise
+        belongs to the scans, not to a field, and a field's errors can only add misplaced texture
+        to its same-phase residual, so the smallest is the best noise estimate and the fields are
+        compared against the same baseline. False: each field uses its own ``r0``.
+    keep_volumes : bool
+        Keep the residual and label volumes in the result (for display and export).
+
+    Raises
+    ------
+    ValueError
+        Bad thresholds, an empty phase, a field that does not fit the volume or holds NaN.
+    """
+    from . import warp
+    from .interpolation import prefilter
+
+    reference = np.asanyarray(reference)
+    deformed = np.asanyarray(deformed)
+    named = _named_fields(fields)
+    if mode not in ("reference", "loaded"):
+        raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
+    for name, item in named:
+        check_field_fits(item, reference.shape, name=f"field {name!r}")
+
+    yield Progress("phases", 0, 2, "segmenting the phases")
+    thresholds_g = phase_thresholds(reference, phases, n_phases, "reference volume")
+    phases_f = phases if phases_deformed is None else phases_deformed
+    thresholds_f = phase_thresholds(deformed, phases_f, n_phases, "deformed volume")
+    if thresholds_g.size != thresholds_f.size:
+        raise ValueError(
+            f"the reference has {thresholds_g.size + 1} phases and the deformed volume "
+            f"{thresholds_f.size + 1}: give both states the same number of thresholds"
+        )
+    labels_g = segment_phases(reference, thresholds_g, "reference volume")
+    labels_f = segment_phases(deformed, thresholds_f, "deformed volume")
+    table_g = phase_table(reference, labels_g, thresholds_g)
+    table_f = phase_table(deformed, labels_f, thresholds_f)
+    contrast, pair = phase_contrast(table_g, table_f, phase_pair)
+    yield Progress("phases", 2, 2, "phases segmented")
+
+    strains = [
+        equivalent_strain_field(
+            item, measure=strain_measure, method=strain_method, window=strain_window
+        )
+        for _, item in named
+    ]
+    edges = (
+        strain_bin_edges(strains, n_bins)
+        if bin_edges is None
+        else np.asarray(bin_edges, dtype=np.float64)
+    )
+
+    if mode == "reference":
+        coefficients = prefilter(deformed)
+        own_labels = labels_g
+    else:
+        coefficients = prefilter(reference)
+        own_labels = labels_f
+
+    partial = []
+    for index, ((name, item), strain) in enumerate(zip(named, strains)):
+        yield Progress("residual", index, len(named), f"gray residual of {name}")
+        spline = warp.FieldSpline.from_field(item)
+        if mode == "reference":
+            residual = warp.gray_residual(
+                reference, deformed, spline, "reference", deformed_coefficients=coefficients
+            )
+            moved = warp.pull_back(
+                deformed, spline, coefficients=coefficients, outside="nan", shape=reference.shape
+            )
+            mapped = label_phases(moved, thresholds_f)
+            positions = None
+        else:
+            residual = warp.gray_residual(
+                reference, deformed, spline, "loaded", reference_coefficients=coefficients
+            )
+            moved = warp.warp_forward(
+                reference, spline, coefficients=coefficients, outside="nan", shape=deformed.shape
+            )
+            mapped = label_phases(moved, thresholds_g)
+
+            def positions(points, spline=spline):
+                return spline.invert(points)[0]
+
+        del moved
+        background = background_residual(residual, own_labels, mapped)
+        total, count = 0.0, 0
+        for zs in _slabs(residual.shape):
+            block = residual[zs]
+            finite = np.isfinite(block)
+            total += float(np.sum(block[finite], dtype=np.float64))
+            count += int(finite.sum())
+        bins = bin_residual_by_strain(residual, strain, item, edges, positions)
+        partial.append(
+            dict(
+                name=name,
+                field=item,
+                equivalent_strain=strain,
+                mean_residual=total / count if count else float("nan"),
+                voxels=count,
+                background=background,
+                bins=bins,
+                residual=residual if keep_volumes else None,
+                labels_mapped=mapped if keep_volumes else None,
+            )
+        )
+    yield Progress("residual", len(named), len(named), "residuals done")
+
+    shared = min(p["background"].mean for p in partial)
+    results = []
+    for p in partial:
+        r0 = shared if shared_background else p["background"].mean
+        results.append(
+            FieldEvaluation(
+                **p,
+                background_used=r0,
+                accuracy=accuracy_index(p["mean_residual"], r0, contrast),
+                bin_accuracy=accuracy_index(p["bins"].mean_residual, r0, contrast),
+            )
+        )
+    return Evaluation(
+        mode=mode,
+        thresholds_reference=thresholds_g,
+        thresholds_deformed=thresholds_f,
+        phases_reference=table_g,
+        phases_deformed=table_f,
+        contrast=contrast,
+        phase_pair=pair,
+        edges=edges,
+        options={
+            "strain_measure": strain_measure,
+            "strain_method": strain_method,
+            "strain_window": int(strain_window),
+            "shared_background": bool(shared_background),
+        },
+        fields=results,
+        labels_reference=labels_g if keep_volumes else None,
+        labels_deformed=labels_f if keep_volumes else None,
+    )
+
+
+def evaluate_fields(reference, deformed, fields, **options) -> Evaluation:
+    """Run :func:`evaluate_iter` to the end and return its :class:`Evaluation`."""
+    return run_to_completion(evaluate_iter(reference, deformed, fields, **options))
+
+
+def evaluate_field(reference, deformed, field: DisplacementField, **options) -> Evaluation:
+    """Evaluate a single field (named ``"field"``); see :func:`evaluate_iter` for the options.
+
+    Examples
+    --------
+    >>> result = evaluate_field(G, F, field)  # doctest: +SKIP
+    >>> result["field"].accuracy, result["field"].bins.mean_residual  # doctest: +SKIP
+    """
+    return evaluate_fields(reference, deformed, {"field": field}, **options)
