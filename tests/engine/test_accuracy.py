@@ -292,3 +292,24 @@ def test_bad_fields_are_clear_errors(scans):
         evaluate_field(reference, deformed, exact, phases=[130.0], phases_deformed=[120.0, 150.0])
     with pytest.raises(ValueError, match="at least one"):
         evaluate_fields(reference, deformed, {})
+
+
+def test_bin_by_puts_every_field_on_the_same_strain_axis():
+    clean = two_phase_volume(SHAPE, seed=13)
+    truth = shear_band(center=(24.0, 24.0, 24.0), width=4.0, slip=4.0)
+    reference = add_noise(clean, 2.0, seed=14)
+    deformed = add_noise(deform_volume(clean, truth), 2.0, seed=15)
+    exact = grid_field(truth, step=4)
+    # the two blocks slide rigidly (a sharp step at the band's mid-plane): right far from the
+    # band, up to slip/2 = 2 voxels wrong inside it
+    step = grid_field(shear_band(center=(24.0, 24.0, 24.0), width=1e-3, slip=4.0), step=4)
+    fields = {"step": step, "exact": exact}
+    shared = evaluate_fields(reference, deformed, fields, n_bins=3, bin_by="exact")
+    assert np.array_equal(shared["step"].bins.voxels, shared["exact"].bins.voxels)
+    assert shared["step"].bins.mean_residual[-1] > 2.0 * shared["exact"].bins.mean_residual[-1]
+    assert shared["step"].bin_accuracy[-1] < shared["step"].bin_accuracy[0] - 0.05
+    # by its own strain the step's few huge-strain nodes stretch the axis: other bins, other sums
+    own = evaluate_fields(reference, deformed, fields, n_bins=3, keep_volumes=False)
+    assert not np.array_equal(own["step"].bins.voxels, own["exact"].bins.voxels)
+    with pytest.raises(ValueError, match="bin_by names no evaluated field"):
+        evaluate_fields(reference, deformed, fields, bin_by="corrected")

@@ -35,6 +35,7 @@ import numpy as np
 
 from .field import DisplacementField, Status
 from .phases import (
+    NO_PHASE,
     PhaseStats,
     label_phases,
     phase_table,
@@ -133,11 +134,12 @@ def background_residual(
     residual : ndarray, shape (nz, ny, nx), float
         Gray residual volume ``r`` (NaN where undefined).
     labels_reference : ndarray, shape (nz, ny, nx), integer
-        Phases of the state the residual's voxels belong to (``G`` for the reference-frame
-        residual ``|F(X + u) - G(X)|``).
+        Phases ``0 .. 254`` of the state the residual's voxels belong to (``G`` for the
+        reference-frame residual ``|F(X + u) - G(X)|``); :data:`~.phases.NO_PHASE` (255) where
+        undefined.
     labels_mapped : ndarray, shape (nz, ny, nx), integer
         Phases of the other state brought onto the same voxels by the field (phases of
-        ``F(X + u(X))``).
+        ``F(X + u(X))``), same convention.
 
     Returns
     -------
@@ -155,15 +157,18 @@ def background_residual(
             f"residual {residual.shape}, reference labels {labels_reference.shape} and mapped "
             f"labels {labels_mapped.shape} must have the same shape"
         )
-    n = int(max(np.max(labels_reference), np.max(labels_mapped))) + 1
-    sums = np.zeros(n)
-    counts = np.zeros(n, np.int64)
+    sums = np.zeros(NO_PHASE)
+    counts = np.zeros(NO_PHASE, np.int64)
+    n = 0  # phases present in the reference labels
     for zs in _slabs(residual.shape):
         r = np.asarray(residual[zs], dtype=np.float64)
         a = np.asarray(labels_reference[zs])
-        keep = (a == np.asarray(labels_mapped[zs])) & np.isfinite(r)
-        sums += np.bincount(a[keep], weights=r[keep], minlength=n)[:n]
-        counts += np.bincount(a[keep], minlength=n)[:n]
+        defined = (a >= 0) & (a < NO_PHASE)
+        if defined.any():
+            n = max(n, int(a[defined].max()) + 1)
+        keep = (a == np.asarray(labels_mapped[zs])) & defined & np.isfinite(r)
+        sums += np.bincount(a[keep], weights=r[keep], minlength=NO_PHASE)
+        counts += np.bincount(a[keep], minlength=NO_PHASE)
     total = int(counts.sum())
     if total == 0:
         raise ValueError(
@@ -547,6 +552,7 @@ def evaluate_iter(
     n_bins: int = 10,
     bin_edges: Sequence[float] | None = None,
     shared_background: bool = True,
+    bin_by: str | None = None,
     keep_volumes: bool = True,
 ) -> Iterator[Progress]:
     """Evaluate one or several fields on the same pair of volumes (generator).
@@ -582,6 +588,10 @@ def evaluate_iter(
         belongs to the scans, not to a field, and a field's errors can only add misplaced texture
         to its same-phase residual, so the smallest is the best noise estimate and the fields are
         compared against the same baseline. False: each field uses its own ``r0``.
+    bin_by : str, optional
+        Name of the field whose equivalent strain bins *every* field's residual, so that all
+        curves compare the same material regions (e.g. bin the uncorrected and the corrected
+        residuals by the corrected field's strain). Default: each field by its own strain.
     keep_volumes : bool
         Keep the residual and label volumes in the result (for display and export).
 
@@ -623,8 +633,17 @@ def evaluate_iter(
         )
         for _, item in named
     ]
+    names = [name for name, _ in named]
+    if bin_by is not None and bin_by not in names:
+        raise ValueError(f"bin_by names no evaluated field: {bin_by!r} (fields: {names})")
+    binning = [
+        (item, strain)
+        if bin_by is None
+        else (named[names.index(bin_by)][1], strains[names.index(bin_by)])
+        for (_, item), strain in zip(named, strains)
+    ]
     edges = (
-        strain_bin_edges(strains, n_bins)
+        strain_bin_edges([strain for _, strain in binning], n_bins)
         if bin_edges is None
         else np.asarray(bin_edges, dtype=np.float64)
     )
@@ -637,7 +656,9 @@ def evaluate_iter(
         own_labels = labels_f
 
     partial = []
-    for index, ((name, item), strain) in enumerate(zip(named, strains)):
+    for index, ((name, item), strain, (bin_field, bin_strain)) in enumerate(
+        zip(named, strains, binning)
+    ):
         yield Progress("residual", index, len(named), f"gray residual of {name}")
         spline = warp.FieldSpline.from_field(item)
         if mode == "reference":
@@ -669,7 +690,7 @@ def evaluate_iter(
             finite = np.isfinite(block)
             total += float(np.sum(block[finite], dtype=np.float64))
             count += int(finite.sum())
-        bins = bin_residual_by_strain(residual, strain, item, edges, positions)
+        bins = bin_residual_by_strain(residual, bin_strain, bin_field, edges, positions)
         partial.append(
             dict(
                 name=name,
@@ -711,6 +732,7 @@ def evaluate_iter(
             "strain_method": strain_method,
             "strain_window": int(strain_window),
             "shared_background": bool(shared_background),
+            "bin_by": bin_by,
         },
         fields=results,
         labels_reference=labels_g if keep_volumes else None,

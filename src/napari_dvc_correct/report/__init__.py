@@ -1,0 +1,147 @@
+"""Reports of an accuracy evaluation: CSV tables, PNG plots, TIFF volumes and a Markdown page.
+
+:func:`write_report` writes everything into one folder; each file is written atomically, so an
+interrupted run never leaves a half-written table or image behind.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..engine.accuracy import Evaluation
+from .markdown import render_markdown, write_markdown
+from .plots import (
+    plot_accuracy_vs_strain,
+    plot_residual_histogram,
+    plot_residual_slices,
+    plot_residual_vs_strain,
+)
+from .tables import background_rows, bin_rows, phase_rows, summary_rows, write_csv
+
+__all__ = ["file_stem", "render_markdown", "write_report", "write_volumes"]
+
+
+def file_stem(name: str) -> str:
+    """A file-name-safe version of a field name (``"field 1"`` -> ``"field_1"``)."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", name.strip()).strip("._")
+    return stem or "field"
+
+
+def _stems(evaluation: Evaluation) -> list[str]:
+    stems, seen = [], set()
+    for item in evaluation.fields:
+        stem = base = file_stem(item.name)
+        k = 2
+        while stem in seen:
+            stem, k = f"{base}_{k}", k + 1
+        seen.add(stem)
+        stems.append(stem)
+    return stems
+
+
+def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Path]:
+    """Write the residual, label and strain volumes of an evaluation as TIFF stacks.
+
+    Files: ``labels_reference.tif``, ``labels_deformed.tif`` (uint8 phases),
+    ``residual_<field>.tif`` (float32 voxels, NaN where undefined), ``labels_mapped_<field>.tif``
+    (phases of the other state brought over by the field, 255 where undefined) and
+    ``equivalent_strain_<field>.tif`` (float32 on the POI grid, with ``scale = step`` and
+    ``translate = origin`` in its description so it overlays the volume).
+    """
+    from ..io.export import export_volume_tiff
+
+    out_dir = Path(out_dir)
+    written = []
+    for state, labels in (
+        ("reference", evaluation.labels_reference),
+        ("deformed", evaluation.labels_deformed),
+    ):
+        if labels is not None:
+            target = out_dir / f"labels_{state}.tif"
+            export_volume_tiff(labels, target, description={"quantity": f"phases, {state}"})
+            written.append(target)
+    for stem, item in zip(_stems(evaluation), evaluation.fields):
+        if item.residual is not None:
+            target = out_dir / f"residual_{stem}.tif"
+            export_volume_tiff(
+                item.residual,
+                target,
+                description={"quantity": "gray residual", "field": item.name},
+            )
+            written.append(target)
+        if item.labels_mapped is not None:
+            target = out_dir / f"labels_mapped_{stem}.tif"
+            export_volume_tiff(
+                item.labels_mapped,
+                target,
+                description={"quantity": "phases mapped by the field", "field": item.name},
+            )
+            written.append(target)
+        target = out_dir / f"equivalent_strain_{stem}.tif"
+        export_volume_tiff(
+            item.equivalent_strain.astype(np.float32),
+            target,
+            scale=item.field.step,
+            translate=item.field.origin,
+            description={"quantity": "equivalent strain (grid)", "field": item.name},
+        )
+        written.append(target)
+    return written
+
+
+def write_report(
+    evaluation: Evaluation,
+    out_dir: str | os.PathLike,
+    *,
+    inputs: dict | None = None,
+    volumes: bool = True,
+    title: str = "DVC accuracy evaluation",
+) -> dict[str, list[Path]]:
+    """Write tables (CSV), plots (PNG), volumes (TIFF) and ``report.md`` into ``out_dir``.
+
+    Parameters
+    ----------
+    evaluation : Evaluation
+        From :func:`napari_dvc_correct.engine.accuracy.evaluate_fields`.
+    out_dir : path
+        Existing or new folder (created if missing; its parent must exist).
+    inputs : dict, optional
+        What was evaluated, listed at the top of the report.
+    volumes : bool
+        Also write the TIFF volumes (:func:`write_volumes`).
+
+    Returns
+    -------
+    dict of str -> list of Path
+        Files written, by kind: ``"tables"``, ``"plots"``, ``"volumes"``, ``"report"``.
+    """
+    out_dir = Path(out_dir)
+    if not out_dir.parent.exists():
+        raise FileNotFoundError(f"the folder that should hold {out_dir} does not exist")
+    out_dir.mkdir(exist_ok=True)
+    files: dict[str, list[Path]] = {"tables": [], "plots": [], "volumes": [], "report": []}
+    for name, rows in (
+        ("summary.csv", summary_rows(evaluation)),
+        ("phases.csv", phase_rows(evaluation)),
+        ("strain_bins.csv", bin_rows(evaluation)),
+        ("background.csv", background_rows(evaluation)),
+    ):
+        files["tables"].append(write_csv(rows, out_dir / name))
+    for name, plot in (
+        ("residual_vs_strain.png", plot_residual_vs_strain),
+        ("accuracy_vs_strain.png", plot_accuracy_vs_strain),
+        ("residual_slices.png", plot_residual_slices),
+        ("residual_histogram.png", plot_residual_histogram),
+    ):
+        path = plot(evaluation, out_dir / name)
+        if path is not None:
+            files["plots"].append(path)
+    if volumes:
+        files["volumes"] = write_volumes(evaluation, out_dir)
+    text = render_markdown(evaluation, files, inputs=inputs, title=title)
+    files["report"].append(write_markdown(text, out_dir / "report.md"))
+    return files

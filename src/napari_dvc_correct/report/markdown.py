@@ -1,0 +1,165 @@
+"""A Markdown report of an accuracy evaluation that a person can open and read."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..engine.accuracy import Evaluation
+from ..io.atomic import atomic_path
+from .tables import bin_rows, format_value, phase_rows, summary_rows
+
+
+def markdown_table(rows: list[dict], columns: dict[str, str]) -> str:
+    """A Markdown table of ``rows`` with ``columns`` mapping row keys to header texts."""
+    lines = [
+        "| " + " | ".join(columns.values()) + " |",
+        "|" + "|".join("---" for _ in columns) + "|",
+    ]
+    for row in rows:
+        lines.append("| " + " | ".join(format_value(row[key]) for key in columns) + " |")
+    return "\n".join(lines)
+
+
+def _phase_section(evaluation: Evaluation) -> str:
+    by_phase: dict[int, dict] = {}
+    for row in phase_rows(evaluation):
+        entry = by_phase.setdefault(row["phase"], {"phase": row["phase"]})
+        prefix = "ref" if row["state"] == "reference" else "def"
+        entry[f"{prefix}_range"] = f"{row['gray_lower']:.4g}–{row['gray_upper']:.4g}"
+        entry[f"{prefix}_mean"] = row["mean_gray"]
+        entry[f"{prefix}_fraction"] = row["fraction"]
+    table = markdown_table(
+        list(by_phase.values()),
+        {
+            "phase": "Phase",
+            "ref_range": "Reference gray range",
+            "ref_mean": "Reference mean gray",
+            "ref_fraction": "Reference share",
+            "def_range": "Deformed gray range",
+            "def_mean": "Deformed mean gray",
+            "def_fraction": "Deformed share",
+        },
+    )
+    pair = evaluation.phase_pair
+    return (
+        "## Phases (paper Table 1)\n\n"
+        f"Thresholds: reference {_list(evaluation.thresholds_reference)}, deformed "
+        f"{_list(evaluation.thresholds_deformed)}.\n\n{table}\n\n"
+        f"The accuracy index uses phases {pair[0]} and {pair[1]}: gray contrast "
+        f"|g1 − g2| = {evaluation.contrast:.4g} (mean of both states)."
+    )
+
+
+def _list(values) -> str:
+    return ", ".join(f"{v:.4g}" for v in values)
+
+
+def render_markdown(
+    evaluation: Evaluation,
+    files: dict[str, list[Path]] | None = None,
+    inputs: dict | None = None,
+    title: str = "DVC accuracy evaluation",
+) -> str:
+    """The report text.
+
+    Parameters
+    ----------
+    evaluation : Evaluation
+        From :func:`napari_dvc_correct.engine.accuracy.evaluate_fields`.
+    files : dict of str -> list of Path, optional
+        Files written next to the report, by kind (``"plots"``, ``"tables"``, ``"volumes"``);
+        plots are embedded, the rest listed, all by their name relative to the report.
+    inputs : dict, optional
+        What was evaluated (file names, shapes...), shown as a list at the top.
+    """
+    files = files or {}
+    parts = [f"# {title}"]
+    if inputs:
+        parts.append("\n".join(f"- **{key}**: {value}" for key, value in inputs.items()))
+    options = evaluation.options
+    residual_kind = (
+        "r(X) = |F(X + u(X)) − G(X)| on reference voxels"
+        if evaluation.mode == "reference"
+        else "r(x) = |F(x) − G'(x)| on loaded-state voxels (the paper's form)"
+    )
+    parts.append(
+        f"Residual: {residual_kind}, defined inside the box spanned by the grid nodes. "
+        f"Strain: {options['strain_measure']} strain, {options['strain_method']} gradient"
+        + (
+            f" (window {options['strain_window']} nodes)"
+            if options["strain_method"] == "least-squares"
+            else ""
+        )
+        + ", equivalent (octahedral) strain of eq. 3."
+    )
+
+    summary = summary_rows(evaluation)
+    parts.append(
+        "## Summary\n\n"
+        + markdown_table(
+            summary,
+            {
+                "field": "Field",
+                "mean_residual": "Mean residual r̄",
+                "background_residual": "Own background r̄0 (eq. 1)",
+                "background_used": "r̄0 used",
+                "mean_corrected_residual": "Mean r' = r̄ − r̄0",
+                "accuracy_index": "Accuracy index p (eq. 2)",
+                "max_equivalent_strain": "Max equivalent strain",
+                "valid_nodes": "Valid nodes",
+                "nodes": "Nodes",
+            },
+        )
+    )
+    best = max(evaluation.fields, key=lambda item: item.accuracy)
+    shared = "one shared" if options.get("shared_background") else "each field's own"
+    parts.append(
+        f"p = 1 means the residual is at the imaging-noise level; p falls by 0.1 for each tenth of "
+        f"the phase contrast ({evaluation.contrast:.4g} gray levels) that the mean residual lies "
+        f"above the noise. The paper takes p = 0.85 as acceptable. Highest p: **{best.name}** "
+        f"({best.accuracy:.3f}). The index uses {shared} background r̄0 "
+        "(see docs/evaluation.md)."
+    )
+    parts.append(_phase_section(evaluation))
+
+    plots = {Path(p).name: Path(p) for p in files.get("plots", [])}
+    curves = [
+        "## Against equivalent strain (paper Figs. 10–11)",
+        *(f"![{name}]({name})" for name in plots if "strain" in name),
+        markdown_table(
+            bin_rows(evaluation),
+            {
+                "field": "Field",
+                "strain_lower": "Strain from",
+                "strain_upper": "to",
+                "voxels": "Voxels",
+                "mean_residual": "Mean residual",
+                "mean_corrected_residual": "Mean r'",
+                "accuracy_index": "p",
+            },
+        ),
+    ]
+    parts.append("\n\n".join(curves))
+    others = [name for name in plots if "strain" not in name]
+    if others:
+        parts.append(
+            "## Residual maps and distribution (paper Figs. 8–9)\n\n"
+            + "\n\n".join(f"![{name}]({name})" for name in others)
+        )
+    listed = [
+        f"- {kind}: " + ", ".join(f"`{Path(p).name}`" for p in paths)
+        for kind, paths in files.items()
+        if paths and kind != "plots"
+    ]
+    if listed:
+        parts.append("## Files\n\n" + "\n".join(listed))
+    return "\n\n".join(parts) + "\n"
+
+
+def write_markdown(text: str, path: str | os.PathLike) -> Path:
+    """Write the report text to ``path`` atomically (UTF-8)."""
+    path = Path(path)
+    with atomic_path(path) as temp:
+        temp.write_text(text, encoding="utf-8")
+    return path
