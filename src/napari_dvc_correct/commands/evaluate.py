@@ -1,0 +1,198 @@
+"""``napari-dvc-correct evaluate REF DEF --field FIELD.npz --out-dir DIR``: accuracy report.
+
+Gray residual, phases, background residual (eq. 1), accuracy index (eq. 2) and curves against
+equivalent strain (eq. 3) for one field, or several side by side (``--compare``), written as CSV
+tables, PNG plots, TIFF volumes and a Markdown report (see docs/evaluation.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..cli import UserError
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "evaluate",
+        help="evaluate the accuracy of displacement fields (residuals, strain, accuracy index)",
+        description="Accuracy evaluation without ground truth (Li & Liu, eqs. 1-3): gray residual "
+        "of each field, background (imaging-noise) residual from the phases, accuracy index, "
+        "and both against equivalent strain. Writes tables (CSV), plots (PNG), volumes (TIFF) and "
+        "report.md into --out-dir.",
+    )
+    parser.add_argument("reference", help="reference volume G (TIFF, folder of TIFF slices, .npy)")
+    parser.add_argument("deformed", help="deformed volume F")
+    parser.add_argument("--field", required=True, help="displacement field to evaluate (.npz)")
+    parser.add_argument(
+        "--compare",
+        action="append",
+        default=[],
+        metavar="OTHER.npz",
+        help="another field to evaluate side by side (repeatable), e.g. the corrected field",
+    )
+    parser.add_argument(
+        "--names",
+        help="comma-separated names of --field then each --compare (default: the file names)",
+    )
+    group = parser.add_argument_group("phases")
+    group.add_argument(
+        "--phases",
+        default="auto",
+        help="'auto' (multi-Otsu) or the N-1 gray thresholds T1,T2,... of N phases (default auto)",
+    )
+    group.add_argument(
+        "--phases-deformed",
+        default=None,
+        help="thresholds of the deformed volume when they differ (default: as --phases)",
+    )
+    group.add_argument(
+        "--n-phases", type=int, default=2, help="number of phases for --phases auto (default 2)"
+    )
+    group.add_argument(
+        "--phase-pair",
+        default=None,
+        help="the two phases A,B whose gray contrast is used in eq. 2 (default: most abundant)",
+    )
+    group.add_argument(
+        "--own-background",
+        action="store_true",
+        help="use each field's own background residual instead of one shared (smallest) value",
+    )
+    group = parser.add_argument_group("residual and strain")
+    group.add_argument(
+        "--mode",
+        choices=("reference", "loaded"),
+        default="reference",
+        help="residual |F(X+u)-G(X)| on reference voxels, or the paper's |F-G'| in the loaded "
+        "state (default reference)",
+    )
+    group.add_argument(
+        "--strain", choices=("small", "green-lagrange"), default="small", help="strain measure"
+    )
+    group.add_argument(
+        "--gradient",
+        choices=("central", "least-squares", "shape-function"),
+        default="central",
+        help="displacement gradient estimator on the grid (default central)",
+    )
+    group.add_argument(
+        "--strain-window", type=int, default=5, help="least-squares window (odd, nodes)"
+    )
+    group.add_argument("--bins", type=int, default=10, help="equivalent-strain bins (default 10)")
+    group.add_argument(
+        "--bin-by", default=None, help="bin every field by the strain of the field of this name"
+    )
+    parser.add_argument("--no-volumes", action="store_true", help="do not write TIFF volumes")
+    parser.add_argument("--out-dir", required=True, help="folder for the report (created)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(run=run)
+    return parser
+
+
+def parse_thresholds(text: str | None, option: str):
+    """``"auto"`` -> ``"auto"``; ``"120,180"`` -> ``[120.0, 180.0]``; None stays None."""
+    if text is None:
+        return None
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        values = [float(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise UserError(
+            f"{option} must be 'auto' or comma-separated gray values like 120,180; got {text!r}"
+        ) from None
+    if not values:
+        raise UserError(f"{option} holds no threshold: give 'auto' or values like 120,180")
+    return values
+
+
+def _names(args) -> list[str]:
+    paths = [args.field, *args.compare]
+    if args.names:
+        names = [n.strip() for n in args.names.split(",")]
+        if len(names) != len(paths) or not all(names):
+            raise UserError(
+                f"--names gives {len(names)} names for {len(paths)} fields (--field + --compare)"
+            )
+        if len(set(names)) != len(names):
+            raise UserError(f"--names must be unique, got {args.names!r}")
+        return names
+    names, seen = [], set()
+    for path in paths:
+        name = base = Path(path).stem
+        k = 2
+        while name in seen:
+            name, k = f"{base} ({k})", k + 1
+        seen.add(name)
+        names.append(name)
+    return names
+
+
+def _phase_pair(text: str | None):
+    if text is None:
+        return None
+    try:
+        pair = tuple(int(p) for p in text.split(","))
+    except ValueError:
+        pair = ()
+    if len(pair) != 2:
+        raise UserError(f"--phase-pair must be two phase numbers like 0,1; got {text!r}")
+    return pair
+
+
+def run(args) -> int:
+    from ..engine.accuracy import evaluate_iter
+    from ..io.npz import load_field
+    from ..io.volumes import read_volume
+    from ..report import write_report
+    from .correlate import ProgressBar, drive
+
+    phases = parse_thresholds(args.phases, "--phases")
+    phases_deformed = parse_thresholds(args.phases_deformed, "--phases-deformed")
+    pair = _phase_pair(args.phase_pair)
+    names = _names(args)
+    out_dir = Path(args.out_dir)
+    if not out_dir.parent.exists():
+        raise FileNotFoundError(f"the folder that should hold {out_dir} does not exist")
+    fields = {name: load_field(path) for name, path in zip(names, [args.field, *args.compare])}
+    reference = read_volume(args.reference)
+    deformed = read_volume(args.deformed)
+
+    evaluation = drive(
+        evaluate_iter(
+            reference,
+            deformed,
+            fields,
+            phases=phases,
+            phases_deformed=phases_deformed,
+            n_phases=args.n_phases,
+            phase_pair=pair,
+            mode=args.mode,
+            strain_measure=args.strain,
+            strain_method=args.gradient,
+            strain_window=args.strain_window,
+            n_bins=args.bins,
+            bin_by=args.bin_by,
+            shared_background=not args.own_background,
+        ),
+        ProgressBar(args.quiet),
+    )
+    inputs = {
+        "reference": f"{args.reference} {tuple(reference.shape)}",
+        "deformed": f"{args.deformed} {tuple(deformed.shape)}",
+        **{
+            f"field {name!r}": f"{path} (grid {fields[name].shape}, step {fields[name].step})"
+            for name, path in zip(names, [args.field, *args.compare])
+        },
+    }
+    files = write_report(evaluation, out_dir, inputs=inputs, volumes=not args.no_volumes)
+    for item in evaluation.fields:
+        print(
+            f"{item.name}: mean residual {item.mean_residual:.3f}, background "
+            f"{item.background_used:.3f}, accuracy index {item.accuracy:.4f}"
+        )
+    count = sum(len(paths) for paths in files.values())
+    print(f"wrote {count} files to {out_dir} (open {out_dir / 'report.md'})")
+    return 0
