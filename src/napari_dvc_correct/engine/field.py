@@ -254,8 +254,17 @@ class DisplacementField:
         )
 
 
+#: Voxels kept between a subvolume and the volume's border by the default grid: the cubic
+#: B-spline interpolant is least accurate within about two voxels of the border (its prefilter
+#: has to assume a mirrored continuation of the volume there).
+BORDER_MARGIN = 2
+
+
 def grid_for_volume(volume_shape, subvolume: int, step) -> tuple[tuple, tuple, tuple]:
     """POI grid ``(origin, step, shape)`` that keeps every subvolume inside the volume.
+
+    Subvolumes stay :data:`BORDER_MARGIN` voxels away from the border when the volume is large
+    enough, and touch it otherwise.
 
     Parameters
     ----------
@@ -277,6 +286,8 @@ def grid_for_volume(volume_shape, subvolume: int, step) -> tuple[tuple, tuple, t
     origin, shape = [], []
     for n, s in zip(volume_shape, steps):
         span = n - 1 - 2 * half  # room for node positions
+        margin = BORDER_MARGIN if span >= 2 * BORDER_MARGIN else 0
+        span -= 2 * margin
         if span < 0:
             raise ValueError(
                 f"subvolume {subvolume} is larger than the volume ({volume_shape}): "
@@ -284,6 +295,6 @@ def grid_for_volume(volume_shape, subvolume: int, step) -> tuple[tuple, tuple, t
             )
         count = span // s + 1
         used = (count - 1) * s
-        origin.append(half + (span - used) // 2)
+        origin.append(half + margin + (span - used) // 2)
         shape.append(count)
     return tuple(float(o) for o in origin), tuple(float(s) for s in steps), tuple(shape)

@@ -179,6 +179,43 @@ def gradient_volume(coefficients):
 
 
 @njit(**KERNEL_OPTIONS)
+def _reference_terms(g, grad, xi, count, nb):
+    """Mean and norm of the reference subvolume, Cholesky factor of H = Σ JᵀJ, Σ J, Σ J (g − ḡ)."""
+    m_par = 3 * nb
+    mean_g = 0.0
+    for i in range(count):
+        mean_g += g[i]
+    mean_g /= max(count, 1)
+    ss_g = 0.0
+    for i in range(count):
+        d = g[i] - mean_g
+        ss_g += d * d
+    delta_g = np.sqrt(ss_g)
+    hessian = np.zeros((m_par, m_par))
+    sum_j = np.zeros(m_par)
+    sum_jg = np.zeros(m_par)
+    jac = np.empty(m_par)
+    b = np.empty(10)
+    for i in range(count):
+        monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+        for k in range(3):
+            for j in range(nb):
+                jac[k * nb + j] = grad[i, k] * b[j]
+        dg = g[i] - mean_g
+        for r in range(m_par):
+            jr = jac[r]
+            sum_j[r] += jr
+            sum_jg[r] += jr * dg
+            for c in range(r + 1):
+                hessian[r, c] += jr * jac[c]
+    for r in range(m_par):
+        for c in range(r):
+            hessian[c, r] = hessian[r, c]
+    ok, low = _cholesky_solve_setup(hessian, m_par)
+    return mean_g, delta_g, ok, low, sum_j, sum_jg
+
+
+@njit(**KERNEL_OPTIONS)
 def match_one(
     reference,
     gradient,
@@ -230,42 +267,12 @@ def match_one(
     if count < min_mask_fraction * n_total or count < m_par + 1:
         return np.nan, _MASKED, 0
 
-    mean_g = 0.0
-    for i in range(count):
-        mean_g += g[i]
-    mean_g /= count
-    ss_g = 0.0
-    for i in range(count):
-        d = g[i] - mean_g
-        ss_g += d * d
-    delta_g = np.sqrt(ss_g)
+    mean_g, delta_g, ok, low, sum_j, sum_jg = _reference_terms(g, grad, xi, count, nb)
     if delta_g <= min_std * np.sqrt(count) or delta_g == 0.0:
         return np.nan, _LOW_TEXTURE, 0
-
-    # Reference-side sums: Hessian H, Σ J, Σ J (g - ḡ)
-    hessian = np.zeros((m_par, m_par))
-    sum_j = np.zeros(m_par)
-    sum_jg = np.zeros(m_par)
-    jac = np.empty(m_par)
-    b = np.empty(10)
-    for i in range(count):
-        monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
-        for k in range(3):
-            for j in range(nb):
-                jac[k * nb + j] = grad[i, k] * b[j]
-        dg = g[i] - mean_g
-        for r in range(m_par):
-            jr = jac[r]
-            sum_j[r] += jr
-            sum_jg[r] += jr * dg
-            for c in range(r + 1):
-                hessian[r, c] += jr * jac[c]
-    for r in range(m_par):
-        for c in range(r):
-            hessian[c, r] = hessian[r, c]
-    ok, low = _cholesky_solve_setup(hessian, m_par)
     if not ok:
         return np.nan, _SINGULAR, 0
+    b = np.empty(10)
 
     start = np.empty(3)
     for k in range(3):
@@ -275,6 +282,7 @@ def match_one(
     dp = np.empty(m_par)
     corner = np.empty(10)
     zncc = np.nan
+    outside = np.zeros(count, np.bool_)
     nz, ny, nx = coef_deformed.shape
     for iteration in range(1, max_iterations + 1):
         for r in range(m_par):
@@ -282,6 +290,7 @@ def match_one(
         sum_f = 0.0
         sum_ff = 0.0
         sum_gf = 0.0
+        n_outside = 0
         for i in range(count):
             monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
             wz = cz + xi[i, 0]
@@ -296,7 +305,9 @@ def match_one(
             elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
                 f = sample_mirrored(coef_deformed, wz, wy, wx)
             else:
-                return zncc, _OUT_OF_BOUNDS, iteration
+                outside[i] = True
+                n_outside += 1
+                continue
             sum_f += f
             sum_ff += f * f
             sum_gf += (g[i] - mean_g) * f
@@ -304,6 +315,28 @@ def match_one(
                 gf = grad[i, k] * f
                 for j in range(nb):
                     sum_jf[k * nb + j] += gf * b[j]
+        if n_outside > 0:
+            # Part of the deformed subvolume left the volume: drop those voxels, rebuild the
+            # reference-side terms on the rest and iterate again from the same warp.
+            kept = 0
+            for i in range(count):
+                if not outside[i]:
+                    g[kept] = g[i]
+                    grad[kept, 0] = grad[i, 0]
+                    grad[kept, 1] = grad[i, 1]
+                    grad[kept, 2] = grad[i, 2]
+                    xi[kept, 0] = xi[i, 0]
+                    xi[kept, 1] = xi[i, 1]
+                    xi[kept, 2] = xi[i, 2]
+                    kept += 1
+                outside[i] = False
+            count = kept
+            if count < min_mask_fraction * n_total or count < m_par + 1:
+                return zncc, _OUT_OF_BOUNDS, iteration
+            mean_g, delta_g, ok, low, sum_j, sum_jg = _reference_terms(g, grad, xi, count, nb)
+            if not ok or delta_g == 0.0:
+                return zncc, _OUT_OF_BOUNDS, iteration
+            continue
         mean_f = sum_f / count
         ss_f = sum_ff - count * mean_f * mean_f
         if not (ss_f > 0.0):

@@ -210,3 +210,39 @@ def sample_displacement(displacement: DisplacementFunction, points: np.ndarray) 
     """Evaluate ``displacement`` at ``points`` (..., 3), keeping the leading shape."""
     points = np.asarray(points, dtype=np.float64)
     return displacement(points.reshape(-1, 3)).reshape(points.shape)
+
+
+def make_pair(
+    pattern: Callable[[tuple], np.ndarray],
+    shape,
+    displacement: DisplacementFunction,
+    margin: int = 12,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference and deformed volumes of ``shape`` cut from a larger pattern.
+
+    The pattern is made ``margin`` voxels larger on every side, deformed as a whole and both volumes
+    are cropped, so the material that enters the field of view near the borders is the real
+    continuation of the pattern (as in a CT scan of a larger specimen) rather than a fill value.
+    ``displacement`` is expressed in the cropped volume's coordinates.
+
+    Parameters
+    ----------
+    pattern : callable
+        ``pattern(shape) -> ndarray`` (e.g. ``lambda s: textured_volume(s, 2.0, seed=1)``).
+    shape : tuple of 3 ints
+        ``(nz, ny, nx)`` of the returned volumes.
+    displacement : callable
+        Lagrangian field ``u(points)`` in the cropped coordinates (voxels).
+    margin : int
+        Extra voxels on every side; keep it larger than the largest displacement near the border.
+
+    Returns
+    -------
+    reference, deformed : ndarray, float32, shape ``shape``
+    """
+    shape = tuple(int(n) for n in shape)
+    big = pattern(tuple(n + 2 * margin for n in shape))
+    shifted = lambda points: displacement(np.asarray(points) - margin)  # noqa: E731
+    deformed = deform_volume(big, shifted)
+    crop = tuple(slice(margin, margin + n) for n in shape)
+    return np.ascontiguousarray(big[crop]), np.ascontiguousarray(deformed[crop])

@@ -70,7 +70,9 @@ def _read_tiff_folder(path: Path) -> np.ndarray:
     try:
         return tifffile.imread(files)
     except (tifffile.TiffFileError, ValueError, OSError) as error:
-        raise ValueError(f"{path}: the TIFF slices could not be read as one stack ({error})") from error
+        raise ValueError(
+            f"{path}: the TIFF slices could not be read as one stack ({error})"
+        ) from error
 
 
 def _read_npz(path: Path) -> np.ndarray:

@@ -1,0 +1,143 @@
+"""``napari-dvc-correct correlate REF DEF --out FIELD.npz``: local DVC of one pair."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "correlate",
+        help="correlate a reference and a deformed volume",
+        description="Local subvolume DVC (IC-GN) of a reference volume REF and a deformed volume "
+        "DEF; writes the displacement field as an .npz field file.",
+    )
+    parser.add_argument(
+        "reference", help="reference volume (TIFF, folder of TIFF slices, .npy, .npz)"
+    )
+    parser.add_argument("deformed", help="deformed volume, same shape as the reference")
+    add_correlation_arguments(parser)
+    parser.add_argument("--mask", help="reference-space mask volume (non-zero = material)")
+    parser.add_argument("--out", required=True, help="output field file (.npz)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    try:
+        from .correct import add_self_correct_argument
+    except ImportError:  # the correction command is optional at this stage
+        pass
+    else:
+        add_self_correct_argument(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def add_correlation_arguments(parser: argparse.ArgumentParser) -> None:
+    """The DVC parameters, shared by every subcommand that correlates."""
+    group = parser.add_argument_group("DVC parameters")
+    group.add_argument("--subvolume", type=int, default=31, help="odd subvolume edge (voxels)")
+    group.add_argument("--step", type=int, default=8, help="POI spacing (voxels)")
+    group.add_argument("--order", type=int, choices=(1, 2), default=1, help="shape function order")
+    group.add_argument(
+        "--search", type=int, default=None, help="search radius around the rigid shift (voxels)"
+    )
+    group.add_argument("--max-iterations", type=int, default=50)
+    group.add_argument("--tolerance", type=float, default=1e-3, help="convergence (voxels)")
+    group.add_argument("--min-zncc", type=float, default=None, help="flag matches below this")
+
+
+def params_from_args(args):
+    from ..engine.params import CorrelationParams
+
+    values = dict(
+        subvolume=args.subvolume,
+        step=args.step,
+        order=args.order,
+        search_radius=args.search,
+        max_iterations=args.max_iterations,
+        tolerance=args.tolerance,
+    )
+    if getattr(args, "min_zncc", None) is not None:
+        values["min_zncc"] = args.min_zncc
+    return CorrelationParams(**values)
+
+
+def check_output_path(path: str, suffixes=(".npz",)) -> Path:
+    """Refuse an output whose folder is missing or whose suffix is wrong, before any work."""
+    out = Path(path)
+    if out.suffix.lower() not in suffixes:
+        raise ValueError(f"output {out} must end with {' or '.join(suffixes)}")
+    if not out.parent.exists():
+        raise FileNotFoundError(f"output folder does not exist: {out.parent}")
+    return out
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr (silent when ``quiet`` or stderr is not a terminal)."""
+
+    def __init__(self, quiet: bool = False):
+        self.enabled = not quiet
+        self.tty = sys.stderr.isatty()
+        self.last_stage = None
+
+    def update(self, progress) -> None:
+        if not self.enabled:
+            return
+        width = 30
+        filled = int(round(width * progress.fraction))
+        line = f"{progress.stage:>14} [{'#' * filled}{'.' * (width - filled)}] {progress.message}"
+        if self.tty:
+            sys.stderr.write("\r" + line[:100].ljust(100))
+            if progress.stage == "done":
+                sys.stderr.write("\n")
+        elif progress.stage != self.last_stage or progress.fraction >= 1.0:
+            sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+        self.last_stage = progress.stage
+
+
+def drive(generator, bar: ProgressBar):
+    """Run an engine generator, feeding its progress to ``bar``; return its result."""
+    while True:
+        try:
+            bar.update(next(generator))
+        except StopIteration as stop:
+            return stop.value
+
+
+def summary(field, seconds: float) -> str:
+    good = field.valid
+    zncc = field.zncc[good]
+    counts = ", ".join(f"{name} {n}" for name, n in field.status_counts().items())
+    mean_zncc = float(np.mean(zncc)) if zncc.size else float("nan")
+    return (
+        f"POIs: {field.n_points} on a {field.shape[0]}x{field.shape[1]}x{field.shape[2]} grid; "
+        f"converged fraction {good.mean():.3f}; mean ZNCC {mean_zncc:.4f}; "
+        f"time {seconds:.2f} s ({counts})"
+    )
+
+
+def run(args) -> int:
+    from ..engine.correlate import correlate_iter
+    from ..io.volumes import read_volume
+
+    started = time.perf_counter()
+    params = params_from_args(args)
+    out = check_output_path(args.out)
+    reference = read_volume(args.reference)
+    deformed = read_volume(args.deformed)
+    mask = read_volume(args.mask) if args.mask else None
+    bar = ProgressBar(args.quiet)
+    field = drive(correlate_iter(reference, deformed, params, mask=mask), bar)
+    field.metadata["reference"] = str(args.reference)
+    field.metadata["deformed"] = str(args.deformed)
+    if getattr(args, "self_correct", False):
+        from .correct import apply_self_correction
+
+        field = apply_self_correction(args, field, reference, deformed)
+    field.save(out)
+    print(summary(field, time.perf_counter() - started))
+    return 0

@@ -1,0 +1,470 @@
+"""Local DVC: ``correlate(G, F, params) -> DisplacementField``.
+
+The pipeline, coarse to fine:
+
+1. prefilter ``F`` into B-spline coefficients and compute the gradient of ``G`` (once per volume);
+2. estimate the rigid shift of the whole specimen (phase correlation of binned volumes);
+3. on a binned pyramid (when the search radius exceeds a few voxels), search every POI's integer
+   displacement by FFT cross-correlation at the coarsest level and refine it with IC-GN level by
+   level;
+4. run IC-GN at full resolution for every POI in parallel, in batches that report progress;
+5. reliability-guided repair: POIs that failed, matched poorly or disagree with their neighbours are
+   matched again from the warps of their best converged neighbours, best first.
+"""
+
+from __future__ import annotations
+
+import heapq
+import time
+from collections.abc import Generator
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import icgn
+from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
+from .initial_guess import bin_volume, fft_search, global_shift, pyramid_levels
+from .interpolation import prefilter
+from .params import CorrelationParams
+from .progress import Progress, run_to_completion
+
+_GOOD = np.array([int(s) for s in GOOD_STATUSES])
+
+
+def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
+    """Check the inputs of a correlation; return float32 volumes and a boolean mask (or None).
+
+    Raises
+    ------
+    ValueError
+        With a message that says what to change: not 3-D, shapes that differ, NaN or infinite
+        values, a subvolume larger than the volume, an empty mask or a mask of another shape.
+    """
+    from ..io.volumes import validate_volume
+
+    reference = validate_volume(reference, "reference volume")
+    deformed = validate_volume(deformed, "deformed volume")
+    if reference.shape != deformed.shape:
+        raise ValueError(
+            f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
+            "same shape"
+        )
+    if params.subvolume > min(reference.shape):
+        raise ValueError(
+            f"subvolume {params.subvolume} is larger than the volume {reference.shape}: use a "
+            f"subvolume of at most {min(reference.shape) - (1 - min(reference.shape) % 2)}"
+        )
+    reference = np.ascontiguousarray(reference, dtype=np.float32)
+    deformed = np.ascontiguousarray(deformed, dtype=np.float32)
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != reference.shape:
+            raise ValueError(f"mask shape {mask.shape} differs from the volume {reference.shape}")
+        mask = np.ascontiguousarray(mask != 0)
+        if not mask.any():
+            raise ValueError("the mask is empty: no voxel is selected")
+    return reference, deformed, mask
+
+
+def _grid_centers(grid, volume_shape, half):
+    origin, step, shape = grid
+    axes = [np.asarray(origin[a]) + np.asarray(step[a]) * np.arange(shape[a]) for a in range(3)]
+    zz, yy, xx = np.meshgrid(*axes, indexing="ij")
+    points = np.stack([zz.ravel(), yy.ravel(), xx.ravel()], axis=1)
+    centers = np.rint(points).astype(np.int64)
+    if np.max(np.abs(points - centers), initial=0.0) > 1e-6:
+        raise ValueError("POI positions (origin + i * step) must be whole voxels")
+    inside = np.all((centers >= half) & (centers <= np.array(volume_shape) - 1 - half), axis=1)
+    return centers, inside
+
+
+@dataclass
+class _Level:
+    """Everything IC-GN needs at one pyramid level."""
+
+    factor: int
+    reference: np.ndarray
+    gradient: np.ndarray
+    coef_deformed: np.ndarray
+    mask: np.ndarray
+    use_mask: bool
+    half: int
+    min_std: float
+
+    @classmethod
+    def build(cls, factor, reference, deformed, mask, half, min_texture):
+        if factor > 1:
+            reference = bin_volume(reference, factor)
+            deformed = bin_volume(deformed, factor)
+            if mask is not None:
+                mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
+        gradient = icgn.gradient_volume(prefilter(reference))
+        std = float(np.std(reference[mask] if mask is not None else reference))
+        return cls(
+            factor=factor,
+            reference=reference,
+            gradient=gradient,
+            coef_deformed=prefilter(deformed),
+            mask=mask if mask is not None else np.zeros((1, 1, 1), np.bool_),
+            use_mask=mask is not None,
+            half=half,
+            min_std=min_texture * std,
+        )
+
+    def centers_from_fine(self, centers):
+        """Nearest coarse voxels to fine positions, kept where the subvolume fits."""
+        f = self.factor
+        coarse = np.rint((centers - (f - 1) / 2.0) / f).astype(np.int64)
+        high = np.array(self.reference.shape) - 1 - self.half
+        return np.clip(coarse, self.half, np.maximum(high, self.half))
+
+    def match(self, centers, params, order, settings, parallel=True):
+        n = len(centers)
+        zncc = np.full(n, np.nan)
+        status = np.full(n, int(Status.NOT_COMPUTED), np.int64)
+        iterations = np.zeros(n, np.int64)
+        if n == 0:
+            return zncc, status, iterations
+        kernel = icgn.match_many if parallel else icgn.match_many_serial
+        kernel(
+            self.reference,
+            self.gradient,
+            self.coef_deformed,
+            self.mask,
+            self.use_mask,
+            np.ascontiguousarray(centers, dtype=np.int64),
+            self.half,
+            icgn.n_monomials(order),
+            params,
+            zncc,
+            status,
+            iterations,
+            settings.max_iterations,
+            settings.tolerance,
+            self.min_std,
+            settings.min_mask_fraction,
+            float(max(self.half, 4)),
+            icgn.PRODUCT_TABLE,
+            icgn.QUAD_AXES,
+        )
+        return zncc, status, iterations
+
+
+def _neighbour_outliers(u, usable, grid_shape, threshold=2.0, noise=0.1):
+    """Normalised median test (Westerweel & Scarano 2005) over the 26-neighbourhood.
+
+    Returns a boolean array over POIs (flat) marking usable POIs whose displacement deviates from
+    the median of their usable neighbours by more than ``threshold`` times the neighbours' median
+    deviation (plus ``noise`` voxels).
+    """
+    field_u = u.reshape(*grid_shape, 3)
+    valid = usable.reshape(grid_shape)
+    padded = np.pad(
+        np.where(valid[..., None], field_u, np.nan),
+        ((1, 1), (1, 1), (1, 1), (0, 0)),
+        constant_values=np.nan,
+    )
+    nz, ny, nx = grid_shape
+    neighbours = np.stack(
+        [
+            padded[1 + a : 1 + a + nz, 1 + b : 1 + b + ny, 1 + c : 1 + c + nx]
+            for a in (-1, 0, 1)
+            for b in (-1, 0, 1)
+            for c in (-1, 0, 1)
+            if (a, b, c) != (0, 0, 0)
+        ]
+    )  # (26, nz, ny, nx, 3)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            median = np.nanmedian(neighbours, axis=0)
+            spread = np.nanmedian(np.abs(neighbours - median), axis=0)
+            residual = np.abs(field_u - median) / (spread + noise)
+    count = np.sum(np.isfinite(neighbours[..., 0]), axis=0)
+    outliers = np.any(residual > threshold, axis=-1) & (count >= 3)
+    return outliers.reshape(-1) & usable
+
+
+def _is_good(status, zncc, min_zncc):
+    return np.isin(status, _GOOD) & (zncc >= min_zncc)
+
+
+def _repair(level, centers, grid_shape, params, zncc, status, iterations, order, settings, step):
+    """Reliability-guided propagation into POIs that failed or are outliers.
+
+    POIs are taken best first (highest ZNCC); each bad 26-neighbour is matched again with the
+    popped POI's warp carried over to its position (``u + ∇u·Δ``). A new match replaces the old
+    one when it converges above ``min_zncc``; it then seeds its own neighbours.
+    """
+    good = _is_good(status, zncc, settings.min_zncc)
+    try_again = np.isin(status, [int(Status.MASKED), int(Status.LOW_TEXTURE)])
+    if good.sum() > 8:
+        good &= ~_neighbour_outliers(
+            icgn.params_to_displacement(params, order)[0], good, grid_shape
+        )
+    bad = (
+        ~good
+        & ~try_again
+        & np.isin(
+            status,
+            np.r_[
+                _GOOD,
+                [
+                    int(Status.DIVERGED),
+                    int(Status.SINGULAR),
+                    int(Status.OUT_OF_BOUNDS),
+                    int(Status.LOW_ZNCC),
+                ],
+            ],
+        )
+    )
+    if not bad.any() or not good.any():
+        return int(bad.sum())
+    nb = icgn.n_monomials(order)
+    grid_index = np.arange(len(centers)).reshape(grid_shape)
+    offsets = [
+        (a, b, c)
+        for a in (-1, 0, 1)
+        for b in (-1, 0, 1)
+        for c in (-1, 0, 1)
+        if (a, b, c) != (0, 0, 0)
+    ]
+    heap = [(-zncc[i], i) for i in np.flatnonzero(good)]
+    heapq.heapify(heap)
+    attempts = np.zeros(len(centers), np.int64)
+    # a POI whose deformed subvolume left the volume is retried once (its guess may be wrong)
+    max_attempts = np.where(status == int(Status.OUT_OF_BOUNDS), 1, 3)
+    while heap and bad.any():
+        _, i = heapq.heappop(heap)
+        iz, iy, ix = np.unravel_index(i, grid_shape)
+        for a, b, c in offsets:
+            jz, jy, jx = iz + a, iy + b, ix + c
+            if not (
+                0 <= jz < grid_shape[0] and 0 <= jy < grid_shape[1] and 0 <= jx < grid_shape[2]
+            ):
+                continue
+            j = grid_index[jz, jy, jx]
+            if not bad[j] or attempts[j] >= max_attempts[j]:
+                continue
+            attempts[j] += 1
+            guess = params[i].reshape(3, nb).copy()
+            delta = (centers[j] - centers[i]).astype(np.float64)
+            guess[:, 0] += guess[:, 1:4] @ delta
+            trial = np.ascontiguousarray(guess.reshape(1, -1))
+            t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, order, settings, False)
+            if t_status[0] in _GOOD and t_zncc[0] >= settings.min_zncc:
+                params[j] = trial[0]
+                zncc[j] = t_zncc[0]
+                status[j] = t_status[0]
+                iterations[j] = t_its[0]
+                bad[j] = False
+                heapq.heappush(heap, (-zncc[j], j))
+    return int(bad.sum())
+
+
+def correlate_iter(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    params: CorrelationParams | None = None,
+    *,
+    mask: np.ndarray | None = None,
+    grid: tuple | None = None,
+    initial: DisplacementField | None = None,
+) -> Generator[Progress, None, DisplacementField]:
+    """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        The two volumes, any real dtype (processed as float32). Axis order (z, y, x).
+    params : CorrelationParams, optional
+        Subvolume, step, shape-function order, search radius... (defaults if None).
+    mask : ndarray of bool, shape (nz, ny, nx), optional
+        Reference-space mask of the material: only voxels inside it enter the matching, and POIs
+        with less than ``params.min_mask_fraction`` of their subvolume inside get ``MASKED``.
+    grid : (origin, step, shape), optional
+        POI grid in reference voxels; whole-voxel positions. Default:
+        :func:`grid_for_volume` ``(shape, subvolume, step)``.
+    initial : DisplacementField, optional
+        Initial guess on the same grid (skips the global and FFT searches).
+
+    Yields
+    ------
+    Progress
+        One report per stage and per batch of POIs.
+
+    Returns
+    -------
+    DisplacementField
+        ``u`` in voxels at each POI, with ``zncc``, ``status``, ``iterations`` and the shape
+        function's displacement ``gradient``.
+    """
+    params = CorrelationParams() if params is None else params
+    start_time = time.perf_counter()
+    timings = {}
+    reference, deformed, mask = validate_pair(reference, deformed, params, mask)
+    if grid is None:
+        grid = grid_for_volume(reference.shape, params.subvolume, params.step)
+    origin, step, grid_shape = grid
+    grid_shape = tuple(int(n) for n in grid_shape)
+    if min(grid_shape) < 1:
+        raise ValueError(f"the POI grid is empty (shape {grid_shape})")
+    half = params.half
+    centers, inside = _grid_centers(grid, reference.shape, half)
+    n_points = len(centers)
+    order = params.order
+    nb = icgn.n_monomials(order)
+    if initial is not None and initial.shape != grid_shape:
+        raise ValueError(
+            f"initial field grid {initial.shape} differs from the POI grid {grid_shape}"
+        )
+
+    yield Progress("prefilter", 0, 1, "prefiltering the volumes")
+    t0 = time.perf_counter()
+    fine = _Level.build(1, reference, deformed, mask, half, params.min_texture)
+    timings["prefilter_s"] = time.perf_counter() - t0
+    yield Progress("prefilter", 1, 1, "volumes prefiltered")
+
+    t0 = time.perf_counter()
+    radius = params.effective_search_radius
+    if initial is not None:
+        guess_params = icgn.displacement_to_params(
+            initial.displacement,
+            None if initial.gradient is None else initial.gradient.reshape(-1, 3, 3),
+            order,
+        )
+        shift = np.zeros(3, np.int64)
+        levels = 0
+    else:
+        yield Progress("initial guess", 0, 1, "estimating the rigid shift")
+        shift = global_shift(reference, deformed)
+        levels = pyramid_levels(radius, params.subvolume, reference.shape)
+        coarse_half = max(4, half // 2**levels)
+        coarse = (
+            fine
+            if levels == 0
+            else _Level.build(2**levels, reference, deformed, mask, coarse_half, params.min_texture)
+        )
+        coarse_centers = coarse.centers_from_fine(centers)
+        coarse_radius = int(np.ceil(radius / 2**levels)) + (1 if levels else 0)
+        found, _ = fft_search(
+            coarse.reference,
+            bin_volume(deformed, 2**levels) if levels else deformed,
+            coarse_centers,
+            coarse.half,
+            np.tile(shift / 2**levels, (n_points, 1)),
+            coarse_radius,
+        )
+        yield Progress("initial guess", 1, 1, f"integer search done (level {levels})")
+        guess_params = icgn.displacement_to_params(found, None, order)
+        # refine through the pyramid: IC-GN + repair at each coarse level
+        level = coarse
+        for lev in range(levels, 0, -1):
+            if lev != levels:
+                level = _Level.build(
+                    2**lev, reference, deformed, mask, max(4, half // 2**lev), params.min_texture
+                )
+            level_centers = level.centers_from_fine(centers)
+            zncc_l, status_l, its_l = level.match(level_centers, guess_params, order, params)
+            _repair(
+                level,
+                level_centers,
+                grid_shape,
+                guess_params,
+                zncc_l,
+                status_l,
+                its_l,
+                order,
+                params,
+                None,
+            )
+            failed = ~np.isin(status_l, _GOOD)
+            if failed.any():  # keep the integer estimate where the coarse match failed
+                guess_params[failed] = icgn.displacement_to_params(found[failed], None, order)
+            shaped = guess_params.reshape(-1, 3, nb)
+            shaped[:, :, 0] *= 2.0  # displacement in finer voxels
+            if nb == 10:
+                shaped[:, :, 4:] /= 2.0  # second derivatives scale with 1 / factor
+            yield Progress("initial guess", levels - lev + 1, levels + 1, f"level {lev} refined")
+            found = shaped[:, :, 0].copy() if lev > 1 else found
+    timings["initial_guess_s"] = time.perf_counter() - t0
+
+    # full-resolution IC-GN in batches
+    t0 = time.perf_counter()
+    params_out = np.ascontiguousarray(guess_params, dtype=np.float64)
+    zncc = np.full(n_points, np.nan)
+    status = np.full(n_points, int(Status.OUT_OF_BOUNDS), np.int64)
+    iterations = np.zeros(n_points, np.int64)
+    todo = np.flatnonzero(inside)
+    batch = params.batch_size
+    for start in range(0, len(todo), batch):
+        index = todo[start : start + batch]
+        sub_params = np.ascontiguousarray(params_out[index])
+        z_b, s_b, i_b = fine.match(centers[index], sub_params, order, params)
+        params_out[index] = sub_params
+        zncc[index] = z_b
+        status[index] = s_b
+        iterations[index] = i_b
+        yield Progress(
+            "IC-GN",
+            min(start + batch, len(todo)),
+            len(todo),
+            f"matched {min(start + batch, len(todo))} of {len(todo)} POIs",
+        )
+    timings["icgn_s"] = time.perf_counter() - t0
+    timings["voxel_iterations"] = int(iterations.sum()) * params.subvolume**3
+
+    t0 = time.perf_counter()
+    yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
+    _repair(fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, None)
+    timings["repair_s"] = time.perf_counter() - t0
+
+    low = np.isin(status, _GOOD) & ~(zncc >= params.min_zncc)
+    status[low] = int(Status.LOW_ZNCC)
+    displacement, gradient = icgn.params_to_displacement(params_out, order)
+    failed = ~np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
+    displacement[failed] = np.nan
+    gradient[failed] = np.nan
+    provenance = np.full(n_points, int(Provenance.MEASURED), np.uint8)
+    provenance[status == int(Status.MASKED)] = int(Provenance.MASKED)
+    timings["total_s"] = time.perf_counter() - start_time
+    field = DisplacementField(
+        origin=origin,
+        step=step,
+        u=displacement.reshape(*grid_shape, 3),
+        zncc=zncc.reshape(grid_shape).astype(np.float32),
+        status=status.reshape(grid_shape).astype(np.uint8),
+        iterations=iterations.reshape(grid_shape).astype(np.int32),
+        provenance=provenance.reshape(grid_shape),
+        gradient=gradient.reshape(*grid_shape, 3, 3),
+        params=params.to_dict(),
+        metadata={
+            "volume_shape": list(reference.shape),
+            "global_shift": [int(s) for s in shift],
+            "pyramid_levels": int(levels),
+            "timings": timings,
+            "masked": mask is not None,
+            "shape_function_parameters": params_out.reshape(*grid_shape, -1).tolist()
+            if order == 2 and n_points <= 0
+            else None,
+        },
+    )
+    yield Progress("done", 1, 1, f"{int(np.isin(status, _GOOD).sum())} of {n_points} POIs matched")
+    return field
+
+
+def correlate(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    params: CorrelationParams | None = None,
+    *,
+    mask: np.ndarray | None = None,
+    grid: tuple | None = None,
+    initial: DisplacementField | None = None,
+) -> DisplacementField:
+    """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
+    return run_to_completion(
+        correlate_iter(reference, deformed, params, mask=mask, grid=grid, initial=initial)
+    )

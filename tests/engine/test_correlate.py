@@ -1,0 +1,147 @@
+"""Whole-pipeline correlation tests against known displacement fields (issue 2's targets)."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correlate import correlate, correlate_iter
+from napari_dvc_correct.engine.field import Status
+from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.progress import Progress
+
+
+def _errors(field, displacement):
+    truth = synthetic.sample_displacement(displacement, field.points).reshape(field.u.shape)
+    return field.u - truth
+
+
+@pytest.fixture(scope="module")
+def speckle():
+    return synthetic.textured_volume((72, 72, 72), feature_size=2.0, seed=5)
+
+
+def test_subvoxel_translation_bias_and_spread_31(speckle):
+    shift = (2.3, -1.45, 0.7)
+    deformed = synthetic.deform_volume(speckle, synthetic.translation(shift))
+    field = correlate(speckle, deformed, CorrelationParams(subvolume=31, step=6))
+    good = field.status == Status.CONVERGED
+    assert good.mean() > 0.9
+    err = _errors(field, synthetic.translation(shift))[good]
+    assert np.all(np.abs(err.mean(axis=0)) < 0.005), err.mean(axis=0)
+    assert np.all(err.std(axis=0) < 0.01), err.std(axis=0)
+
+
+def test_noisy_translation_rmse_21(speckle):
+    shift = (-0.4, 1.6, 0.25)
+    deformed = synthetic.deform_volume(speckle, synthetic.translation(shift))
+    # 5% noise: sigma is 5% of the speckle's gray-level range (1st to 99th percentile)
+    low, high = np.percentile(speckle, [1, 99])
+    sigma = 0.05 * float(high - low)
+    reference = synthetic.add_noise(speckle, sigma, seed=1)
+    deformed = synthetic.add_noise(deformed, sigma, seed=2)
+    field = correlate(reference, deformed, CorrelationParams(subvolume=21, step=8))
+    good = field.status == Status.CONVERGED
+    assert good.mean() > 0.9
+    rmse = np.sqrt(np.mean(_errors(field, synthetic.translation(shift))[good] ** 2))
+    assert rmse < 0.02, rmse
+
+
+def test_homogeneous_strain_and_shear(speckle):
+    gradient = np.array([[0.03, 0.0, 0.01], [0.0, -0.015, 0.0], [0.0, 0.0, 0.02]])
+    truth = synthetic.affine(gradient, np.array(speckle.shape) / 2, shift=(0.5, 1.2, -0.8))
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=5), speckle.shape, truth
+    )
+    field = correlate(reference, deformed, CorrelationParams(subvolume=21, step=8))
+    good = field.status == Status.CONVERGED
+    assert good.mean() > 0.85
+    err = _errors(field, truth)[good]
+    assert np.sqrt(np.mean(err**2)) < 0.02
+    assert np.max(np.abs(field.gradient[good] - gradient)) < 1e-3
+
+
+@pytest.mark.slow
+def test_large_shift_and_rotation_without_seed():
+    reference = synthetic.textured_volume((96, 112, 112), feature_size=2.0, seed=8)
+    shift = (10.0, -13.0, 18.0)  # |shift| ~ 24.3 voxels
+    truth = synthetic.rotation_z(5.0, np.array(reference.shape) / 2, shift)
+    deformed = synthetic.deform_volume(reference, truth)
+    params = CorrelationParams(subvolume=21, step=10)
+    field = correlate(reference, deformed, params)
+    # judge the POIs whose whole deformed subvolume is inside the deformed volume
+    moved = field.points + synthetic.sample_displacement(truth, field.points)
+    half = params.half + 2
+    inside = np.all((moved >= half) & (moved <= np.array(reference.shape) - 1 - half), axis=1)
+    err = np.linalg.norm(_errors(field, truth).reshape(-1, 3), axis=1)[inside]
+    assert inside.sum() > 100
+    assert np.mean(err < 0.1) >= 0.95, np.mean(err < 0.1)
+
+
+def test_noise_region_is_not_a_confident_wrong_answer(speckle):
+    rng = np.random.default_rng(4)
+    deformed = synthetic.deform_volume(speckle, synthetic.translation((0.5, 0.5, 0.5)))
+    deformed[:, :, 40:] = rng.random(deformed[:, :, 40:].shape)  # decorrelated half
+    reference = speckle.copy()
+    reference[:, :, :12] = 0.5  # flat strip
+    field = correlate(reference, deformed, CorrelationParams(subvolume=15, step=8))
+    x = field.axis_coordinates()[2]
+    decorrelated = x - 7 > 41
+    flat = x + 7 < 12
+    assert np.all(field.status[:, :, flat] == Status.LOW_TEXTURE)
+    confident = (field.status == Status.CONVERGED) & (field.zncc >= 0.5)
+    assert not confident[:, :, decorrelated].any()
+    assert np.all(np.isnan(field.u[:, :, flat]))
+    good = (x - 7 >= 12) & (x + 7 < 39)  # subvolumes that touch neither region
+    assert (field.status[:, :, good] == Status.CONVERGED).mean() > 0.9
+
+
+def test_generator_yields_progress_and_matches_blocking(speckle):
+    deformed = synthetic.deform_volume(speckle, synthetic.translation((1.0, 0.0, -0.5)))
+    params = CorrelationParams(subvolume=15, step=12, batch_size=8)
+    generator = correlate_iter(speckle, deformed, params)
+    reports = []
+    while True:
+        try:
+            reports.append(next(generator))
+        except StopIteration as stop:
+            field = stop.value
+            break
+    assert all(isinstance(r, Progress) for r in reports)
+    assert sum(r.stage == "IC-GN" for r in reports) >= 2
+    assert np.allclose(field.u, correlate(speckle, deformed, params).u, equal_nan=True)
+
+
+def test_mask_skips_pois_outside_material(speckle):
+    deformed = synthetic.deform_volume(speckle, synthetic.translation((0.3, 0.0, 0.0)))
+    mask = np.zeros(speckle.shape, bool)
+    mask[:, :, :36] = True
+    field = correlate(speckle, deformed, CorrelationParams(subvolume=15, step=10), mask=mask)
+    x = field.axis_coordinates()[2]
+    assert np.all(field.status[:, :, x > 36 + 7] == Status.MASKED)
+    assert np.all(np.isnan(field.u[:, :, x > 36 + 7]))
+    assert (field.status[:, :, x < 36 - 7] == Status.CONVERGED).all()
+
+
+@pytest.mark.parametrize(
+    ("reference", "deformed", "params", "mask", "message"),
+    [
+        (np.zeros((10, 10)), np.zeros((10, 10)), {}, None, "3-D"),
+        (np.zeros((20, 20, 20)), np.zeros((20, 20, 21)), {}, None, "same shape"),
+        (np.full((20, 20, 20), np.nan), np.zeros((20, 20, 20)), {}, None, "NaN"),
+        (np.zeros((20, 20, 20)), np.zeros((20, 20, 20)), {"subvolume": 31}, None, "larger"),
+        (np.zeros((40,) * 3), np.zeros((40,) * 3), {"subvolume": 11}, np.zeros((40,) * 3), "empty"),
+        (np.zeros((40,) * 3), np.zeros((40,) * 3), {"subvolume": 11}, np.ones((4, 4, 4)), "mask"),
+        (np.zeros((20,) * 3, complex), np.zeros((20,) * 3), {}, None, "real"),
+    ],
+)
+def test_bad_input_is_a_clear_error(reference, deformed, params, mask, message):
+    with pytest.raises(ValueError, match=message):
+        correlate(reference, deformed, CorrelationParams(**params), mask=mask)
+
+
+@pytest.mark.parametrize(
+    "changes", [{"subvolume": 20}, {"step": 0}, {"order": 3}, {"tolerance": -1.0}]
+)
+def test_bad_parameters_are_clear_errors(changes):
+    with pytest.raises(ValueError):
+        CorrelationParams(**changes)

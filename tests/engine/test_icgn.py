@@ -1,0 +1,136 @@
+"""IC-GN on single subvolumes with known affine and quadratic warps."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine import icgn, synthetic
+from napari_dvc_correct.engine.field import Status
+from napari_dvc_correct.engine.interpolation import prefilter
+
+SHAPE = (56, 56, 56)
+CENTER = np.array(SHAPE) / 2
+
+
+def _match(reference, deformed, centers, guess, order, half=10):
+    gradient = icgn.gradient_volume(prefilter(reference))
+    coefficients = prefilter(deformed)
+    params = icgn.displacement_to_params(guess, None, order)
+    n = len(centers)
+    zncc, status, its = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
+    icgn.match_many(
+        np.ascontiguousarray(reference, np.float32),
+        gradient,
+        coefficients,
+        np.zeros((1, 1, 1), np.bool_),
+        False,
+        centers,
+        half,
+        icgn.n_monomials(order),
+        params,
+        zncc,
+        status,
+        its,
+        50,
+        1e-4,
+        0.0,
+        0.5,
+        float(half),
+        icgn.PRODUCT_TABLE,
+        icgn.QUAD_AXES,
+    )
+    return params, zncc, status, its
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return synthetic.textured_volume(SHAPE, 2.0, seed=11)
+
+
+CENTERS = np.array(
+    [[z, y, x] for z in (20, 28, 36) for y in (20, 28, 36) for x in (20, 28, 36)], dtype=np.int64
+)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_affine_warp_recovered(reference, order):
+    gradient = np.array([[0.02, -0.01, 0.005], [0.01, 0.015, 0.0], [-0.005, 0.01, -0.02]])
+    truth = synthetic.affine(gradient, CENTER, shift=(1.4, -0.6, 0.8))
+    deformed = synthetic.deform_volume(reference, truth)
+    expected = truth(CENTERS.astype(float))
+    params, zncc, status, _ = _match(reference, deformed, CENTERS, np.rint(expected), order)
+    u, grad = icgn.params_to_displacement(params, order)
+    assert np.all(status == Status.CONVERGED)
+    assert np.max(np.abs(u - expected)) < 0.01
+    assert np.max(np.abs(grad - gradient)) < 1e-3
+    assert np.min(zncc) > 0.999
+
+
+def test_second_order_follows_a_quadratic_field_better_than_first(reference):
+    def quadratic(points):
+        r = (np.asarray(points) - CENTER) / 10.0
+        return np.stack([0.8 * r[:, 1] ** 2, 0.6 * r[:, 0] * r[:, 2], -0.7 * r[:, 2] ** 2], axis=1)
+
+    deformed = synthetic.deform_volume(reference, quadratic)
+    expected = quadratic(CENTERS.astype(float))
+    errors = {}
+    for order in (1, 2):
+        params, _, status, _ = _match(reference, deformed, CENTERS, np.rint(expected), order, 12)
+        assert np.all(status == Status.CONVERGED)
+        u, _ = icgn.params_to_displacement(params, order)
+        errors[order] = np.sqrt(np.mean((u - expected) ** 2))
+    assert errors[2] < 0.01
+    assert errors[2] < 0.5 * errors[1]
+
+
+def test_flat_subvolume_is_low_texture_and_noise_does_not_converge_confidently():
+    rng = np.random.default_rng(0)
+    reference = np.full(SHAPE, 0.5, np.float32)
+    reference[:, :, 28:] = rng.random((56, 56, 28))
+    deformed = reference.copy()
+    deformed[:, :, 28:] = rng.random((56, 56, 28))  # unrelated noise
+    centers = np.array([[28, 28, 12], [28, 28, 44]], dtype=np.int64)
+    params, zncc, status, _ = _match(reference, deformed, centers, np.zeros((2, 3)), 1)
+    assert status[0] == Status.LOW_TEXTURE
+    assert status[1] != Status.CONVERGED or zncc[1] < 0.3
+
+
+def test_warp_matrix_composition_matches_function_composition():
+    rng = np.random.default_rng(2)
+    p = rng.normal(0, 0.05, 30)
+    q = rng.normal(0, 0.05, 30)
+    mp = icgn.warp_matrix(p, 10, icgn.PRODUCT_TABLE, icgn.QUAD_AXES)
+    mq = icgn.warp_matrix(q, 10, icgn.PRODUCT_TABLE, icgn.QUAD_AXES)
+    composed = mp @ mq
+    point = np.array([0.3, -0.2, 0.1])
+
+    def apply(params, xi):
+        b = np.array(
+            [
+                1,
+                *xi,
+                xi[0] ** 2,
+                xi[1] ** 2,
+                xi[2] ** 2,
+                xi[0] * xi[1],
+                xi[1] * xi[2],
+                xi[0] * xi[2],
+            ]
+        )
+        return xi + params.reshape(3, 10) @ b
+
+    exact = apply(p, apply(q, point))
+    b = np.array(
+        [
+            1,
+            *point,
+            point[0] ** 2,
+            point[1] ** 2,
+            point[2] ** 2,
+            point[0] * point[1],
+            point[1] * point[2],
+            point[0] * point[2],
+        ]
+    )
+    approx = (composed @ b)[1:4]
+    # truncation at degree 2 only drops terms of degree 3 and 4 in small coordinates
+    assert np.max(np.abs(approx - exact)) < 1e-3

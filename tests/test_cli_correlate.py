@@ -1,0 +1,101 @@
+"""The command line: correlate a pair, report, and refuse bad input with one line."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_dvc_correct import cli
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.field import DisplacementField
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pair")
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=2),
+        (40, 40, 40),
+        synthetic.translation((0.4, -1.2, 2.5)),
+    )
+    tifffile.imwrite(folder / "ref.tif", (reference * 60000).astype(np.uint16))
+    np.save(folder / "def.npy", deformed * 60000)
+    return folder
+
+
+def test_correlate_writes_a_field_and_a_summary(pair, capsys):
+    out = pair / "field.npz"
+    code = cli.main(
+        [
+            "correlate",
+            str(pair / "ref.tif"),
+            str(pair / "def.npy"),
+            "--subvolume",
+            "15",
+            "--step",
+            "8",
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0
+    field = DisplacementField.load(out)
+    good = field.valid
+    assert good.mean() > 0.9
+    assert np.allclose(field.u[good], [0.4, -1.2, 2.5], atol=0.02)
+    printed = capsys.readouterr().out
+    assert "POIs" in printed and "mean ZNCC" in printed and "converged fraction" in printed
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["missing.tif", "def.npy"], "not found"),
+        (["ref.tif", "def.npy", "--subvolume", "61"], "larger than the volume"),
+        (["ref.tif", "def.npy", "--step", "0"], "step"),
+        (["ref.tif", "bad.npy"], "same shape"),
+        (["ref.tif", "flat.npy"], "3-D"),
+        (["ref.tif", "nan.npy"], "NaN"),
+        (["ref.tif", "fake.tif"], "not a readable TIFF"),
+        (["ref.tif", "def.npy", "--subvolume", "14"], "odd"),
+    ],
+)
+def test_bad_input_exits_non_zero_with_one_line_and_writes_nothing(
+    pair, capsys, arguments, message
+):
+    np.save(pair / "bad.npy", np.zeros((40, 40, 41)))
+    np.save(pair / "flat.npy", np.zeros((40, 40)))
+    nan = np.zeros((40, 40, 40))
+    nan[3, 3, 3] = np.nan
+    np.save(pair / "nan.npy", nan)
+    (pair / "fake.tif").write_bytes(b"this is not a tiff")
+    out = pair / "never.npz"
+    paths = [str(pair / a) if a.endswith((".tif", ".npy")) else a for a in arguments]
+    code = cli.main(["correlate", *paths, "--out", str(out)])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err
+    assert not out.exists()
+    assert not list(pair.glob(".never*"))
+
+
+def test_cli_and_engine_do_not_import_napari_or_qt():
+    code = (
+        "import sys; import napari_dvc_correct.cli as c; c.build_parser();"
+        "import napari_dvc_correct.engine.correlate;"
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('napari', 'qtpy', 'PyQt6', 'PyQt5',"
+        " 'PySide6', 'magicgui', 'vispy')]; print(bad); assert not bad"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_entry_point_runs(pair, tmp_path):
+    exe = subprocess.run(
+        [sys.executable, "-m", "napari_dvc_correct.cli", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "correlate" in exe.stdout
