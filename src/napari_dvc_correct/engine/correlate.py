@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import icgn
+from .cleaning import normalized_median_test
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
 from .initial_guess import bin_volume, fft_search, global_shift, pyramid_levels
 from .interpolation import prefilter
@@ -151,40 +152,11 @@ class _Level:
 
 
 def _neighbour_outliers(u, usable, grid_shape, threshold=2.0, noise=0.1):
-    """Normalised median test (Westerweel & Scarano 2005) over the 26-neighbourhood.
-
-    Returns a boolean array over POIs (flat) marking usable POIs whose displacement deviates from
-    the median of their usable neighbours by more than ``threshold`` times the neighbours' median
-    deviation (plus ``noise`` voxels).
-    """
-    field_u = u.reshape(*grid_shape, 3)
-    valid = usable.reshape(grid_shape)
-    padded = np.pad(
-        np.where(valid[..., None], field_u, np.nan),
-        ((1, 1), (1, 1), (1, 1), (0, 0)),
-        constant_values=np.nan,
+    """Usable POIs (flat mask) that fail the normalised median test over their 26 neighbours."""
+    residual = normalized_median_test(
+        u.reshape(*grid_shape, 3), usable.reshape(grid_shape), epsilon=noise
     )
-    nz, ny, nx = grid_shape
-    neighbours = np.stack(
-        [
-            padded[1 + a : 1 + a + nz, 1 + b : 1 + b + ny, 1 + c : 1 + c + nx]
-            for a in (-1, 0, 1)
-            for b in (-1, 0, 1)
-            for c in (-1, 0, 1)
-            if (a, b, c) != (0, 0, 0)
-        ]
-    )  # (26, nz, ny, nx, 3)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            median = np.nanmedian(neighbours, axis=0)
-            spread = np.nanmedian(np.abs(neighbours - median), axis=0)
-            residual = np.abs(field_u - median) / (spread + noise)
-    count = np.sum(np.isfinite(neighbours[..., 0]), axis=0)
-    outliers = np.any(residual > threshold, axis=-1) & (count >= 3)
-    return outliers.reshape(-1) & usable
+    return (np.nan_to_num(residual, nan=0.0) > threshold).reshape(-1) & usable
 
 
 def _is_good(status, zncc, min_zncc):
