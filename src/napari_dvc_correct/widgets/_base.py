@@ -47,8 +47,6 @@ class EngineError(Exception):
 def _guarded(generator: Generator) -> Generator:
     try:
         return (yield from generator)
-    except ValueError:
-        raise
     except RuntimeError as error:
         raise EngineError(str(error)) from error
 
@@ -153,8 +151,8 @@ class EngineWidget(QWidget):
         self.message.setWordWrap(True)
         self.message.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.body.addWidget(self.message)
-        self.run_button.clicked.connect(self.run)
-        self.cancel_button.clicked.connect(self.cancel)
+        self.run_button.clicked.connect(lambda checked=False: self.run())
+        self.cancel_button.clicked.connect(lambda checked=False: self.cancel())
         self.last_error: str | None = None
 
     # -- what subclasses implement ------------------------------------------------------------
@@ -190,8 +188,13 @@ class EngineWidget(QWidget):
     def running(self) -> bool:
         return self.worker is not None
 
-    def run(self, checked: bool = False) -> GeneratorWorker | None:
-        """Validate, then start the engine generator in a worker; returns the worker or None."""
+    def run(self, start: bool = True) -> GeneratorWorker | None:
+        """Validate the choices and run the engine generator in a worker.
+
+        Returns the worker, or None when a choice is bad (the message line says why). With
+        ``start=False`` the worker is returned wired but unstarted, so a caller can connect to
+        its signals first (``worker.start()`` then runs it).
+        """
         if self.running:
             return None
         self.clear_message()
@@ -200,9 +203,13 @@ class EngineWidget(QWidget):
         except ValueError as error:
             self.show_message(one_line(error), error=True)
             return None
-        return self.start(generator)
+        except Exception as error:  # a bug: log the traceback, show one line
+            log.error("preparing the run failed", exc_info=True)
+            self.show_message(f"{type(error).__name__}: {one_line(error)}", error=True)
+            return None
+        return self.start(generator, start=start)
 
-    def start(self, generator: Generator) -> GeneratorWorker:
+    def start(self, generator: Generator, start: bool = True) -> GeneratorWorker:
         """Run ``generator`` in a thread worker wired to this panel's slots."""
         worker = create_worker(_guarded, generator, _start_thread=False)
         worker.yielded.connect(self._on_yielded)
@@ -215,10 +222,11 @@ class EngineWidget(QWidget):
         self.cancel_button.setEnabled(True)
         self.progress_bar.setValue(0)
         self.stage_label.setText("starting…")
-        worker.start()
+        if start:
+            worker.start()
         return worker
 
-    def cancel(self, checked: bool = False) -> None:
+    def cancel(self) -> None:
         """Ask the worker to stop at its next progress report; earlier layers stay."""
         if self.worker is not None:
             self.stage_label.setText("cancelling…")

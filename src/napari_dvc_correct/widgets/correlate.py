@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from napari.layers import Image, Labels, Shapes
 from qtpy.QtCore import Qt
@@ -170,7 +172,8 @@ class CorrelateWidget(EngineWidget):
             if others:
                 self.deformed.set_layer(others[0])
         self._refresh_series_list(images)
-        self._update.trigger()
+        if inserted is None or _is_image(inserted) or _is_mask(inserted):
+            self._update.trigger()
 
     def _refresh_series_list(self, images) -> None:
         checked = {
@@ -359,9 +362,13 @@ class CorrelateWidget(EngineWidget):
     # -- running ------------------------------------------------------------------------------
     def prepare(self):
         self._update.timer.stop()
-        return model.run_job(self.job())
+        job = self.job()
+        self._started = (time.perf_counter(), job.shape, job.params, len(job.volumes) - 1)
+        return model.run_job(job)
 
     def on_result(self, result: model.CorrelationResult) -> None:
+        started, shape, params, n_pairs = self._started
+        model.record_timing(time.perf_counter() - started, shape, params, n_pairs)
         self._set_preview_visible(False)
         tuples = []
         for source, field, equivalent in result.fields:

@@ -1,0 +1,110 @@
+"""Matplotlib figures embedded in the docks (Qt canvas), styled like napari's dark theme."""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+from matplotlib.figure import Figure
+
+BACKGROUND = "#262930"
+FOREGROUND = "#d1d2d4"
+#: Colours of the fields in the plots (uncorrected first, then corrected, then others).
+FIELD_COLORS = ("#f28e2b", "#4e9fde", "#59a14f", "#e15759", "#b07aa1", "#edc948")
+PHASE_COLORS = ("#9c755f", "#bab0ac", "#76b7b2", "#edc948", "#ff9da7", "#59a14f", "#e15759")
+
+
+def style_axes(axes) -> None:
+    axes.set_facecolor(BACKGROUND)
+    for spine in axes.spines.values():
+        spine.set_color(FOREGROUND)
+    axes.tick_params(colors=FOREGROUND, labelsize=7)
+    axes.xaxis.label.set_color(FOREGROUND)
+    axes.yaxis.label.set_color(FOREGROUND)
+    axes.title.set_color(FOREGROUND)
+
+
+class PlotCanvas(FigureCanvasQTAgg):
+    """A small figure with ``ncols`` axes side by side."""
+
+    def __init__(self, ncols: int = 1, height: float = 2.0, parent=None) -> None:
+        self.figure = Figure(figsize=(4.0, height), dpi=90, facecolor=BACKGROUND)
+        super().__init__(self.figure)
+        self.setParent(parent)
+        self.axes = [self.figure.add_subplot(1, ncols, i + 1) for i in range(ncols)]
+        for axes in self.axes:
+            style_axes(axes)
+        self.setMinimumHeight(int(height * 90))
+
+    def redraw(self) -> None:
+        self.figure.tight_layout(pad=0.6)
+        self.draw_idle()
+
+
+class HistogramCanvas(PlotCanvas):
+    """The gray histogram with the phase thresholds drawn on it."""
+
+    def __init__(self, parent=None) -> None:
+        super().__init__(1, 1.8, parent)
+        self.counts = None
+        self.edges = None
+        self.lines = []
+
+    def set_histogram(self, counts: np.ndarray, edges: np.ndarray) -> None:
+        axes = self.axes[0]
+        axes.clear()
+        style_axes(axes)
+        self.counts, self.edges = counts, edges
+        centers = 0.5 * (edges[:-1] + edges[1:])
+        axes.fill_between(centers, counts, step="mid", color="#8a8d93", alpha=0.8, linewidth=0)
+        axes.set_yscale("log")
+        axes.set_xlabel("gray value", fontsize=8)
+        axes.set_yticks([])
+        self.lines = []
+        self.redraw()
+
+    def set_thresholds(self, thresholds) -> None:
+        axes = self.axes[0]
+        for line in self.lines:
+            line.remove()
+        self.lines = [
+            axes.axvline(t, color=PHASE_COLORS[(i + 1) % len(PHASE_COLORS)], linewidth=1.5)
+            for i, t in enumerate(thresholds)
+        ]
+        self.draw_idle()
+
+
+class CurvesCanvas(PlotCanvas):
+    """Residual vs equivalent strain (paper Fig. 10) and accuracy vs strain (Fig. 11)."""
+
+    def __init__(self, parent=None) -> None:
+        super().__init__(2, 2.3, parent)
+        self.clear()
+
+    def clear(self) -> None:
+        for axes, title in zip(self.axes, ("gray residual", "accuracy index p")):
+            axes.clear()
+            style_axes(axes)
+            axes.set_title(title, fontsize=8)
+            axes.set_xlabel("equivalent strain", fontsize=8)
+        self.redraw()
+
+    def plot(self, evaluation) -> None:
+        """One curve per field, before/after correction on the same axes, side by side plots."""
+        self.clear()
+        centers = 0.5 * (evaluation.edges[:-1] + evaluation.edges[1:])
+        for index, item in enumerate(evaluation.fields):
+            color = FIELD_COLORS[index % len(FIELD_COLORS)]
+            self.axes[0].plot(
+                centers, item.bins.mean_residual, "o-", color=color, markersize=3, label=item.name
+            )
+            self.axes[1].plot(
+                centers, item.bin_accuracy, "o-", color=color, markersize=3, label=item.name
+            )
+        for axes in self.axes:
+            axes.ticklabel_format(axis="x", style="sci", scilimits=(-2, 2))
+            axes.xaxis.get_offset_text().set_color(FOREGROUND)
+            axes.xaxis.get_offset_text().set_fontsize(7)
+        legend = self.axes[1].legend(fontsize=7, facecolor=BACKGROUND, edgecolor=FOREGROUND)
+        for text in legend.get_texts():
+            text.set_color(FOREGROUND)
+        self.redraw()

@@ -1,0 +1,216 @@
+"""The Evaluate dock: phases by gray thresholds, background residual, accuracy index, curves."""
+
+from __future__ import annotations
+
+import numpy as np
+from qtpy.QtCore import Qt
+from qtpy.QtWidgets import (
+    QComboBox,
+    QHBoxLayout,
+    QLabel,
+    QListWidget,
+    QListWidgetItem,
+    QPushButton,
+    QSpinBox,
+)
+from superqt import QDoubleRangeSlider
+
+from .. import layers as L
+from . import evaluate_model as model
+from ._base import Debouncer, EngineWidget, LayerCombo, one_line
+from ._plots import CurvesCanvas, HistogramCanvas
+from .correlate import _is_image
+from .correlate_model import layer_placement, layer_volume
+
+MODES = {
+    "reference": "reference frame: |F(X + u) − G(X)|",
+    "loaded": "loaded state: |F − G'| (paper)",
+}
+
+
+class EvaluateWidget(EngineWidget):
+    """Accuracy of the fields without ground truth (paper section 2.2, eqs. 1–3, Figs. 10–11)."""
+
+    run_text = "Evaluate"
+
+    def __init__(self, napari_viewer, parent=None) -> None:
+        super().__init__(napari_viewer, parent)
+        self.reference = LayerCombo(self.viewer, _is_image)
+        self.deformed = LayerCombo(self.viewer, _is_image)
+        self.form.addRow("Reference (G)", self.reference)
+        self.form.addRow("Deformed (F)", self.deformed)
+        self.fields = QListWidget()
+        self.fields.setMaximumHeight(70)
+        self.form.addRow("Fields", self.fields)
+        self.mode = QComboBox()
+        for key, text in MODES.items():
+            self.mode.addItem(text, key)
+        self.form.addRow("Residual", self.mode)
+
+        self.n_phases = QSpinBox()
+        self.n_phases.setRange(2, 8)
+        self.n_phases.setValue(2)
+        self.auto_button = QPushButton("Auto (multi-Otsu)")
+        row = QHBoxLayout()
+        row.addWidget(self.n_phases)
+        row.addWidget(self.auto_button)
+        self.form.addRow("Phases", row)
+        self.histogram = HistogramCanvas()
+        self.controls.addWidget(self.histogram)
+        self.slider = QDoubleRangeSlider(Qt.Orientation.Horizontal)
+        self.controls.addWidget(self.slider)
+        self.threshold_label = QLabel("")
+        self.controls.addWidget(self.threshold_label)
+        self.phase_label = QLabel("")
+        self.phase_label.setWordWrap(True)
+        self.controls.addWidget(self.phase_label)
+        self.summary = QLabel("")
+        self.summary.setWordWrap(True)
+        self.summary.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.curves = CurvesCanvas()
+        self.body.addWidget(self.summary)
+        self.body.addWidget(self.curves)
+
+        self.evaluation = None
+        self._volume_key = None
+        self._live = Debouncer(self.update_phases, 150, self)
+        self.slider.valueChanged.connect(self._thresholds_moved)
+        self.n_phases.valueChanged.connect(self.auto_thresholds)
+        self.auto_button.clicked.connect(self.auto_thresholds)
+        self.reference.currentIndexChanged.connect(self._reference_changed)
+        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
+            event.connect(self._layers_changed)
+        self._layers_changed()
+        self._reference_changed()
+
+    # -- inputs -------------------------------------------------------------------------------
+    def _layers_changed(self, event=None) -> None:
+        checked = self.checked_fields()
+        known = {self.fields.item(i).text() for i in range(self.fields.count())}
+        self.fields.clear()
+        fields = L.fields_in(self.viewer.layers)
+        for name in fields:
+            item = QListWidgetItem(name)
+            item.setFlags(item.flags() | Qt.ItemFlag.ItemIsUserCheckable)
+            keep = name in checked or name not in known
+            item.setCheckState(Qt.CheckState.Checked if keep else Qt.CheckState.Unchecked)
+            self.fields.addItem(item)
+        for field in fields.values():  # the volumes the fields were measured on
+            self.reference.set_layer(field.metadata.get("reference_layer", ""))
+            self.deformed.set_layer(field.metadata.get("deformed_layer", ""))
+            break
+        if self.reference.layer() is self.deformed.layer():
+            others = [x for x in self.deformed.layers() if x is not self.reference.layer()]
+            if others:
+                self.deformed.set_layer(others[0])
+
+    def checked_fields(self) -> list[str]:
+        return [
+            self.fields.item(i).text()
+            for i in range(self.fields.count())
+            if self.fields.item(i).checkState() == Qt.CheckState.Checked
+        ]
+
+    def _volume(self, combo, name: str) -> np.ndarray:
+        layer = combo.layer()
+        if layer is None:
+            raise ValueError(f"choose the {name} Image layer")
+        volume = layer_volume(layer)
+        if volume.ndim != 3:
+            raise ValueError(f"'{layer.name}' is not a 3-D volume (shape {volume.shape})")
+        return volume
+
+    def _reference_changed(self, *args) -> None:
+        layer = self.reference.layer()
+        if layer is None or layer.ndim != 3:
+            return
+        key = (layer.name, id(layer.data))
+        if key == self._volume_key:
+            return
+        self._volume_key = key
+        volume = layer_volume(layer)
+        counts, edges = model.gray_histogram(volume)
+        self.histogram.set_histogram(counts, edges)
+        self.slider.blockSignals(True)
+        self.slider.setRange(float(edges[0]), float(edges[-1]))
+        self.slider.blockSignals(False)
+        self.auto_thresholds()
+
+    # -- thresholds and live phases -----------------------------------------------------------
+    def thresholds(self) -> list[float]:
+        return [float(v) for v in self.slider.value()]
+
+    def set_thresholds(self, values) -> None:
+        """Move the slider handles (one per threshold, increasing)."""
+        self.slider.setValue(tuple(float(v) for v in values))
+
+    def auto_thresholds(self, *args) -> None:
+        try:
+            volume = self._volume(self.reference, "reference")
+            values = model.automatic_thresholds(volume, self.n_phases.value())
+        except ValueError as error:
+            self.show_message(one_line(error), error=True)
+            return
+        self.set_thresholds(values)
+
+    def _thresholds_moved(self, *args) -> None:
+        values = self.thresholds()
+        self.threshold_label.setText("thresholds: " + ", ".join(f"{v:.1f}" for v in values))
+        self.histogram.set_thresholds(values)
+        self._live.trigger()
+
+    def update_phases(self) -> None:
+        """Recompute the phase labels and per-phase mean gray (debounced from the slider)."""
+        try:
+            layer = self.reference.layer()
+            volume = self._volume(self.reference, "reference")
+            preview = model.phase_preview(volume, self.thresholds())
+        except ValueError as error:
+            self.phase_label.setText(one_line(error))
+            return
+        self.phase_label.setText(preview.text())
+        voxel_size, offset = layer_placement(layer)
+        existing = self.viewer.layers["phases"] if "phases" in self.viewer.layers else None
+        if existing is not None and L.plugin_metadata(existing) is not None:
+            existing.data = preview.labels
+            existing.scale, existing.translate = voxel_size, offset
+        else:
+            L.show_layers(
+                self.viewer, [L.phase_layer(preview.labels, voxel_size=voxel_size, offset=offset)]
+            )
+
+    # -- running ------------------------------------------------------------------------------
+    def prepare(self):
+        self._live.flush()
+        reference = self._volume(self.reference, "reference")
+        deformed = self._volume(self.deformed, "deformed")
+        if self.reference.layer() is self.deformed.layer():
+            raise ValueError("the reference and deformed volumes are the same layer")
+        if reference.shape != deformed.shape:
+            raise ValueError(
+                f"reference {reference.shape} and deformed {deformed.shape} differ in shape"
+            )
+        fields = L.fields_in(self.viewer.layers)
+        chosen = {name: fields[name] for name in self.checked_fields() if name in fields}
+        if not chosen:
+            raise ValueError("no field to evaluate: run Correlate (and Self-correct) first")
+        self._placement = layer_placement(self.reference.layer())
+        return model.run_evaluation(
+            reference, deformed, chosen, self.thresholds(), self.mode.currentData()
+        )
+
+    def on_result(self, evaluation) -> None:
+        self.evaluation = evaluation
+        report = model.evaluation_report(evaluation)
+        voxel_size, offset = self._placement
+        tuples = []
+        for item in evaluation.fields:
+            data, kwargs, kind = L.residual_layer(
+                item.residual, item.name, voxel_size=voxel_size, offset=offset
+            )
+            kwargs["metadata"][L.MARKER]["report"] = report
+            tuples.append((data, kwargs, kind))
+        L.show_layers(self.viewer, tuples)
+        self.summary.setText(model.summary_text(evaluation))
+        self.curves.plot(evaluation)
+        self.show_message("Evaluation done.")

@@ -1,0 +1,173 @@
+"""The Evaluate panel without Qt: histogram, live phases, the evaluation run and its report."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..engine.field import DisplacementField
+
+#: Voxels sampled for the histogram and the automatic thresholds of a large volume.
+HISTOGRAM_SAMPLES = 1 << 21
+
+
+def sample_voxels(volume: np.ndarray, max_samples: int = HISTOGRAM_SAMPLES) -> np.ndarray:
+    """A regular subsample of ``volume`` (every k-th voxel along each axis), flattened, float64."""
+    volume = np.asanyarray(volume)
+    stride = 1
+    while np.prod([-(-n // stride) for n in volume.shape]) > max_samples:
+        stride += 1
+    sample = np.asarray(volume[tuple(slice(None, None, stride) for _ in volume.shape)])
+    sample = sample.astype(np.float64).ravel()
+    return sample[np.isfinite(sample)]
+
+
+def gray_histogram(volume: np.ndarray, bins: int = 128) -> tuple[np.ndarray, np.ndarray]:
+    """Histogram of the gray values (subsampled for large volumes): ``(counts, edges)``."""
+    sample = sample_voxels(volume)
+    if sample.size == 0:
+        raise ValueError("the volume has no finite gray value")
+    low, high = float(sample.min()), float(sample.max())
+    if high <= low:
+        high = low + 1.0
+    return np.histogram(sample, bins=bins, range=(low, high))
+
+
+def automatic_thresholds(volume: np.ndarray, n_phases: int) -> np.ndarray:
+    """Multi-Otsu thresholds for ``n_phases`` phases (engine's :func:`auto_thresholds`)."""
+    from ..engine.phases import auto_thresholds
+
+    return np.asarray(auto_thresholds(volume, int(n_phases)), dtype=np.float64)
+
+
+@dataclass
+class PhasePreview:
+    """Live phase split of one volume: display labels and per-phase mean gray."""
+
+    labels: np.ndarray  # uint8, 0 = unassigned (NaN), 1..N = phases dark to bright
+    mean_gray: list  # per phase, gray levels (NaN for an empty phase)
+    fractions: list  # per phase, share of the voxels
+
+    def text(self) -> str:
+        return " · ".join(
+            f"phase {k + 1}: mean gray {g:.1f} ({100 * f:.0f} %)"
+            for k, (g, f) in enumerate(zip(self.mean_gray, self.fractions))
+        )
+
+
+def phase_preview(volume: np.ndarray, thresholds) -> PhasePreview:
+    """Split ``volume`` by increasing ``thresholds``; labels shifted by one for a Labels layer."""
+    from ..engine.phases import NO_PHASE, label_phases, phase_table
+
+    values = np.asarray(thresholds, dtype=np.float64)
+    if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
+        raise ValueError(f"thresholds must be strictly increasing, got {list(values)}")
+    labels = label_phases(volume, values)
+    table = phase_table(volume, np.where(labels == NO_PHASE, 0, labels), values)
+    display = np.where(labels == NO_PHASE, 0, labels + 1).astype(np.uint8)
+    return PhasePreview(
+        labels=display,
+        mean_gray=[s.mean_gray for s in table],
+        fractions=[s.fraction for s in table],
+    )
+
+
+def ready_for_evaluation(field: DisplacementField) -> DisplacementField:
+    """The field as the evaluation needs it: every node finite, failed matches refilled.
+
+    A freshly correlated field can hold failed or out-of-bounds nodes; they are replaced by
+    :func:`~napari_dvc_correct.engine.cleaning.clean` (paper step b) so the field can be
+    densified. A field that is already usable everywhere is returned as is.
+    """
+    if field.valid.all():
+        return field
+    from ..engine.cleaning import clean
+
+    return clean(field, fill_masked=True)
+
+
+def run_evaluation(reference, deformed, fields: dict, thresholds, mode: str = "reference"):
+    """Generator for the panel's worker: cleans the fields if needed, then evaluates them all.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+    fields : dict of name -> DisplacementField
+        E.g. ``{"uncorrected": d, "corrected": d2}``, compared on the same bins.
+    thresholds : sequence of float
+        The ``N - 1`` gray thresholds (used for both states).
+    mode : {"reference", "loaded"}
+
+    Returns
+    -------
+    Evaluation
+    """
+    from ..engine.accuracy import evaluate_iter
+
+    if not fields:
+        raise ValueError("no displacement field to evaluate: run Correlate first")
+    ready = {name: ready_for_evaluation(field) for name, field in fields.items()}
+    return (
+        yield from evaluate_iter(
+            reference,
+            deformed,
+            ready,
+            phases=[float(t) for t in thresholds],
+            mode=mode,
+            keep_volumes=True,
+        )
+    )
+
+
+def evaluation_report(evaluation) -> dict:
+    """A JSON-friendly summary of an :class:`~napari_dvc_correct.engine.accuracy.Evaluation`."""
+    report = {
+        "title": "DVC accuracy evaluation",
+        "residual": "|F(X + u(X)) - G(X)|"
+        if evaluation.mode == "reference"
+        else "|F - G'| (loaded state)",
+        "thresholds (reference)": [float(t) for t in evaluation.thresholds_reference],
+        "thresholds (deformed)": [float(t) for t in evaluation.thresholds_deformed],
+        "phase pair": [int(p) for p in evaluation.phase_pair],
+        "phase contrast |g1 - g2|": float(evaluation.contrast),
+        "strain bin edges": [float(e) for e in evaluation.edges],
+    }
+    for label, table in (
+        ("phases (reference)", evaluation.phases_reference),
+        ("phases (deformed)", evaluation.phases_deformed),
+    ):
+        report[label] = {
+            f"phase {s.phase}": {
+                "gray range": [float(s.lower), float(s.upper)],
+                "mean gray": float(s.mean_gray),
+                "fraction": float(s.fraction),
+            }
+            for s in table
+        }
+    for item in evaluation.fields:
+        report[f"field: {item.name}"] = {
+            "mean gray residual": float(item.mean_residual),
+            "background residual r0": float(item.background_used),
+            "own background residual": float(item.background.mean),
+            "accuracy index p": float(item.accuracy),
+            "voxels": int(item.voxels),
+            "mean residual per strain bin": [float(v) for v in item.bins.mean_residual],
+            "accuracy per strain bin": [float(v) for v in np.asarray(item.bin_accuracy)],
+            "voxels per strain bin": [int(v) for v in item.bins.voxels],
+        }
+    return report
+
+
+def summary_text(evaluation) -> str:
+    """Few lines for the dock: per-phase mean gray, then r0 and p for each field."""
+    gray = ", ".join(f"{s.mean_gray:.1f}" for s in evaluation.phases_reference)
+    lines = [
+        f"Mean gray per phase (reference): {gray}; contrast {evaluation.contrast:.1f}",
+    ]
+    for item in evaluation.fields:
+        lines.append(
+            f"{item.name}: mean residual {item.mean_residual:.2f}, background r0 "
+            f"{item.background_used:.2f}, accuracy index p = {item.accuracy:.4f}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,204 @@
+"""The Correlate dock end to end on a small soil-like pair, under Xvfb."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from qtpy.QtCore import QTimer
+
+from napari_dvc_correct._sample_data import true_field
+from napari_dvc_correct.engine.field import DisplacementField, Status, grid_for_volume
+from napari_dvc_correct.layers import field_of
+from napari_dvc_correct.widgets import CorrelateWidget
+from napari_dvc_correct.widgets.correlate import PREVIEW_BOX, PREVIEW_POINTS
+
+FIELD_LAYERS = [
+    "|u| (uncorrected)",
+    "uz (uncorrected)",
+    "uy (uncorrected)",
+    "ux (uncorrected)",
+    "ZNCC (uncorrected)",
+    "status (uncorrected)",
+    "εeq (uncorrected)",
+    "displacement (uncorrected)",
+]
+
+
+def test_run_adds_the_field_layers_aligned_with_the_volume(correlated, pair48, placement, small):
+    viewer = correlated.viewer
+    names = [layer.name for layer in viewer.layers]
+    for name in FIELD_LAYERS:
+        assert name in names
+    field = field_of(viewer.layers["|u| (uncorrected)"])
+    assert isinstance(field, DisplacementField)
+    assert field.shape == grid_for_volume(small.shape, small.subvolume, small.step)[2]
+    assert field.n_points >= 27
+    scale, translate = placement(field)
+    for name in FIELD_LAYERS:
+        layer = viewer.layers[name]
+        np.testing.assert_allclose(layer.scale, scale, err_msg=name)
+        np.testing.assert_allclose(layer.translate, translate, err_msg=name)
+    # the measured field is close to the known shear band (voxels)
+    truth = true_field(pair48[2], field.origin, field.step, field.shape)
+    error = np.linalg.norm(field.u - truth.u, axis=-1)[field.valid]
+    assert field.valid.mean() > 0.9
+    assert np.median(error) < 0.25
+    # the vectors land on the nodes in world coordinates, with the true displacement
+    vectors = viewer.layers["displacement (uncorrected)"]
+    node = vectors.data[0, 0]
+    world = vectors.data_to_world(node)
+    expected = np.asarray(translate) + node * np.asarray(scale)
+    np.testing.assert_allclose(world, expected)
+    i, j, k = node.astype(int)
+    np.testing.assert_allclose(vectors.data[0, 1] * field.step, field.u[i, j, k])
+    # no preview over the result
+    assert PREVIEW_POINTS not in viewer.layers or not viewer.layers[PREVIEW_POINTS].visible
+
+
+def test_rerun_replaces_its_layers(correlated, run_panel):
+    viewer = correlated.viewer
+    count = len(viewer.layers)
+    old = viewer.layers["|u| (uncorrected)"]
+    correlated.step.setValue(10)
+    run_panel(correlated)
+    assert len(viewer.layers) == count
+    new = viewer.layers["|u| (uncorrected)"]
+    assert new is not old
+    assert field_of(new).step == (10.0, 10.0, 10.0)
+
+
+def test_cancel_keeps_the_earlier_layers(correlated, qtbot):
+    viewer = correlated.viewer
+    before = {layer.name: layer for layer in viewer.layers}
+    old_field = field_of(viewer.layers["|u| (uncorrected)"])
+    correlated.step.setValue(6)
+    worker = correlated.run(start=False)
+    returned = []
+    worker.returned.connect(returned.append)
+    worker.yielded.connect(lambda value: correlated.cancel())  # cancel at the first report
+    with qtbot.waitSignal(worker.finished, timeout=120_000):
+        worker.start()
+    assert not returned
+    assert {layer.name: layer for layer in viewer.layers} == before
+    assert field_of(viewer.layers["|u| (uncorrected)"]) is old_field
+    assert "Cancelled" in correlated.message.text()
+    assert correlated.run_button.isEnabled() and not correlated.cancel_button.isEnabled()
+
+
+def test_preview_and_estimate_before_running(viewer_pair, small):
+    widget = CorrelateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(widget)
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(small.step)
+    widget._update.flush()
+    points = viewer_pair.layers[PREVIEW_POINTS]
+    box = viewer_pair.layers[PREVIEW_BOX]
+    origin, _, shape = grid_for_volume(small.shape, small.subvolume, small.step)
+    assert len(points.data) == np.prod(shape)
+    # the first POI of the grid the engine will use, in world units through the voxel size
+    first = points.data_to_world(points.data[0])
+    expected = np.asarray(small.offset) + np.asarray(origin) * np.asarray(small.voxel_size)
+    np.testing.assert_allclose(first, expected)
+    corners = np.concatenate(box.data)
+    assert corners[:, 1].max() - corners[:, 1].min() == small.subvolume - 1
+    assert f"{np.prod(shape)} POIs" in widget.estimate_label.text()
+    assert "memory" in widget.estimate_label.text()
+    widget.preview.setChecked(False)
+    widget._update.flush()
+    assert not points.visible
+
+
+@pytest.mark.parametrize("problem", ["same layer", "2-D image", "missing mask", "empty mask"])
+def test_bad_choices_show_a_message(viewer_pair, problem):
+    widget = CorrelateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(widget)
+    widget.subvolume.setValue(15)
+    if problem == "same layer":
+        widget.deformed.set_layer("reference")
+        expected = "same layer"
+    elif problem == "2-D image":
+        viewer_pair.add_image(np.zeros((40, 40), np.float32), name="slice")
+        widget.deformed.set_layer("slice")
+        expected = "2-D"
+    elif problem == "missing mask":
+        widget.use_mask.setChecked(True)
+        expected = "no mask is chosen"
+    else:
+        viewer_pair.add_labels(np.zeros((48, 48, 48), np.uint8), name="mask")
+        widget.use_mask.setChecked(True)
+        widget.mask.set_layer("mask")
+        expected = "empty"
+    count = len(viewer_pair.layers)
+    assert widget.run() is None
+    assert expected in widget.message.text()
+    assert widget.last_error == widget.message.text()
+    assert len(viewer_pair.layers) == count
+    assert widget.run_button.isEnabled()
+
+
+def test_mask_marks_outside_pois(viewer_pair, run_panel, small):
+    mask = np.zeros(small.shape, np.uint8)
+    mask[:, :, :26] = 1  # the left half only
+    viewer_pair.add_labels(mask, name="material", scale=small.voxel_size, translate=small.offset)
+    widget = CorrelateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(widget)
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(small.step)
+    widget.use_mask.setChecked(True)
+    widget.mask.set_layer("material")
+    run_panel(widget)
+    field = field_of(viewer_pair.layers["|u| (uncorrected)"])
+    x = field.axis_coordinates()[2]
+    outside = x > 25.5  # more than half of the subvolume right of the mask's edge
+    assert outside.any() and (~outside).any()
+    assert np.all(field.status[:, :, outside] == Status.MASKED)
+    assert field.valid[:, :, ~outside].all()
+
+
+def test_clicked_poi_shows_its_values(correlated, placement):
+    viewer = correlated.viewer
+    field = field_of(viewer.layers["|u| (uncorrected)"])
+    scale, translate = placement(field)
+    world = np.asarray(translate) + np.array([2, 1, 3]) * np.asarray(scale)
+    values = correlated.inspect(world + 0.2)
+    assert values["index"] == (2, 1, 3)
+    np.testing.assert_allclose(values["u"], field.u[2, 1, 3])
+    text = correlated.poi_label.text()
+    assert "POI (2, 1, 3)" in text and "ZNCC" in text and "status" in text
+    assert "provenance" in text and "iterations" in text
+    assert correlated.inspect(np.asarray(translate) - 100 * np.asarray(scale)) is None
+
+
+def test_ui_stays_responsive_during_a_run(viewer_pair, qtbot, small):
+    """Largest gap between 10 ms timer ticks on the main thread while the engine runs."""
+    from napari_dvc_correct.engine.correlate import correlate
+    from napari_dvc_correct.engine.params import CorrelationParams
+
+    reference = viewer_pair.layers["reference"].data
+    deformed = viewer_pair.layers["deformed"].data
+    correlate(reference, deformed, CorrelationParams(subvolume=15, step=12))  # JIT warm-up
+    widget = CorrelateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(widget)
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(4)  # ~1000 POIs: long enough to measure
+    widget.preview.setChecked(False)
+    ticks = []
+    timer = QTimer()
+    timer.setInterval(10)
+    timer.timeout.connect(lambda: ticks.append(time.perf_counter()))
+    worker = widget.run(start=False)
+    ended = []
+    worker.returned.connect(lambda result: ended.append(time.perf_counter()))
+    timer.start()
+    with qtbot.waitSignal(worker.finished, timeout=300_000):
+        worker.start()
+    timer.stop()
+    during = np.asarray([t for t in ticks if t <= ended[0]])
+    assert ended[0] - ticks[0] > 0.3, "the run was too short to say anything"
+    gaps = np.diff(during)
+    assert len(gaps) > 10
+    print(f"largest gap {gaps.max() * 1000:.0f} ms over {ended[0] - ticks[0]:.2f} s")
+    assert gaps.max() < 0.2, f"largest gap {gaps.max() * 1000:.0f} ms"
+    assert widget.last_error is None
