@@ -30,28 +30,17 @@ from napari_dvc_correct.engine.synthetic import (
     two_phase_volume,
 )
 
-
-@pytest.fixture(scope="module")
-def clean():
-    return two_phase_volume((48, 48, 48), phase_grays=(100.0, 170.0), texture=4.0, seed=2)
-
-
-def blocks(grays=(40.0, 120.0, 220.0), shape=(12, 16, 20)):
-    """Three slabs along x with exact grays: phases with a known answer."""
-    volume = np.empty(shape, np.float32)
-    thirds = np.array_split(np.arange(shape[2]), len(grays))
-    for gray, columns in zip(grays, thirds):
-        volume[:, :, columns] = gray
-    return volume
+SHAPE = (48, 48, 48)
 
 
 # --- background residual (eq. 1) ------------------------------------------------------------------
-def test_background_residual_is_the_noise_mean(clean):
+def test_background_residual_is_the_noise_mean():
     """Two independent noisy scans of the same material with the true (zero) field.
 
     ``r = |n_F - n_G|`` with ``n ~ N(0, sigma^2)``: ``mean(r) = 2 sigma / sqrt(pi)``.
     """
     sigma = 6.0
+    clean = two_phase_volume(SHAPE, phase_grays=(100.0, 170.0), texture=4.0, seed=2)
     reference = add_noise(clean, sigma, seed=11)
     deformed = add_noise(clean, sigma, seed=12)
     residual = np.abs(deformed - reference)
@@ -106,8 +95,9 @@ def test_accuracy_index_formula_and_phase_pair():
     assert bins[:2] == pytest.approx([1.0, 0.9]) and np.isnan(bins[2])
     with pytest.raises(ValueError, match="contrast must be > 0"):
         accuracy_index(1.0, 0.0, 0.0)
-    volume = blocks(grays=(40.0, 120.0, 220.0), shape=(4, 4, 30))
-    volume[:, :, 18:] = 220.0  # phase 2 most abundant, then phase 0 (10 cols) > phase 1 (8)
+    volume = np.full((4, 4, 30), 220.0)  # phase 2 most abundant (12 columns),
+    volume[:, :, :10] = 40.0  # then phase 0 (10 columns)
+    volume[:, :, 10:18] = 120.0  # and phase 1 (8 columns)
     thresholds = [80.0, 170.0]
     stats = phase_table(volume, segment_phases(volume, thresholds), thresholds)
     assert default_phase_pair(stats) == (0, 2)
@@ -187,7 +177,6 @@ def test_field_grid_must_fit_the_volume():
 
 
 # --- the whole chain on synthetic scans with a known field ----------------------------------------
-SHAPE = (48, 48, 48)
 
 
 def grid_field(function, subvolume=11, step=6):

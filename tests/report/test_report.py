@@ -16,7 +16,7 @@ from napari_dvc_correct.engine.synthetic import (
     shear_band,
     two_phase_volume,
 )
-from napari_dvc_correct.report import file_stem, write_report
+from napari_dvc_correct.report import file_stem, unique_names, write_report
 from napari_dvc_correct.report.tables import write_csv
 
 SHAPE = (32, 32, 32)
@@ -123,6 +123,8 @@ def test_file_stems_and_lazy_matplotlib():
     assert file_stem("field 1") == "field_1"
     assert file_stem("corrected (pass 2)") == "corrected_pass_2"
     assert file_stem("///") == "field"
+    assert unique_names(["a", "a", "b", "a"]) == ["a", "a_2", "b", "a_3"]
+    assert unique_names(["f", "f"], "{name} ({k})") == ["f", "f (2)"]
     code = "import sys, napari_dvc_correct.report; print('matplotlib' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.stdout.strip() == "False", result.stderr

@@ -119,15 +119,9 @@ def _names(args) -> list[str]:
         if len(set(names)) != len(names):
             raise UserError(f"--names must be unique, got {args.names!r}")
         return names
-    names, seen = [], set()
-    for path in paths:
-        name = base = Path(path).stem
-        k = 2
-        while name in seen:
-            name, k = f"{base} ({k})", k + 1
-        seen.add(name)
-        names.append(name)
-    return names
+    from ..report import unique_names
+
+    return unique_names([Path(path).stem for path in paths], "{name} ({k})")
 
 
 def _phase_pair(text: str | None):

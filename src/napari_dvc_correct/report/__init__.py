@@ -22,7 +22,7 @@ from .plots import (
 )
 from .tables import background_rows, bin_rows, phase_rows, summary_rows, write_csv
 
-__all__ = ["file_stem", "render_markdown", "write_report", "write_volumes"]
+__all__ = ["file_stem", "render_markdown", "unique_names", "write_report", "write_volumes"]
 
 
 def file_stem(name: str) -> str:
@@ -31,16 +31,20 @@ def file_stem(name: str) -> str:
     return stem or "field"
 
 
+def unique_names(names, template: str = "{name}_{k}") -> list[str]:
+    """``names`` with repeats made unique by ``template`` (``k`` = 2, 3, ...), order kept."""
+    result, seen = [], set()
+    for base in names:
+        name, k = base, 2
+        while name in seen:
+            name, k = template.format(name=base, k=k), k + 1
+        seen.add(name)
+        result.append(name)
+    return result
+
+
 def _stems(evaluation: Evaluation) -> list[str]:
-    stems, seen = [], set()
-    for item in evaluation.fields:
-        stem = base = file_stem(item.name)
-        k = 2
-        while stem in seen:
-            stem, k = f"{base}_{k}", k + 1
-        seen.add(stem)
-        stems.append(stem)
-    return stems
+    return unique_names([file_stem(item.name) for item in evaluation.fields])
 
 
 def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Path]:
@@ -65,22 +69,16 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
             export_volume_tiff(labels, target, description={"quantity": f"phases, {state}"})
             written.append(target)
     for stem, item in zip(_stems(evaluation), evaluation.fields):
-        if item.residual is not None:
-            target = out_dir / f"residual_{stem}.tif"
-            export_volume_tiff(
-                item.residual,
-                target,
-                description={"quantity": "gray residual", "field": item.name},
-            )
-            written.append(target)
-        if item.labels_mapped is not None:
-            target = out_dir / f"labels_mapped_{stem}.tif"
-            export_volume_tiff(
-                item.labels_mapped,
-                target,
-                description={"quantity": "phases mapped by the field", "field": item.name},
-            )
-            written.append(target)
+        for prefix, volume, quantity in (
+            ("residual", item.residual, "gray residual"),
+            ("labels_mapped", item.labels_mapped, "phases mapped by the field"),
+        ):
+            if volume is not None:
+                target = out_dir / f"{prefix}_{stem}.tif"
+                export_volume_tiff(
+                    volume, target, description={"quantity": quantity, "field": item.name}
+                )
+                written.append(target)
         target = out_dir / f"equivalent_strain_{stem}.tif"
         export_volume_tiff(
             item.equivalent_strain.astype(np.float32),
