@@ -268,11 +268,7 @@ class CorrelateWidget(EngineWidget):
                     "'only inside a mask' is ticked but no mask is chosen: pick a Labels or "
                     "Shapes layer, or untick it"
                 )
-            if isinstance(mask_layer, Shapes):
-                data = mask_layer.to_labels(labels_shape=volumes[0].shape)
-            else:
-                data = mask_layer.data
-            mask = model.check_mask(data, volumes[0].shape, mask_layer.name)
+            mask = model.mask_from_layer(mask_layer, volumes[0].shape)
         voxel_size, offset = model.layer_placement(reference)
         return model.CorrelationJob(
             volumes=volumes,

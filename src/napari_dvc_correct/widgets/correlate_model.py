@@ -169,6 +169,15 @@ def check_mask(mask, volume_shape, name: str = "mask") -> np.ndarray:
     return mask
 
 
+def mask_from_layer(layer, volume_shape) -> np.ndarray:
+    """Boolean mask from a Labels layer (non-zero) or a Shapes layer (inside any shape)."""
+    if hasattr(layer, "to_labels"):  # Shapes
+        data = layer.to_labels(labels_shape=tuple(volume_shape))
+    else:
+        data = layer.data
+    return check_mask(data, volume_shape, layer.name)
+
+
 def make_params(
     subvolume: int, step: int, order: int, search_radius: int | None
 ) -> CorrelationParams:

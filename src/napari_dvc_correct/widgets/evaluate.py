@@ -95,11 +95,15 @@ class EvaluateWidget(EngineWidget):
             keep = name in checked or name not in known
             item.setCheckState(Qt.CheckState.Checked if keep else Qt.CheckState.Unchecked)
             self.fields.addItem(item)
-        for field in fields.values():  # the volumes the fields were measured on
-            self.reference.set_layer(field.metadata.get("reference_layer", ""))
-            self.deformed.set_layer(field.metadata.get("deformed_layer", ""))
-            break
-        if self.reference.layer() is self.deformed.layer():
+        inserted = getattr(event, "value", None)
+        new_field = L.field_of(inserted) if inserted is not None else None
+        first = next(iter(fields.values()), None)
+        if new_field is not None or (event is None and first is not None):
+            # default to the volumes the (newest) field was measured on
+            source = new_field if new_field is not None else first
+            self.reference.set_layer(source.metadata.get("reference_layer", ""))
+            self.deformed.set_layer(source.metadata.get("deformed_layer", ""))
+        if event is None and self.reference.layer() is self.deformed.layer():
             others = [x for x in self.deformed.layers() if x is not self.reference.layer()]
             if others:
                 self.deformed.set_layer(others[0])

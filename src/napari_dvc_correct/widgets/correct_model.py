@@ -1,0 +1,81 @@
+"""The Self-correct panel without Qt: the run and the per-pass table."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..engine.field import DisplacementField
+
+FRAMES = {
+    "reference": "pull F back to the reference (no inversion)",
+    "loaded": "warp G to the loaded state (paper)",
+}
+UPDATES = {
+    "exact": "compose D with ΔD (exact)",
+    "sum": "add ΔD to D node by node (paper)",
+}
+
+
+@dataclass
+class CorrectionResult:
+    """The corrected field, its equivalent strain on the grid, and where to show it."""
+
+    field: DisplacementField
+    equivalent_strain: np.ndarray
+    voxel_size: tuple
+    offset: tuple
+
+
+def run_correction(
+    reference,
+    deformed,
+    field: DisplacementField,
+    *,
+    frame: str = "reference",
+    update: str = "exact",
+    max_passes: int = 3,
+    mask=None,
+):
+    """Generator for the panel's worker: the self-correction of ``field``, then its strain.
+
+    The DVC parameters are those that produced ``field`` (the paper's point: no new
+    parameter). Returns a :class:`CorrectionResult`.
+    """
+    from ..engine.correction import correct_iter
+    from ..engine.strain import equivalent_strain_field
+
+    corrected = yield from correct_iter(
+        reference,
+        deformed,
+        field,
+        frame=frame,
+        update=update,
+        max_passes=int(max_passes),
+        mask=mask,
+    )
+    for key in ("voxel_size", "offset", "reference_layer", "deformed_layer"):
+        if key in field.metadata:
+            corrected.metadata[key] = field.metadata[key]
+    return CorrectionResult(
+        field=corrected,
+        equivalent_strain=equivalent_strain_field(corrected),
+        voxel_size=tuple(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
+        offset=tuple(field.metadata.get("offset", (0.0, 0.0, 0.0))),
+    )
+
+
+def pass_rows(field: DisplacementField) -> list[tuple[str, str, str, str]]:
+    """One row per pass for the dock's table: pass, mean gray residual, applied, nodes changed."""
+    from ..engine.correction import correction_table
+
+    rows = []
+    for entry in correction_table(field):
+        number = int(entry["pass"])
+        label = "0 (cleaned input)" if number == 0 else str(number)
+        residual = entry.get("mean_gray_residual", float("nan"))
+        applied = "—" if number == 0 else ("yes" if entry.get("accepted") else "no")
+        changed = f"{100 * float(entry.get('fraction_changed', 0.0)):.0f} %"
+        rows.append((label, f"{residual:.3f}", applied, changed))
+    return rows

@@ -1,0 +1,81 @@
+"""The Self-correct dock end to end: corrected layers, the per-pass table, cancel, bad choices."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from napari_dvc_correct._sample_data import true_field
+from napari_dvc_correct.engine.field import Provenance
+from napari_dvc_correct.layers import field_of
+from napari_dvc_correct.widgets import CorrectWidget
+
+
+def _dock(viewer):
+    widget = CorrectWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    return widget
+
+
+def test_self_correct_adds_corrected_layers_and_reports_passes(
+    correlated, run_panel, pair48, placement
+):
+    viewer = correlated.viewer
+    widget = _dock(viewer)
+    assert widget.field.currentText() == "uncorrected"
+    assert widget.reference.currentText() == "reference"
+    assert widget.deformed.currentText() == "deformed"
+    widget.max_passes.setValue(2)
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    for quantity in ("displacement", "|u|", "εeq", "ZNCC", "status"):
+        assert f"{quantity} (corrected)" in viewer.layers
+    corrected = field_of(viewer.layers["|u| (corrected)"])
+    uncorrected = field_of(viewer.layers["|u| (uncorrected)"])
+    assert corrected is not uncorrected
+    scale, translate = placement(corrected)
+    for name in ("|u| (corrected)", "εeq (corrected)", "displacement (corrected)"):
+        np.testing.assert_allclose(viewer.layers[name].scale, scale)
+        np.testing.assert_allclose(viewer.layers[name].translate, translate)
+    # the table lists the cleaned input and at least one pass, residual never rises
+    rows = [
+        [widget.table.item(r, c).text() for c in range(4)] for r in range(widget.table.rowCount())
+    ]
+    assert rows[0][0] == "0 (cleaned input)" and len(rows) >= 2
+    passes = corrected.metadata["correction_passes"]
+    applied = [p["mean_gray_residual"] for p in passes if p["accepted"]]
+    assert applied == sorted(applied, reverse=True)
+    assert "→" in widget.message.text()
+    # against the known shear band, the correction does not make the field worse
+    truth = true_field(pair48[2], corrected.origin, corrected.step, corrected.shape)
+    before = np.linalg.norm(uncorrected.u - truth.u, axis=-1)[uncorrected.valid].mean()
+    after = np.linalg.norm(corrected.u - truth.u, axis=-1)[uncorrected.valid].mean()
+    assert after <= before + 0.02
+    if corrected.metadata["correction"]["passes_applied"]:
+        assert (corrected.provenance == Provenance.CORRECTED).any()
+    # the corrected field is not offered for correcting again
+    assert widget.field.findText("corrected") < 0
+
+
+def test_cancel_keeps_the_uncorrected_layers(correlated, qtbot):
+    viewer = correlated.viewer
+    before = [layer.name for layer in viewer.layers]
+    widget = _dock(viewer)
+    worker = widget.run(start=False)
+    worker.yielded.connect(lambda value: widget.cancel())
+    with qtbot.waitSignal(worker.finished, timeout=120_000):
+        worker.start()
+    assert [layer.name for layer in viewer.layers] == before
+    assert "Cancelled" in widget.message.text()
+
+
+def test_without_a_field_a_message(viewer_pair):
+    widget = _dock(viewer_pair)
+    assert widget.run() is None
+    assert "run Correlate first" in widget.message.text()
+
+
+def test_same_layer_twice_a_message(correlated):
+    widget = _dock(correlated.viewer)
+    widget.deformed.set_layer("reference")
+    assert widget.run() is None
+    assert "same layer" in widget.message.text()

@@ -1,0 +1,86 @@
+"""The Evaluate dock: histogram and thresholds, live phases, residual layers, plots, messages."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.layers import plugin_metadata
+from napari_dvc_correct.widgets import EvaluateWidget
+
+
+def _dock(viewer):
+    widget = EvaluateWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    return widget
+
+
+def test_thresholds_split_the_histogram_and_update_the_phases_live(viewer_pair, qtbot, small):
+    widget = _dock(viewer_pair)
+    reference = viewer_pair.layers["reference"].data
+    # automatic thresholds: one between the two phase grays (100 and 170)
+    (threshold,) = widget.thresholds()
+    assert 110 < threshold < 160
+    assert len(widget.histogram.lines) == 1
+    assert widget.histogram.lines[0].get_xdata()[0] == pytest.approx(threshold)
+    widget._live.flush()
+    phases = viewer_pair.layers["phases"]
+    np.testing.assert_allclose(phases.scale, small.voxel_size)
+    np.testing.assert_allclose(phases.translate, small.offset)
+    np.testing.assert_array_equal(phases.data, np.where(reference >= threshold, 2, 1))
+    assert "phase 1: mean gray" in widget.phase_label.text()
+    # moving the slider updates the label volume after the debounce delay, not at once
+    before = phases.data.copy()
+    widget.set_thresholds([150.0])
+    assert np.array_equal(phases.data, before)
+    qtbot.waitUntil(lambda: not np.array_equal(phases.data, before), timeout=3000)
+    np.testing.assert_array_equal(phases.data, np.where(reference >= 150.0, 2, 1))
+    # more phases on demand: two thresholds, three labels
+    widget.n_phases.setValue(3)
+    assert len(widget.thresholds()) == 3 - 1
+    widget._live.flush()
+    assert set(np.unique(viewer_pair.layers["phases"].data)) == {1, 2, 3}
+
+
+def test_evaluate_adds_residual_layers_and_plots(correlated, run_panel, small):
+    viewer = correlated.viewer
+    widget = _dock(viewer)
+    assert widget.checked_fields() == ["uncorrected"]
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    residual = viewer.layers["residual (uncorrected)"]
+    assert residual.data.shape == small.shape
+    np.testing.assert_allclose(residual.scale, small.voxel_size)
+    np.testing.assert_allclose(residual.translate, small.offset)
+    report = plugin_metadata(residual)["report"]
+    item = report["field: uncorrected"]
+    # residual above the noise floor, accuracy index in a sensible range for a good field
+    assert 0 < item["background residual r0"] <= item["mean gray residual"] + 1e-9
+    assert 0.9 < item["accuracy index p"] <= 1.0 + 1e-9
+    assert "accuracy index p" in widget.summary.text()
+    residual_axes, accuracy_axes = widget.curves.axes
+    assert len(residual_axes.lines) == 1 and len(accuracy_axes.lines) == 1
+    np.testing.assert_allclose(
+        accuracy_axes.lines[0].get_ydata(), item["accuracy per strain bin"], equal_nan=True
+    )
+
+
+def test_same_layer_twice_a_message(correlated):
+    widget = _dock(correlated.viewer)
+    widget.deformed.set_layer("reference")
+    assert widget.run() is None
+    assert "same layer" in widget.message.text()
+
+
+def test_without_a_field_a_message(viewer_pair):
+    widget = _dock(viewer_pair)
+    assert widget.run() is None
+    assert "run Correlate" in widget.message.text()
+
+
+def test_2d_reference_a_message(make_napari_viewer):
+    viewer = make_napari_viewer()
+    viewer.add_image(np.random.default_rng(0).random((32, 32)), name="slice")
+    widget = _dock(viewer)
+    assert widget.run() is None
+    assert "not a 3-D volume" in widget.message.text()

@@ -1,0 +1,98 @@
+"""The Export dock: every format from a real run, extras, report, and bad choices."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from napari_dvc_correct.io.npz import load_field
+from napari_dvc_correct.layers import field_of
+from napari_dvc_correct.widgets import EvaluateWidget, ExportWidget
+
+
+def _dock(viewer):
+    widget = ExportWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    return widget
+
+
+def test_every_format(correlated, run_panel, tmp_path):
+    viewer = correlated.viewer
+    field = field_of(viewer.layers["|u| (uncorrected)"])
+    widget = _dock(viewer)
+    assert widget.field.currentText() == "uncorrected"
+    widget.path.setText(str(tmp_path / "run"))
+    expected = {
+        ".npz": ["run.npz"],
+        ".h5": ["run.h5"],
+        ".vti": ["run.vti"],
+        ".vtk": ["run.vtk"],
+        ".csv": ["run.csv"],
+        ".tif": [f"run_{q}.tif" for q in ("uz", "uy", "ux", "magnitude", "zncc", "status")],
+    }
+    for suffix, names in expected.items():
+        widget.set_format(suffix)
+        widget.path.setText(str(tmp_path / "run"))
+        run_panel(widget)
+        assert widget.last_error is None, widget.last_error
+        for name in names:
+            assert (tmp_path / name).is_file(), name
+    np.testing.assert_array_equal(load_field(tmp_path / "run.npz").u, field.u)
+    with h5py.File(tmp_path / "run.h5", "r") as h5:
+        np.testing.assert_array_equal(h5["field/u"][()], field.u)
+        assert h5["grid/equivalent_strain"].shape == field.shape  # strain went with the field
+        np.testing.assert_allclose(h5["field"].attrs["voxel_size"], (2.0, 1.5, 1.5))
+    np.testing.assert_allclose(tifffile.imread(tmp_path / "run_ux.tif"), field.u[..., 2])
+    assert (tmp_path / "run_equivalent_strain.tif").is_file()  # extra grid array as its own stack
+    assert "Wrote" in widget.message.text()
+
+
+def test_strain_residual_and_report(correlated, run_panel, tmp_path):
+    viewer = correlated.viewer
+    evaluate = EvaluateWidget(viewer)
+    viewer.window.add_dock_widget(evaluate)
+    run_panel(evaluate)
+    widget = _dock(viewer)
+    widget.set_format(".csv")
+    widget.path.setText(str(tmp_path / "soil.csv"))
+    widget.strain_tiff.setChecked(True)
+    widget.residual_tiff.setChecked(True)
+    widget.report.setChecked(True)
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    residual = tifffile.imread(tmp_path / "soil_residual.tif")
+    np.testing.assert_allclose(residual, viewer.layers["residual (uncorrected)"].data)
+    strain = tifffile.imread(tmp_path / "soil_equivalent_strain.tif")
+    np.testing.assert_allclose(strain, viewer.layers["εeq (uncorrected)"].data, rtol=1e-6)
+    with tifffile.TiffFile(tmp_path / "soil_equivalent_strain.tif") as tif:
+        info = json.loads(tif.imagej_metadata["Info"])
+    np.testing.assert_allclose(info["scale"], viewer.layers["εeq (uncorrected)"].scale)
+    np.testing.assert_allclose(info["translate"], viewer.layers["εeq (uncorrected)"].translate)
+    report = json.loads((tmp_path / "soil_report.json").read_text())
+    assert "accuracy index p" in report["field: uncorrected"]
+    assert "accuracy index p" in (tmp_path / "soil_report.md").read_text()
+
+
+@pytest.mark.parametrize("problem", ["no folder", "no residual yet", "no field"])
+def test_bad_choices_show_a_message(problem, request, tmp_path):
+    if problem == "no field":
+        viewer = request.getfixturevalue("make_napari_viewer")()
+    else:
+        viewer = request.getfixturevalue("correlated").viewer
+    widget = _dock(viewer)
+    widget.path.setText(str(tmp_path / "missing" / "x.npz"))
+    if problem == "no residual yet":
+        widget.path.setText(str(tmp_path / "x.npz"))
+        widget.report.setChecked(True)
+    assert widget.run() is None
+    expected = {
+        "no folder": "does not exist",
+        "no residual yet": "run Evaluate first",
+        "no field": "run Correlate first",
+    }[problem]
+    assert expected in widget.message.text()
+    assert list(tmp_path.iterdir()) == []
