@@ -18,8 +18,8 @@ The pieces, in the order the paper uses them:
 4. **Curves against equivalent strain** (paper Figs. 10–11, :func:`bin_residual_by_strain`). The
    equivalent strain lives on the POI grid; each voxel takes the strain of its *nearest node*
    (the node's cell of ``step`` voxels around it), which is the same as binning the POI
-   neighbourhoods' residual sums. Voxels farther than half a step outside the grid hull are left
-   out (the field is extrapolated there).
+   neighbourhoods' residual sums; no dense strain volume is built. Only voxels with a defined
+   (finite) residual count: :func:`~.warp.gray_residual` defines it inside the grid's hull.
 
 All functions take plain arrays (residual volume, label volumes) so they can be used with any
 residual; :func:`evaluate_fields` runs the whole chain for one or several fields.
