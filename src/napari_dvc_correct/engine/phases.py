@@ -25,7 +25,7 @@ MAX_PHASES = 8
 NO_PHASE = 255
 
 
-def _slabs(shape, voxels: int = SLAB_VOXELS):
+def slabs(shape, voxels: int = SLAB_VOXELS):
     """``slice`` objects along z covering a volume with about ``voxels`` voxels each."""
     plane = max(1, int(shape[1]) * int(shape[2]))
     depth = max(1, voxels // plane)
@@ -45,7 +45,7 @@ def _check_volume(volume, name: str) -> np.ndarray:
 def gray_range(volume: np.ndarray) -> tuple[float, float]:
     """``(min, max)`` of the finite gray values of ``volume`` (read slab by slab)."""
     low, high = np.inf, -np.inf
-    for zs in _slabs(volume.shape):
+    for zs in slabs(volume.shape):
         slab = np.asarray(volume[zs])
         if slab.dtype.kind == "f":
             slab = slab[np.isfinite(slab)]
@@ -174,7 +174,7 @@ def label_phases(volume: np.ndarray, thresholds) -> np.ndarray:
     """
     values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
     labels = np.empty(np.shape(volume), np.uint8)
-    for zs in _slabs(labels.shape):
+    for zs in slabs(labels.shape):
         slab = np.asarray(volume[zs], dtype=np.float64)
         lab = np.digitize(slab, values).astype(np.uint8)
         lab[~np.isfinite(slab)] = NO_PHASE
@@ -211,7 +211,7 @@ def segment_phases(volume: np.ndarray, thresholds, name: str = "volume") -> np.n
         raise ValueError(f"gray thresholds must be strictly increasing, got {thresholds!r}")
     labels = label_phases(volume, values)
     counts = np.zeros(NO_PHASE + 1, np.int64)
-    for zs in _slabs(volume.shape):
+    for zs in slabs(volume.shape):
         counts += np.bincount(labels[zs].ravel(), minlength=NO_PHASE + 1)
     empty = np.flatnonzero(counts[: values.size + 1] == 0)
     if empty.size:
@@ -274,7 +274,7 @@ def phase_table(volume: np.ndarray, labels: np.ndarray, thresholds) -> list[Phas
         raise ValueError(f"labels {labels.shape} and volume {volume.shape} differ in shape")
     sums = np.zeros(n)
     counts = np.zeros(n, np.int64)
-    for zs in _slabs(volume.shape):
+    for zs in slabs(volume.shape):
         lab = np.asarray(labels[zs]).ravel()
         gray = np.asarray(volume[zs], dtype=np.float64).ravel()
         sums += np.bincount(lab, weights=gray, minlength=n)[:n]
