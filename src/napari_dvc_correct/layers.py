@@ -283,14 +283,17 @@ def field_layers(
     offset=None,
     equivalent_strain: np.ndarray | None = None,
     max_vectors: int = 4000,
+    components: bool = True,
 ) -> list[LayerDataTuple]:
     """All the grid layers of a field: vectors, ``|u|``, components, ZNCC, status and ``εeq``.
 
-    ``εeq`` is included when ``equivalent_strain`` (shape ``field.shape``) is given.
+    ``εeq`` is included when ``equivalent_strain`` (shape ``field.shape``) is given, the
+    ``uz``/``uy``/``ux`` images unless ``components`` is False.
     """
     placement = {"voxel_size": voxel_size, "offset": offset}
     layers = [magnitude_layer(field, source, **placement)]
-    layers += component_layers(field, source, **placement)
+    if components:
+        layers += component_layers(field, source, **placement)
     layers += [zncc_layer(field, source, **placement), status_layer(field, source, **placement)]
     if equivalent_strain is not None:
         layers.append(strain_layer(equivalent_strain, field, source, **placement))

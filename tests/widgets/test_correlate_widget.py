@@ -202,3 +202,57 @@ def test_ui_stays_responsive_during_a_run(viewer_pair, qtbot, small):
     print(f"largest gap {gaps.max() * 1000:.0f} ms over {ended[0] - ticks[0]:.2f} s")
     assert gaps.max() < 0.2, f"largest gap {gaps.max() * 1000:.0f} ms"
     assert widget.last_error is None
+
+
+@pytest.fixture(scope="module")
+def series48():
+    from napari_dvc_correct._sample_data import scan_series
+
+    return scan_series((48, 48, 48), slips=(0.0, 1.5, 3.0))
+
+
+@pytest.mark.parametrize("mode", ["series4d", "series"])
+def test_scan_series(mode, series48, make_napari_viewer, run_panel, small):
+    volumes, truths = series48
+    viewer = make_napari_viewer()
+    widget = CorrelateWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    if mode == "series4d":
+        viewer.add_image(volumes, name="scan", scale=(1.0, *small.voxel_size))
+        widget.mode.setCurrentIndex(widget.mode.findData("series4d"))
+        widget.reference.set_layer("scan")
+        strategy = "total"
+    else:
+        for k, volume in enumerate(volumes):
+            viewer.add_image(volume, name=f"state{k}", scale=small.voxel_size)
+        widget.mode.setCurrentIndex(widget.mode.findData("series"))
+        widget.set_series_layers(["state0", "state1", "state2"])
+        strategy = "incremental"
+    widget.strategy.setCurrentIndex(widget.strategy.findData(strategy))
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(small.step)
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    last = viewer.layers[f"|u| (state 2 ({strategy}))"]
+    first = viewer.layers[f"|u| (state 1 ({strategy}))"]
+    assert last.visible and not first.visible
+    assert f"uz (state 1 ({strategy}))" not in viewer.layers  # compact layers for a series
+    np.testing.assert_allclose(last.scale, np.asarray(field_of(last).step) * small.voxel_size)
+    for k, layer in ((1, first), (2, last)):
+        field = field_of(layer)
+        truth = true_field(truths[k], field.origin, field.step, field.shape)
+        error = np.linalg.norm(field.u - truth.u, axis=-1)[field.valid]
+        assert np.median(error) < 0.3, (k, np.median(error))
+
+
+def test_series_bad_choices(viewer_pair):
+    widget = CorrelateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(widget)
+    widget.mode.setCurrentIndex(widget.mode.findData("series4d"))
+    widget.reference.set_layer("reference")
+    assert widget.run() is None
+    assert "4-D mode needs" in widget.message.text()
+    widget.mode.setCurrentIndex(widget.mode.findData("series"))
+    widget.set_series_layers(["reference"])
+    assert widget.run() is None
+    assert "at least two" in widget.message.text()

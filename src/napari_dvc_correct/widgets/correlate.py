@@ -73,6 +73,8 @@ class CorrelateWidget(EngineWidget):
         self.strategy.addItem("total (every state against the first)", "total")
         self.strategy.addItem("incremental (state by state, composed)", "incremental")
         self.form.addRow("Strategy", self.strategy)
+        self.correct_states = QCheckBox("self-correct every state")
+        self.form.addRow("", self.correct_states)
         self.use_mask = QCheckBox("only inside a mask")
         self.mask = LayerCombo(self.viewer, _is_mask, optional=True)
         self.form.addRow(self.use_mask, self.mask)
@@ -150,6 +152,7 @@ class CorrelateWidget(EngineWidget):
         self.deformed.setEnabled(mode == "pair")
         self.series_list.setEnabled(mode == "series")
         self.strategy.setEnabled(mode != "pair")
+        self.correct_states.setEnabled(mode != "pair")
         label = self.form.labelForField(self.reference)
         if label is not None:
             label.setText("4-D series" if mode == "series4d" else "Reference (G)")
@@ -275,6 +278,7 @@ class CorrelateWidget(EngineWidget):
             params=params,
             mask=mask,
             strategy=strategy,
+            correct_states=strategy != "pair" and self.correct_states.isChecked(),
             voxel_size=voxel_size,
             offset=offset,
             names=names,
@@ -367,14 +371,20 @@ class CorrelateWidget(EngineWidget):
         model.record_timing(time.perf_counter() - started, shape, params, n_pairs)
         self._set_preview_visible(False)
         tuples = []
-        for source, field, equivalent in result.fields:
-            tuples += L.field_layers(
+        series = len(result.fields) > 1
+        for index, (source, field, equivalent) in enumerate(result.fields):
+            layers = L.field_layers(
                 field,
                 source,
                 voxel_size=result.voxel_size,
                 offset=result.offset,
                 equivalent_strain=equivalent,
+                components=not series,
             )
+            if series and index < len(result.fields) - 1:  # show the last state only
+                for _, kwargs, _ in layers:
+                    kwargs["visible"] = False
+            tuples += layers
         L.show_layers(self.viewer, tuples)
         field = result.fields[-1][1]
         counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())

@@ -34,6 +34,8 @@ class CorrelationJob:
     params : CorrelationParams
     mask : ndarray of bool (nz, ny, nx) or None
     strategy : {"pair", "total", "incremental"}
+    correct_states : bool
+        For a series: self-correct every state's total displacement (engine/series.py).
     voxel_size, offset : tuple of 3 floats
         ``scale`` and ``translate`` (z, y, x) of the reference layer, for display.
     names : list of str
@@ -44,6 +46,7 @@ class CorrelationJob:
     params: CorrelationParams
     mask: np.ndarray | None = None
     strategy: str = "pair"
+    correct_states: bool = False
     voxel_size: tuple = (1.0, 1.0, 1.0)
     offset: tuple = (0.0, 0.0, 0.0)
     names: list = field(default_factory=list)
@@ -77,7 +80,8 @@ def run_job(job: CorrelationJob):
     """Generator run by the panel's worker: yields Progress, returns a :class:`CorrelationResult`.
 
     A pair gives one field, source ``"uncorrected"``; a series gives one field per state after
-    the first, source ``"state k (total)"`` (or ``incremental``), each from state 0.
+    the first, source ``"state k (total)"`` (or ``incremental``, ``+ corrected`` when each state
+    was self-corrected), each the total displacement from state 0.
     """
     from ..engine.correlate import correlate_iter
     from ..engine.strain import equivalent_strain_field
@@ -89,22 +93,26 @@ def run_job(job: CorrelationJob):
         results.append(("uncorrected", field, equivalent_strain_field(field)))
     else:
         fields = yield from run_series(job)
+        suffix = ", corrected" if job.correct_states else ""
         for k, field in enumerate(fields, start=1):
             field = _finish(field, job, [job.names[0], job.names[k]])
-            source = f"state {k} ({job.strategy})"
+            source = f"state {k} ({job.strategy}{suffix})"
             results.append((source, field, equivalent_strain_field(field)))
     return CorrelationResult(results, job.voxel_size, job.offset)
 
 
 def run_series(job: CorrelationJob):
-    """Correlate a scan series with the total or incremental strategy (engine/series.py)."""
-    from ..engine import series
+    """Total displacements ``U_0→k`` of a scan series (:func:`..engine.series.series_iter`)."""
+    from ..engine.series import series_iter
 
-    return (
-        yield from series.correlate_series_iter(
-            job.volumes, job.params, strategy=job.strategy, mask=job.mask
-        )
+    result = yield from series_iter(
+        job.volumes,
+        job.params,
+        strategy=job.strategy,
+        correct_total=job.correct_states,
+        mask=job.mask,
     )
+    return result.totals
 
 
 def layer_volume(layer, index: int | None = None) -> np.ndarray:

@@ -1,0 +1,103 @@
+"""The npe2 reader: TIFF volumes, folders of slices, field files, and files that are not ours."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_dvc_correct._reader import napari_get_reader
+from napari_dvc_correct.engine.field import DisplacementField, Status
+from napari_dvc_correct.io.export import export_volume_tiff
+from napari_dvc_correct.io.npz import save_field
+from napari_dvc_correct.layers import field_of
+
+
+@pytest.fixture
+def field() -> DisplacementField:
+    shape = (3, 4, 5)
+    u = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij"), -1)
+    status = np.zeros(shape, np.uint8)
+    status[0, 0, 0] = Status.DIVERGED
+    return DisplacementField(
+        origin=(7.0, 7.0, 7.0),
+        step=(4.0, 4.0, 4.0),
+        u=0.1 * u,
+        status=status,
+        metadata={"voxel_size": [2.0, 1.0, 1.0], "offset": [5.0, 0.0, 0.0]},
+    )
+
+
+def test_field_file_opens_as_the_plugin_layers(field, tmp_path):
+    path = tmp_path / "run1.npz"
+    save_field(field, path)
+    reader = napari_get_reader(str(path))
+    assert reader is not None
+    layers = reader(str(path))
+    names = [kwargs["name"] for _, kwargs, _ in layers]
+    assert "displacement (run1)" in names and "εeq (run1)" in names and "|u| (run1)" in names
+    for _data, kwargs, _layer_type in layers:
+        assert kwargs["scale"] == (8.0, 4.0, 4.0)
+        assert kwargs["translate"] == (19.0, 7.0, 7.0)
+        np.testing.assert_array_equal(field_of(kwargs["metadata"]).u, field.u)
+    magnitude = next(d for d, k, _ in layers if k["name"] == "|u| (run1)")
+    assert np.isnan(magnitude[0, 0, 0])  # the diverged node is not shown as a value
+    np.testing.assert_allclose(magnitude[1, 2, 3], 0.1 * np.sqrt(1 + 4 + 9), rtol=1e-6)
+
+
+@pytest.mark.parametrize("content", ["other arrays", "garbage"])
+def test_an_npz_that_is_not_ours_is_declined(content, tmp_path):
+    path = tmp_path / "other.npz"
+    if content == "other arrays":
+        np.savez(path, volume=np.zeros((4, 4, 4)), format=np.array("something else"))
+    else:
+        path.write_bytes(b"PK\x03\x04 not really a zip file")
+    assert napari_get_reader(str(path)) is None
+
+
+def test_tiff_volume_and_placement_round_trip(tmp_path):
+    volume = np.random.default_rng(0).random((6, 7, 8)).astype(np.float32)
+    plain = tmp_path / "plain.tif"
+    tifffile.imwrite(plain, volume)
+    ((data, kwargs, layer_type),) = napari_get_reader(str(plain))(str(plain))
+    assert layer_type == "image" and kwargs["name"] == "plain"
+    np.testing.assert_array_equal(data, volume)
+    assert "scale" not in kwargs
+    placed = tmp_path / "placed.tif"
+    export_volume_tiff(volume, placed, scale=(2.0, 0.5, 0.5), translate=(1.0, 2.0, 3.0))
+    ((data, kwargs, _),) = napari_get_reader(str(placed))(str(placed))
+    np.testing.assert_array_equal(data, volume)
+    assert kwargs["scale"] == [2.0, 0.5, 0.5] and kwargs["translate"] == [1.0, 2.0, 3.0]
+
+
+def test_folder_of_tiff_slices(tmp_path):
+    volume = np.arange(5 * 6 * 7, dtype=np.uint16).reshape(5, 6, 7)
+    folder = tmp_path / "scan"
+    folder.mkdir()
+    for z in range(5):
+        tifffile.imwrite(folder / f"slice_{z:03d}.tif", volume[z])
+    ((data, kwargs, _),) = napari_get_reader(str(folder))(str(folder))
+    np.testing.assert_array_equal(data, volume)
+    assert kwargs["name"] == "scan"
+    files = sorted(str(p) for p in folder.iterdir())
+    ((data, _, _),) = napari_get_reader(files)(files)
+    np.testing.assert_array_equal(data, volume)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert napari_get_reader(str(empty)) is None
+
+
+def test_other_files_are_declined(tmp_path):
+    path = tmp_path / "notes.txt"
+    path.write_text("hello")
+    assert napari_get_reader(str(path)) is None
+    assert napari_get_reader(str(tmp_path / "missing.tif")) is None
+
+
+def test_napari_opens_a_field_file_through_the_plugin(field, tmp_path, make_napari_viewer):
+    path = tmp_path / "run2.npz"
+    save_field(field, path)
+    viewer = make_napari_viewer()
+    viewer.open(str(path), plugin="napari-dvc-correct")
+    assert "displacement (run2)" in viewer.layers
+    np.testing.assert_allclose(viewer.layers["|u| (run2)"].scale, (8.0, 4.0, 4.0))
