@@ -330,6 +330,11 @@ def fields_in(layers) -> dict[str, DisplacementField]:
     return found
 
 
+def find_layer(viewer, name: str):
+    """The layer the plugin made under ``name`` (even if napari numbered it), or None."""
+    return next((x for x in viewer.layers if (plugin_metadata(x) or {}).get("name") == name), None)
+
+
 def show_layers(viewer, layer_tuples) -> list:
     """Add layer tuples to ``viewer``, replacing same-named layers the plugin made before.
 
@@ -345,10 +350,14 @@ def show_layers(viewer, layer_tuples) -> list:
 
     added = []
     for data, kwargs, layer_type in layer_tuples:
-        layer = Layer.create(data, dict(kwargs), layer_type)
+        kwargs = dict(kwargs)
         name = kwargs.get("name")
-        old = viewer.layers[name] if name in viewer.layers else None
-        if old is not None and plugin_metadata(old) is not None:
+        entry = kwargs.get("metadata", {}).get(MARKER)
+        if isinstance(entry, dict):
+            entry["name"] = name  # napari may rename the layer; we find it by this
+        layer = Layer.create(data, kwargs, layer_type)
+        old = find_layer(viewer, name)
+        if old is not None:
             index = viewer.layers.index(old)
             viewer.layers.remove(old)
             viewer.layers.insert(index, layer)

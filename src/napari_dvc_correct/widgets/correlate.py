@@ -301,10 +301,8 @@ class CorrelateWidget(EngineWidget):
         points, box, _ = model.grid_preview(job.shape, job.params)
         placement = L.dense_placement(job.voxel_size, job.offset)
         meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
-        if PREVIEW_POINTS in self.viewer.layers and isinstance(
-            self.viewer.layers[PREVIEW_POINTS].metadata.get(L.MARKER), dict
-        ):
-            layer = self.viewer.layers[PREVIEW_POINTS]
+        layer = L.find_layer(self.viewer, PREVIEW_POINTS)
+        if layer is not None:
             layer.data = points
             layer.scale, layer.translate = placement["scale"], placement["translate"]
             layer.visible = True
@@ -327,10 +325,8 @@ class CorrelateWidget(EngineWidget):
                     )
                 ],
             )
-        if PREVIEW_BOX in self.viewer.layers and isinstance(
-            self.viewer.layers[PREVIEW_BOX].metadata.get(L.MARKER), dict
-        ):
-            layer = self.viewer.layers[PREVIEW_BOX]
+        layer = L.find_layer(self.viewer, PREVIEW_BOX)
+        if layer is not None:
             layer.data = box
             layer.scale, layer.translate = placement["scale"], placement["translate"]
             layer.visible = True
@@ -356,8 +352,9 @@ class CorrelateWidget(EngineWidget):
 
     def _set_preview_visible(self, visible: bool) -> None:
         for name in (PREVIEW_POINTS, PREVIEW_BOX):
-            if name in self.viewer.layers and L.plugin_metadata(self.viewer.layers[name]):
-                self.viewer.layers[name].visible = visible
+            layer = L.find_layer(self.viewer, name)
+            if layer is not None:
+                layer.visible = visible
 
     # -- running ------------------------------------------------------------------------------
     def prepare(self):

@@ -174,8 +174,8 @@ class EvaluateWidget(EngineWidget):
             return
         self.phase_label.setText(preview.text())
         voxel_size, offset = layer_placement(layer)
-        existing = self.viewer.layers["phases"] if "phases" in self.viewer.layers else None
-        if existing is not None and L.plugin_metadata(existing) is not None:
+        existing = L.find_layer(self.viewer, "phases")
+        if existing is not None:
             existing.data = preview.labels
             existing.scale, existing.translate = voxel_size, offset
         else:

@@ -64,7 +64,8 @@ def phase_preview(volume: np.ndarray, thresholds) -> PhasePreview:
     if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
         raise ValueError(f"thresholds must be strictly increasing, got {list(values)}")
     labels = label_phases(volume, values)
-    table = phase_table(volume, np.where(labels == NO_PHASE, 0, labels), values)
+    # unassigned (NaN) voxels go to label N, which phase_table leaves out of phases 0..N-1
+    table = phase_table(volume, np.where(labels == NO_PHASE, values.size + 1, labels), values)
     display = np.where(labels == NO_PHASE, 0, labels + 1).astype(np.uint8)
     return PhasePreview(
         labels=display,

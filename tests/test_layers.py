@@ -1,0 +1,94 @@
+"""Layer builders: placement in world units, vectors, names, metadata, replacing old layers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from napari.components import ViewerModel
+from napari.layers import Layer
+
+from napari_dvc_correct import layers as L
+from napari_dvc_correct.engine.field import DisplacementField, Status
+
+
+@pytest.fixture
+def field() -> DisplacementField:
+    shape = (4, 5, 6)
+    rng = np.random.default_rng(3)
+    u = rng.normal(0, 2.0, (*shape, 3))
+    status = np.zeros(shape, np.uint8)
+    status[1, 2, 3] = Status.DIVERGED
+    return DisplacementField(origin=(5.0, 6.0, 7.0), step=(4.0, 3.0, 2.0), u=u, status=status)
+
+
+def test_grid_layers_sit_on_the_nodes_in_world_units(field):
+    data, kwargs, kind = L.magnitude_layer(
+        field, "uncorrected", voxel_size=(2, 1, 0.5), offset=(10, 0, -1)
+    )
+    layer = Layer.create(data, kwargs, kind)
+    world = layer.data_to_world((1, 2, 3))
+    node = np.asarray(field.origin) + np.array([1, 2, 3]) * np.asarray(field.step)
+    np.testing.assert_allclose(world, np.array([10, 0, -1]) + node * [2, 1, 0.5])
+    assert kwargs["name"] == "|u| (uncorrected)"
+    assert np.isnan(data[1, 2, 3]) and np.isfinite(data[0, 0, 0])
+
+
+def test_vectors_start_on_nodes_and_have_their_true_length(field):
+    data, kwargs, kind = L.vectors_layer(
+        field, "corrected", voxel_size=(2, 1, 0.5), exaggerate=False
+    )
+    layer = Layer.create(data, kwargs, kind)
+    assert kind == "vectors" and layer.name == "displacement (corrected)"
+    assert len(data) == field.n_points - 1  # the diverged node is left out
+    for start, vector in data[:5]:
+        i, j, k = start.astype(int)
+        tip = np.asarray(layer.data_to_world(start + vector))
+        base = np.asarray(layer.data_to_world(start))
+        np.testing.assert_allclose(tip - base, field.u[i, j, k] * [2, 1, 0.5])
+    np.testing.assert_allclose(
+        layer.features["magnitude"], np.linalg.norm(data[:, 1] * field.step, axis=1)
+    )
+
+
+def test_vectors_are_subsampled(field):
+    data, kwargs, _ = L.vectors_layer(field, "x", max_vectors=20)
+    assert len(data) <= 20
+    assert kwargs["metadata"]["dvc_correct"]["stride"] == L.vector_stride(field.shape, 20) > 1
+
+
+def test_strain_layer_checks_its_shape(field):
+    with pytest.raises(ValueError, match="grid shape"):
+        L.strain_layer(np.zeros((2, 2, 2)), field, "x")
+    data, kwargs, _ = L.strain_layer(np.full(field.shape, 0.01), field, "corrected")
+    assert kwargs["name"] == "εeq (corrected)" and kwargs["contrast_limits"][1] > 0
+
+
+def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(field):
+    viewer = ViewerModel()
+    viewer.add_image(np.zeros((3, 3, 3)), name="|u| (uncorrected)")  # the user's own layer
+    first = L.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    assert L.fields_in(viewer.layers) == {"uncorrected": field}
+    # the user's layer stays; ours got napari's numbered name
+    assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None
+    assert viewer.layers["|u| (uncorrected) [1]"] in first
+    count = len(viewer.layers)
+    other = field.copy()
+    second = L.show_layers(viewer, L.field_layers(other, "uncorrected"))
+    assert len(viewer.layers) == count
+    assert all(layer in viewer.layers for layer in second)
+    assert not any(layer in viewer.layers for layer in first)
+    assert L.fields_in(viewer.layers)["uncorrected"] is other
+    # the status layer names its codes
+    status = viewer.layers["status (uncorrected)"]
+    assert "diverged" in list(status.features["status"])
+
+
+def test_dense_layers_use_the_voxel_size(field):
+    residual = np.ones((8, 8, 8), np.float32)
+    data, kwargs, kind = L.residual_layer(
+        residual, "corrected", voxel_size=(2, 2, 2), offset=(1, 1, 1)
+    )
+    assert kwargs["scale"] == (2.0, 2.0, 2.0) and kwargs["translate"] == (1.0, 1.0, 1.0)
+    assert kwargs["name"] == "residual (corrected)" and kind == "image"
+    labels, kwargs, kind = L.phase_layer(np.zeros((8, 8, 8), np.uint8), voxel_size=(2, 2, 2))
+    assert kind == "labels" and kwargs["name"] == "phases"
