@@ -29,7 +29,7 @@ test: $(STAMP) system-deps
 	$(BIN)/python -m pytest -q
 
 run: $(STAMP)
-	$(BIN)/napari-dvc-correct-demo || $(BIN)/python -m napari_dvc_correct.demo
+	$(BIN)/python -m napari_dvc_correct.demo
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks

@@ -1,0 +1,63 @@
+"""``python -m napari_dvc_correct.demo``: napari with the sample data and the plugin's panels.
+
+This is what ``make run`` opens. Options: ``--series`` loads the four-state scan series instead
+of the soil pair, ``--no-sample`` starts empty.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+PLUGIN = "napari-dvc-correct"
+#: Display names of the panels (napari.yaml), in the order they are docked.
+PANELS = ("Correlate", "Self-correct", "Evaluate", "Export")
+
+
+def make_viewer(sample: str | None = "soil_shear_band", show: bool = True):
+    """A viewer with ``sample`` loaded and the four panels docked as tabs on the right.
+
+    Parameters
+    ----------
+    sample : {"soil_shear_band", "scan_series"} or None
+        The sample data to open (npe2 keys), or None for none.
+    show : bool
+        Show the window (False for tests).
+
+    Returns
+    -------
+    viewer : napari.Viewer
+    widgets : dict of panel name -> widget
+    """
+    import napari
+
+    viewer = napari.Viewer(title="napari-dvc-correct", show=show)
+    if sample:
+        viewer.open_sample(PLUGIN, sample)
+    widgets = {}
+    for index, name in enumerate(PANELS):
+        _, widget = viewer.window.add_plugin_dock_widget(PLUGIN, name, tabify=index > 0)
+        widgets[name] = widget
+    # the first tab in front
+    dock = viewer.window._dock_widgets.get(f"{PANELS[0]} ({PLUGIN})")
+    if dock is not None:
+        dock.raise_()
+    viewer.dims.ndisplay = 2
+    return viewer, widgets
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m napari_dvc_correct.demo", description=__doc__)
+    parser.add_argument("--series", action="store_true", help="load the four-state scan series")
+    parser.add_argument("--no-sample", action="store_true", help="start without sample data")
+    args = parser.parse_args(argv)
+    sample = None if args.no_sample else ("scan_series" if args.series else "soil_shear_band")
+    import napari
+
+    make_viewer(sample)
+    napari.run()
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

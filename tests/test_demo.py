@@ -1,0 +1,45 @@
+"""The demo ``make run`` opens: sample data loaded and the four panels docked."""
+
+from __future__ import annotations
+
+import napari
+import pytest
+
+from napari_dvc_correct import demo
+from napari_dvc_correct.widgets import CorrelateWidget, EvaluateWidget
+
+
+@pytest.fixture
+def closing():
+    viewers = []
+    yield viewers
+    for viewer in viewers:
+        viewer.close()
+
+
+def test_demo_viewer_has_the_sample_and_the_panels(closing, monkeypatch, qtbot):
+    viewer, widgets = demo.make_viewer(show=False)
+    closing.append(viewer)
+    assert [layer.name for layer in viewer.layers] == ["reference", "deformed"]
+    assert set(widgets) == set(demo.PANELS)
+    correlate = widgets["Correlate"]
+    assert isinstance(correlate, CorrelateWidget)
+    assert isinstance(widgets["Evaluate"], EvaluateWidget)
+    # the sample's roles picked the inputs
+    assert correlate.reference.currentText() == "reference"
+    assert correlate.deformed.currentText() == "deformed"
+    assert all(f"{name} ({demo.PLUGIN})" in viewer.window._dock_widgets for name in demo.PANELS)
+
+
+def test_main_runs_napari(monkeypatch, closing):
+    made = []
+
+    def fake_make_viewer(sample, show=True):
+        made.append(sample)
+        return None, {}
+
+    monkeypatch.setattr(demo, "make_viewer", fake_make_viewer)
+    monkeypatch.setattr(napari, "run", lambda: None)
+    assert demo.main(["--series"]) == 0
+    assert demo.main(["--no-sample"]) == 0
+    assert made == ["scan_series", None]
