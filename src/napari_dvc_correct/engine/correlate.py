@@ -20,6 +20,7 @@ from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from . import icgn
 from .cleaning import normalized_median_test
@@ -85,6 +86,7 @@ class _Level:
 
     factor: int
     reference: np.ndarray
+    deformed: np.ndarray
     gradient: np.ndarray
     coef_deformed: np.ndarray
     mask: np.ndarray
@@ -104,6 +106,7 @@ class _Level:
         return cls(
             factor=factor,
             reference=reference,
+            deformed=deformed,
             gradient=gradient,
             coef_deformed=prefilter(deformed),
             mask=mask if mask is not None else np.zeros((1, 1, 1), np.bool_),
@@ -236,6 +239,63 @@ def _repair(level, centers, grid_shape, params, zncc, status, iterations, order,
     return int(bad.sum())
 
 
+def _seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
+    """Initial warps for every POI from an FFT search at a sparse set of seed POIs.
+
+    Seeds sit on a sub-grid about one subvolume apart. Each is searched by FFT cross-correlation
+    within ``radius`` around the rigid ``shift`` and refined by IC-GN; seeds that fail, correlate
+    poorly or disagree with the other seeds are dropped, and every POI receives the affine warp of
+    its nearest good seed carried to its position. Falls back to searching every POI when no seed
+    survives.
+
+    Returns
+    -------
+    ndarray, shape (N, 3·nb)
+        Shape-function parameters at ``level`` (voxels of that level).
+    """
+    stride = max(1, int(round(settings.subvolume / settings.step)))
+    axes = [np.unique(np.r_[np.arange(0, n, stride), n - 1]) for n in grid_shape]
+    seed_grid = np.zeros(grid_shape, bool)
+    seed_grid[np.ix_(*axes)] = True
+    seeds = np.flatnonzero(seed_grid)
+    n_points = len(centers)
+    nb = icgn.n_monomials(order)
+
+    def search(index):
+        found, _ = fft_search(
+            level.reference,
+            level.deformed,
+            centers[index],
+            level.half,
+            np.tile(shift, (len(index), 1)),
+            radius,
+        )
+        return icgn.displacement_to_params(found, None, order)
+
+    seed_params = np.ascontiguousarray(search(seeds))
+    zncc, status, _ = level.match(centers[seeds], seed_params, order, settings)
+    good = _is_good(status, zncc, settings.min_zncc)
+    if good.sum() > 8:
+        seed_u = np.full((*[len(a) for a in axes], 3), np.nan)
+        seed_u.reshape(-1, 3)[:] = icgn.params_to_displacement(seed_params, order)[0]
+        good &= ~_neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
+    if not good.any():
+        return np.ascontiguousarray(search(np.arange(n_points)))
+    good_grid = np.zeros(grid_shape, bool)
+    good_grid.reshape(-1)[seeds[good]] = True
+    nearest = ndimage.distance_transform_edt(
+        ~good_grid, return_distances=False, return_indices=True
+    )
+    nearest_flat = np.ravel_multi_index(tuple(nearest.reshape(3, -1)), grid_shape)
+    lookup = np.full(n_points, -1)
+    lookup[seeds] = np.arange(len(seeds))
+    source = lookup[nearest_flat]
+    guesses = seed_params[source].reshape(n_points, 3, nb).copy()
+    delta = (centers - centers[seeds][source]).astype(np.float64)
+    guesses[:, :, 0] += np.einsum("nkl,nl->nk", guesses[:, :, 1:4], delta)
+    return np.ascontiguousarray(guesses.reshape(n_points, 3 * nb))
+
+
 def correlate_iter(
     reference: np.ndarray,
     deformed: np.ndarray,
@@ -313,32 +373,25 @@ def correlate_iter(
         yield Progress("initial guess", 0, 1, "estimating the rigid shift")
         shift = global_shift(reference, deformed)
         levels = pyramid_levels(radius, params.subvolume, reference.shape)
-        coarse_half = max(4, half // 2**levels)
-        coarse = (
-            fine
-            if levels == 0
-            else _Level.build(2**levels, reference, deformed, mask, coarse_half, params.min_texture)
-        )
-        coarse_centers = coarse.centers_from_fine(centers)
-        coarse_radius = int(np.ceil(radius / 2**levels)) + (1 if levels else 0)
-        found, _ = fft_search(
-            coarse.reference,
-            bin_volume(deformed, 2**levels) if levels else deformed,
-            coarse_centers,
-            coarse.half,
-            np.tile(shift / 2**levels, (n_points, 1)),
-            coarse_radius,
-        )
-        yield Progress("initial guess", 1, 1, f"integer search done (level {levels})")
-        guess_params = icgn.displacement_to_params(found, None, order)
-        # refine through the pyramid: IC-GN + repair at each coarse level
-        level = coarse
-        for lev in range(levels, 0, -1):
-            if lev != levels:
-                level = _Level.build(
+        guess_params = None
+        for lev in range(levels, -1, -1):
+            level = (
+                fine
+                if lev == 0
+                else _Level.build(
                     2**lev, reference, deformed, mask, max(4, half // 2**lev), params.min_texture
                 )
+            )
             level_centers = level.centers_from_fine(centers)
+            if guess_params is None:
+                coarse_radius = int(np.ceil(radius / 2**lev)) + (1 if lev else 0)
+                guess_params = _seed_guesses(
+                    level, level_centers, grid_shape, shift / 2**lev, coarse_radius, order, params
+                )
+                yield Progress("initial guess", 1, levels + 2, f"seeds matched (level {lev})")
+            if lev == 0:
+                break
+            before = guess_params.copy()
             zncc_l, status_l, its_l = level.match(level_centers, guess_params, order, params)
             _repair(
                 level,
@@ -353,14 +406,12 @@ def correlate_iter(
                 None,
             )
             failed = ~np.isin(status_l, _GOOD)
-            if failed.any():  # keep the integer estimate where the coarse match failed
-                guess_params[failed] = icgn.displacement_to_params(found[failed], None, order)
+            guess_params[failed] = before[failed]  # keep the carried guess where matching failed
             shaped = guess_params.reshape(-1, 3, nb)
-            shaped[:, :, 0] *= 2.0  # displacement in finer voxels
+            shaped[:, :, 0] *= 2.0  # displacement in the next finer voxels
             if nb == 10:
                 shaped[:, :, 4:] /= 2.0  # second derivatives scale with 1 / factor
-            yield Progress("initial guess", levels - lev + 1, levels + 1, f"level {lev} refined")
-            found = shaped[:, :, 0].copy() if lev > 1 else found
+            yield Progress("initial guess", levels - lev + 2, levels + 2, f"level {lev} refined")
     timings["initial_guess_s"] = time.perf_counter() - t0
 
     # full-resolution IC-GN in batches

@@ -178,6 +178,66 @@ def gradient_volume(coefficients):
     return out
 
 
+_PAIR = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]], dtype=np.int64)  # (k, k') -> QUAD_AXES row
+
+
+@njit(**KERNEL_OPTIONS)
+def _affine_hessian(grad, xi, count):
+    """Σ JᵀJ for the affine shape function through second moments of ∇G ⊗ ∇G.
+
+    ``H[(k, j), (k', j')] = Σ g_k g_k' b_j b_j'`` and ``b_j b_j'`` is one of the 10 monomials of
+    degree ≤ 2, so 6 × 10 moments suffice. Voxels come in (z, y, x) row order: sums along each x-row
+    of ``g_k g_k' · (1, x, x²)`` are folded into the moments once per row.
+    """
+    moments = np.zeros((6, 10))
+    row0 = np.zeros(6)
+    row1 = np.zeros(6)
+    row2 = np.zeros(6)
+    current_z = xi[0, 0] if count else 0.0
+    current_y = xi[0, 1] if count else 0.0
+    for i in range(count + 1):
+        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
+            z = current_z
+            y = current_y
+            for q in range(6):
+                s0 = row0[q]
+                s1 = row1[q]
+                moments[q, 0] += s0
+                moments[q, 1] += z * s0
+                moments[q, 2] += y * s0
+                moments[q, 3] += s1
+                moments[q, 4] += z * z * s0
+                moments[q, 5] += y * y * s0
+                moments[q, 6] += row2[q]
+                moments[q, 7] += z * y * s0
+                moments[q, 8] += y * s1
+                moments[q, 9] += z * s1
+                row0[q] = 0.0
+                row1[q] = 0.0
+                row2[q] = 0.0
+            if i == count:
+                break
+            current_z = xi[i, 0]
+            current_y = xi[i, 1]
+        gz = grad[i, 0]
+        gy = grad[i, 1]
+        gx = grad[i, 2]
+        x = xi[i, 2]
+        products = (gz * gz, gy * gy, gx * gx, gz * gy, gy * gx, gz * gx)
+        for q in range(6):
+            value = products[q]
+            row0[q] += value
+            row1[q] += value * x
+            row2[q] += value * x * x
+    hessian = np.empty((12, 12))
+    for k in range(3):
+        for j in range(4):
+            for k2 in range(3):
+                for j2 in range(4):
+                    hessian[k * 4 + j, k2 * 4 + j2] = moments[_PAIR[k, k2], PRODUCT_TABLE[j, j2]]
+    return hessian
+
+
 @njit(**KERNEL_OPTIONS)
 def _reference_terms(g, grad, xi, count, nb):
     """Mean and norm of the reference subvolume, Cholesky factor of H = Σ JᵀJ, Σ J, Σ J (g − ḡ)."""
@@ -191,28 +251,145 @@ def _reference_terms(g, grad, xi, count, nb):
         d = g[i] - mean_g
         ss_g += d * d
     delta_g = np.sqrt(ss_g)
-    hessian = np.zeros((m_par, m_par))
     sum_j = np.zeros(m_par)
     sum_jg = np.zeros(m_par)
-    jac = np.empty(m_par)
     b = np.empty(10)
-    for i in range(count):
-        monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
-        for k in range(3):
-            for j in range(nb):
-                jac[k * nb + j] = grad[i, k] * b[j]
-        dg = g[i] - mean_g
+    if nb == 4:
+        hessian = _affine_hessian(grad, xi, count)
+        for i in range(count):
+            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+            dg = g[i] - mean_g
+            for k in range(3):
+                for j in range(4):
+                    jr = grad[i, k] * b[j]
+                    sum_j[k * 4 + j] += jr
+                    sum_jg[k * 4 + j] += jr * dg
+    else:
+        hessian = np.zeros((m_par, m_par))
+        jac = np.empty(m_par)
+        for i in range(count):
+            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+            for k in range(3):
+                for j in range(nb):
+                    jac[k * nb + j] = grad[i, k] * b[j]
+            dg = g[i] - mean_g
+            for r in range(m_par):
+                jr = jac[r]
+                sum_j[r] += jr
+                sum_jg[r] += jr * dg
+                for c in range(r + 1):
+                    hessian[r, c] += jr * jac[c]
         for r in range(m_par):
-            jr = jac[r]
-            sum_j[r] += jr
-            sum_jg[r] += jr * dg
-            for c in range(r + 1):
-                hessian[r, c] += jr * jac[c]
-    for r in range(m_par):
-        for c in range(r):
-            hessian[c, r] = hessian[r, c]
+            for c in range(r):
+                hessian[c, r] = hessian[r, c]
     ok, low = _cholesky_solve_setup(hessian, m_par)
     return mean_g, delta_g, ok, low, sum_j, sum_jg
+
+
+@njit(**KERNEL_OPTIONS)
+def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, sum_jf):
+    """One pass over the subvolume at warp ``p``.
+
+    Samples ``F`` at every warped voxel and returns ``(Σf, Σf², Σ(g − ḡ)f, voxels outside)``,
+    filling ``sum_jf = Σ J f``. Voxels whose warped position leaves ``F`` are flagged in
+    ``outside``.
+    """
+    nz, ny, nx = coef.shape
+    sum_f = 0.0
+    sum_ff = 0.0
+    sum_gf = 0.0
+    n_outside = 0
+    if nb == 4:
+        # affine warp written out: 12 accumulators stay in registers
+        t0 = cz + p[0]
+        t1 = cy + p[4]
+        t2 = cx + p[8]
+        a00 = 1.0 + p[1]
+        a01 = p[2]
+        a02 = p[3]
+        a10 = p[5]
+        a11 = 1.0 + p[6]
+        a12 = p[7]
+        a20 = p[9]
+        a21 = p[10]
+        a22 = 1.0 + p[11]
+        s00 = s01 = s02 = s03 = 0.0
+        s10 = s11 = s12 = s13 = 0.0
+        s20 = s21 = s22 = s23 = 0.0
+        for i in range(count):
+            z = xi[i, 0]
+            y = xi[i, 1]
+            x = xi[i, 2]
+            wz = t0 + a00 * z + a01 * y + a02 * x
+            wy = t1 + a10 * z + a11 * y + a12 * x
+            wx = t2 + a20 * z + a21 * y + a22 * x
+            if in_interior(coef, wz, wy, wx):
+                f = sample_interior(coef, wz, wy, wx)
+            elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
+                f = sample_mirrored(coef, wz, wy, wx)
+            else:
+                outside[i] = True
+                n_outside += 1
+                continue
+            sum_f += f
+            sum_ff += f * f
+            sum_gf += (g[i] - mean_g) * f
+            f0 = grad[i, 0] * f
+            f1 = grad[i, 1] * f
+            f2 = grad[i, 2] * f
+            s00 += f0
+            s01 += f0 * z
+            s02 += f0 * y
+            s03 += f0 * x
+            s10 += f1
+            s11 += f1 * z
+            s12 += f1 * y
+            s13 += f1 * x
+            s20 += f2
+            s21 += f2 * z
+            s22 += f2 * y
+            s23 += f2 * x
+        sum_jf[0] = s00
+        sum_jf[1] = s01
+        sum_jf[2] = s02
+        sum_jf[3] = s03
+        sum_jf[4] = s10
+        sum_jf[5] = s11
+        sum_jf[6] = s12
+        sum_jf[7] = s13
+        sum_jf[8] = s20
+        sum_jf[9] = s21
+        sum_jf[10] = s22
+        sum_jf[11] = s23
+        return sum_f, sum_ff, sum_gf, n_outside
+    b = np.empty(10)
+    for r in range(3 * nb):
+        sum_jf[r] = 0.0
+    for i in range(count):
+        monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+        wz = cz + xi[i, 0]
+        wy = cy + xi[i, 1]
+        wx = cx + xi[i, 2]
+        for j in range(nb):
+            wz += p[j] * b[j]
+            wy += p[nb + j] * b[j]
+            wx += p[2 * nb + j] * b[j]
+        if in_interior(coef, wz, wy, wx):
+            f = sample_interior(coef, wz, wy, wx)
+        elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
+            f = sample_mirrored(coef, wz, wy, wx)
+        else:
+            outside[i] = True
+            n_outside += 1
+            continue
+        sum_f += f
+        sum_ff += f * f
+        sum_gf += (g[i] - mean_g) * f
+        for k in range(3):
+            gf = grad[i, k] * f
+            for j in range(nb):
+                sum_jf[k * nb + j] += gf * b[j]
+    return sum_f, sum_ff, sum_gf, n_outside
 
 
 @njit(**KERNEL_OPTIONS)
@@ -272,7 +449,6 @@ def match_one(
         return np.nan, _LOW_TEXTURE, 0
     if not ok:
         return np.nan, _SINGULAR, 0
-    b = np.empty(10)
 
     start = np.empty(3)
     for k in range(3):
@@ -283,38 +459,10 @@ def match_one(
     corner = np.empty(10)
     zncc = np.nan
     outside = np.zeros(count, np.bool_)
-    nz, ny, nx = coef_deformed.shape
     for iteration in range(1, max_iterations + 1):
-        for r in range(m_par):
-            sum_jf[r] = 0.0
-        sum_f = 0.0
-        sum_ff = 0.0
-        sum_gf = 0.0
-        n_outside = 0
-        for i in range(count):
-            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
-            wz = cz + xi[i, 0]
-            wy = cy + xi[i, 1]
-            wx = cx + xi[i, 2]
-            for j in range(nb):
-                wz += p[j] * b[j]
-                wy += p[nb + j] * b[j]
-                wx += p[2 * nb + j] * b[j]
-            if in_interior(coef_deformed, wz, wy, wx):
-                f = sample_interior(coef_deformed, wz, wy, wx)
-            elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
-                f = sample_mirrored(coef_deformed, wz, wy, wx)
-            else:
-                outside[i] = True
-                n_outside += 1
-                continue
-            sum_f += f
-            sum_ff += f * f
-            sum_gf += (g[i] - mean_g) * f
-            for k in range(3):
-                gf = grad[i, k] * f
-                for j in range(nb):
-                    sum_jf[k * nb + j] += gf * b[j]
+        sum_f, sum_ff, sum_gf, n_outside = _sample_pass(
+            coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, sum_jf
+        )
         if n_outside > 0:
             # Part of the deformed subvolume left the volume: drop those voxels, rebuild the
             # reference-side terms on the rest and iterate again from the same warp.

@@ -101,7 +101,7 @@ def fft_search(
     half: int,
     guesses: np.ndarray,
     radius: int,
-    batch: int = 128,
+    batch_bytes: int = 64 * 2**20,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Best integer shift (with parabolic sub-voxel peak) of each subvolume within ``radius``.
 
@@ -121,8 +121,8 @@ def fft_search(
         Displacement around which to search (rounded to integers).
     radius : int
         Search over shifts ``guess + s`` with ``|s_k| <= radius``.
-    batch : int
-        POIs per stacked FFT (bounds memory).
+    batch_bytes : int
+        Approximate memory of one batch of stacked FFTs (bounds the peak memory).
 
     Returns
     -------
@@ -140,6 +140,7 @@ def fft_search(
     out = np.zeros((len(centers), 3))
     peaks = np.full(len(centers), np.nan)
     fft_shape = (span, span, span)
+    batch = max(1, int(batch_bytes // (8 * 8 * span**3)))
     for first in range(0, len(centers), batch):
         index = np.arange(first, min(first + batch, len(centers)))
         subs = np.empty((len(index), edge, edge, edge))

@@ -30,13 +30,14 @@ def prefilter(volume: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray, float32, C-contiguous, same shape
-        Coefficients for :func:`sample` and the IC-GN kernels (computed in float64, stored float32).
+        Coefficients for :func:`sample` and the IC-GN kernels (each line filtered in double precision).
     """
     volume = np.asarray(volume)
     if volume.ndim != 3:
         raise ValueError(f"prefilter needs a 3-D volume, got shape {volume.shape}")
-    coefficients = ndimage.spline_filter(volume.astype(np.float64), order=3, mode="mirror")
-    return np.ascontiguousarray(coefficients, dtype=np.float32)
+    # scipy filters each line in double precision and stores float32: no float64 volume copy
+    coefficients = ndimage.spline_filter(volume, order=3, mode="mirror", output=np.float32)
+    return np.ascontiguousarray(coefficients)
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
@@ -82,27 +83,55 @@ def in_interior(coefficients, z, y, x):
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
+def _weights32(t):
+    """:func:`bspline_weights` in float32 (the hot path: 40% faster, errors ~1e-7 relative)."""
+    s = np.float32(1.0) - t
+    t2 = t * t
+    t3 = t2 * t
+    sixth = np.float32(1.0 / 6.0)
+    return (
+        s * s * s * sixth,
+        (np.float32(3.0) * t3 - np.float32(6.0) * t2 + np.float32(4.0)) * sixth,
+        (np.float32(-3.0) * t3 + np.float32(3.0) * (t2 + t) + np.float32(1.0)) * sixth,
+        t3 * sixth,
+    )
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _row(c, z, y, ix, w0, w1, w2, w3):
+    return w0 * c[z, y, ix - 1] + w1 * c[z, y, ix] + w2 * c[z, y, ix + 1] + w3 * c[z, y, ix + 2]
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _plane(c, z, iy, ix, wy0, wy1, wy2, wy3, wx0, wx1, wx2, wx3):
+    return (
+        wy0 * _row(c, z, iy - 1, ix, wx0, wx1, wx2, wx3)
+        + wy1 * _row(c, z, iy, ix, wx0, wx1, wx2, wx3)
+        + wy2 * _row(c, z, iy + 1, ix, wx0, wx1, wx2, wx3)
+        + wy3 * _row(c, z, iy + 2, ix, wx0, wx1, wx2, wx3)
+    )
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
 def sample_interior(coefficients, z, y, x):
-    """Value at ``(z, y, x)``; requires :func:`in_interior` (no bounds checks)."""
+    """Value at ``(z, y, x)``; requires :func:`in_interior` (no bounds checks).
+
+    The 64 taps are written out (4 planes × 4 rows × 4 columns) and weighted in float32; this is
+    the innermost operation of IC-GN.
+    """
     iz = int(z)
     iy = int(y)
     ix = int(x)
-    wz0, wz1, wz2, wz3 = bspline_weights(z - iz)
-    wy0, wy1, wy2, wy3 = bspline_weights(y - iy)
-    wx0, wx1, wx2, wx3 = bspline_weights(x - ix)
-    total = 0.0
-    for a in range(4):
-        wz = wz0 if a == 0 else (wz1 if a == 1 else (wz2 if a == 2 else wz3))
-        plane = coefficients[iz - 1 + a]
-        inner = 0.0
-        for b in range(4):
-            wy = wy0 if b == 0 else (wy1 if b == 1 else (wy2 if b == 2 else wy3))
-            row = plane[iy - 1 + b]
-            inner += wy * (
-                wx0 * row[ix - 1] + wx1 * row[ix] + wx2 * row[ix + 1] + wx3 * row[ix + 2]
-            )
-        total += wz * inner
-    return total
+    wz0, wz1, wz2, wz3 = _weights32(np.float32(z - iz))
+    wy0, wy1, wy2, wy3 = _weights32(np.float32(y - iy))
+    wx0, wx1, wx2, wx3 = _weights32(np.float32(x - ix))
+    c = coefficients
+    return (
+        wz0 * _plane(c, iz - 1, iy, ix, wy0, wy1, wy2, wy3, wx0, wx1, wx2, wx3)
+        + wz1 * _plane(c, iz, iy, ix, wy0, wy1, wy2, wy3, wx0, wx1, wx2, wx3)
+        + wz2 * _plane(c, iz + 1, iy, ix, wy0, wy1, wy2, wy3, wx0, wx1, wx2, wx3)
+        + wz3 * _plane(c, iz + 2, iy, ix, wy0, wy1, wy2, wy3, wx0, wx1, wx2, wx3)
+    )
 
 
 @njit(**KERNEL_OPTIONS)
