@@ -304,6 +304,7 @@ def correlate_iter(
     mask: np.ndarray | None = None,
     grid: tuple | None = None,
     initial: DisplacementField | None = None,
+    rigid_shift=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -321,6 +322,10 @@ def correlate_iter(
         :func:`grid_for_volume` ``(shape, subvolume, step)``.
     initial : DisplacementField, optional
         Initial guess on the same grid (skips the global and FFT searches).
+    rigid_shift : array-like of 3 ints, optional
+        Rigid shift ``(z, y, x)`` voxels to search around instead of estimating it from these
+        volumes: the whole volume's shift when they are a region of larger volumes
+        (:mod:`.tiled`).
 
     Yields
     ------
@@ -371,7 +376,11 @@ def correlate_iter(
         levels = 0
     else:
         yield Progress("initial guess", 0, 1, "estimating the rigid shift")
-        shift = global_shift(reference, deformed)
+        shift = (
+            global_shift(reference, deformed)
+            if rigid_shift is None
+            else np.rint(np.asarray(rigid_shift, np.float64)).astype(np.int64).reshape(3)
+        )
         levels = pyramid_levels(radius, params.subvolume, reference.shape)
         guess_params = None
         for lev in range(levels, -1, -1):
@@ -486,8 +495,17 @@ def correlate(
     mask: np.ndarray | None = None,
     grid: tuple | None = None,
     initial: DisplacementField | None = None,
+    rigid_shift=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
-        correlate_iter(reference, deformed, params, mask=mask, grid=grid, initial=initial)
+        correlate_iter(
+            reference,
+            deformed,
+            params,
+            mask=mask,
+            grid=grid,
+            initial=initial,
+            rigid_shift=rigid_shift,
+        )
     )
