@@ -145,3 +145,23 @@ def test_bad_input_is_a_clear_error(reference, deformed, params, mask, message):
 def test_bad_parameters_are_clear_errors(changes):
     with pytest.raises(ValueError):
         CorrelationParams(**changes)
+
+
+def test_second_order_shape_function_follows_a_bending_field():
+    center = np.array([32.0, 32.0, 32.0])
+
+    def bending(points):
+        r = (np.asarray(points) - center) / 16.0
+        return np.stack([1.2 * r[:, 2] ** 2, 0.5 * r[:, 0] * r[:, 1], -0.8 * r[:, 1] ** 2], axis=1)
+
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=9), (64, 64, 64), bending
+    )
+    rmse = {}
+    for order in (1, 2):
+        field = correlate(reference, deformed, CorrelationParams(subvolume=25, step=10, order=order))
+        good = field.status == Status.CONVERGED
+        assert good.mean() > 0.9
+        rmse[order] = np.sqrt(np.mean(_errors(field, bending)[good] ** 2))
+    assert rmse[2] < 0.01
+    assert rmse[2] < 0.5 * rmse[1]
