@@ -1,0 +1,123 @@
+"""Running lists of ``dask.delayed`` tasks locally or on a ``dask.distributed`` cluster.
+
+Used by :mod:`.tiled` (correlation batches) and :mod:`.tiled_volumes` (output chunks). A run is a
+generator of ``(index, result)`` pairs in completion order, so the engine can report progress as
+tasks finish:
+
+- ``scheduler=None`` (or ``"threads"``): dask's local threaded scheduler, nothing to start;
+- ``"sync"``: one thread, in order (debugging);
+- any other string: the address of a ``dask.distributed`` scheduler (``distributed`` is imported
+  only then); or a ``distributed.Client``.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+
+LOCAL_SCHEDULERS = (None, "threads", "threading", "sync", "synchronous")
+
+
+def is_local(scheduler) -> bool:
+    """True for dask's local schedulers (no cluster involved)."""
+    return isinstance(scheduler, (str, type(None))) and scheduler in LOCAL_SCHEDULERS
+
+
+def run_local(tasks, workers: int = 1, synchronous: bool = False):
+    """Compute delayed ``tasks`` on dask's local scheduler; yield ``(index, result)`` as they finish.
+
+    The computation runs in a background thread; its exceptions are re-raised here.
+    """
+    import dask
+
+    keys = {task.key: i for i, task in enumerate(tasks)}
+    finished: queue.Queue = queue.Queue()
+
+    def posttask(key, result, dsk, state, worker_id):
+        if key in keys:
+            finished.put((keys[key], result))
+
+    outcome: dict = {}
+
+    def compute():
+        try:
+            dask.compute(
+                *tasks,
+                scheduler="sync" if synchronous else "threads",
+                num_workers=max(1, int(workers)),
+                # (start, start_state, pretask, posttask, finish), local to this computation
+                callbacks=[(None, None, None, posttask, None)],
+            )
+        except BaseException as error:  # re-raised in the caller's thread
+            outcome["error"] = error
+        finally:
+            finished.put(None)
+
+    thread = threading.Thread(target=compute, name="dvc-dask-local", daemon=True)
+    thread.start()
+    while True:
+        item = finished.get()
+        if item is None:
+            break
+        yield item
+    thread.join()
+    if "error" in outcome:
+        raise outcome["error"]
+
+
+def connect(scheduler):
+    """``(client, owned)``: a ``distributed.Client`` for an address (``owned``: close it after)."""
+    try:
+        import distributed
+    except ImportError as error:  # pragma: no cover - distributed is a test dependency
+        raise ImportError(
+            "sending work to a cluster needs dask.distributed: pip install distributed"
+        ) from error
+    if isinstance(scheduler, distributed.Client):
+        return scheduler, False
+    if not isinstance(scheduler, str):
+        raise ValueError(
+            "scheduler must be None, 'threads', 'sync', a scheduler address (e.g. "
+            f"'tcp://10.0.0.5:8786') or a distributed.Client, got {scheduler!r}"
+        )
+    try:
+        return distributed.Client(scheduler, set_as_default=False, timeout="20s"), True
+    except (OSError, TimeoutError) as error:
+        raise ConnectionError(
+            f"could not reach the dask scheduler at {scheduler!r} ({error}); start one with "
+            "`dask scheduler` and workers with `dask worker ADDRESS`, or leave the scheduler out "
+            "to run on this machine"
+        ) from error
+
+
+def cluster_resources(client) -> tuple[int, int, int]:
+    """Total threads, the most threads of one worker, and the smallest worker memory limit (0 = none)."""
+    workers = client.scheduler_info(n_workers=-1)["workers"]
+    if not workers:
+        raise ConnectionError(
+            "the dask cluster has no workers: start some with `dask worker ADDRESS`"
+        )
+    threads = [int(w.get("nthreads", 1)) for w in workers.values()]
+    limits = [int(w.get("memory_limit") or 0) for w in workers.values()]
+    positive = [v for v in limits if v > 0]
+    return sum(threads), max(threads), (min(positive) if positive else 0)
+
+
+def run_distributed(tasks, client):
+    """Compute delayed ``tasks`` on a cluster; yield ``(index, result)`` as they finish."""
+    from distributed import as_completed
+
+    futures = client.compute(tasks)
+    index = {future.key: i for i, future in enumerate(futures)}
+    try:
+        for future in as_completed(futures):
+            yield index[future.key], future.result()
+    finally:
+        client.cancel(futures)
+
+
+def run(tasks, scheduler=None, workers: int = 1, client=None):
+    """Dispatch to :func:`run_local` or :func:`run_distributed` (when ``client`` is given)."""
+    if client is not None:
+        return run_distributed(tasks, client)
+    return run_local(tasks, workers, scheduler in ("sync", "synchronous"))

@@ -1,0 +1,811 @@
+"""Correlation beyond one machine's memory and cores: spatial batches of POIs on Dask.
+
+:func:`correlate_tiled` gives the same :class:`DisplacementField` as
+:func:`.correlate.correlate` while holding only a few regions of the volumes in memory:
+
+1. **Rigid shift** (one read of both volumes, block by block, as Dask tasks): both volumes are
+   binned while they are read, exactly as :func:`.initial_guess.global_shift` bins the whole
+   volumes, and the shift is estimated from the binned copies. The read also checks that every
+   value is finite.
+2. **Batches**: the POI grid is split into boxes of ``batch_shape`` POIs. Each batch (a
+   ``dask.delayed`` task) reads its region of ``G`` and ``F`` plus a halo and runs
+   :func:`.correlate.correlate_iter` on it — the same pyramid, integer search, IC-GN and
+   reliability-guided repair as in memory — searching around the whole volume's rigid shift
+   (``rigid_shift``), on its POIs plus ``margin`` layers of neighbouring POIs so that the repair
+   and the median test see the neighbours they see in memory; only the batch's own POIs are kept.
+3. The batches' results are assembled into one field.
+
+The halo around a batch's POIs (per side, in voxels) covers the subvolume half-size widened by
+:data:`STRAIN_ALLOWANCE` for the shape function, the search radius around the rigid shift, the
+B-spline support (:data:`SPLINE_SUPPORT`) and :data:`PREFILTER_MARGIN` voxels, so that the region's
+B-spline prefilter equals the whole volume's to float32 rounding (measured: the difference decays
+as 0.27 per voxel and is below 6e-8 of the gray range after 12 voxels), at every pyramid level.
+
+Scheduling (:mod:`.scheduling`): dask's local threaded scheduler by default (nothing to start);
+``scheduler="ADDRESS"`` (or a ``distributed.Client``) sends the tasks to a ``dask.distributed``
+cluster. Memory: the peak is estimated before anything runs (:func:`estimate_peak_memory`); a run
+that would exceed the machine (or ``max_memory``) is refused with :class:`MemoryBudgetError`, and
+``max_memory`` picks the batch size.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+import os
+import time
+from collections.abc import Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import scheduling
+from .correlate import correlate_iter
+from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
+from .initial_guess import bin_volume, fft_search, global_shift, pyramid_levels
+from .params import CorrelationParams
+from .progress import Progress, run_to_completion
+
+#: Voxels kept beyond every needed voxel so the region's B-spline coefficients equal the whole
+#: volume's (the prefilter's error decays as |z1|^d = 0.268^d; 12 voxels reach float32 rounding).
+PREFILTER_MARGIN = 12
+
+#: Taps of the cubic B-spline beyond a sampled position.
+SPLINE_SUPPORT = 2
+
+#: Largest row sum of |du/dX| the halo allows for the deformed subvolume (25 % strain).
+STRAIN_ALLOWANCE = 0.25
+
+#: Default memory per concurrent batch when neither ``batch_shape`` nor ``max_memory`` is given.
+DEFAULT_BATCH_BYTES = 1 << 30
+
+#: Voxels read at a time by the rigid-shift pass.
+SHIFT_BLOCK_VOXELS = 1 << 23
+
+#: Bytes per region voxel while a batch correlates (calibrated with tracemalloc on 64³–160³
+#: regions: G and F as float32, the gradient of G, the coefficients of F, one prefilter output,
+#: the stored block being converted, plus headroom).
+BYTES_PER_REGION_VOXEL = 36
+
+#: Bytes per POI of a batch (guesses, shape-function parameters, the batch's field).
+BYTES_PER_BATCH_POINT = 1200
+
+#: Bytes per POI of the assembled field (u, gradient, zncc, status... and the collected results).
+BYTES_PER_FIELD_POINT = 400
+
+
+def _fft_search_bytes() -> int:
+    """Memory of the stacked FFTs of the integer search (its ``batch_bytes`` default, doubled)."""
+    try:
+        default = inspect.signature(fft_search).parameters["batch_bytes"].default
+        return 2 * int(default)
+    except (KeyError, TypeError, ValueError):  # older signature: 128 POIs per batch
+        return 256 * 2**20
+
+
+class MemoryBudgetError(MemoryError):
+    """The estimated peak memory of a run exceeds what it may use."""
+
+
+# --- memory ------------------------------------------------------------------------------------
+def available_memory() -> int:
+    """Bytes this process can still allocate: ``MemAvailable`` (Linux), capped by a cgroup limit."""
+    available = None
+    try:
+        with open("/proc/meminfo") as handle:
+            for line in handle:
+                if line.startswith("MemAvailable:"):
+                    available = int(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    if available is None:
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            available = 1 << 34
+    try:
+        with open("/sys/fs/cgroup/memory.max") as handle:
+            limit = handle.read().strip()
+        with open("/sys/fs/cgroup/memory.current") as handle:
+            used = int(handle.read().strip())
+        if limit != "max":
+            available = min(available, int(limit) - used)
+    except (OSError, ValueError):
+        pass
+    return int(max(available, 0))
+
+
+def format_bytes(n: float) -> str:
+    """Human-readable size, ``1536 -> '1.50 KiB'``."""
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if abs(n) < 1024:
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.2f} {unit}"
+        n /= 1024.0
+    return f"{n:.2f} TiB"
+
+
+def parse_memory(size) -> int:
+    """Bytes from an int or a size string (``"2GB"``, ``"1.5 GiB"``, ``"512M"``).
+
+    Raises
+    ------
+    ValueError
+        For a string that is not a size, or a size ≤ 0.
+    """
+    if isinstance(size, str):
+        from dask.utils import parse_bytes
+
+        try:
+            value = parse_bytes(size.strip())
+        except (ValueError, KeyError) as error:
+            raise ValueError(
+                f"{size!r} is not a memory size: use e.g. 2GB, 1.5GiB or 512MB"
+            ) from error
+    else:
+        value = int(size)
+    if value <= 0:
+        raise ValueError(f"a memory size must be > 0, got {size!r}")
+    return int(value)
+
+
+def _levels(params: CorrelationParams, volume_shape, use_initial: bool) -> int:
+    if use_initial:
+        return 0
+    return pyramid_levels(params.effective_search_radius, params.subvolume, volume_shape)
+
+
+def halo(params: CorrelationParams, levels: int) -> tuple[int, int]:
+    """Voxels needed around the POI centres in ``G`` and around their displaced centres in ``F``.
+
+    Covers every pyramid level up to ``levels`` (a level's needs, in its binned voxels, times its
+    factor, plus two factors for the rounding of binned centres).
+    """
+    half = params.half
+    radius = params.effective_search_radius
+    reach_g, reach_f = 0, 0
+    for lev in range(levels + 1):
+        f = 2**lev
+        half_l = half if lev == 0 else max(4, half // f)
+        radius_l = radius if lev == 0 else math.ceil(radius / f) + 1
+        rounding = 0 if lev == 0 else 2 * f
+        reach_g = max(reach_g, f * (half_l + 1 + PREFILTER_MARGIN) + rounding)
+        deformed_half = math.ceil(half_l * (1 + STRAIN_ALLOWANCE))
+        reach_f = max(
+            reach_f,
+            f * (deformed_half + radius_l + 1 + SPLINE_SUPPORT + PREFILTER_MARGIN) + rounding,
+        )
+    return reach_g, reach_f
+
+
+def _region(low_center, high_center, low_shift, high_shift, reaches, align, shape):
+    """Region ``[lo, hi)`` (voxels) for POI centres in ``[low_center, high_center]``.
+
+    ``lo`` falls on a multiple of ``align`` (so binned regions line up with the binned volume).
+    """
+    reach_g, reach_f = reaches
+    low_center = np.asarray(low_center, np.int64)
+    high_center = np.asarray(high_center, np.int64)
+    low_shift = np.floor(np.asarray(low_shift, np.float64)).astype(np.int64)
+    high_shift = np.ceil(np.asarray(high_shift, np.float64)).astype(np.int64)
+    lo = np.minimum(low_center - reach_g, low_center + low_shift - reach_f)
+    hi = np.maximum(high_center + reach_g, high_center + high_shift + reach_f) + 1
+    shape = np.asarray(shape, np.int64)
+    lo = np.clip((lo // align) * align, 0, shape - 1)
+    hi = np.clip(hi, lo + 1, shape)
+    return lo, hi
+
+
+def _batch_bytes(region_voxels: float, points: int, itemsize: int, masked: bool, levels: int):
+    per_voxel = BYTES_PER_REGION_VOXEL + itemsize + (2 if masked else 0)
+    coarse = sum(per_voxel / 8**lev for lev in range(1, levels + 1))
+    return (
+        region_voxels * (per_voxel + coarse) + points * BYTES_PER_BATCH_POINT + _fft_search_bytes()
+    )
+
+
+def estimate_peak_memory(
+    volume_shape,
+    dtype,
+    params: CorrelationParams | None,
+    batch_shape,
+    *,
+    workers: int = 1,
+    margin: int = 1,
+    masked: bool = False,
+    shift=(0, 0, 0),
+    grid: tuple | None = None,
+) -> int:
+    """Estimated peak memory (bytes) of :func:`correlate_tiled`.
+
+    Parameters
+    ----------
+    volume_shape : tuple of 3 ints
+        ``(nz, ny, nx)`` of the volumes.
+    dtype : numpy dtype
+        Stored dtype (regions are read in it, then converted to float32).
+    params : CorrelationParams
+        DVC parameters (subvolume, step, search radius).
+    batch_shape : tuple of 3 ints
+        POIs per batch along ``(z, y, x)``.
+    workers : int
+        Batches held in memory at once (threads of the local scheduler; for a cluster, the
+        threads of one worker give that worker's peak). 0 gives the fixed part alone.
+    margin : int
+        Layers of neighbouring POIs matched with each batch.
+    masked : bool
+        Whether a mask volume is read too.
+    shift : tuple of 3 floats
+        Expected rigid shift (voxels); widens the regions.
+    grid : (origin, step, shape), optional
+        POI grid (default :func:`grid_for_volume`).
+
+    Returns
+    -------
+    int
+        Bytes: ``workers`` batches (their regions at every pyramid level, the integer search's
+        FFTs, their POIs) plus the assembled field and the blocks of the rigid-shift pass.
+    """
+    params = CorrelationParams() if params is None else params
+    volume_shape = tuple(int(n) for n in volume_shape)
+    if grid is None:
+        grid = grid_for_volume(volume_shape, params.subvolume, params.step)
+    _, step, grid_shape = grid
+    grid_shape = np.asarray(grid_shape, np.int64)
+    batch_shape = np.minimum(np.asarray(batch_shape, np.int64), grid_shape)
+    levels = _levels(params, volume_shape, False)
+    reach_g, reach_f = halo(params, levels)
+    ext = np.minimum(batch_shape + 2 * margin, grid_shape)
+    span = (ext - 1) * np.asarray(step, np.float64)
+    reach = np.maximum(2 * reach_g, 2 * reach_f + np.abs(np.asarray(shift, np.float64)))
+    extent = np.minimum(span + reach + 2**levels + 1, volume_shape)
+    itemsize = np.dtype(dtype).itemsize
+    batch = _batch_bytes(float(np.prod(extent)), int(np.prod(ext)), itemsize, masked, levels)
+    fixed = int(np.prod(grid_shape)) * BYTES_PER_FIELD_POINT + SHIFT_BLOCK_VOXELS * (
+        2 * (4 + itemsize) + 8
+    )
+    return int(max(int(workers), 0) * batch + fixed)
+
+
+def choose_batch_shape(
+    volume_shape, dtype, params, budget: int, *, workers=1, margin=1, masked=False, grid=None
+) -> tuple[int, int, int]:
+    """Largest cubic batch (clipped to the grid) whose :func:`estimate_peak_memory` fits ``budget``.
+
+    Raises
+    ------
+    MemoryBudgetError
+        If even a batch of one POI does not fit.
+    """
+    params = CorrelationParams() if params is None else params
+    if grid is None:
+        grid = grid_for_volume(volume_shape, params.subvolume, params.step)
+    grid_shape = [int(n) for n in grid[2]]
+    need = None
+    for k in range(max(grid_shape), 0, -1):
+        shape = tuple(min(k, n) for n in grid_shape)
+        need = estimate_peak_memory(
+            volume_shape,
+            dtype,
+            params,
+            shape,
+            workers=workers,
+            margin=margin,
+            masked=masked,
+            grid=grid,
+        )
+        if need <= budget:
+            return shape
+    raise MemoryBudgetError(
+        f"even one POI per batch needs an estimated {format_bytes(need)} with {workers} "
+        f"concurrent batch(es), more than the {format_bytes(budget)} allowed: use fewer workers, "
+        "a smaller subvolume or search radius, or allow more memory (--max-memory)"
+    )
+
+
+def _refuse_if_over(estimate, budget, max_memory, batch_shape, workers, where):
+    if estimate <= budget:
+        return
+    if max_memory is not None and budget == max_memory:
+        what = f"the limit of {format_bytes(max_memory)} (--max-memory)"
+    else:
+        what = f"the {format_bytes(budget)} available on {where}"
+    raise MemoryBudgetError(
+        f"this run needs an estimated {format_bytes(estimate)} at its peak ({workers} concurrent "
+        f"batch(es) of {batch_shape[0]}x{batch_shape[1]}x{batch_shape[2]} POIs), more than "
+        f"{what}: use smaller batches or fewer workers, let --max-memory choose the batch size, "
+        "or run on a machine (or cluster workers) with more memory"
+    )
+
+
+# --- rigid shift of the whole volume -------------------------------------------------------------
+def _shift_factor(shape) -> int:
+    """Binning factor of :func:`.initial_guess.global_shift` (largest binned edge ≤ 96)."""
+    return max(1, int(np.ceil(max(shape) / 96)))
+
+
+def _bin_block(volume, z, y, factor, name):
+    block = volume.read_region((z, y, slice(None)))
+    if not np.all(np.isfinite(block)):
+        raise ValueError(
+            f"the {name} volume contains NaN or infinite values (in z {z.start}:{z.stop}, "
+            f"y {y.start}:{y.stop})"
+        )
+    return bin_volume(block, factor)
+
+
+def _shift_block(reference, deformed, z, y, factor):
+    """Binned block of both volumes (aligned to ``factor``) for the rigid shift."""
+    return (
+        z.start // factor,
+        y.start // factor,
+        _bin_block(reference, z, y, factor, "reference"),
+        _bin_block(deformed, z, y, factor, "deformed"),
+    )
+
+
+def _rigid_shift_tasks(reference, deformed):
+    import dask
+
+    from ..io.lazy import iter_blocks
+
+    factor = _shift_factor(reference.shape)
+    task = dask.delayed(_shift_block, pure=False)
+    volumes = dask.delayed(reference), dask.delayed(deformed)
+    blocks = iter_blocks(reference.shape, SHIFT_BLOCK_VOXELS, align=factor)
+    return [task(*volumes, z, y, factor) for z, y in blocks], factor
+
+
+def _combine_shift(results, shape, factor) -> np.ndarray:
+    binned_shape = tuple(n // factor for n in shape)
+    g = np.zeros(binned_shape, np.float32)
+    f = np.zeros(binned_shape, np.float32)
+    for z0, y0, block_g, block_f in results:
+        dz, dy = block_g.shape[:2]
+        g[z0 : z0 + dz, y0 : y0 + dy] = block_g
+        f[z0 : z0 + dz, y0 : y0 + dy] = block_f
+    # the binned volumes are at most 96 voxels per edge: global_shift bins them no further
+    return (global_shift(g, f) * factor).astype(np.int64)
+
+
+# --- one batch ---------------------------------------------------------------------------------
+@dataclass
+class BatchJob:
+    """What one batch task needs (small; the volumes travel separately)."""
+
+    params: CorrelationParams
+    origin: np.ndarray  # (3,) voxels: first POI of the extended sub-grid
+    step: np.ndarray  # (3,) voxels
+    sub_shape: tuple  # extended sub-grid shape (batch + margin, clipped to the grid)
+    core: tuple  # slices of the batch's own POIs inside the extended sub-grid
+    core_index: np.ndarray  # (m,) flat indices of those POIs in the whole grid
+    region_low: np.ndarray  # (3,) region [low, high) in voxels
+    region_high: np.ndarray
+    shift: np.ndarray | None  # whole-volume rigid shift (None with an initial field)
+    initial_u: np.ndarray | None = None  # (*sub_shape, 3)
+    initial_gradient: np.ndarray | None = None  # (*sub_shape, 3, 3)
+    threads: int | None = None
+    use_mask: bool = False
+
+    @property
+    def region_voxels(self) -> int:
+        return int(np.prod(self.region_high - self.region_low))
+
+
+@dataclass
+class BatchResult:
+    """The batch's own POIs, flat in C order of its box."""
+
+    core_index: np.ndarray
+    u: np.ndarray
+    gradient: np.ndarray
+    zncc: np.ndarray
+    status: np.ndarray
+    iterations: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+
+def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
+    """Correlate one batch in its region with :func:`.correlate.correlate_iter`.
+
+    ``reference``, ``deformed`` and ``mask`` are lazy volumes (:mod:`..io.lazy`).
+    """
+    started = time.perf_counter()
+    if job.threads:
+        import numba
+
+        numba.set_num_threads(max(1, min(int(job.threads), numba.config.NUMBA_NUM_THREADS)))
+    lo, hi = job.region_low, job.region_high
+    region = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+    g = reference.read_region(region)
+    f = deformed.read_region(region)
+    m = mask.read_region(region) != 0 if job.use_mask and mask is not None else None
+    read_s = time.perf_counter() - started
+    local_origin = tuple(float(v) for v in job.origin - lo)
+    step = tuple(float(v) for v in job.step)
+    grid = (local_origin, step, job.sub_shape)
+    if m is not None and not m.any():  # nothing of the material here: every POI is masked
+        shape = job.sub_shape
+        result = DisplacementField(
+            local_origin,
+            step,
+            np.full((*shape, 3), np.nan),
+            status=np.full(shape, int(Status.MASKED), np.uint8),
+            provenance=np.full(shape, int(Provenance.MASKED), np.uint8),
+            gradient=np.full((*shape, 3, 3), np.nan),
+        )
+    else:
+        initial = None
+        if job.initial_u is not None:
+            initial = DisplacementField(
+                local_origin, step, job.initial_u, gradient=job.initial_gradient
+            )
+        result = run_to_completion(
+            correlate_iter(
+                g,
+                f,
+                job.params,
+                mask=m,
+                grid=grid,
+                initial=initial,
+                rigid_shift=job.shift,
+            )
+        )
+    del g, f, m
+    core = job.core
+    gradient = (
+        result.gradient if result.gradient is not None else np.full((*job.sub_shape, 3, 3), np.nan)
+    )
+    timings = {
+        k: v for k, v in result.metadata.get("timings", {}).items() if isinstance(v, (int, float))
+    }
+    iterations = result.iterations[core].reshape(-1)
+    timings.update(
+        read_s=read_s,
+        task_s=time.perf_counter() - started,
+        voxel_iterations=int(iterations.sum()) * job.params.subvolume**3,
+        points=int(len(job.core_index)),
+        region_voxels=job.region_voxels,
+    )
+    return BatchResult(
+        core_index=job.core_index,
+        u=result.u[core].reshape(-1, 3),
+        gradient=gradient[core].reshape(-1, 3, 3),
+        zncc=result.zncc[core].reshape(-1),
+        status=result.status[core].reshape(-1),
+        iterations=iterations,
+        timings=timings,
+    )
+
+
+# --- the driver --------------------------------------------------------------------------------
+def _check_grid(grid):
+    origin, step, grid_shape = grid
+    origin = np.asarray(origin, np.float64).reshape(3)
+    step = np.asarray(step, np.float64).reshape(3)
+    grid_shape = tuple(int(n) for n in grid_shape)
+    if min(grid_shape) < 1:
+        raise ValueError(f"the POI grid is empty (shape {grid_shape})")
+    whole = np.abs(np.r_[origin, step] - np.rint(np.r_[origin, step])) <= 1e-6
+    if not np.all(whole) or np.any(step < 1):
+        raise ValueError("POI positions (origin + i * step) must be whole voxels")
+    return np.rint(origin).astype(np.int64), np.rint(step).astype(np.int64), grid_shape
+
+
+def _batch_ranges(grid_shape, batch_shape):
+    axes = [
+        [(start, min(n, start + b)) for start in range(0, n, b)]
+        for n, b in zip(grid_shape, batch_shape)
+    ]
+    return [(rz, ry, rx) for rz in axes[0] for ry in axes[1] for rx in axes[2]]
+
+
+def _make_jobs(batches, params, shape, grid, levels, shift, margin, initial, threads, masked):
+    origin, step, grid_shape = grid
+    reaches = halo(params, levels)
+    flat_index = np.arange(int(np.prod(grid_shape))).reshape(grid_shape)
+    jobs = []
+    for core_ranges in batches:
+        ext = [
+            (max(0, a - margin), min(n, b + margin)) for (a, b), n in zip(core_ranges, grid_shape)
+        ]
+        first = origin + step * np.array([a for a, _ in ext])
+        last = origin + step * np.array([b - 1 for _, b in ext])
+        window = tuple(slice(a, b) for a, b in ext)
+        initial_u = initial_gradient = None
+        if initial is not None:
+            initial_u = np.ascontiguousarray(initial.u[window])
+            if initial.gradient is not None:
+                initial_gradient = np.ascontiguousarray(initial.gradient[window])
+            finite = initial_u.reshape(-1, 3)
+            finite = finite[np.all(np.isfinite(finite), axis=1)]
+            low_shift = finite.min(axis=0) if len(finite) else np.zeros(3)
+            high_shift = finite.max(axis=0) if len(finite) else np.zeros(3)
+        else:
+            low_shift = high_shift = shift
+        lo, hi = _region(first, last, low_shift, high_shift, reaches, 2**levels, shape)
+        jobs.append(
+            BatchJob(
+                params=params,
+                origin=first,
+                step=step,
+                sub_shape=tuple(b - a for a, b in ext),
+                core=tuple(slice(c0 - e0, c1 - e0) for (c0, c1), (e0, _) in zip(core_ranges, ext)),
+                core_index=flat_index[tuple(slice(a, b) for a, b in core_ranges)].ravel(),
+                region_low=lo,
+                region_high=hi,
+                shift=None if initial is not None else shift,
+                initial_u=initial_u,
+                initial_gradient=initial_gradient,
+                threads=threads,
+                use_mask=masked,
+            )
+        )
+    return jobs
+
+
+def correlate_tiled_iter(
+    reference,
+    deformed,
+    params: CorrelationParams | None = None,
+    *,
+    mask=None,
+    grid: tuple | None = None,
+    initial: DisplacementField | None = None,
+    batch_shape=None,
+    max_memory: int | str | None = None,
+    workers: int | None = None,
+    threads_per_task: int | None = None,
+    scheduler=None,
+    margin: int = 1,
+) -> Generator[Progress, None, DisplacementField]:
+    """Correlate ``reference`` (G) with ``deformed`` (F) batch by batch; yields progress, returns the field.
+
+    Parameters
+    ----------
+    reference, deformed : LazyVolume, path or array, shape (nz, ny, nx)
+        The volumes (see :func:`..io.lazy.as_lazy`: a path is opened lazily, an array wrapped).
+    params : CorrelationParams, optional
+        As for :func:`.correlate.correlate`.
+    mask : LazyVolume, path or array, shape (nz, ny, nx), optional
+        Reference-space mask of the material (non-zero = inside).
+    grid : (origin, step, shape), optional
+        POI grid; whole-voxel positions. Default :func:`grid_for_volume`.
+    initial : DisplacementField, optional
+        Initial guess on the same grid (skips the searches); the regions follow its displacement.
+    batch_shape : int or tuple of 3 ints, optional
+        POIs per batch ``(z, y, x)``. Default: the largest cube whose estimate fits the memory.
+    max_memory : int or str, optional
+        Peak memory this run may use (bytes, or a size like ``"2GB"``); picks the batch size.
+        Default: about 1 GiB per concurrent batch, within the available memory.
+    workers : int, optional
+        Concurrent batches on the local threaded scheduler (default ``min(4, cores)``).
+    threads_per_task : int, optional
+        numba threads per batch (default: cores / workers locally, 1 on a cluster).
+    scheduler : None, "threads", "sync", str or distributed.Client
+        ``None``/``"threads"``: dask's local threaded scheduler; ``"sync"``: one thread;
+        any other string: the address of a ``dask.distributed`` scheduler (e.g.
+        ``"tcp://10.0.0.5:8786"``); or a ``distributed.Client``.
+    margin : int
+        Layers of neighbouring POIs matched with each batch (and then dropped) so that the
+        reliability-guided repair and the median test see the same neighbours as in memory.
+
+    Yields
+    ------
+    Progress
+        The plan (with the estimated peak memory), the rigid-shift pass, one report per batch.
+
+    Returns
+    -------
+    DisplacementField
+        As :func:`.correlate.correlate`; ``metadata["tiled"]`` records the batches, the memory
+        estimate and the throughput.
+
+    Raises
+    ------
+    MemoryBudgetError
+        When the estimated peak memory exceeds the available memory or ``max_memory``.
+    """
+    from ..io.lazy import as_lazy
+
+    started = time.perf_counter()
+    params = CorrelationParams() if params is None else params
+    reference = as_lazy(reference)
+    deformed = as_lazy(deformed)
+    mask = None if mask is None else as_lazy(mask)
+    shape = tuple(int(n) for n in reference.shape)
+    if tuple(deformed.shape) != shape:
+        raise ValueError(
+            f"reference {shape} and deformed {tuple(deformed.shape)} volumes must have the "
+            "same shape"
+        )
+    if mask is not None and tuple(mask.shape) != shape:
+        raise ValueError(f"mask shape {tuple(mask.shape)} differs from the volume {shape}")
+    if params.subvolume > min(shape):
+        raise ValueError(
+            f"subvolume {params.subvolume} is larger than the volume {shape}: use a subvolume of "
+            f"at most {min(shape) - (1 - min(shape) % 2)}"
+        )
+    if not isinstance(margin, (int, np.integer)) or margin < 0:
+        raise ValueError(f"margin must be an integer >= 0, got {margin!r}")
+    if grid is None:
+        grid = grid_for_volume(shape, params.subvolume, params.step)
+    grid = _check_grid(grid)
+    grid_shape = grid[2]
+    if initial is not None and initial.shape != grid_shape:
+        raise ValueError(
+            f"initial field grid {initial.shape} differs from the POI grid {grid_shape}"
+        )
+    max_memory = None if max_memory is None else parse_memory(max_memory)
+    levels = _levels(params, shape, initial is not None)
+    dtype = np.result_type(reference.dtype, deformed.dtype)
+    masked = mask is not None
+    cores = os.cpu_count() or 1
+
+    client, owns_client = (None, False)
+    if not scheduling.is_local(scheduler):
+        client, owns_client = scheduling.connect(scheduler)
+    try:
+        # where the work runs and how much memory it may use
+        if client is not None:
+            total_threads, concurrency, worker_limit = scheduling.cluster_resources(client)
+            workers = total_threads
+            threads_per_task = 1 if threads_per_task is None else threads_per_task
+            budget = worker_limit or available_memory()
+            where = f"each worker of the cluster at {scheduler!r}"
+        else:
+            workers = min(4, cores) if workers is None else int(workers)
+            if workers < 1:
+                raise ValueError(f"workers must be >= 1, got {workers}")
+            concurrency = workers
+            budget = available_memory()
+            where = "this machine"
+        if max_memory is not None:
+            budget = min(budget, max_memory)
+        sizes = dict(margin=margin, masked=masked, grid=grid)
+        fixed = estimate_peak_memory(shape, dtype, params, (1, 1, 1), workers=0, **sizes)
+        if batch_shape is None:
+            target = budget if max_memory is not None else fixed + concurrency * DEFAULT_BATCH_BYTES
+            batch_shape = choose_batch_shape(
+                shape, dtype, params, min(target, budget), workers=concurrency, **sizes
+            )
+        batch_shape = tuple(int(b) for b in np.broadcast_to(np.asarray(batch_shape), (3,)))
+        if min(batch_shape) < 1:
+            raise ValueError(f"batch_shape must hold 3 ints >= 1, got {batch_shape}")
+        estimate = estimate_peak_memory(
+            shape, dtype, params, batch_shape, workers=concurrency, **sizes
+        )
+        _refuse_if_over(estimate, budget, max_memory, batch_shape, concurrency, where)
+        batches = _batch_ranges(grid_shape, batch_shape)
+        if client is None:
+            workers = concurrency = max(1, min(workers, len(batches)))
+            if threads_per_task is None:
+                threads_per_task = max(1, cores // workers)
+        yield Progress(
+            "plan",
+            1,
+            1,
+            f"estimated peak memory {format_bytes(estimate)} (allowed {format_bytes(budget)}); "
+            f"{len(batches)} batches of up to {batch_shape[0]}x{batch_shape[1]}x{batch_shape[2]} "
+            f"POIs on {'this machine' if client is None else scheduler} ({workers} at a time)",
+        )
+
+        t0 = time.perf_counter()
+        shift = None
+        if initial is None:
+            tasks, factor = _rigid_shift_tasks(reference, deformed)
+            results = []
+            for done, (_, result) in enumerate(
+                scheduling.run(tasks, scheduler, workers, client), start=1
+            ):
+                results.append(result)
+                yield Progress(
+                    "rigid shift", done, len(tasks), f"read block {done} of {len(tasks)}"
+                )
+            shift = _combine_shift(results, shape, factor)
+            del results
+        shift_seconds = time.perf_counter() - t0
+
+        jobs = _make_jobs(
+            batches,
+            params,
+            shape,
+            grid,
+            levels,
+            np.zeros(3, np.int64) if shift is None else shift,
+            margin,
+            initial,
+            threads_per_task,
+            masked,
+        )
+        largest = max(jobs, key=lambda job: job.region_voxels)
+        itemsize = np.dtype(dtype).itemsize
+        points = int(np.prod(largest.sub_shape))
+        actual = fixed + concurrency * _batch_bytes(
+            largest.region_voxels, points, itemsize, masked, levels
+        )
+        _refuse_if_over(actual, budget, max_memory, batch_shape, concurrency, where)
+
+        import dask
+
+        volumes = [None if v is None else dask.delayed(v) for v in (reference, deformed, mask)]
+        task = dask.delayed(match_batch, pure=False)
+        batch_tasks = [task(job, *volumes) for job in jobs]
+        n_points = int(np.prod(grid_shape))
+        u = np.full((n_points, 3), np.nan)
+        gradient = np.full((n_points, 3, 3), np.nan)
+        zncc = np.full(n_points, np.nan, np.float32)
+        status = np.full(n_points, int(Status.NOT_COMPUTED), np.uint8)
+        iterations = np.zeros(n_points, np.int32)
+        totals: dict = {}
+        t0 = time.perf_counter()
+        for done, (_, result) in enumerate(
+            scheduling.run(batch_tasks, scheduler, workers, client), start=1
+        ):
+            index = result.core_index
+            u[index] = result.u
+            gradient[index] = result.gradient
+            zncc[index] = result.zncc
+            status[index] = result.status
+            iterations[index] = result.iterations
+            for key, value in result.timings.items():
+                totals[key] = totals.get(key, 0) + value
+            yield Progress(
+                "IC-GN",
+                done,
+                len(jobs),
+                f"batch {done} of {len(jobs)} ({totals.get('points', 0)} of {n_points} POIs)",
+            )
+        batch_seconds = time.perf_counter() - t0
+    finally:
+        if owns_client:
+            client.close()
+
+    provenance = np.full(n_points, int(Provenance.MEASURED), np.uint8)
+    provenance[status == int(Status.MASKED)] = int(Provenance.MASKED)
+    matched = totals.get("points", 0)
+    timings = {
+        "rigid_shift_s": shift_seconds,
+        "batches_s": batch_seconds,
+        "total_s": time.perf_counter() - started,
+        "task_s": {k: v for k, v in totals.items() if k.endswith("_s")},
+        "voxel_iterations": int(totals.get("voxel_iterations", 0)),
+        "points_per_s": matched / batch_seconds if batch_seconds > 0 else float("nan"),
+    }
+    origin, step, _ = grid
+    result_field = DisplacementField(
+        origin=tuple(float(o) for o in origin),
+        step=tuple(float(s) for s in step),
+        u=u.reshape(*grid_shape, 3),
+        zncc=zncc.reshape(grid_shape),
+        status=status.reshape(grid_shape),
+        iterations=iterations.reshape(grid_shape),
+        provenance=provenance.reshape(grid_shape),
+        gradient=gradient.reshape(*grid_shape, 3, 3),
+        params=params.to_dict(),
+        metadata={
+            "volume_shape": list(shape),
+            "global_shift": [0, 0, 0] if shift is None else [int(s) for s in shift],
+            "pyramid_levels": int(levels),
+            "timings": timings,
+            "masked": masked,
+            "tiled": {
+                "batch_shape": list(batch_shape),
+                "batches": len(jobs),
+                "margin": int(margin),
+                "workers": int(workers),
+                "threads_per_task": threads_per_task,
+                "scheduler": "local threads" if client is None else str(scheduler),
+                "estimated_peak_bytes": int(actual),
+                "largest_region_voxels": int(largest.region_voxels),
+            },
+        },
+    )
+    good = int(np.isin(status, [int(s) for s in GOOD_STATUSES]).sum())
+    yield Progress("done", 1, 1, f"{good} of {n_points} POIs matched")
+    return result_field
+
+
+def correlate_tiled(reference, deformed, params: CorrelationParams | None = None, **kwargs):
+    """Blocking form of :func:`correlate_tiled_iter` (same parameters, no progress)."""
+    return run_to_completion(correlate_tiled_iter(reference, deformed, params, **kwargs))
