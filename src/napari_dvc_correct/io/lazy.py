@@ -202,14 +202,17 @@ class TiffVolume(_FileVolume):
         import tifffile
 
         try:
-            return tifffile.memmap(self.path, mode="r").reshape(self.shape)
+            mapped = tifffile.memmap(self.path, mode="r")
         except (ValueError, OSError):
             return None
+        layout = (int(mapped.offset), mapped.dtype, self.shape)
+        del mapped
+        return layout
 
     def _open(self):
-        mapped = self._try_memmap()
-        if mapped is not None:
-            return mapped
+        layout = self._try_memmap()
+        if layout is not None:
+            return _MappedFile(self.path, *layout)
         import tifffile
         import zarr
 
@@ -222,6 +225,24 @@ class TiffVolume(_FileVolume):
     def read_region(self, slices) -> np.ndarray:
         slices = normalize_slices(slices, self.shape)
         return _as_float32(self.handle[slices])
+
+
+class _MappedFile:
+    """A contiguous array in a file, memory-mapped afresh for each read.
+
+    Mapping per read (cheap) unmaps the pages afterwards, so the process's resident memory counts
+    only the regions being converted, not every page it ever touched.
+    """
+
+    def __init__(self, path, offset: int, dtype, shape) -> None:
+        self.path, self.offset, self.dtype, self.shape = path, offset, np.dtype(dtype), shape
+
+    def __getitem__(self, slices):
+        mapped = np.memmap(self.path, self.dtype, "r", self.offset, self.shape)
+        try:
+            return np.array(mapped[slices], copy=True)
+        finally:
+            del mapped
 
 
 class _Reshaped:
@@ -255,12 +276,19 @@ class NpyVolume(_FileVolume):
         array = self._open()
         self.shape = _check_shape(array.shape, self.path)
         self.dtype = _check_dtype(array.dtype, self.path)
+        self._handle = array
 
     def _open(self):
         try:
-            return np.load(self.path, mmap_mode="r", allow_pickle=False)
+            mapped = np.load(self.path, mmap_mode="r", allow_pickle=False)
         except (ValueError, OSError) as error:
             raise ValueError(f"{self.path} is not a readable .npy file ({error})") from error
+        order_c = mapped.flags.c_contiguous or mapped.ndim < 2
+        layout = (int(mapped.offset), mapped.dtype, mapped.shape)
+        del mapped
+        if not order_c:  # Fortran order: keep numpy's own map (strided reads)
+            return np.load(self.path, mmap_mode="r", allow_pickle=False)
+        return _MappedFile(self.path, *layout)
 
     def read_region(self, slices) -> np.ndarray:
         return _as_float32(self.handle[normalize_slices(slices, self.shape)])
