@@ -122,15 +122,14 @@ class _Level:
         high = np.array(self.reference.shape) - 1 - self.half
         return np.clip(coarse, self.half, np.maximum(high, self.half))
 
-    def match(self, centers, params, order, settings, parallel=True):
+    def match(self, centers, params, order, settings):
         n = len(centers)
         zncc = np.full(n, np.nan)
         status = np.full(n, int(Status.NOT_COMPUTED), np.int64)
         iterations = np.zeros(n, np.int64)
         if n == 0:
             return zncc, status, iterations
-        kernel = icgn.match_many if parallel else icgn.match_many_serial
-        kernel(
+        icgn.match_many(
             self.reference,
             self.gradient,
             self.coef_deformed,
@@ -228,7 +227,7 @@ def _repair(level, centers, grid_shape, params, zncc, status, iterations, order,
             delta = (centers[j] - centers[i]).astype(np.float64)
             guess[:, 0] += guess[:, 1:4] @ delta
             trial = np.ascontiguousarray(guess.reshape(1, -1))
-            t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, order, settings, False)
+            t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, order, settings)
             if t_status[0] in _GOOD and t_zncc[0] >= settings.min_zncc:
                 params[j] = trial[0]
                 zncc[j] = t_zncc[0]

@@ -580,57 +580,6 @@ def match_many(
         iterations[i] = its
 
 
-@njit(**KERNEL_OPTIONS)
-def match_many_serial(
-    reference,
-    gradient,
-    coef_deformed,
-    mask,
-    use_mask,
-    centers,
-    half,
-    nb,
-    params,
-    zncc,
-    status,
-    iterations,
-    max_iterations,
-    tolerance,
-    min_std,
-    min_mask_fraction,
-    max_update,
-    product_table,
-    quad_axes,
-):
-    """Same as :func:`match_many` on one thread (for small batches, e.g. reliability repair)."""
-    for i in range(centers.shape[0]):
-        p = params[i].copy()
-        value, code, its = match_one(
-            reference,
-            gradient,
-            coef_deformed,
-            mask,
-            use_mask,
-            centers[i, 0],
-            centers[i, 1],
-            centers[i, 2],
-            half,
-            nb,
-            p,
-            max_iterations,
-            tolerance,
-            min_std,
-            min_mask_fraction,
-            max_update,
-            product_table,
-            quad_axes,
-        )
-        params[i, :] = p
-        zncc[i] = value
-        status[i] = code
-        iterations[i] = its
-
-
 def params_to_displacement(params: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
     """Split shape-function parameters (N, 3·nb) into displacement (N, 3) and gradient (N, 3, 3)."""
     nb = n_monomials(order)
