@@ -18,7 +18,7 @@ def closing():
 
 
 def test_demo_viewer_has_the_sample_and_the_panels(closing, monkeypatch, qtbot):
-    viewer, widgets = demo.make_viewer(show=False)
+    viewer, widgets, docks = demo.make_viewer(show=False)
     closing.append(viewer)
     assert [layer.name for layer in viewer.layers] == ["reference", "deformed"]
     assert set(widgets) == set(demo.PANELS)
@@ -28,7 +28,8 @@ def test_demo_viewer_has_the_sample_and_the_panels(closing, monkeypatch, qtbot):
     # the sample's roles picked the inputs
     assert correlate.reference.currentText() == "reference"
     assert correlate.deformed.currentText() == "deformed"
-    assert all(f"{name} ({demo.PLUGIN})" in viewer.window._dock_widgets for name in demo.PANELS)
+    assert set(docks) == set(demo.PANELS)
+    assert all(docks[name].widget() is not None for name in demo.PANELS)
 
 
 def test_main_runs_napari(monkeypatch, closing):
@@ -36,7 +37,7 @@ def test_main_runs_napari(monkeypatch, closing):
 
     def fake_make_viewer(sample, show=True):
         made.append(sample)
-        return None, {}
+        return None, {}, {}
 
     monkeypatch.setattr(demo, "make_viewer", fake_make_viewer)
     monkeypatch.setattr(napari, "run", lambda: None)

@@ -28,22 +28,19 @@ def make_viewer(sample: str | None = "soil_shear_band", show: bool = True):
     -------
     viewer : napari.Viewer
     widgets : dict of panel name -> widget
+    docks : dict of panel name -> the dock holding it (``docks[name].raise_()`` shows its tab)
     """
     import napari
 
     viewer = napari.Viewer(title="napari-dvc-correct", show=show)
     if sample:
         viewer.open_sample(PLUGIN, sample)
-    widgets = {}
+    widgets, docks = {}, {}
     for index, name in enumerate(PANELS):
-        _, widget = viewer.window.add_plugin_dock_widget(PLUGIN, name, tabify=index > 0)
-        widgets[name] = widget
-    # the first tab in front
-    dock = viewer.window._dock_widgets.get(f"{PANELS[0]} ({PLUGIN})")
-    if dock is not None:
-        dock.raise_()
-    viewer.dims.ndisplay = 2
-    return viewer, widgets
+        dock, widget = viewer.window.add_plugin_dock_widget(PLUGIN, name, tabify=index > 0)
+        widgets[name], docks[name] = widget, dock
+    docks[PANELS[0]].raise_()  # the Correlate tab in front
+    return viewer, widgets, docks
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -115,8 +115,9 @@ def vectors_layer(
     """Displacement arrows, subsampled for display and coloured by magnitude.
 
     Nodes without a usable displacement (:attr:`DisplacementField.valid` false) are left out.
-    With ``exaggerate`` the layer's ``length`` is set so the longest arrow spans two grid steps
-    when the displacement is smaller than that (the magnitude colours stay true).
+    With ``exaggerate`` the layer's ``length`` is set so the longest arrow spans one grid step
+    when the largest displacement is under half a step (the magnitude colours stay true; the
+    layer controls show the factor).
 
     Returns
     -------
@@ -134,14 +135,15 @@ def vectors_layer(
     data = np.stack([index.astype(np.float64), u / np.asarray(field.step)], axis=1)
     magnitude = np.linalg.norm(u, axis=1)
     length = 1.0
-    if exaggerate and magnitude.size and 0 < magnitude.max() < 2 * min(field.step):
-        length = float(2 * min(field.step) / magnitude.max())
+    if exaggerate and magnitude.size and 0 < magnitude.max() < 0.5 * min(field.step):
+        length = float(min(field.step) / magnitude.max())
     kwargs = {
         "name": layer_name("displacement", source),
         "features": {"magnitude": magnitude},
         "edge_color": "magnitude",
         "edge_colormap": "viridis",
-        "edge_width": 0.15,
+        "edge_width": 0.12,
+        "vector_style": "arrow",
         "length": length,
         "metadata": _meta("vectors", source, field, stride=stride),
         **grid_placement(field, voxel_size, offset),
@@ -242,6 +244,8 @@ def strain_layer(
         "colormap": "inferno",
         "contrast_limits": [0.0, high if high > 0 else 1.0],
         "rendering": "mip",
+        "blending": "additive",
+        "opacity": 0.8,
         "metadata": _meta("equivalent strain", source, field),
         **grid_placement(field, voxel_size, offset),
     }

@@ -24,6 +24,10 @@ def test_thresholds_split_the_histogram_and_update_the_phases_live(viewer_pair, 
     assert len(widget.histogram.lines) == 1
     assert widget.histogram.lines[0].get_xdata()[0] == pytest.approx(threshold)
     widget._live.flush()
+    assert "phase 1: mean gray" in widget.phase_label.text()
+    assert "phases" not in viewer_pair.layers  # not before the user touches the thresholds
+    widget.auto_button.click()
+    widget._live.flush()
     phases = viewer_pair.layers["phases"]
     np.testing.assert_allclose(phases.scale, small.voxel_size)
     np.testing.assert_allclose(phases.translate, small.offset)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Generator
 
-from napari.utils.notifications import show_error, show_info
+from napari.utils.notifications import show_error
 from qtpy.QtCore import Qt, QTimer
 from qtpy.QtWidgets import (
     QComboBox,
@@ -26,6 +26,7 @@ from qtpy.QtWidgets import (
     QLabel,
     QProgressBar,
     QPushButton,
+    QSizePolicy,
     QVBoxLayout,
     QWidget,
 )
@@ -151,6 +152,8 @@ class EngineWidget(QWidget):
         self.message.setWordWrap(True)
         self.message.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.body.addWidget(self.message)
+        for label in (self.stage_label, self.message):  # no stretching to fill the dock
+            label.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Maximum)
         self.run_button.clicked.connect(lambda checked=False: self.run())
         self.cancel_button.clicked.connect(lambda checked=False: self.cancel())
         self.last_error: str | None = None
@@ -169,14 +172,12 @@ class EngineWidget(QWidget):
 
     # -- messages -----------------------------------------------------------------------------
     def show_message(self, text: str, error: bool = False) -> None:
-        """Show ``text`` in the dock's message line (red for errors) and as a notification."""
+        """Show ``text`` in the dock's message line; errors (red) also as a notification."""
         self.message.setStyleSheet("color: #e05050;" if error else "")
         self.message.setText(text)
         if error:
             self.last_error = text
             show_error(text)
-        elif text:
-            show_info(text)
 
     def clear_message(self) -> None:
         self.message.setStyleSheet("")

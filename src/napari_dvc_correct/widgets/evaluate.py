@@ -73,10 +73,14 @@ class EvaluateWidget(EngineWidget):
 
         self.evaluation = None
         self._volume_key = None
+        # the phases layer appears once the user works with the thresholds (or evaluates), not
+        # when the panel opens with automatic thresholds
+        self.show_phases = False
         self._live = Debouncer(self.update_phases, 150, self)
         self.slider.valueChanged.connect(self._thresholds_moved)
+        self.slider.sliderPressed.connect(self._enable_phases)
         self.n_phases.valueChanged.connect(self.auto_thresholds)
-        self.auto_button.clicked.connect(self.auto_thresholds)
+        self.auto_button.clicked.connect(lambda checked=False: self.auto_thresholds())
         self.reference.currentIndexChanged.connect(self._reference_changed)
         for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
             event.connect(self._layers_changed)
@@ -138,24 +142,32 @@ class EvaluateWidget(EngineWidget):
         self.slider.blockSignals(True)
         self.slider.setRange(float(edges[0]), float(edges[-1]))
         self.slider.blockSignals(False)
-        self.auto_thresholds()
+        self.auto_thresholds(show=False)
 
     # -- thresholds and live phases -----------------------------------------------------------
     def thresholds(self) -> list[float]:
         return [float(v) for v in self.slider.value()]
 
-    def set_thresholds(self, values) -> None:
-        """Move the slider handles (one per threshold, increasing)."""
+    def set_thresholds(self, values, show: bool = True) -> None:
+        """Move the slider handles (one per threshold, increasing); ``show`` the phases layer."""
+        if show:
+            self._enable_phases()
         self.slider.setValue(tuple(float(v) for v in values))
 
-    def auto_thresholds(self, *args) -> None:
+    def auto_thresholds(self, *args, show: bool = True) -> None:
+        """Multi-Otsu thresholds for the chosen number of phases."""
         try:
             volume = self._volume(self.reference, "reference")
             values = model.automatic_thresholds(volume, self.n_phases.value())
         except ValueError as error:
             self.show_message(one_line(error), error=True)
             return
-        self.set_thresholds(values)
+        self.set_thresholds(values, show=show)
+
+    def _enable_phases(self) -> None:
+        if not self.show_phases:
+            self.show_phases = True
+            self._live.trigger()
 
     def _thresholds_moved(self, *args) -> None:
         values = self.thresholds()
@@ -173,6 +185,8 @@ class EvaluateWidget(EngineWidget):
             self.phase_label.setText(one_line(error))
             return
         self.phase_label.setText(preview.text())
+        if not self.show_phases:
+            return
         voxel_size, offset = layer_placement(layer)
         existing = L.find_layer(self.viewer, "phases")
         if existing is not None:
@@ -185,6 +199,8 @@ class EvaluateWidget(EngineWidget):
 
     # -- running ------------------------------------------------------------------------------
     def prepare(self):
+        self.show_phases = True
+        self._live.trigger()
         self._live.flush()
         reference = self._volume(self.reference, "reference")
         deformed = self._volume(self.deformed, "deformed")
