@@ -110,7 +110,7 @@ def run_distributed(tasks, client):
     futures = client.compute(tasks)
     index = {future.key: i for i, future in enumerate(futures)}
     try:
-        for future in as_completed(futures):
+        for future in as_completed(futures, loop=client.loop):
             yield index[future.key], future.result()
     finally:
         client.cancel(futures)

@@ -62,10 +62,10 @@ DEFAULT_BATCH_BYTES = 1 << 30
 #: Voxels read at a time by the rigid-shift pass.
 SHIFT_BLOCK_VOXELS = 1 << 23
 
-#: Bytes per region voxel while a batch correlates (calibrated with tracemalloc on 64³–160³
-#: regions: G and F as float32, the gradient of G, the coefficients of F, one prefilter output,
-#: the stored block being converted, plus headroom).
-BYTES_PER_REGION_VOXEL = 36
+#: Bytes per region voxel while a batch correlates (calibrated by sampling the resident memory
+#: of correlate on 96³–160³ regions: G and F as float32, the gradient of G, the coefficients of
+#: F, a prefilter output and the coarse level; the stored block is counted apart).
+BYTES_PER_REGION_VOXEL = 44
 
 #: Bytes per POI of a batch (guesses, shape-function parameters, the batch's field).
 BYTES_PER_BATCH_POINT = 1200

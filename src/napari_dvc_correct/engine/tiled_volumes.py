@@ -1,0 +1,429 @@
+"""Dense field, warps, gray residual and strain of large volumes, chunk by chunk to Zarr or TIFF.
+
+The voxel-wise operations of :mod:`.warp` for volumes that do not fit in memory: every output
+block is a ``dask.delayed`` task (dask's local threaded scheduler by default, or a
+``dask.distributed`` cluster, see :mod:`.scheduling`) that
+
+1. evaluates the field's cubic spline on the block's voxel lattice (:meth:`.warp.FieldSpline.lattice`),
+   or inverts it there (:meth:`.warp.FieldSpline.invert`) for the forward warp;
+2. reads only the region of the input volume those positions reach, plus
+   :data:`.tiled.SPLINE_SUPPORT` + :data:`.tiled.PREFILTER_MARGIN` voxels, from a lazy volume
+   (:mod:`..io.lazy`), prefilters it and samples it (:func:`.interpolation.sample`) — equal to
+   sampling the prefiltered whole volume to float32 rounding;
+3. writes the block into the output (:mod:`..io.lazy_outputs`), which is renamed onto its path only
+   when every block is written.
+
+The results equal :func:`.warp.densify`, :func:`.warp.pull_back`, :func:`.warp.warp_forward` and
+:func:`.warp.gray_residual` on the whole arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from . import scheduling
+from .field import DisplacementField
+from .interpolation import prefilter, sample
+from .progress import Progress
+from .tiled import PREFILTER_MARGIN, SPLINE_SUPPORT
+from .warp import FieldSpline, _inside_hull, _spline
+
+#: Default voxels per output block (z, y, x).
+DEFAULT_BLOCK = (32, 256, 256)
+
+
+def _block_slices(shape, block):
+    for z0 in range(0, shape[0], block[0]):
+        for y0 in range(0, shape[1], block[1]):
+            for x0 in range(0, shape[2], block[2]):
+                yield (
+                    slice(z0, min(shape[0], z0 + block[0])),
+                    slice(y0, min(shape[1], y0 + block[1])),
+                    slice(x0, min(shape[2], x0 + block[2])),
+                )
+
+
+def _axes(block):
+    return [np.arange(s.start, s.stop, dtype=np.float64) for s in block]
+
+
+def _lattice(block) -> np.ndarray:
+    grids = np.meshgrid(*_axes(block), indexing="ij")
+    return np.stack([g.reshape(-1) for g in grids], axis=1)
+
+
+def sample_lazy(volume, points: np.ndarray) -> np.ndarray:
+    """Tricubic B-spline samples of a lazy volume at ``points`` (N, 3), reading one region.
+
+    Equals ``interpolation.sample(prefilter(whole), points)`` to float32 rounding: the region
+    spans the finite points plus the spline support and the prefilter margin. NaN for points
+    outside the volume or not finite.
+    """
+    out = np.full(len(points), np.nan, np.float32)
+    finite = np.all(np.isfinite(points), axis=1)
+    if not finite.any():
+        return out
+    reach = SPLINE_SUPPORT + PREFILTER_MARGIN
+    shape = np.asarray(volume.shape)
+    low = np.floor(points[finite].min(axis=0)).astype(np.int64) - reach
+    high = np.ceil(points[finite].max(axis=0)).astype(np.int64) + reach + 1
+    low = np.clip(low, 0, shape)
+    high = np.clip(high, 0, shape)
+    if np.any(high <= low):
+        return out  # every point is outside the volume
+    region = volume.read_region(tuple(slice(int(a), int(b)) for a, b in zip(low, high)))
+    inside = finite & np.all((points >= 0) & (points <= shape - 1), axis=1)
+    out[inside] = sample(prefilter(region), points[inside] - low, cval=np.nan)
+    return out
+
+
+def _finite_sum(values) -> tuple[float, int]:
+    finite = np.isfinite(values)
+    return float(np.sum(values[finite], dtype=np.float64)), int(finite.sum())
+
+
+# --- block tasks (run on workers) ----------------------------------------------------------------
+def _dense_block(out, spline, block, outside):
+    values = spline.lattice(*_axes(block), outside=outside)
+    if values.shape[-1] == 1:
+        values = values[..., 0]
+    out.write(block, values)
+    return _finite_sum(values)
+
+
+def _pull_back_values(deformed, spline, block, outside):
+    dense = spline.lattice(*_axes(block), outside=outside)
+    points = _lattice(block) + dense.reshape(-1, 3)
+    return sample_lazy(deformed, points).reshape(dense.shape[:3])
+
+
+def _forward_values(reference, spline, block, outside, max_iterations, tolerance):
+    source, converged = spline.invert(_lattice(block), max_iterations, tolerance)
+    values = sample_lazy(reference, source)
+    bad = ~converged
+    if outside == "nan":
+        bad |= ~_inside_hull(spline, source)
+    values[bad] = np.nan
+    return values.reshape(tuple(s.stop - s.start for s in block))
+
+
+def _pull_back_block(out, deformed, spline, block, outside, cval):
+    values = _pull_back_values(deformed, spline, block, outside)
+    summary = _finite_sum(values)
+    values[~np.isfinite(values)] = cval
+    out.write(block, values)
+    return summary
+
+
+def _forward_block(out, reference, spline, block, outside, cval, max_iterations, tolerance):
+    values = _forward_values(reference, spline, block, outside, max_iterations, tolerance)
+    summary = _finite_sum(values)
+    values[~np.isfinite(values)] = cval
+    out.write(block, values)
+    return summary
+
+
+def _residual_block(out, reference, deformed, spline, block, mode, outside):
+    if mode == "reference":
+        moved = _pull_back_values(deformed, spline, block, outside)
+        residual = np.abs(moved - reference.read_region(block))
+    else:
+        warped = _forward_values(reference, spline, block, outside, 50, 1e-4)
+        residual = np.abs(deformed.read_region(block) - warped)
+    out.write(block, residual)
+    return _finite_sum(residual)
+
+
+# --- the driver ----------------------------------------------------------------------------------
+def _write(
+    path,
+    shape,
+    components,
+    function,
+    shared,
+    extra,
+    *,
+    block_shape,
+    scheduler,
+    workers,
+    metadata,
+    stage,
+    progress: Callable[[Progress], None] | None,
+) -> dict:
+    """Run ``function(out, *shared, block, *extra)`` on every block and commit the output."""
+    import dask
+
+    from ..io.lazy_outputs import create_output, output_chunks
+
+    shape = tuple(int(n) for n in shape)
+    out_shape = shape if components == 1 else (*shape, components)
+    block_shape = tuple(min(int(b), n) for b, n in zip(block_shape, shape))
+    chunks = block_shape if components == 1 else (*block_shape, components)
+    out = create_output(path, out_shape, np.float32, chunks=chunks, metadata=metadata)
+    client, owned = (None, False)
+    try:
+        blocks = list(_block_slices(shape, output_chunks(out, block_shape)))
+        if not scheduling.is_local(scheduler):
+            client, owned = scheduling.connect(scheduler)
+        delayed_shared = [dask.delayed(item) for item in shared]
+        task = dask.delayed(function, pure=False)
+        tasks = [task(out, *delayed_shared, block, *extra) for block in blocks]
+        total, count = 0.0, 0
+        for done, (_, (block_sum, block_count)) in enumerate(
+            scheduling.run(tasks, scheduler, workers, client), start=1
+        ):
+            total += block_sum
+            count += block_count
+            if progress is not None:
+                progress(Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}"))
+    except BaseException:
+        out.discard()
+        raise
+    finally:
+        if owned:
+            client.close()
+    final = out.commit()
+    return {
+        "path": str(final),
+        "shape": list(out_shape),
+        "blocks": len(blocks),
+        "mean": total / count if count else float("nan"),
+        "defined_voxels": count,
+    }
+
+
+def _check(volume_shape, name):
+    shape = tuple(int(n) for n in volume_shape)
+    if len(shape) != 3 or min(shape) < 1:
+        raise ValueError(f"{name} must be 3 positive ints (nz, ny, nx), got {shape}")
+    return shape
+
+
+def _outside(outside):
+    if outside not in ("extrapolate", "nan"):
+        raise ValueError(f"outside must be 'extrapolate' or 'nan', got {outside!r}")
+    return outside
+
+
+def write_dense_field(
+    field: DisplacementField | FieldSpline,
+    shape,
+    path,
+    *,
+    outside: str = "extrapolate",
+    block_shape=DEFAULT_BLOCK,
+    scheduler=None,
+    workers: int = 2,
+    progress=None,
+) -> dict:
+    """Cubic-spline dense displacement field (paper step c) written to ``path``.
+
+    Parameters
+    ----------
+    field : DisplacementField or FieldSpline
+        Grid field with finite nodes (clean it first).
+    shape : tuple of 3 ints
+        Volume shape ``(nz, ny, nx)``.
+    path : str or PathLike
+        ``.zarr`` or ``.tif``: a float32 array of shape ``(nz, ny, nx, 3)``, components
+        ``(uz, uy, ux)`` in voxels.
+    outside : {"extrapolate", "nan"}
+        As :func:`.warp.densify`.
+    block_shape : tuple of 3 ints
+        Voxels per task (and per Zarr chunk).
+    scheduler, workers
+        See :mod:`.scheduling`.
+    progress : callable, optional
+        Called with a :class:`Progress` after every block.
+
+    Returns
+    -------
+    dict
+        ``path``, ``shape``, ``blocks``, ``mean`` (of all components), ``defined_voxels``.
+    """
+    shape = _check(shape, "shape")
+    return _write(
+        path,
+        shape,
+        3,
+        _dense_block,
+        [_spline(field)],
+        [_outside(outside)],
+        block_shape=block_shape,
+        scheduler=scheduler,
+        workers=workers,
+        metadata={"quantity": "displacement (uz, uy, ux), voxels"},
+        stage="densify",
+        progress=progress,
+    )
+
+
+def write_pull_back(
+    deformed,
+    field: DisplacementField | FieldSpline,
+    path,
+    *,
+    shape=None,
+    cval: float = np.nan,
+    outside: str = "extrapolate",
+    block_shape=DEFAULT_BLOCK,
+    scheduler=None,
+    workers: int = 2,
+    progress=None,
+) -> dict:
+    """``F~(X) = F(X + u(X))`` written to ``path`` (see :func:`.warp.pull_back`).
+
+    ``deformed`` is a lazy volume, a path or an array (:func:`..io.lazy.as_lazy`).
+    """
+    from ..io.lazy import as_lazy
+
+    deformed = as_lazy(deformed)
+    shape = _check(deformed.shape if shape is None else shape, "shape")
+    return _write(
+        path,
+        shape,
+        1,
+        _pull_back_block,
+        [deformed, _spline(field)],
+        [_outside(outside), float(cval)],
+        block_shape=block_shape,
+        scheduler=scheduler,
+        workers=workers,
+        metadata={"quantity": "deformed volume pulled back to the reference frame"},
+        stage="pull back",
+        progress=progress,
+    )
+
+
+def write_warp_forward(
+    reference,
+    field: DisplacementField | FieldSpline,
+    path,
+    *,
+    shape=None,
+    cval: float = np.nan,
+    outside: str = "extrapolate",
+    max_iterations: int = 50,
+    tolerance: float = 1e-4,
+    block_shape=DEFAULT_BLOCK,
+    scheduler=None,
+    workers: int = 2,
+    progress=None,
+) -> dict:
+    """``G'(X + u(X)) = G(X)`` (paper step d) written to ``path`` (see :func:`.warp.warp_forward`)."""
+    from ..io.lazy import as_lazy
+
+    reference = as_lazy(reference)
+    shape = _check(reference.shape if shape is None else shape, "shape")
+    return _write(
+        path,
+        shape,
+        1,
+        _forward_block,
+        [reference, _spline(field)],
+        [_outside(outside), float(cval), int(max_iterations), float(tolerance)],
+        block_shape=block_shape,
+        scheduler=scheduler,
+        workers=workers,
+        metadata={"quantity": "reference volume warped to the loaded state"},
+        stage="warp",
+        progress=progress,
+    )
+
+
+def write_gray_residual(
+    reference,
+    deformed,
+    field: DisplacementField | FieldSpline,
+    path,
+    *,
+    mode: str = "reference",
+    region: str = "hull",
+    block_shape=DEFAULT_BLOCK,
+    scheduler=None,
+    workers: int = 2,
+    progress=None,
+) -> dict:
+    """Gray residual volume written to ``path`` (see :func:`.warp.gray_residual`).
+
+    Returns
+    -------
+    dict
+        With ``mean``: the mean residual over the voxels where it is defined (as
+        :func:`.warp.mean_gray_residual`).
+    """
+    from ..io.lazy import as_lazy
+
+    if mode not in ("reference", "loaded"):
+        raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
+    if region not in ("hull", "volume"):
+        raise ValueError(f"region must be 'hull' or 'volume', got {region!r}")
+    reference = as_lazy(reference)
+    deformed = as_lazy(deformed)
+    shape = reference.shape if mode == "reference" else deformed.shape
+    return _write(
+        path,
+        _check(shape, "shape"),
+        1,
+        _residual_block,
+        [reference, deformed, _spline(field)],
+        [mode, "nan" if region == "hull" else "extrapolate"],
+        block_shape=block_shape,
+        scheduler=scheduler,
+        workers=workers,
+        metadata={"quantity": f"gray residual ({mode} frame, {region})"},
+        stage="residual",
+        progress=progress,
+    )
+
+
+def write_equivalent_strain(
+    field: DisplacementField,
+    shape,
+    path,
+    *,
+    measure: str = "small",
+    method: str = "central",
+    window: int = 5,
+    outside: str = "extrapolate",
+    block_shape=DEFAULT_BLOCK,
+    scheduler=None,
+    workers: int = 2,
+    progress=None,
+) -> dict:
+    """Equivalent strain (eq. 3) at every voxel: the grid's strain densified by cubic splines.
+
+    The strain is computed on the grid (:func:`.strain.equivalent_strain_field`, see there for
+    ``measure``, ``method`` and ``window``), then interpolated like the displacement.
+
+    Raises
+    ------
+    ValueError
+        If some nodes have no strain (invalid displacement): clean the field first.
+    """
+    from .strain import equivalent_strain_field
+
+    shape = _check(shape, "shape")
+    values = equivalent_strain_field(field, measure=measure, method=method, window=window)
+    if not np.all(np.isfinite(values)):
+        raise ValueError(
+            f"{int(np.sum(~np.isfinite(values)))} grid nodes have no strain: clean the field "
+            "first (napari_dvc_correct.engine.cleaning.clean)"
+        )
+    spline = FieldSpline(field.origin, field.step, values[..., None])
+    return _write(
+        path,
+        shape,
+        1,
+        _dense_block,
+        [spline],
+        [_outside(outside)],
+        block_shape=block_shape,
+        scheduler=scheduler,
+        workers=workers,
+        metadata={"quantity": f"equivalent strain ({measure})"},
+        stage="strain",
+        progress=progress,
+    )

@@ -1,0 +1,200 @@
+"""Tiled correlation: the same field as in memory, from lazy volumes, on threads or a cluster."""
+
+import numpy as np
+import pytest
+import tifffile
+import zarr
+
+from napari_dvc_correct.engine import synthetic, tiled
+from napari_dvc_correct.engine.correlate import correlate
+from napari_dvc_correct.engine.field import Status
+from napari_dvc_correct.engine.interpolation import prefilter
+from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.progress import Progress
+from napari_dvc_correct.engine.tiled import (
+    MemoryBudgetError,
+    choose_batch_shape,
+    correlate_tiled,
+    correlate_tiled_iter,
+    estimate_peak_memory,
+)
+from napari_dvc_correct.io.lazy import ArrayVolume
+
+GRADIENT = np.array([[0.02, 0.0, 0.01], [0.0, -0.01, 0.0], [0.0, 0.0, 0.015]])
+# 1e-5: fine enough that a converged answer does not depend on IC-GN's starting guess (see
+# test_default_tolerance_agrees_within_the_tolerance for the default)
+PARAMS = CorrelationParams(subvolume=15, step=6, tolerance=1e-5)
+BATCH = (5, 5, 5)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    # long along x so that batches read regions smaller than the volume
+    reference = synthetic.textured_volume((46, 46, 120), 2.0, seed=5)
+    truth = synthetic.affine(GRADIENT, np.array(reference.shape) / 2, shift=(1.5, -2.2, 0.8))
+    return reference, synthetic.deform_volume(reference, truth), truth
+
+
+@pytest.fixture(scope="module")
+def in_memory(pair):
+    reference, deformed, _ = pair
+    return correlate(reference, deformed, PARAMS)
+
+
+@pytest.fixture(scope="module")
+def local(pair):
+    reference, deformed, _ = pair
+    return correlate_tiled(reference, deformed, PARAMS, batch_shape=BATCH)
+
+
+def _converged_in_both(a, b):
+    return (a.status == Status.CONVERGED) & (b.status == Status.CONVERGED)
+
+
+def test_prefilter_margin_reaches_float32_rounding():
+    volume = synthetic.textured_volume((72, 72, 72), 2.0, seed=3)
+    whole = prefilter(volume)
+    m = tiled.PREFILTER_MARGIN
+    region = prefilter(volume[30 - m : 42 + m, 30 - m : 42 + m, 30 - m : 42 + m])
+    core = region[m:-m, m:-m, m:-m]
+    gray_range = float(volume.max() - volume.min())
+    assert np.max(np.abs(core - whole[30:42, 30:42, 30:42])) < 1e-6 * gray_range  # a few ulps
+    short = prefilter(volume[26:46, 26:46, 26:46])[4:-4, 4:-4, 4:-4]  # a 4-voxel margin is not
+    assert np.max(np.abs(short - whole[30:42, 30:42, 30:42])) > 1e-5 * gray_range
+
+
+def test_equals_in_memory_correlation(in_memory, local, pair):
+    tiles = local.metadata["tiled"]
+    assert tiles["batches"] == 4  # a 5x5x18 grid in 5x5x5 batches
+    assert tiles["largest_region_voxels"] < 0.9 * 46 * 46 * 120  # only a region each
+    assert local.metadata["global_shift"] == in_memory.metadata["global_shift"]
+    both = _converged_in_both(in_memory, local)
+    assert both.sum() >= 0.95 * both.size
+    assert np.mean(in_memory.status == local.status) >= 0.99
+    difference = np.abs(in_memory.u - local.u)[both]
+    assert difference.max() < 1e-4, difference.max()
+    assert np.abs(in_memory.gradient - local.gradient)[both].max() < 1e-4
+    assert np.abs(in_memory.zncc - local.zncc)[both].max() < 1e-5
+    # and both are right: the known affine field
+    truth = pair[2]
+    expected = synthetic.sample_displacement(truth, local.points).reshape(local.u.shape)
+    assert np.sqrt(np.mean((local.u - expected)[both] ** 2)) < 0.02
+
+
+def test_default_tolerance_agrees_within_the_tolerance(pair):
+    """At tolerance 1e-3 IC-GN stops within 1e-3 of the optimum, wherever it started from."""
+    reference, deformed, _ = pair
+    params = PARAMS.replace(tolerance=1e-3)
+    a = correlate(reference, deformed, params)
+    b = correlate_tiled(reference, deformed, params, batch_shape=BATCH)
+    both = _converged_in_both(a, b)
+    difference = np.abs(a.u - b.u)[both].max(axis=-1)
+    assert both.sum() >= 0.95 * both.size
+    assert difference.max() < 1e-3
+    assert np.mean(difference < 1e-4) >= 0.98
+
+
+def test_lazy_files_give_the_same_field(tmp_path, pair, local):
+    reference, deformed, _ = pair
+    scale = 60000.0 / float(max(reference.max(), deformed.max()))
+    g16 = np.round(reference * scale).astype(np.uint16)
+    f16 = np.round(deformed * scale).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "g.tif", g16)
+    zarr.create_array(str(tmp_path / "f.zarr"), data=f16, chunks=(16, 16, 16))
+    from_files = correlate_tiled(
+        tmp_path / "g.tif", str(tmp_path / "f.zarr"), PARAMS, batch_shape=BATCH, workers=1
+    )
+    from_arrays = correlate_tiled(g16, f16, PARAMS, batch_shape=BATCH, workers=2)
+    np.testing.assert_array_equal(from_files.status, from_arrays.status)
+    np.testing.assert_array_equal(from_files.u, from_arrays.u)  # same batches: same numbers
+    both = _converged_in_both(from_files, local)
+    assert np.abs(from_files.u - local.u)[both].max() < 1e-2  # uint16 quantisation only
+
+
+def test_distributed_cluster_gives_the_same_answer(pair, local):
+    distributed = pytest.importorskip("distributed")
+    reference, deformed, _ = pair
+    with distributed.LocalCluster(
+        n_workers=2,
+        processes=True,
+        threads_per_worker=1,
+        dashboard_address=None,
+        memory_limit="2GiB",
+    ) as cluster:
+        messages = []
+        generator = correlate_tiled_iter(
+            ArrayVolume(reference),
+            ArrayVolume(deformed),
+            PARAMS,
+            batch_shape=BATCH,
+            scheduler=cluster.scheduler_address,
+        )
+        while True:
+            try:
+                messages.append(next(generator))
+            except StopIteration as stop:
+                remote = stop.value
+                break
+    assert remote.metadata["tiled"]["workers"] == 2
+    assert sum(p.stage == "IC-GN" for p in messages) == 4
+    np.testing.assert_array_equal(remote.status, local.status)
+    np.testing.assert_allclose(remote.u, local.u, rtol=0, atol=1e-9)
+
+
+def test_progress_states_the_memory_estimate_first(pair):
+    reference, deformed, _ = pair
+    generator = correlate_tiled_iter(reference, deformed, PARAMS, batch_shape=BATCH)
+    first = next(generator)
+    generator.close()
+    assert isinstance(first, Progress) and first.stage == "plan"
+    assert "estimated peak memory" in first.message and "4 batches" in first.message
+
+
+def test_refuses_a_run_over_max_memory(pair):
+    reference, deformed, _ = pair
+    with pytest.raises(MemoryBudgetError, match=r"more than the limit of .*--max-memory"):
+        correlate_tiled(reference, deformed, PARAMS, batch_shape=(6, 6, 6), max_memory="20MB")
+    with pytest.raises(MemoryBudgetError, match="even one POI per batch"):
+        correlate_tiled(reference, deformed, PARAMS, max_memory="1MB")
+
+
+def test_refuses_a_run_larger_than_the_machine(monkeypatch, pair):
+    reference, deformed, _ = pair
+    monkeypatch.setattr(tiled, "available_memory", lambda: 50 * 2**20)
+    with pytest.raises(MemoryBudgetError, match="available on this machine"):
+        correlate_tiled(reference, deformed, PARAMS, batch_shape=(6, 6, 6), workers=2)
+
+
+def test_max_memory_picks_the_batch_size():
+    params = CorrelationParams(subvolume=31, step=8)
+    shape = (512, 512, 512)
+    small = choose_batch_shape(shape, np.uint16, params, 1 << 30, workers=2)
+    large = choose_batch_shape(shape, np.uint16, params, 4 << 30, workers=2)
+    assert np.prod(small) < np.prod(large)
+    for budget, batch in ((1 << 30, small), (4 << 30, large)):
+        assert estimate_peak_memory(shape, np.uint16, params, batch, workers=2) <= budget
+        bigger = tuple(b + 1 for b in batch)
+        assert estimate_peak_memory(shape, np.uint16, params, bigger, workers=2) > budget
+
+
+def test_estimate_grows_with_batch_workers_and_shift():
+    params = CorrelationParams(subvolume=31, step=8)
+    shape = (256, 256, 256)
+    base = estimate_peak_memory(shape, np.uint16, params, (4, 4, 4))
+    assert estimate_peak_memory(shape, np.uint16, params, (8, 8, 8)) > base
+    assert estimate_peak_memory(shape, np.uint16, params, (4, 4, 4), workers=2) > base
+    assert estimate_peak_memory(shape, np.uint16, params, (4, 4, 4), shift=(20, 0, 0)) > base
+    # the paper's workload: far beyond one batch of a few POIs, far below the whole volume
+    paper = CorrelationParams(subvolume=141, step=10)
+    need = estimate_peak_memory((2000, 2000, 3000), np.uint16, paper, (8, 8, 8))
+    assert 1 << 30 < need < 2000 * 2000 * 3000 * 4
+
+
+def test_rejects_volumes_with_nan(pair):
+    reference, deformed, _ = pair
+    broken = deformed.copy()
+    broken[40, 3, 3] = np.nan
+    with pytest.raises(ValueError, match="deformed volume contains NaN"):
+        correlate_tiled(reference, broken, PARAMS, batch_shape=BATCH)
+    with pytest.raises(ValueError, match="same shape"):
+        correlate_tiled(reference, deformed[:-1], PARAMS)

@@ -1,0 +1,127 @@
+"""Chunked voxel-wise outputs equal the in-memory ones of engine.warp, on Zarr and TIFF."""
+
+import numpy as np
+import pytest
+import tifffile
+import zarr
+
+from napari_dvc_correct.engine import synthetic, warp
+from napari_dvc_correct.engine.field import DisplacementField
+from napari_dvc_correct.engine.interpolation import prefilter, sample
+from napari_dvc_correct.engine.strain import equivalent_strain_field
+from napari_dvc_correct.engine.tiled_volumes import (
+    sample_lazy,
+    write_dense_field,
+    write_equivalent_strain,
+    write_gray_residual,
+    write_pull_back,
+    write_warp_forward,
+)
+from napari_dvc_correct.io.lazy import ArrayVolume
+
+SHAPE = (36, 40, 44)
+BLOCK = (16, 16, 16)  # several blocks per axis, so regions are cropped
+
+
+def _read(path):
+    path = str(path)
+    if path.endswith(".zarr"):
+        return zarr.open_array(path, mode="r")[...]
+    return tifffile.imread(path)
+
+
+@pytest.fixture(scope="module")
+def case():
+    reference = synthetic.textured_volume(SHAPE, 2.0, seed=4)
+    origin, step = (6.0, 6.0, 6.0), (6.0, 7.0, 8.0)
+    grid_shape = (5, 5, 5)
+    index = np.indices(grid_shape).reshape(3, -1).T
+    points = np.asarray(origin) + index * np.asarray(step)
+    u = np.stack(
+        [
+            0.8 + 0.02 * points[:, 0] + 0.4 * np.sin(points[:, 2] / 9.0),
+            -1.3 + 0.01 * points[:, 1],
+            0.5 - 0.015 * points[:, 2] + 0.3 * np.cos(points[:, 0] / 7.0),
+        ],
+        axis=1,
+    ).reshape(*grid_shape, 3)
+    field = DisplacementField(origin, step, u)
+    deformed = warp.warp_forward(reference, field, cval=0.5)
+    return reference, deformed, field
+
+
+def test_sample_lazy_equals_whole_volume_sampling(case):
+    reference = case[0]
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-2, np.array(SHAPE) + 1, size=(500, 3))
+    points[:5] = np.nan
+    expected = sample(prefilter(reference), np.nan_to_num(points, nan=-10.0))
+    got = sample_lazy(ArrayVolume(reference), points)
+    both = np.isfinite(expected)
+    assert np.array_equal(both, np.isfinite(got))
+    assert both.sum() > 300
+    assert np.max(np.abs(got[both] - expected[both])) < 1e-6
+
+
+@pytest.mark.parametrize("suffix", [".zarr", ".tif"])
+def test_pull_back_and_warp_forward(tmp_path, case, suffix):
+    reference, deformed, field = case
+    info = write_pull_back(
+        ArrayVolume(deformed), field, tmp_path / f"pulled{suffix}", block_shape=BLOCK, cval=-1.0
+    )
+    assert info["blocks"] > 8
+    expected = warp.pull_back(deformed, field, cval=-1.0)
+    np.testing.assert_allclose(_read(info["path"]), expected, rtol=0, atol=1e-6)
+    info = write_warp_forward(reference, field, tmp_path / f"forward{suffix}", block_shape=BLOCK)
+    expected = warp.warp_forward(reference, field)
+    got = _read(info["path"])
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("mode", ["reference", "loaded"])
+def test_gray_residual_and_its_mean(tmp_path, case, mode):
+    reference, deformed, field = case
+    info = write_gray_residual(
+        reference, deformed, field, tmp_path / "residual.zarr", mode=mode, block_shape=BLOCK
+    )
+    expected = warp.gray_residual(reference, deformed, field, mode=mode)
+    got = _read(info["path"])
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
+    assert info["mean"] == pytest.approx(np.nanmean(expected), rel=1e-5, abs=1e-6)
+    assert info["mean"] < 0.02  # the field explains the pair
+
+
+def test_dense_field_and_equivalent_strain(tmp_path, case):
+    field = case[2]
+    info = write_dense_field(field, SHAPE, tmp_path / "dense.zarr", block_shape=BLOCK)
+    dense = _read(info["path"])
+    assert dense.shape == (*SHAPE, 3)
+    np.testing.assert_allclose(dense, warp.densify(field, shape=SHAPE), rtol=0, atol=1e-6)
+    info = write_equivalent_strain(field, SHAPE, tmp_path / "strain.tif", block_shape=BLOCK)
+    grid = equivalent_strain_field(field)
+    expected = warp.densify(
+        warp.FieldSpline(field.origin, field.step, grid[..., None]), shape=SHAPE
+    )
+    np.testing.assert_allclose(_read(info["path"]), expected[..., 0], rtol=0, atol=1e-6)
+
+
+class _Broken(ArrayVolume):
+    def read_region(self, slices):
+        if slices[0].start and slices[0].start > 0:
+            raise OSError("disk gone")
+        return super().read_region(slices)
+
+
+def test_a_failed_run_leaves_the_earlier_output(tmp_path, case):
+    reference, deformed, field = case
+    target = tmp_path / "pulled.zarr"
+    write_pull_back(deformed, field, target, block_shape=BLOCK)
+    before = _read(target)
+    with pytest.raises(OSError, match="disk gone"):
+        write_pull_back(_Broken(deformed), field, target, block_shape=BLOCK, cval=7.0)
+    np.testing.assert_array_equal(_read(target), before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pulled.zarr"]
+    with pytest.raises(ValueError, match=r"\.zarr, \.tif or \.tiff"):
+        write_pull_back(deformed, field, tmp_path / "pulled.h5")
