@@ -92,3 +92,14 @@ def test_dense_layers_use_the_voxel_size(field):
     assert kwargs["name"] == "residual (corrected)" and kind == "image"
     labels, kwargs, kind = L.phase_layer(np.zeros((8, 8, 8), np.uint8), voxel_size=(2, 2, 2))
     assert kind == "labels" and kwargs["name"] == "phases"
+
+
+def test_show_layers_keeps_layers_that_share_a_metadata_dict():
+    viewer = ViewerModel()
+    meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
+    points = (np.zeros((2, 3)), {"name": "a", "metadata": meta}, "points")
+    image = (np.zeros((2, 2, 2)), {"name": "b", "metadata": meta}, "image")
+    L.show_layers(viewer, [points])
+    L.show_layers(viewer, [image])
+    assert [layer.name for layer in viewer.layers] == ["a", "b"]
+    assert L.find_layer(viewer, "a").name == "a" and L.find_layer(viewer, "b").name == "b"

@@ -356,9 +356,10 @@ def show_layers(viewer, layer_tuples) -> list:
     for data, kwargs, layer_type in layer_tuples:
         kwargs = dict(kwargs)
         name = kwargs.get("name")
-        entry = kwargs.get("metadata", {}).get(MARKER)
-        if isinstance(entry, dict):
-            entry["name"] = name  # napari may rename the layer; we find it by this
+        metadata = kwargs.get("metadata") or {}
+        entry = metadata.get(MARKER)
+        if isinstance(entry, dict):  # napari may rename the layer; we find it by this name
+            kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": name}}
         layer = Layer.create(data, kwargs, layer_type)
         old = find_layer(viewer, name)
         if old is not None:

@@ -52,6 +52,24 @@ def _guarded(generator: Generator) -> Generator:
         raise EngineError(str(error)) from error
 
 
+def follow_layers(viewer, widget, callback: Callable, moves: bool = False) -> None:
+    """Call ``callback`` when layers are added or removed (and moved), until ``widget`` is deleted.
+
+    The connections are undone when the Qt object goes away, so a closed dock never receives
+    events for a deleted widget.
+    """
+    events = viewer.layers.events
+    emitters = (events.inserted, events.removed) + ((events.moved,) if moves else ())
+    for emitter in emitters:
+        emitter.connect(callback)
+
+    def disconnect(*args, emitters=emitters, callback=callback) -> None:
+        for emitter in emitters:
+            emitter.disconnect(callback)
+
+    widget.destroyed.connect(disconnect)
+
+
 def one_line(error: BaseException) -> str:
     """A short, single-line message for ``error``."""
     text = " ".join(str(error).split())
@@ -72,9 +90,7 @@ class LayerCombo(QComboBox):
         self._optional = optional
         self.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
         self.setMinimumContentsLength(12)
-        events = viewer.layers.events
-        for event in (events.inserted, events.removed, events.moved):
-            event.connect(self.refresh)
+        follow_layers(viewer, self, self.refresh, moves=True)
         self.refresh()
 
     def layers(self) -> list:

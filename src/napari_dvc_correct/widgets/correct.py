@@ -6,7 +6,7 @@ from qtpy.QtWidgets import QCheckBox, QComboBox, QSpinBox, QTableWidget, QTableW
 
 from .. import layers as L
 from . import correct_model as model
-from ._base import EngineWidget, LayerCombo
+from ._base import EngineWidget, LayerCombo, follow_layers
 from .correlate import _is_image, _is_mask
 from .correlate_model import layer_volume, mask_from_layer
 
@@ -45,8 +45,7 @@ class CorrectWidget(EngineWidget):
         self.table.setMaximumHeight(150)
         self.body.addWidget(self.table)
         self.field.currentIndexChanged.connect(self._field_changed)
-        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
-            event.connect(self._layers_changed)
+        follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
 
     def _layers_changed(self, event=None) -> None:

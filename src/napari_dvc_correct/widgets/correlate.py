@@ -20,7 +20,7 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from . import correlate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, one_line
+from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line
 
 MODES = {
     "pair": "Pair: reference → deformed",
@@ -132,8 +132,7 @@ class CorrelateWidget(EngineWidget):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
         self.subvolume.editingFinished.connect(self._make_odd)
-        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
-            event.connect(self._layers_changed)
+        follow_layers(self.viewer, self, self._layers_changed)
         self.viewer.mouse_drag_callbacks.append(self._on_click)
         self._layers_changed()
         self._mode_changed()

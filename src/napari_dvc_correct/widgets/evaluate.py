@@ -17,7 +17,7 @@ from superqt import QDoubleRangeSlider
 
 from .. import layers as L
 from . import evaluate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, one_line
+from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line
 from ._plots import CurvesCanvas, HistogramCanvas
 from .correlate import _is_image
 from .correlate_model import layer_placement, layer_volume
@@ -82,8 +82,7 @@ class EvaluateWidget(EngineWidget):
         self.n_phases.valueChanged.connect(self.auto_thresholds)
         self.auto_button.clicked.connect(lambda checked=False: self.auto_thresholds())
         self.reference.currentIndexChanged.connect(self._reference_changed)
-        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
-            event.connect(self._layers_changed)
+        follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
         self._reference_changed()
 

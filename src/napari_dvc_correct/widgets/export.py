@@ -9,7 +9,7 @@ from qtpy.QtWidgets import QCheckBox, QComboBox, QFileDialog, QHBoxLayout, QLine
 
 from .. import layers as L
 from . import export_model as model
-from ._base import EngineWidget
+from ._base import EngineWidget, follow_layers
 
 
 class ExportWidget(EngineWidget):
@@ -40,8 +40,7 @@ class ExportWidget(EngineWidget):
             self.form.addRow(box)
         browse.clicked.connect(self.browse)
         self.format.currentIndexChanged.connect(self._format_changed)
-        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
-            event.connect(self._layers_changed)
+        follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
 
     def _layers_changed(self, event=None) -> None:
