@@ -83,8 +83,9 @@ def _fft_search_bytes() -> int:
         return 256 * 2**20
 
 
-class MemoryBudgetError(MemoryError):
-    """The estimated peak memory of a run exceeds what it may use."""
+class MemoryBudgetError(MemoryError, ValueError):
+    """The estimated peak memory of a run exceeds what it may use (a ``ValueError`` too: the
+    input asks for too much, and the command line reports it as bad input)."""
 
 
 # --- memory ------------------------------------------------------------------------------------

@@ -1,0 +1,151 @@
+"""Command-line options for correlating volumes too large for memory (``--tiled`` and friends).
+
+The correlate command wires these in::
+
+    from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
+
+    add_tiled_arguments(parser)             # in add_parser
+    ...
+    if wants_tiled(args):                   # in run, instead of read_volume + correlate_iter
+        field = run_tiled(args, params)
+
+This module imports no engine code at import time (the CLI stays quick to start).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _batch(text: str) -> tuple[int, int, int]:
+    try:
+        values = [int(v) for v in text.replace("x", ",").split(",") if v.strip()]
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a batch shape: give N or NZ,NY,NX POIs"
+        ) from error
+    if len(values) == 1:
+        values = values * 3
+    if len(values) != 3 or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a batch shape: give N or NZ,NY,NX POIs")
+    return tuple(values)
+
+
+def _memory(text: str) -> int:
+    from dask.utils import parse_bytes
+
+    try:
+        value = parse_bytes(text)
+    except (ValueError, KeyError) as error:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a memory size: use e.g. 2GB, 1.5GiB or 512MB"
+        ) from error
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"--max-memory must be > 0, got {text!r}")
+    return int(value)
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return value
+
+
+def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--tiled``, ``--scheduler``, ``--max-memory``, ``--batch`` and ``--workers``."""
+    group = parser.add_argument_group(
+        "large volumes",
+        "Correlate batch by batch, reading only each batch's region of the volumes (TIFF, Zarr, "
+        "OME-Zarr, .npy, folders of TIFF slices). Any of these options turns it on.",
+    )
+    group.add_argument(
+        "--tiled",
+        action="store_true",
+        help="correlate in spatial batches from lazily read volumes, on dask's local threads",
+    )
+    group.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="send the batches to a dask.distributed scheduler (e.g. tcp://10.0.0.5:8786)",
+    )
+    group.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        type=_memory,
+        help="peak memory the run may use (e.g. 2GB); picks the batch size. The estimated peak "
+        "is printed before the run, which is refused if it exceeds this or the machine",
+    )
+    group.add_argument(
+        "--batch",
+        metavar="N|NZ,NY,NX",
+        type=_batch,
+        help="POIs per batch (default: the largest that fits the memory)",
+    )
+    group.add_argument(
+        "--workers",
+        metavar="N",
+        type=_positive,
+        help="batches correlated at once on this machine (default: up to 4)",
+    )
+
+
+def wants_tiled(args: argparse.Namespace) -> bool:
+    """True when any of the large-volume options was given."""
+    return bool(
+        getattr(args, "tiled", False)
+        or getattr(args, "scheduler", None)
+        or getattr(args, "max_memory", None)
+        or getattr(args, "batch", None)
+        or getattr(args, "workers", None)
+    )
+
+
+def run_tiled(args: argparse.Namespace, params, progress=None):
+    """Correlate ``args.reference`` with ``args.deformed`` by batches; return the field.
+
+    Reads ``args.reference``, ``args.deformed``, ``args.mask`` (optional) lazily and prints the
+    estimated peak memory to stderr before the work starts (unless ``args.quiet``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options, with those of :func:`add_tiled_arguments`.
+    params : CorrelationParams
+    progress : callable, optional
+        Called with every :class:`Progress` (default: the command's progress bar).
+    """
+    from ..engine.tiled import correlate_tiled_iter
+    from ..io.lazy import open_volume
+
+    reference = open_volume(args.reference)
+    deformed = open_volume(args.deformed)
+    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
+    quiet = bool(getattr(args, "quiet", False))
+    if progress is None:
+        from .correlate import ProgressBar
+
+        progress = ProgressBar(quiet).update
+    generator = correlate_tiled_iter(
+        reference,
+        deformed,
+        params,
+        mask=mask,
+        batch_shape=getattr(args, "batch", None),
+        max_memory=getattr(args, "max_memory", None),
+        workers=getattr(args, "workers", None),
+        scheduler=getattr(args, "scheduler", None) or None,
+    )
+    while True:
+        try:
+            report = next(generator)
+        except StopIteration as stop:
+            field = stop.value
+            break
+        if report.stage == "plan" and not quiet:
+            print(f"tiled: {report.message}", file=sys.stderr, flush=True)
+        progress(report)
+    field.metadata["reference"] = str(args.reference)
+    field.metadata["deformed"] = str(args.deformed)
+    return field
