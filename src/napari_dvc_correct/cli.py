@@ -12,7 +12,7 @@ import importlib
 import sys
 
 #: Subcommand modules under napari_dvc_correct.commands, in the order ``--help`` lists them.
-SUBCOMMANDS = ("correlate", "evaluate")
+SUBCOMMANDS = ("correlate", "evaluate", "correct", "series")
 
 
 class UserError(Exception):

@@ -34,20 +34,20 @@ DIRECT_SOLVE_LIMIT = 3_000
 
 # --- normalised median test -------------------------------------------------------------------
 @njit(parallel=True, **KERNEL_OPTIONS)
-def _median_test_kernel(u, valid, radius, epsilon, min_neighbours, out):
+def _median_test_kernel(u, valid, tested, radius, epsilon, min_neighbours, out):
     nz, ny, nx, nc = u.shape
     size = (2 * radius + 1) ** 3
     for flat in prange(nz * ny * nx):
         i = flat // (ny * nx)
         j = (flat // nx) % ny
         k = flat % nx
-        if not valid[i, j, k]:
+        if not tested[i, j, k]:
             out[i, j, k] = np.nan
             continue
         values = np.empty(size)
         deviations = np.empty(size)
         worst = 0.0
-        tested = True
+        complete = True
         for c in range(nc):
             n = 0
             for a in range(max(0, i - radius), min(nz, i + radius + 1)):
@@ -58,7 +58,7 @@ def _median_test_kernel(u, valid, radius, epsilon, min_neighbours, out):
                         values[n] = u[a, b, d, c]
                         n += 1
             if n < min_neighbours:
-                tested = False
+                complete = False
                 break
             median = np.median(values[:n])
             for m in range(n):
@@ -66,7 +66,39 @@ def _median_test_kernel(u, valid, radius, epsilon, min_neighbours, out):
             spread = np.median(deviations[:n])
             residual = abs(u[i, j, k, c] - median) / (spread + epsilon)
             worst = max(worst, residual)
-        out[i, j, k] = worst if tested else np.nan
+        out[i, j, k] = worst if complete else np.nan
+
+
+def _pad_for_test(u: np.ndarray, valid: np.ndarray, width: int):
+    """Pad the grid by ``width`` nodes with values extrapolated linearly from the interior.
+
+    A padded node at distance ``k`` beyond a border node is predicted from the two nodes next
+    to the border one (not from the border node itself, which is the one under test), so a
+    linear field is continued exactly and a border outlier cannot vouch for itself. Axes with
+    fewer than 3 nodes are padded with invalid nodes.
+    """
+    for axis in range(3):
+        n = u.shape[axis]
+        if n < 3:
+            low_u = np.zeros_like(np.take(u, [0] * width, axis=axis))
+            high_u = low_u
+            low_ok = high_ok = np.zeros_like(np.take(valid, [0] * width, axis=axis))
+        else:
+            distance = np.arange(width, 0, -1, dtype=np.float64) + 1.0  # far to near
+            shape = [1, 1, 1, 1]
+            shape[axis] = width
+            distance = distance.reshape(shape)
+            inner, next_inner = np.take(u, [1], axis=axis), np.take(u, [2], axis=axis)
+            low_u = inner - distance * (next_inner - inner)
+            inner, next_inner = np.take(u, [n - 2], axis=axis), np.take(u, [n - 3], axis=axis)
+            high_u = inner - np.flip(distance, axis=axis) * (next_inner - inner)
+            low_ok = np.take(valid, [1] * width, axis=axis) & np.take(valid, [2] * width, axis=axis)
+            high_ok = np.take(valid, [n - 2] * width, axis=axis) & np.take(
+                valid, [n - 3] * width, axis=axis
+            )
+        u = np.concatenate([low_u, u, high_u], axis=axis)
+        valid = np.concatenate([low_ok, valid, high_ok], axis=axis)
+    return np.ascontiguousarray(u), np.ascontiguousarray(valid)
 
 
 def normalized_median_test(
@@ -78,6 +110,11 @@ def normalized_median_test(
     min_neighbours: int = 3,
 ) -> np.ndarray:
     """Normalised median residual of every node (Westerweel & Scarano 2005).
+
+    Beyond the grid's borders the neighbourhood is completed by linear extrapolation from the
+    interior (:func:`_pad_for_test`). Without that, a homogeneous strain makes the one-sided
+    neighbourhoods of border nodes look biased (their median lies about a step's displacement
+    away), and a test repeated over passes would eat the grid from its borders inwards.
 
     Parameters
     ----------
@@ -109,11 +146,14 @@ def normalized_median_test(
         raise ValueError(f"radius must be >= 1 node, got {radius!r}")
     if not epsilon > 0:
         raise ValueError(f"epsilon must be > 0 voxels, got {epsilon!r}")
-    out = np.empty(u.shape[:3], np.float64)
-    _median_test_kernel(
-        u, np.ascontiguousarray(valid), int(radius), float(epsilon), int(min_neighbours), out
-    )
-    return out
+    r = int(radius)
+    padded, padded_valid = _pad_for_test(np.where(valid[..., None], u, 0.0), valid, r)
+    tested = np.zeros(padded_valid.shape, bool)
+    inner = tuple(slice(r, r + n) for n in u.shape[:3])
+    tested[inner] = valid
+    out = np.empty(padded_valid.shape, np.float64)
+    _median_test_kernel(padded, padded_valid, tested, r, float(epsilon), int(min_neighbours), out)
+    return out[inner]
 
 
 @dataclass

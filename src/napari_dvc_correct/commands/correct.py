@@ -1,0 +1,161 @@
+"""``napari-dvc-correct correct REF DEF --field FIELD.npz --out CORRECTED.npz``: self-correction.
+
+Also provides the ``--self-correct`` option of ``correlate`` (:func:`add_self_correct_argument`,
+:func:`apply_self_correction`) and of ``series``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "correct",
+        help="self-correct a displacement field (the paper's strategy)",
+        description="Self-correct the DVC displacement field of a pair: clean it, warp the "
+        "volumes with it, correlate again with the same parameters and update the field; "
+        "repeated while the mean gray residual falls. Writes the corrected field (.npz) and "
+        "prints the residual of every pass.",
+    )
+    parser.add_argument(
+        "reference", help="reference volume (TIFF, folder of TIFF slices, .npy, .npz)"
+    )
+    parser.add_argument("deformed", help="deformed volume, same shape as the reference")
+    parser.add_argument("--field", required=True, help="field file (.npz) from 'correlate'")
+    parser.add_argument("--out", required=True, help="output field file (.npz)")
+    parser.add_argument("--mask", help="reference-space mask volume (non-zero = material)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_correction_options(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def add_correction_options(parser: argparse.ArgumentParser) -> None:
+    """Options of the self-correction (all optional: the DVC parameters are reused)."""
+    group = parser.add_argument_group("self-correction")
+    group.add_argument(
+        "--max-passes", type=int, default=3, help="most correction passes (default 3)"
+    )
+    group.add_argument(
+        "--min-improvement",
+        type=float,
+        default=0.01,
+        help="stop when a pass lowers the mean gray residual by less than this fraction "
+        "(default 0.01)",
+    )
+    group.add_argument(
+        "--frame",
+        choices=("loaded", "reference"),
+        default="loaded",
+        help="warp the reference to the loaded state (paper, default) or pull the deformed "
+        "volume back to the reference",
+    )
+    group.add_argument(
+        "--update",
+        choices=("exact", "sum"),
+        default="exact",
+        help="compose the correction with the field (default) or add it node by node (paper)",
+    )
+    group.add_argument(
+        "--outlier-threshold",
+        type=float,
+        default=2.0,
+        help="normalised median test threshold for cleaning (default 2)",
+    )
+    group.add_argument(
+        "--smoothing",
+        type=float,
+        default=0.0,
+        help="Gaussian smoothing of the cleaned field, sigma in grid nodes (default 0: none)",
+    )
+
+
+def add_self_correct_argument(parser: argparse.ArgumentParser) -> None:
+    """Add ``--self-correct`` and the correction options to a correlating command's parser."""
+    parser.add_argument(
+        "--self-correct",
+        action="store_true",
+        help="self-correct the field before writing it (same DVC parameters)",
+    )
+    add_correction_options(parser)
+
+
+def correction_options_from_args(args) -> dict:
+    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.correct_iter`."""
+    if args.max_passes < 1:
+        raise ValueError(f"--max-passes must be >= 1, got {args.max_passes}")
+    return {
+        "frame": args.frame,
+        "update": args.update,
+        "max_passes": args.max_passes,
+        "min_improvement": args.min_improvement,
+        "clean_options": {"threshold": args.outlier_threshold, "smoothing": args.smoothing},
+    }
+
+
+def pass_table(field) -> str:
+    """The per-pass report of a corrected field as aligned text lines."""
+    lines = ["pass  mean gray residual  applied  nodes changed  mean change  max change"]
+    for entry in field.metadata.get("correction_passes", []):
+        lines.append(
+            f"{entry['pass']:>4}  {entry['mean_gray_residual']:>18.4f}  "
+            f"{'yes' if entry['accepted'] else 'no':>7}  {entry['fraction_changed']:>13.3f}  "
+            f"{entry['mean_change']:>11.3f}  {entry['max_change']:>10.3f}"
+        )
+    return "\n".join(lines)
+
+
+def apply_self_correction(args, field, reference, deformed):
+    """Self-correct ``field`` of the pair with the options in ``args``; return the new field.
+
+    Used by ``correlate --self-correct``: call it after the correlation, before saving. Reads
+    ``args.mask`` (a path) if the parser has one; prints the per-pass table on stdout.
+    """
+    from ..engine.correction import correct_iter
+    from ..io.volumes import read_volume
+    from .correlate import ProgressBar, drive
+
+    mask_path = getattr(args, "mask", None)
+    mask = read_volume(mask_path) if mask_path else None
+    options = correction_options_from_args(args)
+    bar = ProgressBar(getattr(args, "quiet", False))
+    corrected = drive(correct_iter(reference, deformed, field, mask=mask, **options), bar)
+    print(pass_table(corrected))
+    return corrected
+
+
+def run(args) -> int:
+    from ..engine.correction import correct_iter
+    from ..engine.field import DisplacementField
+    from ..io.volumes import read_volume
+    from .correlate import ProgressBar, check_output_path, drive
+
+    started = time.perf_counter()
+    out = check_output_path(args.out)
+    options = correction_options_from_args(args)
+    field = DisplacementField.load(args.field)
+    reference = read_volume(args.reference)
+    deformed = read_volume(args.deformed)
+    mask = read_volume(args.mask) if args.mask else None
+    volume_shape = field.metadata.get("volume_shape")
+    if volume_shape is not None and tuple(volume_shape) != tuple(reference.shape):
+        raise ValueError(
+            f"the field was measured on volumes of shape {tuple(volume_shape)}, "
+            f"not {reference.shape}: give the volumes it came from"
+        )
+    bar = ProgressBar(args.quiet)
+    corrected = drive(correct_iter(reference, deformed, field, mask=mask, **options), bar)
+    corrected.metadata["reference"] = str(args.reference)
+    corrected.metadata["deformed"] = str(args.deformed)
+    corrected.metadata["corrected_from"] = str(args.field)
+    corrected.save(out)
+    print(pass_table(corrected))
+    info = corrected.metadata["correction"]
+    print(
+        f"mean gray residual {info['mean_gray_residual_before']:.4f} -> "
+        f"{info['mean_gray_residual_after']:.4f} in {info['passes_applied']} pass(es); "
+        f"time {time.perf_counter() - started:.2f} s; wrote {out}"
+    )
+    return 0

@@ -1,0 +1,226 @@
+"""Scan series: the total and incremental strategies (SPEC §4, paper Fig. 2).
+
+* ``strategy="total"``: every state ``k`` is correlated with the first, ``U_0→k = DVC(V0, Vk)``.
+  Robust against error accumulation, but decorrelates when the deformation grows large.
+* ``strategy="incremental"``: adjacent states are correlated, ``u_k−1→k = DVC(Vk−1, Vk)``, and
+  the increments are merged by displacement superposition, i.e. composition
+  (:func:`.compose.compose`): ``U_0→k(X) = U_0→k−1(X) + u_k−1→k(X + U_0→k−1(X))``, with the
+  increment interpolated at the displaced positions by cubic splines.
+
+The self-correction (:mod:`.correction`) can be applied to every increment
+(``correct_increments``, against ``Vk−1`` and ``Vk``) and/or to every merged total
+(``correct_total``, against ``V0`` and ``Vk``; the corrected total is the one the next increment
+is composed onto). With the total strategy both options mean "correct each total".
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Generator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import warp
+from .cleaning import clean
+from .compose import compose
+from .correction import correct_iter, forward_progress
+from .correlate import correlate_iter
+from .field import DisplacementField, grid_for_volume
+from .params import CorrelationParams
+from .progress import Progress, run_to_completion
+
+STRATEGIES = ("total", "incremental")
+
+
+@dataclass
+class SeriesResult:
+    """Fields of a scan series.
+
+    Attributes
+    ----------
+    totals : list of DisplacementField
+        ``U_0→k`` for ``k = 1 .. n-1`` on the grid of the first state (reference voxels of V0).
+    increments : list of DisplacementField
+        ``u_k−1→k`` for the incremental strategy (each in the voxels of state ``k-1``); empty
+        for the total strategy.
+    strategy : str
+    """
+
+    totals: list = field(default_factory=list)
+    increments: list = field(default_factory=list)
+    strategy: str = "incremental"
+
+    def summary(self) -> list[dict]:
+        """One row per state (the first state included, with zero displacement)."""
+        rows = [
+            {
+                "state": 0,
+                "strategy": self.strategy,
+                "valid_fraction": 1.0,
+                "mean_displacement": 0.0,
+                "max_displacement": 0.0,
+                "mean_zncc": float("nan"),
+                "mean_gray_residual": float("nan"),
+                "mean_gray_residual_uncorrected": float("nan"),
+                "correction_passes": 0,
+            }
+        ]
+        for state, total in enumerate(self.totals, start=1):
+            valid = total.valid
+            magnitude = total.magnitude[valid]
+            zncc = total.zncc[valid]
+            info = total.metadata.get("series", {})
+            rows.append(
+                {
+                    "state": state,
+                    "strategy": self.strategy,
+                    "valid_fraction": float(valid.mean()),
+                    "mean_displacement": float(magnitude.mean()) if magnitude.size else np.nan,
+                    "max_displacement": float(magnitude.max()) if magnitude.size else np.nan,
+                    "mean_zncc": float(np.nanmean(zncc)) if np.isfinite(zncc).any() else np.nan,
+                    "mean_gray_residual": info.get("mean_gray_residual", float("nan")),
+                    "mean_gray_residual_uncorrected": info.get(
+                        "mean_gray_residual_uncorrected", float("nan")
+                    ),
+                    "correction_passes": info.get("correction_passes", 0),
+                }
+            )
+        return rows
+
+
+def _check_volumes(volumes) -> list:
+    volumes = list(volumes)
+    if len(volumes) < 2:
+        raise ValueError(f"a series needs at least 2 volumes, got {len(volumes)}")
+    shapes = {tuple(np.shape(v)) for v in volumes}
+    if len(shapes) != 1:
+        raise ValueError(f"all volumes of a series must have the same shape, got {sorted(shapes)}")
+    if len(next(iter(shapes))) != 3:
+        raise ValueError(f"volumes must be 3-D (z, y, x), got shape {next(iter(shapes))}")
+    return volumes
+
+
+def _passes_applied(corrected: DisplacementField) -> int:
+    return int(corrected.metadata.get("correction", {}).get("passes_applied", 0))
+
+
+def series_iter(
+    volumes: Sequence[np.ndarray],
+    params: CorrelationParams | None = None,
+    *,
+    strategy: str = "incremental",
+    correct_increments: bool = False,
+    correct_total: bool = False,
+    correction_options: dict | None = None,
+    mask: np.ndarray | None = None,
+) -> Generator[Progress, None, SeriesResult]:
+    """Displacement fields of a scan series, yielding progress; returns a :class:`SeriesResult`.
+
+    Parameters
+    ----------
+    volumes : sequence of ndarray, each shape (nz, ny, nx)
+        States ``V0, V1, ...`` in loading order (same shape; memory maps are fine).
+    params : CorrelationParams, optional
+        DVC parameters for every correlation (and every correction pass).
+    strategy : {"incremental", "total"}
+    correct_increments : bool
+        Self-correct each increment (incremental) or each total (total strategy).
+    correct_total : bool
+        Self-correct each merged total against ``V0`` (incremental) or each total (total).
+    correction_options : dict, optional
+        Keyword arguments for :func:`.correction.correct_iter` (frame, update, max_passes...).
+    mask : ndarray of bool, shape (nz, ny, nx), optional
+        Material mask in the first state's voxels; for increments it is carried to state
+        ``k-1`` by the merged field.
+
+    Yields
+    ------
+    Progress
+        Stages prefixed by ``"state k/n"``.
+    """
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
+    volumes = _check_volumes(volumes)
+    params = CorrelationParams() if params is None else params
+    options = dict(correction_options or {})
+    grid = grid_for_volume(np.shape(volumes[0]), params.subvolume, params.step)
+    result = SeriesResult(strategy=strategy)
+    n = len(volumes)
+    first = volumes[0]
+    started = time.perf_counter()
+    for k in range(1, n):
+        label = f"state {k}/{n - 1}"
+        state_started = time.perf_counter()
+        if strategy == "total" or k == 1:
+            total = yield from forward_progress(
+                correlate_iter(first, volumes[k], params, mask=mask, grid=grid), label
+            )
+            if strategy == "incremental":
+                result.increments.append(total.copy())
+            corrected_here = correct_increments or correct_total
+        else:
+            previous = result.totals[-1]
+            filled = clean(previous, fill_masked=True)
+            state_mask = None
+            if mask is not None:
+                moved = warp.warp_forward(np.asarray(mask, np.float32), filled, cval=0.0)
+                state_mask = moved > 0.5 if (moved > 0.5).any() else None
+            increment = yield from forward_progress(
+                correlate_iter(volumes[k - 1], volumes[k], params, mask=state_mask, grid=grid),
+                f"{label}: increment",
+            )
+            if correct_increments:
+                increment = yield from forward_progress(
+                    correct_iter(
+                        volumes[k - 1], volumes[k], increment, params, mask=state_mask, **options
+                    ),
+                    f"{label}: increment correction",
+                )
+            result.increments.append(increment)
+            increment_filled = clean(increment, fill_masked=True)
+            total = compose(previous, increment_filled)
+            corrected_here = correct_total
+        uncorrected = total
+        passes = 0
+        if corrected_here:
+            total = yield from forward_progress(
+                correct_iter(first, volumes[k], total, params, mask=mask, **options),
+                f"{label}: correction",
+            )
+            passes = _passes_applied(total)
+            if strategy == "incremental" and k == 1:
+                result.increments[0] = total.copy()
+        yield Progress(label, 0, 1, "gray residual")
+        residual = _residual(first, volumes[k], total)
+        residual_uncorrected = (
+            _residual(first, volumes[k], uncorrected) if corrected_here else residual
+        )
+        total.metadata["series"] = {
+            "state": k,
+            "strategy": strategy,
+            "reference_state": 0,
+            "corrected_increments": bool(correct_increments),
+            "corrected_total": bool(corrected_here),
+            "correction_passes": passes,
+            "mean_gray_residual": residual,
+            "mean_gray_residual_uncorrected": residual_uncorrected,
+            "seconds": time.perf_counter() - state_started,
+        }
+        result.totals.append(total)
+        yield Progress(label, 1, 1, f"mean gray residual {residual:.4g}")
+    yield Progress("done", n - 1, n - 1, f"{n - 1} states in {time.perf_counter() - started:.1f} s")
+    return result
+
+
+def _residual(reference, deformed, total: DisplacementField) -> float:
+    try:
+        filled = clean(total, fill_masked=True)
+    except ValueError:
+        return float("nan")
+    return warp.mean_gray_residual(reference, deformed, filled)
+
+
+def series(volumes: Sequence[np.ndarray], params: CorrelationParams | None = None, **options):
+    """Blocking form of :func:`series_iter` (same parameters, no progress)."""
+    return run_to_completion(series_iter(volumes, params, **options))

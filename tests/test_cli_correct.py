@@ -1,0 +1,110 @@
+"""The ``correct`` and ``series`` subcommands and ``correlate --self-correct``."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.cli import main
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.field import DisplacementField, Provenance
+
+SHAPE = (36, 36, 36)
+SHIFT = np.array([1.4, -0.6, 2.2])
+DVC = ["--subvolume", "15", "--step", "8", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def volumes(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("volumes")
+    big = synthetic.textured_volume(tuple(n + 16 for n in SHAPE), 2.0, seed=21)
+    crop = tuple(slice(8, 8 + n) for n in SHAPE)
+    paths = []
+    for k in range(3):
+        moved = synthetic.deform_volume(big, synthetic.translation(k * SHIFT))
+        path = folder / f"state{k}.npy"
+        np.save(path, np.ascontiguousarray(moved[crop]))
+        paths.append(str(path))
+    return paths
+
+
+def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_path, capsys):
+    field_path = tmp_path / "field.npz"
+    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    out = tmp_path / "corrected.npz"
+    code = main(
+        ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out),
+         "--max-passes", "2", "--quiet"]
+    )  # fmt: skip
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "mean gray residual" in printed and "pass" in printed
+    corrected = DisplacementField.load(out)
+    passes = corrected.metadata["correction_passes"]
+    assert passes[0]["pass"] == 0 and len(passes) >= 2
+    assert corrected.metadata["corrected_from"] == str(field_path)
+    error = corrected.displacement[corrected.valid.reshape(-1)] - SHIFT
+    assert np.sqrt(np.mean(error**2)) < 0.05
+
+
+def test_correct_refuses_bad_input_and_writes_nothing(volumes, tmp_path, capsys):
+    out = tmp_path / "corrected.npz"
+    missing = ["correct", volumes[0], volumes[1], "--field", str(tmp_path / "no.npz")]
+    assert main([*missing, "--out", str(out)]) == 2
+    assert "not found" in capsys.readouterr().err
+    field_path = tmp_path / "field.npz"
+    DisplacementField.zeros((7.0, 7.0, 7.0), (8.0, 8.0, 8.0), (3, 3, 3)).save(field_path)
+    wrong = ["correct", volumes[0], volumes[1], "--field", str(field_path)]
+    assert main([*wrong, "--out", str(tmp_path / "corrected.txt")]) == 2
+    assert main([*wrong, "--out", str(out), "--max-passes", "0"]) == 2
+    assert not out.exists()
+
+
+def test_correlate_self_correct(volumes, tmp_path):
+    out = tmp_path / "field.npz"
+    args = ["correlate", volumes[0], volumes[1], "--out", str(out), *DVC]
+    assert main([*args, "--self-correct", "--max-passes", "1"]) == 0
+    field = DisplacementField.load(out)
+    assert field.metadata["correction"]["max_passes"] == 1
+    assert len(field.metadata["correction_passes"]) == 2
+
+
+@pytest.mark.parametrize("strategy", ["incremental", "total"])
+def test_series_writes_one_field_per_state_and_a_summary(volumes, tmp_path, strategy):
+    out_dir = tmp_path / "series"
+    code = main(["series", *volumes, "--strategy", strategy, "--out-dir", str(out_dir), *DVC])
+    assert code == 0
+    for k in (1, 2):
+        field = DisplacementField.load(out_dir / f"state_{k:02d}.npz")
+        good = field.valid.reshape(-1)
+        assert good.mean() > 0.9
+        assert np.abs(field.displacement[good] - k * SHIFT).max() < 0.1
+    increments = sorted(p.name for p in out_dir.glob("increment_*.npz"))
+    assert increments == (
+        ["increment_00_01.npz", "increment_01_02.npz"] if strategy == "incremental" else []
+    )
+    with open(out_dir / "summary.csv") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [row["state"] for row in rows] == ["0", "1", "2"]
+    assert rows[2]["field_file"] == "state_02.npz"
+    assert float(rows[2]["mean_displacement"]) == pytest.approx(np.linalg.norm(2 * SHIFT), 0.05)
+
+
+def test_series_with_self_correction_marks_corrected_nodes(volumes, tmp_path):
+    out_dir = tmp_path / "series"
+    code = main(
+        ["series", *volumes[:2], "--out-dir", str(out_dir), "--self-correct", "--max-passes",
+         "1", *DVC]
+    )  # fmt: skip
+    assert code == 0
+    field = DisplacementField.load(out_dir / "state_01.npz")
+    assert field.metadata["series"]["corrected_total"] is True
+    applied = field.metadata["correction"]["passes_applied"]
+    expected = Provenance.CORRECTED if applied else Provenance.MEASURED
+    assert np.any(field.provenance == expected)
+
+
+def test_series_needs_two_volumes(volumes, tmp_path, capsys):
+    assert main(["series", volumes[0], "--out-dir", str(tmp_path / "s"), *DVC]) == 2
+    assert "at least 2" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
