@@ -1,0 +1,84 @@
+"""Run the GPU kernels in numba's CUDA simulator on cases prepared by the tests.
+
+Usage (the tests do this in a subprocess, so the simulator never leaks into other tests)::
+
+    NUMBA_ENABLE_CUDASIM=1 python _simulate.py CASES.npz RESULTS.npz
+
+``CASES.npz`` holds, per case ``c``: ``c/kind`` ("icgn" or "sample") and the arguments. The
+results hold the outputs and, for IC-GN, the kernel's raw statuses before the CPU fallback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+
+
+def main(cases_path: str, results_path: str) -> int:
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") != "1":
+        raise SystemExit("set NUMBA_ENABLE_CUDASIM=1")
+    from napari_dvc_correct.engine import icgn
+    from napari_dvc_correct.engine.backend import select_device
+    from napari_dvc_correct.engine.cuda import icgn as gpu_icgn
+    from napari_dvc_correct.engine.cuda import match_many_cuda, sample_cuda, simulator_enabled
+
+    launch = gpu_icgn._launch
+
+    assert simulator_enabled()
+    data = dict(np.load(cases_path))
+    names = sorted({key.split("/")[0] for key in data})
+    out = {
+        "device_cuda": np.array(select_device("cuda").kind),
+        "device_cuda_description": np.array(select_device("cuda").description),
+        "device_auto": np.array(select_device("auto").kind),
+    }
+    for name in names:
+        case = {key.split("/", 1)[1]: value for key, value in data.items() if key.startswith(name)}
+        if str(case["kind"]) == "sample":
+            out[f"{name}/values"] = sample_cuda(case["coefficients"], case["points"])
+            continue
+        n = len(case["centers"])
+        args = [
+            case["reference"],
+            case["gradient"],
+            case["coef_deformed"],
+            case["mask"],
+            bool(case["use_mask"]),
+            case["centers"],
+            int(case["half"]),
+            int(case["nb"]),
+        ]
+        settings = [
+            int(case["max_iterations"]),
+            float(case["tolerance"]),
+            float(case["min_std"]),
+            float(case["min_mask_fraction"]),
+            float(case["max_update"]),
+            icgn.PRODUCT_TABLE,
+            icgn.QUAD_AXES,
+        ]
+        recorded = {}
+
+        def recording_launch(*arguments, recorded=recorded, **options):
+            # keep the kernel's own statuses (before the CPU re-matches FALLBACK POIs)
+            launch(*arguments, **options)
+            recorded["status"] = arguments[10].copy()
+
+        gpu_icgn._launch = recording_launch
+        params = case["params"].copy()
+        zncc, status, iterations = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
+        match_many_cuda(*args, params, zncc, status, iterations, *settings, threads_per_block=16)
+        gpu_icgn._launch = launch
+        out[f"{name}/raw_status"] = recorded["status"]
+        out[f"{name}/params"] = params
+        out[f"{name}/zncc"] = zncc
+        out[f"{name}/status"] = status
+        out[f"{name}/iterations"] = iterations
+    np.savez(results_path, **out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(*sys.argv[1:3]))
