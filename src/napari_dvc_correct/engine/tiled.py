@@ -466,6 +466,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
         task_s=time.perf_counter() - started,
         voxel_iterations=int(iterations.sum()) * job.params.subvolume**3,
         points=int(len(job.core_index)),
+        computed_points=int(np.prod(job.sub_shape)),
         region_voxels=job.region_voxels,
     )
     return BatchResult(
@@ -772,6 +773,8 @@ def correlate_tiled_iter(
         "task_s": {k: v for k, v in totals.items() if k.endswith("_s")},
         "voxel_iterations": int(totals.get("voxel_iterations", 0)),
         "points_per_s": matched / batch_seconds if batch_seconds > 0 else float("nan"),
+        # POIs matched including the margins (the work done), per POI kept
+        "margin_overhead": totals.get("computed_points", 0) / max(matched, 1),
     }
     origin, step, _ = grid
     result_field = DisplacementField(
