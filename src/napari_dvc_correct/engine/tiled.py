@@ -19,7 +19,8 @@ The halo around a batch's POIs (per side, in voxels) covers the subvolume half-s
 :data:`STRAIN_ALLOWANCE` for the shape function, the search radius around the rigid shift, the
 B-spline support (:data:`SPLINE_SUPPORT`) and :data:`PREFILTER_MARGIN` voxels, so that the region's
 B-spline prefilter equals the whole volume's to float32 rounding (measured: the difference decays
-as 0.27 per voxel and is below 6e-8 of the gray range after 12 voxels), at every pyramid level.
+as 0.27 per voxel and is below 6e-8 of the gray range after 12 voxels); coarse pyramid levels,
+which only give starting guesses, keep :data:`COARSE_PREFILTER_MARGIN` binned voxels.
 
 Scheduling (:mod:`.scheduling`): dask's local threaded scheduler by default (nothing to start);
 ``scheduler="ADDRESS"`` (or a ``distributed.Client``) sends the tasks to a ``dask.distributed``
@@ -49,6 +50,11 @@ from .progress import Progress, run_to_completion
 #: Voxels kept beyond every needed voxel so the region's B-spline coefficients equal the whole
 #: volume's (the prefilter's error decays as |z1|^d = 0.268^d; 12 voxels reach float32 rounding).
 PREFILTER_MARGIN = 12
+
+#: The same margin at the coarse pyramid levels, in binned voxels. Those levels only provide the
+#: starting guesses of the next level, so 6 binned voxels suffice (coefficient error below 1e-4
+#: of the gray range at the region's edge, far less for most POIs) and keep regions smaller.
+COARSE_PREFILTER_MARGIN = 6
 
 #: Taps of the cubic B-spline beyond a sampled position.
 SPLINE_SUPPORT = 2
@@ -170,11 +176,12 @@ def halo(params: CorrelationParams, levels: int) -> tuple[int, int]:
         half_l = half if lev == 0 else max(4, half // f)
         radius_l = radius if lev == 0 else math.ceil(radius / f) + 1
         rounding = 0 if lev == 0 else 2 * f
-        reach_g = max(reach_g, f * (half_l + 1 + PREFILTER_MARGIN) + rounding)
+        margin = PREFILTER_MARGIN if lev == 0 else COARSE_PREFILTER_MARGIN
+        reach_g = max(reach_g, f * (half_l + 1 + margin) + rounding)
         deformed_half = math.ceil(half_l * (1 + STRAIN_ALLOWANCE))
         reach_f = max(
             reach_f,
-            f * (deformed_half + radius_l + 1 + SPLINE_SUPPORT + PREFILTER_MARGIN) + rounding,
+            f * (deformed_half + radius_l + 1 + SPLINE_SUPPORT + margin) + rounding,
         )
     return reach_g, reach_f
 
