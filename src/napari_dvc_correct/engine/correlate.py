@@ -23,6 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from . import icgn
+from .backend import select_device
 from .cleaning import normalized_median_test
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
 from .initial_guess import bin_volume, fft_search, global_shift, pyramid_levels
@@ -93,9 +94,10 @@ class _Level:
     use_mask: bool
     half: int
     min_std: float
+    device: str = "cpu"  # "cuda": IC-GN runs on the GPU (engine.cuda)
 
     @classmethod
-    def build(cls, factor, reference, deformed, mask, half, min_texture):
+    def build(cls, factor, reference, deformed, mask, half, min_texture, device="cpu"):
         if factor > 1:
             reference = bin_volume(reference, factor)
             deformed = bin_volume(deformed, factor)
@@ -113,6 +115,7 @@ class _Level:
             use_mask=mask is not None,
             half=half,
             min_std=min_texture * std,
+            device=device,
         )
 
     def centers_from_fine(self, centers):
@@ -129,7 +132,11 @@ class _Level:
         iterations = np.zeros(n, np.int64)
         if n == 0:
             return zncc, status, iterations
-        icgn.match_many(
+        if self.device == "cuda":
+            from .cuda import match_many_cuda as kernel  # same arguments as icgn.match_many
+        else:
+            kernel = icgn.match_many
+        kernel(
             self.reference,
             self.gradient,
             self.coef_deformed,
@@ -304,6 +311,7 @@ def correlate_iter(
     grid: tuple | None = None,
     initial: DisplacementField | None = None,
     rigid_shift=None,
+    device="cpu",
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -325,6 +333,9 @@ def correlate_iter(
         Rigid shift ``(z, y, x)`` voxels to search around instead of estimating it from these
         volumes: the whole volume's shift when they are a region of larger volumes
         (:mod:`.tiled`).
+    device : {"cpu", "cuda", "auto"} or backend.Device
+        Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
+        a warning). The field's ``metadata["device"]`` says which was used.
 
     Yields
     ------
@@ -338,6 +349,7 @@ def correlate_iter(
         function's displacement ``gradient``.
     """
     params = CorrelationParams() if params is None else params
+    device = select_device(device)
     start_time = time.perf_counter()
     timings = {}
     reference, deformed, mask = validate_pair(reference, deformed, params, mask)
@@ -359,7 +371,7 @@ def correlate_iter(
 
     yield Progress("prefilter", 0, 1, "prefiltering the volumes")
     t0 = time.perf_counter()
-    fine = _Level.build(1, reference, deformed, mask, half, params.min_texture)
+    fine = _Level.build(1, reference, deformed, mask, half, params.min_texture, device.kind)
     timings["prefilter_s"] = time.perf_counter() - t0
     yield Progress("prefilter", 1, 1, "volumes prefiltered")
 
@@ -387,7 +399,13 @@ def correlate_iter(
                 fine
                 if lev == 0
                 else _Level.build(
-                    2**lev, reference, deformed, mask, max(4, half // 2**lev), params.min_texture
+                    2**lev,
+                    reference,
+                    deformed,
+                    mask,
+                    max(4, half // 2**lev),
+                    params.min_texture,
+                    device.kind,
                 )
             )
             level_centers = level.centers_from_fine(centers)
@@ -477,6 +495,7 @@ def correlate_iter(
             "pyramid_levels": int(levels),
             "timings": timings,
             "masked": mask is not None,
+            "device": device.description,
             "shape_function_parameters": params_out.reshape(*grid_shape, -1).tolist()
             if order == 2 and n_points <= 0
             else None,
@@ -495,6 +514,7 @@ def correlate(
     grid: tuple | None = None,
     initial: DisplacementField | None = None,
     rigid_shift=None,
+    device="cpu",
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -506,5 +526,6 @@ def correlate(
             grid=grid,
             initial=initial,
             rigid_shift=rigid_shift,
+            device=device,
         )
     )
