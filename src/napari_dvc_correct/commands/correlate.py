@@ -25,6 +25,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--mask", help="reference-space mask volume (non-zero = material)")
     parser.add_argument("--out", required=True, help="output field file (.npz)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where IC-GN runs: auto = a CUDA GPU when numba sees one that works, else the CPU; "
+        "cuda without a usable GPU falls back to the CPU with a warning (default: auto)",
+    )
     try:
         from .correct import add_self_correct_argument
     except ImportError:  # the correction command is optional at this stage
@@ -121,6 +128,7 @@ def summary(field, seconds: float) -> str:
 
 
 def run(args) -> int:
+    from ..engine.backend import select_device
     from ..engine.correlate import correlate_iter
     from ..io.volumes import read_volume
 
@@ -130,8 +138,10 @@ def run(args) -> int:
     reference = read_volume(args.reference)
     deformed = read_volume(args.deformed)
     mask = read_volume(args.mask) if args.mask else None
+    device = select_device(getattr(args, "device", "auto"))
+    print(f"device: {device.description}", flush=True)
     bar = ProgressBar(args.quiet)
-    field = drive(correlate_iter(reference, deformed, params, mask=mask), bar)
+    field = drive(correlate_iter(reference, deformed, params, mask=mask, device=device), bar)
     field.metadata["reference"] = str(args.reference)
     field.metadata["deformed"] = str(args.deformed)
     if getattr(args, "self_correct", False):
