@@ -43,3 +43,27 @@ def test_cuda_with_a_gpu_is_used(monkeypatch):
 def test_unknown_device_is_refused():
     with pytest.raises(ValueError, match="auto, cpu, cuda"):
         backend.select_device("tpu")
+
+
+def test_command_line_prints_the_device(tmp_path, capsys, monkeypatch):
+    import numpy as np
+
+    from napari_dvc_correct import cli
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.field import DisplacementField
+
+    monkeypatch.setattr(backend, "probe_cuda", lambda: (False, "no CUDA GPU found (test)"))
+    reference = synthetic.textured_volume((32, 32, 32), 1.5, seed=4)
+    deformed = synthetic.deform_volume(reference, synthetic.translation((0.3, -0.5, 0.2)))
+    np.save(tmp_path / "ref.npy", reference)
+    np.save(tmp_path / "def.npy", deformed)
+    out = tmp_path / "field.npz"
+    arguments = [str(tmp_path / "ref.npy"), str(tmp_path / "def.npy"), "--out", str(out)]
+    arguments += ["--subvolume", "11", "--step", "8", "--quiet", "--device", "cuda"]
+    with pytest.warns(RuntimeWarning, match="CUDA was requested"):
+        assert cli.main(["correlate", *arguments]) == 0
+    printed = capsys.readouterr().out
+    assert "device: CPU" in printed and "no CUDA GPU found (test)" in printed
+    field = DisplacementField.load(out)
+    assert field.metadata["device"].startswith("CPU")
+    assert np.allclose(field.u[field.valid], [0.3, -0.5, 0.2], atol=0.02)

@@ -39,6 +39,19 @@ def main(cases_path: str, results_path: str) -> int:
         if str(case["kind"]) == "sample":
             out[f"{name}/values"] = sample_cuda(case["coefficients"], case["points"])
             continue
+        if str(case["kind"]) == "correlate":  # the whole pipeline with device="cuda"
+            from napari_dvc_correct.engine.correlate import correlate
+            from napari_dvc_correct.engine.params import CorrelationParams
+
+            grid = (tuple(case["origin"]), tuple(case["step"]), tuple(case["grid_shape"]))
+            params = CorrelationParams(
+                subvolume=int(case["subvolume"]), search_radius=int(case["search_radius"])
+            )
+            field = correlate(case["reference"], case["deformed"], params, grid=grid, device="cuda")
+            out[f"{name}/u"] = field.u
+            out[f"{name}/status"] = field.status
+            out[f"{name}/device"] = np.array(field.metadata["device"])
+            continue
         n = len(case["centers"])
         args = [
             case["reference"],

@@ -123,6 +123,17 @@ def _build_cases():
         "points": points,
         "expected": sample(coefficients, points),
     }
+    shifted = synthetic.deform_volume(texture, synthetic.translation((0.6, -0.4, 1.3)))
+    cases["pipeline"] = {
+        "kind": np.array("correlate"),
+        "reference": texture,
+        "deformed": shifted,
+        "subvolume": np.array(7),
+        "search_radius": np.array(2),
+        "origin": np.array([9.0, 9.0, 9.0]),
+        "step": np.array([6.0, 6.0, 6.0]),
+        "grid_shape": np.array([2, 1, 1]),
+    }
     return cases
 
 
@@ -236,3 +247,19 @@ def test_device_selection_in_the_simulator(results):
     assert str(gpu["device_cuda"]) == "cuda"
     assert "simulator" in str(gpu["device_cuda_description"]).lower()
     assert str(gpu["device_auto"]) == "cpu"  # auto never picks the simulator
+
+
+def test_correlate_with_device_cuda_gives_the_cpu_field(results):
+    from napari_dvc_correct.engine.correlate import correlate
+    from napari_dvc_correct.engine.params import CorrelationParams
+
+    cases, gpu = results
+    case = cases["pipeline"]
+    grid = (tuple(case["origin"]), tuple(case["step"]), tuple(case["grid_shape"]))
+    params = CorrelationParams(subvolume=7, search_radius=2)
+    field = correlate(case["reference"], case["deformed"], params, grid=grid, device="cpu")
+    assert "simulator" in str(gpu["pipeline/device"]).lower()
+    np.testing.assert_array_equal(gpu["pipeline/status"], field.status)
+    assert np.all(field.status == Status.CONVERGED)
+    assert np.max(np.abs(gpu["pipeline/u"] - field.u)) < 1e-3
+    np.testing.assert_allclose(field.u.reshape(-1, 3), [[0.6, -0.4, 1.3]] * 2, atol=0.05)
