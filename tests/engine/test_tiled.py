@@ -63,6 +63,21 @@ def test_prefilter_margin_reaches_float32_rounding():
     assert np.max(np.abs(short - whole[30:42, 30:42, 30:42])) > 1e-5 * gray_range
 
 
+def test_rigid_shift_read_block_by_block_equals_the_whole_volume_one(monkeypatch):
+    import dask
+
+    from napari_dvc_correct.engine.initial_guess import global_shift
+
+    reference = synthetic.textured_volume((101, 50, 199), 3.0, seed=2)  # binned by 3, cropped
+    deformed = np.roll(reference, (7, -4, 11), axis=(0, 1, 2))
+    monkeypatch.setattr(tiled, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
+    tasks, factor = tiled._rigid_shift_tasks(ArrayVolume(reference), ArrayVolume(deformed))
+    assert factor == 3 and len(tasks) > 10
+    shift = tiled._combine_shift(dask.compute(*tasks, scheduler="sync"), reference.shape, factor)
+    np.testing.assert_array_equal(shift, global_shift(reference, deformed))
+    assert np.all(np.abs(shift - (7, -4, 11)) <= factor)
+
+
 def test_equals_in_memory_correlation(in_memory, local, pair):
     tiles = local.metadata["tiled"]
     assert tiles["batches"] == 4  # a 5x5x18 grid in 5x5x5 batches

@@ -360,7 +360,9 @@ def _rigid_shift_tasks(reference, deformed):
     factor = _shift_factor(reference.shape)
     task = dask.delayed(_shift_block, pure=False)
     volumes = dask.delayed(reference), dask.delayed(deformed)
-    blocks = iter_blocks(reference.shape, SHIFT_BLOCK_VOXELS, align=factor)
+    # like bin_volume, drop the planes and rows beyond the last whole multiple of the factor
+    cropped = ((reference.shape[0] // factor) * factor, (reference.shape[1] // factor) * factor)
+    blocks = iter_blocks((*cropped, reference.shape[2]), SHIFT_BLOCK_VOXELS, align=factor)
     return [task(*volumes, z, y, factor) for z, y in blocks], factor
 
 
