@@ -51,12 +51,25 @@ def cpu_description() -> str:
 
 
 @functools.cache
+def _nvidia_driver_present() -> bool:
+    """Cheap check for an NVIDIA driver: its device nodes, its /proc entry or libcuda."""
+    import ctypes.util
+    import glob
+
+    if os.path.exists("/proc/driver/nvidia") or glob.glob("/dev/nvidia[0-9]*"):
+        return True
+    return ctypes.util.find_library("cuda") is not None
+
+
 def probe_cuda() -> tuple[bool, str]:
     """Whether a CUDA GPU can run our kernels: ``(True, description)`` or ``(False, reason)``.
 
     Imports numba.cuda, checks for a driver and a device, then compiles and runs a tiny kernel
     (this catches a missing CUDA compiler, NVVM). Cached for the process.
     """
+    if not numba.core.config.ENABLE_CUDASIM and not _nvidia_driver_present():
+        # importing numba.cuda costs most of a second: skip it where no driver can exist
+        return False, "no CUDA GPU found (no NVIDIA driver on this machine)"
     try:
         from .cuda import cuda, simulator_enabled
     except Exception as error:  # noqa: BLE001 - any import failure means "no GPU backend"
