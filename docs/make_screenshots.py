@@ -56,13 +56,18 @@ def main() -> None:
     IMAGES.mkdir(exist_ok=True)
     viewer, panels, docks = make_viewer(show=True)
     viewer.window._qt_window.resize(*SIZE)
+    settle(1.0)
     correlate = panels["Correlate"]
+    front(docks["Correlate"])
     correlate.subvolume.setValue(31)
     correlate.step.setValue(6)
-    # look at the z-x plane, where the shear band slips
+    # look at the z-x plane, where the shear band slips, through the middle row of POIs
     viewer.dims.order = (1, 0, 2)
-    viewer.dims.set_point(1, 48)
     correlate._update.flush()
+    points = viewer.layers["POI grid (preview)"].data
+    rows = np.unique(points[:, 1])
+    viewer.dims.set_point(1, float(rows[len(rows) // 2]))
+    viewer.layers.selection.active = viewer.layers["POI grid (preview)"]
     shot(viewer, "correlate-preview.png")
 
     print(f"correlate: {wait(correlate):.1f} s")

@@ -39,7 +39,12 @@ def make_viewer(sample: str | None = "soil_shear_band", show: bool = True):
     for index, name in enumerate(PANELS):
         dock, widget = viewer.window.add_plugin_dock_widget(PLUGIN, name, tabify=index > 0)
         widgets[name], docks[name] = widget, dock
-    docks[PANELS[0]].raise_()  # the Correlate tab in front
+    # the Correlate tab in front, once the window is on screen (raising before has no effect)
+    from qtpy.QtCore import QTimer
+
+    first = docks[PANELS[0]]
+    first.raise_()
+    QTimer.singleShot(0, first.raise_)
     return viewer, widgets, docks
 
 

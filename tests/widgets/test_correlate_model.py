@@ -48,6 +48,10 @@ def test_grid_preview_matches_the_engine_grid():
     np.testing.assert_allclose(points[0], origin)
     corners = np.concatenate(box)
     assert np.ptp(corners, axis=0).tolist() == [14.0, 14.0, 14.0]
+    # one rectangle per slice of the subvolume along each axis, each flat along its axis
+    assert len(box) == 3 * 15
+    flat_axes = [int(np.flatnonzero(np.ptp(rect, axis=0) == 0)[0]) for rect in box]
+    assert [flat_axes.count(a) for a in range(3)] == [15, 15, 15]
     many, _, n_many = model.grid_preview(
         (200, 200, 200), CorrelationParams(subvolume=5, step=1), max_points=1000
     )

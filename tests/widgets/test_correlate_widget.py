@@ -102,7 +102,7 @@ def test_preview_and_estimate_before_running(viewer_pair, small):
     expected = np.asarray(small.offset) + np.asarray(origin) * np.asarray(small.voxel_size)
     np.testing.assert_allclose(first, expected)
     corners = np.concatenate(box.data)
-    assert corners[:, 1].max() - corners[:, 1].min() == small.subvolume - 1
+    assert np.ptp(corners, axis=0).tolist() == [small.subvolume - 1] * 3
     assert f"{np.prod(shape)} POIs" in widget.estimate_label.text()
     assert "memory" in widget.estimate_label.text()
     widget.preview.setChecked(False)
@@ -256,3 +256,13 @@ def test_series_bad_choices(viewer_pair):
     widget.set_series_layers(["reference"])
     assert widget.run() is None
     assert "at least two" in widget.message.text()
+
+
+def test_new_layers_do_not_bring_the_preview_back(correlated):
+    viewer = correlated.viewer
+    correlated.update_preview()
+    correlated._set_preview_visible(False)
+    viewer.add_points(np.zeros((1, 3)), name="annotations")  # not an input of the panel
+    assert not correlated._update.timer.isActive()
+    assert correlated.reference.currentText() == "reference"
+    assert correlated.deformed.currentText() == "deformed"

@@ -97,6 +97,7 @@ class LayerCombo(QComboBox):
         return [layer for layer in self._viewer.layers if self._accept(layer)]
 
     def refresh(self, event=None) -> None:
+        """Rebuild the list; signal a change only if the chosen layer is not the same any more."""
         current = self.currentText()
         self.blockSignals(True)
         self.clear()
@@ -106,10 +107,10 @@ class LayerCombo(QComboBox):
             self.addItem(layer.name)
             layer.events.name.connect(self._renamed)
         index = self.findText(current)
-        self.blockSignals(False)
         if index >= 0:
             self.setCurrentIndex(index)
-        else:
+        self.blockSignals(False)
+        if self.currentText() != current:
             self.currentIndexChanged.emit(self.currentIndex())
 
     def _renamed(self, event=None) -> None:
@@ -173,6 +174,13 @@ class EngineWidget(QWidget):
         self.run_button.clicked.connect(lambda checked=False: self.run())
         self.cancel_button.clicked.connect(lambda checked=False: self.cancel())
         self.last_error: str | None = None
+
+    def showEvent(self, event) -> None:
+        """Once the subclass has added its controls, keep them at the top of a tall dock."""
+        if not getattr(self, "_stretched", False):
+            self.body.addStretch(1)
+            self._stretched = True
+        super().showEvent(event)
 
     # -- what subclasses implement ------------------------------------------------------------
     def prepare(self) -> Generator:

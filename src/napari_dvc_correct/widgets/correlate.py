@@ -313,7 +313,7 @@ class CorrelateWidget(EngineWidget):
                         points,
                         {
                             "name": PREVIEW_POINTS,
-                            "size": max(1.0, job.params.step / 4),
+                            "size": max(1.0, job.params.step / 3),
                             "face_color": "yellow",
                             "border_width": 0,
                             "opacity": 0.7,

@@ -199,7 +199,9 @@ def make_params(
 
 
 # -- preview ----------------------------------------------------------------------------------
-def grid_preview(volume_shape, params: CorrelationParams, max_points: int = 20000):
+def grid_preview(
+    volume_shape, params: CorrelationParams, max_points: int = 20000, max_slices: int = 64
+):
     """Points of the POI grid and the outline of the central POI's subvolume, in voxels.
 
     Returns
@@ -207,7 +209,9 @@ def grid_preview(volume_shape, params: CorrelationParams, max_points: int = 2000
     points : ndarray (N, 3)
         POI positions (z, y, x), subsampled along each axis so at most ``max_points`` are shown.
     box : list of ndarray (4, 3)
-        Rectangles (z, y, x corners) stacked along z that outline one subvolume.
+        Rectangles (corners z, y, x) that outline the central POI's subvolume in every slice it
+        crosses, along each of the three axes, so the box shows in any 2-D view and as a cage in
+        3-D (at most ``max_slices`` rectangles per axis).
     n_points : int
         Number of POIs of the full grid.
     """
@@ -218,13 +222,17 @@ def grid_preview(volume_shape, params: CorrelationParams, max_points: int = 2000
     axes = [origin[a] + step[a] * np.arange(0, shape[a], stride) for a in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     centre = np.array([origin[a] + step[a] * (shape[a] // 2) for a in range(3)])
-    half = params.half
-    z_values = np.unique(
-        np.round(np.linspace(centre[0] - half, centre[0] + half, min(9, params.subvolume)))
-    )
-    y0, y1 = centre[1] - half, centre[1] + half
-    x0, x1 = centre[2] - half, centre[2] + half
-    box = [np.array([[z, y0, x0], [z, y0, x1], [z, y1, x1], [z, y1, x0]]) for z in z_values]
+    low, high = centre - params.half, centre + params.half
+    box = []
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        n = min(params.subvolume, max_slices)
+        for value in np.unique(np.round(np.linspace(low[axis], high[axis], n))):
+            corners = np.empty((4, 3))
+            corners[:, axis] = value
+            corners[:, u] = [low[u], low[u], high[u], high[u]]
+            corners[:, v] = [low[v], high[v], high[v], low[v]]
+            box.append(corners)
     return grid, box, int(np.prod(shape))
 
 
