@@ -299,55 +299,32 @@ class CorrelateWidget(EngineWidget):
             return
         points, box, _ = model.grid_preview(job.shape, job.params)
         placement = L.dense_placement(job.voxel_size, job.offset)
+        points_style = {
+            "size": max(1.0, job.params.step / 3),
+            "face_color": "yellow",
+            "border_width": 0,
+            "opacity": 0.7,
+        }
+        box_style = {
+            "shape_type": "rectangle",
+            "edge_color": "cyan",
+            "face_color": "transparent",
+            "edge_width": 0.5,
+        }
+        self._show_preview(PREVIEW_POINTS, points, "points", placement, points_style)
+        self._show_preview(PREVIEW_BOX, box, "shapes", placement, box_style)
+
+    def _show_preview(self, name: str, data, layer_type: str, placement: dict, style: dict):
+        """Update the preview layer ``name`` in place, or make it the first time."""
+        layer = L.find_layer(self.viewer, name)
+        if layer is not None:
+            layer.data = data
+            layer.scale, layer.translate = placement["scale"], placement["translate"]
+            layer.visible = True
+            return
         meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
-        layer = L.find_layer(self.viewer, PREVIEW_POINTS)
-        if layer is not None:
-            layer.data = points
-            layer.scale, layer.translate = placement["scale"], placement["translate"]
-            layer.visible = True
-        else:
-            L.show_layers(
-                self.viewer,
-                [
-                    (
-                        points,
-                        {
-                            "name": PREVIEW_POINTS,
-                            "size": max(1.0, job.params.step / 3),
-                            "face_color": "yellow",
-                            "border_width": 0,
-                            "opacity": 0.7,
-                            "metadata": meta,
-                            **placement,
-                        },
-                        "points",
-                    )
-                ],
-            )
-        layer = L.find_layer(self.viewer, PREVIEW_BOX)
-        if layer is not None:
-            layer.data = box
-            layer.scale, layer.translate = placement["scale"], placement["translate"]
-            layer.visible = True
-        else:
-            L.show_layers(
-                self.viewer,
-                [
-                    (
-                        box,
-                        {
-                            "name": PREVIEW_BOX,
-                            "shape_type": "rectangle",
-                            "edge_color": "cyan",
-                            "face_color": "transparent",
-                            "edge_width": 0.5,
-                            "metadata": meta,
-                            **placement,
-                        },
-                        "shapes",
-                    )
-                ],
-            )
+        kwargs = {"name": name, "metadata": meta, **style, **placement}
+        L.show_layers(self.viewer, [(data, kwargs, layer_type)])
 
     def _set_preview_visible(self, visible: bool) -> None:
         for name in (PREVIEW_POINTS, PREVIEW_BOX):
