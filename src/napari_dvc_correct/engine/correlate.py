@@ -97,14 +97,15 @@ class _Level:
     device: str = "cpu"  # "cuda": IC-GN runs on the GPU (engine.cuda)
 
     @classmethod
-    def build(cls, factor, reference, deformed, mask, half, min_texture, device="cpu"):
+    def build(cls, factor, reference, deformed, mask, half, min_texture, device="cpu", std=None):
         if factor > 1:
             reference = bin_volume(reference, factor)
             deformed = bin_volume(deformed, factor)
             if mask is not None:
                 mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
         gradient = icgn.gradient_volume(prefilter(reference))
-        std = float(np.std(reference[mask] if mask is not None else reference))
+        if std is None:  # else: the whole volume's, when these are a region of it (tiled)
+            std = float(np.std(reference[mask] if mask is not None else reference))
         return cls(
             factor=factor,
             reference=reference,
@@ -312,6 +313,7 @@ def correlate_iter(
     initial: DisplacementField | None = None,
     rigid_shift=None,
     device="cpu",
+    texture_std=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -333,6 +335,10 @@ def correlate_iter(
         Rigid shift ``(z, y, x)`` voxels to search around instead of estimating it from these
         volumes: the whole volume's shift when they are a region of larger volumes
         (:mod:`.tiled`).
+    texture_std : mapping of int to float, optional
+        Gray standard deviation of the whole reference volume (inside the mask) binned by each
+        pyramid factor ``1, 2, 4...``, for the low-texture test, when these volumes are a region
+        of larger ones (:mod:`.tiled`). Default: computed from these volumes.
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.
@@ -371,7 +377,16 @@ def correlate_iter(
 
     yield Progress("prefilter", 0, 1, "prefiltering the volumes")
     t0 = time.perf_counter()
-    fine = _Level.build(1, reference, deformed, mask, half, params.min_texture, device.kind)
+    fine = _Level.build(
+        1,
+        reference,
+        deformed,
+        mask,
+        half,
+        params.min_texture,
+        device.kind,
+        std=None if texture_std is None else texture_std[1],
+    )
     timings["prefilter_s"] = time.perf_counter() - t0
     yield Progress("prefilter", 1, 1, "volumes prefiltered")
 
@@ -406,6 +421,7 @@ def correlate_iter(
                     max(4, half // 2**lev),
                     params.min_texture,
                     device.kind,
+                    std=None if texture_std is None else texture_std[2**lev],
                 )
             )
             level_centers = level.centers_from_fine(centers)
@@ -515,6 +531,7 @@ def correlate(
     initial: DisplacementField | None = None,
     rigid_shift=None,
     device="cpu",
+    texture_std=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -527,5 +544,6 @@ def correlate(
             initial=initial,
             rigid_shift=rigid_shift,
             device=device,
+            texture_std=texture_std,
         )
     )
