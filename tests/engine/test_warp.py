@@ -142,3 +142,11 @@ def test_gray_residual_is_small_for_the_true_field_and_nan_where_undefined(pair)
     assert np.nanmean(everywhere) < 0.05 * contrast
     with pytest.raises(ValueError, match="mode"):
         warp.gray_residual(reference, deformed, field, mode="sideways")
+
+
+def test_forward_warp_with_residual_matches_the_separate_calls(pair):
+    reference, deformed, field = pair
+    moved, mean = warp.warp_forward_with_residual(reference, deformed, field, chunk_voxels=4000)
+    assert np.array_equal(moved, warp.warp_forward(reference, field), equal_nan=True)
+    expected = warp.mean_gray_residual(reference, deformed, field, "loaded")
+    assert mean == pytest.approx(expected, rel=1e-6)

@@ -109,15 +109,8 @@ class _Pair:
                 np.abs(moved - self.reference), spline.hull_slices(self.reference.shape)
             )
         else:
-            moved = warp.warp_forward(
-                self.reference, spline, coefficients=self.coefficients, cval=np.nan
-            )
-            residual = warp.mean_gray_residual(
-                self.reference,
-                self.deformed,
-                spline,
-                "loaded",
-                reference_coefficients=self.coefficients,
+            moved, residual = warp.warp_forward_with_residual(
+                self.reference, self.deformed, spline, coefficients=self.coefficients
             )
         return _finite_or_fill(moved, self.fill), residual
 
@@ -150,11 +143,16 @@ def _finish_pass(
     input_field: DisplacementField,
     masked: np.ndarray,
 ) -> DisplacementField:
-    """Quality arrays of a corrected field: those of the correcting match; masked nodes kept."""
+    """Quality arrays of a corrected field: those of the correcting match; masked nodes kept.
+
+    Nodes where the correcting match failed (its value interpolated from the neighbours' by the
+    cleaning) are ``REPLACED``, the others ``CORRECTED``.
+    """
     candidate.zncc = delta.zncc.copy()
     candidate.status = delta.status.copy()
     candidate.iterations = delta.iterations.copy()
     candidate.provenance = np.full(candidate.shape, Provenance.CORRECTED, np.uint8)
+    candidate.provenance[delta.provenance == Provenance.REPLACED] = Provenance.REPLACED
     candidate.provenance[masked] = Provenance.MASKED
     candidate.status[masked] = input_field.status[masked]
     return candidate
@@ -209,9 +207,10 @@ def correct_iter(
     Returns
     -------
     DisplacementField
-        The corrected field on ``D``'s grid. Nodes moved by an applied pass have
-        ``Provenance.CORRECTED`` and the ZNCC / status / iterations of the correcting match;
-        masked nodes keep their input values. ``metadata["correction_passes"]`` is a list with
+        The corrected field on ``D``'s grid. After an applied pass, nodes carry the ZNCC /
+        status / iterations of the correcting match and ``Provenance.CORRECTED`` (or
+        ``REPLACED`` where that match failed and its correction was interpolated from the
+        neighbours); masked nodes keep their input values. ``metadata["correction_passes"]`` is a list with
         one entry per pass (pass 0 = the cleaned input): ``mean_gray_residual`` (gray levels),
         ``accepted``, ``fraction_changed`` (nodes moved by more than
         :data:`CHANGE_THRESHOLD` voxels), ``mean_change`` and ``max_change`` (voxels),
