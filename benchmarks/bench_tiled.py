@@ -167,7 +167,7 @@ def _summary(field, seconds, size, params, peak=None):
     return {
         "seconds": round(seconds, 2),
         "batches_seconds": round(timings["batches_s"], 2),
-        "rigid_shift_seconds": round(timings["rigid_shift_s"], 2),
+        "whole_volume_pass_seconds": round(timings["whole_volume_s"], 2),
         "points": int(field.n_points),
         "converged_fraction": round(float(good.mean()), 4),
         "points_per_s": round(field.n_points / timings["batches_s"], 1),
@@ -180,6 +180,8 @@ def _summary(field, seconds, size, params, peak=None):
         "batch_shape": field.metadata["tiled"]["batch_shape"],
         "estimated_peak_bytes": field.metadata["tiled"]["estimated_peak_bytes"],
         "peak_rss_bytes": peak,
+        # other processes compete for the cores on a shared machine: 1-minute load average
+        "load_average": round(os.getloadavg()[0], 2),
     }
 
 

@@ -63,19 +63,29 @@ def test_prefilter_margin_reaches_float32_rounding():
     assert np.max(np.abs(short - whole[30:42, 30:42, 30:42])) > 1e-5 * gray_range
 
 
-def test_rigid_shift_read_block_by_block_equals_the_whole_volume_one(monkeypatch):
+def test_whole_volume_pass_equals_the_whole_volume_quantities(monkeypatch):
     import dask
 
-    from napari_dvc_correct.engine.initial_guess import global_shift
+    from napari_dvc_correct.engine.initial_guess import bin_volume, global_shift
 
     reference = synthetic.textured_volume((101, 50, 199), 3.0, seed=2)  # binned by 3, cropped
     deformed = np.roll(reference, (7, -4, 11), axis=(0, 1, 2))
+    mask = np.zeros(reference.shape, bool)
+    mask[10:90, 5:45, 30:150] = True
     monkeypatch.setattr(tiled, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
-    tasks, factor = tiled._rigid_shift_tasks(ArrayVolume(reference), ArrayVolume(deformed))
-    assert factor == 3 and len(tasks) > 10
-    shift = tiled._combine_shift(dask.compute(*tasks, scheduler="sync"), reference.shape, factor)
-    np.testing.assert_array_equal(shift, global_shift(reference, deformed))
-    assert np.all(np.abs(shift - (7, -4, 11)) <= factor)
+    for m in (None, mask):
+        volumes = [None if v is None else ArrayVolume(v) for v in (reference, deformed, m)]
+        tasks, factor = tiled._volume_tasks(*volumes, levels=2)
+        assert factor == 3 and len(tasks) > 5
+        results = dask.compute(*tasks, scheduler="sync")
+        whole = tiled._combine(results, reference.shape, factor, levels=2)
+        np.testing.assert_array_equal(whole.shift, global_shift(reference, deformed))
+        for f in (1, 2, 4):
+            binned = bin_volume(reference, f)
+            if m is not None:
+                binned = binned[(bin_volume(m.astype(np.float32), f) >= 0.5) if f > 1 else m]
+            assert whole.texture_std[f] == pytest.approx(float(np.std(binned)), rel=1e-5)
+    assert np.all(np.abs(whole.shift - (7, -4, 11)) <= factor)
 
 
 def test_equals_in_memory_correlation(in_memory, local, pair):
@@ -154,6 +164,24 @@ def test_distributed_cluster_gives_the_same_answer(pair, local):
     assert sum(p.stage == "IC-GN" for p in messages) == 4
     np.testing.assert_array_equal(remote.status, local.status)
     np.testing.assert_allclose(remote.u, local.u, rtol=0, atol=1e-9)
+
+
+def test_mask_and_low_texture_as_in_memory(pair):
+    reference, _, truth = pair
+    weak = reference.copy()
+    # faint texture: low against the whole volume's contrast (as in memory), not against a
+    # region's that holds nothing else
+    weak[:, :, 66:] = 0.5 + 0.02 * (weak[:, :, 66:] - 0.5)
+    deformed = synthetic.deform_volume(weak, truth)
+    mask = np.ones(reference.shape, bool)
+    mask[:, :, :30] = False
+    a = correlate(weak, deformed, PARAMS, mask=mask)
+    b = correlate_tiled(weak, deformed, PARAMS, mask=mask, batch_shape=BATCH)
+    for code in (Status.MASKED, Status.LOW_TEXTURE, Status.CONVERGED):
+        assert np.sum(a.status == code) > 20
+    np.testing.assert_array_equal(a.status, b.status)
+    both = _converged_in_both(a, b)
+    assert np.abs(a.u - b.u)[both].max() < 1e-4
 
 
 def test_progress_states_the_memory_estimate_first(pair):

@@ -3,15 +3,16 @@
 :func:`correlate_tiled` gives the same :class:`DisplacementField` as
 :func:`.correlate.correlate` while holding only a few regions of the volumes in memory:
 
-1. **Rigid shift** (one read of both volumes, block by block, as Dask tasks): both volumes are
-   binned while they are read, exactly as :func:`.initial_guess.global_shift` bins the whole
-   volumes, and the shift is estimated from the binned copies. The read also checks that every
+1. **Whole-volume pass** (one read of both volumes, block by block, as Dask tasks): both volumes
+   are binned while they are read, exactly as :func:`.initial_guess.global_shift` bins the whole
+   volumes, for the rigid shift; the gray standard deviation of ``G`` (inside the mask) binned by
+   every pyramid factor is accumulated for the low-texture test. The pass also checks that every
    value is finite.
 2. **Batches**: the POI grid is split into boxes of ``batch_shape`` POIs. Each batch (a
    ``dask.delayed`` task) reads its region of ``G`` and ``F`` plus a halo and runs
    :func:`.correlate.correlate_iter` on it — the same pyramid, integer search, IC-GN and
-   reliability-guided repair as in memory — searching around the whole volume's rigid shift
-   (``rigid_shift``), on its POIs plus ``margin`` layers of neighbouring POIs so that the repair
+   reliability-guided repair as in memory — with the whole volume's rigid shift and gray
+   statistics (``rigid_shift``, ``texture_std``), on its POIs plus ``margin`` layers of neighbouring POIs so that the repair
    and the median test see the neighbours they see in memory; only the batch's own POIs are kept.
 3. The batches' results are assembled into one field.
 
@@ -332,50 +333,125 @@ def _shift_factor(shape) -> int:
     return max(1, int(np.ceil(max(shape) / 96)))
 
 
-def _bin_block(volume, z, y, factor, name):
-    block = volume.read_region((z, y, slice(None)))
+@dataclass
+class _Moments:
+    """Count, mean and sum of squared deviations of gray values; ``+`` combines two (Chan et al.)."""
+
+    count: float = 0.0
+    mean: float = 0.0
+    m2: float = 0.0
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> _Moments:
+        values = np.asarray(values, np.float64).reshape(-1)
+        if values.size == 0:
+            return cls()
+        mean = float(values.mean())
+        return cls(float(values.size), mean, float(np.sum((values - mean) ** 2)))
+
+    def __add__(self, other: _Moments) -> _Moments:
+        count = self.count + other.count
+        if count == 0:
+            return _Moments()
+        delta = other.mean - self.mean
+        mean = self.mean + delta * other.count / count
+        m2 = self.m2 + other.m2 + delta * delta * self.count * other.count / count
+        return _Moments(count, mean, m2)
+
+    @property
+    def std(self) -> float:
+        return math.sqrt(self.m2 / self.count) if self.count else float("nan")
+
+
+def _read_checked(volume, region, name):
+    block = volume.read_region(region)
     if not np.all(np.isfinite(block)):
+        z, y = region[0], region[1]
         raise ValueError(
             f"the {name} volume contains NaN or infinite values (in z {z.start}:{z.stop}, "
             f"y {y.start}:{y.stop})"
         )
-    return bin_volume(block, factor)
+    return block
 
 
-def _shift_block(reference, deformed, z, y, factor):
-    """Binned block of both volumes (aligned to ``factor``) for the rigid shift."""
-    return (
-        z.start // factor,
-        y.start // factor,
-        _bin_block(reference, z, y, factor, "reference"),
-        _bin_block(deformed, z, y, factor, "deformed"),
-    )
+def _whole_blocks(block, z, y, factor, shape):
+    """The part of ``block`` (at rows ``z``, ``y``) that ``bin_volume(whole, factor)`` keeps."""
+    keep_z = min(z.stop, (shape[0] // factor) * factor) - z.start
+    keep_y = min(y.stop, (shape[1] // factor) * factor) - y.start
+    if keep_z < factor or keep_y < factor:
+        return None
+    return block[:keep_z, :keep_y]
 
 
-def _rigid_shift_tasks(reference, deformed):
+def _volume_block(reference, deformed, mask, z, y, shift_factor, levels, shape):
+    """One block's share of the whole-volume quantities: binned copies for the rigid shift, and
+    the gray moments of the reference (inside the mask) binned by each pyramid factor."""
+    region = (z, y, slice(None))
+    g = _read_checked(reference, region, "reference")
+    f = _read_checked(deformed, region, "deformed")
+    m = None if mask is None else mask.read_region(region) != 0
+    out = {"z": z.start // shift_factor, "y": y.start // shift_factor, "moments": {}}
+    parts = [_whole_blocks(v, z, y, shift_factor, shape) for v in (g, f)]
+    out["binned"] = None if parts[0] is None else [bin_volume(v, shift_factor) for v in parts]
+    for lev in range(levels + 1):
+        factor = 2**lev
+        part = _whole_blocks(g, z, y, factor, shape)
+        if part is None:
+            out["moments"][factor] = _Moments()
+            continue
+        binned = bin_volume(part, factor)
+        if m is not None:
+            inside = _whole_blocks(m, z, y, factor, shape)
+            if factor > 1:
+                inside = bin_volume(inside.astype(np.float32), factor) >= 0.5
+            binned = binned[inside]
+        out["moments"][factor] = _Moments.of(binned)
+    out["mask_count"] = 0 if m is None else int(m.sum())
+    return out
+
+
+def _volume_tasks(reference, deformed, mask, levels):
     import dask
 
     from ..io.lazy import iter_blocks
 
-    factor = _shift_factor(reference.shape)
-    task = dask.delayed(_shift_block, pure=False)
-    volumes = dask.delayed(reference), dask.delayed(deformed)
-    # like bin_volume, drop the planes and rows beyond the last whole multiple of the factor
-    cropped = ((reference.shape[0] // factor) * factor, (reference.shape[1] // factor) * factor)
-    blocks = iter_blocks((*cropped, reference.shape[2]), SHIFT_BLOCK_VOXELS, align=factor)
-    return [task(*volumes, z, y, factor) for z, y in blocks], factor
+    shape = tuple(reference.shape)
+    factor = _shift_factor(shape)
+    task = dask.delayed(_volume_block, pure=False)
+    volumes = [None if v is None else dask.delayed(v) for v in (reference, deformed, mask)]
+    align = math.lcm(factor, 2**levels)
+    blocks = iter_blocks(shape, SHIFT_BLOCK_VOXELS, align=align)
+    return [task(*volumes, z, y, factor, levels, shape) for z, y in blocks], factor
 
 
-def _combine_shift(results, shape, factor) -> np.ndarray:
+@dataclass
+class WholeVolume:
+    """What the batches need to know about the whole volumes."""
+
+    shift: np.ndarray  # rigid shift (z, y, x) voxels
+    texture_std: dict  # binning factor -> gray std of the (masked) reference
+    mask_count: int
+
+
+def _combine(results, shape, factor, levels) -> WholeVolume:
     binned_shape = tuple(n // factor for n in shape)
     g = np.zeros(binned_shape, np.float32)
     f = np.zeros(binned_shape, np.float32)
-    for z0, y0, block_g, block_f in results:
-        dz, dy = block_g.shape[:2]
-        g[z0 : z0 + dz, y0 : y0 + dy] = block_g
-        f[z0 : z0 + dz, y0 : y0 + dy] = block_f
+    moments = {2**lev: _Moments() for lev in range(levels + 1)}
+    mask_count = 0
+    for result in results:
+        if result["binned"] is not None:
+            block_g, block_f = result["binned"]
+            z0, y0 = result["z"], result["y"]
+            dz, dy = block_g.shape[:2]
+            g[z0 : z0 + dz, y0 : y0 + dy] = block_g
+            f[z0 : z0 + dz, y0 : y0 + dy] = block_f
+        for key, value in result["moments"].items():
+            moments[key] = moments[key] + value
+        mask_count += result["mask_count"]
     # the binned volumes are at most 96 voxels per edge: global_shift bins them no further
-    return (global_shift(g, f) * factor).astype(np.int64)
+    shift = (global_shift(g, f) * factor).astype(np.int64)
+    return WholeVolume(shift, {k: v.std for k, v in moments.items()}, mask_count)
 
 
 # --- one batch ---------------------------------------------------------------------------------
@@ -392,10 +468,12 @@ class BatchJob:
     region_low: np.ndarray  # (3,) region [low, high) in voxels
     region_high: np.ndarray
     shift: np.ndarray | None  # whole-volume rigid shift (None with an initial field)
+    texture_std: dict | None  # whole-volume gray std per binning factor
     initial_u: np.ndarray | None = None  # (*sub_shape, 3)
     initial_gradient: np.ndarray | None = None  # (*sub_shape, 3, 3)
     threads: int | None = None
     use_mask: bool = False
+    device: str = "cpu"
 
     @property
     def region_voxels(self) -> int:
@@ -459,6 +537,8 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
                 grid=grid,
                 initial=initial,
                 rigid_shift=job.shift,
+                texture_std=job.texture_std,
+                device=job.device,
             )
         )
     del g, f, m
@@ -511,7 +591,7 @@ def _batch_ranges(grid_shape, batch_shape):
     return [(rz, ry, rx) for rz in axes[0] for ry in axes[1] for rx in axes[2]]
 
 
-def _make_jobs(batches, params, shape, grid, levels, shift, margin, initial, threads, masked):
+def _make_jobs(batches, params, shape, grid, levels, whole, margin, initial, options):
     origin, step, grid_shape = grid
     reaches = halo(params, levels)
     flat_index = np.arange(int(np.prod(grid_shape))).reshape(grid_shape)
@@ -533,7 +613,7 @@ def _make_jobs(batches, params, shape, grid, levels, shift, margin, initial, thr
             low_shift = finite.min(axis=0) if len(finite) else np.zeros(3)
             high_shift = finite.max(axis=0) if len(finite) else np.zeros(3)
         else:
-            low_shift = high_shift = shift
+            low_shift = high_shift = whole.shift
         lo, hi = _region(first, last, low_shift, high_shift, reaches, 2**levels, shape)
         jobs.append(
             BatchJob(
@@ -545,11 +625,11 @@ def _make_jobs(batches, params, shape, grid, levels, shift, margin, initial, thr
                 core_index=flat_index[tuple(slice(a, b) for a, b in core_ranges)].ravel(),
                 region_low=lo,
                 region_high=hi,
-                shift=None if initial is not None else shift,
+                shift=None if initial is not None else whole.shift,
+                texture_std=whole.texture_std,
                 initial_u=initial_u,
                 initial_gradient=initial_gradient,
-                threads=threads,
-                use_mask=masked,
+                **options,
             )
         )
     return jobs
@@ -569,6 +649,7 @@ def correlate_tiled_iter(
     threads_per_task: int | None = None,
     scheduler=None,
     margin: int = 1,
+    device="cpu",
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F) batch by batch; yields progress, returns the field.
 
@@ -600,11 +681,15 @@ def correlate_tiled_iter(
     margin : int
         Layers of neighbouring POIs matched with each batch (and then dropped) so that the
         reliability-guided repair and the median test see the same neighbours as in memory.
+    device : {"cpu", "cuda", "auto"}
+        Where each batch's IC-GN runs (see :func:`.correlate.correlate_iter`); on a cluster, on
+        the workers' devices.
 
     Yields
     ------
     Progress
-        The plan (with the estimated peak memory), the rigid-shift pass, one report per batch.
+        The plan (with the estimated peak memory), the whole-volume pass (rigid shift, gray
+        statistics), one report per batch.
 
     Returns
     -------
@@ -702,19 +787,18 @@ def correlate_tiled_iter(
         )
 
         t0 = time.perf_counter()
-        shift = None
-        if initial is None:
-            tasks, factor = _rigid_shift_tasks(reference, deformed)
-            results = []
-            for done, (_, result) in enumerate(
-                scheduling.run(tasks, scheduler, workers, client), start=1
-            ):
-                results.append(result)
-                yield Progress(
-                    "rigid shift", done, len(tasks), f"read block {done} of {len(tasks)}"
-                )
-            shift = _combine_shift(results, shape, factor)
-            del results
+        tasks, factor = _volume_tasks(reference, deformed, mask, levels)
+        results = []
+        for done, (_, result) in enumerate(
+            scheduling.run(tasks, scheduler, workers, client), start=1
+        ):
+            results.append(result)
+            yield Progress("whole volume", done, len(tasks), f"read block {done} of {len(tasks)}")
+        whole = _combine(results, shape, factor, levels)
+        del results
+        if masked and whole.mask_count == 0:
+            raise ValueError("the mask is empty: no voxel is selected")
+        shift = None if initial is not None else whole.shift
         shift_seconds = time.perf_counter() - t0
 
         jobs = _make_jobs(
@@ -723,11 +807,10 @@ def correlate_tiled_iter(
             shape,
             grid,
             levels,
-            np.zeros(3, np.int64) if shift is None else shift,
+            whole,
             margin,
             initial,
-            threads_per_task,
-            masked,
+            dict(threads=threads_per_task, use_mask=masked, device=device),
         )
         largest = max(jobs, key=lambda job: job.region_voxels)
         itemsize = np.dtype(dtype).itemsize
@@ -776,7 +859,7 @@ def correlate_tiled_iter(
     provenance[status == int(Status.MASKED)] = int(Provenance.MASKED)
     matched = totals.get("points", 0)
     timings = {
-        "rigid_shift_s": shift_seconds,
+        "whole_volume_s": shift_seconds,
         "batches_s": batch_seconds,
         "total_s": time.perf_counter() - started,
         "task_s": {k: v for k, v in totals.items() if k.endswith("_s")},
