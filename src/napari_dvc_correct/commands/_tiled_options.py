@@ -118,15 +118,22 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     """
     from ..engine.tiled import correlate_tiled_iter
     from ..io.lazy import open_volume
+    from .correlate import ProgressBar, drive
 
     reference = open_volume(args.reference)
     deformed = open_volume(args.deformed)
     mask = open_volume(args.mask) if getattr(args, "mask", None) else None
     quiet = bool(getattr(args, "quiet", False))
     if progress is None:
-        from .correlate import ProgressBar
-
         progress = ProgressBar(quiet).update
+
+    class _Reporter:
+        @staticmethod
+        def update(report):
+            if report.stage == "plan" and not quiet:
+                print(f"tiled: {report.message}", file=sys.stderr, flush=True)
+            progress(report)
+
     generator = correlate_tiled_iter(
         reference,
         deformed,
@@ -137,15 +144,7 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
         workers=getattr(args, "workers", None),
         scheduler=getattr(args, "scheduler", None) or None,
     )
-    while True:
-        try:
-            report = next(generator)
-        except StopIteration as stop:
-            field = stop.value
-            break
-        if report.stage == "plan" and not quiet:
-            print(f"tiled: {report.message}", file=sys.stderr, flush=True)
-        progress(report)
+    field = drive(generator, _Reporter())
     field.metadata["reference"] = str(args.reference)
     field.metadata["deformed"] = str(args.deformed)
     return field
