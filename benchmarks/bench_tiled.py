@@ -158,12 +158,14 @@ def _summary(field, seconds, size, params, peak=None):
     }
 
 
-def run_local(paths, size, params, max_memory, workers):
+def run_local(paths, size, params, max_memory, workers, margin):
     from napari_dvc_correct.engine.tiled import correlate_tiled
 
     with PeakMemory() as memory:
         started = time.perf_counter()
-        field = correlate_tiled(*paths, params, max_memory=max_memory, workers=workers)
+        field = correlate_tiled(
+            *paths, params, max_memory=max_memory, workers=workers, margin=margin
+        )
         seconds = time.perf_counter() - started
     return _summary(field, seconds, size, params, memory.peak)
 
@@ -172,7 +174,7 @@ def _worker_peak():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def run_cluster(paths, size, params, n_workers, batch_shape):
+def run_cluster(paths, size, params, n_workers, batch_shape, margin):
     import distributed
 
     from napari_dvc_correct.engine.tiled import correlate_tiled
@@ -191,7 +193,12 @@ def run_cluster(paths, size, params, n_workers, batch_shape):
         client.run(lambda: __import__("napari_dvc_correct.engine.correlate"))  # warm imports
         started = time.perf_counter()
         field = correlate_tiled(
-            *paths, params, scheduler=client, batch_shape=batch_shape, threads_per_task=1
+            *paths,
+            params,
+            scheduler=client,
+            batch_shape=batch_shape,
+            threads_per_task=1,
+            margin=margin,
         )
         seconds = time.perf_counter() - started
         peaks = client.run(_worker_peak)
@@ -221,6 +228,7 @@ def main(argv=None) -> int:
     parser.add_argument("--format", choices=("tiff", "zarr"), default="tiff")
     parser.add_argument("--max-memory", default="1.8GB", help="limit of the local run")
     parser.add_argument("--local-workers", type=int, default=2)
+    parser.add_argument("--margin", type=int, default=0, help="POI layers around each batch")
     parser.add_argument("--cluster", default="1,2", help="worker counts of the cluster runs")
     parser.add_argument("--dir", help="where to write the volumes (default: a temporary folder)")
     parser.add_argument("--keep", action="store_true", help="keep the volumes")
@@ -254,14 +262,17 @@ def main(argv=None) -> int:
         report["write_seconds"] = round(time.perf_counter() - started, 1)
         report["max_rss_after_writing_bytes"] = max_rss_bytes()
         print(f"volumes written in {report['write_seconds']} s: {paths[0]}, {paths[1]}", flush=True)
-        local = run_local(paths, args.size, params, args.max_memory, args.local_workers)
+        local = run_local(
+            paths, args.size, params, args.max_memory, args.local_workers, args.margin
+        )
         local["max_memory"] = args.max_memory
         local["workers"] = args.local_workers
         report["local"] = local
         print("local threads:", json.dumps(local), flush=True)
         report["cluster"] = []
         for n in [int(v) for v in args.cluster.split(",") if v.strip()]:
-            result = run_cluster(paths, args.size, params, n, tuple(local["batch_shape"]))
+            batch = tuple(local["batch_shape"])
+            result = run_cluster(paths, args.size, params, n, batch, args.margin)
             report["cluster"].append(result)
             print(f"cluster, {n} worker(s):", json.dumps(result), flush=True)
         report["max_rss_bytes"] = max_rss_bytes()
