@@ -142,6 +142,10 @@ def test_correcting_a_perfect_field_changes_it_by_less_than_a_hundredth(smooth_c
     corrected = correct(reference, deformed, perfect, frame=frame, max_passes=2)
     change = np.linalg.norm(corrected.u - perfect.u, axis=-1)
     assert change.max() < 0.01, change.max()
+    # not only because the stop rule refused the pass: the pass itself moved nodes by < 0.01
+    first_pass = corrected.metadata["correction_passes"][1]
+    assert first_pass["pass"] == 1 and np.isfinite(first_pass["mean_gray_residual"])
+    assert first_pass["max_change"] < 0.01, first_pass
     assert corrected.params == params.to_dict()
 
 
@@ -165,3 +169,24 @@ def test_progress_is_reported_and_options_are_checked(smooth_case):
             correct(reference, deformed, perfect, **bad)
     with pytest.raises(ValueError, match="same shape"):
         correct(reference, deformed[:-1], perfect)
+
+
+@pytest.mark.parametrize("frame", ["loaded", "reference"])
+def test_masked_nodes_come_back_untouched(smooth_case, frame):
+    reference, deformed, perfect, params = smooth_case
+    mask = np.zeros(reference.shape, bool)
+    mask[:, :, :26] = True  # the material fills the volume up to x = 25
+    measured = correlate(reference, deformed, params, mask=mask)
+    masked = measured.provenance == Provenance.MASKED
+    assert masked.any() and not masked.all()
+    corrected = correct(reference, deformed, measured, frame=frame, mask=mask, max_passes=1)
+    assert np.all(corrected.provenance[masked] == Provenance.MASKED)
+    assert np.array_equal(corrected.u[masked], measured.u[masked], equal_nan=True)
+    error = np.linalg.norm(corrected.u - perfect.u, axis=-1)[~masked]
+    assert error.max() < 0.05
+    assert np.all(
+        np.isin(
+            corrected.provenance[~masked],
+            [Provenance.CORRECTED, Provenance.REPLACED, Provenance.MEASURED],
+        )
+    )

@@ -145,14 +145,15 @@ def _finish_pass(
 ) -> DisplacementField:
     """Quality arrays of a corrected field: those of the correcting match; masked nodes kept.
 
-    Nodes where the correcting match failed (its value interpolated from the neighbours' by the
-    cleaning) are ``REPLACED``, the others ``CORRECTED``.
+    Nodes where the correcting match failed or was masked (its value interpolated from the
+    neighbours' by the cleaning) are ``REPLACED``, the others ``CORRECTED``.
     """
     candidate.zncc = delta.zncc.copy()
     candidate.status = delta.status.copy()
     candidate.iterations = delta.iterations.copy()
     candidate.provenance = np.full(candidate.shape, Provenance.CORRECTED, np.uint8)
-    candidate.provenance[delta.provenance == Provenance.REPLACED] = Provenance.REPLACED
+    interpolated = np.isin(delta.provenance, [Provenance.REPLACED, Provenance.MASKED])
+    candidate.provenance[interpolated] = Provenance.REPLACED
     candidate.provenance[masked] = Provenance.MASKED
     candidate.status[masked] = input_field.status[masked]
     return candidate

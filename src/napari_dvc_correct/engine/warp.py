@@ -137,50 +137,61 @@ def _eval_points(
 
 @njit(**KERNEL_OPTIONS)
 def _eval_one_with_jacobian(
-    coefficients, pad, origin, step, trend_offset, trend_matrix, z, y, x, out, jacobian
+    coefficients, pad, origin, step, trend_offset, trend_matrix, point, out, jacobian, taps, index
 ):
-    """Value (3,) and Jacobian ``d out_c / d X_a`` (3, 3) of a displacement spline at a point."""
-    pz, py, px, nc = coefficients.shape
-    t = np.empty(3)
-    t[0] = (z - origin[0]) / step[0]
-    t[1] = (y - origin[1]) / step[1]
-    t[2] = (x - origin[2]) / step[2]
-    sizes = (pz, py, px)
-    index = np.empty(3, np.int64)
-    weights = np.empty((3, 4))
-    derivatives = np.empty((3, 4))
+    """Value (3,) and Jacobian ``d out_c / d X_a`` (3, 3) of a displacement spline at ``point``.
+
+    ``taps`` (3, 10) and ``index`` (3, 4) are work arrays reused between calls (the hot loop
+    allocates nothing): per axis the grid coordinate, the floor of the padded coordinate, 4
+    weights and 4 derivative weights (per voxel), and the 4 mirrored tap indices.
+    """
+    sizes = coefficients.shape
+    nc = sizes[3]
     for a in range(3):
-        q = t[a] + pad
+        t = (point[a] - origin[a]) / step[a]
+        q = t + pad
         clamped = q < 0.0 or q > sizes[a] - 1.0
         q = _clamp(q, 0.0, sizes[a] - 1.0)
         f = np.floor(q)
         w = bspline_weights(q - f)
         d = bspline_derivative_weights(q - f)
-        index[a] = int(f)
+        taps[a, 0] = t
+        taps[a, 1] = f
         for k in range(4):
-            weights[a, k] = w[k]
-            derivatives[a, k] = 0.0 if clamped else d[k] / step[a]
+            taps[a, 2 + k] = w[k]
+            taps[a, 6 + k] = 0.0 if clamped else d[k] / step[a]
+            index[a, k] = _mirror_index(int(f) - 1 + k, sizes[a])
     for c in range(nc):
         out[c] = trend_offset[c]
         for a in range(3):
-            out[c] += trend_matrix[c, a] * t[a]
+            out[c] += trend_matrix[c, a] * taps[a, 0]
             jacobian[c, a] = trend_matrix[c, a] / step[a]
     for i in range(4):
-        za = _mirror_index(index[0] - 1 + i, pz)
+        za = index[0, i]
+        wz = taps[0, 2 + i]
+        dz = taps[0, 6 + i]
         for j in range(4):
-            yb = _mirror_index(index[1] - 1 + j, py)
+            yb = index[1, j]
+            wy = taps[1, 2 + j]
+            dy = taps[1, 6 + j]
             for k in range(4):
-                xd = _mirror_index(index[2] - 1 + k, px)
-                w = weights[0, i] * weights[1, j] * weights[2, k]
-                gz = derivatives[0, i] * weights[1, j] * weights[2, k]
-                gy = weights[0, i] * derivatives[1, j] * weights[2, k]
-                gx = weights[0, i] * weights[1, j] * derivatives[2, k]
+                xd = index[2, k]
+                wx = taps[2, 2 + k]
+                dx = taps[2, 6 + k]
+                w = wz * wy * wx
+                gz = dz * wy * wx
+                gy = wz * dy * wx
+                gx = wz * wy * dx
                 for c in range(nc):
                     coefficient = coefficients[za, yb, xd, c]
                     out[c] += w * coefficient
                     jacobian[c, 0] += gz * coefficient
                     jacobian[c, 1] += gy * coefficient
                     jacobian[c, 2] += gx * coefficient
+
+
+#: Targets per work item of the parallel inversion (work arrays are allocated per item).
+_INVERT_BLOCK = 4096
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -199,76 +210,80 @@ def _invert_points(
 ):
     """Solve ``X + u(X) = x`` for each target ``x``, starting from ``X = x - u(x)``.
 
-    Newton steps ``X <- X - (I + du/dX)^-1 (X + u(X) - x)`` (quadratic convergence, a few
-    steps even at strains of 0.3), with the plain fixed-point step ``X <- x - u(X)`` wherever the
-    Jacobian is nearly singular.
+    Newton steps ``X <- X - (I + du/dX)^-1 (X + u(X) - x)`` (quadratic convergence), with the
+    plain fixed-point step ``X <- x - u(X)`` wherever the Jacobian is nearly singular.
     """
-    for i in prange(targets.shape[0]):
+    n = targets.shape[0]
+    n_blocks = (n + _INVERT_BLOCK - 1) // _INVERT_BLOCK
+    for block in prange(n_blocks):
         value = np.empty(3)
         jacobian = np.empty((3, 3))
         position = np.empty(3)
-        z = targets[i, 0]
-        y = targets[i, 1]
-        x = targets[i, 2]
-        _eval_one(coefficients, pad, origin, step, trend_offset, trend_matrix, z, y, x, value)
-        position[0] = z - value[0]
-        position[1] = y - value[1]
-        position[2] = x - value[2]
-        ok = False
-        for _ in range(max_iterations):
-            _eval_one_with_jacobian(
-                coefficients,
-                pad,
-                origin,
-                step,
-                trend_offset,
-                trend_matrix,
-                position[0],
-                position[1],
-                position[2],
-                value,
-                jacobian,
-            )
-            r0 = position[0] + value[0] - z
-            r1 = position[1] + value[1] - y
-            r2 = position[2] + value[2] - x
-            a00 = 1.0 + jacobian[0, 0]
-            a01 = jacobian[0, 1]
-            a02 = jacobian[0, 2]
-            a10 = jacobian[1, 0]
-            a11 = 1.0 + jacobian[1, 1]
-            a12 = jacobian[1, 2]
-            a20 = jacobian[2, 0]
-            a21 = jacobian[2, 1]
-            a22 = 1.0 + jacobian[2, 2]
-            c00 = a11 * a22 - a12 * a21
-            c01 = a02 * a21 - a01 * a22
-            c02 = a01 * a12 - a02 * a11
-            det = a00 * c00 + a10 * c01 + a20 * c02
-            if abs(det) > 1e-6:
-                c10 = a12 * a20 - a10 * a22
-                c11 = a00 * a22 - a02 * a20
-                c12 = a02 * a10 - a00 * a12
-                c20 = a10 * a21 - a11 * a20
-                c21 = a01 * a20 - a00 * a21
-                c22 = a00 * a11 - a01 * a10
-                d0 = (c00 * r0 + c01 * r1 + c02 * r2) / det
-                d1 = (c10 * r0 + c11 * r1 + c12 * r2) / det
-                d2 = (c20 * r0 + c21 * r1 + c22 * r2) / det
-            else:
-                d0 = r0
-                d1 = r1
-                d2 = r2
-            position[0] -= d0
-            position[1] -= d1
-            position[2] -= d2
-            if max(abs(d0), abs(d1), abs(d2)) < tolerance:
-                ok = True
-                break
-        out[i, 0] = position[0]
-        out[i, 1] = position[1]
-        out[i, 2] = position[2]
-        converged[i] = ok
+        taps = np.empty((3, 10))
+        index = np.empty((3, 4), np.int64)
+        for i in range(block * _INVERT_BLOCK, min(n, (block + 1) * _INVERT_BLOCK)):
+            z = targets[i, 0]
+            y = targets[i, 1]
+            x = targets[i, 2]
+            _eval_one(coefficients, pad, origin, step, trend_offset, trend_matrix, z, y, x, value)
+            position[0] = z - value[0]
+            position[1] = y - value[1]
+            position[2] = x - value[2]
+            ok = False
+            for _ in range(max_iterations):
+                _eval_one_with_jacobian(
+                    coefficients,
+                    pad,
+                    origin,
+                    step,
+                    trend_offset,
+                    trend_matrix,
+                    position,
+                    value,
+                    jacobian,
+                    taps,
+                    index,
+                )
+                r0 = position[0] + value[0] - z
+                r1 = position[1] + value[1] - y
+                r2 = position[2] + value[2] - x
+                a00 = 1.0 + jacobian[0, 0]
+                a01 = jacobian[0, 1]
+                a02 = jacobian[0, 2]
+                a10 = jacobian[1, 0]
+                a11 = 1.0 + jacobian[1, 1]
+                a12 = jacobian[1, 2]
+                a20 = jacobian[2, 0]
+                a21 = jacobian[2, 1]
+                a22 = 1.0 + jacobian[2, 2]
+                c00 = a11 * a22 - a12 * a21
+                c01 = a02 * a21 - a01 * a22
+                c02 = a01 * a12 - a02 * a11
+                det = a00 * c00 + a10 * c01 + a20 * c02
+                if abs(det) > 1e-6:
+                    c10 = a12 * a20 - a10 * a22
+                    c11 = a00 * a22 - a02 * a20
+                    c12 = a02 * a10 - a00 * a12
+                    c20 = a10 * a21 - a11 * a20
+                    c21 = a01 * a20 - a00 * a21
+                    c22 = a00 * a11 - a01 * a10
+                    d0 = (c00 * r0 + c01 * r1 + c02 * r2) / det
+                    d1 = (c10 * r0 + c11 * r1 + c12 * r2) / det
+                    d2 = (c20 * r0 + c21 * r1 + c22 * r2) / det
+                else:
+                    d0 = r0
+                    d1 = r1
+                    d2 = r2
+                position[0] -= d0
+                position[1] -= d1
+                position[2] -= d2
+                if max(abs(d0), abs(d1), abs(d2)) < tolerance:
+                    ok = True
+                    break
+            out[i, 0] = position[0]
+            out[i, 1] = position[1]
+            out[i, 2] = position[2]
+            converged[i] = ok
 
 
 @njit(**KERNEL_OPTIONS)
