@@ -37,7 +37,7 @@ from scipy import ndimage
 
 from ._numba_setup import KERNEL_OPTIONS
 from .field import DisplacementField
-from .interpolation import bspline_derivative_weights, bspline_weights, prefilter, sample
+from .interpolation import _mirror, bspline_derivative_weights, bspline_weights, prefilter, sample
 
 #: Nodes added on each side of the grid (linear extrapolation) before the spline fit.
 PAD_NODES = 3
@@ -50,17 +50,6 @@ _HULL_TOLERANCE = 1e-6
 
 
 # --- kernels ----------------------------------------------------------------------------------
-@njit(inline="always", **KERNEL_OPTIONS)
-def _mirror_index(index, n):
-    if n == 1:
-        return 0
-    period = 2 * (n - 1)
-    index = abs(index) % period
-    if index > n - 1:
-        index = period - index
-    return index
-
-
 @njit(inline="always", **KERNEL_OPTIONS)
 def _clamp(value, low, high):
     return min(max(value, low), high)
@@ -89,12 +78,12 @@ def _eval_one(coefficients, pad, origin, step, trend_offset, trend_matrix, z, y,
         out[c] = trend_offset[c] + trend_matrix[c, 0] * tz + trend_matrix[c, 1] * ty
         out[c] += trend_matrix[c, 2] * tx
     for a in range(4):
-        za = _mirror_index(iz - 1 + a, pz)
+        za = _mirror(iz - 1 + a, pz)
         for b in range(4):
-            yb = _mirror_index(iy - 1 + b, py)
+            yb = _mirror(iy - 1 + b, py)
             wab = wz[a] * wy[b]
             for d in range(4):
-                xd = _mirror_index(ix - 1 + d, px)
+                xd = _mirror(ix - 1 + d, px)
                 w = wab * wx[d]
                 for c in range(nc):
                     out[c] += w * coefficients[za, yb, xd, c]
@@ -160,7 +149,7 @@ def _eval_one_with_jacobian(
         for k in range(4):
             taps[a, 2 + k] = w[k]
             taps[a, 6 + k] = 0.0 if clamped else d[k] / step[a]
-            index[a, k] = _mirror_index(int(f) - 1 + k, sizes[a])
+            index[a, k] = _mirror(int(f) - 1 + k, sizes[a])
     for c in range(nc):
         out[c] = trend_offset[c]
         for a in range(3):
@@ -298,7 +287,7 @@ def _axis_taps(coordinates, origin, step, pad, n_padded):
         w = bspline_weights(q - f)
         i = int(f)
         for a in range(4):
-            index[v, a] = _mirror_index(i - 1 + a, n_padded)
+            index[v, a] = _mirror(i - 1 + a, n_padded)
             weight[v, a] = w[a]
     return index, weight
 
