@@ -99,3 +99,19 @@ def test_entry_point_runs(pair, tmp_path):
         check=True,
     )
     assert "correlate" in exe.stdout
+
+
+def test_tiled_run_matches_the_in_memory_run(pair, tmp_path):
+    common = [str(pair / "ref.tif"), str(pair / "def.npy"), "--subvolume", "15", "--step", "8"]
+    assert cli.main(["correlate", *common, "--out", str(tmp_path / "memory.npz")]) == 0
+    assert (
+        cli.main(
+            ["correlate", *common, "--tiled", "--batch", "2", "--out", str(tmp_path / "tiled.npz")]
+        )
+        == 0
+    )
+    memory = DisplacementField.load(tmp_path / "memory.npz")
+    tiled = DisplacementField.load(tmp_path / "tiled.npz")
+    both = memory.valid & tiled.valid
+    assert both.mean() > 0.9
+    assert np.max(np.abs(memory.u[both] - tiled.u[both])) < 1e-4

@@ -9,6 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
+from .correct import add_self_correct_argument
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
@@ -32,12 +35,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="where IC-GN runs: auto = a CUDA GPU when numba sees one that works, else the CPU; "
         "cuda without a usable GPU falls back to the CPU with a warning (default: auto)",
     )
-    try:
-        from .correct import add_self_correct_argument
-    except ImportError:  # the correction command is optional at this stage
-        pass
-    else:
-        add_self_correct_argument(parser)
+    add_self_correct_argument(parser)
+    add_tiled_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -135,18 +134,26 @@ def run(args) -> int:
     started = time.perf_counter()
     params = params_from_args(args)
     out = check_output_path(args.out)
-    reference = read_volume(args.reference)
-    deformed = read_volume(args.deformed)
-    mask = read_volume(args.mask) if args.mask else None
-    device = select_device(getattr(args, "device", "auto"))
-    print(f"device: {device.description}", flush=True)
-    bar = ProgressBar(args.quiet)
-    field = drive(correlate_iter(reference, deformed, params, mask=mask, device=device), bar)
-    field.metadata["reference"] = str(args.reference)
-    field.metadata["deformed"] = str(args.deformed)
+    if wants_tiled(args):
+        # large volumes: batches read lazily, on dask (CPU); see docs/scaling.md
+        field = run_tiled(args, params, ProgressBar(args.quiet).update)
+        reference = deformed = None
+    else:
+        reference = read_volume(args.reference)
+        deformed = read_volume(args.deformed)
+        mask = read_volume(args.mask) if args.mask else None
+        device = select_device(getattr(args, "device", "auto"))
+        print(f"device: {device.description}", flush=True)
+        bar = ProgressBar(args.quiet)
+        field = drive(correlate_iter(reference, deformed, params, mask=mask, device=device), bar)
+        field.metadata["reference"] = str(args.reference)
+        field.metadata["deformed"] = str(args.deformed)
     if getattr(args, "self_correct", False):
         from .correct import apply_self_correction
 
+        if reference is None:
+            reference = read_volume(args.reference)
+            deformed = read_volume(args.deformed)
         field = apply_self_correction(args, field, reference, deformed)
     field.save(out)
     print(summary(field, time.perf_counter() - started))
