@@ -158,20 +158,36 @@ def _summary(field, seconds, size, params, peak=None):
     }
 
 
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _add_cpu(result, cpu_seconds):
+    """CPU time used, per POI and per wall second (how many cores the run actually got)."""
+    result["cpu_seconds"] = round(cpu_seconds, 1)
+    result["cpu_ms_per_point"] = round(1000 * cpu_seconds / result["points"], 2)
+    result["cores_used"] = round(cpu_seconds / result["seconds"], 2)
+    return result
+
+
 def run_local(paths, size, params, max_memory, workers, margin):
     from napari_dvc_correct.engine.tiled import correlate_tiled
 
     with PeakMemory() as memory:
         started = time.perf_counter()
+        cpu = _cpu_seconds()
         field = correlate_tiled(
             *paths, params, max_memory=max_memory, workers=workers, margin=margin
         )
         seconds = time.perf_counter() - started
-    return _summary(field, seconds, size, params, memory.peak)
+        cpu = _cpu_seconds() - cpu
+    return _add_cpu(_summary(field, seconds, size, params, memory.peak), cpu)
 
 
-def _worker_peak():
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+def _worker_usage():
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_maxrss * 1024, usage.ru_utime + usage.ru_stime
 
 
 def run_cluster(paths, size, params, n_workers, batch_shape, margin):
@@ -191,6 +207,7 @@ def run_cluster(paths, size, params, n_workers, batch_shape, margin):
         distributed.Client(cluster) as client,
     ):
         client.run(lambda: __import__("napari_dvc_correct.engine.correlate"))  # warm imports
+        before = client.run(_worker_usage)
         started = time.perf_counter()
         field = correlate_tiled(
             *paths,
@@ -201,11 +218,12 @@ def run_cluster(paths, size, params, n_workers, batch_shape, margin):
             margin=margin,
         )
         seconds = time.perf_counter() - started
-        peaks = client.run(_worker_peak)
+        after = client.run(_worker_usage)
     result = _summary(field, seconds, size, params)
-    result["worker_peak_rss_bytes"] = max(peaks.values())
+    result["worker_peak_rss_bytes"] = max(peak for peak, _ in after.values())
     result["workers"] = n_workers
-    return result
+    cpu = sum(after[w][1] - before[w][1] for w in after)
+    return _add_cpu(result, cpu)
 
 
 def warm_up():
@@ -291,7 +309,8 @@ def main(argv=None) -> int:
         print(
             f"{result['workers']} worker(s): {rate:.1f} POIs/s, "
             f"{result['voxel_iterations_per_s']:.3g} voxel-iterations/s, "
-            f"speed-up {rate / base:.2f}, worker peak {result['worker_peak_rss_bytes'] / gib:.2f} GiB"
+            f"speed-up {rate / base:.2f}, worker peak {result['worker_peak_rss_bytes'] / gib:.2f} GiB, "
+            f"{result['cpu_ms_per_point']} CPU-ms per POI, {result['cores_used']} cores used"
         )
     if args.out:
         from napari_dvc_correct.io.atomic import atomic_path
