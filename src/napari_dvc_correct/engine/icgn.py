@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ._numba_setup import KERNEL_OPTIONS
+from ._numba_setup import FAST_KERNEL_OPTIONS, KERNEL_OPTIONS
 from .field import Status
 from .interpolation import gradient_at_voxel, in_interior, sample_interior, sample_mirrored
 
@@ -286,7 +286,7 @@ def _reference_terms(g, grad, xi, count, nb):
     return mean_g, delta_g, ok, low, sum_j, sum_jg
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(**FAST_KERNEL_OPTIONS)
 def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, sum_jf):
     """One pass over the subvolume at warp ``p``.
 
