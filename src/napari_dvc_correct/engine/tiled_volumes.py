@@ -7,7 +7,7 @@ block is a ``dask.delayed`` task (dask's local threaded scheduler by default, or
 1. evaluates the field's cubic spline on the block's voxel lattice (:meth:`.warp.FieldSpline.lattice`),
    or inverts it there (:meth:`.warp.FieldSpline.invert`) for the forward warp;
 2. reads only the region of the input volume those positions reach, plus
-   :data:`.tiled.SPLINE_SUPPORT` + :data:`.tiled.PREFILTER_MARGIN` voxels, from a lazy volume
+   :data:`.tiled_memory.SPLINE_SUPPORT` + :data:`.tiled_memory.PREFILTER_MARGIN` voxels, from a lazy volume
    (:mod:`..io.lazy`), prefilters it and samples it (:func:`.interpolation.sample`) — equal to
    sampling the prefiltered whole volume to float32 rounding;
 3. writes the block into the output (:mod:`..io.lazy_outputs`), which is renamed onto its path only
@@ -27,7 +27,7 @@ from . import scheduling
 from .field import DisplacementField
 from .interpolation import prefilter, sample
 from .progress import Progress
-from .tiled import PREFILTER_MARGIN, SPLINE_SUPPORT
+from .tiled_memory import PREFILTER_MARGIN, SPLINE_SUPPORT
 from .warp import FieldSpline, _inside_hull, _spline
 
 #: Default voxels per output block (z, y, x).
