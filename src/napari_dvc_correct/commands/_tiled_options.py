@@ -143,6 +143,7 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
         max_memory=getattr(args, "max_memory", None),
         workers=getattr(args, "workers", None),
         scheduler=getattr(args, "scheduler", None) or None,
+        device=getattr(args, "device", "cpu"),  # chosen by each batch's worker ("auto": its GPU)
     )
     field = drive(generator, _Reporter())
     field.metadata["reference"] = str(args.reference)
