@@ -145,15 +145,18 @@ def _write(
     shared,
     extra,
     *,
-    block_shape,
-    scheduler,
-    workers,
+    run,
     metadata,
     stage,
     progress: Callable[[Progress], None] | None,
 ) -> dict:
-    """Run ``function(out, *shared, block, *extra)`` on every block and commit the output."""
+    """Run ``function(out, *shared, block, *extra)`` on every block and commit the output.
+
+    ``run`` is ``(block_shape, scheduler, workers)``.
+    """
     import dask
+
+    block_shape, scheduler, workers = run
 
     from ..io.lazy_outputs import create_output, output_chunks
 
@@ -251,9 +254,7 @@ def write_dense_field(
         _dense_block,
         [_spline(field)],
         [_outside(outside)],
-        block_shape=block_shape,
-        scheduler=scheduler,
-        workers=workers,
+        run=(block_shape, scheduler, workers),
         metadata={"quantity": "displacement (uz, uy, ux), voxels"},
         stage="densify",
         progress=progress,
@@ -288,9 +289,7 @@ def write_pull_back(
         _pull_back_block,
         [deformed, _spline(field)],
         [_outside(outside), float(cval)],
-        block_shape=block_shape,
-        scheduler=scheduler,
-        workers=workers,
+        run=(block_shape, scheduler, workers),
         metadata={"quantity": "deformed volume pulled back to the reference frame"},
         stage="pull back",
         progress=progress,
@@ -324,9 +323,7 @@ def write_warp_forward(
         _forward_block,
         [reference, _spline(field)],
         [_outside(outside), float(cval), int(max_iterations), float(tolerance)],
-        block_shape=block_shape,
-        scheduler=scheduler,
-        workers=workers,
+        run=(block_shape, scheduler, workers),
         metadata={"quantity": "reference volume warped to the loaded state"},
         stage="warp",
         progress=progress,
@@ -370,9 +367,7 @@ def write_gray_residual(
         _residual_block,
         [reference, deformed, _spline(field)],
         [mode, "nan" if region == "hull" else "extrapolate"],
-        block_shape=block_shape,
-        scheduler=scheduler,
-        workers=workers,
+        run=(block_shape, scheduler, workers),
         metadata={"quantity": f"gray residual ({mode} frame, {region})"},
         stage="residual",
         progress=progress,
@@ -420,9 +415,7 @@ def write_equivalent_strain(
         _dense_block,
         [spline],
         [_outside(outside)],
-        block_shape=block_shape,
-        scheduler=scheduler,
-        workers=workers,
+        run=(block_shape, scheduler, workers),
         metadata={"quantity": f"equivalent strain ({measure})"},
         stage="strain",
         progress=progress,
