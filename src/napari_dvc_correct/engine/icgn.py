@@ -120,6 +120,39 @@ def parameters_from_matrix(m, nb, p):
 
 
 @njit(**KERNEL_OPTIONS)
+def _compose_inverse(m_current, m_update, n):
+    """``m_current @ inv(m_update)`` for small n×n warp matrices, without BLAS or LAPACK.
+
+    Solves ``X · m_update = m_current`` by Gauss–Jordan elimination with partial pivoting on the
+    transposed system. Calling BLAS/LAPACK here serialised the parallel POI loop (OpenBLAS takes a
+    lock per call), so the few hundred flops are written out.
+    """
+    a = m_update.T.copy()
+    rhs = m_current.T.copy()
+    for col in range(n):
+        pivot = col
+        for r in range(col + 1, n):
+            if abs(a[r, col]) > abs(a[pivot, col]):
+                pivot = r
+        if pivot != col:
+            for c in range(n):
+                a[col, c], a[pivot, c] = a[pivot, c], a[col, c]
+                rhs[col, c], rhs[pivot, c] = rhs[pivot, c], rhs[col, c]
+        d = a[col, col]
+        for c in range(n):
+            a[col, c] /= d
+            rhs[col, c] /= d
+        for r in range(n):
+            if r != col:
+                factor = a[r, col]
+                if factor != 0.0:
+                    for c in range(n):
+                        a[r, c] -= factor * a[col, c]
+                        rhs[r, c] -= factor * rhs[col, c]
+    return rhs.T.copy()
+
+
+@njit(**KERNEL_OPTIONS)
 def _cholesky_solve_setup(h, m):
     """In-place Cholesky factor of the m×m SPD matrix ``h``; returns False if not positive definite.
 
@@ -499,7 +532,7 @@ def match_one(
         # W(p) <- W(p) o W(dp)^-1
         m_current = warp_matrix(p, nb, product_table, quad_axes)
         m_update = warp_matrix(dp, nb, product_table, quad_axes)
-        m_new = m_current @ np.linalg.inv(m_update)
+        m_new = _compose_inverse(m_current, m_update, nb)
         parameters_from_matrix(m_new, nb, p)
 
         largest = 0.0
