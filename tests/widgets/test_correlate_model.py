@@ -85,3 +85,28 @@ def test_poi_read_out():
     assert values["magnitude"] == pytest.approx(np.sqrt(0.25 + 0.0625 + 1.0))
     text = model.poi_text(values, "uncorrected")
     assert "+0.500" in text and "max iterations" in text and "uncorrected" in text
+
+
+def test_pair_job_runs_on_the_chosen_device_and_records_it():
+    import numpy as np
+
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.progress import run_to_completion
+    from napari_dvc_correct.widgets import correlate_model as model
+
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=4),
+        (32, 32, 32),
+        synthetic.translation((0.5, 0.0, -0.5)),
+    )
+    job = model.CorrelationJob(
+        volumes=[reference, deformed],
+        params=CorrelationParams(subvolume=11, step=8),
+        names=["g", "f"],
+        device="cpu",
+    )
+    result = run_to_completion(model.run_job(job))
+    field = result.fields[0][1]
+    assert "CPU" in str(field.metadata["device"])
+    assert np.nanmax(np.abs(field.u - [0.5, 0.0, -0.5])) < 0.05

@@ -102,6 +102,13 @@ class CorrelateWidget(EngineWidget):
         self.form.addRow("Step", self.step)
         self.form.addRow("Shape function", self.order)
         self.form.addRow("Search radius", self.search_radius)
+        self.device = QComboBox()
+        for key, text in model.DEVICES.items():
+            self.device.addItem(text, key)
+        self.device.setToolTip(
+            "auto: a CUDA GPU when numba sees a working one, else the CPU (the run says which)"
+        )
+        self.form.addRow("Device", self.device)
         self.preview = QCheckBox("preview the POI grid and one subvolume")
         self.preview.setChecked(True)
         self.form.addRow(self.preview)
@@ -281,6 +288,7 @@ class CorrelateWidget(EngineWidget):
             voxel_size=voxel_size,
             offset=offset,
             names=names,
+            device=self.device.currentData(),
         )
 
     # -- preview and estimate ------------------------------------------------------------------

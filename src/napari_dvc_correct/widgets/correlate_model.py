@@ -23,6 +23,14 @@ _calibration = {"seconds_per_voxel_iteration": SECONDS_PER_VOXEL_ITERATION}
 TYPICAL_ITERATIONS = 8
 
 
+#: Devices offered by the Correlate panel (key: engine name, value: label).
+DEVICES = {
+    "auto": "auto (GPU if available)",
+    "cpu": "CPU (numba, all cores)",
+    "cuda": "CUDA GPU (falls back to the CPU)",
+}
+
+
 @dataclass
 class CorrelationJob:
     """A checked request: what the Correlate panel hands to the engine.
@@ -40,6 +48,9 @@ class CorrelationJob:
         ``scale`` and ``translate`` (z, y, x) of the reference layer, for display.
     names : list of str
         Names of the layers (or states) the volumes come from.
+    device : {"auto", "cpu", "cuda"}
+        Where IC-GN runs for a pair (:func:`..engine.backend.select_device`); scan series run on
+        the CPU.
     """
 
     volumes: list
@@ -50,6 +61,7 @@ class CorrelationJob:
     voxel_size: tuple = (1.0, 1.0, 1.0)
     offset: tuple = (0.0, 0.0, 0.0)
     names: list = field(default_factory=list)
+    device: str = "auto"
 
     @property
     def shape(self) -> tuple:
@@ -88,7 +100,9 @@ def run_job(job: CorrelationJob):
 
     results = []
     if job.strategy == "pair":
-        field = yield from correlate_iter(job.volumes[0], job.volumes[1], job.params, mask=job.mask)
+        field = yield from correlate_iter(
+            job.volumes[0], job.volumes[1], job.params, mask=job.mask, device=job.device
+        )
         field = _finish(field, job, job.names)
         results.append(("uncorrected", field, equivalent_strain_field(field)))
     else:
