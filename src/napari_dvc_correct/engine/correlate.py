@@ -173,7 +173,7 @@ def _is_good(status, zncc, min_zncc):
     return np.isin(status, _GOOD) & (zncc >= min_zncc)
 
 
-def _repair(level, centers, grid_shape, params, zncc, status, iterations, order, settings, step):
+def _repair(level, centers, grid_shape, params, zncc, status, iterations, order, settings):
     """Reliability-guided propagation into POIs that failed or are outliers.
 
     POIs are taken best first (highest ZNCC); each bad 26-neighbour is matched again with the
@@ -445,7 +445,6 @@ def correlate_iter(
                 its_l,
                 order,
                 params,
-                None,
             )
             failed = ~np.isin(status_l, _GOOD)
             guess_params[failed] = before[failed]  # keep the carried guess where matching failed
@@ -483,7 +482,7 @@ def correlate_iter(
 
     t0 = time.perf_counter()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
-    _repair(fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, None)
+    _repair(fine, centers, grid_shape, params_out, zncc, status, iterations, order, params)
     timings["repair_s"] = time.perf_counter() - t0
 
     low = np.isin(status, _GOOD) & ~(zncc >= params.min_zncc)
@@ -512,9 +511,6 @@ def correlate_iter(
             "timings": timings,
             "masked": mask is not None,
             "device": device.description,
-            "shape_function_parameters": params_out.reshape(*grid_shape, -1).tolist()
-            if order == 2 and n_points <= 0
-            else None,
         },
     )
     yield Progress("done", 1, 1, f"{int(np.isin(status, _GOOD).sum())} of {n_points} POIs matched")

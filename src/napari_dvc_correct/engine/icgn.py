@@ -325,7 +325,8 @@ def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, s
 
     Samples ``F`` at every warped voxel and returns ``(Σf, Σf², Σ(g − ḡ)f, voxels outside)``,
     filling ``sum_jf = Σ J f``. Voxels whose warped position leaves ``F`` are flagged in
-    ``outside``.
+    ``outside``. (The in-volume test is written out in both branches: moving it into a helper
+    that returns ``(value, inside)`` measured 18% slower.)
     """
     nz, ny, nx = coef.shape
     sum_f = 0.0
