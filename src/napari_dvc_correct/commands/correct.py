@@ -97,12 +97,18 @@ def correction_options_from_args(args) -> dict:
 
 def pass_table(field) -> str:
     """The per-pass report of a corrected field as aligned text lines."""
-    lines = ["pass  mean gray residual  applied  nodes changed  mean change  max change"]
-    for entry in field.metadata.get("correction_passes", []):
+    from ..engine.correction import correction_table
+
+    lines = [
+        "pass  mean gray residual  applied  nodes changed  mean change  max change"
+        "  accepted  refused  noise floor"
+    ]
+    for entry in correction_table(field):
         lines.append(
-            f"{entry['pass']:>4}  {entry['mean_gray_residual']:>18.4f}  "
-            f"{'yes' if entry['accepted'] else 'no':>7}  {entry['fraction_changed']:>13.3f}  "
-            f"{entry['mean_change']:>11.3f}  {entry['max_change']:>10.3f}"
+            f"{entry.number:>4}  {entry.mean_gray_residual:>18.4f}  "
+            f"{'yes' if entry.accepted else 'no':>7}  {entry.fraction_changed:>13.3f}  "
+            f"{entry.mean_change:>11.3f}  {entry.max_change:>10.3f}"
+            f"  {entry.accepted_nodes:>8}  {entry.rejected_nodes:>7}  {entry.noise_floor:>11.4f}"
         )
     return "\n".join(lines)
 

@@ -260,6 +260,79 @@ def accuracy_index(mean_residual, background: BackgroundResidual | float, contra
     return float(result) if result.ndim == 0 else result
 
 
+# --- local residual and local accuracy map -------------------------------------------------------
+def local_mean_residual(residual: np.ndarray, field: DisplacementField, half: int) -> np.ndarray:
+    """Mean residual over each node's subvolume region, per node (the local ``mean(r)``).
+
+    Parameters
+    ----------
+    residual : ndarray, shape (nz, ny, nx), float
+        Gray residual volume in the reference frame, ``|F(X + u(X)) - G(X)|`` (NaN where
+        undefined), as from :func:`~.warp.gray_residual` or a pull-back.
+    field : DisplacementField
+        Gives the node positions (reference voxels, rounded to whole voxels).
+    half : int
+        Half-size ``M`` of the region: the ``(2M + 1)^3`` box centred on the node (the DVC's
+        subvolume; clipped at the volume's borders).
+
+    Returns
+    -------
+    ndarray, shape field.shape, float64
+        Mean of the finite residual voxels of each node's box, gray levels; NaN where the box
+        holds none.
+    """
+    from scipy import ndimage
+
+    residual = np.asarray(residual, dtype=np.float32)
+    finite = np.isfinite(residual)
+    size = 2 * int(half) + 1
+    sums = ndimage.uniform_filter(np.where(finite, residual, np.float32(0)), size, mode="constant")
+    counts = ndimage.uniform_filter(finite.astype(np.float32), size, mode="constant")
+    index = np.rint(field.points).astype(np.intp)
+    index = tuple(np.clip(index[:, a], 0, residual.shape[a] - 1) for a in range(3))
+    total, count = sums[index].astype(np.float64), counts[index].astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0.5 / size**3, total / count, np.nan)
+    return mean.reshape(field.shape)
+
+
+def local_accuracy_map(
+    local_residual: np.ndarray, background: BackgroundResidual | float, contrast: float
+) -> np.ndarray:
+    """Local accuracy index, eq. 2 node by node: ``p_i = 1 - (R_i - r0) / |g1 - g2|``.
+
+    ``R_i`` is the mean residual over node ``i``'s subvolume region
+    (:func:`local_mean_residual`), ``r0`` the volume's background residual (eq. 1) and
+    ``|g1 - g2|`` the phase contrast. ``p_i`` is near 1 where the field explains the images down
+    to the imaging noise and falls where the region's texture is misplaced; NaN where the region
+    has no defined residual (the field sends it outside the scan, or it could not be inverted),
+    which :func:`evaluate_iter` counts as a failed region.
+    """
+    return np.asarray(accuracy_index(np.asarray(local_residual), background, contrast))
+
+
+def _region_half(field: DisplacementField) -> int:
+    """Half-size of a node's region: the field's subvolume half, else its largest step."""
+    subvolume = (field.params or {}).get("subvolume")
+    if subvolume:
+        return int(subvolume) // 2
+    return int(np.ceil(max(field.step)))
+
+
+def honest_accuracy(local_accuracy: np.ndarray) -> float:
+    """Global accuracy index from the local map: the mean over every node, failed regions at 0.
+
+    A node counts 0 where its region's residual is undefined (NaN: the field sends the region
+    outside the scan or cannot be inverted there); elsewhere its local index counts, clipped to
+    [0, 1], so a region below the average noise does not make up for a wrong one. Unlike eq. 2 on
+    the voxels where the residual happens to be defined, this cannot rise when a field ruins a
+    region so badly that its residual becomes undefined.
+    """
+    values = np.clip(np.asarray(local_accuracy, dtype=np.float64), 0.0, 1.0)
+    values = np.where(np.isfinite(values), values, 0.0)
+    return float(np.mean(values)) if values.size else float("nan")
+
+
 # --- the whole chain --------------------------------------------------------------------------
 @dataclass
 class FieldEvaluation:
@@ -287,6 +360,15 @@ class FieldEvaluation:
         Mean residual per equivalent-strain bin.
     bin_accuracy : ndarray, shape (B,)
         Accuracy index per bin (NaN for empty bins).
+    local_residual : ndarray, shape field.shape
+        Mean residual over each node's subvolume region (:func:`local_mean_residual`; the
+        subvolume of ``field.params``, else ``2 * step + 1``), NaN where undefined.
+    local_accuracy : ndarray, shape field.shape
+        Local accuracy index per node (:func:`local_accuracy_map`): where the field is wrong.
+    local_accuracy_index : float
+        :func:`honest_accuracy` of the map: the mean over every node with undefined regions at
+        0. It falls where a field ruins a region so badly that its residual becomes undefined,
+        which ``accuracy`` (eq. 2 over the defined voxels) cannot see.
     residual : ndarray or None
         Residual volume, float32, NaN where undefined (kept with ``keep_volumes``).
     labels_mapped : ndarray or None
@@ -304,6 +386,9 @@ class FieldEvaluation:
     accuracy: float
     bins: StrainBins
     bin_accuracy: np.ndarray
+    local_residual: np.ndarray | None = None
+    local_accuracy: np.ndarray | None = None
+    local_accuracy_index: float = float("nan")
     residual: np.ndarray | None = None
     labels_mapped: np.ndarray | None = None
 
@@ -532,6 +617,7 @@ def evaluate_iter(
             total += float(np.sum(block[finite], dtype=np.float64))
             count += int(finite.sum())
         bins = bin_residual_by_strain(residual, bin_strain, bin_field, edges, positions)
+        local = local_mean_residual(residual, item, _region_half(item))
         partial.append(
             dict(
                 name=name,
@@ -541,6 +627,7 @@ def evaluate_iter(
                 voxels=count,
                 background=background,
                 bins=bins,
+                local_residual=local,
                 residual=residual if keep_volumes else None,
                 labels_mapped=mapped if keep_volumes else None,
             )
@@ -551,9 +638,12 @@ def evaluate_iter(
     results = []
     for p in partial:
         r0 = shared if shared_background else p["background"].mean
+        local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
         results.append(
             FieldEvaluation(
                 **p,
+                local_accuracy=local_accuracy,
+                local_accuracy_index=honest_accuracy(local_accuracy),
                 background_used=r0,
                 accuracy=accuracy_index(p["mean_residual"], r0, contrast),
                 bin_accuracy=accuracy_index(p["bins"].mean_residual, r0, contrast),

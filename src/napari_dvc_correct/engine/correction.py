@@ -29,18 +29,23 @@ See ``docs/method.md`` for the measurements behind the defaults.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Generator
+from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from . import warp
+from .accuracy import background_residual, local_mean_residual
 from .cleaning import clean, masked_nodes
 from .compose import compose
 from .correlate import correlate_iter
-from .field import DisplacementField, Provenance
+from .field import DisplacementField, Provenance, Status
 from .interpolation import prefilter
 from .params import CorrelationParams
+from .phases import label_phases, phase_thresholds
 from .progress import Progress, run_to_completion
 
 FRAMES = ("reference", "loaded")
@@ -48,6 +53,109 @@ UPDATES = ("exact", "sum")
 
 #: A node counts as "changed" by a pass when its displacement moves by more than this (voxels).
 CHANGE_THRESHOLD = 0.1
+
+#: One-sided z-score of the local acceptance test: a node's local residual must rise by more than
+#: this many standard deviations of what resampling the imaging noise can do before its correction
+#: is refused, and fall by as much for the node to count as improved above the noise floor.
+NOISE_Z = 2.0
+
+#: Correlation volume (voxels) of the residual's noise: B-spline resampling and the scanner's
+#: point spread make neighbouring residual voxels dependent, so a region of ``n`` voxels holds
+#: about ``n / NOISE_CORRELATION_VOXELS`` independent noise samples (conservative: 2 x 2 x 2).
+NOISE_CORRELATION_VOXELS = 8.0
+
+#: Standard deviation over mean of the absolute difference of two Gaussian noises (half-normal
+#: distribution, ``sqrt(pi / 2 - 1)``): turns the noise floor ``r0`` into the residual's spread.
+HALF_NORMAL_SPREAD = float(np.sqrt(np.pi / 2.0 - 1.0))
+
+#: Another pass runs only while at least this fraction of the nodes improved above the noise.
+MIN_IMPROVED_FRACTION = 0.01
+
+#: Sweeps of the local acceptance per pass: after mixing accepted and refused nodes, the mixed
+#: field's residual is checked again (neighbouring nodes share their regions).
+ACCEPTANCE_SWEEPS = 3
+
+#: Nodes whose local residual exceeds the noise floor by more than an error of this many voxels
+#: explains (from the local gray gradient) are flagged ``OUTLIER_REPLACED`` and refilled.
+FLAG_ERROR = 1.0
+
+
+@dataclass(frozen=True)
+class CorrectionPass:
+    """The record of one correction pass (pass 0 = the cleaned input field).
+
+    Attributes
+    ----------
+    number : int
+        Pass number, 0 for the cleaned input.
+    mean_gray_residual : float
+        Mean gray residual of the field after the pass, in the pass's frame (gray levels).
+    noise_floor : float
+        Background residual ``r0`` (eq. 1, gray levels): the imaging-noise floor the pass is
+        judged against (the smallest seen so far).
+    residual_before : float
+        Mean gray residual before the pass (gray levels; pass 0: same as after).
+    local_residual_before, local_residual_after : float
+        Mean over the nodes of the local residual (reference frame, each node's subvolume
+        region) before and after the pass (gray levels).
+    accepted : bool
+        Whether the pass changed the field at all (some node accepted).
+    accepted_nodes, rejected_nodes : int
+        Nodes whose correction was kept / refused (local residual rose by more than the noise
+        allows; they keep their previous value).
+    improved_nodes : int
+        Accepted nodes whose local residual fell by more than the noise allows.
+    fraction_changed : float
+        Fraction of the (unmasked) nodes moved by more than :data:`CHANGE_THRESHOLD` voxels.
+    mean_change, max_change : float
+        Node displacement change of the pass (voxels).
+    converged_fraction : float
+        Fraction of good matches of the pass's DVC.
+    seconds : float
+        Wall time of the pass.
+    """
+
+    number: int
+    mean_gray_residual: float
+    noise_floor: float
+    residual_before: float
+    local_residual_before: float
+    local_residual_after: float
+    accepted: bool
+    accepted_nodes: int
+    rejected_nodes: int
+    improved_nodes: int
+    fraction_changed: float
+    mean_change: float
+    max_change: float
+    converged_fraction: float
+    seconds: float
+
+    def to_dict(self) -> dict:
+        """Plain dict for the field's JSON metadata (``number`` stored as ``"pass"``, the key
+        older files and readers use)."""
+        values = dataclasses.asdict(self)
+        return {"pass": values.pop("number"), **values}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> CorrectionPass:
+        """Read a record back from metadata (also the string-keyed records of older files)."""
+        values = dict(values)
+        if "pass" in values and "number" not in values:
+            values["number"] = values.pop("pass")
+        nan = float("nan")
+        defaults = {
+            "noise_floor": nan,
+            "residual_before": values.get("mean_gray_residual", nan),
+            "local_residual_before": nan,
+            "local_residual_after": nan,
+            "accepted_nodes": 0,
+            "rejected_nodes": 0,
+            "improved_nodes": 0,
+        }
+        names = {f.name for f in dataclasses.fields(cls)}
+        merged = {**defaults, **{k: v for k, v in values.items() if k in names}}
+        return cls(**merged)
 
 
 def _relabel(progress: Progress, prefix: str) -> Progress:
@@ -127,6 +235,145 @@ class _Pair:
             if not mask.any():
                 mask = None
         return moved, self.deformed, mask
+
+
+class _Judge:
+    """Local residuals and the noise floor, in the reference frame, for the acceptance test.
+
+    The residual ``r(X) = |F(X + D(X)) - G(X)|`` is measured on reference voxels whatever the
+    pass's frame. A node's region is its own cell, the box of edge ``2 * ceil(step / 2) + 1``
+    around it (at least 5): the field there is mostly that node's value, where a whole subvolume
+    would mix in the neighbours' (and let a ruined neighbour hide a ruined node).
+    """
+
+    def __init__(self, pair: _Pair, step):
+        self.reference = pair.reference
+        self.deformed = pair.deformed
+        self.coefficients = (
+            pair.coefficients if pair.frame == "reference" else prefilter(pair.deformed)
+        )
+        self.half = max(2, int(np.ceil(max(step) / 2.0)))
+        try:
+            self.thresholds_g = phase_thresholds(self.reference, "auto", 2, "reference volume")
+            self.thresholds_f = phase_thresholds(self.deformed, "auto", 2, "deformed volume")
+            self.labels_g = label_phases(self.reference, self.thresholds_g)
+        except ValueError:  # a volume with a single gray value: no phases, no eq. 1
+            self.labels_g = None
+        self.floor = float("inf")
+        self._gradient = None
+        size = 2 * self.half + 1
+        # the largest change of a region's mean residual that resampling the noise can make:
+        # two independent noise draws, each of spread HALF_NORMAL_SPREAD * r0 over n / Vc samples
+        self.spread = (
+            np.sqrt(2.0) * HALF_NORMAL_SPREAD / np.sqrt(size**3 / NOISE_CORRELATION_VOXELS)
+        )
+
+    def local(self, field: DisplacementField) -> np.ndarray:
+        """Per-node local mean residual of ``field`` (gray levels); updates the noise floor.
+
+        The floor is the smaller of eq. 1's background residual and the lower quartile of the
+        nodes' local residuals (eq. 1 is inflated where a flat region agrees in phase with
+        textured material), and the smallest seen so far: the noise belongs to the scans.
+        """
+        spline = warp.FieldSpline.from_field(field)
+        moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
+        residual = np.abs(moved - self.reference)
+        local = local_mean_residual(residual, field, self.half)
+        floor = float("inf")
+        if self.labels_g is not None:
+            try:
+                floor = background_residual(
+                    residual, self.labels_g, label_phases(moved, self.thresholds_f)
+                ).mean
+            except ValueError:
+                pass
+        if np.isfinite(local).any():
+            floor = min(floor, float(np.nanpercentile(local, 25.0)))
+        if np.isfinite(floor):
+            self.floor = min(self.floor, floor)
+        elif not np.isfinite(self.floor):
+            self.floor = 0.0
+        return local
+
+    @property
+    def tolerance(self) -> float:
+        """How much a node's local residual may change by noise alone (gray levels)."""
+        return NOISE_Z * self.spread * self.floor
+
+    def unexplained(self, field: DisplacementField, local: np.ndarray) -> np.ndarray:
+        """Nodes whose local residual only an error of more than ~1 voxel explains.
+
+        An error ``e`` of the field misplaces the texture by ``|grad G . e|``, on average
+        ``|grad G| |e| / 2`` over directions; nodes whose local residual exceeds the noise floor
+        by more than :data:`FLAG_ERROR` voxels' worth of that are flagged (a subvolume half in a
+        textureless region, or half outside the specimen, lands here whatever its value).
+        """
+        if self._gradient is None:
+            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
+        gradient = local_mean_residual(self._gradient, field, self.half)
+        excess = local - self.floor
+        return np.isfinite(excess) & (excess > 0.5 * FLAG_ERROR * gradient)
+
+
+def _flag_and_refill(judge, field, local, masked, clean_options):
+    """Give unexplained nodes ``OUTLIER_REPLACED`` and refill them from their neighbours."""
+    flagged = judge.unexplained(field, local) & ~masked
+    if not flagged.any() or flagged.all():
+        return field, local, 0
+    marked = field.copy()
+    marked.status[flagged] = Status.OUTLIER_REPLACED
+    try:
+        refilled = clean(marked, **clean_options)
+    except ValueError:
+        return field, local, 0
+    refilled.status[flagged] = Status.OUTLIER_REPLACED
+    refilled.provenance[flagged] = Provenance.REPLACED
+    return refilled, judge.local(refilled), int(flagged.sum())
+
+
+def _mix(current: DisplacementField, candidate: DisplacementField, accept: np.ndarray):
+    """``candidate`` where ``accept``, ``current`` elsewhere (values and quality arrays)."""
+    mixed = candidate.copy()
+    keep = ~accept
+    mixed.u[keep] = current.u[keep]
+    for name in ("zncc", "status", "iterations", "provenance"):
+        getattr(mixed, name)[keep] = getattr(current, name)[keep]
+    if mixed.gradient is not None:
+        if current.gradient is not None:
+            mixed.gradient[keep] = current.gradient[keep]
+        else:
+            mixed.gradient = None
+    return mixed
+
+
+def _accept_locally(judge: _Judge, current, local_current, candidate):
+    """Node by node: keep the candidate's value unless its local residual rose above the noise.
+
+    Returns the mixed field, its local residual, the accepted and the improved node masks.
+    """
+    tolerance = judge.tolerance
+    local = judge.local(candidate)
+    rose = local > local_current + tolerance
+    rose |= np.isnan(local) & np.isfinite(local_current)
+    accept = ~rose
+    mixed, local_mixed = candidate, local
+    for _ in range(ACCEPTANCE_SWEEPS):
+        if accept.all():
+            break
+        mixed = _mix(current, candidate, accept)
+        local_mixed = judge.local(mixed)
+        worse = accept & (
+            (local_mixed > local_current + tolerance)
+            | (np.isnan(local_mixed) & np.isfinite(local_current))
+        )
+        if not worse.any():
+            break
+        accept &= ~worse
+    else:
+        mixed = _mix(current, candidate, accept)
+        local_mixed = judge.local(mixed)
+    improved = accept & (local_mixed < local_current - tolerance)
+    return mixed, local_mixed, accept, improved
 
 
 def _update(current: DisplacementField, delta: DisplacementField, frame: str, update: str):
@@ -253,26 +500,39 @@ def correct_iter(
     yield Progress("clean", 1, 1, f"{current.metadata['cleaning']['rejected']} nodes replaced")
 
     pair = _Pair(reference, deformed, frame, mask)
+    judge = _Judge(pair, current.step)
     yield Progress("residual", 0, 1, "gray residual of the input field")
+    local_current = judge.local(current)
+    current, local_current, flagged = _flag_and_refill(
+        judge, current, local_current, masked, clean_options
+    )
     moved, residual = pair.align(current)
     yield Progress("residual", 1, 1, f"mean gray residual {residual:.4g}")
     passes = [
-        {
-            "pass": 0,
-            "mean_gray_residual": residual,
-            "accepted": True,
-            "fraction_changed": float(current.metadata["cleaning"]["rejected"])
+        CorrectionPass(
+            number=0,
+            mean_gray_residual=residual,
+            noise_floor=judge.floor,
+            residual_before=residual,
+            local_residual_before=_mean(local_current),
+            local_residual_after=_mean(local_current),
+            accepted=True,
+            accepted_nodes=int(current.n_points),
+            rejected_nodes=0,
+            improved_nodes=0,
+            fraction_changed=float(current.metadata["cleaning"]["rejected"])
             / max(1, current.n_points),
-            "mean_change": 0.0,
-            "max_change": 0.0,
-            "converged_fraction": float(np.mean(field.valid)),
-            "seconds": time.perf_counter() - started,
-        }
+            mean_change=0.0,
+            max_change=0.0,
+            converged_fraction=float(np.mean(field.valid)),
+            seconds=time.perf_counter() - started,
+        )
     ]
     grid = (current.origin, current.step, current.shape)
     zero = DisplacementField.zeros(current.origin, current.step, current.shape)
     zero.gradient = np.zeros((*current.shape, 3, 3))
     residual_before = residual
+    unmasked = max(1, int(np.count_nonzero(~masked)))
     for number in range(1, int(max_passes) + 1):
         pass_started = time.perf_counter()
         g, f, pass_mask = pair.matching_pair(moved, current)
@@ -284,71 +544,117 @@ def correct_iter(
         try:
             delta = clean(delta, **clean_options)
         except ValueError:
-            passes.append(_failed_pass(number, converged, pass_started))
+            passes.append(_failed_pass(number, converged, pass_started, passes[-1]))
             break
         candidate = _finish_pass(_update(current, delta, frame, update), delta, field, masked)
-        yield Progress("residual", 0, 1, f"gray residual after pass {number}")
-        candidate_moved, candidate_residual = pair.align(candidate)
-        change = np.linalg.norm(candidate.u - current.u, axis=-1)[~masked]
-        accepted = bool(candidate_residual < residual)
-        passes.append(
-            {
-                "pass": number,
-                "mean_gray_residual": candidate_residual,
-                "accepted": accepted,
-                "fraction_changed": float(np.mean(change > CHANGE_THRESHOLD))
-                if change.size
-                else 0.0,
-                "mean_change": float(np.mean(change)) if change.size else 0.0,
-                "max_change": float(np.max(change)) if change.size else 0.0,
-                "converged_fraction": converged,
-                "seconds": time.perf_counter() - pass_started,
-            }
+        yield Progress("residual", 0, 1, f"local acceptance of pass {number}")
+        floor_before = judge.floor
+        mixed, local_mixed, accept, improved = _accept_locally(
+            judge, current, local_current, candidate
         )
+        accept[masked] = False
+        improved[masked] = False
+        n_accepted = int(np.count_nonzero(accept))
+        applied = n_accepted > 0
+        if applied:
+            mixed_moved, mixed_residual = pair.align(mixed)
+        else:
+            mixed, mixed_moved, mixed_residual, local_mixed = (
+                current,
+                moved,
+                residual,
+                local_current,
+            )
+        change = np.linalg.norm(mixed.u - current.u, axis=-1)[~masked]
+        record = CorrectionPass(
+            number=number,
+            mean_gray_residual=mixed_residual,
+            noise_floor=judge.floor,
+            residual_before=residual,
+            local_residual_before=_mean(local_current),
+            local_residual_after=_mean(local_mixed),
+            accepted=applied,
+            accepted_nodes=n_accepted,
+            rejected_nodes=int(np.count_nonzero(~accept & ~masked)),
+            improved_nodes=int(np.count_nonzero(improved)),
+            fraction_changed=float(np.mean(change > CHANGE_THRESHOLD)) if change.size else 0.0,
+            mean_change=float(np.mean(change)) if change.size else 0.0,
+            max_change=float(np.max(change)) if change.size else 0.0,
+            converged_fraction=converged,
+            seconds=time.perf_counter() - pass_started,
+        )
+        passes.append(record)
         yield Progress(
             "residual",
             1,
             1,
-            f"pass {number}: mean gray residual {residual:.4g} -> {candidate_residual:.4g}"
-            + ("" if accepted else " (not applied)"),
+            f"pass {number}: {n_accepted} nodes accepted, {record.rejected_nodes} refused, "
+            f"{record.improved_nodes} improved above the noise floor {judge.floor:.4g}; "
+            f"mean gray residual {residual:.4g} -> {mixed_residual:.4g}",
         )
-        if not accepted:
+        if not applied:
             break
-        improvement = (residual - candidate_residual) / residual if residual > 0 else 0.0
-        current, moved, residual = candidate, candidate_moved, candidate_residual
-        if improvement <= min_improvement:
+        excess = record.local_residual_before - min(floor_before, judge.floor)
+        removed = record.local_residual_before - record.local_residual_after
+        current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
+        if record.improved_nodes < MIN_IMPROVED_FRACTION * unmasked:
+            break  # no region improves above the noise floor any more
+        if excess > 0 and removed <= min_improvement * excess:
             break
 
+    # after the passes, unexplained nodes are flagged but keep their value: refilling them from
+    # neighbours that the same fault may have spoiled does not make them any more right
+    unexplained = judge.unexplained(current, local_current) & ~masked
+    current = current.copy()
+    current.status[unexplained] = Status.OUTLIER_REPLACED
+    flagged_after = int(unexplained.sum())
     result = current.copy()
     result.u[masked] = field.u[masked]
     if result.gradient is not None and field.gradient is not None:
         result.gradient[masked] = field.gradient[masked]
-    result.metadata["correction_passes"] = passes
+    result.metadata["correction_passes"] = [p.to_dict() for p in passes]
     result.metadata["correction"] = {
         "frame": frame,
         "update": update,
         "max_passes": int(max_passes),
         "min_improvement": float(min_improvement),
-        "passes_applied": int(sum(p["accepted"] for p in passes[1:])),
+        "passes_applied": int(sum(p.accepted for p in passes[1:])),
         "mean_gray_residual_before": residual_before,
         "mean_gray_residual_after": residual,
+        "noise_floor": judge.floor,
+        "flagged_before": int(flagged),
+        "flagged_after": int(flagged_after),
         "seconds": time.perf_counter() - started,
     }
     yield Progress("done", 1, 1, f"mean gray residual {residual_before:.4g} -> {residual:.4g}")
     return result
 
 
-def _failed_pass(number: int, converged: float, started: float) -> dict:
-    return {
-        "pass": number,
-        "mean_gray_residual": float("nan"),
-        "accepted": False,
-        "fraction_changed": 0.0,
-        "mean_change": 0.0,
-        "max_change": 0.0,
-        "converged_fraction": converged,
-        "seconds": time.perf_counter() - started,
-    }
+def _mean(values: np.ndarray) -> float:
+    finite = np.isfinite(values)
+    return float(np.mean(values[finite])) if finite.any() else float("nan")
+
+
+def _failed_pass(
+    number: int, converged: float, started: float, previous: CorrectionPass
+) -> CorrectionPass:
+    return CorrectionPass(
+        number=number,
+        mean_gray_residual=float("nan"),
+        noise_floor=previous.noise_floor,
+        residual_before=previous.mean_gray_residual,
+        local_residual_before=previous.local_residual_after,
+        local_residual_after=float("nan"),
+        accepted=False,
+        accepted_nodes=0,
+        rejected_nodes=0,
+        improved_nodes=0,
+        fraction_changed=0.0,
+        mean_change=0.0,
+        max_change=0.0,
+        converged_fraction=converged,
+        seconds=time.perf_counter() - started,
+    )
 
 
 def correct(
@@ -362,6 +668,9 @@ def correct(
     return run_to_completion(correct_iter(reference, deformed, field, params, **options))
 
 
-def correction_table(field: DisplacementField) -> list[dict]:
-    """The per-pass report of a corrected field (``metadata["correction_passes"]``), or []."""
-    return list(field.metadata.get("correction_passes", []))
+def correction_table(field: DisplacementField) -> list[CorrectionPass]:
+    """The per-pass records of a corrected field (``metadata["correction_passes"]``), or []."""
+    return [
+        entry if isinstance(entry, CorrectionPass) else CorrectionPass.from_dict(entry)
+        for entry in field.metadata.get("correction_passes", [])
+    ]

@@ -246,3 +246,86 @@ def make_pair(
     deformed = deform_volume(big, shifted)
     crop = tuple(slice(margin, margin + n) for n in shape)
     return np.ascontiguousarray(big[crop]), np.ascontiguousarray(deformed[crop])
+
+
+# --- specimens and fields like real CT tests (issue 10) --------------------------------------
+def concrete_specimen(
+    shape,
+    aggregate_contrast: float = 0.04,
+    matrix_gray: float = 100.0,
+    background_gray: float = 20.0,
+    texture: float = 3.0,
+    radius_fraction: float = 0.45,
+    seed: int = 0,
+) -> np.ndarray:
+    """Weak-contrast x-ray CT of concrete: faint aggregates in a matrix, dark air outside a cylinder.
+
+    Aggregates (rounded blobs of about 6-8 voxels, 40 % of the volume) are ``aggregate_contrast``
+    (fraction of ``matrix_gray``) brighter than the matrix; both phases hold a fine texture of
+    amplitude ``texture`` gray levels (sand, pores). Outside a cylinder along z of radius
+    ``radius_fraction * min(ny, nx)`` the volume is ``background_gray`` (air, no texture). Noise is
+    not added (see :func:`add_noise`, :func:`noise_sigma_for`).
+
+    Returns
+    -------
+    ndarray, float32, shape ``shape``
+    """
+    shape = tuple(int(n) for n in shape)
+    volume = two_phase_volume(
+        shape,
+        grain_fraction=0.4,
+        grain_size=3.0,
+        phase_grays=(matrix_gray, matrix_gray * (1.0 + aggregate_contrast)),
+        texture=texture,
+        seed=seed,
+    )
+    y, x = np.ogrid[: shape[1], : shape[2]]
+    radius = radius_fraction * min(shape[1], shape[2])
+    distance = np.hypot(y - (shape[1] - 1) / 2.0, x - (shape[2] - 1) / 2.0)
+    inside = 1.0 / (1.0 + np.exp((distance - radius) / 0.7))  # one-voxel soft edge
+    volume = background_gray + (volume - background_gray) * inside[None]
+    return volume.astype(np.float32)
+
+
+def noise_sigma_for(volume: np.ndarray, fraction: float = 0.06) -> float:
+    """``fraction`` of the volume's p1-p99 gray range (the "6 % noise" of a CT test)."""
+    low, high = np.percentile(volume, [1.0, 99.0])
+    return float(fraction * (high - low))
+
+
+def band_rotation_bending(
+    center,
+    width: float,
+    slip: float,
+    rotation_degrees: float = 6.0,
+    shift=(2.0, -1.5, 3.0),
+    bending: float = 1.5,
+    compression: float = 0.0,
+    normal=(1.0, 0.0, 1.0),
+    direction=(1.0, 0.0, -1.0),
+) -> DisplacementFunction:
+    """A shear band on top of a rotation about z, a translation, bending and compression.
+
+    ``u = band(X) + (R - I)(X - c) + shift + bending * ((x - c_x) / c_x)^2 e_z`` with the band of
+    :func:`shear_band` (tanh profile of half-width ``width``, slip ``slip``; peak engineering shear
+    ``slip / (2 width)``; full width about ``2 width``) and ``R`` the rotation by
+    ``rotation_degrees`` about z. ``compression`` is the band's background strain.
+    """
+    band = shear_band(
+        center,
+        width=width,
+        slip=slip,
+        normal=normal,
+        direction=direction,
+        background_strain=compression,
+    )
+    rotation = rotation_z(rotation_degrees, center, shift)
+    center = np.asarray(center, dtype=np.float64)
+
+    def u(points):
+        points = np.asarray(points, dtype=np.float64)
+        total = band(points) + rotation(points)
+        total[:, 0] += bending * ((points[:, 2] - center[2]) / center[2]) ** 2
+        return total
+
+    return u

@@ -72,10 +72,10 @@ def pass_rows(field: DisplacementField) -> list[tuple[str, str, str, str]]:
 
     rows = []
     for entry in correction_table(field):
-        number = int(entry["pass"])
+        number = int(entry.number)
         label = "0 (cleaned input)" if number == 0 else str(number)
-        residual = entry.get("mean_gray_residual", float("nan"))
-        applied = "—" if number == 0 else ("yes" if entry.get("accepted") else "no")
-        changed = f"{100 * float(entry.get('fraction_changed', 0.0)):.0f} %"
+        residual = entry.mean_gray_residual
+        applied = "—" if number == 0 else ("yes" if entry.accepted else "no")
+        changed = f"{100 * float(entry.fraction_changed):.0f} %"
         rows.append((label, f"{residual:.3f}", applied, changed))
     return rows
