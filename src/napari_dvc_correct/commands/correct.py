@@ -42,8 +42,8 @@ def add_correction_options(parser: argparse.ArgumentParser) -> None:
         "--min-improvement",
         type=float,
         default=0.01,
-        help="stop when a pass lowers the mean gray residual by less than this fraction "
-        "(default 0.01)",
+        help="stop when a pass removes less than this fraction of the residual above the "
+        "imaging-noise floor (default 0.01)",
     )
     group.add_argument(
         "--frame",

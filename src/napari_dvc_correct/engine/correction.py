@@ -21,9 +21,22 @@ f) update the field:
      deformed positions);
    * ``update="sum"``: the paper's ``D' = D + ΔD`` at the same node.
 
-Beyond the paper, the correction is repeated while the mean gray residual falls (``max_passes``),
-and every pass is reported (residual, fraction of nodes changed) in
-``field.metadata["correction_passes"]``. A pass that does not lower the residual is not applied.
+Beyond the paper (issue 10):
+
+* every pass is judged **locally and against the imaging noise**: the residual
+  ``|F(X + D(X)) - G(X)|`` is averaged over each node's cell; a node keeps its corrected value
+  unless that local residual rose by more than resampling the noise can explain (the noise floor
+  ``r0`` of eq. 1, or the lower quartile of the local residuals where eq. 1 is spoilt), else it
+  keeps its previous value. A pass cannot make a node measurably worse;
+* passes repeat (``max_passes``) while some region (a node's subvolume) improves by more than
+  the noise allows, not while the global mean falls (under noise it barely moves);
+* the correcting matches use the second-order shape function when the field bends inside a
+  subvolume (:func:`pass_order`, chosen from the data, no user parameter);
+* nodes whose local residual only an error of more than a voxel explains are flagged
+  ``OUTLIER_REPLACED`` (refilled before the passes, flagged after them);
+* every pass is recorded as a :class:`CorrectionPass` in ``field.metadata["correction_passes"]``
+  (as dicts, for JSON; :func:`correction_table` reads them back).
+
 See ``docs/method.md`` for the measurements behind the defaults.
 """
 
@@ -74,6 +87,21 @@ MIN_IMPROVED_FRACTION = 0.01
 #: Sweeps of the local acceptance per pass: after mixing accepted and refused nodes, the mixed
 #: field's residual is checked again (neighbouring nodes share their regions).
 ACCEPTANCE_SWEEPS = 3
+
+#: A first-order field whose curvature bends a subvolume by more than this (voxels, see
+#: :func:`field_curvature`) is corrected with second-order matches.
+CURVATURE_VOXELS = 0.1
+
+#: A region counts as improved by a pass only if its residual fell by more than a displacement
+#: change of this many voxels explains (besides the noise): a hundredth of a voxel is the
+#: matcher's own accuracy on clean scans.
+MIN_USEFUL_CHANGE = 0.01
+
+#: Subvolume of the second-order correcting matches, as a fraction of the first run's.
+PASS_SUBVOLUME_FRACTION = 2.0 / 3.0
+
+#: Smallest subvolume edge of a correcting match (voxels).
+MIN_PASS_SUBVOLUME = 11
 
 #: Nodes whose local residual exceeds the noise floor by more than an error of this many voxels
 #: explains (from the local gray gradient) are flagged ``OUTLIER_REPLACED`` and refilled.
@@ -246,7 +274,7 @@ class _Judge:
     would mix in the neighbours' (and let a ruined neighbour hide a ruined node).
     """
 
-    def __init__(self, pair: _Pair, step):
+    def __init__(self, pair: _Pair, step, region_half: int):
         self.reference = pair.reference
         self.deformed = pair.deformed
         self.coefficients = (
@@ -261,6 +289,14 @@ class _Judge:
             self.labels_g = None
         self.floor = float("inf")
         self._gradient = None
+        self._useful = None
+        self.region_half = int(region_half)
+        self.last_region = None
+        self.region_spread = (
+            np.sqrt(2.0)
+            * HALF_NORMAL_SPREAD
+            / np.sqrt((2 * self.region_half + 1) ** 3 / NOISE_CORRELATION_VOXELS)
+        )
         size = 2 * self.half + 1
         # the largest change of a region's mean residual that resampling the noise can make:
         # two independent noise draws, each of spread HALF_NORMAL_SPREAD * r0 over n / Vc samples
@@ -279,6 +315,7 @@ class _Judge:
         moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
         residual = np.abs(moved - self.reference)
         local = local_mean_residual(residual, field, self.half)
+        self.last_region = local_mean_residual(residual, field, self.region_half)
         floor = float("inf")
         if self.labels_g is not None:
             try:
@@ -297,8 +334,29 @@ class _Judge:
 
     @property
     def tolerance(self) -> float:
-        """How much a node's local residual may change by noise alone (gray levels)."""
+        """How much a node's cell residual may change by noise alone (gray levels)."""
         return NOISE_Z * self.spread * self.floor
+
+    @property
+    def region_tolerance(self) -> float:
+        """How much the residual over a node's subvolume may change by noise alone."""
+        return NOISE_Z * self.region_spread * self.floor
+
+    def _local_gradient(self, field: DisplacementField, half: int) -> np.ndarray:
+        if self._gradient is None:
+            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
+        return local_mean_residual(self._gradient, field, half)
+
+    def useful(self, field: DisplacementField) -> np.ndarray:
+        """Per node, the residual change that :data:`MIN_USEFUL_CHANGE` voxels explain.
+
+        On clean scans the noise floor is tiny and any change would count as an improvement;
+        a region counts as improved only if its residual also fell by more than this.
+        """
+        if self._useful is None:
+            gradient = self._local_gradient(field, self.region_half)
+            self._useful = 0.5 * MIN_USEFUL_CHANGE * np.nan_to_num(gradient)
+        return self._useful
 
     def unexplained(self, field: DisplacementField, local: np.ndarray) -> np.ndarray:
         """Nodes whose local residual only an error of more than ~1 voxel explains.
@@ -308,9 +366,7 @@ class _Judge:
         by more than :data:`FLAG_ERROR` voxels' worth of that are flagged (a subvolume half in a
         textureless region, or half outside the specimen, lands here whatever its value).
         """
-        if self._gradient is None:
-            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
-        gradient = local_mean_residual(self._gradient, field, self.half)
+        gradient = self._local_gradient(field, self.half)
         excess = local - self.floor
         return np.isfinite(excess) & (excess > 0.5 * FLAG_ERROR * gradient)
 
@@ -352,9 +408,10 @@ def _accept_locally(judge: _Judge, current, local_current, candidate):
     Returns the mixed field, its local residual, the accepted and the improved node masks.
     """
     tolerance = judge.tolerance
+    region_current = judge.last_region
     local = judge.local(candidate)
     rose = local > local_current + tolerance
-    rose |= np.isnan(local) & np.isfinite(local_current)
+    rose |= np.isnan(local)  # a region the candidate sends out of the scan cannot be judged
     accept = ~rose
     mixed, local_mixed = candidate, local
     for _ in range(ACCEPTANCE_SWEEPS):
@@ -363,8 +420,7 @@ def _accept_locally(judge: _Judge, current, local_current, candidate):
         mixed = _mix(current, candidate, accept)
         local_mixed = judge.local(mixed)
         worse = accept & (
-            (local_mixed > local_current + tolerance)
-            | (np.isnan(local_mixed) & np.isfinite(local_current))
+            (local_mixed > local_current + tolerance) | np.isnan(local_mixed)
         )
         if not worse.any():
             break
@@ -372,8 +428,78 @@ def _accept_locally(judge: _Judge, current, local_current, candidate):
     else:
         mixed = _mix(current, candidate, accept)
         local_mixed = judge.local(mixed)
-    improved = accept & (local_mixed < local_current - tolerance)
+    improved = accept & (
+        judge.last_region < region_current - judge.region_tolerance - judge.useful(mixed)
+    )
     return mixed, local_mixed, accept, improved
+
+
+def field_curvature(field: DisplacementField, half: int) -> float:
+    """How far a first-order subvolume is from following ``field``, in voxels.
+
+    The second differences of the node displacements (smoothed over one node) give the field's
+    curvature; over a
+    subvolume of half-size ``M`` a quadratic term ``u'' M^2 / 2`` is what an affine shape function
+    cannot follow. Returns the 90th percentile over the interior nodes of the largest such term
+    (any component, any axis), 0 for grids too small to tell.
+    """
+    u = np.asarray(field.u, dtype=np.float64)
+    if not np.all(np.isfinite(u)):
+        return 0.0
+    # the affine trend has no curvature: remove it so the smoothing's border handling cannot
+    # bend it
+    points = field.points
+    design = np.column_stack([np.ones(len(points)), points])
+    coefficients, *_ = np.linalg.lstsq(design, u.reshape(-1, 3), rcond=None)
+    u = u - (design @ coefficients).reshape(u.shape)
+    # one node of Gaussian smoothing first: the matching noise of the nodes (a few hundredths of
+    # a voxel, independent from node to node) would otherwise read as curvature
+    u = np.stack([ndimage.gaussian_filter(u[..., c], 1.0, mode="nearest") for c in range(3)], -1)
+    # nodes next to the grid's border are bent by the smoothing's border handling
+    u = u[tuple(slice(1, -1) if n >= 5 else slice(None) for n in u.shape[:3])]
+    terms = []
+    for axis in range(3):
+        if u.shape[axis] < 3:
+            continue
+        second = np.diff(u, n=2, axis=axis) / float(field.step[axis]) ** 2
+        terms.append(np.max(np.abs(second), axis=-1).reshape(-1))
+    if not terms:
+        return 0.0
+    values = np.concatenate(terms)
+    values = values[np.isfinite(values)]
+    return float(0.5 * np.percentile(values, 90.0) * half**2) if values.size else 0.0
+
+
+def pass_order(field: DisplacementField, params: CorrelationParams) -> int:
+    """Shape-function order of the correcting matches, chosen from the data (no user parameter).
+
+    Second order where the input field bends inside a subvolume by more than
+    :data:`CURVATURE_VOXELS` (:func:`field_curvature`): the first-order floor then dominates the
+    error, and the correcting match only follows the error of ``D``, whose second-order part a
+    quadratic subvolume can take. First order otherwise (translations, affine fields, gentle
+    gradients), which is cheaper and no less accurate there. ``params.order == 2`` stays 2.
+    """
+    if params.order == 2:
+        return 2
+    return 2 if field_curvature(field, params.half) > CURVATURE_VOXELS else 1
+
+
+def correction_params(field: DisplacementField, params: CorrelationParams) -> CorrelationParams:
+    """Matching parameters of the correcting DVC runs, chosen from the data.
+
+    Where the field bends inside a subvolume (:func:`pass_order` says second order), the
+    correcting matches use the second-order shape function on a subvolume of about
+    :data:`PASS_SUBVOLUME_FRACTION` of the first run's (odd, at least :data:`MIN_PASS_SUBVOLUME`):
+    they only have to find the error of ``D``, a small motion that a smaller subvolume finds as
+    well, and a smaller quadratic subvolume follows a narrow band that neither a large one nor a
+    first-order one can (measured in docs/method.md). Elsewhere the first run's parameters are
+    reused unchanged, as in the paper.
+    """
+    if pass_order(field, params) == 1:
+        return params
+    subvolume = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
+    subvolume = min(params.subvolume, max(MIN_PASS_SUBVOLUME, subvolume))
+    return params.replace(order=2, subvolume=subvolume)
 
 
 def _update(current: DisplacementField, delta: DisplacementField, frame: str, update: str):
@@ -439,8 +565,10 @@ def correct_iter(
     max_passes : int
         Most correction passes (each is one DVC run), >= 1.
     min_improvement : float
-        Another pass runs only if the last one lowered the mean gray residual by more than this
-        fraction (0 repeats as long as it falls at all).
+        Another pass runs only if the last one removed more than this fraction of the local
+        residual in excess of the noise floor (mean over the nodes; 0: as long as it falls), and
+        only while at least :data:`MIN_IMPROVED_FRACTION` of the nodes improved by more than the
+        noise allows.
     mask : ndarray of bool, shape (nz, ny, nx), optional
         Reference-space material mask, passed to every DVC run.
     clean_options : dict, optional
@@ -458,12 +586,13 @@ def correct_iter(
         The corrected field on ``D``'s grid. After an applied pass, nodes carry the ZNCC /
         status / iterations of the correcting match and ``Provenance.CORRECTED`` (or
         ``REPLACED`` where that match failed and its correction was interpolated from the
-        neighbours); masked nodes keep their input values. ``metadata["correction_passes"]`` is a list with
-        one entry per pass (pass 0 = the cleaned input): ``mean_gray_residual`` (gray levels),
-        ``accepted``, ``fraction_changed`` (nodes moved by more than
-        :data:`CHANGE_THRESHOLD` voxels), ``mean_change`` and ``max_change`` (voxels),
-        ``converged_fraction`` of the correcting DVC, ``seconds``.
-        ``metadata["correction"]`` holds the options and the residual before and after.
+        neighbours); nodes whose correction was refused keep their previous value and quality
+        arrays; masked nodes keep their input values; nodes whose local residual no small error
+        explains get ``Status.OUTLIER_REPLACED``. ``metadata["correction_passes"]`` holds one
+        :class:`CorrectionPass` per pass as a dict (pass 0 = the cleaned input; read them with
+        :func:`correction_table`).
+        ``metadata["correction"]`` holds the options, the residual before and after, the noise
+        floor, the order of the correcting matches and the flagged node counts.
     """
     if frame not in FRAMES:
         raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -500,7 +629,7 @@ def correct_iter(
     yield Progress("clean", 1, 1, f"{current.metadata['cleaning']['rejected']} nodes replaced")
 
     pair = _Pair(reference, deformed, frame, mask)
-    judge = _Judge(pair, current.step)
+    judge = _Judge(pair, current.step, params.half)
     yield Progress("residual", 0, 1, "gray residual of the input field")
     local_current = judge.local(current)
     current, local_current, flagged = _flag_and_refill(
@@ -529,6 +658,7 @@ def correct_iter(
         )
     ]
     grid = (current.origin, current.step, current.shape)
+    pass_params = correction_params(current, params)
     zero = DisplacementField.zeros(current.origin, current.step, current.shape)
     zero.gradient = np.zeros((*current.shape, 3, 3))
     residual_before = residual
@@ -537,7 +667,7 @@ def correct_iter(
         pass_started = time.perf_counter()
         g, f, pass_mask = pair.matching_pair(moved, current)
         delta = yield from forward_progress(
-            correlate_iter(g, f, params, mask=pass_mask, grid=grid, initial=zero),
+            correlate_iter(g, f, pass_params, mask=pass_mask, grid=grid, initial=zero),
             f"correction pass {number}",
         )
         converged = float(np.mean(delta.valid))
@@ -622,6 +752,8 @@ def correct_iter(
         "mean_gray_residual_before": residual_before,
         "mean_gray_residual_after": residual,
         "noise_floor": judge.floor,
+        "pass_order": int(pass_params.order),
+        "pass_subvolume": int(pass_params.subvolume),
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
         "seconds": time.perf_counter() - started,
