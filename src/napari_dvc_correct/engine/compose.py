@@ -60,7 +60,8 @@ def compose(
         the node nearest to ``X + a(X)``), ``status`` and ``provenance`` are ``first``'s where it
         is not a good measurement and ``second``'s otherwise, ``iterations`` are ``second``'s.
         ``gradient`` follows the chain rule ``∇w = ∇a + ∇b(X + a)(I + ∇a)`` when both fields
-        have one (``∇a + ∇b`` for ``"sum"``), else None. ``params`` are ``first``'s;
+        have one (``∇a + ∇b`` for ``"sum"``), else None. ``uncertainty`` adds both fields' in
+        quadrature (``second``'s at the nearest node) when both have one, else None. ``params`` are ``first``'s;
         ``metadata["composition"]`` records the mode.
     """
     if mode not in COMPOSE_MODES:
@@ -109,6 +110,11 @@ def compose(
             gb[finite] = spline(displaced[finite]).reshape(-1, 3, 3)
             gradient = (ga + gb @ (np.eye(3) + ga)).reshape(*grid, 3, 3)
 
+    uncertainty = None  # independent errors add in quadrature (a scan series' increments)
+    if first.uncertainty is not None and second.uncertainty is not None:
+        sb = second.uncertainty[nearest]
+        uncertainty = np.hypot(first.uncertainty.reshape(-1, 3), sb).reshape(*grid, 3)
+
     metadata = copy.deepcopy(first.metadata)
     metadata["composition"] = {"mode": mode}
     return DisplacementField(
@@ -120,6 +126,7 @@ def compose(
         iterations=iterations,
         provenance=provenance,
         gradient=gradient,
+        uncertainty=uncertainty,
         params=copy.deepcopy(first.params),
         metadata=metadata,
     )

@@ -126,6 +126,29 @@ class _Level:
         high = np.array(self.reference.shape) - 1 - self.half
         return np.clip(coarse, self.half, np.maximum(high, self.half))
 
+    def statistics(self, centers, params, zncc, order, variance, sigma, index):
+        """Fill ``variance[index]`` and ``sigma[index]`` (:func:`.icgn.subvolume_statistics`)."""
+        if len(centers) == 0:
+            return
+        var = np.empty(len(centers))
+        sig = np.empty((len(centers), 3))
+        icgn.subvolume_statistics(
+            self.reference,
+            self.gradient,
+            self.coef_deformed,
+            self.mask,
+            self.use_mask,
+            np.ascontiguousarray(centers, dtype=np.int64),
+            self.half,
+            icgn.n_monomials(order),
+            np.ascontiguousarray(params, dtype=np.float64),
+            np.ascontiguousarray(zncc, dtype=np.float64),
+            var,
+            sig,
+        )
+        variance[index] = var
+        sigma[index] = sig
+
     def match(self, centers, params, order, settings):
         n = len(centers)
         zncc = np.full(n, np.nan)
@@ -157,6 +180,7 @@ class _Level:
             float(max(self.half, 4)),
             icgn.PRODUCT_TABLE,
             icgn.QUAD_AXES,
+            float(settings.noise_tolerance),
         )
         return zncc, status, iterations
 
@@ -173,14 +197,71 @@ def _is_good(status, zncc, min_zncc):
     return np.isin(status, _GOOD) & (zncc >= min_zncc)
 
 
-def _repair(level, centers, grid_shape, params, zncc, status, iterations, order, settings):
+#: POIs whose perfect-match ZNCC at the scans' noise level (:func:`noise_aware_thresholds`) is
+#: below this hold less texture than a ninth of the noise variance: ``LOW_TEXTURE``.
+MIN_PERFECT_ZNCC = 0.1
+
+
+def noise_aware_thresholds(variance, zncc, status, min_zncc):
+    """Imaging noise of the scans and the ZNCC threshold of every POI at that noise.
+
+    With independent noise of variance ``σ_n²`` on both scans and a subvolume whose gray variance
+    is ``s² = σ_t² + σ_n²`` (texture plus noise), a perfect match reaches
+    ``ZNCC* = σ_t² / (σ_t² + σ_n²) = 1 − σ_n² / s²`` (the residual ``(g − ḡ) − (f − f̄)`` holds
+    the two noises, ``Σ r² = 2 n σ_n²``, and ``ZNSSD = Σ r² / (n s²) = 2 (1 − ZNCC)``). So every
+    match gives ``s² (1 − ZNCC)`` as an estimate of ``σ_n²``, too large where the match is wrong
+    or the shape function cannot follow the deformation; their median over the matched POIs is
+    the noise estimate. A POI's threshold is ``min_zncc · ZNCC*``: ``min_zncc`` is read relative
+    to what a perfect match can reach, which is ``min_zncc`` itself on noise-free scans.
+
+    Parameters
+    ----------
+    variance : ndarray (N,)
+        Gray variance of each POI's reference subvolume (NaN where unknown).
+    zncc, status : ndarray (N,)
+        Results of the matching.
+    min_zncc : float
+
+    Returns
+    -------
+    noise_variance : float
+        ``σ_n²`` in gray levels² (0 when no POI matched).
+    perfect : ndarray (N,)
+        ``ZNCC*`` per POI, in [0, 1] (NaN where the variance is unknown).
+    thresholds : ndarray (N,)
+        ``min_zncc · ZNCC*`` (``min_zncc`` where ``ZNCC*`` is unknown).
+    """
+    matched = np.isin(status, _GOOD) & np.isfinite(zncc) & np.isfinite(variance)
+    estimates = variance[matched] * np.clip(1.0 - zncc[matched], 0.0, None)
+    noise_variance = float(np.median(estimates)) if estimates.size else 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        perfect = np.clip(1.0 - noise_variance / variance, 0.0, 1.0)
+    thresholds = np.where(np.isfinite(perfect), min_zncc * perfect, min_zncc)
+    return noise_variance, perfect, thresholds
+
+
+def _repair(
+    level,
+    centers,
+    grid_shape,
+    params,
+    zncc,
+    status,
+    iterations,
+    order,
+    settings,
+    thresholds=None,
+):
     """Reliability-guided propagation into POIs that failed or are outliers.
 
     POIs are taken best first (highest ZNCC); each bad 26-neighbour is matched again with the
     popped POI's warp carried over to its position (``u + ∇u·Δ``). A new match replaces the old
-    one when it converges above ``min_zncc``; it then seeds its own neighbours.
+    one when it converges above its ZNCC threshold (``thresholds`` (N,), default
+    ``settings.min_zncc``); it then seeds its own neighbours.
     """
-    good = _is_good(status, zncc, settings.min_zncc)
+    if thresholds is None:
+        thresholds = np.full(len(centers), float(settings.min_zncc))
+    good = _is_good(status, zncc, thresholds)
     try_again = np.isin(status, [int(Status.MASKED), int(Status.LOW_TEXTURE)])
     if good.sum() > 8:
         good &= ~_neighbour_outliers(
@@ -236,7 +317,7 @@ def _repair(level, centers, grid_shape, params, zncc, status, iterations, order,
             guess[:, 0] += guess[:, 1:4] @ delta
             trial = np.ascontiguousarray(guess.reshape(1, -1))
             t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, order, settings)
-            if t_status[0] in _GOOD and t_zncc[0] >= settings.min_zncc:
+            if t_status[0] in _GOOD and t_zncc[0] >= thresholds[j]:
                 params[j] = trial[0]
                 zncc[j] = t_zncc[0]
                 status[j] = t_status[0]
@@ -480,17 +561,40 @@ def correlate_iter(
     timings["icgn_s"] = time.perf_counter() - t0
     timings["voxel_iterations"] = int(iterations.sum()) * params.subvolume**3
 
+    # imaging noise and the ZNCC threshold it allows (noise_aware_thresholds)
+    t0 = time.perf_counter()
+    variance = np.full(n_points, np.nan)
+    sigma = np.full((n_points, 3), np.nan)
+    fine.statistics(
+        centers[todo], params_out[todo], np.full(len(todo), np.nan), order, variance, sigma, todo
+    )
+    noise_variance, perfect, thresholds = noise_aware_thresholds(
+        variance, zncc, status, params.min_zncc
+    )
+    textureless = np.isin(status, _GOOD) & (perfect < MIN_PERFECT_ZNCC)
+    status[textureless] = int(Status.LOW_TEXTURE)
+    timings["noise_s"] = time.perf_counter() - t0
+
     t0 = time.perf_counter()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
-    _repair(fine, centers, grid_shape, params_out, zncc, status, iterations, order, params)
+    _repair(
+        fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
+    )
     timings["repair_s"] = time.perf_counter() - t0
 
-    low = np.isin(status, _GOOD) & ~(zncc >= params.min_zncc)
+    low = np.isin(status, _GOOD) & ~(zncc >= thresholds)
     status[low] = int(Status.LOW_ZNCC)
+    t0 = time.perf_counter()
+    measured = np.flatnonzero(np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]]))
+    fine.statistics(
+        centers[measured], params_out[measured], zncc[measured], order, variance, sigma, measured
+    )
+    timings["uncertainty_s"] = time.perf_counter() - t0
     displacement, gradient = icgn.params_to_displacement(params_out, order)
     failed = ~np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
     displacement[failed] = np.nan
     gradient[failed] = np.nan
+    sigma[failed] = np.nan
     provenance = np.full(n_points, int(Provenance.MEASURED), np.uint8)
     provenance[status == int(Status.MASKED)] = int(Provenance.MASKED)
     timings["total_s"] = time.perf_counter() - start_time
@@ -503,6 +607,7 @@ def correlate_iter(
         iterations=iterations.reshape(grid_shape).astype(np.int32),
         provenance=provenance.reshape(grid_shape),
         gradient=gradient.reshape(*grid_shape, 3, 3),
+        uncertainty=sigma.reshape(*grid_shape, 3),
         params=params.to_dict(),
         metadata={
             "volume_shape": list(reference.shape),
@@ -511,10 +616,26 @@ def correlate_iter(
             "timings": timings,
             "masked": mask is not None,
             "device": device.description,
+            "noise": _noise_metadata(noise_variance, thresholds, status, params.min_zncc),
         },
     )
     yield Progress("done", 1, 1, f"{int(np.isin(status, _GOOD).sum())} of {n_points} POIs matched")
     return field
+
+
+def _noise_metadata(noise_variance, thresholds, status, min_zncc):
+    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
+    used = thresholds[measured] if measured.any() else np.array([min_zncc])
+    return {
+        "sigma": float(np.sqrt(noise_variance)),
+        "estimator": "median over matched POIs of s² (1 - ZNCC), s² the subvolume's variance",
+        "zncc_threshold_rule": "min_zncc * (1 - sigma² / s²)",
+        "min_zncc": float(min_zncc),
+        "zncc_threshold_min": float(np.min(used)),
+        "zncc_threshold_median": float(np.median(used)),
+        "zncc_threshold_max": float(np.max(used)),
+        "low_texture_rule": f"1 - sigma² / s² < {MIN_PERFECT_ZNCC}",
+    }
 
 
 def correlate(

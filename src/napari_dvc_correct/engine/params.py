@@ -38,6 +38,10 @@ class CorrelationParams:
         Matches that converge with a ZNCC below this are flagged ``LOW_ZNCC``.
     batch_size : int
         POIs per progress batch.
+    noise_tolerance : float
+        Noise stop of IC-GN (:func:`.icgn._noise_converged`): a match also counts as converged
+        once its remaining translation error is estimated below this fraction of its own noise
+        uncertainty. 0 turns it off (only ``tolerance`` decides). No effect on noise-free scans.
     """
 
     subvolume: int = 31
@@ -50,6 +54,7 @@ class CorrelationParams:
     min_texture: float = 0.05
     min_zncc: float = 0.5
     batch_size: int = 256
+    noise_tolerance: float = 0.1
 
     def __post_init__(self) -> None:
         problems = []
@@ -77,6 +82,8 @@ class CorrelationParams:
             problems.append(f"min_zncc must be in [-1, 1], got {self.min_zncc!r}")
         if not isinstance(self.batch_size, (int, np.integer)) or self.batch_size < 1:
             problems.append(f"batch_size must be >= 1, got {self.batch_size!r}")
+        if not (np.isfinite(self.noise_tolerance) and 0.0 <= self.noise_tolerance < 1.0):
+            problems.append(f"noise_tolerance must be in [0, 1), got {self.noise_tolerance!r}")
         if problems:
             raise ValueError("; ".join(problems))
 
