@@ -696,9 +696,16 @@ def subvolume_statistics(
 
     The match solves ``Φ(p) = Σ J_Gᵀ r(p) = 0`` with ``r = (g − ḡ) − (Δg/Δf)(f(W(ξ; p)) − f̄)``
     and ``J_G = ∇G · ∂W/∂p``. Noise moves the solution by ``δp = −A⁻¹ Φ`` with the sensitivity
-    ``A = (Δg/Δf) Σ J_G⊥ᵀ (∇F(W) ⊗ b)``, and ``Cov Φ = σ_r² H⊥``, so
+    ``A = (Δg/Δf) Σ J_G⊥ᵀ (∇F(W) ⊗ b)``, so
 
-    ``Cov p = σ_r² A⁻¹ H⊥ A⁻ᵀ``,   ``σ_r² = 2 Σ(g − ḡ)² (1 − ZNCC) / (n − 3·nb − 2)``.
+    ``Cov p = A⁻¹ (Cov Φ) A⁻ᵀ``,   ``Cov Φ = σ_r² (H⊥ + sym A) / 2``,
+    ``σ_r² = 2 Σ(g − ḡ)² (1 − ZNCC) / (n − 3·nb − 2)``.
+
+    ``Cov Φ``: ``J_G`` holds the gradient of the reference's noise ``n_G`` and ``r`` holds
+    ``n_G`` itself; their pairings at neighbouring voxels cancel ``σ_G²`` of the ``σ_r²`` that
+    multiplies the noise part ``H − A`` of ``H``: ``Cov Φ = σ_r² H − σ_G² (H − A)``. With the
+    same noise on both scans (``σ_G² = σ_r² / 2``) that is ``σ_r² (H + A) / 2``; with noise on
+    the deformed scan only, ``A = H`` and it is ``σ_r² H``.
 
     ``⊥`` marks steepest-descent images made orthogonal to the gray offset and scale that ZNSSD
     ignores (``H⊥ = H − ΣJ ΣJᵀ/n − ΣJg ΣJgᵀ/Σ(g − ḡ)²``). ``A`` is taken with the gradient of
@@ -819,6 +826,10 @@ def subvolume_statistics(
                     cross[r, c] - sum_j[r] * sum_jf[c] / count - sum_jg[r] * sum_jfg[c] / ss_g
                 )
         inverse = _compose_inverse(identity, cross, m_par)
+        # Cov Φ = σ_r² (H⊥ + sym A) / 2: see the docstring
+        for r in range(m_par):
+            for c in range(m_par):
+                h_perp[r, c] = 0.5 * h_perp[r, c] + 0.25 * (cross[r, c] + cross[c, r])
         residual = 2.0 * ss_g * max(1.0 - zncc[n], 0.0) / max(count - m_par - 2, 1)
         for k in range(3):
             row = k * nb
