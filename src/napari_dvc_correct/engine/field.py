@@ -227,20 +227,6 @@ class DisplacementField:
             and np.allclose(self.step, other.step)
         )
 
-    # -- files ----------------------------------------------------------------------------
-    def save(self, path) -> None:
-        """Write the field to an ``.npz`` file atomically (see :mod:`napari_dvc_correct.io.npz`)."""
-        from ..io.npz import save_field
-
-        save_field(self, path)
-
-    @classmethod
-    def load(cls, path) -> DisplacementField:
-        """Read a field written by :meth:`save`."""
-        from ..io.npz import load_field
-
-        return load_field(path)
-
     @classmethod
     def zeros(cls, origin, step, shape, **kwargs: Any) -> DisplacementField:
         """A zero field on the given grid (used for tests and as a starting point)."""

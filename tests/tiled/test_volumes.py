@@ -9,7 +9,8 @@ from napari_dvc_correct.engine import synthetic, warp
 from napari_dvc_correct.engine.field import DisplacementField
 from napari_dvc_correct.engine.interpolation import prefilter, sample
 from napari_dvc_correct.engine.strain import equivalent_strain_field
-from napari_dvc_correct.engine.tiled_volumes import (
+from napari_dvc_correct.io.lazy import ArrayVolume
+from napari_dvc_correct.tiled.volumes import (
     sample_lazy,
     write_dense_field,
     write_equivalent_strain,
@@ -17,7 +18,6 @@ from napari_dvc_correct.engine.tiled_volumes import (
     write_pull_back,
     write_warp_forward,
 )
-from napari_dvc_correct.io.lazy import ArrayVolume
 
 SHAPE = (36, 40, 44)
 BLOCK = (16, 16, 16)  # several blocks per axis, so regions are cropped

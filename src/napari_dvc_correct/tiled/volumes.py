@@ -7,7 +7,7 @@ block is a ``dask.delayed`` task (dask's local threaded scheduler by default, or
 1. evaluates the field's cubic spline on the block's voxel lattice (:meth:`.warp.FieldSpline.lattice`),
    or inverts it there (:meth:`.warp.FieldSpline.invert`) for the forward warp;
 2. reads only the region of the input volume those positions reach, plus
-   :data:`.tiled_memory.SPLINE_SUPPORT` + :data:`.tiled_memory.PREFILTER_MARGIN` voxels, from a lazy volume
+   :data:`.memory.SPLINE_SUPPORT` + :data:`.memory.PREFILTER_MARGIN` voxels, from a lazy volume
    (:mod:`..io.lazy`), prefilters it and samples it (:func:`.interpolation.sample`) — equal to
    sampling the prefiltered whole volume to float32 rounding;
 3. writes the block into the output (:mod:`..io.lazy_outputs`), which is renamed onto its path only
@@ -23,12 +23,15 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..engine.field import DisplacementField
+from ..engine.interpolation import prefilter, sample
+from ..engine.progress import Progress
+from ..engine.strain import equivalent_strain_field
+from ..engine.warp import FieldSpline, _inside_hull, _spline
+from ..io.lazy import as_lazy
+from ..io.lazy_outputs import create_output, output_chunks
 from . import scheduling
-from .field import DisplacementField
-from .interpolation import prefilter, sample
-from .progress import Progress
-from .tiled_memory import PREFILTER_MARGIN, SPLINE_SUPPORT
-from .warp import FieldSpline, _inside_hull, _spline
+from .memory import PREFILTER_MARGIN, SPLINE_SUPPORT
 
 #: Default voxels per output block (z, y, x).
 DEFAULT_BLOCK = (32, 256, 256)
@@ -158,8 +161,6 @@ def _write(
 
     block_shape, scheduler, workers = run
 
-    from ..io.lazy_outputs import create_output, output_chunks
-
     shape = tuple(int(n) for n in shape)
     out_shape = shape if components == 1 else (*shape, components)
     block_shape = tuple(min(int(b), n) for b, n in zip(block_shape, shape))
@@ -278,7 +279,6 @@ def write_pull_back(
 
     ``deformed`` is a lazy volume, a path or an array (:func:`..io.lazy.as_lazy`).
     """
-    from ..io.lazy import as_lazy
 
     deformed = as_lazy(deformed)
     shape = _check(deformed.shape if shape is None else shape, "shape")
@@ -312,7 +312,6 @@ def write_warp_forward(
     progress=None,
 ) -> dict:
     """``G'(X + u(X)) = G(X)`` (paper step d) written to ``path`` (see :func:`.warp.warp_forward`)."""
-    from ..io.lazy import as_lazy
 
     reference = as_lazy(reference)
     shape = _check(reference.shape if shape is None else shape, "shape")
@@ -351,7 +350,6 @@ def write_gray_residual(
         With ``mean``: the mean residual over the voxels where it is defined (as
         :func:`.warp.mean_gray_residual`).
     """
-    from ..io.lazy import as_lazy
 
     if mode not in ("reference", "loaded"):
         raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
@@ -398,7 +396,6 @@ def write_equivalent_strain(
     ValueError
         If some nodes have no strain (invalid displacement): clean the field first.
     """
-    from .strain import equivalent_strain_field
 
     shape = _check(shape, "shape")
     values = equivalent_strain_field(field, measure=measure, method=method, window=window)
