@@ -6,7 +6,7 @@ The pieces, in the order the paper uses them:
    gray thresholds (multi-Otsu by default; any ``N >= 2``); the per-phase gray range and mean gray
    of each state make the paper's Table 1.
 2. **Background residual (eq. 1).** The gray residual ``r(X) = |F(X + u(X)) - G(X)|`` is computed
-   by :func:`napari_dvc_correct.engine.warp.gray_residual`. At voxels where the phase of ``G`` and
+   by :func:`napari_dvc_correct.engine.residual.gray_residual`. At voxels where the phase of ``G`` and
    the phase of ``F`` mapped by the field agree, the residual is (ideally) imaging noise only; its
    mean over those voxels is the background residual ``r0`` (:func:`background_residual`), and
    ``r' = r - r0`` is the corrected residual.
@@ -417,7 +417,7 @@ def evaluate_iter(
     phase_pair : (int, int), optional
         Phases whose contrast is used in eq. 2 (default: the two most abundant).
     mode : {"reference", "loaded"}
-        Where the residual lives (see :func:`~.warp.gray_residual`).
+        Where the residual lives (see :func:`~.residual.gray_residual`).
     strain_measure, strain_method, strain_window
         Equivalent strain options (:func:`~.strain.strain_tensor`).
     n_bins : int
@@ -441,8 +441,9 @@ def evaluate_iter(
     ValueError
         Bad thresholds, an empty phase, a field that does not fit the volume or holds NaN.
     """
-    from . import warp
+    from .field_spline import FieldSpline
     from .interpolation import prefilter
+    from .residual import moved_and_residual
 
     reference = np.asanyarray(reference)
     deformed = np.asanyarray(deformed)
@@ -501,22 +502,16 @@ def evaluate_iter(
         zip(named, strains, binning)
     ):
         yield Progress("residual", index, len(named), f"gray residual of {name}")
-        spline = warp.FieldSpline.from_field(item)
+        spline = FieldSpline.from_field(item)
         if mode == "reference":
-            residual = warp.gray_residual(
+            moved, residual = moved_and_residual(
                 reference, deformed, spline, "reference", deformed_coefficients=coefficients
-            )
-            moved = warp.pull_back(
-                deformed, spline, coefficients=coefficients, outside="nan", shape=reference.shape
             )
             mapped = label_phases(moved, thresholds_f)
             positions = None
         else:
-            residual = warp.gray_residual(
+            moved, residual = moved_and_residual(
                 reference, deformed, spline, "loaded", reference_coefficients=coefficients
-            )
-            moved = warp.warp_forward(
-                reference, spline, coefficients=coefficients, outside="nan", shape=deformed.shape
             )
             mapped = label_phases(moved, thresholds_g)
 
