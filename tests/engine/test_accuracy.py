@@ -255,7 +255,7 @@ def test_bin_by_puts_every_field_on_the_same_strain_axis():
 
 def test_accuracy_index_is_higher_for_the_corrected_field_on_a_shear_band():
     """Real pipeline: IC-GN, cleaning, self-correction; the index agrees with the true error."""
-    correction = pytest.importorskip("napari_dvc_correct.engine.correction")
+    from napari_dvc_correct.engine import correction
     from napari_dvc_correct.engine.cleaning import clean
     from napari_dvc_correct.engine.correlate import correlate
     from napari_dvc_correct.engine.params import CorrelationParams
