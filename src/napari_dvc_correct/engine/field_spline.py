@@ -33,6 +33,7 @@ from scipy import ndimage
 from ._numba_setup import KERNEL_OPTIONS
 from .field import DisplacementField
 from .interpolation import _mirror, bspline_derivative_weights, bspline_weights
+from .slabs import iter_slabs
 
 #: Nodes added on each side of the grid (linear extrapolation) before the spline fit.
 PAD_NODES = 3
@@ -532,14 +533,6 @@ def as_field_spline(field) -> FieldSpline:
     if isinstance(field, DisplacementField):
         return FieldSpline.from_field(field)
     raise TypeError(f"expected a DisplacementField or FieldSpline, got {type(field).__name__}")
-
-
-def iter_slabs(shape, chunk_voxels: int = DEFAULT_CHUNK_VOXELS) -> Iterator[slice]:
-    """Slices along z of a volume of ``shape`` holding at most about ``chunk_voxels`` voxels."""
-    plane = max(1, int(shape[1]) * int(shape[2]))
-    depth = max(1, int(chunk_voxels) // plane)
-    for start in range(0, int(shape[0]), depth):
-        yield slice(start, min(int(shape[0]), start + depth))
 
 
 def lattice_points(z: slice, shape) -> np.ndarray:

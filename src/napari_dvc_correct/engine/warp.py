@@ -30,9 +30,9 @@ from .field_spline import (
     as_field_spline,
     check_shape,
     inside_hull,
-    iter_slabs,
 )
 from .interpolation import prefilter, sample
+from .slabs import iter_slabs
 
 #: A sampler of a volume: positions ``(N, 3)`` ``(z, y, x)`` in voxels -> float32 values ``(N,)``,
 #: NaN outside the volume.
