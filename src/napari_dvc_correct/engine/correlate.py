@@ -125,11 +125,15 @@ class _Level:
         high = np.array(self.reference.shape) - 1 - self.half
         return np.clip(coarse, self.half, np.maximum(high, self.half))
 
-    def statistics(self, centers, params, zncc, order, variance, sigma, index):
-        """Fill ``variance[index]`` and ``sigma[index]`` (:func:`.icgn.subvolume_statistics`)."""
+    def statistics(self, centers, params, zncc, order, sensitivity, out, index):
+        """Fill ``out``'s variance, gradient power and sigma at ``index``.
+
+        (:func:`.icgn.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``.)
+        """
         if len(centers) == 0:
             return
         var = np.empty(len(centers))
+        power = np.empty(len(centers))
         sig = np.empty((len(centers), 3))
         icgn.subvolume_statistics(
             self.reference,
@@ -142,11 +146,14 @@ class _Level:
             icgn.n_monomials(order),
             np.ascontiguousarray(params, dtype=np.float64),
             np.ascontiguousarray(zncc, dtype=np.float64),
+            np.ascontiguousarray(sensitivity, dtype=np.bool_),
             var,
+            power,
             sig,
         )
-        variance[index] = var
-        sigma[index] = sig
+        out[0][index] = var
+        out[1][index] = power
+        out[2][index] = sig
 
     def match(self, centers, params, order, settings):
         n = len(centers)
@@ -176,7 +183,7 @@ class _Level:
             settings.tolerance,
             self.min_std,
             settings.min_mask_fraction,
-            float(max(self.half, 4)),
+            float(max(self.half, settings.min_max_update)),
             icgn.PRODUCT_TABLE,
             icgn.QUAD_AXES,
             float(settings.noise_tolerance),
@@ -204,6 +211,13 @@ MIN_PERFECT_ZNCC = 0.1
 #: about ``sqrt(m / n)``; a match must exceed this many times that (measured on noise-against-
 #: noise subvolumes, 15³, first order: 0.05-0.09, the floor is 0.15).
 ZNCC_SIGNIFICANCE = 2.5
+
+#: Mean square of one gradient component of unit white noise through the cubic B-spline
+#: interpolant (measured 1.386); with the noise estimate it says how much of ``H`` is noise.
+NOISE_GRADIENT_GAIN = 1.39
+#: The uncertainty measures the sensitivity ``A`` from the deformed scan
+#: (:func:`.icgn.subvolume_statistics`) where the noise is more than this fraction of ``H``.
+SENSITIVITY_FRACTION = 0.02
 
 #: Uncertainty bound (voxels, :func:`uncertainty_bound`): matches whose predicted uncertainty
 #: along some axis exceeds ``min(MAX_UNCERTAINTY, max(MIN_UNCERTAINTY_BOUND, UNCERTAINTY_RATIO
@@ -304,7 +318,7 @@ def _repair(
         thresholds = np.full(len(centers), float(settings.min_zncc))
     good = _is_good(status, zncc, thresholds)
     try_again = np.isin(status, [int(Status.MASKED), int(Status.LOW_TEXTURE)])
-    if good.sum() > 8:
+    if good.sum() >= settings.median_test_min_pois:
         good &= ~_neighbour_outliers(
             icgn.params_to_displacement(params, order)[0], good, grid_shape
         )
@@ -338,8 +352,11 @@ def _repair(
     heap = [(-zncc[i], i) for i in np.flatnonzero(good)]
     heapq.heapify(heap)
     attempts = np.zeros(len(centers), np.int64)
-    # a POI whose deformed subvolume left the volume is retried once (its guess may be wrong)
-    max_attempts = np.where(status == int(Status.OUT_OF_BOUNDS), 1, 3)
+    max_attempts = np.where(
+        status == int(Status.OUT_OF_BOUNDS),
+        settings.repair_attempts_out_of_bounds,
+        settings.repair_attempts,
+    )
     while heap and bad.any():
         _, i = heapq.heappop(heap)
         iz, iy, ix = np.unravel_index(i, grid_shape)
@@ -404,7 +421,7 @@ def _seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
     seed_params = np.ascontiguousarray(search(seeds))
     zncc, status, _ = level.match(centers[seeds], seed_params, order, settings)
     good = _is_good(status, zncc, settings.min_zncc)
-    if good.sum() > 8:
+    if good.sum() >= settings.median_test_min_pois:
         seed_u = np.full((*[len(a) for a in axes], 3), np.nan)
         seed_u.reshape(-1, 3)[:] = icgn.params_to_displacement(seed_params, order)[0]
         good &= ~_neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
@@ -605,10 +622,11 @@ def correlate_iter(
     # imaging noise and the ZNCC threshold it allows (noise_aware_thresholds)
     t0 = time.perf_counter()
     variance = np.full(n_points, np.nan)
+    power = np.full(n_points, np.nan)
     sigma = np.full((n_points, 3), np.nan)
-    fine.statistics(
-        centers[todo], params_out[todo], np.full(len(todo), np.nan), order, variance, sigma, todo
-    )
+    stats = (variance, power, sigma)
+    cheap = np.zeros(len(todo), bool)
+    fine.statistics(centers[todo], params_out[todo], zncc[todo], order, cheap, stats, todo)
     floor = ZNCC_SIGNIFICANCE * np.sqrt(3 * nb / params.subvolume**3)
     noise_variance, perfect, thresholds = noise_aware_thresholds(
         variance, zncc, status, params.min_zncc, floor
@@ -618,6 +636,7 @@ def correlate_iter(
     timings["noise_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    before = params_out.copy()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
     _repair(
         fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
@@ -627,10 +646,13 @@ def correlate_iter(
     low = np.isin(status, _GOOD) & ~(zncc >= thresholds)
     status[low] = int(Status.LOW_ZNCC)
     t0 = time.perf_counter()
-    measured = np.flatnonzero(np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]]))
-    fine.statistics(
-        centers[measured], params_out[measured], zncc[measured], order, variance, sigma, measured
-    )
+    # where the reference's noise is a sizeable part of H, measure the sensitivity A; elsewhere
+    # keep the first pass's estimate unless the repair changed the match
+    noisy = 3.0 * NOISE_GRADIENT_GAIN * noise_variance > SENSITIVITY_FRACTION * power
+    changed = np.any(params_out != before, axis=1)
+    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
+    redo = np.flatnonzero(measured & (noisy | changed))
+    fine.statistics(centers[redo], params_out[redo], zncc[redo], order, noisy[redo], stats, redo)
     timings["uncertainty_s"] = time.perf_counter() - t0
     bound, unsure = uncertainty_bound(sigma, status)
     status[unsure] = int(Status.LOW_ZNCC)
