@@ -159,9 +159,76 @@ def test_second_order_shape_function_follows_a_bending_field():
     )
     rmse = {}
     for order in (1, 2):
-        field = correlate(reference, deformed, CorrelationParams(subvolume=25, step=10, order=order))
+        field = correlate(
+            reference, deformed, CorrelationParams(subvolume=25, step=10, order=order)
+        )
         good = field.status == Status.CONVERGED
         assert good.mean() > 0.9
         rmse[order] = np.sqrt(np.mean(_errors(field, bending)[good] ** 2))
     assert rmse[2] < 0.01
     assert rmse[2] < 0.5 * rmse[1]
+
+
+# --- noise-aware thresholds and honest flags (issue 10) ---------------------------------------
+def test_noise_aware_threshold_keeps_a_noisy_weak_texture_field():
+    truth = synthetic.translation((0.3, -0.4, 0.6))
+    reference, deformed, sigma = synthetic.noisy_ct_pair((64, 64, 64), truth, noise=0.07, seed=5)
+    field = correlate(reference, deformed, CorrelationParams(subvolume=21, step=8))
+    noise = field.metadata["noise"]
+    assert abs(noise["sigma"] - sigma) < 0.15 * sigma  # estimated from the scans alone
+    matched = np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS, Status.LOW_ZNCC])
+    assert matched.all()
+    # a fixed threshold of 0.5 would reject a large part of this (good) field ...
+    assert (field.zncc < 0.5).mean() > 0.2
+    # ... the threshold at this noise level rejects almost none of it
+    assert (field.status == Status.LOW_ZNCC).mean() < 0.03
+    assert 0.15 < noise["zncc_threshold_median"] < 0.4
+    assert np.sqrt(np.mean(_errors(field, truth) ** 2)) < 0.15
+
+
+def test_clean_scans_keep_the_plain_threshold(speckle):
+    deformed = synthetic.deform_volume(speckle, synthetic.translation((0.5, 0.2, -0.3)))
+    field = correlate(speckle, deformed, CorrelationParams(subvolume=15, step=12))
+    assert field.metadata["noise"]["zncc_threshold_min"] > 0.499
+    assert field.metadata["noise"]["sigma"] < 1e-3
+
+
+def test_noise_against_noise_is_low_texture_not_a_match():
+    # half of the field of view is background: the same dark gray plus independent noise in each
+    # scan; with a threshold that follows the noise, such POIs must not pass as matches
+    truth = synthetic.translation((0.3, -0.4, 0.6))
+    reference, deformed, sigma = synthetic.noisy_ct_pair((48, 48, 64), truth, noise=0.06, seed=6)
+    rng = np.random.default_rng(8)
+    for volume in (reference, deformed):
+        volume[:, :, 40:] = 0.1 + rng.normal(0.0, sigma, volume[:, :, 40:].shape)
+    field = correlate(reference, deformed, CorrelationParams(subvolume=15, step=8))
+    x = field.axis_coordinates()[2]
+    background = x - 7 >= 40
+    specimen = x + 7 < 40
+    assert background.any() and specimen.any()
+    good = np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS])
+    assert not good[:, :, background].any()
+    assert good[:, :, specimen].mean() > 0.9
+
+
+def test_fault_case_wrong_matches_do_not_keep_a_good_status_unless_unsure():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    volume = ndimage.gaussian_filter(rng.standard_normal((64, 64, 64)), 1.5)
+    volume = (20 + 200 * (volume - volume.min()) / np.ptp(volume)).astype(np.float32)
+    shift = (1.25, -0.6, 2.4)
+    deformed = synthetic.deform_volume(volume, synthetic.translation(shift))
+    reference = volume.copy()
+    reference[:13] = 0.0  # a region the reference lacks
+    field = correlate(reference, deformed, CorrelationParams(subvolume=15, step=4))
+    error = np.linalg.norm(field.u - np.array(shift), axis=-1)
+    good = np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS])
+    z = field.axis_coordinates()[0]
+    away = z - 7 >= 13
+    assert np.all(good[away]) and np.all(error[away] < 0.05)
+    # without the uncertainty bound 4 nodes that straddle the slab kept a good status while
+    # 2-8 voxels off (uncertainties 0.24-2.6 voxels, 1e-4 elsewhere)
+    assert not (good & (error > 0.5)).any()
+    assert field.metadata["noise"]["uncertainty_bound"] == pytest.approx(0.1)
+    assert np.all(np.isnan(field.measured_displacement.reshape(*field.shape, 3)[~good]))

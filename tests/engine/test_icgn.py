@@ -91,7 +91,9 @@ def test_flat_subvolume_is_low_texture_and_noise_does_not_converge_confidently()
     centers = np.array([[28, 28, 12], [28, 28, 44]], dtype=np.int64)
     params, zncc, status, _ = _match(reference, deformed, centers, np.zeros((2, 3)), 1)
     assert status[0] == Status.LOW_TEXTURE
-    assert status[1] != Status.CONVERGED or zncc[1] < 0.3
+    # the matcher may stop anywhere on unrelated noise, but never with a good criterion: the
+    # low-ZNCC status is given from this value by correlate (test_correlate)
+    assert zncc[1] < 0.3, (status[1], zncc[1])
 
 
 def test_warp_matrix_composition_matches_function_composition():
@@ -134,3 +136,68 @@ def test_warp_matrix_composition_matches_function_composition():
     approx = (composed @ b)[1:4]
     # truncation at degree 2 only drops terms of degree 3 and 4 in small coordinates
     assert np.max(np.abs(approx - exact)) < 1e-3
+
+
+# --- uncertainty and the noise stop, on CT-like noisy scans (issue 10) ------------------------
+SHIFT = np.array([0.37, -0.61, 0.23])
+
+
+def _noisy_translation(noise, **changes):
+    from napari_dvc_correct.engine.correlate import correlate
+    from napari_dvc_correct.engine.params import CorrelationParams
+
+    reference, deformed, sigma = synthetic.noisy_ct_pair(
+        (64, 64, 64), synthetic.translation(SHIFT), noise=noise, seed=3
+    )
+    field = correlate(reference, deformed, CorrelationParams(subvolume=21, step=6, **changes))
+    good = np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS])
+    return field, good, sigma
+
+
+@pytest.mark.parametrize(
+    ("noise", "low", "high"),
+    # measured ratios (predicted / observed): 1.0 at 2 %, 1.2-1.4 at 5 %, 2.1-2.4 at 8 %, where
+    # the texture's variance is only 1.5x the noise's and the estimate errs on the safe side
+    [(0.02, 0.7, 1.4), (0.05, 0.8, 1.8), (0.08, 1.0, 3.0)],
+)
+def test_predicted_uncertainty_matches_the_scatter_of_translations(noise, low, high):
+    field, good, _ = _noisy_translation(noise)
+    assert good.mean() > 0.9
+    observed = (field.u[good] - SHIFT).std(axis=0)
+    predicted = np.sqrt(np.mean(field.uncertainty[good] ** 2, axis=0))
+    ratio = predicted / observed
+    assert np.all((ratio > low) & (ratio < high)), (predicted, observed)
+    failed = ~np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS, Status.LOW_ZNCC])
+    assert np.all(np.isnan(field.uncertainty[failed]))
+
+
+def test_uncertainty_is_tiny_on_clean_scans_and_nan_where_nothing_was_matched():
+    reference = synthetic.textured_volume((40, 40, 40), 2.0, seed=2)
+    deformed = synthetic.deform_volume(reference, synthetic.translation(SHIFT))
+    reference[:, :, :14] = 0.5  # flat: LOW_TEXTURE
+    from napari_dvc_correct.engine.correlate import correlate
+    from napari_dvc_correct.engine.params import CorrelationParams
+
+    field = correlate(reference, deformed, CorrelationParams(subvolume=11, step=6))
+    good = field.status == Status.CONVERGED
+    flat = field.status == Status.LOW_TEXTURE
+    assert good.sum() > 20 and flat.sum() > 5
+    # subvolumes half in the flat strip (which the deformed scan does not share) were matched
+    # 1-4 voxels off with an uncertainty of 0.2-0.8 voxel: flagged by the uncertainty bound
+    assert np.all(field.uncertainty[good] < 0.005)
+    assert np.all(np.abs(field.u[good] - SHIFT) < 0.02)
+    assert np.all(np.isnan(field.uncertainty[flat]))
+
+
+def test_noise_stop_cuts_iterations_without_losing_accuracy():
+    plain, good_plain, _ = _noisy_translation(0.06, noise_tolerance=0.0)
+    fast, good_fast, _ = _noisy_translation(0.06)
+    # measured: 41.9 -> 19.2 mean iterations, 87 -> 1 POIs at the iteration limit
+    assert fast.iterations[good_fast].mean() < 0.7 * plain.iterations[good_plain].mean()
+    assert (fast.status == Status.MAX_ITERATIONS).sum() < (
+        plain.status == Status.MAX_ITERATIONS
+    ).sum()
+    rmse = [
+        np.sqrt(np.mean((f.u[g] - SHIFT) ** 2)) for f, g in ((plain, good_plain), (fast, good_fast))
+    ]
+    assert rmse[1] < 1.1 * rmse[0]

@@ -46,7 +46,25 @@ def test_flat_arrays_readable_without_the_package(tmp_path):
         points, displacement = data["points"], data["displacement"]
     assert points.shape == (24, 3) and displacement.shape == (24, 3)
     assert np.allclose(points[1], [5, 6, 9])  # x varies fastest, step 2
-    assert np.allclose(displacement, field.u.reshape(-1, 3))
+    # measurements only: nodes whose status is not good (LOW_ZNCC, replaced...) are NaN
+    good = np.isin(field.status.reshape(-1), [Status.CONVERGED, Status.MAX_ITERATIONS])
+    assert good.any() and (~good).any()
+    assert np.allclose(displacement[good], field.u.reshape(-1, 3)[good])
+    assert np.all(np.isnan(displacement[~good]))
+
+
+def test_uncertainty_round_trip_and_older_files_without_it(tmp_path):
+    field = _field()
+    field.uncertainty = np.abs(np.random.default_rng(3).normal(size=(*field.shape, 3)))
+    field.uncertainty[0, 0, 0] = np.nan
+    save_field(field, tmp_path / "f.npz")
+    back = load_field(tmp_path / "f.npz")
+    np.testing.assert_array_equal(back.uncertainty, field.uncertainty)
+    assert np.all(np.isfinite(back.u))  # the grid keeps every value
+    with np.load(tmp_path / "f.npz") as data:
+        old = {k: data[k] for k in data.files if k != "uncertainty"}
+    np.savez(tmp_path / "old.npz", **old)
+    assert load_field(tmp_path / "old.npz").uncertainty is None
 
 
 def test_newer_format_is_refused(tmp_path):

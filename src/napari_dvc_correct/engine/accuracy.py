@@ -6,7 +6,7 @@ The pieces, in the order the paper uses them:
    gray thresholds (multi-Otsu by default; any ``N >= 2``); the per-phase gray range and mean gray
    of each state make the paper's Table 1.
 2. **Background residual (eq. 1).** The gray residual ``r(X) = |F(X + u(X)) - G(X)|`` is computed
-   by :func:`napari_dvc_correct.engine.warp.gray_residual`. At voxels where the phase of ``G`` and
+   by :func:`napari_dvc_correct.engine.residual.gray_residual`. At voxels where the phase of ``G`` and
    the phase of ``F`` mapped by the field agree, the residual is (ideally) imaging noise only; its
    mean over those voxels is the background residual ``r0`` (:func:`background_residual`), and
    ``r' = r - r0`` is the corrected residual.
@@ -31,7 +31,13 @@ from dataclasses import field as dataclass_field
 import numpy as np
 
 from .binning import StrainBins, bin_residual_by_strain, strain_bin_edges
-from .field import DisplacementField, Status
+from .field import DisplacementField
+from .local_accuracy import (  # noqa: F401 (part of this module's interface)
+    honest_accuracy,
+    local_accuracy_map,
+    local_mean_residual,
+    region_half,
+)
 from .phases import (
     NO_PHASE,
     PhaseStats,
@@ -39,52 +45,13 @@ from .phases import (
     phase_table,
     phase_thresholds,
     segment_phases,
-    slabs,
 )
 from .progress import Progress, run_to_completion
+from .slabs import iter_slabs
 from .strain import equivalent_strain_field
 
 
 # --- grid quantities ready to display -------------------------------------------------------------
-def zncc_volume(field: DisplacementField) -> tuple[np.ndarray, dict, str]:
-    """The per-POI ZNCC as a grid image, ready for napari (``(data, kwargs, "image")``).
-
-    Returns
-    -------
-    data : ndarray, shape (nz, ny, nx), float32
-        ZNCC in [-1, 1], NaN where no match was made.
-    kwargs : dict
-        ``name``, ``scale`` (= step) and ``translate`` (= origin) so the grid overlays the volume,
-        ``colormap`` and ``contrast_limits``.
-    layer_type : str
-        ``"image"``.
-    """
-    data = np.asarray(field.zncc, dtype=np.float32).copy()
-    kwargs = {"name": "ZNCC", "colormap": "viridis", "contrast_limits": (0.0, 1.0)}
-    kwargs.update(field.layer_kwargs())
-    return data, kwargs, "image"
-
-
-def status_volume(field: DisplacementField) -> tuple[np.ndarray, dict, str]:
-    """The per-POI :class:`Status` codes as a grid label image (``(data, kwargs, "labels")``).
-
-    Returns
-    -------
-    data : ndarray, shape (nz, ny, nx), uint8
-        Status code + 1, so that CONVERGED (code 0) is not the transparent background label 0.
-    kwargs : dict
-        ``name``, ``scale``, ``translate`` and ``metadata["status_names"]`` mapping each label
-        value to its readable status name.
-    layer_type : str
-        ``"labels"``.
-    """
-    data = field.status.astype(np.uint8) + np.uint8(1)
-    names = {int(s) + 1: s.label for s in Status}
-    kwargs = {"name": "status", "metadata": {"status_names": names}}
-    kwargs.update(field.layer_kwargs())
-    return data, kwargs, "labels"
-
-
 def check_field_fits(field: DisplacementField, volume_shape, name: str = "field") -> None:
     """Raise ``ValueError`` unless every node of ``field`` lies inside a volume of ``volume_shape``.
 
@@ -158,7 +125,7 @@ def background_residual(
     sums = np.zeros(NO_PHASE)
     counts = np.zeros(NO_PHASE, np.int64)
     n = 0  # phases present in the reference labels
-    for zs in slabs(residual.shape):
+    for zs in iter_slabs(residual.shape):
         r = np.asarray(residual[zs], dtype=np.float64)
         a = np.asarray(labels_reference[zs])
         defined = (a >= 0) & (a < NO_PHASE)
@@ -258,79 +225,6 @@ def accuracy_index(mean_residual, background: BackgroundResidual | float, contra
         raise ValueError(f"the phase contrast must be > 0, got {contrast}")
     result = 1.0 - (np.asarray(mean_residual, dtype=np.float64) - r0) / float(contrast)
     return float(result) if result.ndim == 0 else result
-
-
-# --- local residual and local accuracy map -------------------------------------------------------
-def local_mean_residual(residual: np.ndarray, field: DisplacementField, half: int) -> np.ndarray:
-    """Mean residual over each node's subvolume region, per node (the local ``mean(r)``).
-
-    Parameters
-    ----------
-    residual : ndarray, shape (nz, ny, nx), float
-        Gray residual volume in the reference frame, ``|F(X + u(X)) - G(X)|`` (NaN where
-        undefined), as from :func:`~.warp.gray_residual` or a pull-back.
-    field : DisplacementField
-        Gives the node positions (reference voxels, rounded to whole voxels).
-    half : int
-        Half-size ``M`` of the region: the ``(2M + 1)^3`` box centred on the node (the DVC's
-        subvolume; clipped at the volume's borders).
-
-    Returns
-    -------
-    ndarray, shape field.shape, float64
-        Mean of the finite residual voxels of each node's box, gray levels; NaN where the box
-        holds none.
-    """
-    from scipy import ndimage
-
-    residual = np.asarray(residual, dtype=np.float32)
-    finite = np.isfinite(residual)
-    size = 2 * int(half) + 1
-    sums = ndimage.uniform_filter(np.where(finite, residual, np.float32(0)), size, mode="constant")
-    counts = ndimage.uniform_filter(finite.astype(np.float32), size, mode="constant")
-    index = np.rint(field.points).astype(np.intp)
-    index = tuple(np.clip(index[:, a], 0, residual.shape[a] - 1) for a in range(3))
-    total, count = sums[index].astype(np.float64), counts[index].astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count > 0.5 / size**3, total / count, np.nan)
-    return mean.reshape(field.shape)
-
-
-def local_accuracy_map(
-    local_residual: np.ndarray, background: BackgroundResidual | float, contrast: float
-) -> np.ndarray:
-    """Local accuracy index, eq. 2 node by node: ``p_i = 1 - (R_i - r0) / |g1 - g2|``.
-
-    ``R_i`` is the mean residual over node ``i``'s subvolume region
-    (:func:`local_mean_residual`), ``r0`` the volume's background residual (eq. 1) and
-    ``|g1 - g2|`` the phase contrast. ``p_i`` is near 1 where the field explains the images down
-    to the imaging noise and falls where the region's texture is misplaced; NaN where the region
-    has no defined residual (the field sends it outside the scan, or it could not be inverted),
-    which :func:`evaluate_iter` counts as a failed region.
-    """
-    return np.asarray(accuracy_index(np.asarray(local_residual), background, contrast))
-
-
-def _region_half(field: DisplacementField) -> int:
-    """Half-size of a node's region: the field's subvolume half, else its largest step."""
-    subvolume = (field.params or {}).get("subvolume")
-    if subvolume:
-        return int(subvolume) // 2
-    return int(np.ceil(max(field.step)))
-
-
-def honest_accuracy(local_accuracy: np.ndarray) -> float:
-    """Global accuracy index from the local map: the mean over every node, failed regions at 0.
-
-    A node counts 0 where its region's residual is undefined (NaN: the field sends the region
-    outside the scan or cannot be inverted there); elsewhere its local index counts, clipped to
-    [0, 1], so a region below the average noise does not make up for a wrong one. Unlike eq. 2 on
-    the voxels where the residual happens to be defined, this cannot rise when a field ruins a
-    region so badly that its residual becomes undefined.
-    """
-    values = np.clip(np.asarray(local_accuracy, dtype=np.float64), 0.0, 1.0)
-    values = np.where(np.isfinite(values), values, 0.0)
-    return float(np.mean(values)) if values.size else float("nan")
 
 
 # --- the whole chain --------------------------------------------------------------------------
@@ -502,7 +396,7 @@ def evaluate_iter(
     phase_pair : (int, int), optional
         Phases whose contrast is used in eq. 2 (default: the two most abundant).
     mode : {"reference", "loaded"}
-        Where the residual lives (see :func:`~.warp.gray_residual`).
+        Where the residual lives (see :func:`~.residual.gray_residual`).
     strain_measure, strain_method, strain_window
         Equivalent strain options (:func:`~.strain.strain_tensor`).
     n_bins : int
@@ -526,8 +420,9 @@ def evaluate_iter(
     ValueError
         Bad thresholds, an empty phase, a field that does not fit the volume or holds NaN.
     """
-    from . import warp
+    from .field_spline import FieldSpline
     from .interpolation import prefilter
+    from .residual import moved_and_residual
 
     reference = np.asanyarray(reference)
     deformed = np.asanyarray(deformed)
@@ -586,22 +481,16 @@ def evaluate_iter(
         zip(named, strains, binning)
     ):
         yield Progress("residual", index, len(named), f"gray residual of {name}")
-        spline = warp.FieldSpline.from_field(item)
+        spline = FieldSpline.from_field(item)
         if mode == "reference":
-            residual = warp.gray_residual(
+            moved, residual = moved_and_residual(
                 reference, deformed, spline, "reference", deformed_coefficients=coefficients
-            )
-            moved = warp.pull_back(
-                deformed, spline, coefficients=coefficients, outside="nan", shape=reference.shape
             )
             mapped = label_phases(moved, thresholds_f)
             positions = None
         else:
-            residual = warp.gray_residual(
+            moved, residual = moved_and_residual(
                 reference, deformed, spline, "loaded", reference_coefficients=coefficients
-            )
-            moved = warp.warp_forward(
-                reference, spline, coefficients=coefficients, outside="nan", shape=deformed.shape
             )
             mapped = label_phases(moved, thresholds_g)
 
@@ -611,13 +500,13 @@ def evaluate_iter(
         del moved
         background = background_residual(residual, own_labels, mapped)
         total, count = 0.0, 0
-        for zs in slabs(residual.shape):
+        for zs in iter_slabs(residual.shape):
             block = residual[zs]
             finite = np.isfinite(block)
             total += float(np.sum(block[finite], dtype=np.float64))
             count += int(finite.sum())
         bins = bin_residual_by_strain(residual, bin_strain, bin_field, edges, positions)
-        local = local_mean_residual(residual, item, _region_half(item))
+        local = local_mean_residual(residual, item, region_half(item))
         partial.append(
             dict(
                 name=name,

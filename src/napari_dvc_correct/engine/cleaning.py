@@ -459,7 +459,9 @@ def clean(
         A new field. Replaced nodes get ``Provenance.REPLACED``; nodes that matched with a good
         status but failed the median test or the ZNCC threshold also get
         ``Status.OUTLIER_REPLACED`` (other statuses are kept, so the reason for a failed match
-        stays visible). ``metadata["cleaning"]`` records the options and the counts.
+        stays visible). ``metadata["cleaning"]`` records the options and the counts. The
+        ``uncertainty`` of replaced nodes is NaN: an inpainted value was not measured, and the
+        field cannot say how far it is from the truth (its provenance says so).
     """
     report = detect_outliers(
         field,
@@ -485,6 +487,8 @@ def clean(
     if smoothing > 0:
         result.u = smooth(result.u, smoothing, valid=keep | rejected)
     result.provenance[rejected] = Provenance.REPLACED
+    if result.uncertainty is not None:
+        result.uncertainty[rejected] = np.nan
     result.provenance[report.masked] = Provenance.MASKED
     good_status = np.isin(field.status, [int(s) for s in GOOD_STATUSES])
     result.status[rejected & good_status] = Status.OUTLIER_REPLACED

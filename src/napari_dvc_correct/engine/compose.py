@@ -6,7 +6,7 @@ measured at the positions reached by the first motion), the total Lagrangian dis
     ``w(X) = a(X) + b(X + a(X))``,
 
 with ``b`` interpolated at the displaced positions by cubic splines on its grid
-(:class:`.warp.FieldSpline`). This is the exact update of the self-correction and the
+(:class:`.field_spline.FieldSpline`). This is the exact update of the self-correction and the
 "displacement superposition" of incremental scan series. The paper's plain sum
 ``w(X) = a(X) + b(X)`` at the same node is kept as ``mode="sum"``; it is exact only when ``b`` is
 uniform.
@@ -19,7 +19,7 @@ import copy
 import numpy as np
 
 from .field import GOOD_STATUSES, DisplacementField, Provenance
-from .warp import FieldSpline
+from .field_spline import FieldSpline
 
 COMPOSE_MODES = ("exact", "sum")
 
@@ -60,7 +60,8 @@ def compose(
         the node nearest to ``X + a(X)``), ``status`` and ``provenance`` are ``first``'s where it
         is not a good measurement and ``second``'s otherwise, ``iterations`` are ``second``'s.
         ``gradient`` follows the chain rule ``∇w = ∇a + ∇b(X + a)(I + ∇a)`` when both fields
-        have one (``∇a + ∇b`` for ``"sum"``), else None. ``params`` are ``first``'s;
+        have one (``∇a + ∇b`` for ``"sum"``), else None. ``uncertainty`` adds both fields' in
+        quadrature (``second``'s at the nearest node) when both have one, else None. ``params`` are ``first``'s;
         ``metadata["composition"]`` records the mode.
     """
     if mode not in COMPOSE_MODES:
@@ -109,6 +110,11 @@ def compose(
             gb[finite] = spline(displaced[finite]).reshape(-1, 3, 3)
             gradient = (ga + gb @ (np.eye(3) + ga)).reshape(*grid, 3, 3)
 
+    uncertainty = None  # independent errors add in quadrature (a scan series' increments)
+    if first.uncertainty is not None and second.uncertainty is not None:
+        sb = second.uncertainty[nearest]
+        uncertainty = np.hypot(first.uncertainty.reshape(-1, 3), sb).reshape(*grid, 3)
+
     metadata = copy.deepcopy(first.metadata)
     metadata["composition"] = {"mode": mode}
     return DisplacementField(
@@ -120,6 +126,7 @@ def compose(
         iterations=iterations,
         provenance=provenance,
         gradient=gradient,
+        uncertainty=uncertainty,
         params=copy.deepcopy(first.params),
         metadata=metadata,
     )

@@ -51,14 +51,14 @@ import numpy as np
 from scipy import ndimage
 
 from . import warp
-from .accuracy import background_residual, local_mean_residual
 from .cleaning import clean, masked_nodes
 from .compose import compose
 from .correlate import correlate_iter
 from .field import DisplacementField, Provenance, Status
+from .field_spline import FieldSpline
 from .interpolation import prefilter
+from .local_acceptance import Judge, accept_locally, flag_and_refill
 from .params import CorrelationParams
-from .phases import label_phases, phase_thresholds
 from .progress import Progress, run_to_completion
 
 FRAMES = ("reference", "loaded")
@@ -67,45 +67,18 @@ UPDATES = ("exact", "sum")
 #: A node counts as "changed" by a pass when its displacement moves by more than this (voxels).
 CHANGE_THRESHOLD = 0.1
 
-#: One-sided z-score of the local acceptance test: a node's local residual must rise by more than
-#: this many standard deviations of what resampling the imaging noise can do before its correction
-#: is refused, and fall by as much for the node to count as improved above the noise floor.
-NOISE_Z = 2.0
-
-#: Correlation volume (voxels) of the residual's noise: B-spline resampling and the scanner's
-#: point spread make neighbouring residual voxels dependent, so a region of ``n`` voxels holds
-#: about ``n / NOISE_CORRELATION_VOXELS`` independent noise samples (conservative: 2 x 2 x 2).
-NOISE_CORRELATION_VOXELS = 8.0
-
-#: Standard deviation over mean of the absolute difference of two Gaussian noises (half-normal
-#: distribution, ``sqrt(pi / 2 - 1)``): turns the noise floor ``r0`` into the residual's spread.
-HALF_NORMAL_SPREAD = float(np.sqrt(np.pi / 2.0 - 1.0))
-
 #: Another pass runs only while at least this fraction of the nodes improved above the noise.
 MIN_IMPROVED_FRACTION = 0.01
-
-#: Sweeps of the local acceptance per pass: after mixing accepted and refused nodes, the mixed
-#: field's residual is checked again (neighbouring nodes share their regions).
-ACCEPTANCE_SWEEPS = 3
 
 #: A first-order field whose curvature bends a subvolume by more than this (voxels, see
 #: :func:`field_curvature`) is corrected with second-order matches.
 CURVATURE_VOXELS = 0.1
-
-#: A region counts as improved by a pass only if its residual fell by more than a displacement
-#: change of this many voxels explains (besides the noise): a hundredth of a voxel is the
-#: matcher's own accuracy on clean scans.
-MIN_USEFUL_CHANGE = 0.01
 
 #: Subvolume of the second-order correcting matches, as a fraction of the first run's.
 PASS_SUBVOLUME_FRACTION = 2.0 / 3.0
 
 #: Smallest subvolume edge of a correcting match (voxels).
 MIN_PASS_SUBVOLUME = 11
-
-#: Nodes whose local residual exceeds the noise floor by more than an error of this many voxels
-#: explains (from the local gray gradient) are flagged ``OUTLIER_REPLACED`` and refilled.
-FLAG_ERROR = 1.0
 
 
 @dataclass(frozen=True)
@@ -236,7 +209,7 @@ class _Pair:
 
     def align(self, field: DisplacementField) -> tuple[np.ndarray, float]:
         """The moved volume for the next DVC, and the mean gray residual of ``field``."""
-        spline = warp.FieldSpline.from_field(field)
+        spline = FieldSpline.from_field(field)
         if self.frame == "reference":
             moved = warp.pull_back(
                 self.deformed, spline, coefficients=self.coefficients, cval=np.nan
@@ -263,175 +236,6 @@ class _Pair:
             if not mask.any():
                 mask = None
         return moved, self.deformed, mask
-
-
-class _Judge:
-    """Local residuals and the noise floor, in the reference frame, for the acceptance test.
-
-    The residual ``r(X) = |F(X + D(X)) - G(X)|`` is measured on reference voxels whatever the
-    pass's frame. A node's region is its own cell, the box of edge ``2 * ceil(step / 2) + 1``
-    around it (at least 5): the field there is mostly that node's value, where a whole subvolume
-    would mix in the neighbours' (and let a ruined neighbour hide a ruined node).
-    """
-
-    def __init__(self, pair: _Pair, step, region_half: int):
-        self.reference = pair.reference
-        self.deformed = pair.deformed
-        self.coefficients = (
-            pair.coefficients if pair.frame == "reference" else prefilter(pair.deformed)
-        )
-        self.half = max(2, int(np.ceil(max(step) / 2.0)))
-        try:
-            self.thresholds_g = phase_thresholds(self.reference, "auto", 2, "reference volume")
-            self.thresholds_f = phase_thresholds(self.deformed, "auto", 2, "deformed volume")
-            self.labels_g = label_phases(self.reference, self.thresholds_g)
-        except ValueError:  # a volume with a single gray value: no phases, no eq. 1
-            self.labels_g = None
-        self.floor = float("inf")
-        self._gradient = None
-        self._useful = None
-        self.region_half = int(region_half)
-        self.last_region = None
-        self.region_spread = (
-            np.sqrt(2.0)
-            * HALF_NORMAL_SPREAD
-            / np.sqrt((2 * self.region_half + 1) ** 3 / NOISE_CORRELATION_VOXELS)
-        )
-        size = 2 * self.half + 1
-        # the largest change of a region's mean residual that resampling the noise can make:
-        # two independent noise draws, each of spread HALF_NORMAL_SPREAD * r0 over n / Vc samples
-        self.spread = (
-            np.sqrt(2.0) * HALF_NORMAL_SPREAD / np.sqrt(size**3 / NOISE_CORRELATION_VOXELS)
-        )
-
-    def local(self, field: DisplacementField) -> np.ndarray:
-        """Per-node local mean residual of ``field`` (gray levels); updates the noise floor.
-
-        The floor is the smaller of eq. 1's background residual and the lower quartile of the
-        nodes' local residuals (eq. 1 is inflated where a flat region agrees in phase with
-        textured material), and the smallest seen so far: the noise belongs to the scans.
-        """
-        spline = warp.FieldSpline.from_field(field)
-        moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
-        residual = np.abs(moved - self.reference)
-        local = local_mean_residual(residual, field, self.half)
-        self.last_region = local_mean_residual(residual, field, self.region_half)
-        floor = float("inf")
-        if self.labels_g is not None:
-            try:
-                floor = background_residual(
-                    residual, self.labels_g, label_phases(moved, self.thresholds_f)
-                ).mean
-            except ValueError:
-                pass
-        if np.isfinite(local).any():
-            floor = min(floor, float(np.nanpercentile(local, 25.0)))
-        if np.isfinite(floor):
-            self.floor = min(self.floor, floor)
-        elif not np.isfinite(self.floor):
-            self.floor = 0.0
-        return local
-
-    @property
-    def tolerance(self) -> float:
-        """How much a node's cell residual may change by noise alone (gray levels)."""
-        return NOISE_Z * self.spread * self.floor
-
-    @property
-    def region_tolerance(self) -> float:
-        """How much the residual over a node's subvolume may change by noise alone."""
-        return NOISE_Z * self.region_spread * self.floor
-
-    def _local_gradient(self, field: DisplacementField, half: int) -> np.ndarray:
-        if self._gradient is None:
-            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
-        return local_mean_residual(self._gradient, field, half)
-
-    def useful(self, field: DisplacementField) -> np.ndarray:
-        """Per node, the residual change that :data:`MIN_USEFUL_CHANGE` voxels explain.
-
-        On clean scans the noise floor is tiny and any change would count as an improvement;
-        a region counts as improved only if its residual also fell by more than this.
-        """
-        if self._useful is None:
-            gradient = self._local_gradient(field, self.region_half)
-            self._useful = 0.5 * MIN_USEFUL_CHANGE * np.nan_to_num(gradient)
-        return self._useful
-
-    def unexplained(self, field: DisplacementField, local: np.ndarray) -> np.ndarray:
-        """Nodes whose local residual only an error of more than ~1 voxel explains.
-
-        An error ``e`` of the field misplaces the texture by ``|grad G . e|``, on average
-        ``|grad G| |e| / 2`` over directions; nodes whose local residual exceeds the noise floor
-        by more than :data:`FLAG_ERROR` voxels' worth of that are flagged (a subvolume half in a
-        textureless region, or half outside the specimen, lands here whatever its value).
-        """
-        gradient = self._local_gradient(field, self.half)
-        excess = local - self.floor
-        return np.isfinite(excess) & (excess > 0.5 * FLAG_ERROR * gradient)
-
-
-def _flag_and_refill(judge, field, local, masked, clean_options):
-    """Give unexplained nodes ``OUTLIER_REPLACED`` and refill them from their neighbours."""
-    flagged = judge.unexplained(field, local) & ~masked
-    if not flagged.any() or flagged.all():
-        return field, local, 0
-    marked = field.copy()
-    marked.status[flagged] = Status.OUTLIER_REPLACED
-    try:
-        refilled = clean(marked, **clean_options)
-    except ValueError:
-        return field, local, 0
-    refilled.status[flagged] = Status.OUTLIER_REPLACED
-    refilled.provenance[flagged] = Provenance.REPLACED
-    return refilled, judge.local(refilled), int(flagged.sum())
-
-
-def _mix(current: DisplacementField, candidate: DisplacementField, accept: np.ndarray):
-    """``candidate`` where ``accept``, ``current`` elsewhere (values and quality arrays)."""
-    mixed = candidate.copy()
-    keep = ~accept
-    mixed.u[keep] = current.u[keep]
-    for name in ("zncc", "status", "iterations", "provenance"):
-        getattr(mixed, name)[keep] = getattr(current, name)[keep]
-    if mixed.gradient is not None:
-        if current.gradient is not None:
-            mixed.gradient[keep] = current.gradient[keep]
-        else:
-            mixed.gradient = None
-    return mixed
-
-
-def _accept_locally(judge: _Judge, current, local_current, candidate):
-    """Node by node: keep the candidate's value unless its local residual rose above the noise.
-
-    Returns the mixed field, its local residual, the accepted and the improved node masks.
-    """
-    tolerance = judge.tolerance
-    region_current = judge.last_region
-    local = judge.local(candidate)
-    rose = local > local_current + tolerance
-    rose |= np.isnan(local)  # a region the candidate sends out of the scan cannot be judged
-    accept = ~rose
-    mixed, local_mixed = candidate, local
-    for _ in range(ACCEPTANCE_SWEEPS):
-        if accept.all():
-            break
-        mixed = _mix(current, candidate, accept)
-        local_mixed = judge.local(mixed)
-        worse = accept & (
-            (local_mixed > local_current + tolerance) | np.isnan(local_mixed)
-        )
-        if not worse.any():
-            break
-        accept &= ~worse
-    else:
-        mixed = _mix(current, candidate, accept)
-        local_mixed = judge.local(mixed)
-    improved = accept & (
-        judge.last_region < region_current - judge.region_tolerance - judge.useful(mixed)
-    )
-    return mixed, local_mixed, accept, improved
 
 
 def field_curvature(field: DisplacementField, half: int) -> float:
@@ -629,10 +433,16 @@ def correct_iter(
     yield Progress("clean", 1, 1, f"{current.metadata['cleaning']['rejected']} nodes replaced")
 
     pair = _Pair(reference, deformed, frame, mask)
-    judge = _Judge(pair, current.step, params.half)
+    judge = Judge(
+        pair.reference,
+        pair.deformed,
+        pair.coefficients if frame == "reference" else prefilter(pair.deformed),
+        current.step,
+        params.half,
+    )
     yield Progress("residual", 0, 1, "gray residual of the input field")
     local_current = judge.local(current)
-    current, local_current, flagged = _flag_and_refill(
+    current, local_current, flagged = flag_and_refill(
         judge, current, local_current, masked, clean_options
     )
     moved, residual = pair.align(current)
@@ -679,7 +489,7 @@ def correct_iter(
         candidate = _finish_pass(_update(current, delta, frame, update), delta, field, masked)
         yield Progress("residual", 0, 1, f"local acceptance of pass {number}")
         floor_before = judge.floor
-        mixed, local_mixed, accept, improved = _accept_locally(
+        mixed, local_mixed, accept, improved = accept_locally(
             judge, current, local_current, candidate
         )
         accept[masked] = False

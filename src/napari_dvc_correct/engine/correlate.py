@@ -30,6 +30,7 @@ from .initial_guess import bin_volume, fft_search, global_shift, pyramid_levels
 from .interpolation import prefilter
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
+from .validation import validate_volume
 
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
@@ -43,8 +44,6 @@ def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
         With a message that says what to change: not 3-D, shapes that differ, NaN or infinite
         values, a subvolume larger than the volume, an empty mask or a mask of another shape.
     """
-    from ..io.volumes import validate_volume
-
     reference = validate_volume(reference, "reference volume")
     deformed = validate_volume(deformed, "deformed volume")
     if reference.shape != deformed.shape:
@@ -126,6 +125,36 @@ class _Level:
         high = np.array(self.reference.shape) - 1 - self.half
         return np.clip(coarse, self.half, np.maximum(high, self.half))
 
+    def statistics(self, centers, params, zncc, order, sensitivity, out, index):
+        """Fill ``out``'s variance, gradient power and sigma at ``index``.
+
+        (:func:`.icgn.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``.)
+        """
+        if len(centers) == 0:
+            return
+        var = np.empty(len(centers))
+        power = np.empty(len(centers))
+        sig = np.empty((len(centers), 3))
+        icgn.subvolume_statistics(
+            self.reference,
+            self.gradient,
+            self.coef_deformed,
+            self.mask,
+            self.use_mask,
+            np.ascontiguousarray(centers, dtype=np.int64),
+            self.half,
+            icgn.n_monomials(order),
+            np.ascontiguousarray(params, dtype=np.float64),
+            np.ascontiguousarray(zncc, dtype=np.float64),
+            np.ascontiguousarray(sensitivity, dtype=np.bool_),
+            var,
+            power,
+            sig,
+        )
+        out[0][index] = var
+        out[1][index] = power
+        out[2][index] = sig
+
     def match(self, centers, params, order, settings):
         n = len(centers)
         zncc = np.full(n, np.nan)
@@ -154,9 +183,10 @@ class _Level:
             settings.tolerance,
             self.min_std,
             settings.min_mask_fraction,
-            float(max(self.half, 4)),
+            float(max(self.half, settings.min_max_update)),
             icgn.PRODUCT_TABLE,
             icgn.QUAD_AXES,
+            float(settings.noise_tolerance),
         )
         return zncc, status, iterations
 
@@ -173,16 +203,122 @@ def _is_good(status, zncc, min_zncc):
     return np.isin(status, _GOOD) & (zncc >= min_zncc)
 
 
-def _repair(level, centers, grid_shape, params, zncc, status, iterations, order, settings):
+#: POIs whose perfect-match ZNCC at the scans' noise level (:func:`noise_aware_thresholds`) is
+#: below this hold less texture than a ninth of the noise variance: ``LOW_TEXTURE``.
+MIN_PERFECT_ZNCC = 0.1
+
+#: Fitting ``m`` shape-function parameters to pure noise over ``n`` voxels reaches a ZNCC of
+#: about ``sqrt(m / n)``; a match must exceed this many times that (measured on noise-against-
+#: noise subvolumes, 15³, first order: 0.05-0.09, the floor is 0.15).
+ZNCC_SIGNIFICANCE = 2.5
+
+#: Mean square of one gradient component of unit white noise through the cubic B-spline
+#: interpolant (measured 1.386); with the noise estimate it says how much of ``H`` is noise.
+NOISE_GRADIENT_GAIN = 1.39
+#: The uncertainty measures the sensitivity ``A`` from the deformed scan
+#: (:func:`.icgn.subvolume_statistics`) where the noise is more than this fraction of ``H``.
+SENSITIVITY_FRACTION = 0.02
+
+#: Uncertainty bound (voxels, :func:`uncertainty_bound`): matches whose predicted uncertainty
+#: along some axis exceeds ``min(MAX_UNCERTAINTY, max(MIN_UNCERTAINTY_BOUND, UNCERTAINTY_RATIO
+#: × the median of the matched POIs))`` are not trusted and become ``LOW_ZNCC``.
+MAX_UNCERTAINTY = 1.0
+MIN_UNCERTAINTY_BOUND = 0.1
+UNCERTAINTY_RATIO = 10.0
+
+
+def uncertainty_bound(sigma, status):
+    """The uncertainty (voxels) above which a match is not trusted, and the POIs above it.
+
+    A match the images do not pin down has a large uncertainty: on noise-free scans that is one
+    far above the field's typical value (measured: 0.2-2.6 voxels against 1e-4 for the subvolumes
+    that straddle a region that one scan lacks, all 1-8 voxels off), on noisy scans one above a
+    voxel. The bound is ``min(1, max(0.1, 10 × median))`` over the matched POIs' largest
+    component.
+
+    Returns
+    -------
+    bound : float
+    unsure : ndarray of bool (N,)
+        Matched POIs (good status) whose largest component exceeds the bound (or is infinite).
+    """
+    largest = np.max(sigma, axis=1)
+    matched = np.isin(status, _GOOD)
+    known = matched & np.isfinite(largest)
+    typical = float(np.median(largest[known])) if known.any() else 0.0
+    bound = min(MAX_UNCERTAINTY, max(MIN_UNCERTAINTY_BOUND, UNCERTAINTY_RATIO * typical))
+    with np.errstate(invalid="ignore"):
+        unsure = matched & (largest > bound)
+    return bound, unsure
+
+
+def noise_aware_thresholds(variance, zncc, status, min_zncc, floor=0.0):
+    """Imaging noise of the scans and the ZNCC threshold of every POI at that noise.
+
+    With independent noise of variance ``σ_n²`` on both scans and a subvolume whose gray variance
+    is ``s² = σ_t² + σ_n²`` (texture plus noise), a perfect match reaches
+    ``ZNCC* = σ_t² / (σ_t² + σ_n²) = 1 − σ_n² / s²`` (the residual ``(g − ḡ) − (f − f̄)`` holds
+    the two noises, ``Σ r² = 2 n σ_n²``, and ``ZNSSD = Σ r² / (n s²) = 2 (1 − ZNCC)``). So every
+    match gives ``s² (1 − ZNCC)`` as an estimate of ``σ_n²``, too large where the match is wrong
+    or the shape function cannot follow the deformation; their median over the matched POIs is
+    the noise estimate. A POI's threshold is ``min_zncc · ZNCC*``: ``min_zncc`` is read relative
+    to what a perfect match can reach, which is ``min_zncc`` itself on noise-free scans. It is
+    never below ``floor`` (what fitting the shape function to noise alone reaches,
+    ``ZNCC_SIGNIFICANCE · sqrt(3·nb / n)``) nor above ``min_zncc``.
+
+    Parameters
+    ----------
+    variance : ndarray (N,)
+        Gray variance of each POI's reference subvolume (NaN where unknown).
+    zncc, status : ndarray (N,)
+        Results of the matching.
+    min_zncc : float
+    floor : float
+        Lowest threshold.
+
+    Returns
+    -------
+    noise_variance : float
+        ``σ_n²`` in gray levels² (0 when no POI matched).
+    perfect : ndarray (N,)
+        ``ZNCC*`` per POI, in [0, 1] (NaN where the variance is unknown).
+    thresholds : ndarray (N,)
+        ``min_zncc · ZNCC*`` (``min_zncc`` where ``ZNCC*`` is unknown).
+    """
+    matched = np.isin(status, _GOOD) & np.isfinite(zncc) & np.isfinite(variance)
+    estimates = variance[matched] * np.clip(1.0 - zncc[matched], 0.0, None)
+    noise_variance = float(np.median(estimates)) if estimates.size else 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        perfect = np.clip(1.0 - noise_variance / variance, 0.0, 1.0)
+    thresholds = np.where(np.isfinite(perfect), min_zncc * perfect, min_zncc)
+    thresholds = np.minimum(np.maximum(thresholds, floor), min_zncc)
+    return noise_variance, perfect, thresholds
+
+
+def _repair(
+    level,
+    centers,
+    grid_shape,
+    params,
+    zncc,
+    status,
+    iterations,
+    order,
+    settings,
+    thresholds=None,
+):
     """Reliability-guided propagation into POIs that failed or are outliers.
 
     POIs are taken best first (highest ZNCC); each bad 26-neighbour is matched again with the
     popped POI's warp carried over to its position (``u + ∇u·Δ``). A new match replaces the old
-    one when it converges above ``min_zncc``; it then seeds its own neighbours.
+    one when it converges above its ZNCC threshold (``thresholds`` (N,), default
+    ``settings.min_zncc``); it then seeds its own neighbours.
     """
-    good = _is_good(status, zncc, settings.min_zncc)
+    if thresholds is None:
+        thresholds = np.full(len(centers), float(settings.min_zncc))
+    good = _is_good(status, zncc, thresholds)
     try_again = np.isin(status, [int(Status.MASKED), int(Status.LOW_TEXTURE)])
-    if good.sum() > 8:
+    if good.sum() >= settings.median_test_min_pois:
         good &= ~_neighbour_outliers(
             icgn.params_to_displacement(params, order)[0], good, grid_shape
         )
@@ -216,8 +352,11 @@ def _repair(level, centers, grid_shape, params, zncc, status, iterations, order,
     heap = [(-zncc[i], i) for i in np.flatnonzero(good)]
     heapq.heapify(heap)
     attempts = np.zeros(len(centers), np.int64)
-    # a POI whose deformed subvolume left the volume is retried once (its guess may be wrong)
-    max_attempts = np.where(status == int(Status.OUT_OF_BOUNDS), 1, 3)
+    max_attempts = np.where(
+        status == int(Status.OUT_OF_BOUNDS),
+        settings.repair_attempts_out_of_bounds,
+        settings.repair_attempts,
+    )
     while heap and bad.any():
         _, i = heapq.heappop(heap)
         iz, iy, ix = np.unravel_index(i, grid_shape)
@@ -236,7 +375,7 @@ def _repair(level, centers, grid_shape, params, zncc, status, iterations, order,
             guess[:, 0] += guess[:, 1:4] @ delta
             trial = np.ascontiguousarray(guess.reshape(1, -1))
             t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, order, settings)
-            if t_status[0] in _GOOD and t_zncc[0] >= settings.min_zncc:
+            if t_status[0] in _GOOD and t_zncc[0] >= thresholds[j]:
                 params[j] = trial[0]
                 zncc[j] = t_zncc[0]
                 status[j] = t_status[0]
@@ -282,7 +421,7 @@ def _seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
     seed_params = np.ascontiguousarray(search(seeds))
     zncc, status, _ = level.match(centers[seeds], seed_params, order, settings)
     good = _is_good(status, zncc, settings.min_zncc)
-    if good.sum() > 8:
+    if good.sum() >= settings.median_test_min_pois:
         seed_u = np.full((*[len(a) for a in axes], 3), np.nan)
         seed_u.reshape(-1, 3)[:] = icgn.params_to_displacement(seed_params, order)[0]
         good &= ~_neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
@@ -480,17 +619,48 @@ def correlate_iter(
     timings["icgn_s"] = time.perf_counter() - t0
     timings["voxel_iterations"] = int(iterations.sum()) * params.subvolume**3
 
+    # imaging noise and the ZNCC threshold it allows (noise_aware_thresholds)
     t0 = time.perf_counter()
+    variance = np.full(n_points, np.nan)
+    power = np.full(n_points, np.nan)
+    sigma = np.full((n_points, 3), np.nan)
+    stats = (variance, power, sigma)
+    cheap = np.zeros(len(todo), bool)
+    fine.statistics(centers[todo], params_out[todo], zncc[todo], order, cheap, stats, todo)
+    floor = ZNCC_SIGNIFICANCE * np.sqrt(3 * nb / params.subvolume**3)
+    noise_variance, perfect, thresholds = noise_aware_thresholds(
+        variance, zncc, status, params.min_zncc, floor
+    )
+    textureless = np.isin(status, _GOOD) & (perfect < MIN_PERFECT_ZNCC)
+    status[textureless] = int(Status.LOW_TEXTURE)
+    timings["noise_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    before = params_out.copy()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
-    _repair(fine, centers, grid_shape, params_out, zncc, status, iterations, order, params)
+    _repair(
+        fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
+    )
     timings["repair_s"] = time.perf_counter() - t0
 
-    low = np.isin(status, _GOOD) & ~(zncc >= params.min_zncc)
+    low = np.isin(status, _GOOD) & ~(zncc >= thresholds)
     status[low] = int(Status.LOW_ZNCC)
+    t0 = time.perf_counter()
+    # where the reference's noise is a sizeable part of H, measure the sensitivity A; elsewhere
+    # keep the first pass's estimate unless the repair changed the match
+    noisy = 3.0 * NOISE_GRADIENT_GAIN * noise_variance > SENSITIVITY_FRACTION * power
+    changed = np.any(params_out != before, axis=1)
+    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
+    redo = np.flatnonzero(measured & (noisy | changed))
+    fine.statistics(centers[redo], params_out[redo], zncc[redo], order, noisy[redo], stats, redo)
+    timings["uncertainty_s"] = time.perf_counter() - t0
+    bound, unsure = uncertainty_bound(sigma, status)
+    status[unsure] = int(Status.LOW_ZNCC)
     displacement, gradient = icgn.params_to_displacement(params_out, order)
     failed = ~np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
     displacement[failed] = np.nan
     gradient[failed] = np.nan
+    sigma[failed] = np.nan
     provenance = np.full(n_points, int(Provenance.MEASURED), np.uint8)
     provenance[status == int(Status.MASKED)] = int(Provenance.MASKED)
     timings["total_s"] = time.perf_counter() - start_time
@@ -503,6 +673,7 @@ def correlate_iter(
         iterations=iterations.reshape(grid_shape).astype(np.int32),
         provenance=provenance.reshape(grid_shape),
         gradient=gradient.reshape(*grid_shape, 3, 3),
+        uncertainty=sigma.reshape(*grid_shape, 3),
         params=params.to_dict(),
         metadata={
             "volume_shape": list(reference.shape),
@@ -511,12 +682,35 @@ def correlate_iter(
             "timings": timings,
             "masked": mask is not None,
             "device": device.description,
+            "noise": {
+                **_noise_metadata(noise_variance, thresholds, status, params.min_zncc),
+                "zncc_threshold_floor": float(floor),
+                "uncertainty_bound": bound,
+                "uncertain": int(unsure.sum()),
+            },
         },
     )
     yield Progress("done", 1, 1, f"{int(np.isin(status, _GOOD).sum())} of {n_points} POIs matched")
     return field
 
 
+def _noise_metadata(noise_variance, thresholds, status, min_zncc):
+    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
+    used = thresholds[measured] if measured.any() else np.array([min_zncc])
+    return {
+        "sigma": float(np.sqrt(noise_variance)),
+        "estimator": "median over matched POIs of s² (1 - ZNCC), s² the subvolume's variance",
+        "zncc_threshold_rule": "min_zncc * (1 - sigma² / s²)",
+        "min_zncc": float(min_zncc),
+        "zncc_threshold_min": float(np.min(used)),
+        "zncc_threshold_median": float(np.median(used)),
+        "zncc_threshold_max": float(np.max(used)),
+        "low_texture_rule": f"1 - sigma² / s² < {MIN_PERFECT_ZNCC}",
+    }
+
+
+# correlate repeats correlate_iter's signature (the duplicate finder pairs them): the blocking
+# form of the generator keeps the same keywords, spelt out so that help() shows them.
 def correlate(
     reference: np.ndarray,
     deformed: np.ndarray,

@@ -95,6 +95,11 @@ class DisplacementField:
     metadata : dict
         Provenance of the run: versions, timings, history of correction passes, voxel size...
         (JSON-serialisable).
+    uncertainty : ndarray, shape (nz, ny, nx, 3), float64, optional
+        Standard deviation of ``(uz, uy, ux)`` in voxels that the imaging noise leaves in each
+        measured node, estimated from the images alone (:func:`.icgn.subvolume_statistics`); NaN
+        where no match was measured (failed, masked, or a value filled in by cleaning), or None
+        when unknown (fields from older files or other tools).
     """
 
     origin: tuple
@@ -107,6 +112,7 @@ class DisplacementField:
     gradient: np.ndarray | None = None
     params: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
+    uncertainty: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.origin = _as_triple(self.origin, "origin")
@@ -141,6 +147,12 @@ class DisplacementField:
                 raise ValueError(
                     f"gradient must have shape {(*grid, 3, 3)}, got {self.gradient.shape}"
                 )
+        if self.uncertainty is not None:
+            self.uncertainty = np.asarray(self.uncertainty, dtype=np.float64)
+            if self.uncertainty.shape != (*grid, 3):
+                raise ValueError(
+                    f"uncertainty must have shape {(*grid, 3)}, got {self.uncertainty.shape}"
+                )
 
     # -- geometry -------------------------------------------------------------------------
     @property
@@ -171,6 +183,20 @@ class DisplacementField:
         return self.u.reshape(-1, 3)
 
     @property
+    def measured_displacement(self) -> np.ndarray:
+        """Flat displacement (N, 3) with NaN wherever the status is not good.
+
+        Only nodes matched with a status in :data:`GOOD_STATUSES` keep their value; failed,
+        low-ZNCC, masked and replaced nodes are NaN (the grid :attr:`u` keeps values filled in by
+        cleaning, with their :attr:`provenance`). This is what the ``.npz`` file's flat
+        ``displacement`` holds for tools that read it without the status.
+        """
+        good = np.isin(self.status, [int(s) for s in GOOD_STATUSES]).reshape(-1)
+        flat = self.u.reshape(-1, 3).copy()
+        flat[~good] = np.nan
+        return flat
+
+    @property
     def magnitude(self) -> np.ndarray:
         """Displacement magnitude on the grid, shape (nz, ny, nx), voxels."""
         return np.sqrt(np.sum(self.u**2, axis=-1))
@@ -191,14 +217,6 @@ class DisplacementField:
         codes, counts = np.unique(self.status, return_counts=True)
         return {Status(int(c)).label: int(n) for c, n in zip(codes, counts)}
 
-    def layer_kwargs(self, voxel_size: tuple | None = None) -> dict:
-        """``scale``/``translate`` that place a grid quantity over the volume in napari."""
-        vs = np.ones(3) if voxel_size is None else np.asarray(voxel_size, float)
-        return {
-            "scale": tuple(float(s) for s in np.asarray(self.step) * vs),
-            "translate": tuple(float(o) for o in np.asarray(self.origin) * vs),
-        }
-
     # -- copies ---------------------------------------------------------------------------
     def copy(self) -> DisplacementField:
         """Deep copy (arrays and dictionaries)."""
@@ -212,6 +230,7 @@ class DisplacementField:
             iterations=self.iterations.copy(),
             provenance=self.provenance.copy(),
             gradient=None if self.gradient is None else self.gradient.copy(),
+            uncertainty=None if self.uncertainty is None else self.uncertainty.copy(),
             params=copy.deepcopy(self.params),
             metadata=copy.deepcopy(self.metadata),
         )
@@ -226,20 +245,6 @@ class DisplacementField:
             and np.allclose(self.origin, other.origin)
             and np.allclose(self.step, other.step)
         )
-
-    # -- files ----------------------------------------------------------------------------
-    def save(self, path) -> None:
-        """Write the field to an ``.npz`` file atomically (see :mod:`napari_dvc_correct.io.npz`)."""
-        from ..io.npz import save_field
-
-        save_field(self, path)
-
-    @classmethod
-    def load(cls, path) -> DisplacementField:
-        """Read a field written by :meth:`save`."""
-        from ..io.npz import load_field
-
-        return load_field(path)
 
     @classmethod
     def zeros(cls, origin, step, shape, **kwargs: Any) -> DisplacementField:

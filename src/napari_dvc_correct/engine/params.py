@@ -35,9 +35,27 @@ class CorrelationParams:
         Subvolumes whose gray standard deviation is below this fraction of the volume's gray
         standard deviation are flagged ``LOW_TEXTURE`` and not matched.
     min_zncc : float
-        Matches that converge with a ZNCC below this are flagged ``LOW_ZNCC``.
+        Matches that converge with a ZNCC below ``min_zncc`` times the ZNCC a perfect match
+        reaches at the scans' noise level are flagged ``LOW_ZNCC``
+        (:func:`.correlate.noise_aware_thresholds`; on noise-free scans: below ``min_zncc``).
     batch_size : int
         POIs per progress batch.
+    noise_tolerance : float
+        Noise stop of IC-GN (:func:`.icgn._noise_converged`): a match also counts as converged
+        once its remaining translation error is estimated below this fraction of its own noise
+        uncertainty. 0 turns it off (only ``tolerance`` decides). No effect on noise-free scans.
+    min_max_update : float
+        A match is ``DIVERGED`` when IC-GN moves its translation farther than
+        ``max(M, min_max_update)`` voxels from the initial guess (``M`` the subvolume half-size at
+        the pyramid level).
+    median_test_min_pois : int
+        The neighbour median test that screens seeds and repairs runs only with at least this
+        many good POIs.
+    repair_attempts : int
+        Times the reliability-guided repair may re-match one bad POI from different neighbours.
+    repair_attempts_out_of_bounds : int
+        The same for a POI whose deformed subvolume left the volume (its guess may be wrong, but
+        it is usually at the border for good).
     """
 
     subvolume: int = 31
@@ -50,6 +68,11 @@ class CorrelationParams:
     min_texture: float = 0.05
     min_zncc: float = 0.5
     batch_size: int = 256
+    noise_tolerance: float = 0.1
+    min_max_update: float = 4.0
+    median_test_min_pois: int = 9
+    repair_attempts: int = 3
+    repair_attempts_out_of_bounds: int = 1
 
     def __post_init__(self) -> None:
         problems = []
@@ -77,6 +100,14 @@ class CorrelationParams:
             problems.append(f"min_zncc must be in [-1, 1], got {self.min_zncc!r}")
         if not isinstance(self.batch_size, (int, np.integer)) or self.batch_size < 1:
             problems.append(f"batch_size must be >= 1, got {self.batch_size!r}")
+        if not (np.isfinite(self.noise_tolerance) and 0.0 <= self.noise_tolerance < 1.0):
+            problems.append(f"noise_tolerance must be in [0, 1), got {self.noise_tolerance!r}")
+        if not (np.isfinite(self.min_max_update) and self.min_max_update > 0):
+            problems.append(f"min_max_update must be > 0 voxels, got {self.min_max_update!r}")
+        for name in ("median_test_min_pois", "repair_attempts", "repair_attempts_out_of_bounds"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 0:
+                problems.append(f"{name} must be an integer >= 0, got {value!r}")
         if problems:
             raise ValueError("; ".join(problems))
 

@@ -329,3 +329,100 @@ def band_rotation_bending(
         return total
 
     return u
+
+
+# --- CT-like volumes: weak contrast, dark background, noise on both scans ---------------------
+def concrete_ct_volume(
+    shape,
+    aggregate_fraction: float = 0.4,
+    aggregate_size: float = 3.0,
+    grays: tuple[float, float, float] = (0.1, 0.6, 0.63),
+    texture: float = 0.03,
+    texture_size: float = 1.5,
+    radius_fraction: float = 0.46,
+    seed: int = 0,
+) -> np.ndarray:
+    """X-ray-CT-like concrete: faint aggregates in a matrix, inside a cylinder on a dark background.
+
+    The specimen is a cylinder along z (radius ``radius_fraction`` of the smaller of ny, nx,
+    centred in y, x) with a soft one-voxel edge. Inside it, aggregates (the thresholded level set
+    of a smoothed random field, about ``2 * aggregate_size`` voxels across) are a few percent
+    brighter than the matrix, and a fine texture of amplitude ``texture`` (white noise smoothed
+    with sigma ``texture_size`` voxels: pores, sand, the scanner's blur) lives in both phases. No imaging noise here: add it with
+    :func:`add_noise` to each scan (:func:`ct_noise_sigma`).
+
+    Parameters
+    ----------
+    shape : tuple of 3 ints
+        ``(nz, ny, nx)``.
+    aggregate_fraction : float
+        Volume fraction of aggregates inside the specimen.
+    aggregate_size : float
+        Smoothing sigma (voxels) of the field whose level set gives the aggregates.
+    grays : (background, matrix, aggregate)
+        Gray values; the default aggregates are 5 % brighter than the matrix.
+    texture, texture_size : float
+        Standard deviation (gray) and smoothing sigma (voxels) of the fine texture.
+    radius_fraction : float
+        Cylinder radius over ``min(ny, nx)``.
+    seed : int
+        Random seed.
+
+    Returns
+    -------
+    ndarray, float32, shape ``shape``
+    """
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in shape)
+    field = ndimage.gaussian_filter(rng.standard_normal(shape), aggregate_size, mode="wrap")
+    level = np.quantile(field, 1.0 - aggregate_fraction)
+    aggregates = 1.0 / (1.0 + np.exp(-(field - level) / (0.15 * field.std())))
+    fine = ndimage.gaussian_filter(rng.standard_normal(shape), texture_size, mode="wrap")
+    fine /= fine.std()
+    background, matrix, aggregate = grays
+    specimen = matrix + (aggregate - matrix) * aggregates + texture * fine
+    yy, xx = np.meshgrid(
+        np.arange(shape[1]) - (shape[1] - 1) / 2.0,
+        np.arange(shape[2]) - (shape[2] - 1) / 2.0,
+        indexing="ij",
+    )
+    radius = radius_fraction * min(shape[1], shape[2])
+    inside = 1.0 / (1.0 + np.exp(-(radius - np.sqrt(yy**2 + xx**2)) / 0.5))
+    volume = background + (specimen - background) * inside[None]
+    return volume.astype(np.float32)
+
+
+def ct_noise_sigma(volume: np.ndarray, fraction: float = 0.06) -> float:
+    """Noise standard deviation as a fraction of the volume's p1-p99 gray range."""
+    low, high = np.percentile(np.asarray(volume, dtype=np.float64), [1.0, 99.0])
+    return float(fraction * (high - low))
+
+
+def noisy_ct_pair(
+    shape,
+    displacement: DisplacementFunction,
+    noise: float = 0.06,
+    seed: int = 0,
+    margin: int = 12,
+    **volume_options,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Reference and deformed CT-like scans (:func:`concrete_ct_volume`) with noise on both.
+
+    The deformed scan is made with a 5th-order spline (:func:`make_pair`), then independent
+    Gaussian noise of standard deviation ``noise × (p99 − p1)`` of the clean reference is added
+    to each scan.
+
+    Returns
+    -------
+    reference, deformed : ndarray, float32, shape ``shape``
+    sigma : float
+        The noise standard deviation added to each scan (gray levels).
+    """
+    reference, deformed = make_pair(
+        lambda s: concrete_ct_volume(s, seed=seed, **volume_options), shape, displacement, margin
+    )
+    sigma = ct_noise_sigma(reference, noise)
+    if sigma > 0:
+        reference = add_noise(reference, sigma, seed=seed + 1001)
+        deformed = add_noise(deformed, sigma, seed=seed + 2002)
+    return reference, deformed, sigma

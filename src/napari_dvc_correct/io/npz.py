@@ -1,7 +1,11 @@
 """The ``.npz`` field file: the native, versioned format of :class:`DisplacementField`.
 
 Besides the grid arrays the file holds flat ``points`` (N, 3) and ``displacement`` (N, 3) in
-(z, y, x) reference voxels, so any tool can read it with ``numpy.load`` alone.
+(z, y, x) reference voxels, so any tool can read it with ``numpy.load`` alone. The flat
+``displacement`` is NaN wherever the node's status is not good (failed, low ZNCC, masked,
+replaced: :attr:`DisplacementField.measured_displacement`); the grid ``u`` keeps the values that
+cleaning filled in, with their ``provenance``. ``uncertainty`` (grid, voxels) is optional: files
+without it load with ``uncertainty=None``.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ def save_field(field: DisplacementField, path: str | os.PathLike) -> None:
         "iterations": field.iterations,
         "provenance": field.provenance,
         "points": field.points,
-        "displacement": field.displacement,
+        "displacement": field.measured_displacement,
         "status_names": np.array([s.name for s in Status]),
         "provenance_names": np.array([p.name for p in Provenance]),
         "params_json": np.array(json.dumps(field.params, default=_json_default)),
@@ -50,6 +54,8 @@ def save_field(field: DisplacementField, path: str | os.PathLike) -> None:
     }
     if field.gradient is not None:
         arrays["gradient"] = field.gradient
+    if field.uncertainty is not None:
+        arrays["uncertainty"] = field.uncertainty
     with atomic_path(path) as temp:
         with open(temp, "wb") as stream:
             np.savez_compressed(stream, **arrays)
@@ -95,6 +101,7 @@ def load_field(path: str | os.PathLike) -> DisplacementField:
             iterations=contents.get("iterations"),
             provenance=contents.get("provenance"),
             gradient=contents.get("gradient"),
+            uncertainty=contents.get("uncertainty"),
             params=json.loads(str(contents.get("params_json", "{}"))),
             metadata=json.loads(str(contents.get("metadata_json", "{}"))),
         )

@@ -71,6 +71,7 @@ def main(cases_path: str, results_path: str) -> int:
             float(case["max_update"]),
             icgn.PRODUCT_TABLE,
             icgn.QUAD_AXES,
+            float(case["noise_fraction"]) if "noise_fraction" in case else 0.0,
         ]
         recorded = {}
 

@@ -85,6 +85,7 @@ def _cpu(case):
         float(case["max_update"]),
         icgn.PRODUCT_TABLE,
         icgn.QUAD_AXES,
+        float(case["noise_fraction"]) if "noise_fraction" in case else 0.0,
     )
     return {"params": params, "zncc": zncc, "status": status, "iterations": iterations}
 
@@ -109,6 +110,16 @@ def _build_cases():
             2,
         ),
     }
+    # noisy scans: the noise stop ends the iterations (same rule on both devices)
+    rng_noise = np.random.default_rng(11)
+    noisy_ref = 4000.0 * texture + rng_noise.normal(0.0, 500.0, SHAPE)
+    noisy_def = synthetic.deform_volume(4000.0 * texture, affine) + rng_noise.normal(
+        0.0, 500.0, SHAPE
+    )
+    cases["noisy"] = _icgn_case(
+        noisy_ref, noisy_def, [[12, 12, 12], [9, 14, 11], [14, 9, 13]], affine, 1
+    )
+    cases["noisy"]["noise_fraction"] = np.array(0.1)
     mask = np.zeros(SHAPE, bool)
     mask[:13] = True  # POI at z = 11 keeps 5 of its 7 planes, the one at z = 17 none
     cases["masked"] = _icgn_case(reference, deformed, [[11, 12, 12], [17, 12, 12]], affine, 1, mask)
@@ -219,6 +230,15 @@ def test_second_order_matches_the_cpu(results):
     assert matched.all()
     u = result["params"].reshape(-1, 3, 10)
     assert np.max(np.abs(u[:, :, 0] - case["truth"])) < 0.02
+
+
+def test_noise_stop_matches_the_cpu(results):
+    cases, gpu = results
+    case, result = cases["noisy"], _gpu(gpu, "noisy")
+    cpu, matched = _compare(case, result)
+    assert matched.all()
+    without = dict(case, noise_fraction=np.array(0.0))
+    assert cpu["iterations"].sum() < _cpu(without)["iterations"].sum()
 
 
 def test_mask_is_honoured(results):

@@ -293,6 +293,7 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
         max_update,
         product_table,
         quad_axes,
+        noise_fraction,
         pass_slots,
         pass_base,
         pass_count,
@@ -310,7 +311,8 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
         isum = cuda.shared.array(KIT, float64)
         low = cuda.shared.array(NPAR2, float64)
         p_sh = cuda.shared.array(NPAR, float64)
-        scal = cuda.shared.array(8, float64)  # count, Σg→ḡ, δg, zncc, start z/y/x
+        # count, Σg→ḡ, δg, zncc, start z/y/x, -, (H⁻¹) at z/y/x translations, last noise step
+        scal = cuda.shared.array(12, float64)
         flag = cuda.shared.array(2, int32)  # finished, a warped voxel left the volume
         rhs = cuda.shared.array(NPAR, float64)
         dp = cuda.shared.array(NPAR, float64)
@@ -461,7 +463,15 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
                         iterations,
                         flag,
                     )
+                else:  # (H⁻¹)_kk at the translations, for the noise stop
+                    for k in range(3):
+                        for r in range(NPAR):
+                            rhs[r] = 0.0
+                        rhs[k * NB] = 1.0
+                        cholesky_solve(low, rhs, NPAR, ytmp, dp)
+                        scal[8 + k] = dp[k * NB]
             scal[3] = math.nan
+            scal[11] = math.inf
         cuda.syncthreads()
         if flag[0] != 0:
             return
@@ -640,6 +650,35 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
                                 iterations,
                                 flag,
                             )
+                        elif noise_fraction > 0.0:  # as icgn._noise_converged
+                            residual = 2.0 * delta_g * delta_g * max(1.0 - value, 0.0)
+                            residual /= max(count - NPAR - 2, 1.0)
+                            d = 0.0
+                            scaled = True
+                            for k in range(3):
+                                scale = math.sqrt(residual * scal[8 + k])
+                                if not (scale > 0.0):
+                                    scaled = False
+                                else:
+                                    d = max(d, abs(dp[k * NB]) / scale)
+                            previous = scal[11]
+                            scal[11] = d if scaled else math.inf
+                            if scaled and d < 1.0 and not math.isinf(previous):
+                                rho = min(d / previous, 1.0) if previous > 0.0 else 0.0
+                                if d * rho < noise_fraction:
+                                    finish(
+                                        poi,
+                                        _CONVERGED,
+                                        value,
+                                        it,
+                                        p_sh,
+                                        NPAR,
+                                        params,
+                                        zncc,
+                                        status,
+                                        iterations,
+                                        flag,
+                                    )
             cuda.syncthreads()
             if flag[0] != 0:
                 return
@@ -713,6 +752,7 @@ def match_many_cuda(
     max_update,
     product_table,
     quad_axes,
+    noise_fraction=0.0,
     *,
     threads_per_block: int | None = None,
     max_registers: int | None = None,
@@ -742,6 +782,8 @@ def match_many_cuda(
         Outputs (float64, int64, int64), modified in place.
     max_iterations, tolerance, min_std, min_mask_fraction, max_update, product_table, quad_axes
         As in :func:`..icgn.match_many`.
+    noise_fraction : float
+        The noise stop, as in :func:`..icgn.match_many` (0: off).
     threads_per_block : int, optional
         Power of two >= 16 (default 128 on a GPU, 32 in the simulator).
     max_registers : int, optional
@@ -781,6 +823,7 @@ def match_many_cuda(
         max_update,
         product_table,
         quad_axes,
+        noise_fraction,
     )
     try:
         _launch(*args, threads_per_block=threads_per_block, max_registers=max_registers)
@@ -822,6 +865,7 @@ def match_many_cuda(
             max_update,
             product_table,
             quad_axes,
+            noise_fraction,
         )
         params[redo] = sub_params
         zncc[redo] = sub_zncc
@@ -849,6 +893,7 @@ def _launch(
     max_update,
     product_table,
     quad_axes,
+    noise_fraction=0.0,
     *,
     threads_per_block=None,
     max_registers=None,
@@ -893,6 +938,7 @@ def _launch(
             float(max_update),
             d_product,
             d_quad,
+            float(noise_fraction),
             *tables,
         )
         params[start:stop] = d_params.copy_to_host()

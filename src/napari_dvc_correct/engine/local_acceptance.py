@@ -1,0 +1,217 @@
+"""Local acceptance of a correction pass, judged against the imaging-noise floor (issue 10).
+
+A pass of the self-correction (:mod:`.correction`) proposes a new value at every node. Here each
+node's proposal is judged from the images alone: the reference-frame residual
+``r(X) = |F(X + D(X)) - G(X)|`` is averaged over the node's cell (the box of edge
+``2 ceil(step / 2) + 1`` around it) before and after; the proposal is refused where that local
+residual rose by more than resampling the imaging noise can explain, given the noise floor ``r0``
+(eq. 1 of the paper, or the lower quartile of the local residuals where that is smaller). A node
+*improves above the floor* when the residual over its subvolume fell by more than the noise allows
+and more than a :data:`MIN_USEFUL_CHANGE` displacement explains. Nodes whose local residual no
+error below :data:`FLAG_ERROR` voxels explains are flagged. See ``docs/method.md``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from . import warp
+from .accuracy import background_residual
+from .cleaning import clean
+from .field import DisplacementField, Provenance, Status
+from .field_spline import FieldSpline
+from .local_accuracy import local_mean_residual
+from .phases import label_phases, phase_thresholds
+
+#: One-sided z-score of the local acceptance test: a node's local residual must rise by more than
+#: this many standard deviations of what resampling the imaging noise can do before its correction
+#: is refused, and fall by as much for the node to count as improved above the noise floor.
+NOISE_Z = 2.0
+
+#: Correlation volume (voxels) of the residual's noise: B-spline resampling and the scanner's
+#: point spread make neighbouring residual voxels dependent, so a region of ``n`` voxels holds
+#: about ``n / NOISE_CORRELATION_VOXELS`` independent noise samples (conservative: 2 x 2 x 2).
+NOISE_CORRELATION_VOXELS = 8.0
+
+#: Standard deviation over mean of the absolute difference of two Gaussian noises (half-normal
+#: distribution, ``sqrt(pi / 2 - 1)``): turns the noise floor ``r0`` into the residual's spread.
+HALF_NORMAL_SPREAD = float(np.sqrt(np.pi / 2.0 - 1.0))
+
+#: Sweeps of the local acceptance per pass: after mixing accepted and refused nodes, the mixed
+#: field's residual is checked again (neighbouring nodes share their regions).
+ACCEPTANCE_SWEEPS = 3
+
+#: A region counts as improved by a pass only if its residual fell by more than a displacement
+#: change of this many voxels explains (besides the noise): a hundredth of a voxel is the
+#: matcher's own accuracy on clean scans.
+MIN_USEFUL_CHANGE = 0.01
+
+#: Nodes whose local residual exceeds the noise floor by more than an error of this many voxels
+#: explains (from the local gray gradient) are flagged ``OUTLIER_REPLACED`` and refilled.
+FLAG_ERROR = 1.0
+
+
+class Judge:
+    """Local residuals and the noise floor, in the reference frame, for the acceptance test.
+
+    The residual ``r(X) = |F(X + D(X)) - G(X)|`` is measured on reference voxels whatever the
+    pass's frame. A node's region is its own cell, the box of edge ``2 * ceil(step / 2) + 1``
+    around it (at least 5): the field there is mostly that node's value, where a whole subvolume
+    would mix in the neighbours' (and let a ruined neighbour hide a ruined node).
+    """
+
+    def __init__(self, reference, deformed, deformed_coefficients, step, region_half: int):
+        self.reference = reference
+        self.deformed = deformed
+        self.coefficients = deformed_coefficients
+        self.half = max(2, int(np.ceil(max(step) / 2.0)))
+        try:
+            self.thresholds_g = phase_thresholds(self.reference, "auto", 2, "reference volume")
+            self.thresholds_f = phase_thresholds(self.deformed, "auto", 2, "deformed volume")
+            self.labels_g = label_phases(self.reference, self.thresholds_g)
+        except ValueError:  # a volume with a single gray value: no phases, no eq. 1
+            self.labels_g = None
+        self.floor = float("inf")
+        self._gradient = None
+        self._useful = None
+        self.region_half = int(region_half)
+        self.last_region = None
+        self.region_spread = (
+            np.sqrt(2.0)
+            * HALF_NORMAL_SPREAD
+            / np.sqrt((2 * self.region_half + 1) ** 3 / NOISE_CORRELATION_VOXELS)
+        )
+        size = 2 * self.half + 1
+        # the largest change of a region's mean residual that resampling the noise can make:
+        # two independent noise draws, each of spread HALF_NORMAL_SPREAD * r0 over n / Vc samples
+        self.spread = (
+            np.sqrt(2.0) * HALF_NORMAL_SPREAD / np.sqrt(size**3 / NOISE_CORRELATION_VOXELS)
+        )
+
+    def local(self, field: DisplacementField) -> np.ndarray:
+        """Per-node local mean residual of ``field`` (gray levels); updates the noise floor.
+
+        The floor is the smaller of eq. 1's background residual and the lower quartile of the
+        nodes' local residuals (eq. 1 is inflated where a flat region agrees in phase with
+        textured material), and the smallest seen so far: the noise belongs to the scans.
+        """
+        spline = FieldSpline.from_field(field)
+        moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
+        residual = np.abs(moved - self.reference)
+        local = local_mean_residual(residual, field, self.half)
+        self.last_region = local_mean_residual(residual, field, self.region_half)
+        floor = float("inf")
+        if self.labels_g is not None:
+            try:
+                floor = background_residual(
+                    residual, self.labels_g, label_phases(moved, self.thresholds_f)
+                ).mean
+            except ValueError:
+                pass
+        if np.isfinite(local).any():
+            floor = min(floor, float(np.nanpercentile(local, 25.0)))
+        if np.isfinite(floor):
+            self.floor = min(self.floor, floor)
+        elif not np.isfinite(self.floor):
+            self.floor = 0.0
+        return local
+
+    @property
+    def tolerance(self) -> float:
+        """How much a node's cell residual may change by noise alone (gray levels)."""
+        return NOISE_Z * self.spread * self.floor
+
+    @property
+    def region_tolerance(self) -> float:
+        """How much the residual over a node's subvolume may change by noise alone."""
+        return NOISE_Z * self.region_spread * self.floor
+
+    def _local_gradient(self, field: DisplacementField, half: int) -> np.ndarray:
+        if self._gradient is None:
+            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
+        return local_mean_residual(self._gradient, field, half)
+
+    def useful(self, field: DisplacementField) -> np.ndarray:
+        """Per node, the residual change that :data:`MIN_USEFUL_CHANGE` voxels explain.
+
+        On clean scans the noise floor is tiny and any change would count as an improvement;
+        a region counts as improved only if its residual also fell by more than this.
+        """
+        if self._useful is None:
+            gradient = self._local_gradient(field, self.region_half)
+            self._useful = 0.5 * MIN_USEFUL_CHANGE * np.nan_to_num(gradient)
+        return self._useful
+
+    def unexplained(self, field: DisplacementField, local: np.ndarray) -> np.ndarray:
+        """Nodes whose local residual only an error of more than ~1 voxel explains.
+
+        An error ``e`` of the field misplaces the texture by ``|grad G . e|``, on average
+        ``|grad G| |e| / 2`` over directions; nodes whose local residual exceeds the noise floor
+        by more than :data:`FLAG_ERROR` voxels' worth of that are flagged (a subvolume half in a
+        textureless region, or half outside the specimen, lands here whatever its value).
+        """
+        gradient = self._local_gradient(field, self.half)
+        excess = local - self.floor
+        return np.isfinite(excess) & (excess > 0.5 * FLAG_ERROR * gradient)
+
+
+def flag_and_refill(judge, field, local, masked, clean_options):
+    """Give unexplained nodes ``OUTLIER_REPLACED`` and refill them from their neighbours."""
+    flagged = judge.unexplained(field, local) & ~masked
+    if not flagged.any() or flagged.all():
+        return field, local, 0
+    marked = field.copy()
+    marked.status[flagged] = Status.OUTLIER_REPLACED
+    try:
+        refilled = clean(marked, **clean_options)
+    except ValueError:
+        return field, local, 0
+    refilled.status[flagged] = Status.OUTLIER_REPLACED
+    refilled.provenance[flagged] = Provenance.REPLACED
+    return refilled, judge.local(refilled), int(flagged.sum())
+
+
+def mix_fields(current: DisplacementField, candidate: DisplacementField, accept: np.ndarray):
+    """``candidate`` where ``accept``, ``current`` elsewhere (values and quality arrays)."""
+    mixed = candidate.copy()
+    keep = ~accept
+    mixed.u[keep] = current.u[keep]
+    for name in ("zncc", "status", "iterations", "provenance"):
+        getattr(mixed, name)[keep] = getattr(current, name)[keep]
+    if mixed.gradient is not None:
+        if current.gradient is not None:
+            mixed.gradient[keep] = current.gradient[keep]
+        else:
+            mixed.gradient = None
+    return mixed
+
+
+def accept_locally(judge: Judge, current, local_current, candidate):
+    """Node by node: keep the candidate's value unless its local residual rose above the noise.
+
+    Returns the mixed field, its local residual, the accepted and the improved node masks.
+    """
+    tolerance = judge.tolerance
+    region_current = judge.last_region
+    local = judge.local(candidate)
+    rose = local > local_current + tolerance
+    rose |= np.isnan(local)  # a region the candidate sends out of the scan cannot be judged
+    accept = ~rose
+    mixed, local_mixed = candidate, local
+    for _ in range(ACCEPTANCE_SWEEPS):
+        if accept.all():
+            break
+        mixed = mix_fields(current, candidate, accept)
+        local_mixed = judge.local(mixed)
+        worse = accept & ((local_mixed > local_current + tolerance) | np.isnan(local_mixed))
+        if not worse.any():
+            break
+        accept &= ~worse
+    else:
+        mixed = mix_fields(current, candidate, accept)
+        local_mixed = judge.local(mixed)
+    improved = accept & (
+        judge.last_region < region_current - judge.region_tolerance - judge.useful(mixed)
+    )
+    return mixed, local_mixed, accept, improved
