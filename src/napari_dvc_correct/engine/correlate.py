@@ -53,9 +53,11 @@ def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
             "same shape"
         )
     if params.subvolume > min(reference.shape):
+        from .pair_checks import largest_subvolume_advice
+
         raise ValueError(
-            f"subvolume {params.subvolume} is larger than the volume {reference.shape}: use a "
-            f"subvolume of at most {min(reference.shape) - (1 - min(reference.shape) % 2)}"
+            f"subvolume {params.subvolume} is larger than the volume {reference.shape}: "
+            + largest_subvolume_advice(reference.shape)
         )
     reference = np.ascontiguousarray(reference, dtype=np.float32)
     deformed = np.ascontiguousarray(deformed, dtype=np.float32)
