@@ -65,6 +65,10 @@ def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
         mask = np.asarray(mask)
         if mask.shape != reference.shape:
             raise ValueError(f"mask shape {mask.shape} differs from the volume {reference.shape}")
+        if mask.dtype.kind == "f" and not np.all(np.isfinite(mask)):  # NaN != 0 is "material"
+            raise ValueError(
+                "the mask contains NaN or infinite values: use 0 = outside, 1 = material"
+            )
         mask = np.ascontiguousarray(mask != 0)
         if not mask.any():
             raise ValueError("the mask is empty: no voxel is selected")
