@@ -78,8 +78,16 @@ def _check_folder_writable(folder: Path, option: str) -> None:
         raise FileNotFoundError(f"{option}: output folder does not exist: {folder}")
     if not folder.is_dir():
         raise ValueError(f"{option}: {folder} is not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise PermissionError(f"{option}: cannot write into {folder} (permission denied)")
+    from ..io.atomic import temp_name
+
+    probe = temp_name(folder / "probe")  # what the write will do: create a file there
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError as error:
+        raise PermissionError(
+            f"{option}: cannot write into {folder} ({error.strerror or error})"
+        ) from None
+    os.unlink(probe)
 
 
 def check_output_path(
@@ -88,10 +96,10 @@ def check_output_path(
     """Refuse an output before any work: wrong suffix, missing or unwritable folder, a folder,
     an existing file that cannot be replaced, or one of ``inputs``."""
     out = Path(path)
-    if out.suffix.lower() not in suffixes:
-        raise ValueError(f"{option} {out} must end with {' or '.join(suffixes)}")
     if out.is_dir():
         raise ValueError(f"{option} {out} is a folder: give a file name")
+    if out.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {out} must end with {' or '.join(suffixes)}")
     folder = out.parent if str(out.parent) else Path(".")
     _check_folder_writable(folder, option)
     for item in inputs:
