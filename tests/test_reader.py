@@ -108,7 +108,7 @@ def test_unreadable_tiff_is_not_claimed(tmp_path, content):
     """A .tif that tifffile cannot open is not ours: None, so napari tries other readers."""
     path = tmp_path / "broken.tif"
     if content == "truncated":
-        tifffile.imwrite(path, np.zeros((4, 16, 16), np.uint8))
+        tifffile.imwrite(path, np.zeros((4, 16, 16), np.uint8), photometric="minisblack")
         path.write_bytes(path.read_bytes()[:12])
     else:
         path.write_bytes(content)

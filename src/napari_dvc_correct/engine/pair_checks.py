@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .validation import validate_volume
+
 #: The smallest subvolume edge the correlation accepts (:class:`~.params.CorrelationParams`).
 MIN_SUBVOLUME = 5
 
@@ -34,17 +36,8 @@ def _all_finite(volume: np.ndarray) -> bool:
 
 
 def check_volume(volume, name: str) -> np.ndarray:
-    """A non-empty 3-D real volume with finite values (checked slab by slab); returned as array."""
-    volume = np.asanyarray(volume)
-    if volume.ndim != 3:
-        raise ValueError(f"{name} must be a 3-D volume (z, y, x), got shape {volume.shape}")
-    if min(volume.shape) < 1:
-        raise ValueError(f"{name} is empty (shape {volume.shape})")
-    if volume.dtype.kind not in "uif" and volume.dtype != np.bool_:
-        raise ValueError(f"{name} must hold real numbers, got dtype {volume.dtype}")
-    if not _all_finite(volume):
-        raise ValueError(f"{name} contains NaN or infinite values")
-    return volume
+    """A non-empty 3-D real volume with finite values (:func:`~.validation.validate_volume`)."""
+    return validate_volume(volume, name)
 
 
 def check_pair(reference, deformed, mask=None) -> None:

@@ -5,20 +5,23 @@ import pytest
 import tifffile
 import zarr
 
-from napari_dvc_correct.engine import synthetic, tiled
+from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correlate import correlate
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.engine.progress import Progress
-from napari_dvc_correct.engine.tiled import (
+from napari_dvc_correct.io.lazy import ArrayVolume
+from napari_dvc_correct.tiled import (
     MemoryBudgetError,
     choose_batch_shape,
     correlate_tiled,
     correlate_tiled_iter,
     estimate_peak_memory,
+    whole_volume,
 )
-from napari_dvc_correct.io.lazy import ArrayVolume
+from napari_dvc_correct.tiled import correlate as tiled
+from napari_dvc_correct.tiled.memory import PREFILTER_MARGIN
 
 GRADIENT = np.array([[0.02, 0.0, 0.01], [0.0, -0.01, 0.0], [0.0, 0.0, 0.015]])
 # 1e-5: fine enough that a converged answer does not depend on IC-GN's starting guess (see
@@ -54,7 +57,7 @@ def _converged_in_both(a, b):
 def test_prefilter_margin_reaches_float32_rounding():
     volume = synthetic.textured_volume((72, 72, 72), 2.0, seed=3)
     whole = prefilter(volume)
-    m = tiled.PREFILTER_MARGIN
+    m = PREFILTER_MARGIN
     region = prefilter(volume[30 - m : 42 + m, 30 - m : 42 + m, 30 - m : 42 + m])
     core = region[m:-m, m:-m, m:-m]
     gray_range = float(volume.max() - volume.min())
@@ -72,13 +75,13 @@ def test_whole_volume_pass_equals_the_whole_volume_quantities(monkeypatch):
     deformed = np.roll(reference, (7, -4, 11), axis=(0, 1, 2))
     mask = np.zeros(reference.shape, bool)
     mask[10:90, 5:45, 30:150] = True
-    monkeypatch.setattr(tiled, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
+    monkeypatch.setattr(whole_volume, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
     for m in (None, mask):
         volumes = [None if v is None else ArrayVolume(v) for v in (reference, deformed, m)]
-        tasks, factor = tiled._volume_tasks(*volumes, levels=2)
+        tasks, factor = whole_volume.volume_tasks(*volumes, levels=2)
         assert factor == 3 and len(tasks) > 5
         results = dask.compute(*tasks, scheduler="sync")
-        whole = tiled._combine(results, reference.shape, factor, levels=2)
+        whole = whole_volume.combine(results, reference.shape, factor, levels=2)
         np.testing.assert_array_equal(whole.shift, global_shift(reference, deformed))
         for f in (1, 2, 4):
             binned = bin_volume(reference, f)
