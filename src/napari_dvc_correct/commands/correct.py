@@ -175,7 +175,7 @@ def run(args) -> int:
     deformed = read_volume(args.deformed)
     mask = read_volume(args.mask) if args.mask else None
     # one check for both frames: the loaded frame would otherwise drop an empty mask silently
-    check_pair_and_fields(reference, deformed, field, mask)
+    check_pair_and_fields(reference, deformed, field, mask, check_finite=False)
     bar = ProgressBar(args.quiet)
     corrected = drive(correct_iter(reference, deformed, field, mask=mask, **options), bar)
     corrected.metadata["reference"] = str(args.reference)

@@ -104,7 +104,7 @@ def run(args) -> int:
     volumes = [read_volume(path) for path in args.volumes]
     mask = read_volume(args.mask) if args.mask else None
     for k in range(1, len(volumes)):
-        check_pair(volumes[0], volumes[k], mask)
+        check_pair(volumes[0], volumes[k], mask, check_finite=False)  # read_volume did
     correct_increments = args.self_correct and args.correct in ("increments", "both")
     correct_total = args.self_correct and args.correct in ("total", "both")
     bar = ProgressBar(args.quiet)

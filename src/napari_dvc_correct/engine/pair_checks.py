@@ -35,18 +35,20 @@ def _all_finite(volume: np.ndarray) -> bool:
     )
 
 
-def check_volume(volume, name: str) -> np.ndarray:
+def check_volume(volume, name: str, check_finite: bool = True) -> np.ndarray:
     """A non-empty 3-D real volume with finite values (:func:`~.validation.validate_volume`)."""
-    return validate_volume(volume, name)
+    return validate_volume(volume, name, check_finite=check_finite)
 
 
-def check_pair(reference, deformed, mask=None) -> None:
+def check_pair(reference, deformed, mask=None, check_finite: bool = True) -> None:
     """Both volumes 3-D, finite and of one shape; the mask (if any) of that shape, finite, not empty.
 
     A NaN in a mask would count as material (``NaN != 0``), so it is refused, not guessed.
+    ``check_finite=False`` skips the pass over the volumes' values (for volumes the readers have
+    checked already); the mask is always checked.
     """
-    reference = check_volume(reference, "reference volume")
-    deformed = check_volume(deformed, "deformed volume")
+    reference = check_volume(reference, "reference volume", check_finite)
+    deformed = check_volume(deformed, "deformed volume", check_finite)
     if reference.shape != deformed.shape:
         raise ValueError(
             f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
@@ -110,12 +112,14 @@ def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
                 )
 
 
-def check_pair_and_fields(reference, deformed, fields, mask=None) -> None:
+def check_pair_and_fields(
+    reference, deformed, fields, mask=None, check_finite: bool = True
+) -> None:
     """:func:`check_pair`, then :func:`check_field_on_volume` for every field.
 
     ``fields`` is one :class:`~.field.DisplacementField` or a dict of name -> field.
     """
-    check_pair(reference, deformed, mask)
+    check_pair(reference, deformed, mask, check_finite)
     items = fields.items() if isinstance(fields, dict) else [("", fields)]
     shape = np.shape(reference)
     for key, field in items:
