@@ -10,6 +10,7 @@ import sys
 import pytest
 
 from napari_dvc_correct.io.atomic import (
+    HOST_TAG,
     SET_MARKER,
     TEMP_MARK,
     atomic_dir,
@@ -65,10 +66,14 @@ def test_stale_leftovers_of_dead_processes_are_removed(tmp_path):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                           capture_output=True, text=True, check=True)  # fmt: skip
     pid = int(dead.stdout)
-    stale = tmp_path / f".out.npz{TEMP_MARK}{pid}-0badf00d.npz"
+    stale = temp_name(tmp_path / "out.npz", pid=pid)
     stale.write_text("left by a killed run")
-    stale_dir = tmp_path / f".report{TEMP_MARK}{pid}-0badf00d"
+    stale_dir = temp_name(tmp_path / "report", pid=pid)
     stale_dir.mkdir()
+    other_machine = tmp_path / stale.name.replace(
+        HOST_TAG, "abcdef" if HOST_TAG != "abcdef" else "fedcba"
+    )
+    other_machine.write_text("a run on another machine of a shared file system")
     live = temp_name(tmp_path / "other.npz")  # this process: running, kept
     live.write_text("mine")
     foreign = tmp_path / ".hidden.npz"
@@ -76,7 +81,8 @@ def test_stale_leftovers_of_dead_processes_are_removed(tmp_path):
     with atomic_path(tmp_path / "out.npz") as temp:
         temp.write_text("new")
     assert not stale.exists() and not stale_dir.exists()
-    assert live.exists() and foreign.exists() and (tmp_path / "out.npz").exists()
+    assert live.exists() and foreign.exists() and other_machine.exists()
+    assert (tmp_path / "out.npz").exists()
     assert remove_stale(tmp_path) == []
 
 

@@ -14,7 +14,7 @@ from napari_dvc_correct.io.lazy_outputs import create_output
 def test_earlier_output_survives_until_commit(tmp_path, name):
     final = tmp_path / name
     if final.suffix == ".tif":
-        tifffile.imwrite(final, np.ones((2, 4, 4), np.float32))
+        tifffile.imwrite(final, np.ones((2, 4, 4), np.float32), photometric="minisblack")
         before = final.read_bytes()
     output = create_output(final, (2, 4, 4), np.float32)
     assert TEMP_MARK in output.temp.name  # recognisable: a killed run's leftover is cleaned later

@@ -1,9 +1,10 @@
 """Atomic writes: one file (temporary file + rename) or a whole set of files (temporary folder + swap).
 
-Every temporary name holds :data:`TEMP_MARK` and the id of the writing process
-(``.NAME.ndc-tmp-PID-RANDOM.SUFFIX``), so a leftover is recognisable: a process killed with
-SIGKILL cannot remove its temporary file, and the next write into the same folder removes the
-leftovers of processes that no longer run (:func:`remove_stale`). Outputs get the mode a plain
+Every temporary name holds :data:`TEMP_MARK`, the id of the writing process and a tag of its
+machine (``.NAME.ndc-tmp-PID-HOST-RANDOM.SUFFIX``), so a leftover is recognisable: a process
+killed with SIGKILL cannot remove its temporary file, and the next write into the same folder
+removes the leftovers of processes of this machine that no longer run (:func:`remove_stale`);
+files of other machines (a shared file system) are never touched. Outputs get the mode a plain
 ``open(path, "w")`` would give them (``0o666 & ~umask``); overwriting keeps the existing file's mode.
 """
 
@@ -11,12 +12,14 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import json
 import os
 import re
 import secrets
 import shutil
 import signal
+import socket
 import stat
 import threading
 from collections.abc import Iterable, Iterator
@@ -27,7 +30,9 @@ TEMP_MARK = ".ndc-tmp-"
 #: File that marks a folder as an output set written by :func:`atomic_dir`.
 SET_MARKER = ".napari-dvc-correct-set.json"
 
-_STALE = re.compile(r"^\..*" + re.escape(TEMP_MARK) + r"(\d+)-[0-9a-f]+")
+_STALE = re.compile(r"^\..*" + re.escape(TEMP_MARK) + r"(\d+)-([0-9a-f]{6})-[0-9a-f]+")
+#: Tag of this machine in temporary names.
+HOST_TAG = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
 _umask_lock = threading.Lock()
 
 
@@ -46,11 +51,13 @@ def output_mode(path: str | os.PathLike) -> int:
         return 0o666 & ~_umask()
 
 
-def temp_name(path: Path) -> Path:
-    """A recognisable temporary name next to ``path``, keeping its suffixes."""
+def temp_name(path: Path, pid: int | None = None) -> Path:
+    """A recognisable temporary name next to ``path`` (of process ``pid``), keeping its suffixes."""
+    path = Path(path)
     suffix = "".join(path.suffixes)
+    pid = os.getpid() if pid is None else int(pid)
     token = secrets.token_hex(4)
-    return path.with_name(f".{path.name}{TEMP_MARK}{os.getpid()}-{token}{suffix}")
+    return path.with_name(f".{path.name}{TEMP_MARK}{pid}-{HOST_TAG}-{token}{suffix}")
 
 
 def _alive(pid: int) -> bool:
@@ -68,8 +75,8 @@ def _alive(pid: int) -> bool:
 def remove_stale(folder: str | os.PathLike) -> list[Path]:
     """Remove the temporary files and folders in ``folder`` left by processes no longer running.
 
-    Only names made by :func:`temp_name` are touched, and only when their process id is not a
-    running process of this machine (so a concurrent run's temporary files stay).
+    Only names made by :func:`temp_name` on this machine are touched, and only when their process
+    id is not a running process (so a concurrent run's temporary files stay).
     """
     removed = []
     try:
@@ -78,7 +85,7 @@ def remove_stale(folder: str | os.PathLike) -> list[Path]:
         return removed
     for entry in entries:
         match = _STALE.match(entry.name)
-        if match is None or _alive(int(match.group(1))):
+        if match is None or match.group(2) != HOST_TAG or _alive(int(match.group(1))):
             continue
         with contextlib.suppress(OSError):
             if entry.is_dir(follow_symlinks=False):
