@@ -79,3 +79,25 @@ def test_plain_qt_host_survives_a_worker_error(tmp_path):
     )
     assert done.returncode == 0, done.stderr[-2000:]
     assert "message: deep failure" in done.stdout
+
+
+class BrokenResult(EngineWidget):
+    def prepare(self):
+        def generator():
+            yield Progress("work", 0, 1, "")
+            return 42
+
+        return generator()
+
+    def on_result(self, result):
+        raise KeyError("no layer for this result")
+
+
+def test_an_error_while_showing_the_result_is_one_line(qtbot):
+    widget = BrokenResult(napari_viewer=None)
+    qtbot.addWidget(widget)
+    worker = widget.run(start=False)
+    with qtbot.waitSignal(worker.finished, timeout=30_000):
+        worker.start()
+    qtbot.wait(50)
+    assert widget.last_error == "KeyError: 'no layer for this result'"

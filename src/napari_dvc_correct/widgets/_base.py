@@ -274,6 +274,9 @@ class EngineWidget(QWidget):
             self.on_result(result)
         except ValueError as error:
             self.show_message(one_line(error), error=True)
+        except Exception as error:  # a bug: log it, show one line, never abort the Qt host
+            log.error("showing the result failed", exc_info=True)
+            self.show_message(f"{type(error).__name__}: {one_line(error)}", error=True)
 
     def _on_errored(self, error: Exception) -> None:
         if not isinstance(error, ValueError):
