@@ -49,6 +49,8 @@ class Provenance(IntEnum):
     CORRECTED = 2
     MASKED = 3
     NOT_COMPUTED = 4
+    #: Interpolated onto this node from a field on other points (an imported scattered field).
+    INTERPOLATED = 5
 
     @property
     def label(self) -> str:
@@ -183,7 +185,9 @@ class DisplacementField:
         corrected) by post-processing.
         """
         measured_ok = np.isin(self.status, [int(s) for s in GOOD_STATUSES])
-        filled = np.isin(self.provenance, [Provenance.REPLACED, Provenance.CORRECTED])
+        filled = np.isin(
+            self.provenance, [Provenance.REPLACED, Provenance.CORRECTED, Provenance.INTERPOLATED]
+        )
         return (measured_ok | filled) & np.all(np.isfinite(self.u), axis=-1)
 
     def status_counts(self) -> dict[str, int]:
