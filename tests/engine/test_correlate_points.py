@@ -17,7 +17,9 @@ PARAMS = CorrelationParams(subvolume=15, step=6)
 
 @pytest.fixture(scope="module")
 def pair():
-    return synthetic.make_pair(lambda s: synthetic.textured_volume(s, 2.0, seed=3), (SIZE,) * 3, FIELD)
+    return synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=3), (SIZE,) * 3, FIELD
+    )
 
 
 def test_results_come_at_exactly_the_given_irregular_points(pair):
@@ -32,7 +34,9 @@ def test_results_come_at_exactly_the_given_irregular_points(pair):
     assert good[:-1].all()
     error = np.linalg.norm(result.u[:-1] - FIELD(points[:-1]), axis=1)
     assert error.max() < 0.05, error.max()
-    np.testing.assert_allclose(result.gradient[:-1], np.broadcast_to(GRADIENT, (25, 3, 3)), atol=5e-3)
+    np.testing.assert_allclose(
+        result.gradient[:-1], np.broadcast_to(GRADIENT, (25, 3, 3)), atol=5e-3
+    )
 
 
 def test_points_that_all_leave_the_volume_are_refused(pair):

@@ -32,7 +32,9 @@ def test_a_shuffled_grid_comes_back_exactly():
     field = grid_field()
     scattered = from_grid(field)
     order = np.random.default_rng(0).permutation(scattered.n_points)
-    shuffled = ScatteredField(scattered.points[order], scattered.u[order], zncc=scattered.zncc[order])
+    shuffled = ScatteredField(
+        scattered.points[order], scattered.u[order], zncc=scattered.zncc[order]
+    )
     back = to_grid(shuffled)
     assert back.same_grid(field)
     np.testing.assert_array_equal(back.u, field.u)
