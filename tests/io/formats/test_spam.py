@@ -77,7 +77,10 @@ def test_spam_return_status_and_pixel_search_cc(tmp_path, grid_points):
 
 def test_bin_ratio_scales_positions_and_displacements(tmp_path, grid_points):
     path = spam_file(
-        tmp_path / "b.tsv", grid_points, translation(grid_points), np.broadcast_to(np.eye(3), (60, 3, 3))
+        tmp_path / "b.tsv",
+        grid_points,
+        translation(grid_points),
+        np.broadcast_to(np.eye(3), (60, 3, 3)),
     )
     points = spam.read(path, bin_ratio=2.0)
     np.testing.assert_allclose(points.points, grid_points * 2.0, atol=1e-6)
@@ -85,7 +88,11 @@ def test_bin_ratio_scales_positions_and_displacements(tmp_path, grid_points):
 
 
 def test_grid_round_trip(tmp_path, grid_points):
-    field = to_grid(ScatteredField(grid_points, affine(grid_points), gradient=np.broadcast_to(GRADIENT, (60, 3, 3))))
+    field = to_grid(
+        ScatteredField(
+            grid_points, affine(grid_points), gradient=np.broadcast_to(GRADIENT, (60, 3, 3))
+        )
+    )
     field.zncc[:] = 0.87
     field.status[0, 0, 0] = Status.LOW_ZNCC
     field.provenance[0, 0, 1] = Provenance.CORRECTED
