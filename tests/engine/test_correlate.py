@@ -159,9 +159,7 @@ def test_second_order_shape_function_follows_a_bending_field():
     )
     rmse = {}
     for order in (1, 2):
-        field = correlate(
-            reference, deformed, CorrelationParams(subvolume=25, step=10, order=order)
-        )
+        field = correlate(reference, deformed, CorrelationParams(subvolume=25, step=10, order=order))
         good = field.status == Status.CONVERGED
         assert good.mean() > 0.9
         rmse[order] = np.sqrt(np.mean(_errors(field, bending)[good] ** 2))
