@@ -41,10 +41,13 @@ def rmse(field):
 def test_the_spam_file_is_spams_layout_of_the_measured_field(case):
     _, _, measured, path = case
     header = path.read_text().splitlines()[0].split("\t")
-    assert header[:20] == (
-        "NodeNumber Zpos Ypos Xpos Fzz Fzy Fzx Zdisp Fyz Fyy Fyx Ydisp Fxz Fxy Fxx Xdisp "
-        "error iterations returnStatus deltaPhiNorm"
-    ).split()
+    assert (
+        header[:20]
+        == (
+            "NodeNumber Zpos Ypos Xpos Fzz Fzy Fzx Zdisp Fyz Fyy Fyx Ydisp Fxz Fxy Fxx Xdisp "
+            "error iterations returnStatus deltaPhiNorm"
+        ).split()
+    )
     imported = read_field(path)
     assert imported.same_grid(measured)
     np.testing.assert_allclose(imported.u, measured.u, atol=1e-6, equal_nan=True)
