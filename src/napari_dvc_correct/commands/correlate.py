@@ -139,7 +139,7 @@ def run(args) -> int:
     out = Path(args.out)
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
     if getattr(args, "points", None):
-        return _grid_options.run_points(args, params, out, started)
+        return _field_formats.run_points(args, params, out, started, wants_tiled(args))
     if wants_tiled(args):
         if _grid_options.wants_placement(args):
             raise ValueError("--roi, --cylinder and --origin do not apply to tiled runs yet")

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.validation import validate_volume
+
 VOLUME_SUFFIXES = (".tif", ".tiff", ".npy", ".npz")
 
 
@@ -91,23 +93,3 @@ def _read_npz(path: Path) -> np.ndarray:
             return data[names[0]]
     except (zipfile.BadZipFile, OSError, EOFError) as error:
         raise ValueError(f"{path} is not a readable .npz file ({error})") from error
-
-
-def validate_volume(volume, name: str = "volume", check_finite: bool = True) -> np.ndarray:
-    """Check that ``volume`` is a non-empty 3-D real array (finite values); return it unchanged.
-
-    Large memory-mapped volumes are checked for NaN slab by slab so they are not loaded whole.
-    """
-    volume = np.asanyarray(volume)
-    if volume.ndim != 3:
-        raise ValueError(f"{name} must be a 3-D volume (z, y, x), got shape {volume.shape}")
-    if min(volume.shape) < 1:
-        raise ValueError(f"{name} is empty (shape {volume.shape})")
-    if volume.dtype.kind not in "uif" and volume.dtype != np.bool_:
-        raise ValueError(f"{name} must hold real numbers, got dtype {volume.dtype}")
-    if check_finite and volume.dtype.kind == "f":
-        slab = max(1, int(2**24 // max(1, volume.shape[1] * volume.shape[2])))
-        for start in range(0, volume.shape[0], slab):
-            if not np.all(np.isfinite(volume[start : start + slab])):
-                raise ValueError(f"{name} contains NaN or infinite values")
-    return volume

@@ -1,5 +1,7 @@
 """Known fields for the format tests: a translation and an affine field, in (z, y, x) voxels."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -28,3 +30,11 @@ def grid_points():
 @pytest.fixture
 def scattered_points():
     return np.random.default_rng(7).uniform(5.0, 40.0, size=(30, 3))
+
+
+@pytest.fixture
+def known():
+    """The known fields and their parameters (tests use ``known.affine(points)``...)."""
+    return SimpleNamespace(
+        shift=SHIFT, gradient=GRADIENT, center=CENTER, affine=affine, translation=translation
+    )

@@ -2,14 +2,11 @@
 
 import numpy as np
 import pytest
-from conftest import GRADIENT, SHIFT, affine, translation
 from scipy.io import savemat
 
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.scattered import ScatteredField, to_grid
 from napari_dvc_correct.io.formats import aldvc, read_field, read_points, sniff_format, write_field
-
-GRADIENT_XYZ = GRADIENT[::-1, ::-1]  # du_i/dx_j with i, j in (x, y, z)
 
 
 def xyz(points_zyx):
@@ -32,27 +29,37 @@ def pyaldvc_npz(path, points, u, gradient_xyz, status=None):
     return path
 
 
-def test_a_translation_in_pyaldvc_npz_reads_as_z_y_x(tmp_path, grid_points):
-    path = pyaldvc_npz(tmp_path / "r.npz", grid_points, translation(grid_points), np.zeros((3, 3)))
+def test_a_translation_in_pyaldvc_npz_reads_as_z_y_x(known, tmp_path, grid_points):
+    path = pyaldvc_npz(
+        tmp_path / "r.npz", grid_points, known.translation(grid_points), np.zeros((3, 3))
+    )
     assert sniff_format(path) == "aldvc"
     field = read_field(path)
     assert field.shape == (3, 4, 5) and field.origin == (8.0, 9.0, 10.0)
-    np.testing.assert_allclose(field.u[2, 1, 0], SHIFT)
+    np.testing.assert_allclose(field.u[2, 1, 0], known.shift)
     assert field.params == {"subvolume": 33, "step": 8}
 
 
-def test_an_affine_field_in_pyaldvc_npz(tmp_path, grid_points):
-    path = pyaldvc_npz(tmp_path / "a.npz", grid_points, affine(grid_points), GRADIENT_XYZ)
+def test_an_affine_field_in_pyaldvc_npz(known, tmp_path, grid_points):
+    path = pyaldvc_npz(
+        tmp_path / "a.npz", grid_points, known.affine(grid_points), known.gradient[::-1, ::-1]
+    )
     field = read_field(path)
-    np.testing.assert_allclose(field.displacement, affine(field.points), atol=1e-12)
-    np.testing.assert_allclose(field.gradient[0, 0, 0], GRADIENT, atol=1e-12)
+    np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-12)
+    np.testing.assert_allclose(field.gradient[0, 0, 0], known.gradient, atol=1e-12)
     np.testing.assert_allclose(field.zncc, 0.91, atol=1e-6)
 
 
-def test_pyaldvc_status_codes(tmp_path, grid_points):
+def test_pyaldvc_status_codes(known, tmp_path, grid_points):
     status = np.zeros(60, np.int8)
     status[:8] = np.arange(8)
-    path = pyaldvc_npz(tmp_path / "s.npz", grid_points, affine(grid_points), GRADIENT_XYZ, status)
+    path = pyaldvc_npz(
+        tmp_path / "s.npz",
+        grid_points,
+        known.affine(grid_points),
+        known.gradient[::-1, ::-1],
+        status,
+    )
     points = read_points(path)
     expected = [
         "CONVERGED",
@@ -67,11 +74,13 @@ def test_pyaldvc_status_codes(tmp_path, grid_points):
     assert points.status[:8].tolist() == [int(Status[name]) for name in expected]
 
 
-def test_an_affine_field_in_matlab_aldvc_layout(tmp_path, grid_points):
+def test_an_affine_field_in_matlab_aldvc_layout(known, tmp_path, grid_points):
     """MATLAB ALDVC: 1-based coordinatesFEM [x y z], interleaved U and column-major F."""
     n = len(grid_points)
-    u_interleaved = xyz(affine(grid_points)).reshape(-1, 1)  # [u1 v1 w1 u2 ...]
-    f_interleaved = np.tile(GRADIENT_XYZ.T.reshape(-1), n).reshape(-1, 1)  # [F11 F21 F31 F12 ...]
+    u_interleaved = xyz(known.affine(grid_points)).reshape(-1, 1)  # [u1 v1 w1 u2 ...]
+    f_interleaved = np.tile(known.gradient[::-1, ::-1].T.reshape(-1), n).reshape(
+        -1, 1
+    )  # [F11 F21 F31 F12 ...]
     disp = np.empty((1,), dtype=object)
     disp[0] = {"U": u_interleaved}
     grad = np.empty((1,), dtype=object)
@@ -90,15 +99,17 @@ def test_an_affine_field_in_matlab_aldvc_layout(tmp_path, grid_points):
     )
     field = read_field(tmp_path / "results_ws32_st8.mat")
     assert field.origin == (8.0, 9.0, 10.0)  # 1-based in the file
-    np.testing.assert_allclose(field.displacement, affine(field.points), atol=1e-12)
-    np.testing.assert_allclose(field.gradient[1, 1, 1], GRADIENT, atol=1e-12)
+    np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-12)
+    np.testing.assert_allclose(field.gradient[1, 1, 1], known.gradient, atol=1e-12)
 
 
 @pytest.mark.parametrize("suffix", [".npz", ".mat"])
-def test_round_trip(tmp_path, grid_points, scattered_points, suffix):
+def test_round_trip(known, tmp_path, grid_points, scattered_points, suffix):
     grid_field = to_grid(
         ScatteredField(
-            grid_points, affine(grid_points), gradient=np.broadcast_to(GRADIENT, (60, 3, 3))
+            grid_points,
+            known.affine(grid_points),
+            gradient=np.broadcast_to(known.gradient, (60, 3, 3)),
         )
     )
     grid_field.zncc[:] = 0.8
@@ -109,14 +120,14 @@ def test_round_trip(tmp_path, grid_points, scattered_points, suffix):
     np.testing.assert_allclose(back.u, grid_field.u, atol=1e-6)
     np.testing.assert_allclose(back.gradient, grid_field.gradient, atol=1e-6)
     np.testing.assert_array_equal(back.status, grid_field.status)
-    scattered = ScatteredField(scattered_points, affine(scattered_points))
+    scattered = ScatteredField(scattered_points, known.affine(scattered_points))
     aldvc.write(scattered, tmp_path / f"s{suffix}")
     again = read_points(tmp_path / f"s{suffix}", "aldvc")
     np.testing.assert_allclose(again.points, scattered_points, atol=1e-6)
     np.testing.assert_allclose(again.u, scattered.u, atol=1e-6)
 
 
-def test_an_npz_of_another_kind_is_refused(tmp_path):
+def test_an_npz_of_another_kind_is_refused(known, tmp_path):
     np.savez(tmp_path / "x.npz", a=np.zeros(3))
     with pytest.raises(ValueError, match="neither ours"):
         sniff_format(tmp_path / "x.npz")

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from conftest import SHIFT, affine, translation
 
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.scattered import ScatteredField, to_grid
@@ -23,50 +22,52 @@ def disp_file(path, points, u, status=None, objmin=0.02, rotation=False):
     return path
 
 
-def test_a_translation_in_idvc_layout_reads_as_z_y_x(tmp_path, scattered_points):
+def test_a_translation_in_idvc_layout_reads_as_z_y_x(known, tmp_path, scattered_points):
     path = disp_file(
-        tmp_path / "r.disp", scattered_points, translation(scattered_points), rotation=True
+        tmp_path / "r.disp", scattered_points, known.translation(scattered_points), rotation=True
     )
     assert sniff_format(path) == "idvc"
     points = read_points(path)
     np.testing.assert_allclose(points.points, scattered_points)
-    np.testing.assert_allclose(points.u, np.broadcast_to(SHIFT, (30, 3)))
+    np.testing.assert_allclose(points.u, np.broadcast_to(known.shift, (30, 3)))
     np.testing.assert_allclose(points.zncc, 0.99, atol=1e-6)  # znssd 0.02 = 2 (1 - 0.99)
     assert points.metadata["source"]["point_ids"][:3] == [1, 2, 3]
 
 
-def test_an_affine_field_in_idvc_layout_on_a_grid(tmp_path, grid_points):
-    path = disp_file(tmp_path / "a.disp", grid_points, affine(grid_points))
+def test_an_affine_field_in_idvc_layout_on_a_grid(known, tmp_path, grid_points):
+    path = disp_file(tmp_path / "a.disp", grid_points, known.affine(grid_points))
     field = read_field(path)
     assert field.shape == (3, 4, 5)
-    np.testing.assert_allclose(field.displacement, affine(field.points), atol=1e-9)
+    np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-9)
 
 
-def test_idvc_status_codes(tmp_path, scattered_points):
+def test_idvc_status_codes(known, tmp_path, scattered_points):
     status = np.zeros(30, int)
     status[1], status[2] = -1, -2
-    path = disp_file(tmp_path / "s.disp", scattered_points, translation(scattered_points), status)
+    path = disp_file(
+        tmp_path / "s.disp", scattered_points, known.translation(scattered_points), status
+    )
     points = read_points(path)
     assert points.status[:3].tolist() == [Status.CONVERGED, Status.OUT_OF_BOUNDS, Status.DIVERGED]
     assert np.isnan(points.zncc[1])
     assert points.valid[:3].tolist() == [True, False, False]
 
 
-def test_round_trip(tmp_path, grid_points, scattered_points):
-    field = to_grid(ScatteredField(grid_points, affine(grid_points), zncc=np.full(60, 0.9)))
+def test_round_trip(known, tmp_path, grid_points, scattered_points):
+    field = to_grid(ScatteredField(grid_points, known.affine(grid_points), zncc=np.full(60, 0.9)))
     write_field(field, tmp_path / "g.disp")
     back = read_field(tmp_path / "g.disp")
     assert back.same_grid(field)
     np.testing.assert_allclose(back.u, field.u, atol=1e-6)
     np.testing.assert_allclose(back.zncc, 0.9, atol=1e-6)
-    scattered = ScatteredField(scattered_points, affine(scattered_points))
+    scattered = ScatteredField(scattered_points, known.affine(scattered_points))
     idvc.write(scattered, tmp_path / "s.disp")
     again = read_points(tmp_path / "s.disp")
     np.testing.assert_allclose(again.points, scattered_points, atol=1e-6)
     np.testing.assert_allclose(again.u, scattered.u, atol=1e-6)
 
 
-def test_unknown_objective_is_refused(tmp_path, scattered_points):
-    path = disp_file(tmp_path / "r.disp", scattered_points, translation(scattered_points))
+def test_unknown_objective_is_refused(known, tmp_path, scattered_points):
+    path = disp_file(tmp_path / "r.disp", scattered_points, known.translation(scattered_points))
     with pytest.raises(ValueError, match="objective"):
         idvc.read(path, objective="ssd")

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from conftest import GRADIENT, SHIFT, affine, translation
 
 from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status
 from napari_dvc_correct.engine.scattered import ScatteredField, to_grid
@@ -27,33 +26,35 @@ def spam_file(path, points, u, phi, status=None, pixel_search=False):
     return path
 
 
-def test_a_translation_in_spam_layout_reads_as_z_y_x(tmp_path, grid_points):
-    u = translation(grid_points)
+def test_a_translation_in_spam_layout_reads_as_z_y_x(known, tmp_path, grid_points):
+    u = known.translation(grid_points)
     path = spam_file(tmp_path / "t.tsv", grid_points, u, np.broadcast_to(np.eye(3), (60, 3, 3)))
     assert sniff_format(path) == "spam"
     field = read_field(path)
     assert isinstance(field, DisplacementField)
     assert field.shape == (3, 4, 5) and field.origin == (8.0, 9.0, 10.0)
     assert field.step == (6.0, 5.0, 4.0)
-    np.testing.assert_allclose(field.u[1, 2, 3], SHIFT, atol=1e-7)
+    np.testing.assert_allclose(field.u[1, 2, 3], known.shift, atol=1e-7)
     np.testing.assert_allclose(field.gradient, 0.0, atol=1e-7)
     assert np.all(field.status == Status.CONVERGED)
 
 
-def test_an_affine_field_in_spam_layout_gives_its_displacement_and_gradient(tmp_path, grid_points):
-    phi = np.broadcast_to(np.eye(3) + GRADIENT, (60, 3, 3))  # spam's F is I + du/dX
-    path = spam_file(tmp_path / "a.tsv", grid_points, affine(grid_points), phi)
+def test_an_affine_field_in_spam_layout_gives_its_displacement_and_gradient(
+    known, tmp_path, grid_points
+):
+    phi = np.broadcast_to(np.eye(3) + known.gradient, (60, 3, 3))  # spam's F is I + du/dX
+    path = spam_file(tmp_path / "a.tsv", grid_points, known.affine(grid_points), phi)
     field = read_field(path)
-    np.testing.assert_allclose(field.displacement, affine(field.points), atol=1e-6)
-    np.testing.assert_allclose(field.gradient[2, 3, 4], GRADIENT, atol=1e-7)
+    np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-6)
+    np.testing.assert_allclose(field.gradient[2, 3, 4], known.gradient, atol=1e-7)
 
 
-def test_spam_return_status_and_pixel_search_cc(tmp_path, grid_points):
+def test_spam_return_status_and_pixel_search_cc(known, tmp_path, grid_points):
     codes = np.array([2, 1, -1, -2, -3, 0, -5] + [2] * 53)
     path = spam_file(
         tmp_path / "ps.tsv",
         grid_points,
-        translation(grid_points),
+        known.translation(grid_points),
         np.broadcast_to(np.eye(3), (60, 3, 3)),
         status=codes,
         pixel_search=True,
@@ -75,22 +76,24 @@ def test_spam_return_status_and_pixel_search_cc(tmp_path, grid_points):
     np.testing.assert_array_equal(spam.status_to_spam(points.status[:5]), codes[:5])
 
 
-def test_bin_ratio_scales_positions_and_displacements(tmp_path, grid_points):
+def test_bin_ratio_scales_positions_and_displacements(known, tmp_path, grid_points):
     path = spam_file(
         tmp_path / "b.tsv",
         grid_points,
-        translation(grid_points),
+        known.translation(grid_points),
         np.broadcast_to(np.eye(3), (60, 3, 3)),
     )
     points = spam.read(path, bin_ratio=2.0)
     np.testing.assert_allclose(points.points, grid_points * 2.0, atol=1e-6)
-    np.testing.assert_allclose(points.u, np.broadcast_to(SHIFT * 2.0, (60, 3)), atol=1e-6)
+    np.testing.assert_allclose(points.u, np.broadcast_to(known.shift * 2.0, (60, 3)), atol=1e-6)
 
 
-def test_grid_round_trip(tmp_path, grid_points):
+def test_grid_round_trip(known, tmp_path, grid_points):
     field = to_grid(
         ScatteredField(
-            grid_points, affine(grid_points), gradient=np.broadcast_to(GRADIENT, (60, 3, 3))
+            grid_points,
+            known.affine(grid_points),
+            gradient=np.broadcast_to(known.gradient, (60, 3, 3)),
         )
     )
     field.zncc[:] = 0.87
@@ -106,15 +109,15 @@ def test_grid_round_trip(tmp_path, grid_points):
     np.testing.assert_allclose(back.zncc, field.zncc, atol=1e-6)
 
 
-def test_scattered_round_trip_keeps_the_points_and_their_order(tmp_path, scattered_points):
-    field = ScatteredField(scattered_points, affine(scattered_points))
+def test_scattered_round_trip_keeps_the_points_and_their_order(known, tmp_path, scattered_points):
+    field = ScatteredField(scattered_points, known.affine(scattered_points))
     spam.write(field, tmp_path / "s.tsv")
     back = read_points(tmp_path / "s.tsv")
     np.testing.assert_allclose(back.points, scattered_points, atol=1e-6)
     np.testing.assert_allclose(back.u, field.u, atol=1e-6)
 
 
-def test_a_file_that_is_not_spam_is_refused(tmp_path):
+def test_a_file_that_is_not_spam_is_refused(known, tmp_path):
     path = tmp_path / "x.tsv"
     path.write_text("a\tb\n1\t2\n")
     with pytest.raises(ValueError, match="not a spam TSV"):

@@ -9,6 +9,7 @@ from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.field import DisplacementField, Status
 from napari_dvc_correct.engine.scattered import ScatteredField
 from napari_dvc_correct.io.formats import read_field, read_points, write_field
+from napari_dvc_correct.io.npz import load_field
 
 SHAPE = (40, 40, 40)
 SHIFT = np.array([1.4, -0.6, 2.2])
@@ -50,7 +51,7 @@ def test_roi_limits_the_grid_to_the_region(volumes, tmp_path):
     out = tmp_path / "roi.npz"
     roi = "12:30,10:26,:"
     assert main(["correlate", *volumes, "--roi", roi, "--out", str(out), *DVC]) == 0
-    field = DisplacementField.load(out)
+    field = load_field(out)
     points = field.points
     assert np.all((points[:, 0] >= 12) & (points[:, 0] < 30))
     assert np.all((points[:, 1] >= 10) & (points[:, 1] < 26))
@@ -63,7 +64,7 @@ def test_origin_and_cylinder(volumes, tmp_path):
     out = tmp_path / "cyl.npz"
     args = ["--cylinder", "20,20,9,10:30", "--origin", "10,11,11", "--out", str(out)]
     assert main(["correlate", *volumes, *args, *DVC]) == 0
-    field = DisplacementField.load(out)
+    field = load_field(out)
     assert field.origin == (10.0, 11.0, 11.0)
     radial = np.hypot(field.points[:, 1] - 20, field.points[:, 2] - 20)
     computed = field.status.reshape(-1) != Status.NOT_COMPUTED
@@ -83,7 +84,7 @@ def test_bad_placement_options_are_refused(volumes, tmp_path, capsys):
 def test_correct_a_spam_field_and_write_it_back_as_spam(volumes, tmp_path, capsys):
     grid = tmp_path / "ours.npz"
     assert main(["correlate", *volumes, "--out", str(grid), *DVC]) == 0
-    field = DisplacementField.load(grid)
+    field = load_field(grid)
     field.u = field.u + 0.3  # an imperfect field from "another tool"
     spam_in = tmp_path / "ldic.tsv"
     write_field(field, spam_in, "spam")
@@ -113,7 +114,7 @@ def test_correct_scattered_points_reports_at_the_original_points(volumes, tmp_pa
     assert code == 0
     at_points = read_points(out)
     np.testing.assert_allclose(at_points.points, points, atol=1e-6)
-    grid = DisplacementField.load(tmp_path / "corrected_grid.npz")
+    grid = load_field(tmp_path / "corrected_grid.npz")
     assert grid.step == (6.0, 6.0, 6.0)
     good = at_points.valid
     assert good.all()
@@ -125,7 +126,7 @@ def test_evaluate_an_imported_field(volumes, tmp_path, capsys):
     grid = tmp_path / "ours.npz"
     assert main(["correlate", *volumes, "--out", str(grid), *DVC]) == 0
     idvc_file = tmp_path / "run.disp"
-    write_field(DisplacementField.load(grid), idvc_file, "idvc")
+    write_field(load_field(grid), idvc_file, "idvc")
     out_dir = tmp_path / "report"
     code = main(
         ["evaluate", *volumes, "--field", str(idvc_file), "--out-dir", str(out_dir),

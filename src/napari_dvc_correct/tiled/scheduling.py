@@ -1,6 +1,6 @@
 """Running lists of ``dask.delayed`` tasks locally or on a ``dask.distributed`` cluster.
 
-Used by :mod:`.tiled` (correlation batches) and :mod:`.tiled_volumes` (output chunks). A run is a
+Used by :mod:`.correlate` (correlation batches) and :mod:`.volumes` (output chunks). A run is a
 generator of ``(index, result)`` pairs in completion order, so the engine can report progress as
 tasks finish:
 

@@ -18,11 +18,11 @@
 3. The batches' results are assembled into one field.
 
 The halo around a batch's POIs (per side, in voxels) covers the subvolume half-size widened by
-:data:`STRAIN_ALLOWANCE` for the shape function, the search radius around the rigid shift, the
-B-spline support (:data:`SPLINE_SUPPORT`) and :data:`PREFILTER_MARGIN` voxels, so that the region's
+:data:`.memory.STRAIN_ALLOWANCE` for the shape function, the search radius around the rigid shift, the
+B-spline support (:data:`.memory.SPLINE_SUPPORT`) and :data:`.memory.PREFILTER_MARGIN` voxels, so that the region's
 B-spline prefilter equals the whole volume's to float32 rounding (measured: the difference decays
 as 0.27 per voxel and is below 6e-8 of the gray range after 12 voxels); coarse pyramid levels,
-which only give starting guesses, keep :data:`COARSE_PREFILTER_MARGIN` binned voxels.
+which only give starting guesses, keep :data:`.memory.COARSE_PREFILTER_MARGIN` binned voxels.
 
 Scheduling (:mod:`.scheduling`): dask's local threaded scheduler by default (nothing to start);
 ``scheduler="ADDRESS"`` (or a ``distributed.Client``) sends the tasks to a ``dask.distributed``
@@ -41,19 +41,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..engine.correlate import correlate_iter
+from ..engine.field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
+from ..engine.initial_guess import bin_volume, global_shift
+from ..engine.params import CorrelationParams
+from ..engine.progress import Progress, run_to_completion
+from ..io.lazy import as_lazy, iter_blocks
 from . import scheduling
-from .correlate import correlate_iter
-from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
-from .initial_guess import bin_volume, global_shift
-from .params import CorrelationParams
-from .progress import Progress, run_to_completion
-from .tiled_memory import (  # noqa: F401 (re-exported: the public names of tiled correlation)
-    COARSE_PREFILTER_MARGIN,
-    PREFILTER_MARGIN,
+from .memory import (
     SHIFT_BLOCK_VOXELS,
-    SPLINE_SUPPORT,
-    STRAIN_ALLOWANCE,
-    MemoryBudgetError,
     _batch_bytes,
     _levels,
     _refuse_if_over,
@@ -155,8 +151,6 @@ def _volume_block(reference, deformed, mask, z, y, shift_factor, levels, shape):
 
 def _volume_tasks(reference, deformed, mask, levels):
     import dask
-
-    from ..io.lazy import iter_blocks
 
     shape = tuple(reference.shape)
     factor = _shift_factor(shape)
@@ -447,7 +441,6 @@ def correlate_tiled_iter(
     MemoryBudgetError
         When the estimated peak memory exceeds the available memory or ``max_memory``.
     """
-    from ..io.lazy import as_lazy
 
     started = time.perf_counter()
     params = CorrelationParams() if params is None else params

@@ -16,9 +16,9 @@ import os
 
 import numpy as np
 
-from .field import grid_for_volume
-from .initial_guess import fft_search, pyramid_levels
-from .params import CorrelationParams
+from ..engine.field import grid_for_volume
+from ..engine.initial_guess import fft_search, pyramid_levels
+from ..engine.params import CorrelationParams
 
 #: Voxels read at a time by the whole-volume pass of :mod:`.tiled`.
 SHIFT_BLOCK_VOXELS = 1 << 23

@@ -5,20 +5,22 @@ import pytest
 import tifffile
 import zarr
 
-from napari_dvc_correct.engine import synthetic, tiled
+from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correlate import correlate
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.engine.progress import Progress
-from napari_dvc_correct.engine.tiled import (
+from napari_dvc_correct.io.lazy import ArrayVolume
+from napari_dvc_correct.tiled import (
     MemoryBudgetError,
     choose_batch_shape,
     correlate_tiled,
     correlate_tiled_iter,
     estimate_peak_memory,
 )
-from napari_dvc_correct.io.lazy import ArrayVolume
+from napari_dvc_correct.tiled import correlate as tiled
+from napari_dvc_correct.tiled.memory import PREFILTER_MARGIN
 
 GRADIENT = np.array([[0.02, 0.0, 0.01], [0.0, -0.01, 0.0], [0.0, 0.0, 0.015]])
 # 1e-5: fine enough that a converged answer does not depend on IC-GN's starting guess (see
@@ -54,7 +56,7 @@ def _converged_in_both(a, b):
 def test_prefilter_margin_reaches_float32_rounding():
     volume = synthetic.textured_volume((72, 72, 72), 2.0, seed=3)
     whole = prefilter(volume)
-    m = tiled.PREFILTER_MARGIN
+    m = PREFILTER_MARGIN
     region = prefilter(volume[30 - m : 42 + m, 30 - m : 42 + m, 30 - m : 42 + m])
     core = region[m:-m, m:-m, m:-m]
     gray_range = float(volume.max() - volume.min())
