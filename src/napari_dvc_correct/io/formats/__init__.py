@@ -62,6 +62,10 @@ def sniff_format(path: str | os.PathLike) -> str:
     if suffix == ".disp":
         return "idvc"
     if suffix == ".mat":
+        if not aldvc.is_result_mat(path):
+            raise ValueError(
+                f"{path}: a .mat without DVCmesh or coordinatesFEM: not an ALDVC result"
+            )
         return "aldvc"
     if suffix == ".npz":
         return _npz_kind(path)

@@ -61,6 +61,17 @@ _TO_ALDVC = {
 }
 
 
+def is_result_mat(path) -> bool:
+    """Whether a ``.mat`` file holds an ALDVC result (``DVCmesh`` or ``coordinatesFEM``)."""
+    from scipy.io import whosmat
+
+    try:
+        names = {entry[0] for entry in whosmat(str(path))}
+    except (OSError, ValueError, NotImplementedError, TypeError):
+        return False
+    return "DVCmesh" in names or "coordinatesFEM" in names
+
+
 def status_from_aldvc(codes) -> np.ndarray:
     codes = np.asarray(codes).astype(np.int64).reshape(-1)
     out = np.full(codes.shape, int(Status.NOT_COMPUTED), np.uint8)

@@ -72,6 +72,16 @@ def _has_header(header: str) -> bool:
     return False
 
 
+def looks_like(header: str) -> bool:
+    """Whether a header line names the positions and displacements of a field table."""
+    if not header or not _has_header(header):
+        return False
+    delimiter = _delimiter(header)
+    names = {_parse_name(c)[0] for c in (header.split(delimiter) if delimiter else header.split())}
+    keys = ("z", "y", "x", "uz", "uy", "ux")
+    return all(any(alias in names for alias in _ALIASES[key]) for key in keys)
+
+
 def _scale(unit: str, voxel_size, axis: int, name: str) -> float:
     if unit in VOXEL_UNITS:
         return 1.0
