@@ -6,7 +6,7 @@ import pytest
 
 from napari_dvc_correct.cli import main
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import DisplacementField, Status
+from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.scattered import ScatteredField
 from napari_dvc_correct.io.formats import read_field, read_points, write_field
 from napari_dvc_correct.io.npz import load_field
@@ -135,3 +135,21 @@ def test_evaluate_an_imported_field(volumes, tmp_path, capsys):
     assert code == 0
     assert "accuracy index" in capsys.readouterr().out
     assert (out_dir / "report.md").exists()
+
+
+def test_vtk_outputs_for_paraview(volumes, tmp_path):
+    vtk = pytest.importorskip("vtk")
+    out = tmp_path / "roi.vti"
+    assert main(["correlate", *volumes, "--roi", "12:30,10:26,:", "--out", str(out), *DVC]) == 0
+    reader = vtk.vtkXMLImageDataReader()
+    reader.SetFileName(str(out))
+    reader.Update()
+    assert reader.GetOutput().GetDimensions()[::-1][:2] == (3, 3)
+    points = tmp_path / "pois.npy"
+    np.save(points, np.array([[15.0, 16.5, 17.0], [20.0, 21.0, 22.25]]))
+    out = tmp_path / "pois.vtu"
+    assert main(["correlate", *volumes, "--points", str(points), "--out", str(out), *DVC]) == 0
+    reader = vtk.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(str(out))
+    reader.Update()
+    assert reader.GetOutput().GetNumberOfPoints() == 2

@@ -16,7 +16,15 @@ from pathlib import Path
 from ..io.formats import FORMATS
 
 #: Output suffix -> format when ``--out-format`` is not given (``.txt`` is not guessed).
-OUTPUT_SUFFIXES = {".npz": "npz", ".tsv": "spam", ".csv": "table", ".disp": "idvc", ".mat": "aldvc"}
+OUTPUT_SUFFIXES = {
+    ".npz": "npz",
+    ".tsv": "spam",
+    ".csv": "table",
+    ".disp": "idvc",
+    ".mat": "aldvc",
+    ".vti": "vti",  # VTK image data (grids), for ParaView
+    ".vtu": "vtu",  # VTK points (scattered fields)
+}
 
 
 def add_field_format_arguments(
@@ -32,7 +40,7 @@ def add_field_format_arguments(
             choices=("auto", *FORMATS),
             default="auto",
             help="format of --out (default: from the suffix: .npz ours, .tsv spam, .csv table, "
-            ".disp iDVC, .mat ALDVC)",
+            ".disp iDVC, .mat ALDVC, .vti VTK image, .vtu VTK points)",
         )
     group.add_argument(
         "--xyz",
@@ -155,6 +163,16 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
 
     fmt = output_format(args, out)
     out = Path(out)
+    if fmt in ("vti", "vtu"):
+        from ..io.export import export_vtk, export_vtk_points
+
+        if fmt == "vtu":
+            export_vtk_points(field if points is None else sample_field(field, points.points), out)
+        elif isinstance(field, ScatteredField):
+            raise ValueError("a field at a list of points is written as .vtu, not .vti")
+        else:
+            export_vtk(field, out)
+        return [out]
     if isinstance(field, ScatteredField):
         if fmt == "npz":
             raise ValueError(
