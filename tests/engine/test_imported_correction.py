@@ -33,9 +33,11 @@ def case(tmp_path_factory):
 
 
 def rmse(field):
+    """RMS error against the truth (voxels), usable fraction, fraction off by over a voxel."""
     error = np.linalg.norm(field.displacement - BAND(field.points), axis=1)
     usable = np.isfinite(error)
-    return float(np.sqrt(np.mean(error[usable] ** 2))), float(usable.mean())
+    rms = float(np.sqrt(np.mean(error[usable] ** 2)))
+    return rms, float(usable.mean()), float(np.mean(error[usable] > 1.0))
 
 
 def test_the_spam_file_is_spams_layout_of_the_measured_field(case):
@@ -58,10 +60,12 @@ def test_correcting_an_imported_spam_field_lowers_its_error(case):
     imported = read_field(path)
     assert imported.params == {}  # spam files do not say which subvolume was used
     corrected = correct(reference, deformed, imported, PARAMS, max_passes=2)
-    before, usable_before = rmse(imported)
-    after, usable_after = rmse(corrected)
+    before, usable_before, off_before = rmse(imported)
+    after, usable_after, off_after = rmse(corrected)
+    # measured on the 2-vCPU machine: RMSE 0.63 -> 0.43 voxel, nodes off by > 1 voxel 9.3% -> 1.7%
     assert usable_before > 0.9 and usable_after >= usable_before
     assert after < 0.8 * before, (before, after)
+    assert off_before > 0.03 and off_after < 0.5 * off_before, (off_before, off_after)
     # ... and goes back to spam, at the same nodes
     out = path.with_name("corrected.tsv")
     write_field(corrected, out, "spam")

@@ -6,6 +6,10 @@ reference position ``X`` moves to ``x = X + u(X)``, so ``F(X + u(X)) ≈ G(X)``.
 
 Node ``(i, j, k)`` of the grid sits at ``origin + (i, j, k) * step`` (voxels). In napari a grid
 quantity is an Image layer with ``scale = step`` and ``translate = origin``.
+
+A field on scattered points (another tool's, or a list of points of interest) is a
+:class:`.scattered.ScatteredField`; :func:`.scattered.to_grid` and :func:`.scattered.sample_field`
+go between the two (node provenance ``INTERPOLATED``).
 """
 
 from __future__ import annotations
