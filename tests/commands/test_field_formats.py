@@ -153,3 +153,16 @@ def test_vtk_outputs_for_paraview(volumes, tmp_path):
     reader.SetFileName(str(out))
     reader.Update()
     assert reader.GetOutput().GetNumberOfPoints() == 2
+
+
+def test_a_field_off_whole_voxels_asks_for_a_grid_step(volumes, tmp_path, capsys):
+    points = np.stack(np.meshgrid(*[10.5 + 6.0 * np.arange(3)] * 3, indexing="ij"), -1).reshape(
+        -1, 3
+    )
+    path = tmp_path / "half.csv"
+    write_field(ScatteredField(points, np.broadcast_to(SHIFT, points.shape)), path, "table")
+    out = tmp_path / "c.csv"
+    args = ["correct", *volumes, "--field", str(path), "--subvolume", "15", "--out", str(out)]
+    assert main([*args, "--quiet"]) == 2
+    assert "--grid-step" in capsys.readouterr().err
+    assert not out.exists()

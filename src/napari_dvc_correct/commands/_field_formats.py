@@ -13,6 +13,8 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..io.formats import FORMATS
 
 #: Output suffix -> format when ``--out-format`` is not given (``.txt`` is not guessed).
@@ -235,6 +237,13 @@ def prepare_correction_field(args, volume_shape):
         values["subvolume"] = subvolume or field.params.get("subvolume", 31)
         params = CorrelationParams.from_dict(values)
     if not (getattr(args, "grid_step", None) or _grid_options.wants_placement(args)):
+        nodes = np.concatenate([np.asarray(field.origin), np.asarray(field.step)])
+        if np.max(np.abs(nodes - np.rint(nodes))) > 1e-6:
+            raise ValueError(
+                f"the field's grid (origin {field.origin}, step {field.step}) is not on whole "
+                "voxels, where the correction's subvolumes are centred: give --grid-step N to "
+                "correct it on a whole-voxel grid"
+            )
         return imported, params
     used = params or CorrelationParams.from_dict(field.params)
     step = args.grid_step or int(round(max(field.step)))
