@@ -129,8 +129,8 @@ def test_evaluate_an_imported_field(volumes, tmp_path, capsys):
     write_field(load_field(grid), idvc_file, "idvc")
     out_dir = tmp_path / "report"
     code = main(
-        ["evaluate", *volumes, "--field", str(idvc_file), "--out-dir", str(out_dir),
-         "--no-volumes", "--quiet"]
+        ["evaluate", *volumes, "--field", str(idvc_file), "--format", "idvc", "--compare",
+         str(grid), "--out-dir", str(out_dir), "--no-volumes", "--quiet"]
     )  # fmt: skip
     assert code == 0
     assert "accuracy index" in capsys.readouterr().out

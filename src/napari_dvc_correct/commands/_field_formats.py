@@ -110,14 +110,15 @@ class InputField:
         )
 
 
-def read_input_field(args, path: str, grid=None) -> InputField:
-    """Read ``path`` (``--field``) in ``args.format``; a grid field when it is not one already."""
+def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputField:
+    """Read ``path`` (``--field``) in ``args.format`` (or its sniffed format when ``sniff``); a
+    grid field when it is not one already."""
     from ..engine.scattered import to_grid
     from ..io.formats import read_points, sniff_format
 
     if not Path(path).is_file():
         raise FileNotFoundError(f"field file not found: {path}")
-    fmt = getattr(args, "format", "auto")
+    fmt = "auto" if sniff else getattr(args, "format", "auto")
     fmt = sniff_format(path) if fmt in (None, "auto") else fmt
     points = read_points(path, fmt, **_reader_options(args, fmt))
     field = to_grid(points, grid=grid)

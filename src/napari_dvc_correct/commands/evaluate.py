@@ -152,7 +152,10 @@ def run(args) -> int:
     if not out_dir.parent.exists():
         raise FileNotFoundError(f"the folder that should hold {out_dir} does not exist")
     paths = [args.field, *args.compare]
-    fields = {name: read_input_field(args, path).field for name, path in zip(names, paths)}
+    fields = {  # --format is --field's; the --compare fields' formats are sniffed
+        name: read_input_field(args, path, sniff=k > 0).field
+        for k, (name, path) in enumerate(zip(names, paths))
+    }
     reference = read_volume(args.reference)
     deformed = read_volume(args.deformed)
 
