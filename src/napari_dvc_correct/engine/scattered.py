@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage, spatial
 
-from .field import DisplacementField, Provenance, Status
+from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
 
 
 @dataclass
@@ -102,7 +102,7 @@ class ScatteredField:
     @property
     def valid(self) -> np.ndarray:
         """Points holding a usable displacement (same rule as :attr:`DisplacementField.valid`)."""
-        measured_ok = np.isin(self.status, [Status.CONVERGED, Status.MAX_ITERATIONS])
+        measured_ok = np.isin(self.status, [int(s) for s in GOOD_STATUSES])
         filled = np.isin(
             self.provenance, [Provenance.REPLACED, Provenance.CORRECTED, Provenance.INTERPOLATED]
         )
