@@ -73,6 +73,12 @@ def _add_input_arguments(group) -> None:
         help="pyALDVC/ALDVC frame pair to read (1-based, as in U_1; default 1)",
     )
     group.add_argument(
+        "--idvc-objective",
+        choices=("znssd", "none"),
+        default="znssd",
+        help="iDVC objective of the run: znssd gives ZNCC = 1 - objmin/2; none for the others",
+    )
+    group.add_argument(
         "--bin-ratio",
         type=float,
         default=1.0,
@@ -87,6 +93,8 @@ def _reader_options(args, fmt: str) -> dict:
         return {"frame": args.frame_pair}
     if fmt == "spam":
         return {"bin_ratio": args.bin_ratio}
+    if fmt == "idvc":
+        return {"objective": args.idvc_objective}
     return {}
 
 

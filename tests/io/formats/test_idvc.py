@@ -41,6 +41,17 @@ def test_an_affine_field_in_idvc_layout_on_a_grid(known, tmp_path, grid_points):
     np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-9)
 
 
+def test_a_cloud_in_idvcs_order_x_slowest_is_our_grid(known, tmp_path, grid_points):
+    """iDVC lays a regular cloud out x slowest, z fastest (pointcloud_conversion.py)."""
+    order = np.lexsort((grid_points[:, 0], grid_points[:, 1], grid_points[:, 2]))
+    cloud = grid_points[order]
+    assert cloud[0, 2] == cloud[1, 2] and cloud[0, 0] != cloud[1, 0]  # z varies fastest
+    path = disp_file(tmp_path / "x.disp", cloud, known.affine(cloud))
+    field = read_field(path)
+    assert field.shape == (3, 4, 5) and field.origin == (8.0, 9.0, 10.0)
+    np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-9)
+
+
 def test_idvc_status_codes(known, tmp_path, scattered_points):
     status = np.zeros(30, int)
     status[1], status[2] = -1, -2

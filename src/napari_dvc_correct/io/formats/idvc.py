@@ -14,12 +14,18 @@ its reader ``src/idvc/utils/manipulate_result_files.py`` (``extractDataFromDispR
 * ``status``: 0 = successful, -1 = ``Range_Fail``, -2 = ``Convg_Fail``;
 * the rotation and strain columns are not read (a strain without its rotation is not the
   displacement gradient);
-* ``objmin`` is the objective function at the end of the search; for the ``znssd`` objective
-  (iDVC's default) ``znssd = 2 (1 - ZNCC)``.
+* ``objmin`` is the objective function at the end of the search, one of ``sad, ssd, zssd,
+  nssd, znssd`` (``obj_function`` in the dvc control file, ``ccpi/dvc/apps/dvc_config_template.txt``);
+  we assume ``znssd`` by default, for which ``znssd = 2 (1 - ZNCC)``; ``objective="none"`` keeps
+  the ZNCC unknown for the others. Positions and displacements are in voxels (``disp_max`` and
+  ``rigid_trans`` are "in voxels" there too).
 
-Assumed, not stated in what we read: point positions are 0-based voxel indices (iDVC builds its
-point clouds in the image's VTK index frame, origin 0, spacing 1); check against your own point
-cloud if your iDVC session used an image origin or spacing other than 0 and 1.
+Point positions: iDVC's regular point cloud (``cilRegularPointCloudToPolyData`` in
+``src/idvc/pointcloud_conversion.py``) puts points at ``n * point_spacing * image_spacing`` from 0
+along VTK's x, y, z (the image origin is not added), looping x slowest and z fastest. With the
+usual image spacing of 1 these are 0-based voxel indices, which is what we assume; a run on an
+image with another spacing has positions in those units (divide by the spacing first). Rows may
+come in any order: a regular cloud is recognised as a grid whatever the order.
 
 Mapping of status: 0 → ``CONVERGED``, -1 → ``OUT_OF_BOUNDS``, -2 → ``DIVERGED``, other → ``NOT_COMPUTED``;
 written back: ``CONVERGED``/``MAX_ITERATIONS`` → 0, ``OUT_OF_BOUNDS`` → -1, any other → -2.
