@@ -1,8 +1,9 @@
 """Exporting fields and volumes: HDF5, VTK image data (ParaView), TIFF stacks, CSV, reports.
 
 Every writer is atomic (see :func:`~napari_dvc_correct.io.atomic.atomic_path`): a failed or
-interrupted export leaves an existing file untouched. No Qt, no napari, no vtk dependency: the VTK
-files are written here directly.
+interrupted export leaves an existing file untouched. No Qt, no napari, no vtk dependency: XML VTK
+files (``.vti`` image data, ``.vtu`` points) are written by ``pyevtk``; the legacy ``.vtk`` (which
+pyevtk does not write) by a small writer here.
 
 Grid quantities beyond the field itself (equivalent strain, ...) are passed as ``extra``: a dict of
 arrays of the grid shape ``(nz, ny, nx)``, written next to the field's own arrays.
