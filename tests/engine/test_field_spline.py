@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from napari_dvc_correct.engine import field_spline, synthetic
 from napari_dvc_correct.engine.field import DisplacementField
+from napari_dvc_correct.engine.slabs import iter_slabs
 
 GRADIENT = np.array([[0.05, 0.02, -0.01], [0.0, -0.03, 0.04], [0.02, 0.01, 0.06]])
 
@@ -61,7 +62,7 @@ def test_lattice_and_point_evaluation_agree_and_chunks_do_not_matter(tmp_path):
     out = np.lib.format.open_memmap(tmp_path / "dense.npy", "w+", np.float32, (*shape, 3))
     field_spline.densify(field, shape=shape, out=out, chunk_voxels=700)
     assert np.abs(out - whole).max() < 1e-4
-    slabs = list(field_spline.iter_slabs(shape, chunk_voxels=33 * 41 * 4))
+    slabs = list(iter_slabs(shape, 33 * 41 * 4))
     assert len(slabs) == 8 and all(s.stop - s.start <= 4 for s in slabs)
 
 

@@ -18,6 +18,7 @@ from napari_dvc_correct.tiled import (
     correlate_tiled,
     correlate_tiled_iter,
     estimate_peak_memory,
+    whole_volume,
 )
 from napari_dvc_correct.tiled import correlate as tiled
 from napari_dvc_correct.tiled.memory import PREFILTER_MARGIN
@@ -74,13 +75,13 @@ def test_whole_volume_pass_equals_the_whole_volume_quantities(monkeypatch):
     deformed = np.roll(reference, (7, -4, 11), axis=(0, 1, 2))
     mask = np.zeros(reference.shape, bool)
     mask[10:90, 5:45, 30:150] = True
-    monkeypatch.setattr(tiled, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
+    monkeypatch.setattr(whole_volume, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
     for m in (None, mask):
         volumes = [None if v is None else ArrayVolume(v) for v in (reference, deformed, m)]
-        tasks, factor = tiled._volume_tasks(*volumes, levels=2)
+        tasks, factor = whole_volume.volume_tasks(*volumes, levels=2)
         assert factor == 3 and len(tasks) > 5
         results = dask.compute(*tasks, scheduler="sync")
-        whole = tiled._combine(results, reference.shape, factor, levels=2)
+        whole = whole_volume.combine(results, reference.shape, factor, levels=2)
         np.testing.assert_array_equal(whole.shift, global_shift(reference, deformed))
         for f in (1, 2, 4):
             binned = bin_volume(reference, f)

@@ -191,14 +191,6 @@ class DisplacementField:
         codes, counts = np.unique(self.status, return_counts=True)
         return {Status(int(c)).label: int(n) for c, n in zip(codes, counts)}
 
-    def layer_kwargs(self, voxel_size: tuple | None = None) -> dict:
-        """``scale``/``translate`` that place a grid quantity over the volume in napari."""
-        vs = np.ones(3) if voxel_size is None else np.asarray(voxel_size, float)
-        return {
-            "scale": tuple(float(s) for s in np.asarray(self.step) * vs),
-            "translate": tuple(float(o) for o in np.asarray(self.origin) * vs),
-        }
-
     # -- copies ---------------------------------------------------------------------------
     def copy(self) -> DisplacementField:
         """Deep copy (arrays and dictionaries)."""

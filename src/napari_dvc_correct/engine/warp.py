@@ -30,9 +30,9 @@ from .field_spline import (
     as_field_spline,
     check_shape,
     inside_hull,
-    iter_slabs,
 )
 from .interpolation import prefilter, sample
+from .slabs import iter_slabs
 
 #: A sampler of a volume: positions ``(N, 3)`` ``(z, y, x)`` in voxels -> float32 values ``(N,)``,
 #: NaN outside the volume.
@@ -169,6 +169,8 @@ def pull_back(
     return result
 
 
+# pull_back and warp_forward share the shape of their parameter lists and slab loops (the
+# duplicate finder pairs them): the work differs, in pull_back_block and warp_forward_block.
 def warp_forward(
     reference: np.ndarray,
     field: DisplacementField | FieldSpline,

@@ -152,6 +152,9 @@ def _write(
 ) -> dict:
     """Run ``function(out, *shared, block, *extra)`` on every block and commit the output.
 
+    The public writers below are each one call of this driver: their calls look alike (the
+    duplicate finder pairs them) because they name the same slots, filled differently.
+
     ``run`` is ``(block_shape, scheduler, workers)``.
     """
     import dask
