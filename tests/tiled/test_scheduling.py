@@ -143,9 +143,8 @@ def test_cluster_resources():
 
 
 def test_run_sends_the_tasks_to_a_cluster_when_given_a_client():
-    distributed = pytest.importorskip(
-        "distributed"
-    )  # a test dependency; absent on minimal installs
+    import distributed  # a test dependency (imported here: it is slow to import)
+
     with (
         distributed.LocalCluster(
             n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
