@@ -90,6 +90,12 @@ def test_global_shift_recovers_a_small_integer_shift_exactly(texture, shift):
     np.testing.assert_array_equal(global_shift(_roll(texture, shift), texture), -np.array(shift))
 
 
+def test_global_shift_of_a_non_cubic_volume():
+    volume = synthetic.textured_volume((32, 48, 40), 2.0, seed=2)
+    shift = (-5, 6, 3)
+    np.testing.assert_array_equal(global_shift(volume, _roll(volume, shift)), shift)
+
+
 def test_global_shift_of_a_non_periodic_crop():
     # F and G are two windows of a larger specimen (material enters and leaves at the faces)
     big = synthetic.textured_volume((64, 64, 64), 2.0, seed=4)
