@@ -12,6 +12,7 @@ from napari_dvc_correct.tiled.scheduling import (
     is_local,
     run,
     run_local,
+    running,
 )
 
 
@@ -98,6 +99,54 @@ def test_errors_of_a_task_are_raised_in_the_caller():
     tasks = [dask.delayed(fail)(i) for i in range(4)]
     with pytest.raises(ZeroDivisionError, match="task 2 failed"):
         list(run_local(tasks, workers=2))
+
+
+class _Recorder:
+    """Tasks that record when they start and finish (20 ms each)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.started, self.active = [], 0
+
+    def task(self, i):
+        with self.lock:
+            self.started.append(i)
+            self.active += 1
+        threading.Event().wait(0.02)
+        with self.lock:
+            self.active -= 1
+        return i
+
+    def tasks(self, n=8):
+        return [dask.delayed(self.task)(i) for i in range(n)]
+
+
+def test_closing_the_generator_stops_the_run():
+    recorder = _Recorder()
+    generator = run_local(recorder.tasks(), workers=1)
+    next(generator)
+    generator.close()
+    # returns once the background thread has ended: nothing runs any more, and at most the task
+    # that was running when the run was closed started after the first result
+    assert recorder.active == 0
+    assert len(recorder.started) <= 2
+    threading.Event().wait(0.1)
+    assert len(recorder.started) <= 2  # no task starts later either
+
+
+def test_leaving_running_early_stops_the_run():
+    recorder = _Recorder()
+    with pytest.raises(KeyError, match="the caller failed"):
+        with running(recorder.tasks(), workers=1) as results:
+            next(results)
+            raise KeyError("the caller failed")
+    assert recorder.active == 0
+    assert len(recorder.started) <= 2
+    # run to the end, the context gives every result
+    recorder = _Recorder()
+    with running(recorder.tasks(4), workers=2) as results:
+        assert dict(results) == {i: i for i in range(4)}
+    assert sorted(recorder.started) == [0, 1, 2, 3]
 
 
 def test_run_dispatches_locally_by_default(monkeypatch):
