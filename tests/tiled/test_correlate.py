@@ -139,6 +139,7 @@ def test_lazy_files_give_the_same_field(tmp_path, pair, local):
 
 def test_distributed_cluster_gives_the_same_answer(pair, local):
     import distributed
+
     reference, deformed, _ = pair
     with distributed.LocalCluster(
         n_workers=2,
