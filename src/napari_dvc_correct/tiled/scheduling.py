@@ -5,7 +5,7 @@ generator of ``(index, result)`` pairs in completion order, so the engine can re
 tasks finish:
 
 - ``scheduler=None`` (or ``"threads"``): dask's local threaded scheduler, nothing to start;
-- ``"sync"``: one thread, in order (debugging);
+- ``"sync"``: one task at a time, in dask's order (not the list's; debugging);
 - any other string: the address of a ``dask.distributed`` scheduler (``distributed`` is imported
   only then); or a ``distributed.Client``.
 """
