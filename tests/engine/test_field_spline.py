@@ -90,6 +90,21 @@ def test_inverse_map_solves_x_plus_u_of_x():
     assert np.abs(reference + spline(reference) - targets).max() < 1e-4
 
 
+def test_inverse_on_a_lattice_starts_from_the_neighbour_and_gives_the_same_answer():
+    band = synthetic.shear_band((20.0, 22.0, 17.0), width=6.0, slip=8.0, shift=(2.0, -1.0, 3.0))
+    spline = field_spline.FieldSpline.from_field(_field_from(band))
+    grids = np.meshgrid(*[np.arange(n, dtype=np.float64) for n in (6, 7, 40)], indexing="ij")
+    lattice = np.stack([g.reshape(-1) for g in grids], axis=1)  # rows along x: warm starts
+    order = np.random.default_rng(4).permutation(len(lattice))  # no neighbours: cold starts
+    warm, warm_ok = spline.invert(lattice)
+    shuffled, cold_ok = spline.invert(lattice[order])
+    cold = np.empty_like(warm)
+    cold[order] = shuffled
+    assert warm_ok.all() and cold_ok.all()
+    assert np.abs(warm + spline(warm) - lattice).max() < 1e-4
+    assert np.abs(warm - cold).max() < 1e-6
+
+
 def test_a_field_with_holes_is_refused_with_advice():
     field = _field_from(synthetic.translation((1.0, 0.0, 0.0)))
     field.u[2, 2, 2] = np.nan

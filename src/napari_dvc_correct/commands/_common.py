@@ -94,11 +94,11 @@ def check_output_path(
     path: str, suffixes=(".npz",), inputs: Iterable[str | None] = (), option: str = "--out"
 ) -> Path:
     """Refuse an output before any work: wrong suffix, missing or unwritable folder, a folder,
-    an existing file that cannot be replaced, or one of ``inputs``."""
+    or one of ``inputs``. ``suffixes=None`` leaves the suffix to the caller (``--out-format``)."""
     out = Path(path)
     if out.is_dir():
         raise ValueError(f"{option} {out} is a folder: give a file name")
-    if out.suffix.lower() not in suffixes:
+    if suffixes is not None and out.suffix.lower() not in suffixes:
         raise ValueError(f"{option} {out} must end with {' or '.join(suffixes)}")
     folder = out.parent if str(out.parent) else Path(".")
     _check_folder_writable(folder, option)

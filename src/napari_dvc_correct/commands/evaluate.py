@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from ._common import UserError
+from ._field_formats import add_field_format_arguments, read_input_field
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -87,6 +88,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--no-volumes", action="store_true", help="do not write TIFF volumes")
     parser.add_argument("--out-dir", required=True, help="folder for the report (created)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_field_format_arguments(parser, output=False)
     parser.set_defaults(run=run)
     return parser
 
@@ -159,7 +161,6 @@ def ready_for_evaluation(field, name: str):
 def run(args) -> int:
     from ..engine.accuracy import evaluate_iter
     from ..engine.pair_checks import check_pair_and_fields
-    from ..io.npz import load_field
     from ..io.volumes import read_volume
     from ..report import write_report
     from ._common import ProgressBar, check_output_dir, drive, output_set
@@ -172,7 +173,10 @@ def run(args) -> int:
     out_dir = check_output_dir(
         args.out_dir, inputs=(args.reference, args.deformed, *paths), patterns=REPORT_PATTERNS
     )
-    loaded = {name: load_field(path) for name, path in zip(names, paths)}
+    loaded = {  # --format is --field's; the --compare fields' formats are sniffed
+        name: read_input_field(args, path, sniff=k > 0).field
+        for k, (name, path) in enumerate(zip(names, paths))
+    }
     reference = read_volume(args.reference)
     deformed = read_volume(args.deformed)
     check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did

@@ -522,6 +522,8 @@ def correlate_iter(
     return field
 
 
+# correlate repeats correlate_iter's signature (the duplicate finder pairs them): the blocking
+# form of the generator keeps the same keywords, spelt out so that help() shows them.
 def correlate(
     reference: np.ndarray,
     deformed: np.ndarray,

@@ -28,8 +28,7 @@ def _iter_moved(
     field,
     mode: str,
     region: str,
-    reference_coefficients,
-    deformed_coefficients,
+    coefficients: tuple,
     chunk_voxels: int,
 ) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
     """Yield ``(z, moved, residual)`` slab by slab; NaN where undefined (see :func:`gray_residual`)."""
@@ -43,6 +42,7 @@ def _iter_moved(
         if volume.ndim != 3:
             raise ValueError(f"{name} must be a 3-D volume (z, y, x), got shape {volume.shape}")
     spline = as_field_spline(field)
+    reference_coefficients, deformed_coefficients = coefficients
     if mode == "reference":
         sampler = spline_sampler(coefficients_of(deformed, deformed_coefficients, "deformed"))
         outside = "nan" if region == "hull" else "extrapolate"
@@ -77,18 +77,12 @@ def moved_and_residual(
     :func:`.warp.pull_back` / :func:`.warp.warp_forward` with ``outside="nan"`` (for
     ``region="hull"``) and :func:`gray_residual`, at the cost of one of them.
     """
+    coefficients = (reference_coefficients, deformed_coefficients)
     shape = np.shape(reference) if mode == "reference" else np.shape(deformed)
     moved = np.empty(shape, np.float32)
     residual = np.empty(shape, np.float32)
     for z, moved_block, residual_block in _iter_moved(
-        reference,
-        deformed,
-        field,
-        mode,
-        region,
-        reference_coefficients,
-        deformed_coefficients,
-        chunk_voxels,
+        reference, deformed, field, mode, region, coefficients, chunk_voxels
     ):
         moved[z] = moved_block
         residual[z] = residual_block
@@ -144,17 +138,11 @@ def gray_residual(
     """
     reference = np.asanyarray(reference)
     deformed = np.asanyarray(deformed)
+    coefficients = (reference_coefficients, deformed_coefficients)
     shape = reference.shape if mode == "reference" else deformed.shape
     result = np.empty(shape, np.float32)
     for z, _, block in _iter_moved(
-        reference,
-        deformed,
-        field,
-        mode,
-        region,
-        reference_coefficients,
-        deformed_coefficients,
-        chunk_voxels,
+        reference, deformed, field, mode, region, coefficients, chunk_voxels
     ):
         result[z] = block
     return result
@@ -175,17 +163,11 @@ def mean_gray_residual(
 
     Computed slab by slab (never holds the residual volume). Returns NaN if it is defined nowhere.
     """
+    coefficients = (reference_coefficients, deformed_coefficients)
     total = 0.0
     count = 0
     for _, _, block in _iter_moved(
-        reference,
-        deformed,
-        field,
-        mode,
-        region,
-        reference_coefficients,
-        deformed_coefficients,
-        chunk_voxels,
+        reference, deformed, field, mode, region, coefficients, chunk_voxels
     ):
         finite = np.isfinite(block)
         total += float(np.sum(block[finite], dtype=np.float64))

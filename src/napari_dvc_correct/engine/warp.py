@@ -169,6 +169,8 @@ def pull_back(
     return result
 
 
+# pull_back and warp_forward share the shape of their parameter lists and slab loops (the
+# duplicate finder pairs them): the work differs, in pull_back_block and warp_forward_block.
 def warp_forward(
     reference: np.ndarray,
     field: DisplacementField | FieldSpline,
