@@ -84,7 +84,8 @@ def test_evaluate_checks_the_pair_and_the_field(files, capsys, arguments, messag
         (["--field", "good.npz", "--mask", "zeros.npy"], "the mask is empty"),
         (["--field", "good.npz", "--mask", "zeros.npy", "--frame", "reference"], "mask is empty"),
         (["--field", "good.npz", "--out", "good.npz"], "is also an input"),
-        (["--field", "good.npz", "--out", "ref.npy"], "must end with .npz"),
+        (["--field", "good.npz", "--out", "ref.npy"], "is also an input"),
+        (["--field", "good.npz", "--out", "other.txt"], "must end with .npz"),
     ],
 )
 def test_correct_refuses_fields_masks_and_outputs(files, capsys, arguments, message):
