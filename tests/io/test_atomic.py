@@ -122,3 +122,20 @@ def test_output_set_never_replaces_a_foreign_folder(tmp_path):
     with atomic_dir(out, patterns=("*.csv",)) as temp:
         (temp / "a.csv").write_text("2")
     assert not (out / "summary.csv").exists()
+
+
+def test_files_that_belong_together_are_replaced_together(tmp_path):
+    from napari_dvc_correct.io.atomic import atomic_files
+
+    field, side = tmp_path / "f.npz", tmp_path / "f_points.csv"
+    field.write_text("old field")
+    side.write_text("old side")
+    with pytest.raises(KeyboardInterrupt), atomic_files(field, side) as (a, b):
+        a.write_text("new field")
+        raise KeyboardInterrupt  # between the two writes
+    assert field.read_text() == "old field" and side.read_text() == "old side"
+    with atomic_files(field, side) as (a, b):
+        a.write_text("new field")
+        b.write_text("new side")
+    assert field.read_text() == "new field" and side.read_text() == "new side"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.npz", "f_points.csv"]

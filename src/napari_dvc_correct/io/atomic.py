@@ -131,6 +131,32 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+@contextlib.contextmanager
+def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
+    """:func:`atomic_path` for several files that belong together (a field and its side file).
+
+    Yields one temporary path per target; on success all are renamed into place with SIGINT and
+    SIGTERM held back, so either every target is new or none is.
+    """
+    targets = [Path(p) for p in paths]
+    for folder in {_folder(p) for p in targets}:
+        remove_stale(folder)
+    modes = [output_mode(p) for p in targets]
+    temps = [temp_name(p) for p in targets]
+    try:
+        yield temps
+        for temp, mode in zip(temps, modes):
+            os.chmod(temp, mode)
+        with _signals_blocked():
+            for temp, target in zip(temps, targets):
+                os.replace(temp, target)
+    except BaseException:
+        for temp in temps:
+            with contextlib.suppress(FileNotFoundError):
+                temp.unlink()
+        raise
+
+
 def is_output_set(folder: str | os.PathLike, patterns: Iterable[str] = ()) -> bool:
     """True if ``folder`` may be replaced as a whole by a new output set.
 
