@@ -114,3 +114,13 @@ def test_subvolume_advice(shape, text):
     assert text in largest_subvolume_advice(shape)
     with pytest.raises(ValueError, match=text):
         grid_for_volume(shape, 15, 4)
+
+
+@pytest.mark.parametrize("frame", ["loaded", "reference"])
+def test_correct_iter_refuses_an_empty_mask_and_a_field_outside_in_both_frames(pair, frame):
+    from napari_dvc_correct.engine.correction import correct_iter
+
+    with pytest.raises(ValueError, match="the mask is empty"):
+        next(correct_iter(*pair, field_on(), frame=frame, mask=np.zeros(SHAPE, bool)))
+    with pytest.raises(ValueError, match="grid does not fit the volume"):
+        next(correct_iter(*pair, field_on(shape=(48, 48, 48)), frame=frame))
