@@ -58,6 +58,7 @@ from .field import DisplacementField, Provenance, Status
 from .field_spline import FieldSpline
 from .interpolation import prefilter
 from .local_acceptance import Judge, accept_locally, flag_and_refill
+from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
 
@@ -415,6 +416,8 @@ def correct_iter(
             f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
             "same shape"
         )
+    # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
+    check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
     if params is None:
         params = (
             CorrelationParams.from_dict(field.params)
