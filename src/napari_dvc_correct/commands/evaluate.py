@@ -218,7 +218,8 @@ def run(args) -> int:
     for item in evaluation.fields:
         print(
             f"{item.name}: mean residual {item.mean_residual:.3f}, background "
-            f"{item.background_used:.3f}, accuracy index {item.accuracy:.4f}"
+            f"{item.background_used:.3f}, accuracy index {item.accuracy:.4f}, "
+            f"local accuracy index {item.local_accuracy_index:.4f}"
         )
     count = sum(len(paths) for paths in files.values())
     print(f"wrote {count} files to {out_dir} (open {out_dir / 'report.md'})")
