@@ -121,7 +121,8 @@ def run(case: str) -> None:
         exact = before < 0.1
         line += (
             f" exact->0.5 off: {int(np.sum(exact & (after > 0.5)))}, "
-            f">1 off and good: {int(np.sum((after > 1) & good))} |"
+            f">1 off and good: {int(np.sum((after > 1) & good))}, "
+            f"RMSE of the good-status nodes {rmse(after, good):.3f} ({int(good.sum())} nodes) |"
         )
     print(line, flush=True)
 
