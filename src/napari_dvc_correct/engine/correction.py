@@ -93,20 +93,23 @@ class CorrectionPass:
     mean_gray_residual : float
         Mean gray residual of the field after the pass, in the pass's frame (gray levels).
     noise_floor : float
-        Background residual ``r0`` (eq. 1, gray levels): the imaging-noise floor the pass is
-        judged against (the smallest seen so far).
+        The imaging-noise floor the pass is judged against (gray levels): eq. 1's background
+        residual ``r0`` or the lower quartile of the nodes' cell residuals, whichever is smaller,
+        the smallest seen so far (:class:`.local_acceptance.Judge`).
     residual_before : float
         Mean gray residual before the pass (gray levels; pass 0: same as after).
     local_residual_before, local_residual_after : float
-        Mean over the nodes of the local residual (reference frame, each node's subvolume
-        region) before and after the pass (gray levels).
+        Mean over the nodes of the local residual (reference frame, over each node's cell)
+        before and after the pass (gray levels).
     accepted : bool
         Whether the pass changed the field at all (some node accepted).
     accepted_nodes, rejected_nodes : int
         Nodes whose correction was kept / refused (local residual rose by more than the noise
         allows; they keep their previous value).
     improved_nodes : int
-        Accepted nodes whose local residual fell by more than the noise allows.
+        Accepted nodes whose residual over their subvolume fell by more than the noise allows
+        (and more than a 0.01-voxel change explains): the regions that "improve above the
+        floor", which decide whether another pass runs.
     fraction_changed : float
         Fraction of the (unmasked) nodes moved by more than :data:`CHANGE_THRESHOLD` voxels.
     mean_change, max_change : float
