@@ -101,3 +101,15 @@ def test_napari_opens_a_field_file_through_the_plugin(field, tmp_path, make_napa
     viewer.open(str(path), plugin="napari-dvc-correct")
     assert "displacement (run2)" in viewer.layers
     np.testing.assert_allclose(viewer.layers["|u| (run2)"].scale, (8.0, 4.0, 4.0))
+
+
+@pytest.mark.parametrize("content", [b"", b"not a tiff at all", "truncated"])
+def test_unreadable_tiff_is_not_claimed(tmp_path, content):
+    """A .tif that tifffile cannot open is not ours: None, so napari tries other readers."""
+    path = tmp_path / "broken.tif"
+    if content == "truncated":
+        tifffile.imwrite(path, np.zeros((4, 16, 16), np.uint8), photometric="minisblack")
+        path.write_bytes(path.read_bytes()[:12])
+    else:
+        path.write_bytes(content)
+    assert napari_get_reader(str(path)) is None

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 TIFF_SUFFIXES = (".tif", ".tiff")
+#: Field files of other DVC tools (io.formats): spam .tsv, iDVC .disp, ALDVC .mat/.npz, tables.
+FOREIGN_SUFFIXES = (".tsv", ".disp", ".mat", ".csv")
 
 
 def _tiff_files(folder: Path) -> list[Path]:
@@ -54,11 +56,24 @@ def napari_get_reader(path):
     if path.is_dir():
         return read_tiff_folder if _tiff_files(path) else None
     suffix = path.suffix.lower()
-    if suffix == ".npz":
-        return read_field_file if is_field_file(path) else None
+    if suffix == ".npz" and is_field_file(path):
+        return read_field_file
+    if suffix in (*FOREIGN_SUFFIXES, ".npz"):
+        return read_foreign_field if foreign_field_format(path) else None
     if suffix in TIFF_SUFFIXES and path.is_file():
-        return read_tiff
+        return read_tiff if is_readable_tiff(path) else None
     return None
+
+
+def is_readable_tiff(path: str | os.PathLike) -> bool:
+    """True if tifffile can open ``path`` and it holds at least one page (header check only)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            return len(tif.pages) > 0 and bool(tif.series)
+    except Exception:  # any failure to parse means: not ours to claim
+        return False
 
 
 def _placement_from_tiff(tif) -> dict:
@@ -122,3 +137,31 @@ def read_field_file(path) -> list[tuple]:
     return field_layers(
         field, path.stem, voxel_size=voxel_size, offset=offset, equivalent_strain=equivalent
     )
+
+
+def foreign_field_format(path) -> str | None:
+    """The other tool's format of a field file (:mod:`.io.formats`), or None if it is not one."""
+    from .io.formats import sniff_format, table
+
+    try:
+        fmt = sniff_format(path)
+        if fmt == "table":
+            from .io.formats._common import first_line
+
+            return fmt if table.looks_like(first_line(path)) else None
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+    return None if fmt == "npz" else fmt
+
+
+def read_foreign_field(path) -> list[tuple]:
+    """Read another tool's field file as the plugin's field layers (scattered points are put on
+    a grid, with provenance; see :func:`.engine.scattered.to_grid`)."""
+    from .engine.strain import equivalent_strain_field
+    from .io.formats import read_field
+    from .layers import field_layers
+
+    path = Path(path[0] if isinstance(path, (list, tuple)) else path)
+    field = read_field(path, foreign_field_format(path))
+    equivalent = equivalent_strain_field(field) if min(field.shape) >= 2 else None
+    return field_layers(field, path.stem, equivalent_strain=equivalent)

@@ -14,10 +14,8 @@ from napari_dvc_correct.engine.progress import Progress
 from napari_dvc_correct.io.lazy import ArrayVolume
 from napari_dvc_correct.tiled import (
     MemoryBudgetError,
-    choose_batch_shape,
     correlate_tiled,
     correlate_tiled_iter,
-    estimate_peak_memory,
     whole_volume,
 )
 from napari_dvc_correct.tiled import correlate as tiled
@@ -140,7 +138,8 @@ def test_lazy_files_give_the_same_field(tmp_path, pair, local):
 
 
 def test_distributed_cluster_gives_the_same_answer(pair, local):
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     reference, deformed, _ = pair
     with distributed.LocalCluster(
         n_workers=2,
@@ -209,31 +208,6 @@ def test_refuses_a_run_larger_than_the_machine(monkeypatch, pair):
     monkeypatch.setattr(tiled, "available_memory", lambda: 50 * 2**20)
     with pytest.raises(MemoryBudgetError, match="available on this machine"):
         correlate_tiled(reference, deformed, PARAMS, batch_shape=(6, 6, 6), workers=2)
-
-
-def test_max_memory_picks_the_batch_size():
-    params = CorrelationParams(subvolume=31, step=8)
-    shape = (512, 512, 512)
-    small = choose_batch_shape(shape, np.uint16, params, 1 << 30, workers=2)
-    large = choose_batch_shape(shape, np.uint16, params, 4 << 30, workers=2)
-    assert np.prod(small) < np.prod(large)
-    for budget, batch in ((1 << 30, small), (4 << 30, large)):
-        assert estimate_peak_memory(shape, np.uint16, params, batch, workers=2) <= budget
-        bigger = tuple(b + 1 for b in batch)
-        assert estimate_peak_memory(shape, np.uint16, params, bigger, workers=2) > budget
-
-
-def test_estimate_grows_with_batch_workers_and_shift():
-    params = CorrelationParams(subvolume=31, step=8)
-    shape = (256, 256, 256)
-    base = estimate_peak_memory(shape, np.uint16, params, (4, 4, 4))
-    assert estimate_peak_memory(shape, np.uint16, params, (8, 8, 8)) > base
-    assert estimate_peak_memory(shape, np.uint16, params, (4, 4, 4), workers=2) > base
-    assert estimate_peak_memory(shape, np.uint16, params, (4, 4, 4), shift=(20, 0, 0)) > base
-    # the paper's workload: far beyond one batch of a few POIs, far below the whole volume
-    paper = CorrelationParams(subvolume=141, step=10)
-    need = estimate_peak_memory((2000, 2000, 3000), np.uint16, paper, (8, 8, 8))
-    assert 1 << 30 < need < 2000 * 2000 * 3000 * 4
 
 
 def test_rejects_volumes_with_nan(pair):

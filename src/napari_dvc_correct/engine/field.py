@@ -6,6 +6,10 @@ reference position ``X`` moves to ``x = X + u(X)``, so ``F(X + u(X)) ≈ G(X)``.
 
 Node ``(i, j, k)`` of the grid sits at ``origin + (i, j, k) * step`` (voxels). In napari a grid
 quantity is an Image layer with ``scale = step`` and ``translate = origin``.
+
+A field on scattered points (another tool's, or a list of points of interest) is a
+:class:`.scattered.ScatteredField`; :func:`.scattered.to_grid` and :func:`.scattered.sample_field`
+go between the two (node provenance ``INTERPOLATED``).
 """
 
 from __future__ import annotations
@@ -49,6 +53,8 @@ class Provenance(IntEnum):
     CORRECTED = 2
     MASKED = 3
     NOT_COMPUTED = 4
+    #: Interpolated onto this node from a field on other points (an imported scattered field).
+    INTERPOLATED = 5
 
     @property
     def label(self) -> str:
@@ -209,7 +215,9 @@ class DisplacementField:
         corrected) by post-processing.
         """
         measured_ok = np.isin(self.status, [int(s) for s in GOOD_STATUSES])
-        filled = np.isin(self.provenance, [Provenance.REPLACED, Provenance.CORRECTED])
+        filled = np.isin(
+            self.provenance, [Provenance.REPLACED, Provenance.CORRECTED, Provenance.INTERPOLATED]
+        )
         return (measured_ok | filled) & np.all(np.isfinite(self.u), axis=-1)
 
     def status_counts(self) -> dict[str, int]:
@@ -294,9 +302,11 @@ def grid_for_volume(volume_shape, subvolume: int, step) -> tuple[tuple, tuple, t
         margin = BORDER_MARGIN if span >= 2 * BORDER_MARGIN else 0
         span -= 2 * margin
         if span < 0:
+            from .pair_checks import largest_subvolume_advice
+
             raise ValueError(
                 f"subvolume {subvolume} is larger than the volume ({volume_shape}): "
-                f"choose a subvolume of at most {min(volume_shape) - (1 - min(volume_shape) % 2)}"
+                + largest_subvolume_advice(volume_shape)
             )
         count = span // s + 1
         used = (count - 1) * s

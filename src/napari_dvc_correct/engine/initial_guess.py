@@ -72,6 +72,8 @@ def global_shift(reference: np.ndarray, deformed: np.ndarray, max_size: int = 96
     g = (g - g.mean()) * window
     f = (f - f.mean()) * window
     cross = np.conj(sfft.rfftn(g)) * sfft.rfftn(f)
+    if not np.any(cross):  # a textureless volume: no shift to find (and no 0/0 warning)
+        return np.zeros(3, np.int64)
     cross /= np.abs(cross) + 1e-12 * np.abs(cross).max()
     corr = sfft.irfftn(cross, s=g.shape)
     peak = np.array(np.unravel_index(np.argmax(corr), corr.shape))
@@ -193,8 +195,8 @@ def fft_search(
             after[:, axis] = np.minimum(best[:, axis] + 1, n_shifts - 1)
             a = ncc[rows, before[:, 0], before[:, 1], before[:, 2]]
             c = ncc[rows, after[:, 0], after[:, 1], after[:, 2]]
-            curvature = a - 2 * peak + c
-            with np.errstate(invalid="ignore", divide="ignore"):
+            with np.errstate(invalid="ignore", divide="ignore"):  # flat subvolumes: -inf
+                curvature = a - 2 * peak + c
                 offset = np.clip(0.5 * (a - c) / curvature, -0.5, 0.5)
             sub_voxel[:, axis] = np.where(inner & (curvature < 0), offset, 0.0)
         flat = norm_sub == 0

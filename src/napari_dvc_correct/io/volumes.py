@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,9 @@ VOLUME_SUFFIXES = (".tif", ".tiff", ".npy", ".npz")
 
 def read_volume(path: str | os.PathLike, mmap: bool = True) -> np.ndarray:
     """Read a 3-D volume ``(z, y, x)`` from a TIFF stack, a folder of TIFF slices, ``.npy`` or ``.npz``.
+
+    The slices of a folder are stacked along z in natural order (``img2`` before ``img10``), as
+    :class:`.lazy.SliceFolderVolume` reads them.
 
     TIFF and ``.npy`` files are memory-mapped when their layout allows it, so only the regions
     the engine touches are read. An ``.npz`` must hold exactly one array (or one named ``volume``).
@@ -49,6 +53,11 @@ def read_volume(path: str | os.PathLike, mmap: bool = True) -> np.ndarray:
     return validate_volume(volume, str(path))
 
 
+def natural_key(path: Path) -> list:
+    """Sort key of a slice file: numbers compare as numbers (``img2`` before ``img10``)."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", path.name)]
+
+
 def _read_tiff(path: Path, mmap: bool) -> np.ndarray:
     import tifffile
 
@@ -56,17 +65,22 @@ def _read_tiff(path: Path, mmap: bool) -> np.ndarray:
         if mmap:
             try:
                 return tifffile.memmap(path, mode="r")
-            except (ValueError, OSError):
-                pass  # compressed or tiled: fall back to reading
-        return tifffile.imread(path)
-    except (tifffile.TiffFileError, ValueError, OSError) as error:
+            except (ValueError, OSError, IndexError):
+                pass  # compressed or tiled (or broken: reading says so): fall back to reading
+        volume = tifffile.imread(path)
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError) as error:
         raise ValueError(f"{path} is not a readable TIFF file ({error})") from error
+    if volume.size == 0:  # a broken header reads as no pages
+        raise ValueError(f"{path} is not a readable TIFF file (no image data)")
+    return volume
 
 
 def _read_tiff_folder(path: Path) -> np.ndarray:
     import tifffile
 
-    files = sorted(p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+    files = sorted(
+        (p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff")), key=natural_key
+    )
     if not files:
         raise ValueError(f"{path} is a folder with no .tif slices")
     try:

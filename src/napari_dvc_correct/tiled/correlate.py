@@ -329,9 +329,11 @@ def correlate_tiled_iter(
     if mask is not None and tuple(mask.shape) != shape:
         raise ValueError(f"mask shape {tuple(mask.shape)} differs from the volume {shape}")
     if params.subvolume > min(shape):
+        from ..engine.pair_checks import largest_subvolume_advice
+
         raise ValueError(
-            f"subvolume {params.subvolume} is larger than the volume {shape}: use a subvolume of "
-            f"at most {min(shape) - (1 - min(shape) % 2)}"
+            f"subvolume {params.subvolume} is larger than the volume {shape}: "
+            + largest_subvolume_advice(shape)
         )
     if not isinstance(margin, (int, np.integer)) or margin < 0:
         raise ValueError(f"margin must be an integer >= 0, got {margin!r}")
@@ -400,11 +402,12 @@ def correlate_tiled_iter(
         t0 = time.perf_counter()
         tasks, factor = volume_tasks(reference, deformed, mask, levels)
         results = []
-        for done, (_, result) in enumerate(
-            scheduling.run(tasks, scheduler, workers, client), start=1
-        ):
-            results.append(result)
-            yield Progress("whole volume", done, len(tasks), f"read block {done} of {len(tasks)}")
+        with scheduling.running(tasks, scheduler, workers, client) as finished:
+            for done, (_, result) in enumerate(finished, start=1):
+                results.append(result)
+                yield Progress(
+                    "whole volume", done, len(tasks), f"read block {done} of {len(tasks)}"
+                )
         whole = combine(results, shape, factor, levels)
         del results
         if masked and whole.mask_count == 0:
@@ -444,23 +447,22 @@ def correlate_tiled_iter(
         iterations = np.zeros(n_points, np.int32)
         totals: dict = {}
         t0 = time.perf_counter()
-        for done, (_, result) in enumerate(
-            scheduling.run(batch_tasks, scheduler, workers, client), start=1
-        ):
-            index = result.core_index
-            u[index] = result.u
-            gradient[index] = result.gradient
-            zncc[index] = result.zncc
-            status[index] = result.status
-            iterations[index] = result.iterations
-            for key, value in result.timings.items():
-                totals[key] = totals.get(key, 0) + value
-            yield Progress(
-                "IC-GN",
-                done,
-                len(jobs),
-                f"batch {done} of {len(jobs)} ({totals.get('points', 0)} of {n_points} POIs)",
-            )
+        with scheduling.running(batch_tasks, scheduler, workers, client) as finished:
+            for done, (_, result) in enumerate(finished, start=1):
+                index = result.core_index
+                u[index] = result.u
+                gradient[index] = result.gradient
+                zncc[index] = result.zncc
+                status[index] = result.status
+                iterations[index] = result.iterations
+                for key, value in result.timings.items():
+                    totals[key] = totals.get(key, 0) + value
+                yield Progress(
+                    "IC-GN",
+                    done,
+                    len(jobs),
+                    f"batch {done} of {len(jobs)} ({totals.get('points', 0)} of {n_points} POIs)",
+                )
         batch_seconds = time.perf_counter() - t0
     finally:
         if owns_client:

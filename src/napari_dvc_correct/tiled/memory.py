@@ -114,6 +114,8 @@ def parse_memory(size) -> int:
         from dask.utils import parse_bytes
 
         try:
+            if not size.strip()[:1].isdigit() and size.strip()[:1] not in ("-", "+", "."):
+                raise ValueError("no number")  # parse_bytes reads "" as 1 B and "GB" as 1 GB
             value = parse_bytes(size.strip())
         except (ValueError, KeyError) as error:
             raise ValueError(

@@ -175,13 +175,12 @@ def _write(
         task = dask.delayed(function, pure=False)
         tasks = [task(out, *delayed_shared, block, *extra) for block in blocks]
         total, count = 0.0, 0
-        for done, (_, (block_sum, block_count)) in enumerate(
-            scheduling.run(tasks, scheduler, workers, client), start=1
-        ):
-            total += block_sum
-            count += block_count
-            if progress is not None:
-                progress(Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}"))
+        with scheduling.running(tasks, scheduler, workers, client) as finished:
+            for done, (_, (block_sum, block_count)) in enumerate(finished, start=1):
+                total += block_sum
+                count += block_count
+                if progress is not None:
+                    progress(Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}"))
     except BaseException:
         out.discard()
         raise
