@@ -145,3 +145,17 @@ def test_homogeneous_strain_does_not_eat_the_grid_from_its_borders():
     field.u[1, 2, 1] += (0.0, 3.0, 0.0)
     assert cleaning.detect_outliers(field).median[1, 2, 1]
     assert cleaning.detect_outliers(field).counts()["rejected"] == 1
+
+
+def test_clean_keeps_measured_uncertainty_and_blanks_it_where_a_value_was_filled_in():
+    field = _grid_field(SMOOTH)
+    field.zncc[:] = 0.95
+    field.uncertainty = np.full((*SHAPE, 3), 0.02)
+    field.u[4, 4, 4] += (3.0, 0.0, 0.0)  # an outlier
+    field.status[7, 7, 7] = Status.LOW_ZNCC
+    cleaned = cleaning.clean(field)
+    replaced = cleaned.provenance == Provenance.REPLACED
+    assert replaced[4, 4, 4] and replaced[7, 7, 7]
+    assert np.all(np.isnan(cleaned.uncertainty[replaced]))
+    assert np.all(cleaned.uncertainty[~replaced] == 0.02)
+    assert np.all(field.uncertainty == 0.02)  # the input is untouched

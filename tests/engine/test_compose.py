@@ -93,3 +93,13 @@ def test_quality_arrays_keep_the_worst_news():
     assert np.isnan(compose(first, second).u[1, 1, 1]).all()
     with pytest.raises(ValueError, match="clean"):
         compose(second, first)
+
+
+def test_uncertainties_add_in_quadrature():
+    first = _grid_field(synthetic.translation((1.0, 0.0, 0.0)))
+    second = _grid_field(synthetic.translation((0.0, 0.5, 0.0)))
+    assert compose(first, second).uncertainty is None
+    first.uncertainty = np.full((*first.shape, 3), 0.03)
+    second.uncertainty = np.full((*second.shape, 3), 0.04)
+    for mode in ("exact", "sum"):
+        np.testing.assert_allclose(compose(first, second, mode=mode).uncertainty, 0.05)

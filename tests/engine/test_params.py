@@ -22,6 +22,11 @@ def test_defaults():
     assert params.min_texture == 0.05
     assert params.min_zncc == 0.5
     assert params.batch_size == 256
+    # issue 10/14: the noise stop and the rules correlate used to hide
+    assert params.noise_tolerance == 0.1
+    assert params.min_max_update == 4.0
+    assert params.median_test_min_pois == 9
+    assert (params.repair_attempts, params.repair_attempts_out_of_bounds) == (3, 1)
 
 
 @pytest.mark.parametrize(
@@ -63,6 +68,10 @@ def test_numpy_integers_are_accepted():
         ({"min_zncc": 1.2}, r"min_zncc must be in \[-1, 1\], got 1.2"),
         ({"min_zncc": float("nan")}, r"min_zncc must be in \[-1, 1\], got nan"),
         ({"batch_size": 0}, "batch_size must be >= 1, got 0"),
+        ({"noise_tolerance": 1.0}, r"noise_tolerance must be in \[0, 1\), got 1.0"),
+        ({"min_max_update": 0.0}, "min_max_update must be > 0 voxels, got 0.0"),
+        ({"repair_attempts": -1}, "repair_attempts must be an integer >= 0, got -1"),
+        ({"median_test_min_pois": 2.5}, "median_test_min_pois must be an integer >= 0, got 2.5"),
     ],
 )
 def test_bad_values_are_refused_with_the_rule_and_the_value(changes, message):

@@ -218,3 +218,13 @@ def test_rejects_volumes_with_nan(pair):
         correlate_tiled(reference, broken, PARAMS, batch_shape=BATCH)
     with pytest.raises(ValueError, match="same shape"):
         correlate_tiled(reference, deformed[:-1], PARAMS)
+
+
+def test_uncertainty_travels_through_the_batches(pair):
+    reference, deformed, _ = pair
+    a = correlate(reference, deformed, PARAMS)
+    b = correlate_tiled(reference, deformed, PARAMS, batch_shape=BATCH)
+    both = _converged_in_both(a, b)
+    assert both.sum() > 20
+    assert np.all(np.isfinite(b.uncertainty[both]))
+    np.testing.assert_allclose(b.uncertainty[both], a.uncertainty[both], rtol=0.1, atol=1e-6)

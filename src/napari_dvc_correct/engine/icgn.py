@@ -439,6 +439,11 @@ def _translation_h_inverse(low, m_par, nb, out):
         out[k] = column[k * nb]
 
 
+#: The noise stop applies to matches whose ZNCC is below this (residual variance above 0.1 % of
+#: the subvolume's): noise-free scans converge to ``tolerance`` as before.
+NOISE_STOP_MAX_ZNCC = 0.999
+
+
 @njit(**KERNEL_OPTIONS)
 def _noise_converged(dp, nb, h_inv, delta_g, zncc, count, previous, noise_fraction):
     """Noise stop: True when the remaining translation error is below ``noise_fraction`` of its noise.
@@ -450,10 +455,13 @@ def _noise_converged(dp, nb, h_inv, delta_g, zncc, count, previous, noise_fracti
     ``σ_r² = 2 Σ(g − ḡ)² (1 − ZNCC) / (n − 3·nb − 2)``) and the true noise uncertainty about
     ``σ_k / (1 − ρ)``, the remaining error is below ``noise_fraction`` of it when ``d · ρ`` is:
     the rule is ``d < 1`` and ``d · min(ρ, 1) < noise_fraction``, ``ρ = d / d_previous``.
-    On noise-free scans ``σ_r`` is tiny, ``d`` large, and the usual tolerance decides.
+    The rule applies only where ``ZNCC < NOISE_STOP_MAX_ZNCC``: on noise-free scans the usual
+    tolerance decides, exactly as without it.
 
     Returns ``(stop, d)``.
     """
+    if not (zncc < NOISE_STOP_MAX_ZNCC):
+        return False, np.inf
     m_par = 3 * nb
     residual = 2.0 * delta_g * delta_g * max(1.0 - zncc, 0.0) / max(count - m_par - 2, 1)
     d = 0.0
@@ -794,11 +802,11 @@ def subvolume_statistics(
                 sigma[n, k] = np.sqrt(residual * h_inv[k]) if ok_perp else np.inf
             continue
         # A from the deformed volume's gradient at the warped voxels
-        cross = np.zeros((m_par, m_par))
+        # Σ g_k f_l b_j b_j' for j <= j' (the products are symmetric in j, j')
+        moments = np.zeros((9, nb, nb))
         sum_jf = np.zeros(m_par)
         sum_jfg = np.zeros(m_par)
-        jg = np.empty(m_par)
-        jf = np.empty(m_par)
+        gf = np.empty(9)
         b = np.empty(10)
         used = 0
         sum_f = 0.0
@@ -819,19 +827,31 @@ def subvolume_statistics(
             sum_f += f
             sum_ff += f * f
             dg = g[i] - mean_g
+            for k in range(3):
+                gk = grad[i, k]
+                gf[3 * k] = gk * fz
+                gf[3 * k + 1] = gk * fy
+                gf[3 * k + 2] = gk * fx
             for j in range(nb):
-                jg[j] = grad[i, 0] * b[j]
-                jg[nb + j] = grad[i, 1] * b[j]
-                jg[2 * nb + j] = grad[i, 2] * b[j]
-                jf[j] = fz * b[j]
-                jf[nb + j] = fy * b[j]
-                jf[2 * nb + j] = fx * b[j]
-            for c in range(m_par):
-                sum_jf[c] += jf[c]
-                sum_jfg[c] += jf[c] * dg
-            for r in range(m_par):
-                for c in range(m_par):
-                    cross[r, c] += jg[r] * jf[c]
+                bj = b[j]
+                sum_jf[j] += fz * bj
+                sum_jf[nb + j] += fy * bj
+                sum_jf[2 * nb + j] += fx * bj
+                sum_jfg[j] += fz * bj * dg
+                sum_jfg[nb + j] += fy * bj * dg
+                sum_jfg[2 * nb + j] += fx * bj * dg
+                for j2 in range(j, nb):
+                    bb = bj * b[j2]
+                    for q in range(9):
+                        moments[q, j, j2] += gf[q] * bb
+        cross = np.empty((m_par, m_par))
+        for k in range(3):
+            for l in range(3):
+                q = 3 * k + l
+                for j in range(nb):
+                    for j2 in range(nb):
+                        value = moments[q, j, j2] if j <= j2 else moments[q, j2, j]
+                        cross[k * nb + j, l * nb + j2] = value
         if used < m_par + 3:
             continue
         ss_f = sum_ff - sum_f * sum_f / used

@@ -75,8 +75,8 @@ def export_hdf5(
     """Write the field (and optional grid or dense quantities) to an HDF5 file.
 
     Layout: group ``/field`` with datasets ``u`` (nz, ny, nx, 3), ``zncc``, ``status``,
-    ``iterations``, ``provenance``, ``gradient`` (if any), ``points`` (N, 3) and ``displacement``
-    (N, 3); attributes ``origin``, ``step``, ``voxel_size`` (z, y, x), ``params`` and ``metadata``
+    ``iterations``, ``provenance``, ``gradient`` and ``uncertainty`` (if any), ``points`` (N, 3)
+    and ``displacement`` (N, 3); attributes ``origin``, ``step``, ``voxel_size`` (z, y, x), ``params`` and ``metadata``
     (JSON), ``status_names`` and ``provenance_names``. Group ``/grid`` holds the ``extra`` arrays
     (grid shape), group ``/volumes`` the ``volumes`` (dense, e.g. the gray residual).
     """
@@ -93,6 +93,8 @@ def export_hdf5(
                 group.create_dataset(name, data=getattr(field, name), **options)
             if field.gradient is not None:
                 group.create_dataset("gradient", data=field.gradient, **options)
+            if field.uncertainty is not None:  # voxels, (z, y, x) components
+                group.create_dataset("uncertainty", data=field.uncertainty, **options)
             group.create_dataset("points", data=field.points, **options)
             group.create_dataset("displacement", data=field.displacement, **options)
             group.attrs["origin"] = np.asarray(field.origin)

@@ -101,6 +101,7 @@ class BatchResult:
     status: np.ndarray
     iterations: np.ndarray
     timings: dict = field(default_factory=dict)
+    uncertainty: np.ndarray | None = None  # (n, 3) voxels, the region's own noise estimate
 
 
 def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
@@ -176,6 +177,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
         status=result.status[core].reshape(-1),
         iterations=iterations,
         timings=timings,
+        uncertainty=None if result.uncertainty is None else result.uncertainty[core].reshape(-1, 3),
     )
 
 
@@ -445,6 +447,7 @@ def correlate_tiled_iter(
         zncc = np.full(n_points, np.nan, np.float32)
         status = np.full(n_points, int(Status.NOT_COMPUTED), np.uint8)
         iterations = np.zeros(n_points, np.int32)
+        uncertainty = np.full((n_points, 3), np.nan)
         totals: dict = {}
         t0 = time.perf_counter()
         with scheduling.running(batch_tasks, scheduler, workers, client) as finished:
@@ -455,6 +458,8 @@ def correlate_tiled_iter(
                 zncc[index] = result.zncc
                 status[index] = result.status
                 iterations[index] = result.iterations
+                if result.uncertainty is not None:
+                    uncertainty[index] = result.uncertainty
                 for key, value in result.timings.items():
                     totals[key] = totals.get(key, 0) + value
                 yield Progress(
@@ -491,6 +496,7 @@ def correlate_tiled_iter(
         iterations=iterations.reshape(grid_shape),
         provenance=provenance.reshape(grid_shape),
         gradient=gradient.reshape(*grid_shape, 3, 3),
+        uncertainty=uncertainty.reshape(*grid_shape, 3),
         params=params.to_dict(),
         metadata={
             "volume_shape": list(shape),

@@ -266,6 +266,7 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
     NM = nb * nb
     NPAR2 = NPAR * NPAR
     NW = 2 * nb * nb
+    MAXZ = cpu_icgn.NOISE_STOP_MAX_ZNCC
     options = {}
     if max_registers and not simulator_enabled():
         options["max_registers"] = int(max_registers)
@@ -654,7 +655,7 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
                             residual = 2.0 * delta_g * delta_g * max(1.0 - value, 0.0)
                             residual /= max(count - NPAR - 2, 1.0)
                             d = 0.0
-                            scaled = True
+                            scaled = value < MAXZ
                             for k in range(3):
                                 scale = math.sqrt(residual * scal[8 + k])
                                 if not (scale > 0.0):
