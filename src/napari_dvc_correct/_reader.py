@@ -1,8 +1,12 @@
 """npe2 reader: TIFF volumes, folders of TIFF slices, and the plugin's ``.npz`` field files.
 
-A field file opens as the layers of :func:`napari_dvc_correct.layers.field_layers` (vectors,
-``|u|``, components, ZNCC, status, εeq), named after the file. An ``.npz`` that is not a field
-file is not ours: :func:`napari_get_reader` returns None so napari can try other readers.
+A field file opens as the layers of :func:`napari_dvc_correct.layers.field_layers` (one quantity
+layer, ``|u|`` first, and the arrows), named after the file. An ``.npz`` that is not a field
+file is not a field is handed to napari's built-in reader (as if ours were not there), so our
+reader can be the preferred one for ``*.npz``: :func:`prefer_this_reader` records that preference
+(only where the user has none), and File ▸ Open and drag-and-drop then open field files without
+asking which reader to use. ``viewer.open(path)`` in a script uses napari's built-in reader unless
+told otherwise: pass ``plugin="napari-dvc-correct"`` (or ``plugin=None`` to follow the preference).
 """
 
 from __future__ import annotations
@@ -15,6 +19,33 @@ from pathlib import Path
 import numpy as np
 
 TIFF_SUFFIXES = (".tif", ".tiff")
+PLUGIN = "napari-dvc-correct"
+#: Patterns for which this plugin's reader is made the preferred one (see the module docstring).
+PREFERRED_PATTERNS = ("*.npz", "*.tif", "*.tiff")
+
+
+def prefer_this_reader() -> list[str]:
+    """Make this plugin the preferred reader of :data:`PREFERRED_PATTERNS` where none is set.
+
+    A choice the user made (in the reader dialog or the preferences) is kept. Returns the
+    patterns set now.
+    """
+    from napari.settings import get_settings
+
+    plugins = get_settings().plugins
+    preferences = dict(plugins.extension2reader)
+    new = [p for p in PREFERRED_PATTERNS if p not in preferences]
+    if new:
+        preferences.update(dict.fromkeys(new, PLUGIN))
+        plugins.extension2reader = preferences
+    return new
+
+
+def _builtin_reader(path):
+    """napari's own reader for a file that is not ours (an ``.npz`` that is not a field)."""
+    from napari_builtins.io import napari_get_reader as builtin
+
+    return builtin(str(path))
 
 
 def _tiff_files(folder: Path) -> list[Path]:
@@ -55,7 +86,7 @@ def napari_get_reader(path):
         return read_tiff_folder if _tiff_files(path) else None
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        return read_field_file if is_field_file(path) else None
+        return read_field_file if is_field_file(path) else _builtin_reader(path)
     if suffix in TIFF_SUFFIXES and path.is_file():
         return read_tiff
     return None
@@ -109,8 +140,7 @@ def read_tiff_slices(paths) -> list[tuple]:
 
 
 def read_field_file(path) -> list[tuple]:
-    """Read a field file as the plugin's layers (vectors, |u|, components, ZNCC, status, εeq)."""
-    from .engine.strain import equivalent_strain_field
+    """Read a field file as the plugin's layers (the ``|u|`` quantity layer and the arrows)."""
     from .io.npz import load_field
     from .layers import field_layers
 
@@ -118,7 +148,4 @@ def read_field_file(path) -> list[tuple]:
     field = load_field(path)
     voxel_size = field.metadata.get("voxel_size")
     offset = field.metadata.get("offset")
-    equivalent = equivalent_strain_field(field) if min(field.shape) >= 2 else None
-    return field_layers(
-        field, path.stem, voxel_size=voxel_size, offset=offset, equivalent_strain=equivalent
-    )
+    return field_layers(field, path.stem, voxel_size=voxel_size, offset=offset)

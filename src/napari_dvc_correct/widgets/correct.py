@@ -6,7 +6,7 @@ from qtpy.QtWidgets import QCheckBox, QComboBox, QSpinBox, QTableWidget, QTableW
 
 from .. import layers as L
 from . import correct_model as model
-from ._base import EngineWidget, LayerCombo, follow_layers
+from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
 from .correlate import _is_image, _is_mask
 from .correlate_model import layer_volume, mask_from_layer
 
@@ -61,6 +61,7 @@ class CorrectWidget(EngineWidget):
             self.field.setCurrentText("uncorrected")
         if self.field.currentText() != current:
             self._field_changed()
+        pair_in_order(self.reference, self.deformed)
 
     def _field_changed(self, *args) -> None:
         field = L.fields_in(self.viewer.layers).get(self.field.currentText())
@@ -102,14 +103,10 @@ class CorrectWidget(EngineWidget):
         )
 
     def on_result(self, result: model.CorrectionResult) -> None:
-        L.show_layers(
+        L.show_field(
             self.viewer,
             L.field_layers(
-                result.field,
-                "corrected",
-                voxel_size=result.voxel_size,
-                offset=result.offset,
-                equivalent_strain=result.equivalent_strain,
+                result.field, "corrected", voxel_size=result.voxel_size, offset=result.offset
             ),
         )
         rows = model.pass_rows(result.field)

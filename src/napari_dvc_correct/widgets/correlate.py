@@ -10,7 +10,9 @@ from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
     QCheckBox,
     QComboBox,
+    QDoubleSpinBox,
     QGroupBox,
+    QHBoxLayout,
     QLabel,
     QListWidget,
     QListWidgetItem,
@@ -20,7 +22,7 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from . import correlate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line
+from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 
 MODES = {
     "pair": "Pair: reference → deformed",
@@ -109,6 +111,21 @@ class CorrelateWidget(EngineWidget):
             "auto: a CUDA GPU when numba sees a working one, else the CPU (the run says which)"
         )
         self.form.addRow("Device", self.device)
+        self.voxel_size = QDoubleSpinBox()
+        self.voxel_size.setDecimals(4)
+        self.voxel_size.setRange(1e-4, 1e6)
+        self.voxel_size.setValue(1.0)
+        self.voxel_size.setToolTip(
+            "Physical size of a voxel (isotropic): it sets the scans' scale, the scale bar, the "
+            "units of the displacements shown and the voxel size written with every export"
+        )
+        self.unit = QComboBox()
+        for unit in model.UNITS:
+            self.unit.addItem(unit or "voxels (no unit)", unit)
+        voxel_row = QHBoxLayout()
+        voxel_row.addWidget(self.voxel_size)
+        voxel_row.addWidget(self.unit)
+        self.form.addRow("Voxel size", voxel_row)
         self.preview = QCheckBox("preview the POI grid and one subvolume")
         self.preview.setChecked(True)
         self.form.addRow(self.preview)
@@ -138,6 +155,9 @@ class CorrelateWidget(EngineWidget):
         ):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
+        self.reference.currentIndexChanged.connect(self._show_voxel_size)
+        self.voxel_size.editingFinished.connect(self.apply_voxel_size)
+        self.unit.currentIndexChanged.connect(self.apply_voxel_size)
         self.subvolume.editingFinished.connect(self._make_odd)
         follow_layers(self.viewer, self, self._layers_changed)
         self.viewer.mouse_drag_callbacks.append(self._on_click)
@@ -176,13 +196,54 @@ class CorrelateWidget(EngineWidget):
             elif role == "series":
                 self.mode.setCurrentIndex(list(MODES).index("series4d"))
                 self.reference.set_layer(layer)
-        if self.reference.layer() is self.deformed.layer():
-            others = [x for x in images if x is not self.reference.layer() and x.ndim == 3]
-            if others:
-                self.deformed.set_layer(others[0])
+        if self.current_mode == "pair":
+            pair_in_order(self.reference, self.deformed)
         self._refresh_series_list(images)
         if inserted is None or _is_image(inserted) or _is_mask(inserted):
             self._update.trigger()
+
+    def _scans(self) -> list:
+        """The layers the current choice correlates (pair, 4-D series or ticked layers)."""
+        mode = self.current_mode
+        if mode == "pair":
+            chosen = [self.reference.layer(), self.deformed.layer()]
+        elif mode == "series4d":
+            chosen = [self.reference.layer()]
+        else:
+            chosen = [self.viewer.layers[name] for name in self._ticked()]
+        return [x for x in chosen if x is not None]
+
+    def _show_voxel_size(self, *args) -> None:
+        """Show the reference layer's voxel size (its scale along x) and unit."""
+        layer = self.reference.layer()
+        if layer is None:
+            return
+        self.voxel_size.blockSignals(True)
+        self.voxel_size.setValue(float(np.asarray(layer.scale)[-1]))
+        self.voxel_size.blockSignals(False)
+        unit = str(layer.units[-1]) if getattr(layer, "units", None) else ""
+        symbol = {"nanometer": "nm", "micrometer": "µm", "millimeter": "mm"}.get(unit, "")
+        self.unit.blockSignals(True)
+        self.unit.setCurrentIndex(max(0, self.unit.findData(symbol)))
+        self.unit.blockSignals(False)
+
+    def apply_voxel_size(self, *args) -> None:
+        """Give the chosen scans the voxel size and unit of the form (scale, scale bar)."""
+        unit = self.unit.currentData()
+        for layer in self._scans():
+            layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
+            if unit:
+                layer.units = (unit,) * layer.ndim
+        if unit:
+            self.viewer.scale_bar.visible = True
+        self._update.trigger()
+
+    def _ticked(self) -> list[str]:
+        return [
+            self.series_list.item(i).text()
+            for i in range(self.series_list.count())
+            if self.series_list.item(i).checkState() == Qt.CheckState.Checked
+        ]
 
     def _refresh_series_list(self, images) -> None:
         checked = {
@@ -249,11 +310,7 @@ class CorrelateWidget(EngineWidget):
             names = [f"{reference.name}[{t}]" for t in range(n_states)]
             strategy = self.strategy.currentData()
         else:
-            names = [
-                self.series_list.item(i).text()
-                for i in range(self.series_list.count())
-                if self.series_list.item(i).checkState() == Qt.CheckState.Checked
-            ]
+            names = self._ticked()
             if len(names) < 2:
                 raise ValueError("tick at least two layers of the series (first = reference)")
             chosen = [self.viewer.layers[name] for name in names]
@@ -289,6 +346,7 @@ class CorrelateWidget(EngineWidget):
             offset=offset,
             names=names,
             device=self.device.currentData(),
+            unit=self.unit.currentData() or None,
         )
 
     # -- preview and estimate ------------------------------------------------------------------
@@ -343,6 +401,11 @@ class CorrelateWidget(EngineWidget):
     # -- running ------------------------------------------------------------------------------
     def prepare(self):
         self._update.timer.stop()
+        reference = self.reference.layer()
+        if reference is not None and not np.isclose(
+            float(np.asarray(reference.scale)[-1]), self.voxel_size.value()
+        ):  # typed but not confirmed yet
+            self.apply_voxel_size()
         job = self.job()
         self._started = (time.perf_counter(), job.shape, job.params, len(job.volumes) - 1)
         return model.run_job(job)
@@ -351,25 +414,19 @@ class CorrelateWidget(EngineWidget):
         started, shape, params, n_pairs = self._started
         model.record_timing(time.perf_counter() - started, shape, params, n_pairs)
         self._set_preview_visible(False)
-        tuples = []
-        series = len(result.fields) > 1
-        for index, (source, field, equivalent) in enumerate(result.fields):
-            layers = L.field_layers(
-                field,
-                source,
-                voxel_size=result.voxel_size,
-                offset=result.offset,
-                equivalent_strain=equivalent,
-                components=not series,
-            )
-            if series and index < len(result.fields) - 1:  # show the last state only
-                for _, kwargs, _ in layers:
-                    kwargs["visible"] = False
-            tuples += layers
-        L.show_layers(self.viewer, tuples)
-        field = result.fields[-1][1]
-        counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
-        self.show_message(f"Done: {counts}.")
+        placement = {"voxel_size": result.voxel_size, "offset": result.offset}
+        if len(result.fields) == 1:
+            source, field, _ = result.fields[0]
+            L.show_field(self.viewer, L.field_layers(field, source, **placement))
+        else:  # a series: one 4-D field, state 0 (no displacement) first
+            source = "series " + result.fields[0][0].split(" ", 2)[2]
+            fields = L.series_fields([item[1] for item in result.fields])
+            L.show_field(self.viewer, L.field_layers(fields, source, **placement))
+        lines = []
+        for source, field, _ in result.fields:
+            counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
+            lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
+        self.show_message("Done: " + "; ".join(lines) + ".")
 
     # -- clicked POI --------------------------------------------------------------------------
     def _field_layer(self):

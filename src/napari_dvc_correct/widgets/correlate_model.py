@@ -48,6 +48,8 @@ class CorrelationJob:
         ``scale`` and ``translate`` (z, y, x) of the reference layer, for display.
     names : list of str
         Names of the layers (or states) the volumes come from.
+    unit : str or None
+        Length unit of ``voxel_size`` (``"µm"``...), None for plain voxels.
     device : {"auto", "cpu", "cuda"}
         Where IC-GN runs for a pair (:func:`..engine.backend.select_device`); scan series run on
         the CPU.
@@ -62,6 +64,7 @@ class CorrelationJob:
     offset: tuple = (0.0, 0.0, 0.0)
     names: list = field(default_factory=list)
     device: str = "auto"
+    unit: str | None = None
 
     @property
     def shape(self) -> tuple:
@@ -85,6 +88,8 @@ def _finish(field: DisplacementField, job: CorrelationJob, names) -> Displacemen
         reference_layer=names[0],
         deformed_layer=names[1],
     )
+    if job.unit:
+        field.metadata["unit"] = job.unit
     return field
 
 
@@ -143,6 +148,18 @@ def layer_placement(layer) -> tuple[tuple, tuple]:
         tuple(float(v) for v in np.asarray(layer.scale)[-3:]),
         tuple(float(v) for v in np.asarray(layer.translate)[-3:]),
     )
+
+
+#: Length units offered for the voxel size ("" = plain voxels, no physical size).
+UNITS = ("", "nm", "µm", "mm")
+
+
+def voxel_scale(scale, voxel_size: float) -> tuple:
+    """``scale`` of a scan layer with an isotropic ``voxel_size`` on its last three axes."""
+    scale = [float(v) for v in scale]
+    if not voxel_size > 0:
+        raise ValueError(f"the voxel size must be > 0, got {voxel_size}")
+    return tuple(scale[:-3] + [float(voxel_size)] * 3)
 
 
 def check_volume(shape, name: str) -> None:

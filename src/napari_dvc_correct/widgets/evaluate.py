@@ -17,7 +17,7 @@ from superqt import QDoubleRangeSlider
 
 from .. import layers as L
 from . import evaluate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line
+from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._plots import CurvesCanvas, HistogramCanvas
 from .correlate import _is_image
 from .correlate_model import layer_placement, layer_volume
@@ -106,10 +106,7 @@ class EvaluateWidget(EngineWidget):
             source = new_field if new_field is not None else first
             self.reference.set_layer(source.metadata.get("reference_layer", ""))
             self.deformed.set_layer(source.metadata.get("deformed_layer", ""))
-        if event is None and self.reference.layer() is self.deformed.layer():
-            others = [x for x in self.deformed.layers() if x is not self.reference.layer()]
-            if others:
-                self.deformed.set_layer(others[0])
+        pair_in_order(self.reference, self.deformed)
 
     def checked_fields(self) -> list[str]:
         return [
