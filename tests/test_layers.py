@@ -22,8 +22,8 @@ def field() -> DisplacementField:
 
 
 def test_grid_layers_sit_on_the_nodes_in_world_units(field):
-    data, kwargs, kind = L.magnitude_layer(
-        field, "uncorrected", voxel_size=(2, 1, 0.5), offset=(10, 0, -1)
+    data, kwargs, kind = L.quantity_layer(
+        field, "uncorrected", "|u|", voxel_size=(2, 1, 0.5), offset=(10, 0, -1)
     )
     layer = Layer.create(data, kwargs, kind)
     world = layer.data_to_world((1, 2, 3))
@@ -56,17 +56,86 @@ def test_vectors_are_subsampled(field):
     assert kwargs["metadata"]["dvc_correct"]["stride"] == L.vector_stride(field.shape, 20) > 1
 
 
-def test_strain_layer_checks_its_shape(field):
-    with pytest.raises(ValueError, match="grid shape"):
-        L.strain_layer(np.zeros((2, 2, 2)), field, "x")
-    data, kwargs, _ = L.strain_layer(np.full(field.shape, 0.01), field, "corrected")
-    assert kwargs["name"] == "εeq (corrected)" and kwargs["contrast_limits"][1] > 0
+def _uniaxial(shape=(6, 7, 8), e=0.01, voxel_size=(1.0, 1.0, 1.0)):
+    """u_z = e * z on a grid of step 4 (voxels): εzz = e, everything else zero."""
+    z = (np.arange(shape[0]) * 4.0)[:, None, None]
+    u = np.zeros((*shape, 3))
+    u[..., 0] = e * z
+    return DisplacementField(
+        origin=(0, 0, 0), step=(4, 4, 4), u=u, metadata={"voxel_size": list(voxel_size)}
+    )
+
+
+def test_every_quantity_has_its_known_value_on_a_uniaxial_field():
+    e = 0.01
+    field = _uniaxial(e=e)
+    inner = (slice(1, -1),) * 3  # central differences everywhere but the edges
+    expected = {
+        "εzz": e,
+        "εyy": 0.0,
+        "εxx": 0.0,
+        "εzy": 0.0,
+        "ε1": e,
+        "ε2": 0.0,
+        "ε3": 0.0,
+        "εvol": e,
+        "γmax": e,
+        "εeq": 2 * e / 3,  # octahedral strain of diag(e, 0, 0)
+        "ux": 0.0,
+    }
+    for quantity, value in expected.items():
+        values = L.quantity_values(field, quantity)
+        np.testing.assert_allclose(values[inner], value, atol=1e-7, err_msg=quantity)
+    np.testing.assert_allclose(L.quantity_values(field, "uz")[3, 0, 0], e * 12.0, rtol=1e-6)
+    assert L.unit_of("uz", field) == "vx" and L.unit_of("εeq", field) == "strain, –"
+    assert "uncertainty" not in L.available_quantities(field)
+    assert "residual" in L.available_quantities(field, residual=True)
+
+
+def test_displacements_and_strains_use_the_physical_voxel_size():
+    """Anisotropic voxels: u_z = e z in voxels is e * 2 µm per 2 µm: the strain stays e."""
+    e = 0.01
+    field = _uniaxial(e=e, voxel_size=(2.0, 1.0, 1.0))
+    field.metadata["unit"] = "µm"
+    np.testing.assert_allclose(L.quantity_values(field, "uz")[3, 0, 0], 2 * e * 12.0, rtol=1e-6)
+    np.testing.assert_allclose(L.quantity_values(field, "εzz")[2, 2, 2], e, rtol=1e-6)
+    assert L.unit_of("|u|", field) == "µm"
+
+
+def test_uncertainty_shows_when_the_field_has_one(field):
+    field.uncertainty = np.full((*field.shape, 3), 0.1)
+    assert "uncertainty" in L.available_quantities(field)
+    values = L.quantity_values(field, "uncertainty")
+    np.testing.assert_allclose(values[0, 0, 0], 0.1 * np.sqrt(3), rtol=1e-6)
+
+
+def test_show_quantity_switches_in_place_and_series_are_4d(field):
+    viewer = ViewerModel()
+    (layer, _) = L.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    L.show_quantity(layer, "status")
+    assert layer.name == "status (uncorrected)" and layer.data[1, 2, 3] == Status.DIVERGED
+    assert L.find_layer(viewer, L.field_key("uncorrected")) is layer
+    with pytest.raises(ValueError, match="run Evaluate first"):
+        L.show_quantity(layer, "residual")
+    L.show_quantity(layer, "residual", residual=np.ones((20, 20, 20)))
+    assert layer.scale[0] == 1.0 and layer.data.shape == (20, 20, 20)
+    series = L.series_fields([field, field.copy()])
+    tuples = L.field_layers(series, "series (total)")
+    (image, image_kwargs, _), (arrows, arrow_kwargs, _) = tuples
+    assert image.shape == (3, *field.shape) and image_kwargs["scale"][0] == 1.0
+    assert arrows.shape[2] == 4 and set(arrows[:, 0, 0]) == {0.0, 1.0, 2.0}
+    np.testing.assert_array_equal(image[0][field.valid], 0.0)  # state 0 does not move
+    viewer = ViewerModel()
+    L.show_layers(viewer, tuples)
+    assert list(L.fields_in(viewer.layers)) == ["state 1 (total)", "state 2 (total)"]
+    assert viewer.dims.axis_labels == ("state", "z", "y", "x")
 
 
 def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(field):
     viewer = ViewerModel()
     viewer.add_image(np.zeros((3, 3, 3)), name="|u| (uncorrected)")  # the user's own layer
     first = L.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    assert len(first) == 2  # one quantity layer and the arrows
     assert L.fields_in(viewer.layers) == {"uncorrected": field}
     # the user's layer stays; ours got napari's numbered name
     assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None
@@ -78,9 +147,6 @@ def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(fiel
     assert all(layer in viewer.layers for layer in second)
     assert not any(layer in viewer.layers for layer in first)
     assert L.fields_in(viewer.layers)["uncorrected"] is other
-    # the status layer names its codes
-    status = viewer.layers["status (uncorrected)"]
-    assert "diverged" in list(status.features["status"])
 
 
 def test_dense_layers_use_the_voxel_size(field):

@@ -156,6 +156,8 @@ class CorrelateWidget(EngineWidget):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
         self.reference.currentIndexChanged.connect(self._show_voxel_size)
+        self._voxel_edited = False
+        self.voxel_size.valueChanged.connect(lambda *a: setattr(self, "_voxel_edited", True))
         self.voxel_size.editingFinished.connect(self.apply_voxel_size)
         self.unit.currentIndexChanged.connect(self.apply_voxel_size)
         self.subvolume.editingFinished.connect(self._make_odd)
@@ -163,6 +165,7 @@ class CorrelateWidget(EngineWidget):
         self.viewer.mouse_drag_callbacks.append(self._on_click)
         self._layers_changed()
         self._mode_changed()
+        self._show_voxel_size()
 
     # -- choices ------------------------------------------------------------------------------
     @property
@@ -228,10 +231,15 @@ class CorrelateWidget(EngineWidget):
         self.unit.blockSignals(False)
 
     def apply_voxel_size(self, *args) -> None:
-        """Give the chosen scans the voxel size and unit of the form (scale, scale bar)."""
+        """Give the chosen scans the voxel size (once typed) and unit of the form.
+
+        The scans' scale, the scale bar, the fields' placement and the exports follow.
+        """
+        edited, self._voxel_edited = self._voxel_edited, False
         unit = self.unit.currentData()
         for layer in self._scans():
-            layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
+            if edited:  # an anisotropic scale stays until the user types a size
+                layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
             if unit:
                 layer.units = (unit,) * layer.ndim
         if unit:
@@ -401,10 +409,7 @@ class CorrelateWidget(EngineWidget):
     # -- running ------------------------------------------------------------------------------
     def prepare(self):
         self._update.timer.stop()
-        reference = self.reference.layer()
-        if reference is not None and not np.isclose(
-            float(np.asarray(reference.scale)[-1]), self.voxel_size.value()
-        ):  # typed but not confirmed yet
+        if self._voxel_edited:  # typed but not confirmed yet
             self.apply_voxel_size()
         job = self.job()
         self._started = (time.perf_counter(), job.shape, job.params, len(job.volumes) - 1)
