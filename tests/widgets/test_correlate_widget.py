@@ -115,12 +115,12 @@ def test_bad_choices_show_a_message(viewer_pair, problem):
         widget.deformed.set_layer("slice")
         expected = "2-D"
     elif problem == "missing mask":
-        widget.use_mask.setChecked(True)
+        widget.region.set_kind("layer")
         expected = "no mask is chosen"
     else:
         viewer_pair.add_labels(np.zeros((48, 48, 48), np.uint8), name="mask")
-        widget.use_mask.setChecked(True)
-        widget.mask.set_layer("mask")
+        widget.region.set_kind("layer")
+        widget.region.layer.set_layer("mask")
         expected = "empty"
     count = len(viewer_pair.layers)
     assert widget.run() is None
@@ -138,8 +138,8 @@ def test_mask_marks_outside_pois(viewer_pair, run_panel, small):
     viewer_pair.window.add_dock_widget(widget)
     widget.subvolume.setValue(small.subvolume)
     widget.step.setValue(small.step)
-    widget.use_mask.setChecked(True)
-    widget.mask.set_layer("material")
+    widget.region.set_kind("layer")
+    widget.region.layer.set_layer("material")
     run_panel(widget)
     field = field_of(viewer_pair.layers["|u| (uncorrected)"])
     x = field.axis_coordinates()[2]

@@ -136,12 +136,16 @@ class LayerCombo(QComboBox):
         return index >= 0
 
 
-def pair_in_order(reference: LayerCombo, deformed: LayerCombo, ndim: int = 3) -> None:
+def pair_in_order(reference: LayerCombo, deformed: LayerCombo, event=None, ndim: int = 3) -> None:
     """Two different scans: the first opened is the reference, the next one the deformed.
 
     Only fills a choice that is empty, not ``ndim``-D, or the same layer in both boxes; a choice
-    the user made between two different scans stays.
+    the user made between two different scans stays. With a layer-list ``event`` it acts only
+    when a scan (a layer the reference box lists) was added.
     """
+    inserted = getattr(event, "value", None) if event is not None else None
+    if event is not None and (inserted is None or inserted not in reference.layers()):
+        return
     scans = [x for x in reference.layers() if x.ndim == ndim]
     ref = reference.layer()
     if ref is None or ref.ndim != ndim:

@@ -61,7 +61,7 @@ class CorrectWidget(EngineWidget):
             self.field.setCurrentText("uncorrected")
         if self.field.currentText() != current:
             self._field_changed()
-        pair_in_order(self.reference, self.deformed)
+        pair_in_order(self.reference, self.deformed, event)
 
     def _field_changed(self, *args) -> None:
         field = L.fields_in(self.viewer.layers).get(self.field.currentText())

@@ -22,7 +22,9 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from . import correlate_model as model
+from . import regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from .regions import RegionBox
 
 MODES = {
     "pair": "Pair: reference → deformed",
@@ -77,9 +79,6 @@ class CorrelateWidget(EngineWidget):
         self.form.addRow("Strategy", self.strategy)
         self.correct_states = QCheckBox("self-correct every state")
         self.form.addRow("", self.correct_states)
-        self.use_mask = QCheckBox("only inside a mask")
-        self.mask = LayerCombo(self.viewer, _is_mask, optional=True)
-        self.form.addRow(self.use_mask, self.mask)
 
         self.subvolume = QSpinBox()
         self.subvolume.setRange(5, 401)
@@ -132,6 +131,8 @@ class CorrelateWidget(EngineWidget):
         self.estimate_label = QLabel("")
         self.estimate_label.setWordWrap(True)
         self.form.addRow("Estimate", self.estimate_label)
+        self.region = RegionBox(self.viewer)
+        self.controls.addWidget(self.region)
 
         self.poi_box = QGroupBox("Clicked POI")
         poi_layout = QVBoxLayout(self.poi_box)
@@ -152,6 +153,7 @@ class CorrelateWidget(EngineWidget):
             self.search_radius.valueChanged,
             self.preview.toggled,
             self.series_list.itemChanged,
+            *self.region.changed_signals(),
         ):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
@@ -200,7 +202,7 @@ class CorrelateWidget(EngineWidget):
                 self.mode.setCurrentIndex(list(MODES).index("series4d"))
                 self.reference.set_layer(layer)
         if self.current_mode == "pair":
-            pair_in_order(self.reference, self.deformed)
+            pair_in_order(self.reference, self.deformed, event)
         self._refresh_series_list(images)
         if inserted is None or _is_image(inserted) or _is_mask(inserted):
             self._update.trigger()
@@ -334,15 +336,10 @@ class CorrelateWidget(EngineWidget):
             raise ValueError(
                 f"subvolume {params.subvolume} is larger than the volume {volumes[0].shape}"
             )
-        mask = None
-        if self.use_mask.isChecked():
-            mask_layer = self.mask.layer()
-            if mask_layer is None:
-                raise ValueError(
-                    "'only inside a mask' is ticked but no mask is chosen: pick a Labels or "
-                    "Shapes layer, or untick it"
-                )
-            mask = model.mask_from_layer(mask_layer, volumes[0].shape)
+        voxel_size, offset = model.layer_placement(reference)
+        self.region.set_volume(volumes[0].shape, volumes[0])
+        mask = self.region.mask(volumes[0].shape, volumes[0], (voxel_size, offset))
+        kept = None if mask is None else regions_model.check_kept(mask, params)
         voxel_size, offset = model.layer_placement(reference)
         return model.CorrelationJob(
             volumes=volumes,
@@ -355,6 +352,7 @@ class CorrelateWidget(EngineWidget):
             names=names,
             device=self.device.currentData(),
             unit=self.unit.currentData() or None,
+            kept=kept,
         )
 
     # -- preview and estimate ------------------------------------------------------------------
@@ -367,7 +365,8 @@ class CorrelateWidget(EngineWidget):
             self._set_preview_visible(False)
             return
         estimate = model.estimate_run(job.shape, job.params, n_pairs=len(job.volumes) - 1)
-        self.estimate_label.setText(estimate.text())
+        region = f"; {job.kept.text()}" if job.kept is not None else ""
+        self.estimate_label.setText(estimate.text() + region)
         if not self.preview.isChecked():
             self._set_preview_visible(False)
             return

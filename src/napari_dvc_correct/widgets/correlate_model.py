@@ -50,6 +50,8 @@ class CorrelationJob:
         Names of the layers (or states) the volumes come from.
     unit : str or None
         Length unit of ``voxel_size`` (``"µm"``...), None for plain voxels.
+    kept : regions_model.Kept or None
+        How many POIs the region keeps (None for the whole volume).
     device : {"auto", "cpu", "cuda"}
         Where IC-GN runs for a pair (:func:`..engine.backend.select_device`); scan series run on
         the CPU.
@@ -65,6 +67,7 @@ class CorrelationJob:
     names: list = field(default_factory=list)
     device: str = "auto"
     unit: str | None = None
+    kept: object = None
 
     @property
     def shape(self) -> tuple:
@@ -209,12 +212,14 @@ def check_mask(mask, volume_shape, name: str = "mask") -> np.ndarray:
 
 
 def mask_from_layer(layer, volume_shape) -> np.ndarray:
-    """Boolean mask from a Labels layer (non-zero) or a Shapes layer (inside any shape)."""
-    if hasattr(layer, "to_labels"):  # Shapes
-        data = layer.to_labels(labels_shape=tuple(volume_shape))
-    else:
-        data = layer.data
-    return check_mask(data, volume_shape, layer.name)
+    """Boolean mask from a Labels layer (non-zero) or a Shapes layer, extruded through z.
+
+    A shape drawn on one slice (of a 2-D or a 3-D Shapes layer) stands for its outline through
+    every slice (:func:`.regions_model.layer_mask`).
+    """
+    from .regions_model import layer_mask
+
+    return check_mask(layer_mask(layer, volume_shape), volume_shape, layer.name)
 
 
 def make_params(

@@ -106,7 +106,7 @@ class EvaluateWidget(EngineWidget):
             source = new_field if new_field is not None else first
             self.reference.set_layer(source.metadata.get("reference_layer", ""))
             self.deformed.set_layer(source.metadata.get("deformed_layer", ""))
-        pair_in_order(self.reference, self.deformed)
+        pair_in_order(self.reference, self.deformed, event)
 
     def checked_fields(self) -> list[str]:
         return [
