@@ -8,7 +8,7 @@ from .. import layers as L
 from . import correct_model as model
 from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
 from .correlate import _is_image, _is_mask
-from .correlate_model import layer_volume, mask_from_layer
+from .correlate_model import layer_volume, mask_from_layer, named_volume
 
 
 class CorrectWidget(EngineWidget):
@@ -48,9 +48,20 @@ class CorrectWidget(EngineWidget):
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
 
+    def choices(self) -> dict:
+        """Fields this panel can correct: name -> a field, or the list of a series' states."""
+        found: dict = {}
+        for layer in L.quantity_layers(self.viewer):
+            source = L.plugin_metadata(layer)["source"]
+            if source == "corrected" or source.endswith(", corrected)"):
+                continue
+            series = L.series_of(layer)
+            found.setdefault(source, series[1:] if series else L.field_of(layer))
+        return found
+
     def _layers_changed(self, event=None) -> None:
         current = self.field.currentText()
-        names = [name for name in L.fields_in(self.viewer.layers) if name != "corrected"]
+        names = list(self.choices())
         self.field.blockSignals(True)
         self.field.clear()
         self.field.addItems(names)
@@ -64,16 +75,48 @@ class CorrectWidget(EngineWidget):
         pair_in_order(self.reference, self.deformed, event)
 
     def _field_changed(self, *args) -> None:
-        field = L.fields_in(self.viewer.layers).get(self.field.currentText())
-        if field is not None:
-            self.reference.set_layer(field.metadata.get("reference_layer", ""))
-            self.deformed.set_layer(field.metadata.get("deformed_layer", ""))
+        chosen = self.choices().get(self.field.currentText())
+        series = isinstance(chosen, list)
+        self.reference.setEnabled(not series)  # a series brings its own volumes
+        self.deformed.setEnabled(not series)
+        if chosen is not None and not series:
+            self.reference.set_layer(chosen.metadata.get("reference_layer", ""))
+            self.deformed.set_layer(chosen.metadata.get("deformed_layer", ""))
+
+    def _mask(self, shape):
+        if not self.use_mask.isChecked():
+            return None
+        layer = self.mask.layer()
+        if layer is None:
+            raise ValueError("'only inside a mask' is ticked but no mask is chosen")
+        return mask_from_layer(layer, shape)
+
+    def _options(self) -> dict:
+        return {
+            "frame": self.frame.currentData(),
+            "update": self.update_rule.currentData(),
+            "max_passes": self.max_passes.value(),
+        }
 
     def prepare(self):
-        fields = L.fields_in(self.viewer.layers)
+        choices = self.choices()
         source = self.field.currentText()
-        if source not in fields:
+        if source not in choices:
             raise ValueError("no field to correct: run Correlate first (or open a field file)")
+        chosen = choices[source]
+        if isinstance(chosen, list):  # a series: each state against state 0, its own volumes
+            pairs = [
+                (
+                    named_volume(self.viewer.layers, f.metadata.get("reference_layer", "")),
+                    named_volume(self.viewer.layers, f.metadata.get("deformed_layer", "")),
+                )
+                for f in chosen
+            ]
+            self.table.setRowCount(0)
+            self._series_source = source
+            return model.run_series_correction(
+                pairs, chosen, mask=self._mask(pairs[0][0].shape), **self._options()
+            )
         reference, deformed = self.reference.layer(), self.deformed.layer()
         if reference is None or deformed is None:
             raise ValueError("choose the reference and deformed Image layers of this field")
@@ -85,36 +128,43 @@ class CorrectWidget(EngineWidget):
                 f"'{reference.name}' {g.shape} and '{deformed.name}' {f.shape} must be two 3-D "
                 "volumes of the same shape"
             )
-        mask = None
-        if self.use_mask.isChecked():
-            layer = self.mask.layer()
-            if layer is None:
-                raise ValueError("'only inside a mask' is ticked but no mask is chosen")
-            mask = mask_from_layer(layer, g.shape)
+        mask = self._mask(g.shape)
         self.table.setRowCount(0)
-        return model.run_correction(
-            g,
-            f,
-            fields[source],
-            frame=self.frame.currentData(),
-            update=self.update_rule.currentData(),
-            max_passes=self.max_passes.value(),
-            mask=mask,
+        return model.run_correction(g, f, chosen, mask=mask, **self._options())
+
+    def _fill_table(self, headers, rows) -> None:
+        self.table.setHorizontalHeaderLabels(headers)
+        self.table.setRowCount(len(rows))
+        for r, row in enumerate(rows):
+            for c, text in enumerate(row):
+                self.table.setItem(r, c, QTableWidgetItem(text))
+        self.table.resizeColumnsToContents()
+
+    def _series_result(self, results) -> None:
+        source = self._series_source
+        corrected = source[:-1] + ", corrected)" if source.endswith(")") else source + " corrected"
+        fields = L.series_fields([r.field for r in results])
+        placement = {"voxel_size": results[0].voxel_size, "offset": results[0].offset}
+        L.show_field(self.viewer, L.field_layers(fields, corrected, **placement))
+        rows = model.series_rows(results)
+        self._fill_table(["state", "mean residual", "passes", "nodes moved"], rows)
+        self.show_message(
+            "Self-corrected every state: " + "; ".join(f"{r[0]} {r[1]}" for r in rows) + "."
         )
 
-    def on_result(self, result: model.CorrectionResult) -> None:
+    def on_result(self, result) -> None:
+        if isinstance(result, list):
+            self._series_result(result)
+            return
         L.show_field(
             self.viewer,
             L.field_layers(
                 result.field, "corrected", voxel_size=result.voxel_size, offset=result.offset
             ),
         )
-        rows = model.pass_rows(result.field)
-        self.table.setRowCount(len(rows))
-        for r, row in enumerate(rows):
-            for c, text in enumerate(row):
-                self.table.setItem(r, c, QTableWidgetItem(text))
-        self.table.resizeColumnsToContents()
+        self._fill_table(
+            ["pass", "mean residual", "applied", "nodes moved"], model.pass_rows(result.field)
+        )
         info = result.field.metadata.get("correction", {})
         self.show_message(
             f"Mean gray residual {info.get('mean_gray_residual_before', float('nan')):.3f} → "

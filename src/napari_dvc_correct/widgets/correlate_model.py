@@ -145,6 +145,22 @@ def layer_volume(layer, index: int | None = None) -> np.ndarray:
     return data
 
 
+def named_volume(layers, name: str) -> np.ndarray:
+    """The volume a field's metadata names: a layer, or ``"layer[k]"``, state k of a 4-D layer.
+
+    ``layers`` is the viewer's layer list (indexable by name). Raises ValueError when the
+    volume is not open any more.
+    """
+    import re
+
+    match = re.fullmatch(r"(.*)\[(\d+)\]", str(name))
+    if match and match.group(1) in layers:
+        return layer_volume(layers[match.group(1)], int(match.group(2)))
+    if name in layers:
+        return layer_volume(layers[name])
+    raise ValueError(f"the volume '{name}' this field was measured on is not open any more")
+
+
 def layer_placement(layer) -> tuple[tuple, tuple]:
     """``(voxel_size, offset)``: the last three entries of ``scale`` and ``translate``."""
     return (

@@ -20,7 +20,7 @@ from . import evaluate_model as model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._plots import CurvesCanvas, HistogramCanvas
 from .correlate import _is_image
-from .correlate_model import layer_placement, layer_volume
+from .correlate_model import layer_placement, layer_volume, named_volume
 
 MODES = {
     "reference": "reference frame: |F(X + u) − G(X)|",
@@ -120,19 +120,21 @@ class EvaluateWidget(EngineWidget):
         if layer is None:
             raise ValueError(f"choose the {name} Image layer")
         volume = layer_volume(layer)
+        if volume.ndim == 4 and name == "reference":  # a series: its first state
+            volume = volume[0]
         if volume.ndim != 3:
             raise ValueError(f"'{layer.name}' is not a 3-D volume (shape {volume.shape})")
         return volume
 
     def _reference_changed(self, *args) -> None:
         layer = self.reference.layer()
-        if layer is None or layer.ndim != 3:
+        if layer is None or layer.ndim not in (3, 4):
             return
         key = (layer.name, id(layer.data))
         if key == self._volume_key:
             return
         self._volume_key = key
-        volume = layer_volume(layer)
+        volume = self._volume(self.reference, "reference")
         counts, edges = model.gray_histogram(volume)
         self.histogram.set_histogram(counts, edges)
         self.slider.blockSignals(True)
@@ -198,6 +200,22 @@ class EvaluateWidget(EngineWidget):
         self.show_phases = True
         self._live.trigger()
         self._live.flush()
+        fields = L.fields_in(self.viewer.layers)
+        chosen = {name: fields[name] for name in self.checked_fields() if name in fields}
+        if not chosen:
+            raise ValueError("no field to evaluate: run Correlate (and Self-correct) first")
+        self._placement = (
+            layer_placement(self.reference.layer()) if self.reference.layer() else None
+        )
+        groups = self._groups(chosen)
+        if len(groups) > 1:  # a series: each state against its own pair of volumes
+            return model.run_groups(groups, self.thresholds(), self.mode.currentData())
+        _, reference, deformed, chosen = groups[0]
+        return model.run_evaluation(
+            reference, deformed, chosen, self.thresholds(), self.mode.currentData()
+        )
+
+    def _panel_pair(self):
         reference = self._volume(self.reference, "reference")
         deformed = self._volume(self.deformed, "deformed")
         if self.reference.layer() is self.deformed.layer():
@@ -206,16 +224,36 @@ class EvaluateWidget(EngineWidget):
             raise ValueError(
                 f"reference {reference.shape} and deformed {deformed.shape} differ in shape"
             )
-        fields = L.fields_in(self.viewer.layers)
-        chosen = {name: fields[name] for name in self.checked_fields() if name in fields}
-        if not chosen:
-            raise ValueError("no field to evaluate: run Correlate (and Self-correct) first")
-        self._placement = layer_placement(self.reference.layer())
-        return model.run_evaluation(
-            reference, deformed, chosen, self.thresholds(), self.mode.currentData()
-        )
+        return reference, deformed
+
+    def _groups(self, chosen: dict) -> list:
+        """Chosen fields grouped by the pair of volumes they were measured on.
+
+        A field measured on the states of a series (``"scan[2]"``) is evaluated on them; the
+        others on the panel's reference and deformed volumes.
+        """
+        groups: dict = {}
+        for name, field in chosen.items():
+            pair = (field.metadata.get("reference_layer"), field.metadata.get("deformed_layer"))
+            if "[" in str(pair[1]):
+                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
+                label = f"state {pair[1].rsplit('[', 1)[1].rstrip(']')}"
+            else:
+                pair, label = None, ""
+                volumes = groups[None][1:3] if None in groups else self._panel_pair()
+            entry = groups.setdefault(pair, [label, *volumes, {}])
+            entry[3][name] = field
+        return [tuple(entry) for entry in groups.values()]
 
     def on_result(self, evaluation) -> None:
+        if isinstance(evaluation, list):  # a series: one evaluation per state
+            self.evaluations = evaluation
+            self.evaluation = evaluation[-1][1]
+            self.summary.setText(model.groups_text(evaluation))
+            self.curves.plot(self.evaluation)
+            self.show_message(f"Evaluation done for {len(evaluation)} states.")
+            return
+        self.evaluations = [("", evaluation)]
         self.evaluation = evaluation
         report = model.evaluation_report(evaluation)
         voxel_size, offset = self._placement
