@@ -155,7 +155,7 @@ def test_dense_layers_use_the_voxel_size(field):
         residual, "corrected", voxel_size=(2, 2, 2), offset=(1, 1, 1)
     )
     assert kwargs["scale"] == (2.0, 2.0, 2.0) and kwargs["translate"] == (1.0, 1.0, 1.0)
-    assert kwargs["name"] == "residual (corrected)" and kind == "image"
+    assert kwargs["name"] == "residual volume (corrected)" and kind == "image"
     labels, kwargs, kind = L.phase_layer(np.zeros((8, 8, 8), np.uint8), voxel_size=(2, 2, 2))
     assert kind == "labels" and kwargs["name"] == "phases"
 

@@ -453,7 +453,7 @@ def residual_layer(
     """
     residual = np.asarray(residual, dtype=np.float32)
     kwargs = {
-        "name": layer_name("residual", source),
+        "name": layer_name("residual volume", source),
         "colormap": "gray",
         "contrast_limits": [0.0, max(1e-6, float(np.nanpercentile(residual, 99.5)))],
         "visible": False,

@@ -97,6 +97,8 @@ def test_preview_and_estimate_before_running(viewer_pair, small):
     assert np.ptp(corners, axis=0).tolist() == [small.subvolume - 1] * 3
     assert f"{np.prod(shape)} POIs" in widget.estimate_label.text()
     assert "memory" in widget.estimate_label.text()
+    # at the defaults the slice shown is a plane of POIs, so the preview is seen at once
+    assert len(points._indices_view) == shape[1] * shape[2]
     widget.preview.setChecked(False)
     widget._update.flush()
     assert not points.visible

@@ -70,7 +70,7 @@ def test_strain_residual_and_report(correlated, run_panel, tmp_path):
     run_panel(widget)
     assert widget.last_error is None, widget.last_error
     residual = tifffile.imread(tmp_path / "soil_residual.tif")
-    np.testing.assert_allclose(residual, viewer.layers["residual (uncorrected)"].data)
+    np.testing.assert_allclose(residual, viewer.layers["residual volume (uncorrected)"].data)
     strain = tifffile.imread(tmp_path / "soil_equivalent_strain.tif")
     field = field_of(viewer.layers["|u| (uncorrected)"])
     np.testing.assert_allclose(strain, equivalent_strain_field(field), rtol=1e-6)

@@ -386,6 +386,24 @@ class CorrelateWidget(EngineWidget):
         }
         self._show_preview(PREVIEW_POINTS, points, "points", placement, points_style)
         self._show_preview(PREVIEW_BOX, box, "shapes", placement, box_style)
+        self._slice_on_grid(job)
+
+    def _slice_on_grid(self, job) -> None:
+        """In 2-D, move the z slider onto a plane of POIs if it sits between two (or the grid
+        preview shows nothing): the central plane of the grid."""
+        if self.viewer.dims.ndisplay != 2 or self.viewer.dims.ndim < 3:
+            return
+        origin, step, shape = model.grid_for_volume(
+            job.shape, job.params.subvolume, job.params.step
+        )
+        axis = self.viewer.dims.ndim - 3
+        vs, off = float(job.voxel_size[0]), float(job.offset[0])
+        z = (float(self.viewer.dims.point[axis]) - off) / vs  # voxels
+        index = (z - origin[0]) / step[0]
+        on_grid = abs(index - round(index)) * step[0] < 0.5 and 0 <= round(index) < shape[0]
+        if not on_grid:
+            centre = origin[0] + step[0] * (shape[0] // 2)
+            self.viewer.dims.set_point(axis, off + centre * vs)
 
     def _show_preview(self, name: str, data, layer_type: str, placement: dict, style: dict):
         """Update the preview layer ``name`` in place, or make it the first time."""
