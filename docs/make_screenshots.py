@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from qtpy.QtWidgets import QApplication
 
+from napari_dvc_correct import layers as L
 from napari_dvc_correct.demo import make_viewer
 
 IMAGES = Path(__file__).resolve().parent / "images"
@@ -107,7 +108,7 @@ def main() -> None:
     hidden = [x for x in viewer.layers if x.visible and x.name not in ("reference", "phases")]
     for layer in hidden:
         layer.visible = False
-    viewer.text_overlay.visible = False
+    L.text_overlay(viewer).visible = False
     viewer.layers.selection.active = phases
     shot(viewer, "evaluate.png")
     phases.visible = False
@@ -165,7 +166,7 @@ def tiff_walkthrough() -> None:
     correlate.apply_voxel_size()
     correlate.subvolume.setValue(21)
     correlate.region.set_kind("cylinder")
-    correlate.region.radius.setValue(40.0)
+    correlate.region.radius.setValue(40.0)  # (defaults follow the scans: centred, full z)
     correlate._update.flush()
     viewer.reset_view()
     shot(viewer, "tiff-pair.png")

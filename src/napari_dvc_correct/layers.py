@@ -352,7 +352,7 @@ def quantity_style(quantity: str, values: np.ndarray, limits=None) -> dict:
         "magnitude": "viridis",
         "positive strain": "inferno",
         "zncc": "magma",
-        "residual": "gray",
+        "residual": "magma",
     }[kind]
     rendering = "mip" if kind in ("magnitude", "positive strain", "residual") else "average"
     return {
@@ -661,6 +661,15 @@ def caption(layer) -> str:
     return f"{quantity} [{entry.get('unit', '')}]: {what} — {entry.get('source', '')} field"
 
 
+def text_overlay(viewer):
+    """The canvas text overlay (``viewer.canvas.overlays["text"]`` in napari 0.9)."""
+    canvas = getattr(viewer, "canvas", None)
+    overlays = getattr(canvas, "overlays", None)
+    if overlays is not None and "text" in overlays:
+        return overlays["text"]
+    return viewer.text_overlay
+
+
 def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
     """Show a new field's layers and make them the ones on view (toggled, not stacked).
 
@@ -687,7 +696,7 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
                 pass
         layer.visible = True
         layer.colorbar.visible = True
-        viewer.text_overlay.text = caption(layer)
-        viewer.text_overlay.visible = True
+        text_overlay(viewer).text = caption(layer)
+        text_overlay(viewer).visible = True
     viewer.scale_bar.visible = True
     return added

@@ -43,8 +43,16 @@ def tiff_pair(tmp_path):
 
 
 def _dock(viewer, cls):
-    widget = cls(viewer)
-    viewer.window.add_dock_widget(widget)
+    """Dock a panel as napari does for a user (through the plugin, with napari's viewer proxy)."""
+    name = {
+        CorrelateWidget: "Correlate",
+        CorrectWidget: "Self-correct",
+        EvaluateWidget: "Evaluate",
+        ExportWidget: "Export",
+        ViewWidget: "View",
+    }[cls]
+    _, widget = viewer.window.add_plugin_dock_widget("napari-dvc-correct", name)
+    assert isinstance(widget, cls)
     return widget
 
 

@@ -143,20 +143,23 @@ def pair_in_order(reference: LayerCombo, deformed: LayerCombo, event=None, ndim:
     the user made between two different scans stays. With a layer-list ``event`` it acts only
     when a scan (a layer the reference box lists) was added.
     """
+    # compared by name: napari hands plugins a proxy of the viewer, whose layers are new proxy
+    # objects on every access (``is`` never holds between two of them)
     inserted = getattr(event, "value", None) if event is not None else None
-    if event is not None and (inserted is None or inserted not in reference.layers()):
+    names = [x.name for x in reference.layers()]
+    if event is not None and getattr(inserted, "name", None) not in names:
         return
-    scans = [x for x in reference.layers() if x.ndim == ndim]
+    scans = [x.name for x in reference.layers() if x.ndim == ndim]
     ref = reference.layer()
     if ref is None or ref.ndim != ndim:
         if not scans:
             return
-        ref = scans[0]
-        reference.set_layer(ref)
+        ref = reference.layer() if reference.set_layer(scans[0]) else None
+    ref_name = getattr(ref, "name", None)
     current = deformed.layer()
-    if current is None or current is ref or current.ndim != ndim:
-        after = scans[scans.index(ref) + 1 :] if ref in scans else scans
-        others = [x for x in after + scans if x is not ref]
+    if current is None or current.name == ref_name or current.ndim != ndim:
+        after = scans[scans.index(ref_name) + 1 :] if ref_name in scans else scans
+        others = [x for x in after + scans if x != ref_name]
         if others:
             deformed.set_layer(others[0])
 

@@ -120,7 +120,7 @@ class CorrectWidget(EngineWidget):
         reference, deformed = self.reference.layer(), self.deformed.layer()
         if reference is None or deformed is None:
             raise ValueError("choose the reference and deformed Image layers of this field")
-        if reference is deformed:
+        if reference.name == deformed.name:
             raise ValueError("the reference and deformed volumes are the same layer")
         g, f = layer_volume(reference), layer_volume(deformed)
         if g.ndim != 3 or g.shape != f.shape:

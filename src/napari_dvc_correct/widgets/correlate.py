@@ -223,6 +223,10 @@ class CorrelateWidget(EngineWidget):
         layer = self.reference.layer()
         if layer is None:
             return
+        if layer.ndim in (3, 4):  # the region's defaults follow the scans' size
+            self.region.set_volume(
+                layer.data.shape[-3:], model.layer_volume(layer, 0 if layer.ndim == 4 else None)
+            )
         self.voxel_size.blockSignals(True)
         self.voxel_size.setValue(float(np.asarray(layer.scale)[-1]))
         self.voxel_size.blockSignals(False)

@@ -218,7 +218,7 @@ class EvaluateWidget(EngineWidget):
     def _panel_pair(self):
         reference = self._volume(self.reference, "reference")
         deformed = self._volume(self.deformed, "deformed")
-        if self.reference.layer() is self.deformed.layer():
+        if self.reference.currentText() == self.deformed.currentText():
             raise ValueError("the reference and deformed volumes are the same layer")
         if reference.shape != deformed.shape:
             raise ValueError(

@@ -13,11 +13,15 @@ from qtpy.QtCore import Qt
 from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButton, QWidget
 
 from .. import layers as L
+from . import profile_model
 from ._base import follow_layers
+from ._plots import ProfileCanvas
 
-#: Camera of the 3-D view: azimuth/elevation that show the three faces of the volume.
-OBLIQUE_ANGLES = (0.0, -35.0, 145.0)
+#: Camera of the 3-D view (napari's Euler angles, degrees): tilted 20–30° off the y axis, so a
+#: band that contains y (a shear band slipping in the z-x plane) reads as a band, in depth.
+OBLIQUE_ANGLES = (-20.0, 30.0, 120.0)
 ALL_FIELDS = "all (overlaid)"
+PROFILE_LINE = "profile line"
 
 
 class ViewWidget(QWidget):
@@ -54,6 +58,15 @@ class ViewWidget(QWidget):
         self.message = QLabel("")
         self.message.setWordWrap(True)
         form.addRow(self.message)
+        self.draw_line = QPushButton("Line profile: draw a line")
+        self.draw_line.setToolTip(
+            "Adds a Shapes layer in line mode: click the start and the end of a line across "
+            "the band; the plot shows the displacement and strain along it for every field"
+        )
+        form.addRow(self.draw_line)
+        self.profile = ProfileCanvas()
+        form.addRow(self.profile)
+        self.draw_line.clicked.connect(lambda checked=False: self.start_line())
 
         self.quantity.currentIndexChanged.connect(lambda *a: self.set_quantity())
         self.shown.currentIndexChanged.connect(lambda *a: self.show_source())
@@ -62,8 +75,49 @@ class ViewWidget(QWidget):
         self.arrows.toggled.connect(lambda *a: self.show_source())
         self.view_3d.clicked.connect(lambda checked=False: self.oblique_3d())
         self.view_2d.clicked.connect(lambda checked=False: setattr(self.viewer.dims, "ndisplay", 2))
+        self._watched: set = set()
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
+
+    # -- line profile -----------------------------------------------------------------------
+    def start_line(self):
+        """The profile's Shapes layer (made the first time), selected in line-drawing mode."""
+        layer = L.find_layer(self.viewer, PROFILE_LINE)
+        if layer is None:
+            kwargs = {
+                "name": PROFILE_LINE,
+                "ndim": max(3, self.viewer.dims.ndim),
+                "edge_color": "cyan",
+                "edge_width": 1.0,
+                "metadata": {L.MARKER: {"kind": "profile", "source": "profile"}},
+            }
+            (layer,) = L.show_layers(self.viewer, [([], kwargs, "shapes")])
+            layer.events.data.connect(lambda event=None: self.update_profile())
+        self.viewer.layers.selection.active = layer
+        layer.mode = "add_line"
+        return layer
+
+    def update_profile(self):
+        """Plot the profiles along the last line drawn; returns them (or None)."""
+        layer = L.find_layer(self.viewer, PROFILE_LINE)
+        if layer is None or len(layer.data) == 0:
+            return None
+        vertices = np.asarray(layer.data[-1], float)
+        start, end = (np.asarray(layer.data_to_world(v)) for v in (vertices[0], vertices[-1]))
+        fields = {}
+        for quantity_layer in L.quantity_layers(self.viewer):
+            entry = L.plugin_metadata(quantity_layer)
+            fields.setdefault(entry["source"], entry["field"])
+        if not fields:
+            self.message.setText("No field yet: run Correlate.")
+            return None
+        try:
+            groups = profile_model.profiles(fields, self.quantity.currentData(), start, end)
+        except ValueError as error:
+            self.message.setText(str(error))
+            return None
+        self.profile.plot(groups)
+        return groups
 
     # -- state --------------------------------------------------------------------------------
     def sources(self) -> list[str]:
@@ -78,17 +132,14 @@ class ViewWidget(QWidget):
 
     def _layers_changed(self, event=None) -> None:
         """Follow new fields: the newest one on view, showing the chosen quantity."""
+        for layer in L.quantity_layers(self.viewer):
+            if id(layer) not in self._watched:  # visibility set elsewhere (a new result...)
+                layer.events.visible.connect(self._visibility_changed)
+                self._watched.add(id(layer))
         sources = self.sources()
-        visible = [
-            L.plugin_metadata(x)["source"] for x in L.quantity_layers(self.viewer) if x.visible
-        ]
         self.shown.blockSignals(True)
         self.shown.clear()
         self.shown.addItems(sources + ([ALL_FIELDS] if len(sources) > 1 else []))
-        if len(visible) == 1:
-            self.shown.setCurrentText(visible[0])
-        elif len(visible) > 1:
-            self.shown.setCurrentText(ALL_FIELDS)
         self.shown.blockSignals(False)
         inserted = getattr(event, "value", None)
         entry = L.plugin_metadata(inserted) if inserted is not None else None
@@ -123,6 +174,7 @@ class ViewWidget(QWidget):
             layer.contrast_limits = limits
         self.message.setText("; ".join(problems))
         self._decorate()
+        self.update_profile()
 
     def show_source(self, source: str | None = None) -> None:
         """Put the field ``source`` on view (or all of them, overlaid) and hide the others."""
@@ -146,13 +198,27 @@ class ViewWidget(QWidget):
         if len(pair) < 2:
             self.message.setText("Before/after needs an uncorrected and a corrected field.")
             return None
-        current = self.shown.currentText()
-        target = "uncorrected" if current == "corrected" else "corrected"
+        visible = self._visible_sources()
+        target = "uncorrected" if visible == ["corrected"] else "corrected"
         self.show_source(target)
         return target
 
+    def _visibility_changed(self, event=None) -> None:
+        try:
+            self._decorate()
+        except RuntimeError:  # the dock was closed
+            pass
+
+    def _visible_sources(self) -> list[str]:
+        return [L.plugin_metadata(x)["source"] for x in L.quantity_layers(self.viewer) if x.visible]
+
     def _decorate(self) -> None:
         """Colorbar on the one quantity layer on top that is visible; caption with units."""
+        visible = self._visible_sources()
+        if visible:  # the choice says what is on view, however it got there
+            self.shown.blockSignals(True)
+            self.shown.setCurrentText(visible[0] if len(visible) == 1 else ALL_FIELDS)
+            self.shown.blockSignals(False)
         layers = L.quantity_layers(self.viewer)
         visible = [x for x in layers if x.visible]
         top = visible[-1] if visible else None
@@ -160,14 +226,15 @@ class ViewWidget(QWidget):
             layer.colorbar.visible = bool(layer is top and self.colorbar.isChecked())
         text = L.caption(top) if top is not None else "No field yet: run Correlate."
         self.caption.setText(text)
-        self.viewer.text_overlay.text = text if top is not None else ""
-        self.viewer.text_overlay.visible = top is not None
+        L.text_overlay(self.viewer).text = text if top is not None else ""
+        L.text_overlay(self.viewer).visible = top is not None
 
     def oblique_3d(self) -> None:
-        """3-D view from an oblique angle, the quantity as a maximum projection."""
+        """3-D view from an oblique angle, the quantity as an attenuated maximum projection."""
         self.viewer.dims.ndisplay = 3
+        self.viewer.reset_view()  # (resets the angles too: set them after)
         self.viewer.camera.angles = OBLIQUE_ANGLES
-        self.viewer.reset_view()
+        self.viewer.camera.zoom *= 0.75  # the rotated volume fits the canvas
         for layer in L.quantity_layers(self.viewer):
             if layer.visible and np.asarray(layer.data).ndim >= 3:
-                layer.rendering = "mip"
+                layer.rendering = "attenuated_mip"  # the nearest high values, not all of them
