@@ -132,6 +132,21 @@ class CorrectWidget(EngineWidget):
         self.table.setRowCount(0)
         return model.run_correction(g, f, chosen, mask=mask, **self._options())
 
+    def settings(self) -> dict:
+        """The panel's options, JSON-friendly (for a session file)."""
+        return {
+            "frame": self.frame.currentData(),
+            "update": self.update_rule.currentData(),
+            "max_passes": self.max_passes.value(),
+        }
+
+    def restore(self, settings: dict) -> None:
+        for combo, key in ((self.frame, "frame"), (self.update_rule, "update")):
+            index = combo.findData(settings.get(key))
+            if index >= 0:
+                combo.setCurrentIndex(index)
+        self.max_passes.setValue(int(settings.get("max_passes", self.max_passes.value())))
+
     def _fill_table(self, headers, rows) -> None:
         self.table.setHorizontalHeaderLabels(headers)
         self.table.setRowCount(len(rows))

@@ -359,6 +359,51 @@ class CorrelateWidget(EngineWidget):
             kept=kept,
         )
 
+    # -- sessions -------------------------------------------------------------------------------
+    def settings(self) -> dict:
+        """The panel's choices, JSON-friendly (for a session file)."""
+        return {
+            "mode": self.current_mode,
+            "reference": self.reference.currentText(),
+            "deformed": self.deformed.currentText(),
+            "series": self._ticked(),
+            "strategy": self.strategy.currentData(),
+            "correct_states": self.correct_states.isChecked(),
+            "subvolume": self.subvolume.value(),
+            "step": self.step.value(),
+            "order": self.order.currentData(),
+            "search_radius": self.search_radius.value(),
+            "device": self.device.currentData(),
+            "unit": self.unit.currentData(),
+            "region": self.region.settings(),
+        }
+
+    def restore(self, settings: dict) -> None:
+        """Take back :meth:`settings` (missing entries keep their current value)."""
+        for combo, key in (
+            (self.mode, "mode"),
+            (self.strategy, "strategy"),
+            (self.order, "order"),
+            (self.device, "device"),
+        ):
+            if key in settings and combo.findData(settings[key]) >= 0:
+                combo.setCurrentIndex(combo.findData(settings[key]))
+        self.reference.set_layer(settings.get("reference", ""))
+        self.deformed.set_layer(settings.get("deformed", ""))
+        self.set_series_layers(settings.get("series", []))
+        self.correct_states.setChecked(bool(settings.get("correct_states", False)))
+        for box, key in ((self.subvolume, "subvolume"), (self.step, "step")):
+            if key in settings:
+                box.setValue(int(settings[key]))
+        self.search_radius.setValue(int(settings.get("search_radius", 0)))
+        self.unit.blockSignals(True)  # the scans' scale came back with them
+        self.unit.setCurrentIndex(max(0, self.unit.findData(settings.get("unit", ""))))
+        self.unit.blockSignals(False)
+        self._show_voxel_size()
+        if "region" in settings:
+            self.region.restore(settings["region"])
+        self._update.trigger()
+
     # -- preview and estimate ------------------------------------------------------------------
     def update_preview(self) -> None:
         """Redraw the POI grid preview and the estimate (debounced from every change)."""

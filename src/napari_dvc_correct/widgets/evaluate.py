@@ -142,6 +142,26 @@ class EvaluateWidget(EngineWidget):
         self.slider.blockSignals(False)
         self.auto_thresholds(show=False)
 
+    # -- sessions -------------------------------------------------------------------------------
+    def settings(self) -> dict:
+        """Thresholds, number of phases and residual mode, JSON-friendly (for a session file)."""
+        return {
+            "n_phases": self.n_phases.value(),
+            "thresholds": self.thresholds(),
+            "mode": self.mode.currentData(),
+        }
+
+    def restore(self, settings: dict) -> None:
+        index = self.mode.findData(settings.get("mode"))
+        if index >= 0:
+            self.mode.setCurrentIndex(index)
+        self.n_phases.blockSignals(True)  # no automatic thresholds over the saved ones
+        self.n_phases.setValue(int(settings.get("n_phases", self.n_phases.value())))
+        self.n_phases.blockSignals(False)
+        self._reference_changed()
+        if settings.get("thresholds"):
+            self.set_thresholds(settings["thresholds"], show=False)
+
     # -- thresholds and live phases -----------------------------------------------------------
     def thresholds(self) -> list[float]:
         return [float(v) for v in self.slider.value()]

@@ -67,6 +67,17 @@ class ExportWidget(EngineWidget):
         self.report = QCheckBox("evaluation report (.md and .json)")
         for box in (self.with_strain, self.strain_tiff, self.residual_tiff, self.report):
             self.form.addRow(box)
+        sessions = QHBoxLayout()
+        self.save_session_button = QPushButton("Save session…")
+        self.open_session_button = QPushButton("Open session…")
+        self.save_session_button.setToolTip(
+            "The scans' paths, every panel's parameters and thresholds, and the fields"
+        )
+        sessions.addWidget(self.save_session_button)
+        sessions.addWidget(self.open_session_button)
+        self.form.addRow("Session", sessions)
+        self.save_session_button.clicked.connect(lambda checked=False: self._session_dialog(True))
+        self.open_session_button.clicked.connect(lambda checked=False: self._session_dialog(False))
         browse.clicked.connect(self.browse)
         self.format.currentIndexChanged.connect(self._format_changed)
         self.field.currentIndexChanged.connect(self._field_changed)
@@ -129,6 +140,53 @@ class ExportWidget(EngineWidget):
         if path:
             self.path.setText(path)
             self._proposed = ""
+
+    def panels(self) -> dict:
+        """The plugin's other panels docked in the same window, by name (for sessions)."""
+        from .correct import CorrectWidget
+        from .correlate import CorrelateWidget
+        from .evaluate import EvaluateWidget
+
+        found = {}
+        for name, cls in (
+            ("Correlate", CorrelateWidget),
+            ("Self-correct", CorrectWidget),
+            ("Evaluate", EvaluateWidget),
+        ):
+            widgets = self.window().findChildren(cls)
+            if widgets:
+                found[name] = widgets[0]
+        return found
+
+    def _session_dialog(self, save: bool) -> None:
+        from .session_model import SUFFIX
+
+        folder = str(default_folder(self.viewer))
+        if save:
+            path, _ = QFileDialog.getSaveFileName(self, "Save the session", folder, f"*{SUFFIX}")
+        else:
+            path, _ = QFileDialog.getOpenFileName(self, "Open a session", folder, f"*{SUFFIX}")
+        if path:
+            self.session(path, save=save)
+
+    def session(self, path, save: bool = True):
+        """Save the session to ``path`` (or open it); the message line says what happened."""
+        from . import session
+
+        self.clear_message()
+        try:
+            if save:
+                written = session.save_session(self.viewer, path, self.panels())
+                self.show_message(f"Session saved to {written}.")
+                return written
+            content = session.open_session(self.viewer, path, self.panels())
+            self.show_message(
+                f"Session opened: {len(content['scans'])} scans, {len(content['fields'])} fields."
+            )
+            return content
+        except ValueError as error:
+            self.show_message(str(error), error=True)
+            return None
 
     def _layer_of(self, source: str, kind: str):
         for layer in self.viewer.layers:

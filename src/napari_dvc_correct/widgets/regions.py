@@ -196,3 +196,26 @@ class RegionBox(QGroupBox):
             raise ValueError("the region is empty: no voxel is selected")
         self._cache = (key, mask)
         return mask
+
+    # -- sessions -------------------------------------------------------------------------
+    def _boxes(self) -> dict:
+        names = ("z_from", "z_to", "centre_y", "centre_x", "radius", "y_from", "y_to")
+        names += ("x_from", "x_to", "threshold")
+        return {name: getattr(self, name) for name in names}
+
+    def settings(self) -> dict:
+        values = {name: box.value() for name, box in self._boxes().items()}
+        return {
+            "kind": self.current_kind,
+            "fill_holes": self.fill_holes.isChecked(),
+            "layer": self.layer.currentText(),
+            **values,
+        }
+
+    def restore(self, settings: dict) -> None:
+        self.set_kind(settings.get("kind", "all"))
+        self.fill_holes.setChecked(bool(settings.get("fill_holes", True)))
+        self.layer.set_layer(settings.get("layer", ""))
+        for name, box in self._boxes().items():
+            if name in settings:
+                box.setValue(settings[name])
