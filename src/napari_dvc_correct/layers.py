@@ -604,6 +604,16 @@ def label_axes(viewer) -> None:
         viewer.dims.axis_labels = names
 
 
+def _same_units(viewer, layer) -> None:
+    """Give ``layer`` the length unit of the scans (napari ignores units that disagree)."""
+    if "units" in dir(layer) and all(str(u) == "pixel" for u in layer.units):
+        for other in viewer.layers:
+            units = [str(u) for u in getattr(other, "units", ())]
+            if units and units[-1] != "pixel":
+                layer.units = (units[-1],) * layer.ndim
+                return
+
+
 def show_layers(viewer, layer_tuples) -> list:
     """Add layer tuples to ``viewer``, replacing same-named layers the plugin made before.
 
@@ -628,6 +638,7 @@ def show_layers(viewer, layer_tuples) -> list:
             key = entry.get("key", name)
             kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": key}}
         layer = Layer.create(data, kwargs, layer_type)
+        _same_units(viewer, layer)
         old = find_layer(viewer, key)
         if old is not None:
             index = viewer.layers.index(old)

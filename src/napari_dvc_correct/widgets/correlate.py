@@ -249,6 +249,9 @@ class CorrelateWidget(EngineWidget):
             if unit:
                 layer.units = (unit,) * layer.ndim
         if unit:
+            for layer in self.viewer.layers:  # napari ignores units that disagree
+                if L.plugin_metadata(layer) is not None:
+                    layer.units = (unit,) * layer.ndim
             self.viewer.scale_bar.visible = True
         self._update.trigger()
 

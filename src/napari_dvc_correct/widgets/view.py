@@ -65,6 +65,7 @@ class ViewWidget(QWidget):
         )
         form.addRow(self.draw_line)
         self.profile = ProfileCanvas()
+        self.profile.setVisible(False)  # until a line is drawn
         form.addRow(self.profile)
         self.draw_line.clicked.connect(lambda checked=False: self.start_line())
 
@@ -117,6 +118,7 @@ class ViewWidget(QWidget):
             self.message.setText(str(error))
             return None
         self.profile.plot(groups)
+        self.profile.setVisible(True)
         return groups
 
     # -- state --------------------------------------------------------------------------------
@@ -238,3 +240,12 @@ class ViewWidget(QWidget):
         for layer in L.quantity_layers(self.viewer):
             if layer.visible and np.asarray(layer.data).ndim >= 3:
                 layer.rendering = "attenuated_mip"  # the nearest high values, not all of them
+                quantity = L.plugin_metadata(layer).get("quantity")
+                if L.QUANTITIES.get(quantity, ("", ""))[1] == "positive strain":
+                    # the band stands out: the lower half of the values drawn dark
+                    values = np.asarray(layer.data)
+                    finite = values[np.isfinite(values)]
+                    if finite.size:
+                        low, high = np.percentile(finite, [50.0, 99.5])
+                        if high > low:
+                            layer.contrast_limits = [float(low), float(high)]
