@@ -24,7 +24,7 @@ import tracemalloc
 
 import numpy as np
 
-from napari_dvc_correct.engine import synthetic, warp
+from napari_dvc_correct.engine import field_spline, residual, synthetic, warp
 from napari_dvc_correct.engine.cleaning import clean
 from napari_dvc_correct.engine.correction import correct
 from napari_dvc_correct.engine.correlate import correlate
@@ -83,7 +83,7 @@ def case_a():
     line(
         "uncorrected",
         errors(measured, truth),
-        warp.mean_gray_residual(reference, deformed, cleaned),
+        residual.mean_gray_residual(reference, deformed, cleaned),
     )
     for frame in ("loaded", "reference"):
         for update in ("exact", "sum"):
@@ -98,7 +98,7 @@ def case_a():
             line(
                 f"{frame} / {update}",
                 errors(corrected, truth),
-                warp.mean_gray_residual(reference, deformed, corrected),
+                residual.mean_gray_residual(reference, deformed, corrected),
                 f"{corrected.metadata['correction']['passes_applied']} applied, {seconds:.0f} s; "
                 f"own residual {trail}",
             )
@@ -146,7 +146,7 @@ def case_c(size=256):
     dense_bytes = 3 * size**3 * 8
 
     def slabs():
-        for _ in warp.iter_dense(field, volume.shape):
+        for _ in field_spline.iter_dense(field, volume.shape):
             pass
 
     for name, run in (
@@ -155,13 +155,13 @@ def case_c(size=256):
         ("warp_forward", lambda: warp.warp_forward(volume, field, coefficients=coefficients)),
         (
             "mean_gray_residual",
-            lambda: warp.mean_gray_residual(
+            lambda: residual.mean_gray_residual(
                 volume, volume, field, deformed_coefficients=coefficients
             ),
         ),
         (
             "mean_gray_residual loaded",
-            lambda: warp.mean_gray_residual(
+            lambda: residual.mean_gray_residual(
                 volume, volume, field, "loaded", reference_coefficients=coefficients
             ),
         ),

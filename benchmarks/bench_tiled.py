@@ -9,7 +9,7 @@ The benchmark makes its own pair, chunk by chunk, never holding a full volume in
 - both are quantised to uint16 and written as uncompressed TIFF stacks (memory-mapped on reading)
   or Zarr arrays (``--format zarr``).
 
-Then it correlates them with :func:`napari_dvc_correct.engine.tiled.correlate_tiled`:
+Then it correlates them with :func:`napari_dvc_correct.tiled.correlate_tiled`:
 
 1. on dask's local threaded scheduler under ``--max-memory`` (default 1.8 GB), sampling this
    process's resident memory every 5 ms (the claim: peak under 2 GB for 512³);
@@ -172,7 +172,7 @@ def _add_cpu(result, cpu_seconds):
 
 
 def run_local(paths, size, params, max_memory, workers, margin):
-    from napari_dvc_correct.engine.tiled import correlate_tiled
+    from napari_dvc_correct.tiled import correlate_tiled
 
     with PeakMemory() as memory:
         started = time.perf_counter()
@@ -193,7 +193,7 @@ def _worker_usage():
 def run_cluster(paths, size, params, n_workers, batch_shape, margin):
     import distributed
 
-    from napari_dvc_correct.engine.tiled import correlate_tiled
+    from napari_dvc_correct.tiled import correlate_tiled
 
     with (
         distributed.LocalCluster(

@@ -5,6 +5,7 @@ import warnings
 import pytest
 
 from napari_dvc_correct.engine import backend
+from napari_dvc_correct.io.npz import load_field
 
 
 def test_cpu_is_always_available():
@@ -50,7 +51,6 @@ def test_command_line_prints_the_device(tmp_path, capsys, monkeypatch):
 
     from napari_dvc_correct import cli
     from napari_dvc_correct.engine import synthetic
-    from napari_dvc_correct.engine.field import DisplacementField
 
     monkeypatch.setattr(backend, "probe_cuda", lambda: (False, "no CUDA GPU found (test)"))
     reference = synthetic.textured_volume((32, 32, 32), 1.5, seed=4)
@@ -64,6 +64,6 @@ def test_command_line_prints_the_device(tmp_path, capsys, monkeypatch):
         assert cli.main(["correlate", *arguments]) == 0
     printed = capsys.readouterr().out
     assert "device: CPU" in printed and "no CUDA GPU found (test)" in printed
-    field = DisplacementField.load(out)
+    field = load_field(out)
     assert field.metadata["device"].startswith("CPU")
     assert np.allclose(field.u[field.valid], [0.3, -0.5, 0.2], atol=0.02)

@@ -10,7 +10,7 @@ corrected field comes in under it.
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import synthetic, warp
+from napari_dvc_correct.engine import residual, synthetic
 from napari_dvc_correct.engine.correction import correct, correct_iter
 from napari_dvc_correct.engine.correlate import correlate
 from napari_dvc_correct.engine.field import DisplacementField, Provenance, grid_for_volume
@@ -78,8 +78,8 @@ def test_correction_lowers_error_outliers_and_gray_residual(shear_band_case):
     # the gray residual, measured the same way for both fields
     from napari_dvc_correct.engine.cleaning import clean
 
-    residual_before = warp.mean_gray_residual(reference, deformed, clean(measured))
-    residual_after = warp.mean_gray_residual(reference, deformed, corrected)
+    residual_before = residual.mean_gray_residual(reference, deformed, clean(measured))
+    residual_after = residual.mean_gray_residual(reference, deformed, corrected)
     assert residual_after < residual_before - 0.5, (residual_before, residual_after)
     assert residual_after < 0.95 * residual_before
 

@@ -91,7 +91,9 @@ def test_flat_subvolume_is_low_texture_and_noise_does_not_converge_confidently()
     centers = np.array([[28, 28, 12], [28, 28, 44]], dtype=np.int64)
     params, zncc, status, _ = _match(reference, deformed, centers, np.zeros((2, 3)), 1)
     assert status[0] == Status.LOW_TEXTURE
-    assert status[1] != Status.CONVERGED or zncc[1] < 0.3
+    # the matcher may stop anywhere on unrelated noise, but never with a good criterion: the
+    # low-ZNCC status is given from this value by correlate (test_correlate)
+    assert zncc[1] < 0.3, (status[1], zncc[1])
 
 
 def test_warp_matrix_composition_matches_function_composition():

@@ -116,8 +116,8 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     progress : callable, optional
         Called with every :class:`Progress` (default: the command's progress bar).
     """
-    from ..engine.tiled import correlate_tiled_iter
     from ..io.lazy import open_volume
+    from ..tiled import correlate_tiled_iter
     from .correlate import ProgressBar, drive
 
     reference = open_volume(args.reference)

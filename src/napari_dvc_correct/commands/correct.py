@@ -128,14 +128,14 @@ def apply_self_correction(args, field, reference, deformed):
 
 def run(args) -> int:
     from ..engine.correction import correct_iter
-    from ..engine.field import DisplacementField
+    from ..io.npz import load_field, save_field
     from ..io.volumes import read_volume
     from .correlate import ProgressBar, check_output_path, drive
 
     started = time.perf_counter()
     out = check_output_path(args.out)
     options = correction_options_from_args(args)
-    field = DisplacementField.load(args.field)
+    field = load_field(args.field)
     reference = read_volume(args.reference)
     deformed = read_volume(args.deformed)
     mask = read_volume(args.mask) if args.mask else None
@@ -150,7 +150,7 @@ def run(args) -> int:
     corrected.metadata["reference"] = str(args.reference)
     corrected.metadata["deformed"] = str(args.deformed)
     corrected.metadata["corrected_from"] = str(args.field)
-    corrected.save(out)
+    save_field(corrected, out)
     print(pass_table(corrected))
     info = corrected.metadata["correction"]
     print(

@@ -129,6 +129,7 @@ def summary(field, seconds: float) -> str:
 def run(args) -> int:
     from ..engine.backend import select_device
     from ..engine.correlate import correlate_iter
+    from ..io.npz import save_field
     from ..io.volumes import read_volume
 
     started = time.perf_counter()
@@ -155,6 +156,6 @@ def run(args) -> int:
             reference = read_volume(args.reference)
             deformed = read_volume(args.deformed)
         field = apply_self_correction(args, field, reference, deformed)
-    field.save(out)
+    save_field(field, out)
     print(summary(field, time.perf_counter() - started))
     return 0

@@ -81,6 +81,7 @@ def write_summary(rows: list[dict], path: Path) -> None:
 
 def run(args) -> int:
     from ..engine.series import series_iter
+    from ..io.npz import save_field
     from ..io.volumes import read_volume
     from .correct import correction_options_from_args
     from .correlate import ProgressBar, drive, params_from_args
@@ -120,13 +121,13 @@ def run(args) -> int:
         total.metadata["reference"] = str(args.volumes[0])
         total.metadata["deformed"] = str(args.volumes[k])
         name = f"state_{k:02d}.npz"
-        total.save(out_dir / name)
+        save_field(total, out_dir / name)
         rows[k]["volume"] = args.volumes[k]
         rows[k]["field_file"] = name
     for k, increment in enumerate(result.increments, start=1):
         increment.metadata["reference"] = str(args.volumes[k - 1])
         increment.metadata["deformed"] = str(args.volumes[k])
-        increment.save(out_dir / f"increment_{k - 1:02d}_{k:02d}.npz")
+        save_field(increment, out_dir / f"increment_{k - 1:02d}_{k:02d}.npz")
     write_summary(rows, out_dir / "summary.csv")
     for row in rows[1:]:
         print(

@@ -6,7 +6,7 @@ The pieces, in the order the paper uses them:
    gray thresholds (multi-Otsu by default; any ``N >= 2``); the per-phase gray range and mean gray
    of each state make the paper's Table 1.
 2. **Background residual (eq. 1).** The gray residual ``r(X) = |F(X + u(X)) - G(X)|`` is computed
-   by :func:`napari_dvc_correct.engine.warp.gray_residual`. At voxels where the phase of ``G`` and
+   by :func:`napari_dvc_correct.engine.residual.gray_residual`. At voxels where the phase of ``G`` and
    the phase of ``F`` mapped by the field agree, the residual is (ideally) imaging noise only; its
    mean over those voxels is the background residual ``r0`` (:func:`background_residual`), and
    ``r' = r - r0`` is the corrected residual.
@@ -31,7 +31,7 @@ from dataclasses import field as dataclass_field
 import numpy as np
 
 from .binning import StrainBins, bin_residual_by_strain, strain_bin_edges
-from .field import DisplacementField, Status
+from .field import DisplacementField
 from .phases import (
     NO_PHASE,
     PhaseStats,
@@ -39,52 +39,13 @@ from .phases import (
     phase_table,
     phase_thresholds,
     segment_phases,
-    slabs,
 )
 from .progress import Progress, run_to_completion
+from .slabs import iter_slabs
 from .strain import equivalent_strain_field
 
 
 # --- grid quantities ready to display -------------------------------------------------------------
-def zncc_volume(field: DisplacementField) -> tuple[np.ndarray, dict, str]:
-    """The per-POI ZNCC as a grid image, ready for napari (``(data, kwargs, "image")``).
-
-    Returns
-    -------
-    data : ndarray, shape (nz, ny, nx), float32
-        ZNCC in [-1, 1], NaN where no match was made.
-    kwargs : dict
-        ``name``, ``scale`` (= step) and ``translate`` (= origin) so the grid overlays the volume,
-        ``colormap`` and ``contrast_limits``.
-    layer_type : str
-        ``"image"``.
-    """
-    data = np.asarray(field.zncc, dtype=np.float32).copy()
-    kwargs = {"name": "ZNCC", "colormap": "viridis", "contrast_limits": (0.0, 1.0)}
-    kwargs.update(field.layer_kwargs())
-    return data, kwargs, "image"
-
-
-def status_volume(field: DisplacementField) -> tuple[np.ndarray, dict, str]:
-    """The per-POI :class:`Status` codes as a grid label image (``(data, kwargs, "labels")``).
-
-    Returns
-    -------
-    data : ndarray, shape (nz, ny, nx), uint8
-        Status code + 1, so that CONVERGED (code 0) is not the transparent background label 0.
-    kwargs : dict
-        ``name``, ``scale``, ``translate`` and ``metadata["status_names"]`` mapping each label
-        value to its readable status name.
-    layer_type : str
-        ``"labels"``.
-    """
-    data = field.status.astype(np.uint8) + np.uint8(1)
-    names = {int(s) + 1: s.label for s in Status}
-    kwargs = {"name": "status", "metadata": {"status_names": names}}
-    kwargs.update(field.layer_kwargs())
-    return data, kwargs, "labels"
-
-
 def check_field_fits(field: DisplacementField, volume_shape, name: str = "field") -> None:
     """Raise ``ValueError`` unless every node of ``field`` lies inside a volume of ``volume_shape``.
 
@@ -158,7 +119,7 @@ def background_residual(
     sums = np.zeros(NO_PHASE)
     counts = np.zeros(NO_PHASE, np.int64)
     n = 0  # phases present in the reference labels
-    for zs in slabs(residual.shape):
+    for zs in iter_slabs(residual.shape):
         r = np.asarray(residual[zs], dtype=np.float64)
         a = np.asarray(labels_reference[zs])
         defined = (a >= 0) & (a < NO_PHASE)
@@ -417,7 +378,7 @@ def evaluate_iter(
     phase_pair : (int, int), optional
         Phases whose contrast is used in eq. 2 (default: the two most abundant).
     mode : {"reference", "loaded"}
-        Where the residual lives (see :func:`~.warp.gray_residual`).
+        Where the residual lives (see :func:`~.residual.gray_residual`).
     strain_measure, strain_method, strain_window
         Equivalent strain options (:func:`~.strain.strain_tensor`).
     n_bins : int
@@ -441,8 +402,9 @@ def evaluate_iter(
     ValueError
         Bad thresholds, an empty phase, a field that does not fit the volume or holds NaN.
     """
-    from . import warp
+    from .field_spline import FieldSpline
     from .interpolation import prefilter
+    from .residual import moved_and_residual
 
     reference = np.asanyarray(reference)
     deformed = np.asanyarray(deformed)
@@ -501,22 +463,16 @@ def evaluate_iter(
         zip(named, strains, binning)
     ):
         yield Progress("residual", index, len(named), f"gray residual of {name}")
-        spline = warp.FieldSpline.from_field(item)
+        spline = FieldSpline.from_field(item)
         if mode == "reference":
-            residual = warp.gray_residual(
+            moved, residual = moved_and_residual(
                 reference, deformed, spline, "reference", deformed_coefficients=coefficients
-            )
-            moved = warp.pull_back(
-                deformed, spline, coefficients=coefficients, outside="nan", shape=reference.shape
             )
             mapped = label_phases(moved, thresholds_f)
             positions = None
         else:
-            residual = warp.gray_residual(
+            moved, residual = moved_and_residual(
                 reference, deformed, spline, "loaded", reference_coefficients=coefficients
-            )
-            moved = warp.warp_forward(
-                reference, spline, coefficients=coefficients, outside="nan", shape=deformed.shape
             )
             mapped = label_phases(moved, thresholds_g)
 
@@ -526,7 +482,7 @@ def evaluate_iter(
         del moved
         background = background_residual(residual, own_labels, mapped)
         total, count = 0.0, 0
-        for zs in slabs(residual.shape):
+        for zs in iter_slabs(residual.shape):
             block = residual[zs]
             finite = np.isfinite(block)
             total += float(np.sum(block[finite], dtype=np.float64))

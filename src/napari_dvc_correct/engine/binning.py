@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .field import DisplacementField
-from .phases import slabs
+from .slabs import iter_slabs
 
 
 @dataclass(frozen=True)
@@ -93,7 +93,7 @@ def cell_sums(
     sums = np.zeros(n_cells)
     counts = np.zeros(n_cells, np.int64)
     origin, step = field.origin, field.step
-    for zs in slabs(residual.shape):
+    for zs in iter_slabs(residual.shape):
         r = np.asarray(residual[zs], dtype=np.float64)
         if reference_positions is None:
             z = np.arange(zs.start, zs.stop, dtype=np.float64)

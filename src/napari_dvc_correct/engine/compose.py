@@ -6,7 +6,7 @@ measured at the positions reached by the first motion), the total Lagrangian dis
     ``w(X) = a(X) + b(X + a(X))``,
 
 with ``b`` interpolated at the displaced positions by cubic splines on its grid
-(:class:`.warp.FieldSpline`). This is the exact update of the self-correction and the
+(:class:`.field_spline.FieldSpline`). This is the exact update of the self-correction and the
 "displacement superposition" of incremental scan series. The paper's plain sum
 ``w(X) = a(X) + b(X)`` at the same node is kept as ``mode="sum"``; it is exact only when ``b`` is
 uniform.
@@ -19,7 +19,7 @@ import copy
 import numpy as np
 
 from .field import GOOD_STATUSES, DisplacementField, Provenance
-from .warp import FieldSpline
+from .field_spline import FieldSpline
 
 COMPOSE_MODES = ("exact", "sum")
 

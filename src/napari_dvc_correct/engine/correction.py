@@ -39,6 +39,7 @@ from .cleaning import clean, masked_nodes
 from .compose import compose
 from .correlate import correlate_iter
 from .field import DisplacementField, Provenance
+from .field_spline import FieldSpline
 from .interpolation import prefilter
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
@@ -100,7 +101,7 @@ class _Pair:
 
     def align(self, field: DisplacementField) -> tuple[np.ndarray, float]:
         """The moved volume for the next DVC, and the mean gray residual of ``field``."""
-        spline = warp.FieldSpline.from_field(field)
+        spline = FieldSpline.from_field(field)
         if self.frame == "reference":
             moved = warp.pull_back(
                 self.deformed, spline, coefficients=self.coefficients, cval=np.nan

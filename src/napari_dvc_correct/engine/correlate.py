@@ -30,6 +30,7 @@ from .initial_guess import bin_volume, fft_search, global_shift, pyramid_levels
 from .interpolation import prefilter
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
+from .validation import validate_volume
 
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
@@ -43,8 +44,6 @@ def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
         With a message that says what to change: not 3-D, shapes that differ, NaN or infinite
         values, a subvolume larger than the volume, an empty mask or a mask of another shape.
     """
-    from ..io.volumes import validate_volume
-
     reference = validate_volume(reference, "reference volume")
     deformed = validate_volume(deformed, "deformed volume")
     if reference.shape != deformed.shape:
@@ -517,6 +516,8 @@ def correlate_iter(
     return field
 
 
+# correlate repeats correlate_iter's signature (the duplicate finder pairs them): the blocking
+# form of the generator keeps the same keywords, spelt out so that help() shows them.
 def correlate(
     reference: np.ndarray,
     deformed: np.ndarray,

@@ -191,14 +191,6 @@ class DisplacementField:
         codes, counts = np.unique(self.status, return_counts=True)
         return {Status(int(c)).label: int(n) for c, n in zip(codes, counts)}
 
-    def layer_kwargs(self, voxel_size: tuple | None = None) -> dict:
-        """``scale``/``translate`` that place a grid quantity over the volume in napari."""
-        vs = np.ones(3) if voxel_size is None else np.asarray(voxel_size, float)
-        return {
-            "scale": tuple(float(s) for s in np.asarray(self.step) * vs),
-            "translate": tuple(float(o) for o in np.asarray(self.origin) * vs),
-        }
-
     # -- copies ---------------------------------------------------------------------------
     def copy(self) -> DisplacementField:
         """Deep copy (arrays and dictionaries)."""
@@ -226,20 +218,6 @@ class DisplacementField:
             and np.allclose(self.origin, other.origin)
             and np.allclose(self.step, other.step)
         )
-
-    # -- files ----------------------------------------------------------------------------
-    def save(self, path) -> None:
-        """Write the field to an ``.npz`` file atomically (see :mod:`napari_dvc_correct.io.npz`)."""
-        from ..io.npz import save_field
-
-        save_field(self, path)
-
-    @classmethod
-    def load(cls, path) -> DisplacementField:
-        """Read a field written by :meth:`save`."""
-        from ..io.npz import load_field
-
-        return load_field(path)
 
     @classmethod
     def zeros(cls, origin, step, shape, **kwargs: Any) -> DisplacementField:

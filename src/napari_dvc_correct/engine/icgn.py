@@ -45,11 +45,6 @@ def n_monomials(order: int) -> int:
     return 4 if order == 1 else 10
 
 
-def n_parameters(order: int) -> int:
-    """12 for the first-order shape function, 30 for the second-order one."""
-    return 3 * n_monomials(order)
-
-
 def _product_table() -> np.ndarray:
     """``table[i, j]`` = index of monomial i × monomial j if its degree is ≤ 2, else -1."""
     exponents = np.zeros((10, 3), dtype=np.int64)

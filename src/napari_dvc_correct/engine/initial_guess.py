@@ -193,8 +193,8 @@ def fft_search(
             after[:, axis] = np.minimum(best[:, axis] + 1, n_shifts - 1)
             a = ncc[rows, before[:, 0], before[:, 1], before[:, 2]]
             c = ncc[rows, after[:, 0], after[:, 1], after[:, 2]]
-            curvature = a - 2 * peak + c
-            with np.errstate(invalid="ignore", divide="ignore"):
+            with np.errstate(invalid="ignore", divide="ignore"):  # flat subvolumes: -inf
+                curvature = a - 2 * peak + c
                 offset = np.clip(0.5 * (a - c) / curvature, -0.5, 0.5)
             sub_voxel[:, axis] = np.where(inner & (curvature < 0), offset, 0.0)
         flat = norm_sub == 0

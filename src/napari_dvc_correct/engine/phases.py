@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Voxels per slab when a volume is processed piecewise (bounds the temporary memory).
-SLAB_VOXELS = 1 << 22
+from .slabs import iter_slabs
+
 #: Most voxels fed to multi-Otsu (larger volumes are subsampled on a regular lattice).
 OTSU_SAMPLES = 1 << 22
 #: Histogram bins for multi-Otsu.
@@ -23,14 +23,6 @@ OTSU_BINS = 256
 MAX_PHASES = 8
 #: Label of voxels without a gray value (NaN) in :func:`label_phases`.
 NO_PHASE = 255
-
-
-def slabs(shape, voxels: int = SLAB_VOXELS):
-    """``slice`` objects along z covering a volume with about ``voxels`` voxels each."""
-    plane = max(1, int(shape[1]) * int(shape[2]))
-    depth = max(1, voxels // plane)
-    for start in range(0, int(shape[0]), depth):
-        yield slice(start, min(int(shape[0]), start + depth))
 
 
 def _check_volume(volume, name: str) -> np.ndarray:
@@ -45,7 +37,7 @@ def _check_volume(volume, name: str) -> np.ndarray:
 def gray_range(volume: np.ndarray) -> tuple[float, float]:
     """``(min, max)`` of the finite gray values of ``volume`` (read slab by slab)."""
     low, high = np.inf, -np.inf
-    for zs in slabs(volume.shape):
+    for zs in iter_slabs(volume.shape):
         slab = np.asarray(volume[zs])
         if slab.dtype.kind == "f":
             slab = slab[np.isfinite(slab)]
@@ -174,7 +166,7 @@ def label_phases(volume: np.ndarray, thresholds) -> np.ndarray:
     """
     values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
     labels = np.empty(np.shape(volume), np.uint8)
-    for zs in slabs(labels.shape):
+    for zs in iter_slabs(labels.shape):
         slab = np.asarray(volume[zs], dtype=np.float64)
         lab = np.digitize(slab, values).astype(np.uint8)
         lab[~np.isfinite(slab)] = NO_PHASE
@@ -211,7 +203,7 @@ def segment_phases(volume: np.ndarray, thresholds, name: str = "volume") -> np.n
         raise ValueError(f"gray thresholds must be strictly increasing, got {thresholds!r}")
     labels = label_phases(volume, values)
     counts = np.zeros(NO_PHASE + 1, np.int64)
-    for zs in slabs(volume.shape):
+    for zs in iter_slabs(volume.shape):
         counts += np.bincount(labels[zs].ravel(), minlength=NO_PHASE + 1)
     empty = np.flatnonzero(counts[: values.size + 1] == 0)
     if empty.size:
@@ -274,7 +266,7 @@ def phase_table(volume: np.ndarray, labels: np.ndarray, thresholds) -> list[Phas
         raise ValueError(f"labels {labels.shape} and volume {volume.shape} differ in shape")
     sums = np.zeros(n)
     counts = np.zeros(n, np.int64)
-    for zs in slabs(volume.shape):
+    for zs in iter_slabs(volume.shape):
         lab = np.asarray(labels[zs]).ravel()
         gray = np.asarray(volume[zs], dtype=np.float64).ravel()
         sums += np.bincount(lab, weights=gray, minlength=n)[:n]

@@ -29,6 +29,7 @@ from .correlate import correlate_iter
 from .field import DisplacementField, grid_for_volume
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
+from .residual import mean_gray_residual
 
 STRATEGIES = ("total", "incremental")
 
@@ -218,7 +219,7 @@ def _residual(reference, deformed, total: DisplacementField) -> float:
         filled = clean(total, fill_masked=True)
     except ValueError:
         return float("nan")
-    return warp.mean_gray_residual(reference, deformed, filled)
+    return mean_gray_residual(reference, deformed, filled)
 
 
 def series(volumes: Sequence[np.ndarray], params: CorrelationParams | None = None, **options):

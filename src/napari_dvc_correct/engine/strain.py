@@ -227,6 +227,8 @@ def small_strain(gradient: np.ndarray) -> np.ndarray:
     return 0.5 * (h + np.swapaxes(h, -1, -2))
 
 
+# small_strain and green_lagrange_strain have the same shape of checks and docstring on purpose:
+# two measures of one gradient, side by side.
 def green_lagrange_strain(gradient: np.ndarray) -> np.ndarray:
     """Green–Lagrange strain ``E = (H + H^T + H^T H) / 2`` (finite strain, reference frame).
 

@@ -22,11 +22,12 @@ File-backed volumes keep only their path when pickled, so they travel cheaply to
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+from .volumes import natural_key as _natural_key  # one slice order for both folder readers
 
 #: File suffixes of TIFF stacks and slices.
 TIFF_SUFFIXES = (".tif", ".tiff")
@@ -378,10 +379,6 @@ class ZarrVolume(_FileVolume):
 
     def read_region(self, slices) -> np.ndarray:
         return _as_float32(self.handle[normalize_slices(slices, self.shape)])
-
-
-def _natural_key(path: Path):
-    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", path.name)]
 
 
 class SliceFolderVolume(_FileVolume):

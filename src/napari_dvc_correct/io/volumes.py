@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
+
+from ..engine.validation import validate_volume
 
 VOLUME_SUFFIXES = (".tif", ".tiff", ".npy", ".npz")
 
 
 def read_volume(path: str | os.PathLike, mmap: bool = True) -> np.ndarray:
     """Read a 3-D volume ``(z, y, x)`` from a TIFF stack, a folder of TIFF slices, ``.npy`` or ``.npz``.
+
+    The slices of a folder are stacked along z in natural order (``img2`` before ``img10``), as
+    :class:`.lazy.SliceFolderVolume` reads them.
 
     TIFF and ``.npy`` files are memory-mapped when their layout allows it, so only the regions
     the engine touches are read. An ``.npz`` must hold exactly one array (or one named ``volume``).
@@ -47,6 +53,11 @@ def read_volume(path: str | os.PathLike, mmap: bool = True) -> np.ndarray:
     return validate_volume(volume, str(path))
 
 
+def natural_key(path: Path) -> list:
+    """Sort key of a slice file: numbers compare as numbers (``img2`` before ``img10``)."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", path.name)]
+
+
 def _read_tiff(path: Path, mmap: bool) -> np.ndarray:
     import tifffile
 
@@ -54,17 +65,22 @@ def _read_tiff(path: Path, mmap: bool) -> np.ndarray:
         if mmap:
             try:
                 return tifffile.memmap(path, mode="r")
-            except (ValueError, OSError):
-                pass  # compressed or tiled: fall back to reading
-        return tifffile.imread(path)
-    except (tifffile.TiffFileError, ValueError, OSError) as error:
+            except (ValueError, OSError, IndexError):
+                pass  # compressed or tiled (or broken: reading says so): fall back to reading
+        volume = tifffile.imread(path)
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError) as error:
         raise ValueError(f"{path} is not a readable TIFF file ({error})") from error
+    if volume.size == 0:  # a broken header reads as no pages
+        raise ValueError(f"{path} is not a readable TIFF file (no image data)")
+    return volume
 
 
 def _read_tiff_folder(path: Path) -> np.ndarray:
     import tifffile
 
-    files = sorted(p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+    files = sorted(
+        (p for p in path.iterdir() if p.suffix.lower() in (".tif", ".tiff")), key=natural_key
+    )
     if not files:
         raise ValueError(f"{path} is a folder with no .tif slices")
     try:
@@ -91,23 +107,3 @@ def _read_npz(path: Path) -> np.ndarray:
             return data[names[0]]
     except (zipfile.BadZipFile, OSError, EOFError) as error:
         raise ValueError(f"{path} is not a readable .npz file ({error})") from error
-
-
-def validate_volume(volume, name: str = "volume", check_finite: bool = True) -> np.ndarray:
-    """Check that ``volume`` is a non-empty 3-D real array (finite values); return it unchanged.
-
-    Large memory-mapped volumes are checked for NaN slab by slab so they are not loaded whole.
-    """
-    volume = np.asanyarray(volume)
-    if volume.ndim != 3:
-        raise ValueError(f"{name} must be a 3-D volume (z, y, x), got shape {volume.shape}")
-    if min(volume.shape) < 1:
-        raise ValueError(f"{name} is empty (shape {volume.shape})")
-    if volume.dtype.kind not in "uif" and volume.dtype != np.bool_:
-        raise ValueError(f"{name} must hold real numbers, got dtype {volume.dtype}")
-    if check_finite and volume.dtype.kind == "f":
-        slab = max(1, int(2**24 // max(1, volume.shape[1] * volume.shape[2])))
-        for start in range(0, volume.shape[0], slab):
-            if not np.all(np.isfinite(volume[start : start + slab])):
-                raise ValueError(f"{name} contains NaN or infinite values")
-    return volume

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..engine.field import DisplacementField, Provenance, Status, grid_for_volume
 from ..engine.params import CorrelationParams
+from ..tiled.memory import format_bytes
 
 #: Cost of one IC-GN iteration per subvolume voxel (seconds, one core; see :func:`estimate_run`).
 #: Measured on the sample data (96³, subvolume 31, 2 cores: ~18 s); :func:`record_timing` replaces
@@ -302,14 +303,6 @@ class RunEstimate:
             f"{self.n_points:,} POIs · ~{format_bytes(self.memory_bytes)} memory · "
             f"~{format_seconds(self.seconds)}"
         )
-
-
-def format_bytes(n: float) -> str:
-    for unit in ("B", "KB", "MB", "GB", "TB"):
-        if n < 1024 or unit == "TB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    raise AssertionError  # pragma: no cover
 
 
 def format_seconds(seconds: float) -> str:

@@ -8,6 +8,7 @@ import pytest
 from napari_dvc_correct.cli import main
 from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.field import DisplacementField, Provenance
+from napari_dvc_correct.io.npz import load_field, save_field
 
 SHAPE = (36, 36, 36)
 SHIFT = np.array([1.4, -0.6, 2.2])
@@ -39,7 +40,7 @@ def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_pat
     assert code == 0
     printed = capsys.readouterr().out
     assert "mean gray residual" in printed and "pass" in printed
-    corrected = DisplacementField.load(out)
+    corrected = load_field(out)
     passes = corrected.metadata["correction_passes"]
     assert passes[0]["pass"] == 0 and len(passes) >= 2
     assert corrected.metadata["corrected_from"] == str(field_path)
@@ -53,7 +54,7 @@ def test_correct_refuses_bad_input_and_writes_nothing(volumes, tmp_path, capsys)
     assert main([*missing, "--out", str(out)]) == 2
     assert "not found" in capsys.readouterr().err
     field_path = tmp_path / "field.npz"
-    DisplacementField.zeros((7.0, 7.0, 7.0), (8.0, 8.0, 8.0), (3, 3, 3)).save(field_path)
+    save_field(DisplacementField.zeros((7.0, 7.0, 7.0), (8.0, 8.0, 8.0), (3, 3, 3)), field_path)
     wrong = ["correct", volumes[0], volumes[1], "--field", str(field_path)]
     assert main([*wrong, "--out", str(tmp_path / "corrected.txt")]) == 2
     assert main([*wrong, "--out", str(out), "--max-passes", "0"]) == 2
@@ -64,7 +65,7 @@ def test_correlate_self_correct(volumes, tmp_path):
     out = tmp_path / "field.npz"
     args = ["correlate", volumes[0], volumes[1], "--out", str(out), *DVC]
     assert main([*args, "--self-correct", "--max-passes", "1"]) == 0
-    field = DisplacementField.load(out)
+    field = load_field(out)
     assert field.metadata["correction"]["max_passes"] == 1
     assert len(field.metadata["correction_passes"]) == 2
 
@@ -75,7 +76,7 @@ def test_series_writes_one_field_per_state_and_a_summary(volumes, tmp_path, stra
     code = main(["series", *volumes, "--strategy", strategy, "--out-dir", str(out_dir), *DVC])
     assert code == 0
     for k in (1, 2):
-        field = DisplacementField.load(out_dir / f"state_{k:02d}.npz")
+        field = load_field(out_dir / f"state_{k:02d}.npz")
         good = field.valid.reshape(-1)
         assert good.mean() > 0.9
         assert np.abs(field.displacement[good] - k * SHIFT).max() < 0.1
@@ -97,7 +98,7 @@ def test_series_with_self_correction_marks_corrected_nodes(volumes, tmp_path):
          "1", *DVC]
     )  # fmt: skip
     assert code == 0
-    field = DisplacementField.load(out_dir / "state_01.npz")
+    field = load_field(out_dir / "state_01.npz")
     assert field.metadata["series"]["corrected_total"] is True
     applied = field.metadata["correction"]["passes_applied"]
     expected = Provenance.CORRECTED if applied else Provenance.MEASURED

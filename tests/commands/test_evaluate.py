@@ -9,6 +9,7 @@ import tifffile
 from napari_dvc_correct import cli
 from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.io.npz import save_field
 
 SHAPE = (32, 32, 32)
 
@@ -28,9 +29,11 @@ def scans(tmp_path_factory):
     deformed = synthetic.add_noise(synthetic.deform_volume(clean, truth), 3.0, seed=23)
     tifffile.imwrite(folder / "ref.tif", np.clip(reference, 0, 255).astype(np.uint8))
     np.save(folder / "def.npy", deformed)
-    grid_field(truth).save(folder / "exact.npz")
-    grid_field(synthetic.translation((0.0, 0.0, 0.0))).save(folder / "rigid.npz")
-    grid_field(synthetic.translation((0.0, 0.0, 0.0)), shape=(64, 64, 64)).save(folder / "big.npz")
+    save_field(grid_field(truth), folder / "exact.npz")
+    save_field(grid_field(synthetic.translation((0.0, 0.0, 0.0))), folder / "rigid.npz")
+    save_field(
+        grid_field(synthetic.translation((0.0, 0.0, 0.0)), shape=(64, 64, 64)), folder / "big.npz"
+    )
     return folder
 
 

@@ -9,7 +9,7 @@ import tifffile
 
 from napari_dvc_correct import cli
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import DisplacementField
+from napari_dvc_correct.io.npz import load_field
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,7 @@ def test_correlate_writes_a_field_and_a_summary(pair, capsys):
         ]
     )
     assert code == 0
-    field = DisplacementField.load(out)
+    field = load_field(out)
     good = field.valid
     assert good.mean() > 0.9
     assert np.allclose(field.u[good], [0.4, -1.2, 2.5], atol=0.02)
@@ -110,8 +110,8 @@ def test_tiled_run_matches_the_in_memory_run(pair, tmp_path):
         )
         == 0
     )
-    memory = DisplacementField.load(tmp_path / "memory.npz")
-    tiled = DisplacementField.load(tmp_path / "tiled.npz")
+    memory = load_field(tmp_path / "memory.npz")
+    tiled = load_field(tmp_path / "tiled.npz")
     both = memory.valid & tiled.valid
     assert both.mean() > 0.9
     assert np.max(np.abs(memory.u[both] - tiled.u[both])) < 1e-4

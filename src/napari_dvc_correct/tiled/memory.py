@@ -16,9 +16,9 @@ import os
 
 import numpy as np
 
-from .field import grid_for_volume
-from .initial_guess import fft_search, pyramid_levels
-from .params import CorrelationParams
+from ..engine.field import grid_for_volume
+from ..engine.initial_guess import fft_search, pyramid_levels
+from ..engine.params import CorrelationParams
 
 #: Voxels read at a time by the whole-volume pass of :mod:`.tiled`.
 SHIFT_BLOCK_VOXELS = 1 << 23
@@ -114,6 +114,8 @@ def parse_memory(size) -> int:
         from dask.utils import parse_bytes
 
         try:
+            if not size.strip()[:1].isdigit() and size.strip()[:1] not in ("-", "+", "."):
+                raise ValueError("no number")  # parse_bytes reads "" as 1 B and "GB" as 1 GB
             value = parse_bytes(size.strip())
         except (ValueError, KeyError) as error:
             raise ValueError(

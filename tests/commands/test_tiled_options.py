@@ -10,7 +10,7 @@ from napari_dvc_correct.commands._tiled_options import add_tiled_arguments, run_
 from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.params import CorrelationParams
-from napari_dvc_correct.engine.tiled import MemoryBudgetError, correlate_tiled
+from napari_dvc_correct.tiled import MemoryBudgetError, correlate_tiled
 
 
 def _parser():

@@ -4,17 +4,17 @@ The voxel-wise operations of :mod:`.warp` for volumes that do not fit in memory:
 block is a ``dask.delayed`` task (dask's local threaded scheduler by default, or a
 ``dask.distributed`` cluster, see :mod:`.scheduling`) that
 
-1. evaluates the field's cubic spline on the block's voxel lattice (:meth:`.warp.FieldSpline.lattice`),
-   or inverts it there (:meth:`.warp.FieldSpline.invert`) for the forward warp;
+1. evaluates the field's cubic spline on the block's voxel lattice (:meth:`..engine.field_spline.FieldSpline.lattice`),
+   or inverts it there (:meth:`..engine.field_spline.FieldSpline.invert`) for the forward warp;
 2. reads only the region of the input volume those positions reach, plus
-   :data:`.tiled_memory.SPLINE_SUPPORT` + :data:`.tiled_memory.PREFILTER_MARGIN` voxels, from a lazy volume
+   :data:`.memory.SPLINE_SUPPORT` + :data:`.memory.PREFILTER_MARGIN` voxels, from a lazy volume
    (:mod:`..io.lazy`), prefilters it and samples it (:func:`.interpolation.sample`) — equal to
    sampling the prefiltered whole volume to float32 rounding;
 3. writes the block into the output (:mod:`..io.lazy_outputs`), which is renamed onto its path only
    when every block is written.
 
-The results equal :func:`.warp.densify`, :func:`.warp.pull_back`, :func:`.warp.warp_forward` and
-:func:`.warp.gray_residual` on the whole arrays.
+The results equal :func:`..engine.field_spline.densify`, :func:`..engine.warp.pull_back`, :func:`..engine.warp.warp_forward` and
+:func:`..engine.residual.gray_residual` on the whole arrays.
 """
 
 from __future__ import annotations
@@ -23,12 +23,22 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..engine.field import DisplacementField
+from ..engine.field_spline import FieldSpline, as_field_spline
+from ..engine.interpolation import prefilter, sample
+from ..engine.progress import Progress
+from ..engine.strain import equivalent_strain_field
+from ..engine.warp import (
+    INVERT_MAX_ITERATIONS,
+    INVERT_TOLERANCE,
+    box_axes,
+    pull_back_block,
+    warp_forward_block,
+)
+from ..io.lazy import as_lazy
+from ..io.lazy_outputs import create_output, output_chunks
 from . import scheduling
-from .field import DisplacementField
-from .interpolation import prefilter, sample
-from .progress import Progress
-from .tiled_memory import PREFILTER_MARGIN, SPLINE_SUPPORT
-from .warp import FieldSpline, _inside_hull, _spline
+from .memory import PREFILTER_MARGIN, SPLINE_SUPPORT
 
 #: Default voxels per output block (z, y, x).
 DEFAULT_BLOCK = (32, 256, 256)
@@ -43,15 +53,6 @@ def _block_slices(shape, block):
                     slice(y0, min(shape[1], y0 + block[1])),
                     slice(x0, min(shape[2], x0 + block[2])),
                 )
-
-
-def _axes(block):
-    return [np.arange(s.start, s.stop, dtype=np.float64) for s in block]
-
-
-def _lattice(block) -> np.ndarray:
-    grids = np.meshgrid(*_axes(block), indexing="ij")
-    return np.stack([g.reshape(-1) for g in grids], axis=1)
 
 
 def sample_lazy(volume, points: np.ndarray) -> np.ndarray:
@@ -86,7 +87,7 @@ def _finite_sum(values) -> tuple[float, int]:
 
 # --- block tasks (run on workers) ----------------------------------------------------------------
 def _dense_block(out, spline, block, outside):
-    values = spline.lattice(*_axes(block), outside=outside)
+    values = spline.lattice(*box_axes(block), outside=outside)
     if values.shape[-1] == 1:
         values = values[..., 0]
     out.write(block, values)
@@ -94,19 +95,16 @@ def _dense_block(out, spline, block, outside):
 
 
 def _pull_back_values(deformed, spline, block, outside):
-    dense = spline.lattice(*_axes(block), outside=outside)
-    points = _lattice(block) + dense.reshape(-1, 3)
-    return sample_lazy(deformed, points).reshape(dense.shape[:3])
+    return pull_back_block(lambda points: sample_lazy(deformed, points), spline, block, outside)
 
 
 def _forward_values(reference, spline, block, outside, max_iterations, tolerance):
-    source, converged = spline.invert(_lattice(block), max_iterations, tolerance)
-    values = sample_lazy(reference, source)
-    bad = ~converged
+    values, in_hull = warp_forward_block(
+        lambda points: sample_lazy(reference, points), spline, block, max_iterations, tolerance
+    )
     if outside == "nan":
-        bad |= ~_inside_hull(spline, source)
-    values[bad] = np.nan
-    return values.reshape(tuple(s.stop - s.start for s in block))
+        values[~in_hull] = np.nan
+    return values
 
 
 def _pull_back_block(out, deformed, spline, block, outside, cval):
@@ -130,7 +128,9 @@ def _residual_block(out, reference, deformed, spline, block, mode, outside):
         moved = _pull_back_values(deformed, spline, block, outside)
         residual = np.abs(moved - reference.read_region(block))
     else:
-        warped = _forward_values(reference, spline, block, outside, 50, 1e-4)
+        warped = _forward_values(
+            reference, spline, block, outside, INVERT_MAX_ITERATIONS, INVERT_TOLERANCE
+        )
         residual = np.abs(deformed.read_region(block) - warped)
     out.write(block, residual)
     return _finite_sum(residual)
@@ -152,13 +152,14 @@ def _write(
 ) -> dict:
     """Run ``function(out, *shared, block, *extra)`` on every block and commit the output.
 
+    The public writers below are each one call of this driver: their calls look alike (the
+    duplicate finder pairs them) because they name the same slots, filled differently.
+
     ``run`` is ``(block_shape, scheduler, workers)``.
     """
     import dask
 
     block_shape, scheduler, workers = run
-
-    from ..io.lazy_outputs import create_output, output_chunks
 
     shape = tuple(int(n) for n in shape)
     out_shape = shape if components == 1 else (*shape, components)
@@ -174,13 +175,12 @@ def _write(
         task = dask.delayed(function, pure=False)
         tasks = [task(out, *delayed_shared, block, *extra) for block in blocks]
         total, count = 0.0, 0
-        for done, (_, (block_sum, block_count)) in enumerate(
-            scheduling.run(tasks, scheduler, workers, client), start=1
-        ):
-            total += block_sum
-            count += block_count
-            if progress is not None:
-                progress(Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}"))
+        with scheduling.running(tasks, scheduler, workers, client) as finished:
+            for done, (_, (block_sum, block_count)) in enumerate(finished, start=1):
+                total += block_sum
+                count += block_count
+                if progress is not None:
+                    progress(Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}"))
     except BaseException:
         out.discard()
         raise
@@ -233,7 +233,7 @@ def write_dense_field(
         ``.zarr`` or ``.tif``: a float32 array of shape ``(nz, ny, nx, 3)``, components
         ``(uz, uy, ux)`` in voxels.
     outside : {"extrapolate", "nan"}
-        As :func:`.warp.densify`.
+        As :func:`..engine.field_spline.densify`.
     block_shape : tuple of 3 ints
         Voxels per task (and per Zarr chunk).
     scheduler, workers
@@ -252,7 +252,7 @@ def write_dense_field(
         shape,
         3,
         _dense_block,
-        [_spline(field)],
+        [as_field_spline(field)],
         [_outside(outside)],
         run=(block_shape, scheduler, workers),
         metadata={"quantity": "displacement (uz, uy, ux), voxels"},
@@ -274,11 +274,10 @@ def write_pull_back(
     workers: int = 2,
     progress=None,
 ) -> dict:
-    """``F~(X) = F(X + u(X))`` written to ``path`` (see :func:`.warp.pull_back`).
+    """``F~(X) = F(X + u(X))`` written to ``path`` (see :func:`..engine.warp.pull_back`).
 
     ``deformed`` is a lazy volume, a path or an array (:func:`..io.lazy.as_lazy`).
     """
-    from ..io.lazy import as_lazy
 
     deformed = as_lazy(deformed)
     shape = _check(deformed.shape if shape is None else shape, "shape")
@@ -287,7 +286,7 @@ def write_pull_back(
         shape,
         1,
         _pull_back_block,
-        [deformed, _spline(field)],
+        [deformed, as_field_spline(field)],
         [_outside(outside), float(cval)],
         run=(block_shape, scheduler, workers),
         metadata={"quantity": "deformed volume pulled back to the reference frame"},
@@ -311,8 +310,7 @@ def write_warp_forward(
     workers: int = 2,
     progress=None,
 ) -> dict:
-    """``G'(X + u(X)) = G(X)`` (paper step d) written to ``path`` (see :func:`.warp.warp_forward`)."""
-    from ..io.lazy import as_lazy
+    """``G'(X + u(X)) = G(X)`` (paper step d) written to ``path`` (see :func:`..engine.warp.warp_forward`)."""
 
     reference = as_lazy(reference)
     shape = _check(reference.shape if shape is None else shape, "shape")
@@ -321,7 +319,7 @@ def write_warp_forward(
         shape,
         1,
         _forward_block,
-        [reference, _spline(field)],
+        [reference, as_field_spline(field)],
         [_outside(outside), float(cval), int(max_iterations), float(tolerance)],
         run=(block_shape, scheduler, workers),
         metadata={"quantity": "reference volume warped to the loaded state"},
@@ -343,15 +341,14 @@ def write_gray_residual(
     workers: int = 2,
     progress=None,
 ) -> dict:
-    """Gray residual volume written to ``path`` (see :func:`.warp.gray_residual`).
+    """Gray residual volume written to ``path`` (see :func:`..engine.residual.gray_residual`).
 
     Returns
     -------
     dict
         With ``mean``: the mean residual over the voxels where it is defined (as
-        :func:`.warp.mean_gray_residual`).
+        :func:`..engine.residual.mean_gray_residual`).
     """
-    from ..io.lazy import as_lazy
 
     if mode not in ("reference", "loaded"):
         raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
@@ -365,7 +362,7 @@ def write_gray_residual(
         _check(shape, "shape"),
         1,
         _residual_block,
-        [reference, deformed, _spline(field)],
+        [reference, deformed, as_field_spline(field)],
         [mode, "nan" if region == "hull" else "extrapolate"],
         run=(block_shape, scheduler, workers),
         metadata={"quantity": f"gray residual ({mode} frame, {region})"},
@@ -398,7 +395,6 @@ def write_equivalent_strain(
     ValueError
         If some nodes have no strain (invalid displacement): clean the field first.
     """
-    from .strain import equivalent_strain_field
 
     shape = _check(shape, "shape")
     values = equivalent_strain_field(field, measure=measure, method=method, window=window)

@@ -1,17 +1,18 @@
 """Running lists of ``dask.delayed`` tasks locally or on a ``dask.distributed`` cluster.
 
-Used by :mod:`.tiled` (correlation batches) and :mod:`.tiled_volumes` (output chunks). A run is a
+Used by :mod:`.correlate` (correlation batches) and :mod:`.volumes` (output chunks). A run is a
 generator of ``(index, result)`` pairs in completion order, so the engine can report progress as
 tasks finish:
 
 - ``scheduler=None`` (or ``"threads"``): dask's local threaded scheduler, nothing to start;
-- ``"sync"``: one thread, in order (debugging);
+- ``"sync"``: one task at a time, in dask's order (not the list's; debugging);
 - any other string: the address of a ``dask.distributed`` scheduler (``distributed`` is imported
   only then); or a ``distributed.Client``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 
@@ -26,12 +27,19 @@ def is_local(scheduler) -> bool:
 def run_local(tasks, workers: int = 1, synchronous: bool = False):
     """Compute delayed ``tasks`` on dask's local scheduler; yield ``(index, result)`` as they finish.
 
-    The computation runs in a background thread; its exceptions are re-raised here.
+    The computation runs in a background thread; its exceptions are re-raised here. Closing the
+    generator early (a cancelled run) stops the computation: no task starts after that, the tasks
+    already running finish, and the call returns once the background thread has ended.
     """
     import dask
 
     keys = {task.key: i for i, task in enumerate(tasks)}
     finished: queue.Queue = queue.Queue()
+    cancelled = threading.Event()
+
+    def pretask(key, dsk, state):
+        if cancelled.is_set():
+            raise _Cancelled()
 
     def posttask(key, result, dsk, state, worker_id):
         if key in keys:
@@ -46,7 +54,7 @@ def run_local(tasks, workers: int = 1, synchronous: bool = False):
                 scheduler="sync" if synchronous else "threads",
                 num_workers=max(1, int(workers)),
                 # (start, start_state, pretask, posttask, finish), local to this computation
-                callbacks=[(None, None, None, posttask, None)],
+                callbacks=[(None, None, pretask, posttask, None)],
             )
         except BaseException as error:  # re-raised in the caller's thread
             outcome["error"] = error
@@ -55,14 +63,21 @@ def run_local(tasks, workers: int = 1, synchronous: bool = False):
 
     thread = threading.Thread(target=compute, name="dvc-dask-local", daemon=True)
     thread.start()
-    while True:
-        item = finished.get()
-        if item is None:
-            break
-        yield item
-    thread.join()
-    if "error" in outcome:
+    try:
+        while True:
+            item = finished.get()
+            if item is None:
+                break
+            yield item
+    finally:
+        cancelled.set()  # a no-op once every task has run
+        thread.join()
+    if "error" in outcome and not isinstance(outcome["error"], _Cancelled):
         raise outcome["error"]
+
+
+class _Cancelled(Exception):
+    """Raised inside dask's local scheduler to stop a run whose results nobody waits for."""
 
 
 def connect(scheduler):
@@ -121,3 +136,14 @@ def run(tasks, scheduler=None, workers: int = 1, client=None):
     if client is not None:
         return run_distributed(tasks, client)
     return run_local(tasks, workers, scheduler in ("sync", "synchronous"))
+
+
+@contextlib.contextmanager
+def running(tasks, scheduler=None, workers: int = 1, client=None):
+    """:func:`run` as a context: leaving the ``with`` block early (an error, a cancelled caller)
+    stops the run at once, local or on a cluster, instead of when the generator is collected."""
+    results = run(tasks, scheduler, workers, client)
+    try:
+        yield results
+    finally:
+        results.close()

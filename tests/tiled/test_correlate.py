@@ -5,20 +5,21 @@ import pytest
 import tifffile
 import zarr
 
-from napari_dvc_correct.engine import synthetic, tiled
+from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correlate import correlate
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.engine.progress import Progress
-from napari_dvc_correct.engine.tiled import (
+from napari_dvc_correct.io.lazy import ArrayVolume
+from napari_dvc_correct.tiled import (
     MemoryBudgetError,
-    choose_batch_shape,
     correlate_tiled,
     correlate_tiled_iter,
-    estimate_peak_memory,
+    whole_volume,
 )
-from napari_dvc_correct.io.lazy import ArrayVolume
+from napari_dvc_correct.tiled import correlate as tiled
+from napari_dvc_correct.tiled.memory import PREFILTER_MARGIN
 
 GRADIENT = np.array([[0.02, 0.0, 0.01], [0.0, -0.01, 0.0], [0.0, 0.0, 0.015]])
 # 1e-5: fine enough that a converged answer does not depend on IC-GN's starting guess (see
@@ -54,7 +55,7 @@ def _converged_in_both(a, b):
 def test_prefilter_margin_reaches_float32_rounding():
     volume = synthetic.textured_volume((72, 72, 72), 2.0, seed=3)
     whole = prefilter(volume)
-    m = tiled.PREFILTER_MARGIN
+    m = PREFILTER_MARGIN
     region = prefilter(volume[30 - m : 42 + m, 30 - m : 42 + m, 30 - m : 42 + m])
     core = region[m:-m, m:-m, m:-m]
     gray_range = float(volume.max() - volume.min())
@@ -72,13 +73,13 @@ def test_whole_volume_pass_equals_the_whole_volume_quantities(monkeypatch):
     deformed = np.roll(reference, (7, -4, 11), axis=(0, 1, 2))
     mask = np.zeros(reference.shape, bool)
     mask[10:90, 5:45, 30:150] = True
-    monkeypatch.setattr(tiled, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
+    monkeypatch.setattr(whole_volume, "SHIFT_BLOCK_VOXELS", 20_000)  # many blocks
     for m in (None, mask):
         volumes = [None if v is None else ArrayVolume(v) for v in (reference, deformed, m)]
-        tasks, factor = tiled._volume_tasks(*volumes, levels=2)
+        tasks, factor = whole_volume.volume_tasks(*volumes, levels=2)
         assert factor == 3 and len(tasks) > 5
         results = dask.compute(*tasks, scheduler="sync")
-        whole = tiled._combine(results, reference.shape, factor, levels=2)
+        whole = whole_volume.combine(results, reference.shape, factor, levels=2)
         np.testing.assert_array_equal(whole.shift, global_shift(reference, deformed))
         for f in (1, 2, 4):
             binned = bin_volume(reference, f)
@@ -137,7 +138,8 @@ def test_lazy_files_give_the_same_field(tmp_path, pair, local):
 
 
 def test_distributed_cluster_gives_the_same_answer(pair, local):
-    distributed = pytest.importorskip("distributed")
+    import distributed
+
     reference, deformed, _ = pair
     with distributed.LocalCluster(
         n_workers=2,
@@ -206,31 +208,6 @@ def test_refuses_a_run_larger_than_the_machine(monkeypatch, pair):
     monkeypatch.setattr(tiled, "available_memory", lambda: 50 * 2**20)
     with pytest.raises(MemoryBudgetError, match="available on this machine"):
         correlate_tiled(reference, deformed, PARAMS, batch_shape=(6, 6, 6), workers=2)
-
-
-def test_max_memory_picks_the_batch_size():
-    params = CorrelationParams(subvolume=31, step=8)
-    shape = (512, 512, 512)
-    small = choose_batch_shape(shape, np.uint16, params, 1 << 30, workers=2)
-    large = choose_batch_shape(shape, np.uint16, params, 4 << 30, workers=2)
-    assert np.prod(small) < np.prod(large)
-    for budget, batch in ((1 << 30, small), (4 << 30, large)):
-        assert estimate_peak_memory(shape, np.uint16, params, batch, workers=2) <= budget
-        bigger = tuple(b + 1 for b in batch)
-        assert estimate_peak_memory(shape, np.uint16, params, bigger, workers=2) > budget
-
-
-def test_estimate_grows_with_batch_workers_and_shift():
-    params = CorrelationParams(subvolume=31, step=8)
-    shape = (256, 256, 256)
-    base = estimate_peak_memory(shape, np.uint16, params, (4, 4, 4))
-    assert estimate_peak_memory(shape, np.uint16, params, (8, 8, 8)) > base
-    assert estimate_peak_memory(shape, np.uint16, params, (4, 4, 4), workers=2) > base
-    assert estimate_peak_memory(shape, np.uint16, params, (4, 4, 4), shift=(20, 0, 0)) > base
-    # the paper's workload: far beyond one batch of a few POIs, far below the whole volume
-    paper = CorrelationParams(subvolume=141, step=10)
-    need = estimate_peak_memory((2000, 2000, 3000), np.uint16, paper, (8, 8, 8))
-    assert 1 << 30 < need < 2000 * 2000 * 3000 * 4
 
 
 def test_rejects_volumes_with_nan(pair):

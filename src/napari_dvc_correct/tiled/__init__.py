@@ -1,0 +1,19 @@
+"""Volumes larger than memory, in spatial batches on Dask: above :mod:`..engine` and :mod:`..io`.
+
+* :mod:`.correlate`: :func:`correlate_tiled` — the in-memory :func:`..engine.correlate.correlate`
+  batch by batch on lazily read volumes, equal to it within the IC-GN tolerance;
+* :mod:`.volumes`: dense fields, warps, residuals and strain written block by block to Zarr/TIFF;
+* :mod:`.memory`: halos, region sizes, the peak-memory estimate and refusal;
+* :mod:`.scheduling`: dask's local threads or a ``dask.distributed`` cluster.
+"""
+
+from .correlate import correlate_tiled, correlate_tiled_iter
+from .memory import MemoryBudgetError, choose_batch_shape, estimate_peak_memory
+
+__all__ = [
+    "MemoryBudgetError",
+    "choose_batch_shape",
+    "correlate_tiled",
+    "correlate_tiled_iter",
+    "estimate_peak_memory",
+]

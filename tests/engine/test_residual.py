@@ -1,0 +1,60 @@
+"""Gray residuals (engine/residual.py): small for the true field, NaN where undefined, one warp for both."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine import field_spline, residual, synthetic, warp
+from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+
+GRADIENT = np.array([[0.05, 0.02, -0.01], [0.0, -0.03, 0.04], [0.02, 0.01, 0.06]])
+
+
+@pytest.fixture(scope="module")
+def pair():
+    reference = synthetic.textured_volume((40, 40, 40), 2.0, seed=3)
+    band = synthetic.shear_band((20.0, 20.0, 20.0), width=7.0, slip=6.0, shift=(1.5, -2.0, 2.5))
+    deformed = synthetic.deform_volume(reference, band)
+    origin, step, shape = grid_for_volume(reference.shape, 9, 3)
+    field = DisplacementField.zeros(origin, step, shape)
+    field.u[:] = synthetic.sample_displacement(band, field.points.reshape(*shape, 3))
+    return reference, deformed, field
+
+
+def test_gray_residual_is_small_for_the_true_field_and_nan_where_undefined(pair):
+    reference, deformed, field = pair
+    contrast = float(reference.std())
+    zero = field.replace(u=np.zeros_like(field.u))
+    for mode in ("reference", "loaded"):
+        volume = residual.gray_residual(reference, deformed, field, mode)
+        assert volume.dtype == np.float32 and volume.shape == reference.shape
+        z, y, x = field_spline.FieldSpline.from_field(field).hull_slices(reference.shape)
+        outside = np.ones(reference.shape, bool)
+        outside[z, y, x] = False
+        if mode == "reference":
+            assert np.all(np.isnan(volume[outside]))
+        mean = residual.mean_gray_residual(reference, deformed, field, mode, chunk_voxels=3000)
+        assert mean == pytest.approx(float(np.nanmean(volume)), rel=1e-5)
+        wrong = residual.mean_gray_residual(reference, deformed, zero, mode)
+        assert mean < 0.02 * wrong
+    in_hull = residual.gray_residual(reference, deformed, field)
+    everywhere = residual.gray_residual(reference, deformed, field, region="volume")
+    assert np.isfinite(everywhere).mean() > np.isfinite(in_hull).mean() + 0.2
+    assert np.nanmean(everywhere) < 0.05 * contrast
+    with pytest.raises(ValueError, match="mode"):
+        residual.gray_residual(reference, deformed, field, mode="sideways")
+
+
+@pytest.mark.parametrize("mode", ["reference", "loaded"])
+def test_moved_and_residual_equal_the_separate_warp_and_residual(pair, mode):
+    reference, deformed, field = pair
+    moved, residual_volume = residual.moved_and_residual(
+        reference, deformed, field, mode, chunk_voxels=5000
+    )
+    if mode == "reference":
+        expected_moved = warp.pull_back(deformed, field, outside="nan")
+    else:
+        expected_moved = warp.warp_forward(reference, field, outside="nan")
+    assert np.array_equal(moved, expected_moved, equal_nan=True)
+    expected = residual.gray_residual(reference, deformed, field, mode)
+    assert np.array_equal(residual_volume, expected, equal_nan=True)
+    assert np.isfinite(residual_volume).mean() > 0.25  # the grid's hull, a third of this volume
