@@ -48,8 +48,21 @@ def front(dock) -> None:
 
 
 def shot(viewer, name: str) -> None:
-    settle(1.0)
-    viewer.window.screenshot(str(IMAGES / name), canvas_only=False)
+    """Save the window; retake it while it is drawn without colour.
+
+    Under Xvfb the whole window is now and then grabbed desaturated (every colormap gray, the
+    thumbnails too) for a moment; every picture here has colour somewhere, so a gray one is
+    taken again after a pause.
+    """
+    from imageio.v3 import imwrite
+
+    for _ in range(10):
+        settle(1.0)
+        image = np.asarray(viewer.window.screenshot(canvas_only=False))[..., :3].astype(int)
+        if (image.max(axis=-1) - image.min(axis=-1)).max() > 40:
+            break
+        print("gray grab of", name, "- taking it again")
+    imwrite(IMAGES / name, image.astype(np.uint8))
     print("wrote", IMAGES / name)
 
 

@@ -98,7 +98,7 @@ def test_preview_and_estimate_before_running(viewer_pair, small):
     assert f"{np.prod(shape)} POIs" in widget.estimate_label.text()
     assert "memory" in widget.estimate_label.text()
     # at the defaults the slice shown is a plane of POIs, so the preview is seen at once
-    assert len(points._indices_view) == shape[1] * shape[2]
+    assert len(points._view_indices) == shape[1] * shape[2]
     widget.preview.setChecked(False)
     widget._update.flush()
     assert not points.visible

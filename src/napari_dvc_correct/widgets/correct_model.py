@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from ..engine.field import DisplacementField
 
 FRAMES = {  # the first entry is the panel's default: the engine's measured best (docs/method.md)
@@ -20,10 +18,9 @@ UPDATES = {
 
 @dataclass
 class CorrectionResult:
-    """The corrected field, its equivalent strain on the grid, and where to show it."""
+    """The corrected field and where to show it."""
 
     field: DisplacementField
-    equivalent_strain: np.ndarray
     voxel_size: tuple
     offset: tuple
 
@@ -44,7 +41,6 @@ def run_correction(
     parameter). Returns a :class:`CorrectionResult`.
     """
     from ..engine.correction import correct_iter
-    from ..engine.strain import equivalent_strain_field
 
     corrected = yield from correct_iter(
         reference,
@@ -60,7 +56,6 @@ def run_correction(
             corrected.metadata[key] = field.metadata[key]
     return CorrectionResult(
         field=corrected,
-        equivalent_strain=equivalent_strain_field(corrected),
         voxel_size=tuple(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
         offset=tuple(field.metadata.get("offset", (0.0, 0.0, 0.0))),
     )

@@ -490,14 +490,14 @@ class CorrelateWidget(EngineWidget):
         self._set_preview_visible(False)
         placement = {"voxel_size": result.voxel_size, "offset": result.offset}
         if len(result.fields) == 1:
-            source, field, _ = result.fields[0]
+            source, field = result.fields[0]
             L.show_field(self.viewer, L.field_layers(field, source, **placement))
         else:  # a series: one 4-D field, state 0 (no displacement) first
             source = "series " + result.fields[0][0].split(" ", 2)[2]
             fields = L.series_fields([item[1] for item in result.fields])
             L.show_field(self.viewer, L.field_layers(fields, source, **placement))
         lines = []
-        for source, field, _ in result.fields:
+        for source, field in result.fields:
             counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
             lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
         self.show_message("Done: " + "; ".join(lines) + ".")

@@ -77,7 +77,7 @@ class CorrelationJob:
 
 @dataclass
 class CorrelationResult:
-    """What a run returns to the panel: one ``(source, field, equivalent strain)`` per field."""
+    """What a run returns to the panel: one ``(source, field)`` per field."""
 
     fields: list
     voxel_size: tuple = (1.0, 1.0, 1.0)
@@ -105,7 +105,6 @@ def run_job(job: CorrelationJob):
     was self-corrected), each the total displacement from state 0.
     """
     from ..engine.correlate import correlate_iter
-    from ..engine.strain import equivalent_strain_field
 
     results = []
     if job.strategy == "pair":
@@ -113,14 +112,14 @@ def run_job(job: CorrelationJob):
             job.volumes[0], job.volumes[1], job.params, mask=job.mask, device=job.device
         )
         field = _finish(field, job, job.names)
-        results.append(("uncorrected", field, equivalent_strain_field(field)))
+        results.append(("uncorrected", field))
     else:
         fields = yield from run_series(job)
         suffix = ", corrected" if job.correct_states else ""
         for k, field in enumerate(fields, start=1):
             field = _finish(field, job, [job.names[0], job.names[k]])
             source = f"state {k} ({job.strategy}{suffix})"
-            results.append((source, field, equivalent_strain_field(field)))
+            results.append((source, field))
     return CorrelationResult(results, job.voxel_size, job.offset)
 
 

@@ -220,6 +220,7 @@ class EvaluateWidget(EngineWidget):
         self.show_phases = True
         self._live.trigger()
         self._live.flush()
+        self._volume(self.reference, "reference")  # a 2-D image is refused first
         fields = L.fields_in(self.viewer.layers)
         chosen = {name: fields[name] for name in self.checked_fields() if name in fields}
         if not chosen:
