@@ -1,12 +1,14 @@
-"""npe2 reader: TIFF volumes, folders of TIFF slices, and the plugin's ``.npz`` field files.
+"""npe2 reader: TIFF volumes, folders of TIFF slices, the plugin's ``.npz`` field files and other
+tools' field files (:mod:`.io.formats`).
 
 A field file opens as the layers of :func:`napari_dvc_correct.layers.field_layers` (one quantity
-layer, ``|u|`` first, and the arrows), named after the file. An ``.npz`` that is not a field
-file is not a field is handed to napari's built-in reader (as if ours were not there), so our
-reader can be the preferred one for ``*.npz``: :func:`prefer_this_reader` records that preference
-(only where the user has none), and File ▸ Open and drag-and-drop then open field files without
-asking which reader to use. ``viewer.open(path)`` in a script uses napari's built-in reader unless
-told otherwise: pass ``plugin="napari-dvc-correct"`` (or ``plugin=None`` to follow the preference).
+layer, ``|u|`` first, and the arrows), named after the file. An ``.npz`` that is neither our
+field file nor another tool's is handed to napari's built-in reader (as if ours were not there),
+so our reader can be the preferred one for ``*.npz``: :func:`prefer_this_reader` records that
+preference (only where the user has none), and File ▸ Open and drag-and-drop then open field
+files without asking which reader to use. ``viewer.open(path)`` in a script uses napari's
+built-in reader unless told otherwise: pass ``plugin="napari-dvc-correct"`` (or ``plugin=None``
+to follow the preference).
 """
 
 from __future__ import annotations
@@ -48,6 +50,10 @@ def _builtin_reader(path):
     return builtin(str(path))
 
 
+#: Field files of other DVC tools (io.formats): spam .tsv, iDVC .disp, ALDVC .mat/.npz, tables.
+FOREIGN_SUFFIXES = (".tsv", ".disp", ".mat", ".csv")
+
+
 def _tiff_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in TIFF_SUFFIXES)
 
@@ -85,8 +91,12 @@ def napari_get_reader(path):
     if path.is_dir():
         return read_tiff_folder if _tiff_files(path) else None
     suffix = path.suffix.lower()
-    if suffix == ".npz":
-        return read_field_file if is_field_file(path) else _builtin_reader(path)
+    if suffix == ".npz" and is_field_file(path):
+        return read_field_file
+    if suffix in (*FOREIGN_SUFFIXES, ".npz") and foreign_field_format(path):
+        return read_foreign_field
+    if suffix == ".npz":  # not a field: napari's own reader, as if ours were not there
+        return _builtin_reader(path)
     if suffix in TIFF_SUFFIXES and path.is_file():
         return read_tiff
     return None
@@ -149,3 +159,29 @@ def read_field_file(path) -> list[tuple]:
     voxel_size = field.metadata.get("voxel_size")
     offset = field.metadata.get("offset")
     return field_layers(field, path.stem, voxel_size=voxel_size, offset=offset)
+
+
+def foreign_field_format(path) -> str | None:
+    """The other tool's format of a field file (:mod:`.io.formats`), or None if it is not one."""
+    from .io.formats import sniff_format, table
+
+    try:
+        fmt = sniff_format(path)
+        if fmt == "table":
+            from .io.formats._common import first_line
+
+            return fmt if table.looks_like(first_line(path)) else None
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+    return None if fmt == "npz" else fmt
+
+
+def read_foreign_field(path) -> list[tuple]:
+    """Read another tool's field file as the plugin's field layers (scattered points are put on
+    a grid, with provenance; see :func:`.engine.scattered.to_grid`)."""
+    from .io.formats import read_field
+    from .layers import field_layers
+
+    path = Path(path[0] if isinstance(path, (list, tuple)) else path)
+    field = read_field(path, foreign_field_format(path))
+    return field_layers(field, path.stem)

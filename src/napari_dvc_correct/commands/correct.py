@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
+
+from . import _field_formats, _grid_options
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -23,11 +26,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "reference", help="reference volume (TIFF, folder of TIFF slices, .npy, .npz)"
     )
     parser.add_argument("deformed", help="deformed volume, same shape as the reference")
-    parser.add_argument("--field", required=True, help="field file (.npz) from 'correlate'")
-    parser.add_argument("--out", required=True, help="output field file (.npz)")
+    parser.add_argument(
+        "--field", required=True, help="field file: ours (.npz) or another tool's (see --format)"
+    )
+    parser.add_argument(
+        "--out", required=True, help="output field file (.npz, or see --out-format)"
+    )
     parser.add_argument("--mask", help="reference-space mask volume (non-zero = material)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_correction_options(parser)
+    _field_formats.add_field_format_arguments(parser)
+    _field_formats.add_correction_field_arguments(parser)
+    _grid_options.add_grid_arguments(parser, points=False)
     parser.set_defaults(run=run)
     return parser
 
@@ -128,15 +138,17 @@ def apply_self_correction(args, field, reference, deformed):
 
 def run(args) -> int:
     from ..engine.correction import correct_iter
-    from ..io.npz import load_field, save_field
     from ..io.volumes import read_volume
-    from .correlate import ProgressBar, check_output_path, drive
+    from .correlate import ProgressBar, drive
 
     started = time.perf_counter()
-    out = check_output_path(args.out)
+    out = Path(args.out)
+    _field_formats.output_format(args, out)  # refuses a bad --out before any work
     options = correction_options_from_args(args)
-    field = load_field(args.field)
     reference = read_volume(args.reference)
+    imported, params = _field_formats.prepare_correction_field(args, reference.shape)
+    field = imported.field
+    print(f"field: {imported.describe()}")
     deformed = read_volume(args.deformed)
     mask = read_volume(args.mask) if args.mask else None
     volume_shape = field.metadata.get("volume_shape")
@@ -146,11 +158,12 @@ def run(args) -> int:
             f"not {reference.shape}: give the volumes it came from"
         )
     bar = ProgressBar(args.quiet)
-    corrected = drive(correct_iter(reference, deformed, field, mask=mask, **options), bar)
+    corrected = drive(correct_iter(reference, deformed, field, params, mask=mask, **options), bar)
     corrected.metadata["reference"] = str(args.reference)
     corrected.metadata["deformed"] = str(args.deformed)
     corrected.metadata["corrected_from"] = str(args.field)
-    save_field(corrected, out)
+    written = _field_formats.write_output_field(args, corrected, out, points=imported.points)
+    out = ", ".join(str(p) for p in written)
     print(pass_table(corrected))
     info = corrected.metadata["correction"]
     print(

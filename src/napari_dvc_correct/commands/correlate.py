@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _field_formats, _grid_options
 from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
 from .correct import add_self_correct_argument
 
@@ -37,6 +38,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     add_self_correct_argument(parser)
     add_tiled_arguments(parser)
+    _grid_options.add_grid_arguments(parser)
+    _field_formats.add_field_format_arguments(parser, field_input=False)
     parser.set_defaults(run=run)
     return parser
 
@@ -129,13 +132,17 @@ def summary(field, seconds: float) -> str:
 def run(args) -> int:
     from ..engine.backend import select_device
     from ..engine.correlate import correlate_iter
-    from ..io.npz import save_field
     from ..io.volumes import read_volume
 
     started = time.perf_counter()
     params = params_from_args(args)
-    out = check_output_path(args.out)
+    out = Path(args.out)
+    _field_formats.output_format(args, out)  # refuses a bad --out before any work
+    if getattr(args, "points", None):
+        return _field_formats.run_points(args, params, out, started, wants_tiled(args))
     if wants_tiled(args):
+        if _grid_options.wants_placement(args):
+            raise ValueError("--roi, --cylinder and --origin do not apply to tiled runs yet")
         # large volumes: batches read lazily, on dask (CPU); see docs/scaling.md
         field = run_tiled(args, params, ProgressBar(args.quiet).update)
         reference = deformed = None
@@ -146,7 +153,11 @@ def run(args) -> int:
         device = select_device(getattr(args, "device", "auto"))
         print(f"device: {device.description}", flush=True)
         bar = ProgressBar(args.quiet)
-        field = drive(correlate_iter(reference, deformed, params, mask=mask, device=device), bar)
+        grid = _grid_options.grid_from_args(args, reference.shape, params)
+        field = drive(
+            correlate_iter(reference, deformed, params, mask=mask, grid=grid, device=device), bar
+        )
+        field = _grid_options.finish_grid_field(args, field, reference.shape)
         field.metadata["reference"] = str(args.reference)
         field.metadata["deformed"] = str(args.deformed)
     if getattr(args, "self_correct", False):
@@ -156,6 +167,6 @@ def run(args) -> int:
             reference = read_volume(args.reference)
             deformed = read_volume(args.deformed)
         field = apply_self_correction(args, field, reference, deformed)
-    save_field(field, out)
+    _field_formats.write_output_field(args, field, out)
     print(summary(field, time.perf_counter() - started))
     return 0

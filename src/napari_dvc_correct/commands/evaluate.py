@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from ..cli import UserError
+from ._field_formats import add_field_format_arguments, read_input_field
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -87,6 +88,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--no-volumes", action="store_true", help="do not write TIFF volumes")
     parser.add_argument("--out-dir", required=True, help="folder for the report (created)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_field_format_arguments(parser, output=False)
     parser.set_defaults(run=run)
     return parser
 
@@ -138,7 +140,6 @@ def _phase_pair(text: str | None):
 
 def run(args) -> int:
     from ..engine.accuracy import evaluate_iter
-    from ..io.npz import load_field
     from ..io.volumes import read_volume
     from ..report import write_report
     from .correlate import ProgressBar, drive
@@ -150,7 +151,11 @@ def run(args) -> int:
     out_dir = Path(args.out_dir)
     if not out_dir.parent.exists():
         raise FileNotFoundError(f"the folder that should hold {out_dir} does not exist")
-    fields = {name: load_field(path) for name, path in zip(names, [args.field, *args.compare])}
+    paths = [args.field, *args.compare]
+    fields = {  # --format is --field's; the --compare fields' formats are sniffed
+        name: read_input_field(args, path, sniff=k > 0).field
+        for k, (name, path) in enumerate(zip(names, paths))
+    }
     reference = read_volume(args.reference)
     deformed = read_volume(args.deformed)
 

@@ -6,6 +6,10 @@ reference position ``X`` moves to ``x = X + u(X)``, so ``F(X + u(X)) ≈ G(X)``.
 
 Node ``(i, j, k)`` of the grid sits at ``origin + (i, j, k) * step`` (voxels). In napari a grid
 quantity is an Image layer with ``scale = step`` and ``translate = origin``.
+
+A field on scattered points (another tool's, or a list of points of interest) is a
+:class:`.scattered.ScatteredField`; :func:`.scattered.to_grid` and :func:`.scattered.sample_field`
+go between the two (node provenance ``INTERPOLATED``).
 """
 
 from __future__ import annotations
@@ -49,6 +53,8 @@ class Provenance(IntEnum):
     CORRECTED = 2
     MASKED = 3
     NOT_COMPUTED = 4
+    #: Interpolated onto this node from a field on other points (an imported scattered field).
+    INTERPOLATED = 5
 
     @property
     def label(self) -> str:
@@ -183,7 +189,9 @@ class DisplacementField:
         corrected) by post-processing.
         """
         measured_ok = np.isin(self.status, [int(s) for s in GOOD_STATUSES])
-        filled = np.isin(self.provenance, [Provenance.REPLACED, Provenance.CORRECTED])
+        filled = np.isin(
+            self.provenance, [Provenance.REPLACED, Provenance.CORRECTED, Provenance.INTERPOLATED]
+        )
         return (measured_ok | filled) & np.all(np.isfinite(self.u), axis=-1)
 
     def status_counts(self) -> dict[str, int]:

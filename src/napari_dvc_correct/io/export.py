@@ -1,8 +1,9 @@
 """Exporting fields and volumes: HDF5, VTK image data (ParaView), TIFF stacks, CSV, reports.
 
 Every writer is atomic (see :func:`~napari_dvc_correct.io.atomic.atomic_path`): a failed or
-interrupted export leaves an existing file untouched. No Qt, no napari, no vtk dependency: the VTK
-files are written here directly.
+interrupted export leaves an existing file untouched. No Qt, no napari, no vtk dependency: XML VTK
+files (``.vti`` image data, ``.vtu`` points) are written by ``pyevtk``; the legacy ``.vtk`` (which
+pyevtk does not write) by a small writer here.
 
 Grid quantities beyond the field itself (equivalent strain, ...) are passed as ``extra``: a dict of
 arrays of the grid shape ``(nz, ny, nx)``, written next to the field's own arrays.
@@ -157,7 +158,8 @@ def export_vtk(
     ``step * voxel_size``, reordered to x, y, z); point data hold ``displacement`` (a 3-vector
     ``(ux, uy, uz)`` in physical units, ready for ParaView's *Warp By Vector* and *Glyph*),
     ``magnitude``, ``zncc``, ``status``, ``iterations``, ``provenance`` and the ``extra`` grid
-    arrays.
+    arrays. ``.vti`` is written by ``pyevtk`` (``imageToVTK``, binary appended data); pyevtk has
+    no legacy writer, so ``.vtk`` (``STRUCTURED_POINTS``) keeps a small writer of its own.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -177,43 +179,70 @@ def export_vtk(
     return path
 
 
-def _fmt(values) -> str:
-    return " ".join(repr(float(v)) for v in values)
+def _pyevtk_point_data(arrays, dims) -> dict:
+    """``(name, (N, c) values in VTK point order, c)`` -> pyevtk's (nx, ny, nz) arrays."""
+    data = {}
+    for name, values, components in arrays:
+        # VTK point order is x fastest: the (N,) column reshaped in Fortran order to (nx, ny, nz)
+        columns = [
+            np.asfortranarray(values[:, c].reshape(dims, order="F")) for c in range(components)
+        ]
+        data[name] = tuple(columns) if components == 3 else columns[0]
+    return data
 
 
 def _write_vti(path: Path, dims, origin, spacing, arrays) -> None:
-    """XML ImageData with raw appended little-endian binary blocks (UInt64 byte-count headers)."""
-    extent = " ".join(f"0 {n - 1}" for n in dims)
-    lines = [
-        '<?xml version="1.0"?>',
-        '<VTKFile type="ImageData" version="1.0" byte_order="LittleEndian" header_type="UInt64">',
-        f'  <ImageData WholeExtent="{extent}" Origin="{_fmt(origin)}" '
-        f'Spacing="{_fmt(spacing)}" Direction="1 0 0 0 1 0 0 0 1">',
-        f'    <Piece Extent="{extent}">',
-        '      <PointData Scalars="magnitude" Vectors="displacement">',
-    ]
-    blocks, offset = [], 0
-    for name, values, components in arrays:
-        vtk_type = _VTK_TYPES[np.dtype(values.dtype)][0]
-        raw = np.ascontiguousarray(values).astype(values.dtype.newbyteorder("<")).tobytes()
-        lines.append(
-            f'        <DataArray type="{vtk_type}" Name="{name}" '
-            f'NumberOfComponents="{components}" format="appended" offset="{offset}"/>'
-        )
-        block = np.uint64(len(raw)).astype("<u8").tobytes() + raw
-        blocks.append(block)
-        offset += len(block)
-    lines += [
-        "      </PointData>",
-        "    </Piece>",
-        "  </ImageData>",
-        '  <AppendedData encoding="raw">',
-    ]
-    with open(path, "wb") as stream:
-        stream.write(("\n".join(lines) + "\n   _").encode("ascii"))
-        for block in blocks:
-            stream.write(block)
-        stream.write(b"\n  </AppendedData>\n</VTKFile>\n")
+    """XML ImageData through ``pyevtk.hl.imageToVTK`` (it appends ``.vti`` to the name)."""
+    from pyevtk.hl import imageToVTK
+
+    stem = str(path)[: -len(".vti")] if str(path).endswith(".vti") else str(path)
+    written = imageToVTK(
+        stem,
+        origin=tuple(float(v) for v in origin),
+        spacing=tuple(float(v) for v in spacing),
+        pointData=_pyevtk_point_data(arrays, tuple(int(n) for n in dims)),
+    )
+    if Path(written) != Path(path):
+        os.replace(written, path)
+
+
+def export_vtk_points(field, path: str | os.PathLike, *, voxel_size=None) -> Path:
+    """Write a field at scattered points (:class:`..engine.scattered.ScatteredField`, or a grid
+    field's nodes) as a VTK unstructured grid of vertices, ``.vtu``, via ``pyevtk.hl.pointsToVTK``.
+
+    Point coordinates and the ``displacement`` vector ``(ux, uy, uz)`` are in physical units
+    (``voxel_size`` per axis z, y, x; default voxels), x, y, z order; point data also hold
+    ``magnitude``, ``zncc``, ``status``, ``iterations`` and ``provenance``.
+    """
+    from pyevtk.hl import pointsToVTK
+
+    from ..engine.scattered import ScatteredField, from_grid
+
+    path = Path(path)
+    if path.suffix.lower() != ".vtu":
+        raise ValueError(f"{path}: VTK points are written as .vtu (XML unstructured grid)")
+    points = field if isinstance(field, ScatteredField) else from_grid(field)
+    vs = _voxel_size(voxel_size)
+    xyz = (points.points * vs)[:, ::-1]
+    u = (points.u * vs)[:, ::-1].astype(np.float32)
+    data = {
+        "displacement": tuple(np.ascontiguousarray(u[:, c]) for c in range(3)),
+        "magnitude": np.ascontiguousarray(np.linalg.norm(u, axis=1).astype(np.float32)),
+        "zncc": np.ascontiguousarray(points.zncc),
+        "status": np.ascontiguousarray(points.status),
+        "iterations": np.ascontiguousarray(points.iterations),
+        "provenance": np.ascontiguousarray(points.provenance),
+    }
+    with atomic_path(path) as temp:
+        stem = str(temp)[: -len(".vtu")]
+        written = pointsToVTK(stem, *(np.ascontiguousarray(xyz[:, c]) for c in range(3)), data=data)
+        if Path(written) != temp:
+            os.replace(written, temp)
+    return path
+
+
+def _fmt(values) -> str:
+    return " ".join(repr(float(v)) for v in values)
 
 
 def _write_legacy_vtk(path: Path, dims, origin, spacing, arrays) -> None:

@@ -1,0 +1,296 @@
+"""Command-line options for fields made by other tools: ``--format``, ``--out-format`` and the
+per-format switches, and the two functions the subcommands call to read and write fields.
+
+``correct`` and ``evaluate`` read ``--field`` in any format of :mod:`..io.formats`; a field on
+scattered points is put on a grid for the work (interpolated, with provenance) and the result is
+written at the user's original points as well. ``correct`` and ``correlate`` write ``--out`` in
+any of those formats (from the suffix, or ``--out-format``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..io.formats import FORMATS
+
+#: Output suffix -> format when ``--out-format`` is not given (``.txt`` is not guessed).
+OUTPUT_SUFFIXES = {
+    ".npz": "npz",
+    ".tsv": "spam",
+    ".csv": "table",
+    ".disp": "idvc",
+    ".mat": "aldvc",
+    ".vti": "vti",  # VTK image data (grids), for ParaView
+    ".vtu": "vtu",  # VTK points (scattered fields)
+}
+
+
+def add_field_format_arguments(
+    parser: argparse.ArgumentParser, output: bool = True, field_input: bool = True
+) -> None:
+    """``--format`` (of ``--field``), ``--out-format`` and the per-format switches."""
+    group = parser.add_argument_group("field formats (fields from other DVC tools)")
+    if field_input:
+        _add_input_arguments(group)
+    if output:
+        group.add_argument(
+            "--out-format",
+            choices=("auto", *FORMATS),
+            default="auto",
+            help="format of --out (default: from the suffix: .npz ours, .tsv spam, .csv table, "
+            ".disp iDVC, .mat ALDVC, .vti VTK image, .vtu VTK points)",
+        )
+    group.add_argument(
+        "--xyz",
+        action="store_true",
+        help="table without a header: columns x y z ux uy uz (default z y x uz uy ux); "
+        "tables written: x, y, z order",
+    )
+
+
+def _add_input_arguments(group) -> None:
+    group.add_argument(
+        "--format",
+        choices=("auto", *FORMATS),
+        default="auto",
+        help="format of --field: spam TSV, pyALDVC/ALDVC .npz/.mat, iDVC .disp, a plain "
+        "CSV/TSV table, or ours (.npz); default: from the suffix and the header",
+    )
+    group.add_argument(
+        "--voxel-size",
+        type=float,
+        default=None,
+        help="voxel size in mm, for tables whose columns are in physical units (mm, um, m)",
+    )
+    group.add_argument(
+        "--frame-pair",
+        type=int,
+        default=1,
+        help="pyALDVC/ALDVC frame pair to read (1-based, as in U_1; default 1)",
+    )
+    group.add_argument(
+        "--idvc-objective",
+        choices=("znssd", "none"),
+        default="znssd",
+        help="iDVC objective of the run: znssd gives ZNCC = 1 - objmin/2; none for the others",
+    )
+    group.add_argument(
+        "--bin-ratio",
+        type=float,
+        default=1.0,
+        help="spam fieldBinRatio: the field was measured on images binned by this factor",
+    )
+
+
+def _reader_options(args, fmt: str) -> dict:
+    if fmt == "table":
+        return {"xyz": args.xyz, "voxel_size": args.voxel_size}
+    if fmt == "aldvc":
+        return {"frame": args.frame_pair}
+    if fmt == "spam":
+        return {"bin_ratio": args.bin_ratio}
+    if fmt == "idvc":
+        return {"objective": args.idvc_objective}
+    return {}
+
+
+@dataclass
+class InputField:
+    """A field read for a subcommand: the grid it is worked on, and its original points."""
+
+    field: object  # DisplacementField
+    points: object | None  # ScatteredField when the file was not a regular grid
+    format: str
+
+    def describe(self) -> str:
+        scattered = self.field.metadata.get("scattered", {})
+        if self.points is None:
+            return f"{self.format} field on a {'x'.join(map(str, self.field.shape))} grid"
+        return (
+            f"{self.format} field at {self.points.n_points} scattered points, put on a "
+            f"{'x'.join(map(str, self.field.shape))} grid (step {self.field.step[0]:g}; "
+            f"{scattered.get('interpolated', 0)} nodes interpolated, "
+            f"{scattered.get('outside_hull', 0)} outside the points)"
+        )
+
+
+def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputField:
+    """Read ``path`` (``--field``) in ``args.format`` (or its sniffed format when ``sniff``); a
+    grid field when it is not one already."""
+    from ..engine.scattered import to_grid
+    from ..io.formats import read_points, sniff_format
+
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"field file not found: {path}")
+    fmt = "auto" if sniff else getattr(args, "format", "auto")
+    fmt = sniff_format(path) if fmt in (None, "auto") else fmt
+    points = read_points(path, fmt, **_reader_options(args, fmt))
+    field = to_grid(points, grid=grid)
+    scattered = field.metadata.get("scattered", {})
+    regular = (
+        grid is None
+        and scattered.get("interpolated", 0) == 0
+        and (scattered.get("outside_hull", 0) == 0)
+    )
+    return InputField(field=field, points=None if regular else points, format=fmt)
+
+
+def output_format(args, out: str) -> str:
+    """The format ``--out`` will be written in; refuses unknown suffixes before any work."""
+    path = Path(out)
+    chosen = getattr(args, "out_format", "auto")
+    if chosen not in (None, "auto"):
+        fmt = chosen
+    else:
+        fmt = OUTPUT_SUFFIXES.get(path.suffix.lower())
+        if fmt is None:
+            raise ValueError(
+                f"output {path} must end with {', '.join(OUTPUT_SUFFIXES)} (or give --out-format)"
+            )
+    if not path.parent.exists():
+        raise FileNotFoundError(f"output folder does not exist: {path.parent}")
+    return fmt
+
+
+def _writer_options(args, fmt: str) -> dict:
+    if fmt == "table":
+        return {"xyz": getattr(args, "xyz", False)}
+    return {}
+
+
+def write_output_field(args, field, out: str, points=None) -> list[Path]:
+    """Write ``field`` to ``out`` in the output format; returns the files written.
+
+    ``points`` (a ScatteredField: the user's original points) makes the result be reported there
+    too: in another tool's format ``out`` holds the field at those points and ``<stem>_grid.npz``
+    the grid; in our ``.npz`` ``out`` holds the grid and ``<stem>_points.csv`` the points.
+    """
+    from ..engine.scattered import ScatteredField, sample_field
+    from ..io.formats import write_field
+
+    fmt = output_format(args, out)
+    out = Path(out)
+    if fmt in ("vti", "vtu"):
+        from ..io.export import export_vtk, export_vtk_points
+
+        if fmt == "vtu":
+            export_vtk_points(field if points is None else sample_field(field, points.points), out)
+        elif isinstance(field, ScatteredField):
+            raise ValueError("a field at a list of points is written as .vtu, not .vti")
+        else:
+            export_vtk(field, out)
+        return [out]
+    if isinstance(field, ScatteredField):
+        if fmt == "npz":
+            raise ValueError(
+                "a field at a list of points cannot be written as our grid .npz: "
+                "name --out .csv, .tsv, .disp or .mat"
+            )
+        write_field(field, out, fmt, **_writer_options(args, fmt))
+        return [out]
+    if points is None:
+        write_field(field, out, fmt, **_writer_options(args, fmt))
+        return [out]
+    at_points = sample_field(field, points.points)
+    if fmt == "npz":
+        write_field(field, out, "npz")
+        side = out.with_name(out.stem + "_points.csv")
+        write_field(at_points, side, "table", **_writer_options(args, "table"))
+    else:
+        write_field(at_points, out, fmt, **_writer_options(args, fmt))
+        side = out.with_name(out.stem + "_grid.npz")
+        write_field(field, side, "npz")
+    return [out, side]
+
+
+def add_correction_field_arguments(parser: argparse.ArgumentParser) -> None:
+    """``correct``'s options for imported fields: the subvolume and, if wanted, a new grid."""
+    group = parser.add_argument_group("imported fields")
+    group.add_argument(
+        "--subvolume",
+        type=int,
+        default=None,
+        help="odd subvolume edge (voxels) of the correction's DVC; default: the field's own "
+        "parameters, else 31 (spam and iDVC files do not record it)",
+    )
+    group.add_argument(
+        "--grid-step",
+        type=int,
+        default=None,
+        help="put the field on a new grid with this spacing (voxels) before correcting; "
+        "default: keep the field's own grid (or, with --roi/--cylinder/--origin, its step)",
+    )
+
+
+def prepare_correction_field(args, volume_shape):
+    """Read ``--field`` for ``correct``: the InputField and the DVC parameters (or None).
+
+    The field keeps its own grid unless ``--grid-step``, ``--roi``, ``--cylinder`` or
+    ``--origin`` ask for another one (then it is interpolated onto it, with provenance).
+    """
+    from ..engine.params import CorrelationParams
+    from ..engine.placement import grid_for_region, restrict_to_region
+    from ..engine.scattered import from_grid, to_grid
+    from . import _grid_options
+
+    imported = read_input_field(args, args.field)
+    field = imported.field
+    params = None
+    subvolume = getattr(args, "subvolume", None)
+    if subvolume is not None or not field.params:
+        values = dict(field.params)
+        values["subvolume"] = subvolume or field.params.get("subvolume", 31)
+        params = CorrelationParams.from_dict(values)
+    if not (getattr(args, "grid_step", None) or _grid_options.wants_placement(args)):
+        nodes = np.concatenate([np.asarray(field.origin), np.asarray(field.step)])
+        if np.max(np.abs(nodes - np.rint(nodes))) > 1e-6:
+            raise ValueError(
+                f"the field's grid (origin {field.origin}, step {field.step}) is not on whole "
+                "voxels, where the correction's subvolumes are centred: give --grid-step N to "
+                "correct it on a whole-voxel grid"
+            )
+        return imported, params
+    used = params or CorrelationParams.from_dict(field.params)
+    step = args.grid_step or int(round(max(field.step)))
+    region = _grid_options.region_from_args(args, volume_shape)
+    origin = _grid_options.parse_origin(args.origin) if getattr(args, "origin", None) else None
+    grid = grid_for_region(volume_shape, used.subvolume, step, region, origin)
+    source = imported.points if imported.points is not None else from_grid(field)
+    regridded = to_grid(source, grid=grid)
+    if region is not None:
+        regridded = restrict_to_region(regridded, region)
+    regridded.params = dict(field.params)
+    return InputField(regridded, imported.points, imported.format), params
+
+
+def run_points(args, params, out, started, tiled: bool = False) -> int:
+    """``--points FILE``: DVC at exactly those points, written in the output format."""
+    import time
+
+    from ..engine.correlate_points import correlate_points
+    from ..io.volumes import read_volume
+    from ._grid_options import load_points
+
+    if tiled or getattr(args, "self_correct", False):
+        raise ValueError("--points does not combine with tiled runs or --self-correct")
+    points = load_points(args.points)
+    reference = read_volume(args.reference)
+    deformed = read_volume(args.deformed)
+    mask = read_volume(args.mask) if args.mask else None
+    result = correlate_points(
+        reference, deformed, points, params, mask=mask, device=getattr(args, "device", "auto")
+    )
+    result.metadata["reference"] = str(args.reference)
+    result.metadata["deformed"] = str(args.deformed)
+    result.metadata["points_file"] = str(args.points)
+    write_output_field(args, result, out)
+    good = result.valid
+    print(
+        f"POIs: {result.n_points} from {args.points}; converged fraction {good.mean():.3f}; "
+        f"time {time.perf_counter() - started:.2f} s; wrote {out}"
+    )
+    return 0

@@ -1,0 +1,80 @@
+"""Helpers shared by the format modules: field kinds, axis order, text tables."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ...engine.field import DisplacementField
+from ...engine.scattered import ScatteredField, from_grid
+
+
+def as_scattered(field: DisplacementField | ScatteredField) -> ScatteredField:
+    """Any field as points (a grid field's nodes in C order)."""
+    if isinstance(field, ScatteredField):
+        return field
+    if isinstance(field, DisplacementField):
+        return from_grid(field)
+    raise TypeError(f"expected a DisplacementField or ScatteredField, got {type(field).__name__}")
+
+
+def flip_vectors(values: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` between (z, y, x) and (x, y, z) order (its own inverse)."""
+    return np.ascontiguousarray(np.asarray(values, dtype=np.float64)[..., ::-1])
+
+
+def flip_tensors(values: np.ndarray) -> np.ndarray:
+    """``(..., 3, 3)`` gradients ``du_i/dX_j`` between (z, y, x) and (x, y, z) order."""
+    return np.ascontiguousarray(np.asarray(values, dtype=np.float64)[..., ::-1, ::-1])
+
+
+def first_line(path: str | os.PathLike) -> str:
+    """The first line that is neither empty nor a ``#`` comment."""
+    with open(path, encoding="utf-8", errors="replace") as handle:
+        for line in handle:
+            stripped = line.strip()
+            if stripped and not stripped.startswith("#"):
+                return stripped
+    return ""
+
+
+def read_named_table(
+    path: str | os.PathLike, delimiter: str | None
+) -> tuple[list[str], np.ndarray]:
+    """Header names and the float rows (N, columns) of a delimited text table."""
+    header = first_line(path)
+    if not header:
+        raise ValueError(f"{path}: the file is empty")
+    if delimiter is None:
+        delimiter = "\t" if "\t" in header else ("," if "," in header else None)
+    names = [n.strip() for n in (header.split(delimiter) if delimiter else header.split())]
+    rows = np.loadtxt(
+        path, delimiter=delimiter, comments="#", skiprows=_header_row(path) + 1, ndmin=2
+    )
+    if rows.size == 0:
+        rows = np.zeros((0, len(names)))
+    if rows.shape[1] != len(names):
+        raise ValueError(
+            f"{path}: the header names {len(names)} columns but the rows have {rows.shape[1]}"
+        )
+    return names, rows
+
+
+def _header_row(path) -> int:
+    with open(path, encoding="utf-8", errors="replace") as handle:
+        for number, line in enumerate(handle):
+            stripped = line.strip()
+            if stripped and not stripped.startswith("#"):
+                return number
+    return 0
+
+
+def column(names: list[str], rows: np.ndarray, *candidates: str, required: bool = True):
+    """The column named by the first candidate present (exact name), or None."""
+    for name in candidates:
+        if name in names:
+            return rows[:, names.index(name)]
+    if required:
+        raise ValueError(f"missing column {candidates[0]!r} (columns present: {', '.join(names)})")
+    return None

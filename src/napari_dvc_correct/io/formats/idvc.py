@@ -1,0 +1,123 @@
+"""CCPi iDVC / CCPi DVC ``.disp`` result files.
+
+Conventions, read from iDVC's documentation, ``docs/source/results.rst`` ("Results Files"), and
+its reader ``src/idvc/utils/manipulate_result_files.py`` (``extractDataFromDispResultFile``):
+
+* tab-delimited text, one header line naming the columns, then one row per point of the point
+  cloud: ``n x y z status objmin u v w`` and, when the search had 6 or 12 degrees of freedom,
+  ``phi theta psi`` (subvolume rotation) and ``exx eyy ezz exy eyz exz`` (subvolume strain);
+  iDVC's reader takes ``objmin`` from column 5 and the displacement from columns 6-8;
+* ``n`` is the point identifier; ``x, y, z`` the point's location in the reference volume, in
+  **x, y, z** order (x along the fastest image axis, i.e. the last numpy axis of ``vol[z, y, x]``),
+  voxels; ``u, v, w`` the displacement along x, y, z = location in the target volume minus
+  location in the reference volume, voxels;
+* ``status``: 0 = successful, -1 = ``Range_Fail``, -2 = ``Convg_Fail``;
+* the rotation and strain columns are not read (a strain without its rotation is not the
+  displacement gradient);
+* ``objmin`` is the objective function at the end of the search, one of ``sad, ssd, zssd,
+  nssd, znssd`` (``obj_function`` in the dvc control file, ``ccpi/dvc/apps/dvc_config_template.txt``);
+  we assume ``znssd`` by default, for which ``znssd = 2 (1 - ZNCC)``; ``objective="none"`` keeps
+  the ZNCC unknown for the others. Positions and displacements are in voxels (``disp_max`` and
+  ``rigid_trans`` are "in voxels" there too).
+
+Point positions: iDVC's regular point cloud (``cilRegularPointCloudToPolyData`` in
+``src/idvc/pointcloud_conversion.py``) puts points at ``n * point_spacing * image_spacing`` from 0
+along VTK's x, y, z (the image origin is not added), looping x slowest and z fastest. With the
+usual image spacing of 1 these are 0-based voxel indices, which is what we assume; a run on an
+image with another spacing has positions in those units (divide by the spacing first). Rows may
+come in any order: a regular cloud is recognised as a grid whatever the order.
+
+Mapping of status: 0 → ``CONVERGED``, -1 → ``OUT_OF_BOUNDS``, -2 → ``DIVERGED``, other → ``NOT_COMPUTED``;
+written back: ``CONVERGED``/``MAX_ITERATIONS`` → 0, ``OUT_OF_BOUNDS`` → -1, any other → -2.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ...engine.field import Provenance, Status
+from ...engine.scattered import ScatteredField
+from ..atomic import atomic_path
+from ._common import as_scattered, column, flip_vectors, read_named_table
+
+COLUMNS = ("n", "x", "y", "z", "status", "objmin", "u", "v", "w")
+OBJECTIVES = ("znssd", "none")
+
+
+def looks_like(header: str) -> bool:
+    names = header.split()
+    return names[:6] == ["n", "x", "y", "z", "status", "objmin"]
+
+
+def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
+    """Read an iDVC ``.disp`` file as points, in row order.
+
+    ``objective="znssd"`` turns ``objmin`` into a ZNCC (``1 - objmin / 2``); ``"none"`` keeps ZNCC
+    unknown (for runs with another objective). ``objmin`` is kept in ``metadata``.
+    """
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    names, rows = read_named_table(path, None)
+    if not looks_like(" ".join(names)):
+        # files without a header: the documented column order
+        rows = np.loadtxt(path, ndmin=2)
+        names = list(COLUMNS) + [f"c{i}" for i in range(len(COLUMNS), rows.shape[1])]
+    points_xyz = np.column_stack([column(names, rows, a) for a in "xyz"])
+    u_xyz = np.column_stack([column(names, rows, a) for a in "uvw"])
+    codes = np.rint(column(names, rows, "status")).astype(np.int64)
+    status = np.full(len(rows), int(Status.NOT_COMPUTED), np.uint8)
+    status[codes == 0] = int(Status.CONVERGED)
+    status[codes == -1] = int(Status.OUT_OF_BOUNDS)
+    status[codes == -2] = int(Status.DIVERGED)
+    objmin = column(names, rows, "objmin")
+    zncc = 1.0 - objmin / 2.0 if objective == "znssd" else np.full(len(rows), np.nan)
+    zncc = np.where(codes == 0, zncc, np.nan)
+    provenance = np.where(codes == 0, int(Provenance.MEASURED), int(Provenance.NOT_COMPUTED))
+    return ScatteredField(
+        points=flip_vectors(points_xyz),
+        u=flip_vectors(u_xyz),
+        zncc=zncc,
+        status=status,
+        provenance=provenance,
+        metadata={
+            "source": {
+                "format": "idvc",
+                "path": str(path),
+                "objective": objective,
+                "point_ids": column(names, rows, "n").astype(int).tolist(),
+                "objmin": objmin.tolist(),
+            }
+        },
+    )
+
+
+def write(field, path: str | os.PathLike) -> None:
+    """Write a field (grid or points) as an iDVC ``.disp`` file (``n`` from 1, ``znssd`` objmin).
+
+    Points without a ZNCC get ``objmin`` NaN.
+    """
+    field = as_scattered(field)
+    n = field.n_points
+    codes = np.full(n, -2, np.int64)
+    codes[np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS])] = 0
+    codes[field.status == int(Status.OUT_OF_BOUNDS)] = -1
+    table = np.column_stack(
+        [
+            np.arange(1, n + 1),
+            flip_vectors(field.points),
+            codes,
+            2.0 * (1.0 - field.zncc.astype(np.float64)),
+            flip_vectors(field.u),
+        ]
+    )
+    with atomic_path(path) as temp:
+        np.savetxt(
+            temp,
+            table,
+            fmt=["%d", "%.9g", "%.9g", "%.9g", "%d", "%.9g", "%.9g", "%.9g", "%.9g"],
+            delimiter="\t",
+            header="\t".join(COLUMNS),
+            comments="",
+        )

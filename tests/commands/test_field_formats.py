@@ -1,0 +1,168 @@
+"""The CLI on fields from other tools and on chosen points: --format, --out-format, --roi,
+--cylinder, --origin, --points."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.cli import main
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.field import Status
+from napari_dvc_correct.engine.scattered import ScatteredField
+from napari_dvc_correct.io.formats import read_field, read_points, write_field
+from napari_dvc_correct.io.npz import load_field
+
+SHAPE = (40, 40, 40)
+SHIFT = np.array([1.4, -0.6, 2.2])
+DVC = ["--subvolume", "15", "--step", "6", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def volumes(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("volumes")
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=21), SHAPE, synthetic.translation(SHIFT)
+    )
+    paths = []
+    for name, volume in (("ref", reference), ("def", deformed)):
+        np.save(folder / f"{name}.npy", volume)
+        paths.append(str(folder / f"{name}.npy"))
+    return paths
+
+
+def test_points_give_results_at_exactly_those_points(volumes, tmp_path):
+    rng = np.random.default_rng(3)
+    points = rng.uniform(10.0, 29.0, size=(12, 3))
+    csv = tmp_path / "pois.csv"
+    np.savetxt(csv, points[:, [2, 0, 1]], delimiter=",", header="x,z,y", comments="")
+    out = tmp_path / "at_points.csv"
+    assert main(["correlate", *volumes, "--points", str(csv), "--out", str(out), *DVC]) == 0
+    result = read_points(out)
+    np.testing.assert_allclose(result.points, points, atol=1e-6)
+    assert result.valid.all()
+    np.testing.assert_allclose(result.u, np.broadcast_to(SHIFT, (12, 3)), atol=0.05)
+    npy = tmp_path / "pois.npy"
+    np.save(npy, points)
+    out2 = tmp_path / "at_points.disp"
+    assert main(["correlate", *volumes, "--points", str(npy), "--out", str(out2), *DVC]) == 0
+    np.testing.assert_allclose(read_points(out2).points, points, atol=1e-6)
+
+
+def test_roi_limits_the_grid_to_the_region(volumes, tmp_path):
+    out = tmp_path / "roi.npz"
+    roi = "12:30,10:26,:"
+    assert main(["correlate", *volumes, "--roi", roi, "--out", str(out), *DVC]) == 0
+    field = load_field(out)
+    points = field.points
+    assert np.all((points[:, 0] >= 12) & (points[:, 0] < 30))
+    assert np.all((points[:, 1] >= 10) & (points[:, 1] < 26))
+    assert field.shape[0] == 3 and field.shape[1] == 3
+    good = field.displacement[field.valid.reshape(-1)]
+    np.testing.assert_allclose(good, np.broadcast_to(SHIFT, good.shape), atol=0.05)
+
+
+def test_origin_and_cylinder(volumes, tmp_path):
+    out = tmp_path / "cyl.npz"
+    args = ["--cylinder", "20,20,9,10:30", "--origin", "10,11,11", "--out", str(out)]
+    assert main(["correlate", *volumes, *args, *DVC]) == 0
+    field = load_field(out)
+    assert field.origin == (10.0, 11.0, 11.0)
+    radial = np.hypot(field.points[:, 1] - 20, field.points[:, 2] - 20)
+    computed = field.status.reshape(-1) != Status.NOT_COMPUTED
+    assert computed.any() and (~computed).any()
+    assert np.all(radial[computed] <= 9) and np.all(radial[~computed] > 9)
+
+
+def test_bad_placement_options_are_refused(volumes, tmp_path, capsys):
+    out = tmp_path / "x.npz"
+    assert main(["correlate", *volumes, "--roi", "1:2,3", "--out", str(out), *DVC]) == 2
+    assert "three ranges" in capsys.readouterr().err
+    assert main(["correlate", *volumes, "--cylinder", "1,2", "--out", str(out), *DVC]) == 2
+    assert main(["correlate", *volumes, "--out", str(tmp_path / "x.txt"), *DVC]) == 2
+    assert not out.exists()
+
+
+def test_correct_a_spam_field_and_write_it_back_as_spam(volumes, tmp_path, capsys):
+    grid = tmp_path / "ours.npz"
+    assert main(["correlate", *volumes, "--out", str(grid), *DVC]) == 0
+    field = load_field(grid)
+    field.u = field.u + 0.3  # an imperfect field from "another tool"
+    spam_in = tmp_path / "ldic.tsv"
+    write_field(field, spam_in, "spam")
+    out = tmp_path / "corrected.tsv"
+    code = main(
+        ["correct", *volumes, "--field", str(spam_in), "--format", "spam", "--subvolume", "15",
+         "--out", str(out), "--out-format", "spam", "--max-passes", "2", "--quiet"]
+    )  # fmt: skip
+    assert code == 0
+    assert "spam field on a" in capsys.readouterr().out
+    corrected = read_field(out, "spam")
+    assert corrected.same_grid(field)  # the imported field's grid is kept
+    error = corrected.displacement[corrected.valid.reshape(-1)] - SHIFT
+    assert np.sqrt(np.mean(error**2)) < 0.1
+
+
+def test_correct_scattered_points_reports_at_the_original_points(volumes, tmp_path):
+    rng = np.random.default_rng(8)
+    points = rng.uniform(11.0, 27.0, size=(150, 3))  # inside the 10..28 correction grid
+    table_in = tmp_path / "davis.csv"
+    write_field(ScatteredField(points, np.broadcast_to(SHIFT + 0.4, (150, 3))), table_in, "table")
+    out = tmp_path / "corrected.csv"
+    code = main(
+        ["correct", *volumes, "--field", str(table_in), "--subvolume", "15", "--grid-step", "6",
+         "--out", str(out), "--max-passes", "1", "--quiet"]
+    )  # fmt: skip
+    assert code == 0
+    at_points = read_points(out)
+    np.testing.assert_allclose(at_points.points, points, atol=1e-6)
+    grid = load_field(tmp_path / "corrected_grid.npz")
+    assert grid.step == (6.0, 6.0, 6.0)
+    good = at_points.valid
+    assert good.all()
+    error = np.linalg.norm(at_points.u[good] - SHIFT, axis=1)
+    assert np.median(error) < 0.15, np.median(error)
+
+
+def test_evaluate_an_imported_field(volumes, tmp_path, capsys):
+    grid = tmp_path / "ours.npz"
+    assert main(["correlate", *volumes, "--out", str(grid), *DVC]) == 0
+    idvc_file = tmp_path / "run.disp"
+    write_field(load_field(grid), idvc_file, "idvc")
+    out_dir = tmp_path / "report"
+    code = main(
+        ["evaluate", *volumes, "--field", str(idvc_file), "--format", "idvc", "--compare",
+         str(grid), "--out-dir", str(out_dir), "--no-volumes", "--quiet"]
+    )  # fmt: skip
+    assert code == 0
+    assert "accuracy index" in capsys.readouterr().out
+    assert (out_dir / "report.md").exists()
+
+
+def test_vtk_outputs_for_paraview(volumes, tmp_path):
+    vtk = pytest.importorskip("vtk")
+    out = tmp_path / "roi.vti"
+    assert main(["correlate", *volumes, "--roi", "12:30,10:26,:", "--out", str(out), *DVC]) == 0
+    reader = vtk.vtkXMLImageDataReader()
+    reader.SetFileName(str(out))
+    reader.Update()
+    assert reader.GetOutput().GetDimensions()[::-1][:2] == (3, 3)
+    points = tmp_path / "pois.npy"
+    np.save(points, np.array([[15.0, 16.5, 17.0], [20.0, 21.0, 22.25]]))
+    out = tmp_path / "pois.vtu"
+    assert main(["correlate", *volumes, "--points", str(points), "--out", str(out), *DVC]) == 0
+    reader = vtk.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(str(out))
+    reader.Update()
+    assert reader.GetOutput().GetNumberOfPoints() == 2
+
+
+def test_a_field_off_whole_voxels_asks_for_a_grid_step(volumes, tmp_path, capsys):
+    points = np.stack(np.meshgrid(*[10.5 + 6.0 * np.arange(3)] * 3, indexing="ij"), -1).reshape(
+        -1, 3
+    )
+    path = tmp_path / "half.csv"
+    write_field(ScatteredField(points, np.broadcast_to(SHIFT, points.shape)), path, "table")
+    out = tmp_path / "c.csv"
+    args = ["correct", *volumes, "--field", str(path), "--subvolume", "15", "--out", str(out)]
+    assert main([*args, "--quiet"]) == 2
+    assert "--grid-step" in capsys.readouterr().err
+    assert not out.exists()

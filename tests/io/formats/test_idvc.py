@@ -1,0 +1,84 @@
+"""CCPi iDVC .disp (io/formats/idvc.py): x, y, z columns, status, objmin, round trips."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine.field import Status
+from napari_dvc_correct.engine.scattered import ScatteredField, to_grid
+from napari_dvc_correct.io.formats import idvc, read_field, read_points, sniff_format, write_field
+
+
+def disp_file(path, points, u, status=None, objmin=0.02, rotation=False):
+    """A .disp as documented: n x y z status objmin u v w [phi theta psi], tab-separated."""
+    header = "n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw" + ("\tphi\ttheta\tpsi" if rotation else "")
+    lines = [header]
+    for n, (p, d) in enumerate(zip(points, u)):
+        s = 0 if status is None else status[n]
+        row = [n + 1, p[2], p[1], p[0], s, objmin, d[2], d[1], d[0]] + (
+            [0.0] * 3 if rotation else []
+        )
+        lines.append("\t".join(str(v) for v in row))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_a_translation_in_idvc_layout_reads_as_z_y_x(known, tmp_path, scattered_points):
+    path = disp_file(
+        tmp_path / "r.disp", scattered_points, known.translation(scattered_points), rotation=True
+    )
+    assert sniff_format(path) == "idvc"
+    points = read_points(path)
+    np.testing.assert_allclose(points.points, scattered_points)
+    np.testing.assert_allclose(points.u, np.broadcast_to(known.shift, (30, 3)))
+    np.testing.assert_allclose(points.zncc, 0.99, atol=1e-6)  # znssd 0.02 = 2 (1 - 0.99)
+    assert points.metadata["source"]["point_ids"][:3] == [1, 2, 3]
+
+
+def test_an_affine_field_in_idvc_layout_on_a_grid(known, tmp_path, grid_points):
+    path = disp_file(tmp_path / "a.disp", grid_points, known.affine(grid_points))
+    field = read_field(path)
+    assert field.shape == (3, 4, 5)
+    np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-9)
+
+
+def test_a_cloud_in_idvcs_order_x_slowest_is_our_grid(known, tmp_path, grid_points):
+    """iDVC lays a regular cloud out x slowest, z fastest (pointcloud_conversion.py)."""
+    order = np.lexsort((grid_points[:, 0], grid_points[:, 1], grid_points[:, 2]))
+    cloud = grid_points[order]
+    assert cloud[0, 2] == cloud[1, 2] and cloud[0, 0] != cloud[1, 0]  # z varies fastest
+    path = disp_file(tmp_path / "x.disp", cloud, known.affine(cloud))
+    field = read_field(path)
+    assert field.shape == (3, 4, 5) and field.origin == (8.0, 9.0, 10.0)
+    np.testing.assert_allclose(field.displacement, known.affine(field.points), atol=1e-9)
+
+
+def test_idvc_status_codes(known, tmp_path, scattered_points):
+    status = np.zeros(30, int)
+    status[1], status[2] = -1, -2
+    path = disp_file(
+        tmp_path / "s.disp", scattered_points, known.translation(scattered_points), status
+    )
+    points = read_points(path)
+    assert points.status[:3].tolist() == [Status.CONVERGED, Status.OUT_OF_BOUNDS, Status.DIVERGED]
+    assert np.isnan(points.zncc[1])
+    assert points.valid[:3].tolist() == [True, False, False]
+
+
+def test_round_trip(known, tmp_path, grid_points, scattered_points):
+    field = to_grid(ScatteredField(grid_points, known.affine(grid_points), zncc=np.full(60, 0.9)))
+    write_field(field, tmp_path / "g.disp")
+    back = read_field(tmp_path / "g.disp")
+    assert back.same_grid(field)
+    np.testing.assert_allclose(back.u, field.u, atol=1e-6)
+    np.testing.assert_allclose(back.zncc, 0.9, atol=1e-6)
+    scattered = ScatteredField(scattered_points, known.affine(scattered_points))
+    idvc.write(scattered, tmp_path / "s.disp")
+    again = read_points(tmp_path / "s.disp")
+    np.testing.assert_allclose(again.points, scattered_points, atol=1e-6)
+    np.testing.assert_allclose(again.u, scattered.u, atol=1e-6)
+
+
+def test_unknown_objective_is_refused(known, tmp_path, scattered_points):
+    path = disp_file(tmp_path / "r.disp", scattered_points, known.translation(scattered_points))
+    with pytest.raises(ValueError, match="objective"):
+        idvc.read(path, objective="ssd")
