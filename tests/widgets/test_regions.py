@@ -11,6 +11,7 @@ from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.layers import field_of
 from napari_dvc_correct.widgets import CorrelateWidget
 from napari_dvc_correct.widgets import regions_model as model
+from napari_dvc_correct.widgets.correlate import PREVIEW_POINTS
 
 
 def test_cylinder_and_box_stand_along_z():
@@ -72,6 +73,9 @@ def test_a_cylinder_keeps_the_pois_inside_it(panel, run_panel, small):
     panel.region.radius.setValue(14.0)
     panel._update.flush()
     assert "the region keeps" in panel.estimate_label.text()
+    kept = model.kept_pois(panel.region.mask(small.shape), panel.params())
+    assert 0 < kept.kept < kept.total
+    assert len(panel.viewer.layers[PREVIEW_POINTS].data) == kept.kept  # the preview shows them
     run_panel(panel)
     assert panel.last_error is None, panel.last_error
     field = field_of(panel.viewer.layers["|u| (uncorrected)"])

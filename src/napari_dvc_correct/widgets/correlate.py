@@ -423,6 +423,8 @@ class CorrelateWidget(EngineWidget):
             self._set_preview_visible(False)
             return
         points, box, _ = model.grid_preview(job.shape, job.params)
+        if job.mask is not None:  # the POIs the region keeps, so the region shows
+            points = points[regions_model.kept_at(job.mask, job.params, points)]
         placement = L.dense_placement(job.voxel_size, job.offset)
         points_style = {
             "size": max(1.0, job.params.step / 3),

@@ -144,22 +144,23 @@ class Kept:
         return f"the region keeps {self.kept:,} of {self.total:,} POIs ({share:.0f} %)"
 
 
-def kept_pois(mask: np.ndarray, params: CorrelationParams) -> Kept:
-    """POIs of the grid of ``params`` whose subvolume is at least ``min_mask_fraction`` inside.
-
-    The engine's rule (icgn.py): a POI with fewer mask voxels in its subvolume is marked masked.
-    Counted exactly with a summed-volume table.
-    """
-    mask = np.asarray(mask, bool)
-    origin, step, shape = grid_for_volume(mask.shape, params.subvolume, params.step)
+def _summed_volume(mask: np.ndarray) -> np.ndarray:
     table = np.zeros(tuple(n + 1 for n in mask.shape), np.int64)
-    table[1:, 1:, 1:] = mask.cumsum(0).cumsum(1).cumsum(2)
-    half = params.half
-    axes = [np.asarray(origin[a]) + step[a] * np.arange(shape[a]) for a in range(3)]
-    low = [np.rint(c - half).astype(int) for c in axes]
-    high = [np.rint(c + half + 1).astype(int) for c in axes]
-    z0, y0, x0 = np.ix_(*low)
-    z1, y1, x1 = np.ix_(*high)
+    table[1:, 1:, 1:] = np.asarray(mask, bool).cumsum(0).cumsum(1).cumsum(2)
+    return table
+
+
+def _needed(params: CorrelationParams) -> float:
+    """Mask voxels a subvolume needs for its POI to be measured (icgn.py's rule)."""
+    return max(params.min_mask_fraction * params.subvolume**3, 3 * 4 + 1)
+
+
+def kept_at(mask: np.ndarray, params: CorrelationParams, points: np.ndarray) -> np.ndarray:
+    """For POI centres ``points`` (N, 3) voxels: is each one measured inside ``mask``?"""
+    table = _summed_volume(mask)
+    centres = np.rint(np.asarray(points, float)).astype(int)
+    z0, y0, x0 = (centres - params.half).T
+    z1, y1, x1 = (centres + params.half + 1).T
     inside = (
         table[z1, y1, x1]
         - table[z0, y1, x1]
@@ -170,8 +171,20 @@ def kept_pois(mask: np.ndarray, params: CorrelationParams) -> Kept:
         + table[z1, y0, x0]
         - table[z0, y0, x0]
     )
-    needed = max(params.min_mask_fraction * params.subvolume**3, 3 * 4 + 1)
-    return Kept(int(np.count_nonzero(inside >= needed)), int(np.prod(shape)))
+    return inside >= _needed(params)
+
+
+def kept_pois(mask: np.ndarray, params: CorrelationParams) -> Kept:
+    """POIs of the grid of ``params`` whose subvolume is at least ``min_mask_fraction`` inside.
+
+    The engine's rule (icgn.py): a POI with fewer mask voxels in its subvolume is marked masked.
+    Counted exactly with a summed-volume table.
+    """
+    mask = np.asarray(mask, bool)
+    origin, step, shape = grid_for_volume(mask.shape, params.subvolume, params.step)
+    axes = [np.asarray(origin[a]) + step[a] * np.arange(shape[a]) for a in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return Kept(int(np.count_nonzero(kept_at(mask, params, points))), int(np.prod(shape)))
 
 
 def check_kept(mask: np.ndarray, params: CorrelationParams) -> Kept:
