@@ -167,13 +167,6 @@ def field_key(source: str) -> str:
     return f"field ({source})"
 
 
-def _stack(fields, function) -> np.ndarray:
-    """``function(field)`` for one field, or stacked along a leading state axis for a series."""
-    if isinstance(fields, DisplacementField):
-        return function(fields)
-    return np.stack([function(f) for f in fields])
-
-
 def _placement(fields, voxel_size, offset) -> dict:
     first = fields if isinstance(fields, DisplacementField) else fields[-1]
     placement = grid_placement(first, voxel_size, offset)
@@ -194,6 +187,7 @@ def quantity_layer(
     offset=None,
     residual: np.ndarray | None = None,
     limits=None,
+    caches: dict | None = None,
 ) -> LayerDataTuple:
     """One Image layer showing ``quantity`` of a field (or of a series of fields), over the scan.
 
@@ -208,6 +202,9 @@ def quantity_layer(
         A key of :data:`QUANTITIES`.
     residual : ndarray (NZ, NY, NX), optional
         The dense gray residual, for ``quantity="residual"`` (placed on the voxels).
+    caches : dict, optional
+        Kept by the caller between calls (one dict per state), so switching between strain
+        quantities computes the strain tensor once.
 
     The layer is drawn translucent (the scan shows through); its metadata carries the field
     (``"field"``; ``"fields"`` for a series), the quantity and its units.
@@ -219,10 +216,13 @@ def quantity_layer(
         values = np.asarray(residual, dtype=np.float32)
         placement = dense_placement(voxel_size, offset)
     else:
-        cache: dict = {}
-        values = _stack(
-            fields, lambda f: quantity_values(f, quantity, cache if f is field else None)
+        caches = {} if caches is None else caches  # one per state: the strain tensor kept
+        series = [fields] if isinstance(fields, DisplacementField) else list(fields)
+        values = np.stack(
+            [quantity_values(f, quantity, caches.setdefault(t, {})) for t, f in enumerate(series)]
         )
+        values = values[0] if isinstance(fields, DisplacementField) else values
+
         placement = _placement(fields, voxel_size, offset)
     style = quantity_style(quantity, values, limits)
     if quantity == "status":
@@ -373,6 +373,7 @@ def show_quantity(layer, quantity: str, *, residual=None, limits=None) -> None:
         offset=offset,
         residual=residual,
         limits=limits,
+        caches=entry.setdefault("cache", {}),
     )
     layer.data = data
     layer.scale, layer.translate = kwargs["scale"], kwargs["translate"]
