@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from qtpy.QtWidgets import QCheckBox, QComboBox, QSpinBox, QTableWidget, QTableWidgetItem
+from qtpy.QtWidgets import QComboBox, QSpinBox, QTableWidget, QTableWidgetItem
 
 from .. import layers as L
 from . import correct_model as model
 from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
-from .correlate import _is_image, _is_mask
-from .correlate_model import layer_volume, mask_from_layer, named_volume
+from .correlate import _is_image
+from .correlate_model import layer_placement, layer_volume, named_volume
+from .regions import RegionBox
 
 
 class CorrectWidget(EngineWidget):
@@ -24,9 +25,6 @@ class CorrectWidget(EngineWidget):
         self.deformed = LayerCombo(self.viewer, _is_image)
         self.form.addRow("Reference (G)", self.reference)
         self.form.addRow("Deformed (F)", self.deformed)
-        self.use_mask = QCheckBox("only inside a mask")
-        self.mask = LayerCombo(self.viewer, _is_mask, optional=True)
-        self.form.addRow(self.use_mask, self.mask)
         self.frame = QComboBox()
         for key, text in model.FRAMES.items():
             self.frame.addItem(text, key)
@@ -39,6 +37,9 @@ class CorrectWidget(EngineWidget):
         self.form.addRow("Frame", self.frame)
         self.form.addRow("Update", self.update_rule)
         self.form.addRow("Passes (at most)", self.max_passes)
+        self.region = RegionBox(self.viewer)  # masked nodes keep their input values
+        self.controls.addWidget(self.region)
+        self.reference.currentIndexChanged.connect(self._reference_changed)
         self.table = QTableWidget(0, 4)
         self.table.setHorizontalHeaderLabels(["pass", "mean residual", "applied", "nodes moved"])
         self.table.verticalHeader().setVisible(False)
@@ -47,6 +48,7 @@ class CorrectWidget(EngineWidget):
         self.field.currentIndexChanged.connect(self._field_changed)
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
+        self._reference_changed()
 
     def choices(self) -> dict:
         """Fields this panel can correct: name -> a field, or the list of a series' states."""
@@ -83,13 +85,19 @@ class CorrectWidget(EngineWidget):
             self.reference.set_layer(chosen.metadata.get("reference_layer", ""))
             self.deformed.set_layer(chosen.metadata.get("deformed_layer", ""))
 
-    def _mask(self, shape):
-        if not self.use_mask.isChecked():
-            return None
-        layer = self.mask.layer()
-        if layer is None:
-            raise ValueError("'only inside a mask' is ticked but no mask is chosen")
-        return mask_from_layer(layer, shape)
+    def _reference_changed(self, *args) -> None:
+        """The region's defaults follow the reference scan (set once per volume size)."""
+        layer = self.reference.layer()
+        if layer is not None and layer.ndim in (3, 4):
+            volume = layer_volume(layer, 0 if layer.ndim == 4 else None)
+            self.region.set_volume(volume.shape, volume)
+
+    def _mask(self, volume, layer=None):
+        """The region's mask for the volumes of ``volume`` (None: the whole volume)."""
+        if self.region.volume_shape != tuple(volume.shape):
+            self.region.set_volume(volume.shape, volume)
+        placement = layer_placement(layer) if layer is not None else None
+        return self.region.mask(volume.shape, volume, placement)
 
     def _options(self) -> dict:
         return {
@@ -115,7 +123,7 @@ class CorrectWidget(EngineWidget):
             self.table.setRowCount(0)
             self._series_source = source
             return model.run_series_correction(
-                pairs, chosen, mask=self._mask(pairs[0][0].shape), **self._options()
+                pairs, chosen, mask=self._mask(pairs[0][0]), **self._options()
             )
         reference, deformed = self.reference.layer(), self.deformed.layer()
         if reference is None or deformed is None:
@@ -128,7 +136,7 @@ class CorrectWidget(EngineWidget):
                 f"'{reference.name}' {g.shape} and '{deformed.name}' {f.shape} must be two 3-D "
                 "volumes of the same shape"
             )
-        mask = self._mask(g.shape)
+        mask = self._mask(g, reference)
         self.table.setRowCount(0)
         return model.run_correction(g, f, chosen, mask=mask, **self._options())
 
@@ -138,6 +146,7 @@ class CorrectWidget(EngineWidget):
             "frame": self.frame.currentData(),
             "update": self.update_rule.currentData(),
             "max_passes": self.max_passes.value(),
+            "region": self.region.settings(),
         }
 
     def restore(self, settings: dict) -> None:
@@ -146,6 +155,8 @@ class CorrectWidget(EngineWidget):
             if index >= 0:
                 combo.setCurrentIndex(index)
         self.max_passes.setValue(int(settings.get("max_passes", self.max_passes.value())))
+        if "region" in settings:
+            self.region.restore(settings["region"])
 
     def _fill_table(self, headers, rows) -> None:
         self.table.setHorizontalHeaderLabels(headers)

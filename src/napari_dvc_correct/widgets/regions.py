@@ -116,6 +116,11 @@ class RegionBox(QGroupBox):
             signals.append(box.valueChanged)
         return signals
 
+    @property
+    def volume_shape(self) -> tuple | None:
+        """Shape of the volume the defaults were set for (None before any)."""
+        return self._shape
+
     def set_volume(self, shape, volume=None) -> None:
         """Defaults for a volume of ``shape``: full ranges, centred cylinder, Otsu threshold."""
         shape = tuple(int(n) for n in shape)
