@@ -48,6 +48,7 @@ def test_displacements_and_strains_use_the_physical_voxel_size():
     """Anisotropic voxels: u_z = e z in voxels is e * 2 µm per 2 µm: the strain stays e."""
     e = 0.01
     field = _uniaxial(e=e, voxel_size=(2.0, 1.0, 1.0))
+    assert Q.unit_of("|u|", field) == "scale units"  # a voxel size without a unit
     field.metadata["unit"] = "µm"
     np.testing.assert_allclose(Q.quantity_values(field, "uz")[3, 0, 0], 2 * e * 12.0, rtol=1e-6)
     np.testing.assert_allclose(Q.quantity_values(field, "εzz")[2, 2, 2], e, rtol=1e-6)

@@ -473,13 +473,18 @@ def caption(layer) -> str:
     return f"{quantity} [{entry.get('unit', '')}]: {what} — {entry.get('source', '')} field"
 
 
-def text_overlay(viewer):
-    """The canvas text overlay (``viewer.canvas.overlays["text"]`` in napari 0.9)."""
+def canvas_overlay(viewer, name: str):
+    """A canvas overlay (``"text"``, ``"scale_bar"``): ``viewer.canvas.overlays`` in napari 0.9."""
     canvas = getattr(viewer, "canvas", None)
     overlays = getattr(canvas, "overlays", None)
-    if overlays is not None and "text" in overlays:
-        return overlays["text"]
-    return viewer.text_overlay
+    if overlays is not None and name in overlays:
+        return overlays[name]
+    return getattr(viewer, f"{name}_overlay" if name == "text" else name)
+
+
+def text_overlay(viewer):
+    """The canvas text overlay (the caption of the quantity on view)."""
+    return canvas_overlay(viewer, "text")
 
 
 def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
@@ -510,5 +515,5 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
         layer.colorbar.visible = True
         text_overlay(viewer).text = caption(layer)
         text_overlay(viewer).visible = True
-    viewer.scale_bar.visible = True
+    canvas_overlay(viewer, "scale_bar").visible = True
     return added

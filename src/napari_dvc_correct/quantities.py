@@ -97,11 +97,18 @@ def available_quantities(field: DisplacementField, residual: bool = False) -> li
 
 
 def unit_of(quantity: str, field: DisplacementField | None = None) -> str:
-    """Units of ``quantity``: the field's length unit (``"vx"`` without one) or a plain word."""
+    """Units of ``quantity``: the field's length unit or a plain word.
+
+    Displacements without a unit are in voxels when the voxel size is 1, else in the units of
+    the layers' scale (``"scale units"``).
+    """
     kind = QUANTITIES[quantity][1]
     if kind in _DISPLACEMENT_KINDS:
-        unit = (field.metadata.get("unit") if field is not None else None) or "vx"
-        return str(unit)
+        unit = field.metadata.get("unit") if field is not None else None
+        if unit:
+            return str(unit)
+        size = as_triple(field.metadata.get("voxel_size") if field is not None else None, 1.0)
+        return "vx" if np.allclose(size, 1.0) else "scale units"
     return {"zncc": "–", "status": "code", "residual": "gray levels"}.get(kind, "strain, –")
 
 

@@ -16,7 +16,7 @@ import pytest
 import tifffile
 
 from napari_dvc_correct._sample_data import soil_pair
-from napari_dvc_correct.layers import fields_in
+from napari_dvc_correct.layers import canvas_overlay, fields_in
 from napari_dvc_correct.widgets import (
     CorrectWidget,
     CorrelateWidget,
@@ -79,7 +79,7 @@ def test_tiff_pair_to_corrected_export(make_napari_viewer, tiff_pair, run_panel,
     run_panel(correlate)
     assert correlate.last_error is None, correlate.last_error
     np.testing.assert_allclose(viewer.layers["scan_0"].scale, (2.5, 2.5, 2.5))
-    assert viewer.scale_bar.visible
+    assert canvas_overlay(viewer, "scale_bar").visible
 
     correct = _dock(viewer, CorrectWidget)
     assert (correct.reference.currentText(), correct.deformed.currentText()) == (

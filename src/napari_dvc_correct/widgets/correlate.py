@@ -252,7 +252,7 @@ class CorrelateWidget(EngineWidget):
             for layer in self.viewer.layers:  # napari ignores units that disagree
                 if L.plugin_metadata(layer) is not None:
                     layer.units = (unit,) * layer.ndim
-            self.viewer.scale_bar.visible = True
+            L.canvas_overlay(self.viewer, "scale_bar").visible = True
         self._update.trigger()
 
     def _ticked(self) -> list[str]:
