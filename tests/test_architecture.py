@@ -166,10 +166,6 @@ def test_cycle_finder_finds_a_known_circle():
     assert _cycles({"a": {"b"}, "b": set()}) == []
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="commands/: correlate <-> correct <-> _tiled_options (commands/_common.py is coming)",
-)
 def test_no_two_modules_import_each_other():
     graph = _graph()
     # a package's __init__ re-exporting its own modules is not a circle of design

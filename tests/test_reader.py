@@ -125,3 +125,15 @@ def test_field_files_open_with_our_reader_without_a_dialog(field, tmp_path, make
     assert [layer.name for layer in viewer.layers] == ["|u| (run3)", "displacement (run3)"]
     viewer.open(str(other), plugin=None)
     assert viewer.layers[-1].data.shape == (3, 3, 3)
+
+
+@pytest.mark.parametrize("content", [b"", b"not a tiff at all", "truncated"])
+def test_unreadable_tiff_is_not_claimed(tmp_path, content):
+    """A .tif that tifffile cannot open is not ours: None, so napari tries other readers."""
+    path = tmp_path / "broken.tif"
+    if content == "truncated":
+        tifffile.imwrite(path, np.zeros((4, 16, 16), np.uint8), photometric="minisblack")
+        path.write_bytes(path.read_bytes()[:12])
+    else:
+        path.write_bytes(content)
+    assert napari_get_reader(str(path)) is None

@@ -98,8 +98,19 @@ def napari_get_reader(path):
     if suffix == ".npz":  # not a field: napari's own reader, as if ours were not there
         return _builtin_reader(path)
     if suffix in TIFF_SUFFIXES and path.is_file():
-        return read_tiff
+        return read_tiff if is_readable_tiff(path) else None
     return None
+
+
+def is_readable_tiff(path: str | os.PathLike) -> bool:
+    """True if tifffile can open ``path`` and it holds at least one page (header check only)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            return len(tif.pages) > 0 and bool(tif.series)
+    except Exception:  # any failure to parse means: not ours to claim
+        return False
 
 
 def _placement_from_tiff(tif) -> dict:

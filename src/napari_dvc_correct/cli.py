@@ -2,21 +2,33 @@
 
 Each subcommand lives in :mod:`napari_dvc_correct.commands` as a module with
 ``add_parser(subparsers)`` and ``run(args) -> int``. Bad input exits with status 2 and a one-line
-reason on stderr; nothing is written when a run fails. The CLI never imports napari or Qt.
+reason on stderr; nothing is written when a run fails. SIGINT (Ctrl-C) and SIGTERM stop a run
+the same way (status 130 and 143): temporary files are removed and earlier outputs stay as they
+were (docs/faults.md). The CLI never imports napari or Qt.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
+
+from .commands._common import UserError  # re-exported: bad input, exit status 2
 
 #: Subcommand modules under napari_dvc_correct.commands, in the order ``--help`` lists them.
-SUBCOMMANDS = ("correlate", "evaluate", "correct", "series")
+SUBCOMMANDS = ("correlate", "clean", "evaluate", "correct", "series")
+
+__all__ = ["SUBCOMMANDS", "Terminated", "UserError", "build_parser", "main"]
 
 
-class UserError(Exception):
-    """Bad input: the CLI prints the message on one line and exits with status 2."""
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM, so a run unwinds (and cleans up) as on Ctrl-C."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,15 +46,25 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:
         return int(args.run(args) or 0)
     except (UserError, ValueError, FileNotFoundError, OSError) as error:
         message = " ".join(str(error).split())
         print(f"napari-dvc-correct {args.command}: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"napari-dvc-correct {args.command}: interrupted, nothing written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as stop:
+        name = "SIGTERM" if isinstance(stop, Terminated) else "SIGINT"
+        print(
+            f"napari-dvc-correct {args.command}: interrupted ({name}), nothing written, "
+            "earlier outputs unchanged",
+            file=sys.stderr,
+        )
+        return 143 if isinstance(stop, Terminated) else 130
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -100,3 +100,17 @@ def test_metadata_with_numpy_values_is_serialised(tmp_path):
     save_field(field, tmp_path / "f.npz")
     assert load_field(tmp_path / "f.npz").metadata["shift"] == [1, 2, 3]
     json.dumps(load_field(tmp_path / "f.npz").metadata)
+
+
+def test_non_numeric_format_version_names_the_file(tmp_path):
+    path = tmp_path / "odd.npz"
+    np.savez(
+        path,
+        format=np.array("napari-dvc-correct field"),
+        format_version=np.array("one"),
+        origin=np.zeros(3),
+        step=np.ones(3),
+        u=np.zeros((1, 1, 1, 3)),
+    )
+    with pytest.raises(ValueError, match=r"odd\.npz has a non-numeric field format version 'one'"):
+        load_field(path)

@@ -195,15 +195,17 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
     if points is None:
         write_field(field, out, fmt, **_writer_options(args, fmt))
         return [out]
+    from ..io.atomic import atomic_files
+
     at_points = sample_field(field, points.points)
-    if fmt == "npz":
-        write_field(field, out, "npz")
-        side = out.with_name(out.stem + "_points.csv")
-        write_field(at_points, side, "table", **_writer_options(args, "table"))
-    else:
-        write_field(at_points, out, fmt, **_writer_options(args, fmt))
-        side = out.with_name(out.stem + "_grid.npz")
-        write_field(field, side, "npz")
+    side = out.with_name(out.stem + ("_points.csv" if fmt == "npz" else "_grid.npz"))
+    with atomic_files(out, side) as (temp_out, temp_side):  # both files new, or neither
+        if fmt == "npz":
+            write_field(field, temp_out, "npz")
+            write_field(at_points, temp_side, "table", **_writer_options(args, "table"))
+        else:
+            write_field(at_points, temp_out, fmt, **_writer_options(args, fmt))
+            write_field(field, temp_side, "npz")
     return [out, side]
 
 

@@ -118,7 +118,7 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     """
     from ..io.lazy import open_volume
     from ..tiled import correlate_tiled_iter
-    from .correlate import ProgressBar, drive
+    from ._common import ProgressBar, drive
 
     reference = open_volume(args.reference)
     deformed = open_volume(args.deformed)

@@ -7,10 +7,11 @@ Also provides the ``--self-correct`` option of ``correlate`` (:func:`add_self_co
 from __future__ import annotations
 
 import argparse
+import math
 import time
-from pathlib import Path
 
 from . import _field_formats, _grid_options
+from ._common import ProgressBar, check_output_path, correction_defaults, drive
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -42,43 +43,76 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
+def _nonnegative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return value
+
+
+def _positive(text: str) -> float:
+    value = _nonnegative(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
 def add_correction_options(parser: argparse.ArgumentParser) -> None:
-    """Options of the self-correction (all optional: the DVC parameters are reused)."""
+    """Options of the self-correction (all optional: the DVC parameters are reused).
+
+    Defaults are those of :func:`~napari_dvc_correct.engine.correction.correct_iter` and
+    :func:`~napari_dvc_correct.engine.cleaning.clean`.
+    """
+    d = correction_defaults()
     group = parser.add_argument_group("self-correction")
     group.add_argument(
-        "--max-passes", type=int, default=3, help="most correction passes (default 3)"
+        "--max-passes",
+        type=int,
+        default=d["max_passes"],
+        help=f"most correction passes (default {d['max_passes']})",
     )
     group.add_argument(
         "--min-improvement",
-        type=float,
-        default=0.01,
+        type=_nonnegative,
+        default=d["min_improvement"],
         help="stop when a pass lowers the mean gray residual by less than this fraction "
-        "(default 0.01)",
+        f"(default {d['min_improvement']})",
     )
     group.add_argument(
         "--frame",
         choices=("loaded", "reference"),
-        default="loaded",
-        help="warp the reference to the loaded state (paper, default) or pull the deformed "
-        "volume back to the reference",
+        default=d["frame"],
+        help="warp the reference to the loaded state (paper) or pull the deformed volume back "
+        f"to the reference (default {d['frame']})",
     )
     group.add_argument(
         "--update",
         choices=("exact", "sum"),
-        default="exact",
-        help="compose the correction with the field (default) or add it node by node (paper)",
+        default=d["update"],
+        help="compose the correction with the field (exact) or add it node by node (sum, "
+        f"paper); default {d['update']}",
     )
+    add_cleaning_options(group, d)
+
+
+def add_cleaning_options(group, defaults: dict | None = None) -> None:
+    """``--outlier-threshold`` and ``--smoothing`` (defaults: those of ``clean``)."""
+    d = correction_defaults() if defaults is None else defaults
     group.add_argument(
         "--outlier-threshold",
-        type=float,
-        default=2.0,
-        help="normalised median test threshold for cleaning (default 2)",
+        type=_positive,
+        default=d["threshold"],
+        help=f"normalised median test threshold for cleaning (default {d['threshold']:g})",
     )
     group.add_argument(
         "--smoothing",
-        type=float,
-        default=0.0,
-        help="Gaussian smoothing of the cleaned field, sigma in grid nodes (default 0: none)",
+        type=_nonnegative,
+        default=d["smoothing"],
+        help="Gaussian smoothing of the cleaned field, sigma in grid nodes (default "
+        f"{d['smoothing']:g}: none)",
     )
 
 
@@ -125,7 +159,6 @@ def apply_self_correction(args, field, reference, deformed):
     """
     from ..engine.correction import correct_iter
     from ..io.volumes import read_volume
-    from .correlate import ProgressBar, drive
 
     mask_path = getattr(args, "mask", None)
     mask = read_volume(mask_path) if mask_path else None
@@ -138,11 +171,12 @@ def apply_self_correction(args, field, reference, deformed):
 
 def run(args) -> int:
     from ..engine.correction import correct_iter
+    from ..engine.pair_checks import check_pair_and_fields
     from ..io.volumes import read_volume
-    from .correlate import ProgressBar, drive
 
     started = time.perf_counter()
-    out = Path(args.out)
+    inputs = (args.reference, args.deformed, args.field, args.mask)
+    out = check_output_path(args.out, suffixes=None, inputs=inputs)
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
     options = correction_options_from_args(args)
     reference = read_volume(args.reference)
@@ -151,12 +185,8 @@ def run(args) -> int:
     print(f"field: {imported.describe()}")
     deformed = read_volume(args.deformed)
     mask = read_volume(args.mask) if args.mask else None
-    volume_shape = field.metadata.get("volume_shape")
-    if volume_shape is not None and tuple(volume_shape) != tuple(reference.shape):
-        raise ValueError(
-            f"the field was measured on volumes of shape {tuple(volume_shape)}, "
-            f"not {reference.shape}: give the volumes it came from"
-        )
+    # one check for both frames: the loaded frame would otherwise drop an empty mask silently
+    check_pair_and_fields(reference, deformed, field, mask, check_finite=False)
     bar = ProgressBar(args.quiet)
     corrected = drive(correct_iter(reference, deformed, field, params, mask=mask, **options), bar)
     corrected.metadata["reference"] = str(args.reference)

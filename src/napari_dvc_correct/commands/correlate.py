@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from . import _field_formats, _grid_options
+from ._common import ProgressBar, check_output_path, correlation_defaults, drive
 from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
 from .correct import add_self_correct_argument
+
+__all__ = ["ProgressBar", "add_correlation_arguments", "check_output_path", "drive", "run"]
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -45,17 +46,29 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def add_correlation_arguments(parser: argparse.ArgumentParser) -> None:
-    """The DVC parameters, shared by every subcommand that correlates."""
+    """The DVC parameters, shared by every subcommand that correlates (defaults: CorrelationParams)."""
+    d = correlation_defaults()
     group = parser.add_argument_group("DVC parameters")
-    group.add_argument("--subvolume", type=int, default=31, help="odd subvolume edge (voxels)")
-    group.add_argument("--step", type=int, default=8, help="POI spacing (voxels)")
-    group.add_argument("--order", type=int, choices=(1, 2), default=1, help="shape function order")
     group.add_argument(
-        "--search", type=int, default=None, help="search radius around the rigid shift (voxels)"
+        "--subvolume", type=int, default=d["subvolume"], help="odd subvolume edge (voxels, >= 5)"
     )
-    group.add_argument("--max-iterations", type=int, default=50)
-    group.add_argument("--tolerance", type=float, default=1e-3, help="convergence (voxels)")
-    group.add_argument("--min-zncc", type=float, default=None, help="flag matches below this")
+    group.add_argument("--step", type=int, default=d["step"], help="POI spacing (voxels)")
+    group.add_argument(
+        "--order", type=int, choices=(1, 2), default=d["order"], help="shape function order"
+    )
+    group.add_argument(
+        "--search",
+        type=int,
+        default=d["search_radius"],
+        help="search radius around the rigid shift (voxels)",
+    )
+    group.add_argument("--max-iterations", type=int, default=d["max_iterations"])
+    group.add_argument(
+        "--tolerance", type=float, default=d["tolerance"], help="convergence (voxels)"
+    )
+    group.add_argument(
+        "--min-zncc", type=float, default=d["min_zncc"], help="flag matches below this"
+    )
 
 
 def params_from_args(args):
@@ -74,49 +87,6 @@ def params_from_args(args):
     return CorrelationParams(**values)
 
 
-def check_output_path(path: str, suffixes=(".npz",)) -> Path:
-    """Refuse an output whose folder is missing or whose suffix is wrong, before any work."""
-    out = Path(path)
-    if out.suffix.lower() not in suffixes:
-        raise ValueError(f"output {out} must end with {' or '.join(suffixes)}")
-    if not out.parent.exists():
-        raise FileNotFoundError(f"output folder does not exist: {out.parent}")
-    return out
-
-
-class ProgressBar:
-    """A one-line progress bar on stderr (silent when ``quiet`` or stderr is not a terminal)."""
-
-    def __init__(self, quiet: bool = False):
-        self.enabled = not quiet
-        self.tty = sys.stderr.isatty()
-        self.last_stage = None
-
-    def update(self, progress) -> None:
-        if not self.enabled:
-            return
-        width = 30
-        filled = int(round(width * progress.fraction))
-        line = f"{progress.stage:>14} [{'#' * filled}{'.' * (width - filled)}] {progress.message}"
-        if self.tty:
-            sys.stderr.write("\r" + line[:100].ljust(100))
-            if progress.stage == "done":
-                sys.stderr.write("\n")
-        elif progress.stage != self.last_stage or progress.fraction >= 1.0:
-            sys.stderr.write(line + "\n")
-        sys.stderr.flush()
-        self.last_stage = progress.stage
-
-
-def drive(generator, bar: ProgressBar):
-    """Run an engine generator, feeding its progress to ``bar``; return its result."""
-    while True:
-        try:
-            bar.update(next(generator))
-        except StopIteration as stop:
-            return stop.value
-
-
 def summary(field, seconds: float) -> str:
     good = field.valid
     zncc = field.zncc[good]
@@ -132,11 +102,14 @@ def summary(field, seconds: float) -> str:
 def run(args) -> int:
     from ..engine.backend import select_device
     from ..engine.correlate import correlate_iter
+    from ..engine.pair_checks import check_pair
     from ..io.volumes import read_volume
 
     started = time.perf_counter()
     params = params_from_args(args)
-    out = Path(args.out)
+    out = check_output_path(
+        args.out, suffixes=None, inputs=(args.reference, args.deformed, args.mask)
+    )
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
     if getattr(args, "points", None):
         return _field_formats.run_points(args, params, out, started, wants_tiled(args))
@@ -150,6 +123,7 @@ def run(args) -> int:
         reference = read_volume(args.reference)
         deformed = read_volume(args.deformed)
         mask = read_volume(args.mask) if args.mask else None
+        check_pair(reference, deformed, mask, check_finite=False)  # read_volume did
         device = select_device(getattr(args, "device", "auto"))
         print(f"device: {device.description}", flush=True)
         bar = ProgressBar(args.quiet)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cli import UserError
+from ._common import UserError
 from ._field_formats import add_field_format_arguments, read_input_field
 
 
@@ -138,26 +138,53 @@ def _phase_pair(text: str | None):
     return pair
 
 
+#: Files an evaluation writes (an older report folder holding only these may be replaced).
+REPORT_PATTERNS = ("*.md", "*.csv", "*.png", "*.tif", "*.json")
+
+
+def ready_for_evaluation(field, name: str):
+    """``(field, note)``: a field with failed or masked nodes cleaned first, as the panel does.
+
+    The evaluation densifies the field, which needs a finite value at every node; failed and
+    masked nodes are refilled by :func:`~napari_dvc_correct.engine.cleaning.clean` (paper step
+    b, ``fill_masked=True``). ``note`` says what was done (None when nothing was needed).
+    """
+    if field.valid.all():
+        return field, None
+    from ..engine.cleaning import clean
+    from .clean import counts_text
+
+    cleaned = clean(field, fill_masked=True)
+    return cleaned, f"{name}: cleaned before evaluating: {counts_text(cleaned)}"
+
+
 def run(args) -> int:
     from ..engine.accuracy import evaluate_iter
+    from ..engine.pair_checks import check_pair_and_fields
     from ..io.volumes import read_volume
     from ..report import write_report
-    from .correlate import ProgressBar, drive
+    from ._common import ProgressBar, check_output_dir, drive, output_set
 
     phases = parse_thresholds(args.phases, "--phases")
     phases_deformed = parse_thresholds(args.phases_deformed, "--phases-deformed")
     pair = _phase_pair(args.phase_pair)
     names = _names(args)
-    out_dir = Path(args.out_dir)
-    if not out_dir.parent.exists():
-        raise FileNotFoundError(f"the folder that should hold {out_dir} does not exist")
     paths = [args.field, *args.compare]
-    fields = {  # --format is --field's; the --compare fields' formats are sniffed
+    out_dir = check_output_dir(
+        args.out_dir, inputs=(args.reference, args.deformed, *paths), patterns=REPORT_PATTERNS
+    )
+    loaded = {  # --format is --field's; the --compare fields' formats are sniffed
         name: read_input_field(args, path, sniff=k > 0).field
         for k, (name, path) in enumerate(zip(names, paths))
     }
     reference = read_volume(args.reference)
     deformed = read_volume(args.deformed)
+    check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
+    fields = {}
+    for name, field in loaded.items():
+        fields[name], note = ready_for_evaluation(field, name)
+        if note:
+            print(note)
 
     evaluation = drive(
         evaluate_iter(
@@ -183,10 +210,11 @@ def run(args) -> int:
         "deformed": f"{args.deformed} {tuple(deformed.shape)}",
         **{
             f"field {name!r}": f"{path} (grid {fields[name].shape}, step {fields[name].step})"
-            for name, path in zip(names, [args.field, *args.compare])
+            for name, path in zip(names, paths)
         },
     }
-    files = write_report(evaluation, out_dir, inputs=inputs, volumes=not args.no_volumes)
+    with output_set(out_dir, REPORT_PATTERNS, {"command": "evaluate"}) as temp:
+        files = write_report(evaluation, temp, inputs=inputs, volumes=not args.no_volumes)
     for item in evaluation.fields:
         print(
             f"{item.name}: mean residual {item.mean_residual:.3f}, background "

@@ -1,8 +1,9 @@
 """``napari-dvc-correct series V0 V1 V2 ... --strategy incremental|total --out-dir DIR``.
 
 Writes one field file per loaded state (``state_01.npz`` = ``U_0→1`` ...), the increments of
-the incremental strategy (``increment_00_01.npz`` ...) and ``summary.csv`` (one row per state).
-Nothing is written if the run fails.
+the incremental strategy (``increment_00_01.npz`` ...) and ``summary.csv`` (one row per state),
+as one set (:func:`._common.output_set`): nothing is written if the run fails or is interrupted,
+and a new run into the same folder replaces the earlier set whole.
 """
 
 from __future__ import annotations
@@ -79,25 +80,31 @@ def write_summary(rows: list[dict], path: Path) -> None:
                 writer.writerow([_format(row.get(column, "")) for column in SUMMARY_COLUMNS])
 
 
+#: Files a series writes (an older series folder holding only these may be replaced).
+SERIES_PATTERNS = ("state_*.npz", "increment_*_*.npz", "summary.csv")
+
+
 def run(args) -> int:
+    from ..engine.pair_checks import check_pair
     from ..engine.series import series_iter
     from ..io.npz import save_field
     from ..io.volumes import read_volume
+    from ._common import ProgressBar, check_output_dir, drive, output_set
     from .correct import correction_options_from_args
-    from .correlate import ProgressBar, drive, params_from_args
+    from .correlate import params_from_args
 
     started = time.perf_counter()
     if len(args.volumes) < 2:
         raise ValueError(f"a series needs at least 2 volumes, got {len(args.volumes)}")
-    out_dir = Path(args.out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ValueError(f"--out-dir {out_dir} exists and is not a folder")
-    if not out_dir.parent.exists():
-        raise FileNotFoundError(f"the folder holding --out-dir does not exist: {out_dir.parent}")
+    out_dir = check_output_dir(
+        args.out_dir, inputs=(*args.volumes, args.mask), patterns=SERIES_PATTERNS
+    )
     params = params_from_args(args)
     options = correction_options_from_args(args)
     volumes = [read_volume(path) for path in args.volumes]
     mask = read_volume(args.mask) if args.mask else None
+    for k in range(1, len(volumes)):
+        check_pair(volumes[0], volumes[k], mask, check_finite=False)  # read_volume did
     correct_increments = args.self_correct and args.correct in ("increments", "both")
     correct_total = args.self_correct and args.correct in ("total", "both")
     bar = ProgressBar(args.quiet)
@@ -114,21 +121,21 @@ def run(args) -> int:
         bar,
     )
 
-    out_dir.mkdir(exist_ok=True)
     rows = result.summary()
     rows[0]["volume"] = args.volumes[0]
-    for k, total in enumerate(result.totals, start=1):
-        total.metadata["reference"] = str(args.volumes[0])
-        total.metadata["deformed"] = str(args.volumes[k])
-        name = f"state_{k:02d}.npz"
-        save_field(total, out_dir / name)
-        rows[k]["volume"] = args.volumes[k]
-        rows[k]["field_file"] = name
-    for k, increment in enumerate(result.increments, start=1):
-        increment.metadata["reference"] = str(args.volumes[k - 1])
-        increment.metadata["deformed"] = str(args.volumes[k])
-        save_field(increment, out_dir / f"increment_{k - 1:02d}_{k:02d}.npz")
-    write_summary(rows, out_dir / "summary.csv")
+    with output_set(out_dir, SERIES_PATTERNS, {"command": "series"}) as temp:
+        for k, total in enumerate(result.totals, start=1):
+            total.metadata["reference"] = str(args.volumes[0])
+            total.metadata["deformed"] = str(args.volumes[k])
+            name = f"state_{k:02d}.npz"
+            save_field(total, temp / name)
+            rows[k]["volume"] = args.volumes[k]
+            rows[k]["field_file"] = name
+        for k, increment in enumerate(result.increments, start=1):
+            increment.metadata["reference"] = str(args.volumes[k - 1])
+            increment.metadata["deformed"] = str(args.volumes[k])
+            save_field(increment, temp / f"increment_{k - 1:02d}_{k:02d}.npz")
+        write_summary(rows, temp / "summary.csv")
     for row in rows[1:]:
         print(
             f"state {row['state']}: valid {row['valid_fraction']:.3f}, mean |u| "

@@ -404,6 +404,7 @@ def evaluate_iter(
     """
     from .field_spline import FieldSpline
     from .interpolation import prefilter
+    from .pair_checks import check_pair_and_fields
     from .residual import moved_and_residual
 
     reference = np.asanyarray(reference)
@@ -413,6 +414,7 @@ def evaluate_iter(
         raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
     for name, item in named:
         check_field_fits(item, reference.shape, name=f"field {name!r}")
+    check_pair_and_fields(reference, deformed, dict(named))  # finite volumes, recorded shape
 
     yield Progress("phases", 0, 2, "segmenting the phases")
     thresholds_g = phase_thresholds(reference, phases, n_phases, "reference volume")

@@ -41,6 +41,7 @@ from .correlate import correlate_iter
 from .field import DisplacementField, Provenance
 from .field_spline import FieldSpline
 from .interpolation import prefilter
+from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
 
@@ -236,6 +237,8 @@ def correct_iter(
             f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
             "same shape"
         )
+    # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
+    check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
     if params is None:
         params = (
             CorrelationParams.from_dict(field.params)

@@ -52,9 +52,11 @@ def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
             "same shape"
         )
     if params.subvolume > min(reference.shape):
+        from .pair_checks import largest_subvolume_advice
+
         raise ValueError(
-            f"subvolume {params.subvolume} is larger than the volume {reference.shape}: use a "
-            f"subvolume of at most {min(reference.shape) - (1 - min(reference.shape) % 2)}"
+            f"subvolume {params.subvolume} is larger than the volume {reference.shape}: "
+            + largest_subvolume_advice(reference.shape)
         )
     reference = np.ascontiguousarray(reference, dtype=np.float32)
     deformed = np.ascontiguousarray(deformed, dtype=np.float32)
@@ -62,6 +64,10 @@ def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
         mask = np.asarray(mask)
         if mask.shape != reference.shape:
             raise ValueError(f"mask shape {mask.shape} differs from the volume {reference.shape}")
+        if mask.dtype.kind == "f" and not np.all(np.isfinite(mask)):  # NaN != 0 is "material"
+            raise ValueError(
+                "the mask contains NaN or infinite values: use 0 = outside, 1 = material"
+            )
         mask = np.ascontiguousarray(mask != 0)
         if not mask.any():
             raise ValueError("the mask is empty: no voxel is selected")

@@ -275,9 +275,11 @@ def grid_for_volume(volume_shape, subvolume: int, step) -> tuple[tuple, tuple, t
         margin = BORDER_MARGIN if span >= 2 * BORDER_MARGIN else 0
         span -= 2 * margin
         if span < 0:
+            from .pair_checks import largest_subvolume_advice
+
             raise ValueError(
                 f"subvolume {subvolume} is larger than the volume ({volume_shape}): "
-                f"choose a subvolume of at most {min(volume_shape) - (1 - min(volume_shape) % 2)}"
+                + largest_subvolume_advice(volume_shape)
             )
         count = span // s + 1
         used = (count - 1) * s

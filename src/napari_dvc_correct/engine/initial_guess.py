@@ -72,6 +72,8 @@ def global_shift(reference: np.ndarray, deformed: np.ndarray, max_size: int = 96
     g = (g - g.mean()) * window
     f = (f - f.mean()) * window
     cross = np.conj(sfft.rfftn(g)) * sfft.rfftn(f)
+    if not np.any(cross):  # a textureless volume: no shift to find (and no 0/0 warning)
+        return np.zeros(3, np.int64)
     cross /= np.abs(cross) + 1e-12 * np.abs(cross).max()
     corr = sfft.irfftn(cross, s=g.shape)
     peak = np.array(np.unravel_index(np.argmax(corr), corr.shape))

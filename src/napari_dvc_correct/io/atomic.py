@@ -1,37 +1,254 @@
-"""Atomic file writes: write to a temporary file in the target folder, then rename."""
+"""Atomic writes: one file (temporary file + rename) or a whole set of files (temporary folder + swap).
+
+Every temporary name holds :data:`TEMP_MARK`, the id of the writing process and a tag of its
+machine (``.NAME.ndc-tmp-PID-HOST-RANDOM.SUFFIX``), so a leftover is recognisable: a process
+killed with SIGKILL cannot remove its temporary file, and the next write into the same folder
+removes the leftovers of processes of this machine that no longer run (:func:`remove_stale`);
+files of other machines (a shared file system) are never touched. Outputs get the mode a plain
+``open(path, "w")`` would give them (``0o666 & ~umask``); overwriting keeps the existing file's mode.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import hashlib
+import json
 import os
-import tempfile
-from collections.abc import Iterator
+import re
+import secrets
+import shutil
+import signal
+import socket
+import stat
+import threading
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+#: Part of every temporary name this package makes (files and folders).
+TEMP_MARK = ".ndc-tmp-"
+#: File that marks a folder as an output set written by :func:`atomic_dir`.
+SET_MARKER = ".napari-dvc-correct-set.json"
+
+_STALE = re.compile(r"^\..*" + re.escape(TEMP_MARK) + r"(\d+)-([0-9a-f]{6})-[0-9a-f]+")
+#: Tag of this machine in temporary names.
+HOST_TAG = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
+_umask_lock = threading.Lock()
+
+
+def _umask() -> int:
+    with _umask_lock:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def output_mode(path: str | os.PathLike) -> int:
+    """The permission bits a new output at ``path`` gets: the existing file's, else 0o666 & ~umask."""
+    try:
+        return stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+def temp_name(path: Path, pid: int | None = None) -> Path:
+    """A recognisable temporary name next to ``path`` (of process ``pid``), keeping its suffixes."""
+    path = Path(path)
+    suffix = "".join(path.suffixes)
+    pid = os.getpid() if pid is None else int(pid)
+    token = secrets.token_hex(4)
+    return path.with_name(f".{path.name}{TEMP_MARK}{pid}-{HOST_TAG}-{token}{suffix}")
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files and folders in ``folder`` left by processes no longer running.
+
+    Only names made by :func:`temp_name` on this machine are touched, and only when their process
+    id is not a running process (so a concurrent run's temporary files stay).
+    """
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = _STALE.match(entry.name)
+        if match is None or match.group(2) != HOST_TAG or _alive(int(match.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.unlink(entry.path)
+            removed.append(Path(entry.path))
+    return removed
+
+
+def _folder(path: Path) -> Path:
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.exists():
+        raise FileNotFoundError(f"output folder does not exist: {folder}")
+    return folder
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` only on success.
 
-    If the body raises, the temporary file is removed and ``path`` is left untouched, so a failed
-    or cancelled write never destroys an earlier result.
+    If the body raises (or the process is interrupted), the temporary file is removed and
+    ``path`` is left untouched, so a failed or cancelled write never destroys an earlier result.
 
     The temporary name keeps the suffix of ``path`` so libraries that pick a format from the
-    extension (numpy's ``.npz``, tifffile, h5py) behave as for the final name.
+    extension (numpy's ``.npz``, tifffile, h5py) behave as for the final name. The final file
+    gets :func:`output_mode`.
     """
     path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.exists():
-        raise FileNotFoundError(f"output folder does not exist: {folder}")
-    handle, temp_name = tempfile.mkstemp(
-        prefix=f".{path.stem}.", suffix=".tmp" + "".join(path.suffixes), dir=folder
-    )
-    os.close(handle)
-    temp = Path(temp_name)
+    folder = _folder(path)
+    remove_stale(folder)
+    mode = output_mode(path)
+    temp = temp_name(path)
     try:
+        fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        os.close(fd)
         yield temp
+        os.chmod(temp, mode)
         os.replace(temp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()
         raise
+
+
+@contextlib.contextmanager
+def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
+    """:func:`atomic_path` for several files that belong together (a field and its side file).
+
+    Yields one temporary path per target; on success all are renamed into place with SIGINT and
+    SIGTERM held back, so either every target is new or none is.
+    """
+    targets = [Path(p) for p in paths]
+    for folder in {_folder(p) for p in targets}:
+        remove_stale(folder)
+    modes = [output_mode(p) for p in targets]
+    temps = [temp_name(p) for p in targets]
+    try:
+        yield temps
+        for temp, mode in zip(temps, modes):
+            os.chmod(temp, mode)
+        with _signals_blocked():
+            for temp, target in zip(temps, targets):
+                os.replace(temp, target)
+    except BaseException:
+        for temp in temps:
+            with contextlib.suppress(FileNotFoundError):
+                temp.unlink()
+        raise
+
+
+def is_output_set(folder: str | os.PathLike, patterns: Iterable[str] = ()) -> bool:
+    """True if ``folder`` may be replaced as a whole by a new output set.
+
+    That is: it is empty, it holds :data:`SET_MARKER` (written by :func:`atomic_dir`), or every
+    entry in it is a file matching one of ``patterns`` (globs of the command's own outputs,
+    for sets written before the marker existed).
+    """
+    folder = Path(folder)
+    entries = list(folder.iterdir())
+    if not entries or (folder / SET_MARKER).is_file():
+        return True
+    return bool(patterns) and all(
+        entry.is_file() and any(entry.match(p) for p in patterns) for entry in entries
+    )
+
+
+@contextlib.contextmanager
+def _signals_blocked() -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    blocked = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextlib.contextmanager
+def _locked(folder: Path) -> Iterator[None]:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_dir(
+    path: str | os.PathLike, patterns: Iterable[str] = (), manifest: dict | None = None
+) -> Iterator[Path]:
+    """Yield an empty temporary folder next to ``path``; on success it replaces ``path`` whole.
+
+    The body writes every file of the set into the yielded folder. On success the folder gets
+    :data:`SET_MARKER` (a JSON manifest: the files and ``manifest``) and is swapped with
+    ``path``: the earlier set (if any) is removed as a whole, so no stale file of an earlier run
+    survives. If the body raises or the process is interrupted, the temporary folder is removed
+    and ``path`` is as it was. Two runs into one ``path`` never mix: each builds its own folder
+    and the swaps are serialised (the last to finish wins).
+
+    Raises
+    ------
+    ValueError
+        If ``path`` exists and is a file, or a folder that is not an output set
+        (:func:`is_output_set` with ``patterns``) — it is never replaced then.
+    """
+    path = Path(path)
+    folder = _folder(path)
+    patterns = tuple(patterns)
+    check_set_target(path, patterns)
+    remove_stale(folder)
+    temp = temp_name(path)
+    temp.mkdir(mode=0o777)
+    try:
+        yield temp
+        files = sorted(p.name for p in temp.iterdir())
+        with open(temp / SET_MARKER, "w") as stream:
+            json.dump({"files": files, **(manifest or {})}, stream, indent=1, default=str)
+        old = temp_name(path)
+        with _signals_blocked(), _locked(folder):
+            check_set_target(path, patterns)
+            try:
+                os.rename(path, old)
+            except FileNotFoundError:
+                old = None
+            os.rename(temp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(temp, ignore_errors=True)
+        raise
+
+
+def check_set_target(path: str | os.PathLike, patterns: Iterable[str] = ()) -> None:
+    """Raise ``ValueError`` if ``path`` exists and may not be replaced by an output set."""
+    path = Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_dir()):
+        raise ValueError(f"{path} exists and is not a folder")
+    if path.is_dir() and not is_output_set(path, tuple(patterns)):
+        raise ValueError(
+            f"{path} is a folder with files this tool did not write: choose a new or empty "
+            "folder (its whole content is replaced)"
+        )

@@ -15,12 +15,11 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import temp_name
 
 OUTPUT_SUFFIXES = (".zarr", ".tif", ".tiff")
 
@@ -111,8 +110,7 @@ def create_output(path, shape, dtype=np.float32, chunks=None, metadata: dict | N
     if kind == "zarr":
         import zarr
 
-        temp = Path(tempfile.mkdtemp(prefix=f".{final.stem}.", suffix=".tmp.zarr", dir=folder))
-        shutil.rmtree(temp)
+        temp = temp_name(final)
         if chunks is None:
             chunks = tuple(min(n, c) for n, c in zip(shape, (32, 256, 256, shape[-1])))
         array = zarr.create_array(str(temp), shape=shape, chunks=tuple(chunks), dtype=dtype)
@@ -123,9 +121,7 @@ def create_output(path, shape, dtype=np.float32, chunks=None, metadata: dict | N
 
     import tifffile
 
-    with atomic_path(final) as temp_path:
-        pass  # reserves a unique temporary name next to the final path (then released)
-    temp = temp_path.with_name(temp_path.name + ".part" + final.suffix)
+    temp = temp_name(final)  # unique and recognisable; an earlier final file stays untouched
     nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
     mapped = tifffile.memmap(
         temp,

@@ -74,7 +74,13 @@ def load_field(path: str | os.PathLike) -> DisplacementField:
         raise ValueError(f"{path} is not a readable .npz field file ({error})") from error
     if "format" not in contents or str(contents["format"]) != FORMAT_NAME:
         raise ValueError(f"{path} is not a napari-dvc-correct field file (no format marker)")
-    version = int(contents.get("format_version", -1))
+    try:
+        version = int(contents.get("format_version", -1))
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{path} has a non-numeric field format version "
+            f"{str(contents['format_version'])[:20]!r}: the file is broken"
+        ) from None
     if version > FORMAT_VERSION:
         raise ValueError(
             f"{path} has field format version {version}, newer than this version of "

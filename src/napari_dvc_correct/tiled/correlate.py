@@ -329,9 +329,11 @@ def correlate_tiled_iter(
     if mask is not None and tuple(mask.shape) != shape:
         raise ValueError(f"mask shape {tuple(mask.shape)} differs from the volume {shape}")
     if params.subvolume > min(shape):
+        from ..engine.pair_checks import largest_subvolume_advice
+
         raise ValueError(
-            f"subvolume {params.subvolume} is larger than the volume {shape}: use a subvolume of "
-            f"at most {min(shape) - (1 - min(shape) % 2)}"
+            f"subvolume {params.subvolume} is larger than the volume {shape}: "
+            + largest_subvolume_advice(shape)
         )
     if not isinstance(margin, (int, np.integer)) or margin < 0:
         raise ValueError(f"margin must be an integer >= 0, got {margin!r}")

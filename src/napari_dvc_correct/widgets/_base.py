@@ -205,11 +205,12 @@ class EngineWidget(QWidget):
         self.run_button.clicked.connect(lambda checked=False: self.run())
         self.cancel_button.clicked.connect(lambda checked=False: self.cancel())
         self.last_error: str | None = None
-        from .._reader import prefer_this_reader
+        if napari_viewer is not None:  # (None: a plain Qt host, no napari around)
+            from .._reader import prefer_this_reader
 
-        prefer_this_reader()  # field files then open with our reader, without a dialog
-        follow_layers(self.viewer, self, self._label_axes)
-        self._label_axes()
+            prefer_this_reader()  # field files then open with our reader, without a dialog
+            follow_layers(self.viewer, self, self._label_axes)
+            self._label_axes()
 
     def _label_axes(self, event=None) -> None:
         from ..layers import label_axes
@@ -293,10 +294,13 @@ class EngineWidget(QWidget):
 
     def start(self, generator: Generator, start: bool = True) -> GeneratorWorker:
         """Run ``generator`` in a thread worker wired to this panel's slots."""
-        worker = create_worker(_guarded, generator, _start_thread=False)
+        # errored handled here: without it superqt re-raises the error on the main thread (a
+        # traceback notification in napari, an abort in a plain Qt host)
+        worker = create_worker(
+            _guarded, generator, _start_thread=False, _connect={"errored": self._on_errored}
+        )
         worker.yielded.connect(self._on_yielded)
         worker.returned.connect(self._on_returned)
-        worker.errored.connect(self._on_errored)
         worker.aborted.connect(self._on_aborted)
         worker.finished.connect(self._on_finished)
         self.worker = worker
@@ -328,6 +332,9 @@ class EngineWidget(QWidget):
             self.on_result(result)
         except ValueError as error:
             self.show_message(one_line(error), error=True)
+        except Exception as error:  # a bug: log it, show one line, never abort the Qt host
+            log.error("showing the result failed", exc_info=True)
+            self.show_message(f"{type(error).__name__}: {one_line(error)}", error=True)
 
     def _on_errored(self, error: Exception) -> None:
         if not isinstance(error, ValueError):

@@ -1,0 +1,165 @@
+"""What the subcommands share: the progress bar, driving an engine generator, output checks.
+
+Output rules (docs/faults.md): every output path is checked before any work (suffix, folder
+exists and is writable, not a folder, not one of the inputs); a single file is written
+atomically (:func:`napari_dvc_correct.io.atomic.atomic_path`); a command that writes several files
+writes them as one set (:func:`output_set`): all of them or none, the earlier set replaced whole.
+
+This module imports no engine code at import time (the CLI stays quick to start).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import inspect
+import os
+import sys
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+
+class UserError(Exception):
+    """Bad input: the CLI prints the message on one line and exits with status 2."""
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr (silent when ``quiet`` or stderr is not a terminal)."""
+
+    def __init__(self, quiet: bool = False):
+        self.enabled = not quiet
+        self.tty = sys.stderr.isatty()
+        self.last_stage = None
+
+    def update(self, progress) -> None:
+        if not self.enabled:
+            return
+        width = 30
+        filled = int(round(width * progress.fraction))
+        line = f"{progress.stage:>14} [{'#' * filled}{'.' * (width - filled)}] {progress.message}"
+        if self.tty:
+            sys.stderr.write("\r" + line[:100].ljust(100))
+            if progress.stage == "done":
+                sys.stderr.write("\n")
+        elif progress.stage != self.last_stage or progress.fraction >= 1.0:
+            sys.stderr.write(line + "\n")
+        sys.stderr.flush()
+        self.last_stage = progress.stage
+
+
+def drive(generator, bar: ProgressBar):
+    """Run an engine generator, feeding its progress to ``bar``; return its result."""
+    while True:
+        try:
+            bar.update(next(generator))
+        except StopIteration as stop:
+            return stop.value
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return os.path.abspath(a) == os.path.abspath(b)
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        Path(os.path.realpath(path)).relative_to(os.path.realpath(folder))
+    except ValueError:
+        return False
+    return True
+
+
+def _check_folder_writable(folder: Path, option: str) -> None:
+    if not folder.exists():
+        raise FileNotFoundError(f"{option}: output folder does not exist: {folder}")
+    if not folder.is_dir():
+        raise ValueError(f"{option}: {folder} is not a folder")
+    from ..io.atomic import temp_name
+
+    probe = temp_name(folder / "probe")  # what the write will do: create a file there
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError as error:
+        raise PermissionError(
+            f"{option}: cannot write into {folder} ({error.strerror or error})"
+        ) from None
+    os.unlink(probe)
+
+
+def check_output_path(
+    path: str, suffixes=(".npz",), inputs: Iterable[str | None] = (), option: str = "--out"
+) -> Path:
+    """Refuse an output before any work: wrong suffix, missing or unwritable folder, a folder,
+    or one of ``inputs``. ``suffixes=None`` leaves the suffix to the caller (``--out-format``)."""
+    out = Path(path)
+    if out.is_dir():
+        raise ValueError(f"{option} {out} is a folder: give a file name")
+    if suffixes is not None and out.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {out} must end with {' or '.join(suffixes)}")
+    folder = out.parent if str(out.parent) else Path(".")
+    _check_folder_writable(folder, option)
+    for item in inputs:
+        if item and _same_file(out, Path(item)):
+            raise ValueError(f"{option} {out} is also an input: choose another output file")
+    return out
+
+
+def check_output_dir(
+    path: str, inputs: Iterable[str | None] = (), patterns: Iterable[str] = (), option="--out-dir"
+) -> Path:
+    """Refuse an output folder before any work (see :func:`output_set` for what it replaces)."""
+    from ..io.atomic import check_set_target
+
+    out = Path(path)
+    folder = out.parent if str(out.parent) else Path(".")
+    _check_folder_writable(folder, option)
+    for item in inputs:
+        if item and (_same_file(out, Path(item)) or _inside(Path(item), out)):
+            raise ValueError(
+                f"{option} {out} holds the input {item}: the folder is replaced as a whole, "
+                "choose another one"
+            )
+    try:
+        check_set_target(out, patterns)
+    except ValueError as error:
+        raise ValueError(f"{option} {error}") from None
+    return out
+
+
+@contextlib.contextmanager
+def output_set(out_dir: Path, patterns: Iterable[str] = (), manifest: dict | None = None
+               ) -> Iterator[Path]:  # fmt: skip
+    """Write a command's files as one set: yields a temporary folder that replaces ``out_dir``."""
+    from ..io.atomic import atomic_dir
+
+    with atomic_dir(out_dir, patterns=patterns, manifest=manifest) as temp:
+        yield temp
+
+
+# --- defaults read from the engine's records (never retyped in the CLI) ------------------------
+def correlation_defaults() -> dict:
+    """Field name -> default of :class:`~napari_dvc_correct.engine.params.CorrelationParams`."""
+    from ..engine.params import CorrelationParams
+
+    return {
+        f.name: f.default
+        for f in dataclasses.fields(CorrelationParams)
+        if f.default is not dataclasses.MISSING
+    }
+
+
+def correction_defaults() -> dict:
+    """Defaults of ``correct_iter`` (frame, update, passes) and of ``clean`` (threshold, smoothing)."""
+    from ..engine.cleaning import clean
+    from ..engine.correction import correct_iter
+
+    values = {}
+    for function in (correct_iter, clean):
+        for name, parameter in inspect.signature(function).parameters.items():
+            if parameter.default is not inspect.Parameter.empty:
+                values.setdefault(name, parameter.default)
+    return values

@@ -1,0 +1,126 @@
+"""One check of a (pair, field, mask) before any work, shared by every command that takes them.
+
+Every function raises :class:`ValueError` with a one-line message that says what to change, and
+returns nothing. Pure numpy: no io, so the engine and the commands can both call it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .validation import validate_volume
+
+#: The smallest subvolume edge the correlation accepts (:class:`~.params.CorrelationParams`).
+MIN_SUBVOLUME = 5
+
+
+def largest_subvolume_advice(volume_shape) -> str:
+    """What to say when a subvolume does not fit a volume of ``volume_shape``."""
+    smallest = min(int(n) for n in volume_shape)
+    if smallest < MIN_SUBVOLUME:
+        return (
+            f"the volume is too thin for DVC: every axis needs at least {MIN_SUBVOLUME} voxels "
+            f"(the smallest subvolume), it has {smallest}"
+        )
+    return f"use a subvolume of at most {smallest - (1 - smallest % 2)}"
+
+
+def _all_finite(volume: np.ndarray) -> bool:
+    if volume.dtype.kind not in "fc":
+        return True
+    slab = max(1, int(2**24 // max(1, volume.shape[1] * volume.shape[2])))
+    return all(
+        np.all(np.isfinite(volume[start : start + slab]))
+        for start in range(0, volume.shape[0], slab)
+    )
+
+
+def check_volume(volume, name: str, check_finite: bool = True) -> np.ndarray:
+    """A non-empty 3-D real volume with finite values (:func:`~.validation.validate_volume`)."""
+    return validate_volume(volume, name, check_finite=check_finite)
+
+
+def check_pair(reference, deformed, mask=None, check_finite: bool = True) -> None:
+    """Both volumes 3-D, finite and of one shape; the mask (if any) of that shape, finite, not empty.
+
+    A NaN in a mask would count as material (``NaN != 0``), so it is refused, not guessed.
+    ``check_finite=False`` skips the pass over the volumes' values (for volumes the readers have
+    checked already); the mask is always checked.
+    """
+    reference = check_volume(reference, "reference volume", check_finite)
+    deformed = check_volume(deformed, "deformed volume", check_finite)
+    if reference.shape != deformed.shape:
+        raise ValueError(
+            f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
+            "same shape"
+        )
+    if mask is not None:
+        mask = np.asanyarray(mask)
+        if mask.shape != reference.shape:
+            raise ValueError(f"mask shape {mask.shape} differs from the volume {reference.shape}")
+        if not _all_finite(mask):
+            raise ValueError(
+                "the mask contains NaN or infinite values: use 0 = outside, 1 = material"
+            )
+        if not np.any(mask):
+            raise ValueError("the mask is empty: no voxel is selected")
+
+
+def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
+    """The field belongs to volumes of ``volume_shape``: recorded shape, grid inside, plausible |u|.
+
+    Parameters
+    ----------
+    field : DisplacementField
+    volume_shape : tuple of 3 int
+        Shape ``(nz, ny, nx)`` of the reference volume, voxels.
+    name : str
+        How the message names the field (e.g. ``"field 'corrected'"``).
+
+    Raises
+    ------
+    ValueError
+        If ``field.metadata["volume_shape"]`` is recorded and differs; if a node lies outside
+        the volume (more than half a voxel); or if a usable node's displacement component is
+        larger than the volume along its axis (such a node maps outside the volume: the field is not from
+        this pair, or is in other units).
+    """
+    volume_shape = tuple(int(n) for n in volume_shape)
+    recorded = field.metadata.get("volume_shape")
+    if recorded is not None and tuple(int(n) for n in recorded) != volume_shape:
+        raise ValueError(
+            f"{name} was measured on volumes of shape {tuple(int(n) for n in recorded)}, not "
+            f"{volume_shape}: give the volumes it came from"
+        )
+    for axis, (coords, n) in enumerate(zip(field.axis_coordinates(), volume_shape)):
+        if coords[0] < -0.5 or coords[-1] > n - 0.5:
+            raise ValueError(
+                f"{name}'s grid does not fit the volume: along axis {'zyx'[axis]} its nodes span "
+                f"{coords[0]:g}..{coords[-1]:g} voxels but the volume has {n} voxels "
+                f"(0..{n - 1}); was the field computed on another volume?"
+            )
+    u = np.asarray(field.u)
+    usable = field.valid  # failed matches may hold anything; cleaning replaces them
+    if usable.any():
+        largest = np.abs(u[usable]).max(axis=0)
+        for axis, (value, n) in enumerate(zip(largest, volume_shape)):
+            if value > n:
+                raise ValueError(
+                    f"{name} has displacements up to {value:.3g} voxels along {'zyx'[axis]}, "
+                    f"larger than the volume ({n} voxels): it is not a field of this pair "
+                    "(or not in voxels)"
+                )
+
+
+def check_pair_and_fields(
+    reference, deformed, fields, mask=None, check_finite: bool = True
+) -> None:
+    """:func:`check_pair`, then :func:`check_field_on_volume` for every field.
+
+    ``fields`` is one :class:`~.field.DisplacementField` or a dict of name -> field.
+    """
+    check_pair(reference, deformed, mask, check_finite)
+    items = fields.items() if isinstance(fields, dict) else [("", fields)]
+    shape = np.shape(reference)
+    for key, field in items:
+        check_field_on_volume(field, shape, f"field {key!r}" if key else "the field")

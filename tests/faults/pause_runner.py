@@ -1,0 +1,73 @@
+"""Run ``napari-dvc-correct ARGS`` unchanged except for one pause, so a test can signal it there.
+
+``NDC_PAUSE_AT`` names the moment; on reaching it the process writes ``PAUSED <moment>`` to
+stderr and sleeps (at most 60 s), so the test's SIGINT/SIGTERM/SIGKILL lands exactly there:
+
+- ``compute``: after the first progress report of the engine (the work has started);
+- ``write``: inside the atomic write of a field file, after part of it is on disk;
+- ``set``: inside an output set, after its first file is written (series: ``state_01.npz``;
+  evaluate: the tables and plots, before ``report.md``).
+
+Nothing else is changed: the same ``cli.main``, signal handlers and writers run.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+
+def pause(moment: str) -> None:
+    sys.stderr.write(f"PAUSED {moment}\n")
+    sys.stderr.flush()
+    time.sleep(60)
+
+
+def install(moment: str) -> None:
+    if moment == "compute":
+        from napari_dvc_correct.commands import _common
+
+        update = _common.ProgressBar.update
+
+        def paused_update(self, progress):
+            update(self, progress)
+            pause("compute")
+
+        _common.ProgressBar.update = paused_update
+    elif moment == "write":
+        import numpy as np
+
+        def partial_savez(stream, **arrays):
+            stream.write(b"PK\x03\x04 half a field file")
+            stream.flush()
+            pause("write")
+
+        np.savez_compressed = partial_savez
+    elif moment == "set":
+        from napari_dvc_correct import report
+        from napari_dvc_correct.io import npz
+
+        save_field = npz.save_field
+        calls = []
+
+        def paused_save(field, path):
+            save_field(field, path)
+            calls.append(path)
+            if len(calls) == 1:
+                pause("set")
+
+        def paused_markdown(text, path):
+            pause("set")
+
+        npz.save_field = paused_save
+        report.write_markdown = paused_markdown
+    elif moment:
+        raise SystemExit(f"unknown NDC_PAUSE_AT {moment!r}")
+
+
+if __name__ == "__main__":
+    install(os.environ.get("NDC_PAUSE_AT", ""))
+    from napari_dvc_correct import cli
+
+    sys.exit(cli.main(sys.argv[1:]))

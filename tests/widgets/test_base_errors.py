@@ -1,0 +1,103 @@
+"""A failing worker shows one line and never re-raises on the main thread (issue 12, item 5)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from napari_dvc_correct.engine.progress import Progress
+from napari_dvc_correct.widgets._base import EngineWidget
+
+
+class Failing(EngineWidget):
+    def __init__(self, error):
+        super().__init__(napari_viewer=None)
+        self.error = error
+
+    def prepare(self):
+        def generator():
+            yield Progress("work", 0, 1, "")
+            raise self.error
+
+        return generator()
+
+    def on_result(self, result):  # pragma: no cover - never reached
+        raise AssertionError("no result expected")
+
+
+@pytest.mark.parametrize(
+    "error", [ValueError("bad\nchoice"), RuntimeError("deep failure"), KeyError("lost")]
+)
+def test_worker_error_is_one_line_and_not_reraised(qtbot, error):
+    widget = Failing(error)
+    qtbot.addWidget(widget)
+    worker = widget.run(start=False)
+    # pytest-qt fails the test if an exception escapes into the Qt event loop (the re-raise)
+    with qtbot.waitSignal(worker.finished, timeout=30_000):
+        worker.start()
+    qtbot.wait(50)
+    assert widget.last_error is not None and "\n" not in widget.last_error
+    assert widget.stage_label.text() == "failed"
+    assert widget.run_button.isEnabled() and not widget.running
+
+
+def test_plain_qt_host_survives_a_worker_error(tmp_path):
+    """A host without napari's event loop (plain QApplication) does not abort (was rc 134)."""
+    script = textwrap.dedent(
+        """
+        import sys
+        from qtpy.QtWidgets import QApplication
+        from qtpy.QtCore import QTimer
+        app = QApplication(sys.argv)
+        from napari_dvc_correct.widgets._base import EngineWidget
+
+        class Failing(EngineWidget):
+            def prepare(self):
+                def generator():
+                    yield from ()
+                    raise RuntimeError("deep failure")
+                return generator()
+            def on_result(self, result):
+                pass
+
+        widget = Failing(None)
+        worker = widget.run(start=False)
+        worker.finished.connect(lambda: QTimer.singleShot(100, app.quit))
+        worker.start()
+        QTimer.singleShot(20_000, app.quit)
+        app.exec_()
+        print("message:", widget.last_error)
+        """
+    )
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "message: deep failure" in done.stdout
+
+
+class BrokenResult(EngineWidget):
+    def prepare(self):
+        def generator():
+            yield Progress("work", 0, 1, "")
+            return 42
+
+        return generator()
+
+    def on_result(self, result):
+        raise KeyError("no layer for this result")
+
+
+def test_an_error_while_showing_the_result_is_one_line(qtbot):
+    widget = BrokenResult(napari_viewer=None)
+    qtbot.addWidget(widget)
+    worker = widget.run(start=False)
+    with qtbot.waitSignal(worker.finished, timeout=30_000):
+        worker.start()
+    qtbot.wait(50)
+    assert widget.last_error == "KeyError: 'no layer for this result'"
