@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from qtpy.QtWidgets import QApplication
 
+from napari_dvc_correct import layers as L
 from napari_dvc_correct.demo import make_viewer
 
 IMAGES = Path(__file__).resolve().parent / "images"
@@ -47,9 +48,27 @@ def front(dock) -> None:
 
 
 def shot(viewer, name: str) -> None:
-    settle(1.0)
-    viewer.window.screenshot(str(IMAGES / name), canvas_only=False)
+    """Save the window; retake it while it is drawn without colour.
+
+    Under Xvfb the whole window is now and then grabbed desaturated (every colormap gray, the
+    thumbnails too) for a moment; every picture here has colour somewhere, so a gray one is
+    taken again after a pause.
+    """
+    from imageio.v3 import imwrite
+
+    for _ in range(10):
+        settle(1.0)
+        image = np.asarray(viewer.window.screenshot(canvas_only=False))[..., :3].astype(int)
+        if (image.max(axis=-1) - image.min(axis=-1)).max() > 40:
+            break
+        print("gray grab of", name, "- taking it again")
+    imwrite(IMAGES / name, image.astype(np.uint8))
     print("wrote", IMAGES / name)
+
+
+def show_only(viewer, names) -> None:
+    for layer in viewer.layers:
+        layer.visible = layer.name in names
 
 
 def main() -> None:
@@ -71,64 +90,99 @@ def main() -> None:
     shot(viewer, "correlate-preview.png")
 
     print(f"correlate: {wait(correlate):.1f} s")
-    for layer in viewer.layers:
-        layer.visible = layer.name in (
-            "reference",
-            "εeq (uncorrected)",
-            "displacement (uncorrected)",
-        )
+    view = panels["View"]
+    view.set_quantity("εeq")
+    show_only(viewer, ("reference", "εeq (uncorrected)", "displacement (uncorrected)"))
+    view._decorate()
     viewer.layers.selection.active = viewer.layers["displacement (uncorrected)"]
     correlate.inspect((48.0, 48.0, 60.0))
     front(docks["Correlate"])
     shot(viewer, "correlate-vectors.png")
 
+    # one quantity at a time: the shear component that the band carries, arrows off
+    front(docks["View"])
+    view.arrows.setChecked(False)
+    view.set_quantity("εzx")
+    viewer.layers.selection.active = viewer.layers["εzx (uncorrected)"]
+    shot(viewer, "view-quantity.png")
+
     correct = panels["Self-correct"]
     front(docks["Self-correct"])
     print(f"self-correct: {wait(correct):.1f} s")
-    for layer in viewer.layers:
-        layer.visible = layer.name in (
-            "reference",
-            "εeq (corrected)",
-            "displacement (corrected)",
-        )
+    view.arrows.setChecked(True)
+    view.set_quantity("εeq")
     viewer.layers.selection.active = viewer.layers["εeq (corrected)"]
     shot(viewer, "self-correct.png")
 
     evaluate = panels["Evaluate"]
     front(docks["Evaluate"])
     print(f"evaluate: {wait(evaluate):.1f} s")
-    for layer in viewer.layers:
-        layer.visible = layer.name in ("reference", "phases")
-    viewer.layers.selection.active = viewer.layers["phases"]
+    phases = viewer.layers["phases"]
+    hidden = [x for x in viewer.layers if x.visible and x.name not in ("reference", "phases")]
+    for layer in hidden:
+        layer.visible = False
+    L.text_overlay(viewer).visible = False
+    viewer.layers.selection.active = phases
     shot(viewer, "evaluate.png")
-    for layer in viewer.layers:
-        layer.visible = layer.name in ("residual (uncorrected)",)
-    residual = viewer.layers["residual (uncorrected)"]
-    residual.colormap = "magma"
-    viewer.layers.selection.active = residual
+    phases.visible = False
+
+    # the gray residual of each field, same colour range, toggled before/after
+    front(docks["View"])
+    view.arrows.setChecked(False)
+    view.show_source("uncorrected")
+    view.set_quantity("residual")
+    viewer.layers.selection.active = viewer.layers["residual (uncorrected)"]
     shot(viewer, "residual-uncorrected.png")
-    residual.visible = False
-    viewer.layers["residual (corrected)"].visible = True
-    viewer.layers["residual (corrected)"].colormap = "magma"
-    viewer.layers["residual (corrected)"].contrast_limits = residual.contrast_limits
+    view.before_after()
     viewer.layers.selection.active = viewer.layers["residual (corrected)"]
     shot(viewer, "residual-corrected.png")
 
-    # 3-D view of the equivalent strain of the corrected field
-    for layer in viewer.layers:
-        layer.visible = layer.name in ("εeq (corrected)",)
-    strain = viewer.layers["εeq (corrected)"]
-    strain.rendering = "mip"
-    strain.interpolation3d = "linear"
-    finite = np.asarray(strain.data)[np.isfinite(strain.data)]
-    strain.contrast_limits = (0.0, float(np.percentile(finite, 99)))
-    viewer.layers.selection.active = strain
+    # 3-D view of the equivalent strain of the corrected field, from an oblique angle
+    view.set_quantity("εeq")
     viewer.dims.order = (0, 1, 2)
-    viewer.dims.ndisplay = 3
-    viewer.reset_view()
-    camera = viewer.scene.camera if hasattr(viewer, "scene") else viewer.camera
-    camera.angles = (15, -35, 130)
+    view.oblique_3d()
+    strain = next(x for x in viewer.layers if x.name == "εeq (corrected)")
+    viewer.layers["reference"].visible = False
+    strain.interpolation3d = "linear"
+    viewer.layers.selection.active = strain
     shot(viewer, "strain-3d.png")
+
+    viewer.dims.ndisplay = 2
+    viewer.layers["reference"].visible = True
+    front(docks["Export"])
+    shot(viewer, "export.png")
+    viewer.close()
+    tiff_walkthrough()
+
+
+def tiff_walkthrough() -> None:
+    """A 16-bit CT pair opened from TIFF files: pairing, voxel size, a cylinder region."""
+    import tempfile
+
+    import tifffile
+
+    from napari_dvc_correct._sample_data import soil_pair
+
+    folder = Path(tempfile.mkdtemp(prefix="dvc-tiff-"))
+    reference, deformed, _ = soil_pair((96, 96, 96))
+    for name, volume in (("scan_0.tif", reference), ("scan_1.tif", deformed)):
+        tifffile.imwrite(folder / name, np.clip(volume * 200, 0, 65535).astype(np.uint16))
+    viewer, panels, docks = make_viewer(sample=None, show=True)
+    viewer.window._qt_window.resize(*SIZE)
+    for name in ("scan_0.tif", "scan_1.tif"):
+        viewer.open(str(folder / name), plugin=None)  # what File ▸ Open does, no dialog
+    viewer.layers["scan_1"].visible = False
+    correlate = panels["Correlate"]
+    front(docks["Correlate"])
+    correlate.voxel_size.setValue(12.5)
+    correlate.unit.setCurrentIndex(correlate.unit.findData("µm"))
+    correlate.apply_voxel_size()
+    correlate.subvolume.setValue(21)
+    correlate.region.set_kind("cylinder")
+    correlate.region.radius.setValue(40.0)  # (defaults follow the scans: centred, full z)
+    correlate._update.flush()
+    viewer.reset_view()
+    shot(viewer, "tiff-pair.png")
     viewer.close()
 
 

@@ -22,8 +22,8 @@ def field() -> DisplacementField:
 
 
 def test_grid_layers_sit_on_the_nodes_in_world_units(field):
-    data, kwargs, kind = L.magnitude_layer(
-        field, "uncorrected", voxel_size=(2, 1, 0.5), offset=(10, 0, -1)
+    data, kwargs, kind = L.quantity_layer(
+        field, "uncorrected", "|u|", voxel_size=(2, 1, 0.5), offset=(10, 0, -1)
     )
     layer = Layer.create(data, kwargs, kind)
     world = layer.data_to_world((1, 2, 3))
@@ -56,17 +56,33 @@ def test_vectors_are_subsampled(field):
     assert kwargs["metadata"]["dvc_correct"]["stride"] == L.vector_stride(field.shape, 20) > 1
 
 
-def test_strain_layer_checks_its_shape(field):
-    with pytest.raises(ValueError, match="grid shape"):
-        L.strain_layer(np.zeros((2, 2, 2)), field, "x")
-    data, kwargs, _ = L.strain_layer(np.full(field.shape, 0.01), field, "corrected")
-    assert kwargs["name"] == "εeq (corrected)" and kwargs["contrast_limits"][1] > 0
+def test_show_quantity_switches_in_place_and_series_are_4d(field):
+    viewer = ViewerModel()
+    (layer, _) = L.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    L.show_quantity(layer, "status")
+    assert layer.name == "status (uncorrected)" and layer.data[1, 2, 3] == Status.DIVERGED
+    assert L.find_layer(viewer, L.field_key("uncorrected")) is layer
+    with pytest.raises(ValueError, match="run Evaluate first"):
+        L.show_quantity(layer, "residual")
+    L.show_quantity(layer, "residual", residual=np.ones((20, 20, 20)))
+    assert layer.scale[0] == 1.0 and layer.data.shape == (20, 20, 20)
+    series = L.series_fields([field, field.copy()])
+    tuples = L.field_layers(series, "series (total)")
+    (image, image_kwargs, _), (arrows, arrow_kwargs, _) = tuples
+    assert image.shape == (3, *field.shape) and image_kwargs["scale"][0] == 1.0
+    assert arrows.shape[2] == 4 and set(arrows[:, 0, 0]) == {0.0, 1.0, 2.0}
+    np.testing.assert_array_equal(image[0][field.valid], 0.0)  # state 0 does not move
+    viewer = ViewerModel()
+    L.show_layers(viewer, tuples)
+    assert list(L.fields_in(viewer.layers)) == ["state 1 (total)", "state 2 (total)"]
+    assert viewer.dims.axis_labels == ("state", "z", "y", "x")
 
 
 def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(field):
     viewer = ViewerModel()
     viewer.add_image(np.zeros((3, 3, 3)), name="|u| (uncorrected)")  # the user's own layer
     first = L.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    assert len(first) == 2  # one quantity layer and the arrows
     assert L.fields_in(viewer.layers) == {"uncorrected": field}
     # the user's layer stays; ours got napari's numbered name
     assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None
@@ -78,9 +94,6 @@ def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(fiel
     assert all(layer in viewer.layers for layer in second)
     assert not any(layer in viewer.layers for layer in first)
     assert L.fields_in(viewer.layers)["uncorrected"] is other
-    # the status layer names its codes
-    status = viewer.layers["status (uncorrected)"]
-    assert "diverged" in list(status.features["status"])
 
 
 def test_dense_layers_use_the_voxel_size(field):
@@ -89,7 +102,7 @@ def test_dense_layers_use_the_voxel_size(field):
         residual, "corrected", voxel_size=(2, 2, 2), offset=(1, 1, 1)
     )
     assert kwargs["scale"] == (2.0, 2.0, 2.0) and kwargs["translate"] == (1.0, 1.0, 1.0)
-    assert kwargs["name"] == "residual (corrected)" and kind == "image"
+    assert kwargs["name"] == "residual volume (corrected)" and kind == "image"
     labels, kwargs, kind = L.phase_layer(np.zeros((8, 8, 8), np.uint8), voxel_size=(2, 2, 2))
     assert kind == "labels" and kwargs["name"] == "phases"
 

@@ -40,6 +40,7 @@ def test_manifest_contributions():
     manifest = PluginManifest.from_file(ROOT / "napari.yaml")
     assert {w.display_name for w in manifest.contributions.widgets} == {
         "Correlate",
+        "View",
         "Self-correct",
         "Evaluate",
         "Export",

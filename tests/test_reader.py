@@ -35,24 +35,27 @@ def test_field_file_opens_as_the_plugin_layers(field, tmp_path):
     assert reader is not None
     layers = reader(str(path))
     names = [kwargs["name"] for _, kwargs, _ in layers]
-    assert "displacement (run1)" in names and "εeq (run1)" in names and "|u| (run1)" in names
+    assert names == ["|u| (run1)", "displacement (run1)"]  # one quantity at a time, and arrows
     for _data, kwargs, _layer_type in layers:
         assert kwargs["scale"] == (8.0, 4.0, 4.0)
         assert kwargs["translate"] == (19.0, 7.0, 7.0)
         np.testing.assert_array_equal(field_of(kwargs["metadata"]).u, field.u)
     magnitude = next(d for d, k, _ in layers if k["name"] == "|u| (run1)")
     assert np.isnan(magnitude[0, 0, 0])  # the diverged node is not shown as a value
-    np.testing.assert_allclose(magnitude[1, 2, 3], 0.1 * np.sqrt(1 + 4 + 9), rtol=1e-6)
+    # |u| in the field's physical units: u = 0.1 * (1, 2, 3) voxels of size (2, 1, 1)
+    np.testing.assert_allclose(magnitude[1, 2, 3], 0.1 * np.sqrt(4 + 4 + 9), rtol=1e-6)
 
 
 @pytest.mark.parametrize("content", ["other arrays", "garbage"])
-def test_an_npz_that_is_not_ours_is_declined(content, tmp_path):
+def test_an_npz_that_is_not_ours_goes_to_napari_s_reader(content, tmp_path):
+    from napari_builtins.io import napari_get_reader as builtin
+
     path = tmp_path / "other.npz"
     if content == "other arrays":
         np.savez(path, volume=np.zeros((4, 4, 4)), format=np.array("something else"))
     else:
         path.write_bytes(b"PK\x03\x04 not really a zip file")
-    assert napari_get_reader(str(path)) is None
+    assert napari_get_reader(str(path)) is builtin(str(path))
 
 
 def test_tiff_volume_and_placement_round_trip(tmp_path):
@@ -101,6 +104,27 @@ def test_napari_opens_a_field_file_through_the_plugin(field, tmp_path, make_napa
     viewer.open(str(path), plugin="napari-dvc-correct")
     assert "displacement (run2)" in viewer.layers
     np.testing.assert_allclose(viewer.layers["|u| (run2)"].scale, (8.0, 4.0, 4.0))
+
+
+def test_field_files_open_with_our_reader_without_a_dialog(field, tmp_path, make_napari_viewer):
+    """Once the plugin is in use, File ▸ Open (no reader named) picks ours, and other .npz still
+    open with napari's reader."""
+    from napari.settings import get_settings
+
+    from napari_dvc_correct._reader import prefer_this_reader
+
+    path = tmp_path / "run3.npz"
+    save_field(field, path)
+    other = tmp_path / "plain.npz"
+    np.savez(other, volume=np.arange(27.0).reshape(3, 3, 3))
+    viewer = make_napari_viewer()
+    get_settings().plugins.extension2reader = {"*.tif": "napari"}  # a choice the user made
+    assert prefer_this_reader() == ["*.npz", "*.tiff"]
+    assert get_settings().plugins.extension2reader["*.tif"] == "napari"
+    viewer.window._qt_viewer._qt_open([str(path)], stack=False)  # what File > Open does
+    assert [layer.name for layer in viewer.layers] == ["|u| (run3)", "displacement (run3)"]
+    viewer.open(str(other), plugin=None)
+    assert viewer.layers[-1].data.shape == (3, 3, 3)
 
 
 @pytest.mark.parametrize("content", [b"", b"not a tiff at all", "truncated"])

@@ -1,8 +1,14 @@
-"""npe2 reader: TIFF volumes, folders of TIFF slices, and the plugin's ``.npz`` field files.
+"""npe2 reader: TIFF volumes, folders of TIFF slices, the plugin's ``.npz`` field files and other
+tools' field files (:mod:`.io.formats`).
 
-A field file opens as the layers of :func:`napari_dvc_correct.layers.field_layers` (vectors,
-``|u|``, components, ZNCC, status, εeq), named after the file. An ``.npz`` that is not a field
-file is not ours: :func:`napari_get_reader` returns None so napari can try other readers.
+A field file opens as the layers of :func:`napari_dvc_correct.layers.field_layers` (one quantity
+layer, ``|u|`` first, and the arrows), named after the file. An ``.npz`` that is neither our
+field file nor another tool's is handed to napari's built-in reader (as if ours were not there),
+so our reader can be the preferred one for ``*.npz``: :func:`prefer_this_reader` records that
+preference (only where the user has none), and File ▸ Open and drag-and-drop then open field
+files without asking which reader to use. ``viewer.open(path)`` in a script uses napari's
+built-in reader unless told otherwise: pass ``plugin="napari-dvc-correct"`` (or ``plugin=None``
+to follow the preference).
 """
 
 from __future__ import annotations
@@ -15,6 +21,35 @@ from pathlib import Path
 import numpy as np
 
 TIFF_SUFFIXES = (".tif", ".tiff")
+PLUGIN = "napari-dvc-correct"
+#: Patterns for which this plugin's reader is made the preferred one (see the module docstring).
+PREFERRED_PATTERNS = ("*.npz", "*.tif", "*.tiff")
+
+
+def prefer_this_reader() -> list[str]:
+    """Make this plugin the preferred reader of :data:`PREFERRED_PATTERNS` where none is set.
+
+    A choice the user made (in the reader dialog or the preferences) is kept. Returns the
+    patterns set now.
+    """
+    from napari.settings import get_settings
+
+    plugins = get_settings().plugins
+    preferences = dict(plugins.extension2reader)
+    new = [p for p in PREFERRED_PATTERNS if p not in preferences]
+    if new:
+        preferences.update(dict.fromkeys(new, PLUGIN))
+        plugins.extension2reader = preferences
+    return new
+
+
+def _builtin_reader(path):
+    """napari's own reader for a file that is not ours (an ``.npz`` that is not a field)."""
+    from napari_builtins.io import napari_get_reader as builtin
+
+    return builtin(str(path))
+
+
 #: Field files of other DVC tools (io.formats): spam .tsv, iDVC .disp, ALDVC .mat/.npz, tables.
 FOREIGN_SUFFIXES = (".tsv", ".disp", ".mat", ".csv")
 
@@ -58,8 +93,10 @@ def napari_get_reader(path):
     suffix = path.suffix.lower()
     if suffix == ".npz" and is_field_file(path):
         return read_field_file
-    if suffix in (*FOREIGN_SUFFIXES, ".npz"):
-        return read_foreign_field if foreign_field_format(path) else None
+    if suffix in (*FOREIGN_SUFFIXES, ".npz") and foreign_field_format(path):
+        return read_foreign_field
+    if suffix == ".npz":  # not a field: napari's own reader, as if ours were not there
+        return _builtin_reader(path)
     if suffix in TIFF_SUFFIXES and path.is_file():
         return read_tiff if is_readable_tiff(path) else None
     return None
@@ -124,8 +161,7 @@ def read_tiff_slices(paths) -> list[tuple]:
 
 
 def read_field_file(path) -> list[tuple]:
-    """Read a field file as the plugin's layers (vectors, |u|, components, ZNCC, status, εeq)."""
-    from .engine.strain import equivalent_strain_field
+    """Read a field file as the plugin's layers (the ``|u|`` quantity layer and the arrows)."""
     from .io.npz import load_field
     from .layers import field_layers
 
@@ -133,10 +169,7 @@ def read_field_file(path) -> list[tuple]:
     field = load_field(path)
     voxel_size = field.metadata.get("voxel_size")
     offset = field.metadata.get("offset")
-    equivalent = equivalent_strain_field(field) if min(field.shape) >= 2 else None
-    return field_layers(
-        field, path.stem, voxel_size=voxel_size, offset=offset, equivalent_strain=equivalent
-    )
+    return field_layers(field, path.stem, voxel_size=voxel_size, offset=offset)
 
 
 def foreign_field_format(path) -> str | None:
@@ -157,11 +190,9 @@ def foreign_field_format(path) -> str | None:
 def read_foreign_field(path) -> list[tuple]:
     """Read another tool's field file as the plugin's field layers (scattered points are put on
     a grid, with provenance; see :func:`.engine.scattered.to_grid`)."""
-    from .engine.strain import equivalent_strain_field
     from .io.formats import read_field
     from .layers import field_layers
 
     path = Path(path[0] if isinstance(path, (list, tuple)) else path)
     field = read_field(path, foreign_field_format(path))
-    equivalent = equivalent_strain_field(field) if min(field.shape) >= 2 else None
-    return field_layers(field, path.stem, equivalent_strain=equivalent)
+    return field_layers(field, path.stem)

@@ -11,7 +11,7 @@ import sys
 
 PLUGIN = "napari-dvc-correct"
 #: Display names of the panels (napari.yaml), in the order they are docked.
-PANELS = ("Correlate", "Self-correct", "Evaluate", "Export")
+PANELS = ("Correlate", "View", "Self-correct", "Evaluate", "Export")
 
 
 def make_viewer(sample: str | None = "soil_shear_band", show: bool = True):

@@ -1,26 +1,31 @@
 """napari layer data tuples built from a :class:`DisplacementField` and the evaluation volumes.
 
-Every builder returns ``(data, kwargs, layer_type)`` tuples (what npe2 readers and sample data
-return), placed over the volume they come from:
+A field shows as two layers (:func:`field_layers`): one Image layer with one quantity at a time
+(``|u|``, a component, a strain component, principal/volumetric/shear/equivalent strain, ZNCC,
+status, uncertainty, residual; :data:`QUANTITIES`, switched in place by :func:`show_quantity`)
+and the displacement arrows. Every builder returns ``(data, kwargs, layer_type)`` tuples (what
+npe2 readers and sample data return), placed over the volume they come from:
 
-* grid quantities (``|u|``, components, ZNCC, status, εeq) are Image/Labels layers with
-  ``scale = step * voxel_size`` and ``translate = offset + origin * voxel_size``;
+* grid quantities are Image layers with ``scale = step * voxel_size`` and
+  ``translate = offset + origin * voxel_size``, drawn translucent so the scan shows through;
 * the Vectors layer holds node positions in grid units (node indices) and vectors in grid units
   (``u / step``) with the same ``scale``/``translate``, so the drawn arrows have their true length
   in world units;
 * dense quantities (gray residual, phase labels) have ``scale = voxel_size`` and
-  ``translate = offset``.
+  ``translate = offset``;
+* a series (a list of fields, state 0 first) gives 4-D layers ``(state, z, y, x)`` that follow
+  the state slider of the scan series.
 
 ``voxel_size`` is the physical size of a voxel (z, y, x) and ``offset`` the world position of the
 volume's first voxel: the ``scale`` and ``translate`` of the reference Image layer.
 
-Layer names say which field they come from, e.g. ``"εeq (corrected)"``, and every layer carries
-``metadata["dvc_correct"]`` with its ``kind``, its ``source`` (``"uncorrected"``,
-``"corrected"``...) and, for field layers, the :class:`DisplacementField` itself (``"field"``),
-which the writer and the panels read back. :func:`show_layers` replaces layers of the same name
-the plugin made before instead of piling up new ones.
+Layer names say what they show and which field they come from, e.g. ``"εeq (corrected)"``, and
+every layer carries ``metadata["dvc_correct"]`` with its ``kind``, its ``source``
+(``"uncorrected"``, ``"corrected"``...) and, for field layers, the :class:`DisplacementField`
+itself (``"field"``), which the writer and the panels read back. :func:`show_layers` replaces the
+layers the plugin made before under the same key instead of piling up new ones.
 
-No Qt here; napari is imported only by :func:`show_layers`.
+No Qt here; napari is imported only by :func:`show_layers` and the status colormap.
 """
 
 from __future__ import annotations
@@ -29,25 +34,23 @@ from typing import Any
 
 import numpy as np
 
-from .engine.field import DisplacementField, Status
+from .engine.field import DisplacementField
+from .quantities import (  # noqa: F401 (the quantities are part of what layers offers)
+    DEFAULT_QUANTITY,
+    QUANTITIES,
+    STATUS_COLORS,
+    as_triple,
+    available_quantities,
+    field_uncertainty,
+    physical_strain,
+    quantity_style,
+    quantity_values,
+    status_colormap,
+    unit_of,
+)
 
 #: Key of the plugin's entry in a layer's ``metadata``.
 MARKER = "dvc_correct"
-
-#: Colours of the status codes in the status Labels layer (converged stays transparent).
-STATUS_COLORS = {
-    None: "transparent",
-    int(Status.CONVERGED): "transparent",
-    int(Status.MAX_ITERATIONS): "yellow",
-    int(Status.DIVERGED): "red",
-    int(Status.OUT_OF_BOUNDS): "magenta",
-    int(Status.MASKED): "gray",
-    int(Status.LOW_TEXTURE): "cyan",
-    int(Status.SINGULAR): "orange",
-    int(Status.LOW_ZNCC): "blue",
-    int(Status.OUTLIER_REPLACED): "lime",
-    int(Status.NOT_COMPUTED): "white",
-}
 
 LayerDataTuple = tuple[Any, dict, str]
 
@@ -55,13 +58,6 @@ LayerDataTuple = tuple[Any, dict, str]
 def layer_name(quantity: str, source: str) -> str:
     """Layer name for ``quantity`` of the field ``source``, e.g. ``"εeq (corrected)"``."""
     return f"{quantity} ({source})"
-
-
-def _triple(value, default: float) -> np.ndarray:
-    if value is None:
-        return np.full(3, default, dtype=np.float64)
-    array = np.asarray(value, dtype=np.float64).reshape(-1)
-    return array[-3:] if array.size >= 3 else np.broadcast_to(array, (3,)).astype(np.float64)
 
 
 def grid_placement(field: DisplacementField, voxel_size=None, offset=None) -> dict:
@@ -75,7 +71,7 @@ def grid_placement(field: DisplacementField, voxel_size=None, offset=None) -> di
     offset : sequence of 3 floats, optional
         World position (z, y, x) of the volume's voxel (0, 0, 0); default 0.
     """
-    vs, off = _triple(voxel_size, 1.0), _triple(offset, 0.0)
+    vs, off = as_triple(voxel_size, 1.0), as_triple(offset, 0.0)
     return {
         "scale": tuple(float(v) for v in np.asarray(field.step) * vs),
         "translate": tuple(float(v) for v in off + np.asarray(field.origin) * vs),
@@ -84,7 +80,7 @@ def grid_placement(field: DisplacementField, voxel_size=None, offset=None) -> di
 
 def dense_placement(voxel_size=None, offset=None) -> dict:
     """``scale`` and ``translate`` of a quantity on the voxels of the volume."""
-    vs, off = _triple(voxel_size, 1.0), _triple(offset, 0.0)
+    vs, off = as_triple(voxel_size, 1.0), as_triple(offset, 0.0)
     return {"scale": tuple(float(v) for v in vs), "translate": tuple(float(v) for v in off)}
 
 
@@ -103,8 +99,22 @@ def vector_stride(shape, max_vectors: int) -> int:
     return stride
 
 
+def _vector_data(field: DisplacementField, stride: int, state: int | None = None):
+    index = np.stack(
+        np.meshgrid(*[np.arange(0, n, stride) for n in field.shape], indexing="ij"), axis=-1
+    ).reshape(-1, 3)
+    u = field.u[index[:, 0], index[:, 1], index[:, 2]]
+    keep = field.valid[index[:, 0], index[:, 1], index[:, 2]]
+    index, u = index[keep], u[keep]
+    data = np.stack([index.astype(np.float64), u / np.asarray(field.step)], axis=1)
+    if state is not None:  # a leading state coordinate; arrows do not move along it
+        data = np.concatenate([np.zeros((len(data), 2, 1)), data], axis=2)
+        data[:, 0, 0] = state
+    return data, np.linalg.norm(u, axis=1)
+
+
 def vectors_layer(
-    field: DisplacementField,
+    field,
     source: str,
     *,
     voxel_size=None,
@@ -117,26 +127,25 @@ def vectors_layer(
     Nodes without a usable displacement (:attr:`DisplacementField.valid` false) are left out.
     With ``exaggerate`` the layer's ``length`` is set so the longest arrow spans one grid step
     when the largest displacement is under half a step (the magnitude colours stay true; the
-    layer controls show the factor).
+    layer controls show the factor). ``field`` may be a list of fields (a series, state 0
+    first): the arrows are then 4-D, one set per state.
 
     Returns
     -------
     tuple
         ``(data, kwargs, "vectors")`` with data of shape (N, 2, 3): node index positions and
-        ``u / step``, both in grid units (z, y, x).
+        ``u / step``, both in grid units (z, y, x); (N, 2, 4) with the state first for a series.
     """
-    stride = vector_stride(field.shape, max_vectors)
-    index = np.stack(
-        np.meshgrid(*[np.arange(0, n, stride) for n in field.shape], indexing="ij"), axis=-1
-    ).reshape(-1, 3)
-    u = field.u[index[:, 0], index[:, 1], index[:, 2]]
-    keep = field.valid[index[:, 0], index[:, 1], index[:, 2]]
-    index, u = index[keep], u[keep]
-    data = np.stack([index.astype(np.float64), u / np.asarray(field.step)], axis=1)
-    magnitude = np.linalg.norm(u, axis=1)
+    series = not isinstance(field, DisplacementField)
+    fields = list(field) if series else [field]
+    last = fields[-1]
+    stride = vector_stride(last.shape, max_vectors)
+    parts = [_vector_data(f, stride, t if series else None) for t, f in enumerate(fields)]
+    data = np.concatenate([p[0] for p in parts])
+    magnitude = np.concatenate([p[1] for p in parts])
     length = 1.0
-    if exaggerate and magnitude.size and 0 < magnitude.max() < 0.5 * min(field.step):
-        length = float(min(field.step) / magnitude.max())
+    if exaggerate and magnitude.size and 0 < magnitude.max() < 0.5 * min(last.step):
+        length = float(min(last.step) / magnitude.max())
     kwargs = {
         "name": layer_name("displacement", source),
         "features": {"magnitude": magnitude},
@@ -145,120 +154,106 @@ def vectors_layer(
         "edge_width": 0.12,
         "vector_style": "arrow",
         "length": length,
-        "metadata": _meta("vectors", source, field, stride=stride),
-        **grid_placement(field, voxel_size, offset),
+        "metadata": _meta("vectors", source, last, stride=stride),
+        **_placement(field, voxel_size, offset),
     }
+    if series:
+        kwargs["metadata"][MARKER]["fields"] = fields
     return data, kwargs, "vectors"
 
 
-def _finite_limits(values: np.ndarray, fallback=(0.0, 1.0)) -> list[float]:
-    finite = values[np.isfinite(values)]
-    if finite.size == 0:
-        return list(fallback)
-    low, high = float(finite.min()), float(finite.max())
-    return [low, high] if high > low else [low, low + 1.0]
+def field_key(source: str) -> str:
+    """The stable name under which the plugin finds the quantity layer of ``source``."""
+    return f"field ({source})"
 
 
-def magnitude_layer(field, source, *, voxel_size=None, offset=None) -> LayerDataTuple:
-    """``|u|`` on the grid (voxels), an Image layer."""
-    magnitude = field.magnitude.astype(np.float32)
-    magnitude[~field.valid] = np.nan
-    kwargs = {
-        "name": layer_name("|u|", source),
-        "colormap": "viridis",
-        "contrast_limits": _finite_limits(magnitude),
-        "metadata": _meta("magnitude", source, field),
-        "blending": "additive",
-        "opacity": 0.6,
-        **grid_placement(field, voxel_size, offset),
-    }
-    return magnitude, kwargs, "image"
-
-
-def component_layers(field, source, *, voxel_size=None, offset=None) -> list[LayerDataTuple]:
-    """``uz``, ``uy``, ``ux`` on the grid (voxels), hidden Image layers."""
-    out = []
-    for axis, name in enumerate(("uz", "uy", "ux")):
-        component = field.u[..., axis].astype(np.float32)
-        component[~field.valid] = np.nan
-        limit = max(abs(v) for v in _finite_limits(component))
-        kwargs = {
-            "name": layer_name(name, source),
-            "colormap": "PiYG",
-            "contrast_limits": [-limit, limit],
-            "visible": False,
-            "metadata": _meta(f"component {name}", source, field),
-            **grid_placement(field, voxel_size, offset),
+def _placement(fields, voxel_size, offset) -> dict:
+    first = fields if isinstance(fields, DisplacementField) else fields[-1]
+    placement = grid_placement(first, voxel_size, offset)
+    if not isinstance(fields, DisplacementField):  # series: state axis first
+        placement = {
+            "scale": (1.0, *placement["scale"]),
+            "translate": (0.0, *placement["translate"]),
         }
-        out.append((component, kwargs, "image"))
-    return out
+    return placement
 
 
-def zncc_layer(field, source, *, voxel_size=None, offset=None) -> LayerDataTuple:
-    """Per-POI ZNCC on the grid, an Image layer (NaN where not matched)."""
-    kwargs = {
-        "name": layer_name("ZNCC", source),
-        "colormap": "magma",
-        "contrast_limits": [min(0.5, _finite_limits(field.zncc, (0.0, 1.0))[0]), 1.0],
-        "visible": False,
-        "metadata": _meta("zncc", source, field),
-        **grid_placement(field, voxel_size, offset),
-    }
-    return field.zncc.copy(), kwargs, "image"
-
-
-def status_layer(field, source, *, voxel_size=None, offset=None) -> LayerDataTuple:
-    """Per-POI :class:`Status` codes, a Labels layer; converged nodes are transparent."""
-    kwargs = {
-        "name": layer_name("status", source),
-        "colormap": dict(STATUS_COLORS),
-        "features": {
-            "index": [int(s) for s in Status],
-            "status": [s.label for s in Status],
-        },
-        "opacity": 0.6,
-        "visible": False,
-        "metadata": _meta("status", source, field),
-        **grid_placement(field, voxel_size, offset),
-    }
-    return field.status.copy(), kwargs, "labels"
-
-
-def strain_layer(
-    equivalent: np.ndarray, field, source, *, voxel_size=None, offset=None
+def quantity_layer(
+    fields,
+    source: str,
+    quantity: str = DEFAULT_QUANTITY,
+    *,
+    voxel_size=None,
+    offset=None,
+    residual: np.ndarray | None = None,
+    limits=None,
+    caches: dict | None = None,
 ) -> LayerDataTuple:
-    """Equivalent strain ``εeq`` on the grid of ``field`` (dimensionless), an Image layer.
+    """One Image layer showing ``quantity`` of a field (or of a series of fields), over the scan.
 
     Parameters
     ----------
-    equivalent : ndarray, shape ``field.shape``
-        Equivalent (octahedral) strain at each node.
+    fields : DisplacementField or list of DisplacementField
+        One field, or one per state of a series (state 0 first; the layer is then 4-D,
+        ``(state, nz, ny, nx)``, and follows the state slider of the scan series).
+    source : str
+        ``"uncorrected"``, ``"corrected"``, ``"series (total)"``...
+    quantity : str
+        A key of :data:`QUANTITIES`.
+    residual : ndarray (NZ, NY, NX), optional
+        The dense gray residual, for ``quantity="residual"`` (placed on the voxels).
+    caches : dict, optional
+        Kept by the caller between calls (one dict per state), so switching between strain
+        quantities computes the strain tensor once.
+
+    The layer is drawn translucent (the scan shows through); its metadata carries the field
+    (``"field"``; ``"fields"`` for a series), the quantity and its units.
     """
-    equivalent = np.asarray(equivalent, dtype=np.float32)
-    if equivalent.shape != field.shape:
-        raise ValueError(f"strain must have the grid shape {field.shape}, got {equivalent.shape}")
-    finite = equivalent[np.isfinite(equivalent)]
-    high = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    field = fields if isinstance(fields, DisplacementField) else fields[-1]
+    if quantity == "residual":
+        if residual is None:
+            raise ValueError(f"no gray residual for the '{source}' field yet: run Evaluate first")
+        values = np.asarray(residual, dtype=np.float32)
+        placement = dense_placement(voxel_size, offset)
+    else:
+        caches = {} if caches is None else caches  # one per state: the strain tensor kept
+        series = [fields] if isinstance(fields, DisplacementField) else list(fields)
+        values = np.stack(
+            [quantity_values(f, quantity, caches.setdefault(t, {})) for t, f in enumerate(series)]
+        )
+        values = values[0] if isinstance(fields, DisplacementField) else values
+
+        placement = _placement(fields, voxel_size, offset)
+    style = quantity_style(quantity, values, limits)
+    if quantity == "status":
+        style["colormap"] = status_colormap()
+    extra = {"quantity": quantity, "unit": unit_of(quantity, field), "key": field_key(source)}
+    if not isinstance(fields, DisplacementField):
+        extra["fields"] = list(fields)
     kwargs = {
-        "name": layer_name("εeq", source),
-        "colormap": "inferno",
-        "contrast_limits": [0.0, high if high > 0 else 1.0],
-        "rendering": "mip",
-        "blending": "additive",
-        "opacity": 0.8,
-        "metadata": _meta("equivalent strain", source, field),
-        **grid_placement(field, voxel_size, offset),
+        "name": layer_name(quantity, source),
+        **style,
+        "blending": "translucent",
+        "opacity": 0.7,
+        "metadata": _meta("quantity", source, field, **extra),
+        **placement,
     }
-    return equivalent, kwargs, "image"
+    unit = field.metadata.get("unit")
+    if unit:
+        kwargs["units"] = (unit,) * len(placement["scale"])
+    return values, kwargs, "image"
 
 
 def residual_layer(
     residual: np.ndarray, source: str, *, voxel_size=None, offset=None
 ) -> LayerDataTuple:
-    """Dense gray residual ``|F(X + u(X)) - G(X)|`` (gray levels), an Image layer."""
+    """Dense gray residual ``|F(X + u(X)) - G(X)|`` (gray levels), a hidden Image layer.
+
+    Kept as its own (hidden) layer so Export and the View panel find the residual of each field.
+    """
     residual = np.asarray(residual, dtype=np.float32)
     kwargs = {
-        "name": layer_name("residual", source),
+        "name": layer_name("residual volume", source),
         "colormap": "gray",
         "contrast_limits": [0.0, max(1e-6, float(np.nanpercentile(residual, 99.5)))],
         "visible": False,
@@ -280,29 +275,23 @@ def phase_layer(labels: np.ndarray, *, voxel_size=None, offset=None) -> LayerDat
 
 
 def field_layers(
-    field: DisplacementField,
+    field,
     source: str = "uncorrected",
     *,
     voxel_size=None,
     offset=None,
-    equivalent_strain: np.ndarray | None = None,
+    quantity: str = DEFAULT_QUANTITY,
     max_vectors: int = 4000,
-    components: bool = True,
 ) -> list[LayerDataTuple]:
-    """All the grid layers of a field: vectors, ``|u|``, components, ZNCC, status and ``εeq``.
+    """The two layers of a field: the chosen quantity (an Image) and the displacement arrows.
 
-    ``εeq`` is included when ``equivalent_strain`` (shape ``field.shape``) is given, the
-    ``uz``/``uy``/``ux`` images unless ``components`` is False.
+    ``field`` may be a list of fields (a series, state 0 first): both layers are then 4-D.
     """
     placement = {"voxel_size": voxel_size, "offset": offset}
-    layers = [magnitude_layer(field, source, **placement)]
-    if components:
-        layers += component_layers(field, source, **placement)
-    layers += [zncc_layer(field, source, **placement), status_layer(field, source, **placement)]
-    if equivalent_strain is not None:
-        layers.append(strain_layer(equivalent_strain, field, source, **placement))
-    layers.append(vectors_layer(field, source, max_vectors=max_vectors, **placement))
-    return layers
+    return [
+        quantity_layer(field, source, quantity, **placement),
+        vectors_layer(field, source, max_vectors=max_vectors, **placement),
+    ]
 
 
 # -- reading back ------------------------------------------------------------------------------
@@ -324,19 +313,106 @@ def field_of(layer_or_metadata) -> DisplacementField | None:
     return field if isinstance(field, DisplacementField) else None
 
 
+def series_of(layer_or_metadata) -> list | None:
+    """The fields of a series layer (state 0 first), or None for a single field."""
+    entry = plugin_metadata(layer_or_metadata)
+    fields = entry.get("fields") if entry is not None else None
+    return list(fields) if isinstance(fields, list) else None
+
+
+def state_source(source: str, state: int) -> str:
+    """Name of state ``state`` of the series ``source``, e.g. ``"state 2 (total)"``."""
+    return f"state {state} {source.split(' ', 1)[1]}" if " " in source else f"{source} {state}"
+
+
 def fields_in(layers) -> dict[str, DisplacementField]:
-    """Fields carried by ``layers``, by source name, in layer order (first layer of each wins)."""
+    """Fields carried by ``layers``, by source name, in layer order (first layer of each wins).
+
+    A series layer gives one entry per state after the first (:func:`state_source`).
+    """
     found: dict[str, DisplacementField] = {}
     for layer in layers:
         field = field_of(layer)
-        if field is not None:
-            found.setdefault(plugin_metadata(layer)["source"], field)
+        if field is None:
+            continue
+        source = plugin_metadata(layer)["source"]
+        series = series_of(layer)
+        if series is None:
+            found.setdefault(source, field)
+        else:
+            for state, item in enumerate(series[1:], start=1):
+                found.setdefault(state_source(source, state), item)
     return found
 
 
 def find_layer(viewer, name: str):
-    """The layer the plugin made under ``name`` (even if napari numbered it), or None."""
+    """The layer the plugin made under ``name`` (even if napari numbered or renamed it), or None."""
     return next((x for x in viewer.layers if (plugin_metadata(x) or {}).get("name") == name), None)
+
+
+def quantity_layers(viewer) -> list:
+    """The plugin's quantity layers (one per field or series), in layer order."""
+    return [x for x in viewer.layers if (plugin_metadata(x) or {}).get("kind") == "quantity"]
+
+
+def show_quantity(layer, quantity: str, *, residual=None, limits=None) -> None:
+    """Switch a quantity layer to ``quantity`` in place (data, placement, colours, name).
+
+    ``residual`` is the dense gray residual for ``quantity="residual"``; ``limits`` a shared
+    contrast range. Raises ValueError when the field cannot show ``quantity``.
+    """
+    entry = plugin_metadata(layer)
+    fields = series_of(layer) or entry["field"]
+    voxel_size = entry["field"].metadata.get("voxel_size")
+    offset = entry["field"].metadata.get("offset")
+    data, kwargs, _ = quantity_layer(
+        fields,
+        entry["source"],
+        quantity,
+        voxel_size=voxel_size,
+        offset=offset,
+        residual=residual,
+        limits=limits,
+        caches=entry.setdefault("cache", {}),
+    )
+    layer.data = data
+    layer.scale, layer.translate = kwargs["scale"], kwargs["translate"]
+    layer.colormap = kwargs["colormap"]
+    layer.contrast_limits = kwargs["contrast_limits"]
+    layer.rendering = kwargs["rendering"]
+    new = kwargs["metadata"][MARKER]
+    entry.update(quantity=new["quantity"], unit=new["unit"])
+    layer.name = kwargs["name"]
+
+
+def shared_limits(layers, quantity: str) -> list[float] | None:
+    """One contrast range for ``quantity`` over several layers already showing it (or None)."""
+    limits = [list(x.contrast_limits) for x in layers]
+    if not limits or quantity == "status":
+        return None
+    low, high = min(v[0] for v in limits), max(v[1] for v in limits)
+    if QUANTITIES[quantity][1] in ("displacement", "strain"):
+        high = max(abs(low), abs(high))
+        low = -high
+    return [low, high]
+
+
+def label_axes(viewer) -> None:
+    """Name the viewer's axes z, y, x (and ``state`` before them for a 4-D series)."""
+    ndim = viewer.dims.ndim
+    names = ("state", "z", "y", "x")[-ndim:] if ndim <= 4 else None
+    if names is not None and ndim >= 3 and tuple(viewer.dims.axis_labels) != names:
+        viewer.dims.axis_labels = names
+
+
+def _same_units(viewer, layer) -> None:
+    """Give ``layer`` the length unit of the scans (napari ignores units that disagree)."""
+    if "units" in dir(layer) and all(str(u) == "pixel" for u in layer.units):
+        for other in viewer.layers:
+            units = [str(u) for u in getattr(other, "units", ())]
+            if units and units[-1] != "pixel":
+                layer.units = (units[-1],) * layer.ndim
+                return
 
 
 def show_layers(viewer, layer_tuples) -> list:
@@ -358,10 +434,13 @@ def show_layers(viewer, layer_tuples) -> list:
         name = kwargs.get("name")
         metadata = kwargs.get("metadata") or {}
         entry = metadata.get(MARKER)
+        key = name
         if isinstance(entry, dict):  # napari may rename the layer; we find it by this name
-            kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": name}}
+            key = entry.get("key", name)
+            kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": key}}
         layer = Layer.create(data, kwargs, layer_type)
-        old = find_layer(viewer, name)
+        _same_units(viewer, layer)
+        old = find_layer(viewer, key)
         if old is not None:
             index = viewer.layers.index(old)
             viewer.layers.remove(old)
@@ -369,4 +448,72 @@ def show_layers(viewer, layer_tuples) -> list:
         else:
             viewer.layers.append(layer)
         added.append(layer)
+    label_axes(viewer)
+    return added
+
+
+def series_fields(fields: list[DisplacementField]) -> list[DisplacementField]:
+    """A series' fields with state 0 first (zero displacement), so state ``k`` is index ``k``."""
+    first = fields[0]
+    zero = first.replace(
+        u=np.zeros_like(first.u),
+        zncc=np.ones_like(first.zncc),
+        status=np.zeros_like(first.status),
+        gradient=None,
+        metadata=dict(first.metadata),
+    )
+    return [zero, *fields]
+
+
+def caption(layer) -> str:
+    """What the colorbar of a quantity layer shows, with units, e.g. ``"εeq (corrected) · –"``."""
+    entry = plugin_metadata(layer) or {}
+    quantity = entry.get("quantity", "")
+    what = QUANTITIES.get(quantity, ("", ""))[0]
+    return f"{quantity} [{entry.get('unit', '')}]: {what} — {entry.get('source', '')} field"
+
+
+def canvas_overlay(viewer, name: str):
+    """A canvas overlay (``"text"``, ``"scale_bar"``): ``viewer.canvas.overlays`` in napari 0.9."""
+    canvas = getattr(viewer, "canvas", None)
+    overlays = getattr(canvas, "overlays", None)
+    if overlays is not None and name in overlays:
+        return overlays[name]
+    return getattr(viewer, f"{name}_overlay" if name == "text" else name)
+
+
+def text_overlay(viewer):
+    """The canvas text overlay (the caption of the quantity on view)."""
+    return canvas_overlay(viewer, "text")
+
+
+def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
+    """Show a new field's layers and make them the ones on view (toggled, not stacked).
+
+    The quantity layers and arrows of the other fields are hidden (the View panel switches
+    back), the new quantity layer shows ``quantity`` (default: what the visible field showed)
+    with its colorbar, the scale bar is on and the axes are named.
+    """
+    current = next((x for x in quantity_layers(viewer) if x.visible), None)
+    if quantity is None and current is not None:
+        quantity = plugin_metadata(current).get("quantity")
+    added = show_layers(viewer, layer_tuples)
+    new = [x for x in added if (plugin_metadata(x) or {}).get("kind") == "quantity"]
+    for layer in viewer.layers:
+        kind = (plugin_metadata(layer) or {}).get("kind")
+        if kind in ("quantity", "vectors") and layer not in added:
+            layer.visible = False
+            if kind == "quantity":
+                layer.colorbar.visible = False
+    for layer in new:
+        if quantity and quantity != plugin_metadata(layer).get("quantity"):
+            try:
+                show_quantity(layer, quantity)
+            except ValueError:  # e.g. no residual yet for a new field: it keeps its default
+                pass
+        layer.visible = True
+        layer.colorbar.visible = True
+        text_overlay(viewer).text = caption(layer)
+        text_overlay(viewer).visible = True
+    canvas_overlay(viewer, "scale_bar").visible = True
     return added

@@ -27,13 +27,13 @@ def test_self_correct_adds_corrected_layers_and_reports_passes(
     widget.max_passes.setValue(2)
     run_panel(widget)
     assert widget.last_error is None, widget.last_error
-    for quantity in ("displacement", "|u|", "εeq", "ZNCC", "status"):
+    for quantity in ("displacement", "|u|"):
         assert f"{quantity} (corrected)" in viewer.layers
     corrected = field_of(viewer.layers["|u| (corrected)"])
     uncorrected = field_of(viewer.layers["|u| (uncorrected)"])
     assert corrected is not uncorrected
     scale, translate = placement(corrected)
-    for name in ("|u| (corrected)", "εeq (corrected)", "displacement (corrected)"):
+    for name in ("|u| (corrected)", "displacement (corrected)"):
         np.testing.assert_allclose(viewer.layers[name].scale, scale)
         np.testing.assert_allclose(viewer.layers[name].translate, translate)
     # the table lists the cleaned input and at least one pass, residual never rises
@@ -79,3 +79,26 @@ def test_same_layer_twice_a_message(correlated):
     widget.deformed.set_layer("reference")
     assert widget.run() is None
     assert "same layer" in widget.message.text()
+
+
+def test_a_region_limits_the_correction(correlated, run_panel, small):
+    """Outside the region no correction is measured: those nodes' update is interpolated from
+    the measured ones (provenance replaced), inside it is measured (provenance corrected)."""
+    from napari_dvc_correct.engine.field import Provenance as P
+
+    viewer = correlated.viewer
+    widget = _dock(viewer)
+    widget.region.set_kind("box")
+    widget.region.x_from.setValue(0)
+    widget.region.x_to.setValue(26)  # the left half only
+    widget.max_passes.setValue(1)
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    corrected = field_of(viewer.layers["|u| (corrected)"])
+    x = corrected.axis_coordinates()[2]
+    outside = x > 25.5 + small.subvolume / 2
+    assert outside.any()
+    assert np.all(corrected.provenance[:, :, outside] == P.REPLACED)
+    inside = x < 25.5 - small.subvolume / 2
+    assert np.any(corrected.provenance[:, :, inside] == P.CORRECTED)
+    assert not np.any(corrected.provenance[:, :, inside] == P.REPLACED)

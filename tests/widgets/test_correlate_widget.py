@@ -11,20 +11,11 @@ from qtpy.QtCore import QTimer
 
 from napari_dvc_correct._sample_data import true_field
 from napari_dvc_correct.engine.field import DisplacementField, Status, grid_for_volume
-from napari_dvc_correct.layers import field_of
+from napari_dvc_correct.layers import field_of, fields_in
 from napari_dvc_correct.widgets import CorrelateWidget
 from napari_dvc_correct.widgets.correlate import PREVIEW_BOX, PREVIEW_POINTS
 
-FIELD_LAYERS = [
-    "|u| (uncorrected)",
-    "uz (uncorrected)",
-    "uy (uncorrected)",
-    "ux (uncorrected)",
-    "ZNCC (uncorrected)",
-    "status (uncorrected)",
-    "εeq (uncorrected)",
-    "displacement (uncorrected)",
-]
+FIELD_LAYERS = ["|u| (uncorrected)", "displacement (uncorrected)"]  # a quantity, and arrows
 
 
 def test_run_adds_the_field_layers_aligned_with_the_volume(correlated, pair48, placement, small):
@@ -106,6 +97,8 @@ def test_preview_and_estimate_before_running(viewer_pair, small):
     assert np.ptp(corners, axis=0).tolist() == [small.subvolume - 1] * 3
     assert f"{np.prod(shape)} POIs" in widget.estimate_label.text()
     assert "memory" in widget.estimate_label.text()
+    # at the defaults the slice shown is a plane of POIs, so the preview is seen at once
+    assert len(points._view_indices) == shape[1] * shape[2]
     widget.preview.setChecked(False)
     widget._update.flush()
     assert not points.visible
@@ -124,12 +117,12 @@ def test_bad_choices_show_a_message(viewer_pair, problem):
         widget.deformed.set_layer("slice")
         expected = "2-D"
     elif problem == "missing mask":
-        widget.use_mask.setChecked(True)
+        widget.region.set_kind("layer")
         expected = "no mask is chosen"
     else:
         viewer_pair.add_labels(np.zeros((48, 48, 48), np.uint8), name="mask")
-        widget.use_mask.setChecked(True)
-        widget.mask.set_layer("mask")
+        widget.region.set_kind("layer")
+        widget.region.layer.set_layer("mask")
         expected = "empty"
     count = len(viewer_pair.layers)
     assert widget.run() is None
@@ -147,8 +140,8 @@ def test_mask_marks_outside_pois(viewer_pair, run_panel, small):
     viewer_pair.window.add_dock_widget(widget)
     widget.subvolume.setValue(small.subvolume)
     widget.step.setValue(small.step)
-    widget.use_mask.setChecked(True)
-    widget.mask.set_layer("material")
+    widget.region.set_kind("layer")
+    widget.region.layer.set_layer("material")
     run_panel(widget)
     field = field_of(viewer_pair.layers["|u| (uncorrected)"])
     x = field.axis_coordinates()[2]
@@ -240,16 +233,21 @@ def test_scan_series(mode, series48, make_napari_viewer, run_panel, small):
     widget.step.setValue(small.step)
     run_panel(widget)
     assert widget.last_error is None, widget.last_error
-    last = viewer.layers[f"|u| (state 2 ({strategy}))"]
-    first = viewer.layers[f"|u| (state 1 ({strategy}))"]
-    assert last.visible and not first.visible
-    assert f"uz (state 1 ({strategy}))" not in viewer.layers  # compact layers for a series
-    np.testing.assert_allclose(last.scale, np.asarray(field_of(last).step) * small.voxel_size)
-    for k, layer in ((1, first), (2, last)):
-        field = field_of(layer)
+    # one 4-D field (state, z, y, x) that follows the state slider, state 0 not moving
+    layer = viewer.layers[f"|u| (series ({strategy}))"]
+    assert layer.data.shape[0] == 3 and layer.visible
+    assert f"displacement (series ({strategy}))" in viewer.layers
+    np.testing.assert_allclose(
+        layer.scale[1:], np.asarray(field_of(layer).step) * small.voxel_size
+    )
+    fields = fields_in(viewer.layers)
+    assert list(fields) == [f"state 1 ({strategy})", f"state 2 ({strategy})"]
+    for k in (1, 2):
+        field = fields[f"state {k} ({strategy})"]
         truth = true_field(truths[k], field.origin, field.step, field.shape)
         error = np.linalg.norm(field.u - truth.u, axis=-1)[field.valid]
         assert np.median(error) < 0.3, (k, np.median(error))
+    assert "state 1" in widget.message.text() and "state 2" in widget.message.text()
 
 
 def test_series_bad_choices(viewer_pair):

@@ -52,7 +52,7 @@ def test_evaluate_adds_residual_layers_and_plots(correlated, run_panel, small):
     assert widget.checked_fields() == ["uncorrected"]
     run_panel(widget)
     assert widget.last_error is None, widget.last_error
-    residual = viewer.layers["residual (uncorrected)"]
+    residual = viewer.layers["residual volume (uncorrected)"]
     assert residual.data.shape == small.shape
     np.testing.assert_allclose(residual.scale, small.voxel_size)
     np.testing.assert_allclose(residual.translate, small.offset)

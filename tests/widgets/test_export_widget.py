@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import tifffile
 
+from napari_dvc_correct.engine.strain import equivalent_strain_field
 from napari_dvc_correct.io.npz import load_field
 from napari_dvc_correct.layers import field_of
 from napari_dvc_correct.widgets import EvaluateWidget, ExportWidget
@@ -49,6 +50,10 @@ def test_every_format(correlated, run_panel, tmp_path):
     np.testing.assert_allclose(tifffile.imread(tmp_path / "run_ux.tif"), field.u[..., 2])
     assert (tmp_path / "run_equivalent_strain.tif").is_file()  # extra grid array as its own stack
     assert "Wrote" in widget.message.text()
+    # formats without room for metadata get the provenance next to them
+    side = json.loads((tmp_path / "run_provenance.json").read_text())
+    assert side["source"] == "uncorrected" and side["corrected"] is False
+    assert side["params"]["subvolume"] == field.params["subvolume"]
 
 
 def test_strain_residual_and_report(correlated, run_panel, tmp_path):
@@ -65,13 +70,14 @@ def test_strain_residual_and_report(correlated, run_panel, tmp_path):
     run_panel(widget)
     assert widget.last_error is None, widget.last_error
     residual = tifffile.imread(tmp_path / "soil_residual.tif")
-    np.testing.assert_allclose(residual, viewer.layers["residual (uncorrected)"].data)
+    np.testing.assert_allclose(residual, viewer.layers["residual volume (uncorrected)"].data)
     strain = tifffile.imread(tmp_path / "soil_equivalent_strain.tif")
-    np.testing.assert_allclose(strain, viewer.layers["εeq (uncorrected)"].data, rtol=1e-6)
+    field = field_of(viewer.layers["|u| (uncorrected)"])
+    np.testing.assert_allclose(strain, equivalent_strain_field(field), rtol=1e-6)
     with tifffile.TiffFile(tmp_path / "soil_equivalent_strain.tif") as tif:
         info = json.loads(tif.imagej_metadata["Info"])
-    np.testing.assert_allclose(info["scale"], viewer.layers["εeq (uncorrected)"].scale)
-    np.testing.assert_allclose(info["translate"], viewer.layers["εeq (uncorrected)"].translate)
+    np.testing.assert_allclose(info["scale"], viewer.layers["|u| (uncorrected)"].scale)
+    np.testing.assert_allclose(info["translate"], viewer.layers["|u| (uncorrected)"].translate)
     report = json.loads((tmp_path / "soil_report.json").read_text())
     assert "accuracy index p" in report["field: uncorrected"]
     assert "accuracy index p" in (tmp_path / "soil_report.md").read_text()

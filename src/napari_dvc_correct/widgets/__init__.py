@@ -5,13 +5,14 @@ The Qt-free parts (checks, previews, estimates, read-outs) live in ``*_model.py`
 
 from __future__ import annotations
 
-__all__ = ["CorrectWidget", "CorrelateWidget", "EvaluateWidget", "ExportWidget"]
+__all__ = ["CorrectWidget", "CorrelateWidget", "EvaluateWidget", "ExportWidget", "ViewWidget"]
 
 _MODULES = {
     "CorrelateWidget": "correlate",
     "CorrectWidget": "correct",
     "EvaluateWidget": "evaluate",
     "ExportWidget": "export",
+    "ViewWidget": "view",
 }
 
 

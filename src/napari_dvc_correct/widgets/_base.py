@@ -20,10 +20,13 @@ from collections.abc import Callable, Generator
 from napari.utils.notifications import show_error
 from qtpy.QtCore import Qt, QTimer
 from qtpy.QtWidgets import (
+    QAbstractButton,
+    QAbstractSpinBox,
     QComboBox,
     QFormLayout,
     QHBoxLayout,
     QLabel,
+    QLineEdit,
     QProgressBar,
     QPushButton,
     QSizePolicy,
@@ -133,6 +136,34 @@ class LayerCombo(QComboBox):
         return index >= 0
 
 
+def pair_in_order(reference: LayerCombo, deformed: LayerCombo, event=None, ndim: int = 3) -> None:
+    """Two different scans: the first opened is the reference, the next one the deformed.
+
+    Only fills a choice that is empty, not ``ndim``-D, or the same layer in both boxes; a choice
+    the user made between two different scans stays. With a layer-list ``event`` it acts only
+    when a scan (a layer the reference box lists) was added.
+    """
+    # compared by name: napari hands plugins a proxy of the viewer, whose layers are new proxy
+    # objects on every access (``is`` never holds between two of them)
+    inserted = getattr(event, "value", None) if event is not None else None
+    names = [x.name for x in reference.layers()]
+    if event is not None and getattr(inserted, "name", None) not in names:
+        return
+    scans = [x.name for x in reference.layers() if x.ndim == ndim]
+    ref = reference.layer()
+    if ref is None or ref.ndim != ndim:
+        if not scans:
+            return
+        ref = reference.layer() if reference.set_layer(scans[0]) else None
+    ref_name = getattr(ref, "name", None)
+    current = deformed.layer()
+    if current is None or current.name == ref_name or current.ndim != ndim:
+        after = scans[scans.index(ref_name) + 1 :] if ref_name in scans else scans
+        others = [x for x in after + scans if x != ref_name]
+        if others:
+            deformed.set_layer(others[0])
+
+
 class EngineWidget(QWidget):
     """Base of the panels that run engine work: form, Run/Cancel, progress bar, message line.
 
@@ -174,13 +205,40 @@ class EngineWidget(QWidget):
         self.run_button.clicked.connect(lambda checked=False: self.run())
         self.cancel_button.clicked.connect(lambda checked=False: self.cancel())
         self.last_error: str | None = None
+        if napari_viewer is not None:  # (None: a plain Qt host, no napari around)
+            from .._reader import prefer_this_reader
+
+            prefer_this_reader()  # field files then open with our reader, without a dialog
+            follow_layers(self.viewer, self, self._label_axes)
+            self._label_axes()
+
+    def _label_axes(self, event=None) -> None:
+        from ..layers import label_axes
+
+        label_axes(self.viewer)
 
     def showEvent(self, event) -> None:
         """Once the subclass has added its controls, keep them at the top of a tall dock."""
         if not getattr(self, "_stretched", False):
             self.body.addStretch(1)
             self._stretched = True
+            self.watch_inputs()
         super().showEvent(event)
+
+    def watch_inputs(self) -> None:
+        """Clear an error message as soon as any input of the form changes."""
+        for widget in self.findChildren((QComboBox, QAbstractSpinBox, QAbstractButton, QLineEdit)):
+            if widget in (self.run_button, self.cancel_button):
+                continue
+            for name in ("currentIndexChanged", "valueChanged", "toggled", "textEdited"):
+                signal = getattr(widget, name, None)
+                if signal is not None and not getattr(widget, "_dvc_watched", False):
+                    signal.connect(self._input_changed)
+            widget._dvc_watched = True
+
+    def _input_changed(self, *args) -> None:
+        if self.last_error is not None and not self.running:
+            self.clear_message()
 
     # -- what subclasses implement ------------------------------------------------------------
     def prepare(self) -> Generator:

@@ -108,3 +108,32 @@ class CurvesCanvas(PlotCanvas):
         for text in legend.get_texts():
             text.set_color(FOREGROUND)
         self.redraw()
+
+
+class ProfileCanvas(PlotCanvas):
+    """Displacement (left) and strain (right) along a line, one curve per field."""
+
+    def __init__(self, parent=None) -> None:
+        super().__init__(2, 2.0, parent)
+
+    def plot(self, groups) -> None:
+        """``groups`` = [displacement profiles, strain profiles] (:mod:`.profile_model`)."""
+        for axes, group in zip(self.axes, groups):
+            axes.clear()
+            style_axes(axes)
+            for index, profile in enumerate(group):
+                axes.plot(
+                    profile.distance,
+                    profile.values,
+                    color=FIELD_COLORS[index % len(FIELD_COLORS)],
+                    linewidth=1.2,
+                    label=profile.source,
+                )
+            if group:
+                axes.set_xlabel("distance along the line", fontsize=8)
+                axes.set_ylabel(f"{group[0].quantity} [{group[0].unit}]", fontsize=8)
+        if groups and groups[0]:
+            legend = self.axes[0].legend(fontsize=7, frameon=False)
+            for text in legend.get_texts():
+                text.set_color(FOREGROUND)
+        self.redraw()

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from qtpy.QtWidgets import QCheckBox, QComboBox, QSpinBox, QTableWidget, QTableWidgetItem
+from qtpy.QtWidgets import QComboBox, QSpinBox, QTableWidget, QTableWidgetItem
 
 from .. import layers as L
 from . import correct_model as model
-from ._base import EngineWidget, LayerCombo, follow_layers
-from .correlate import _is_image, _is_mask
-from .correlate_model import layer_volume, mask_from_layer
+from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
+from .correlate import _is_image
+from .correlate_model import layer_placement, layer_volume, named_volume
+from .regions import RegionBox
 
 
 class CorrectWidget(EngineWidget):
@@ -24,9 +25,6 @@ class CorrectWidget(EngineWidget):
         self.deformed = LayerCombo(self.viewer, _is_image)
         self.form.addRow("Reference (G)", self.reference)
         self.form.addRow("Deformed (F)", self.deformed)
-        self.use_mask = QCheckBox("only inside a mask")
-        self.mask = LayerCombo(self.viewer, _is_mask, optional=True)
-        self.form.addRow(self.use_mask, self.mask)
         self.frame = QComboBox()
         for key, text in model.FRAMES.items():
             self.frame.addItem(text, key)
@@ -39,6 +37,9 @@ class CorrectWidget(EngineWidget):
         self.form.addRow("Frame", self.frame)
         self.form.addRow("Update", self.update_rule)
         self.form.addRow("Passes (at most)", self.max_passes)
+        self.region = RegionBox(self.viewer)  # masked nodes keep their input values
+        self.controls.addWidget(self.region)
+        self.reference.currentIndexChanged.connect(self._reference_changed)
         self.table = QTableWidget(0, 4)
         self.table.setHorizontalHeaderLabels(["pass", "mean residual", "applied", "nodes moved"])
         self.table.verticalHeader().setVisible(False)
@@ -47,10 +48,22 @@ class CorrectWidget(EngineWidget):
         self.field.currentIndexChanged.connect(self._field_changed)
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
+        self._reference_changed()
+
+    def choices(self) -> dict:
+        """Fields this panel can correct: name -> a field, or the list of a series' states."""
+        found: dict = {}
+        for layer in L.quantity_layers(self.viewer):
+            source = L.plugin_metadata(layer)["source"]
+            if source == "corrected" or source.endswith(", corrected)"):
+                continue
+            series = L.series_of(layer)
+            found.setdefault(source, series[1:] if series else L.field_of(layer))
+        return found
 
     def _layers_changed(self, event=None) -> None:
         current = self.field.currentText()
-        names = [name for name in L.fields_in(self.viewer.layers) if name != "corrected"]
+        names = list(self.choices())
         self.field.blockSignals(True)
         self.field.clear()
         self.field.addItems(names)
@@ -61,22 +74,61 @@ class CorrectWidget(EngineWidget):
             self.field.setCurrentText("uncorrected")
         if self.field.currentText() != current:
             self._field_changed()
+        pair_in_order(self.reference, self.deformed, event)
 
     def _field_changed(self, *args) -> None:
-        field = L.fields_in(self.viewer.layers).get(self.field.currentText())
-        if field is not None:
-            self.reference.set_layer(field.metadata.get("reference_layer", ""))
-            self.deformed.set_layer(field.metadata.get("deformed_layer", ""))
+        chosen = self.choices().get(self.field.currentText())
+        series = isinstance(chosen, list)
+        self.reference.setEnabled(not series)  # a series brings its own volumes
+        self.deformed.setEnabled(not series)
+        if chosen is not None and not series:
+            self.reference.set_layer(chosen.metadata.get("reference_layer", ""))
+            self.deformed.set_layer(chosen.metadata.get("deformed_layer", ""))
+
+    def _reference_changed(self, *args) -> None:
+        """The region's defaults follow the reference scan (set once per volume size)."""
+        layer = self.reference.layer()
+        if layer is not None and layer.ndim in (3, 4):
+            volume = layer_volume(layer, 0 if layer.ndim == 4 else None)
+            self.region.set_volume(volume.shape, volume)
+
+    def _mask(self, volume, layer=None):
+        """The region's mask for the volumes of ``volume`` (None: the whole volume)."""
+        if self.region.volume_shape != tuple(volume.shape):
+            self.region.set_volume(volume.shape, volume)
+        placement = layer_placement(layer) if layer is not None else None
+        return self.region.mask(volume.shape, volume, placement)
+
+    def _options(self) -> dict:
+        return {
+            "frame": self.frame.currentData(),
+            "update": self.update_rule.currentData(),
+            "max_passes": self.max_passes.value(),
+        }
 
     def prepare(self):
-        fields = L.fields_in(self.viewer.layers)
+        choices = self.choices()
         source = self.field.currentText()
-        if source not in fields:
+        if source not in choices:
             raise ValueError("no field to correct: run Correlate first (or open a field file)")
+        chosen = choices[source]
+        if isinstance(chosen, list):  # a series: each state against state 0, its own volumes
+            pairs = [
+                (
+                    named_volume(self.viewer.layers, f.metadata.get("reference_layer", "")),
+                    named_volume(self.viewer.layers, f.metadata.get("deformed_layer", "")),
+                )
+                for f in chosen
+            ]
+            self.table.setRowCount(0)
+            self._series_source = source
+            return model.run_series_correction(
+                pairs, chosen, mask=self._mask(pairs[0][0]), **self._options()
+            )
         reference, deformed = self.reference.layer(), self.deformed.layer()
         if reference is None or deformed is None:
             raise ValueError("choose the reference and deformed Image layers of this field")
-        if reference is deformed:
+        if reference.name == deformed.name:
             raise ValueError("the reference and deformed volumes are the same layer")
         g, f = layer_volume(reference), layer_volume(deformed)
         if g.ndim != 3 or g.shape != f.shape:
@@ -84,40 +136,61 @@ class CorrectWidget(EngineWidget):
                 f"'{reference.name}' {g.shape} and '{deformed.name}' {f.shape} must be two 3-D "
                 "volumes of the same shape"
             )
-        mask = None
-        if self.use_mask.isChecked():
-            layer = self.mask.layer()
-            if layer is None:
-                raise ValueError("'only inside a mask' is ticked but no mask is chosen")
-            mask = mask_from_layer(layer, g.shape)
+        mask = self._mask(g, reference)
         self.table.setRowCount(0)
-        return model.run_correction(
-            g,
-            f,
-            fields[source],
-            frame=self.frame.currentData(),
-            update=self.update_rule.currentData(),
-            max_passes=self.max_passes.value(),
-            mask=mask,
-        )
+        return model.run_correction(g, f, chosen, mask=mask, **self._options())
 
-    def on_result(self, result: model.CorrectionResult) -> None:
-        L.show_layers(
-            self.viewer,
-            L.field_layers(
-                result.field,
-                "corrected",
-                voxel_size=result.voxel_size,
-                offset=result.offset,
-                equivalent_strain=result.equivalent_strain,
-            ),
-        )
-        rows = model.pass_rows(result.field)
+    def settings(self) -> dict:
+        """The panel's options, JSON-friendly (for a session file)."""
+        return {
+            "frame": self.frame.currentData(),
+            "update": self.update_rule.currentData(),
+            "max_passes": self.max_passes.value(),
+            "region": self.region.settings(),
+        }
+
+    def restore(self, settings: dict) -> None:
+        for combo, key in ((self.frame, "frame"), (self.update_rule, "update")):
+            index = combo.findData(settings.get(key))
+            if index >= 0:
+                combo.setCurrentIndex(index)
+        self.max_passes.setValue(int(settings.get("max_passes", self.max_passes.value())))
+        if "region" in settings:
+            self.region.restore(settings["region"])
+
+    def _fill_table(self, headers, rows) -> None:
+        self.table.setHorizontalHeaderLabels(headers)
         self.table.setRowCount(len(rows))
         for r, row in enumerate(rows):
             for c, text in enumerate(row):
                 self.table.setItem(r, c, QTableWidgetItem(text))
         self.table.resizeColumnsToContents()
+
+    def _series_result(self, results) -> None:
+        source = self._series_source
+        corrected = source[:-1] + ", corrected)" if source.endswith(")") else source + " corrected"
+        fields = L.series_fields([r.field for r in results])
+        placement = {"voxel_size": results[0].voxel_size, "offset": results[0].offset}
+        L.show_field(self.viewer, L.field_layers(fields, corrected, **placement))
+        rows = model.series_rows(results)
+        self._fill_table(["state", "mean residual", "passes", "nodes moved"], rows)
+        self.show_message(
+            "Self-corrected every state: " + "; ".join(f"{r[0]} {r[1]}" for r in rows) + "."
+        )
+
+    def on_result(self, result) -> None:
+        if isinstance(result, list):
+            self._series_result(result)
+            return
+        L.show_field(
+            self.viewer,
+            L.field_layers(
+                result.field, "corrected", voxel_size=result.voxel_size, offset=result.offset
+            ),
+        )
+        self._fill_table(
+            ["pass", "mean residual", "applied", "nodes moved"], model.pass_rows(result.field)
+        )
         info = result.field.metadata.get("correction", {})
         self.show_message(
             f"Mean gray residual {info.get('mean_gray_residual_before', float('nan')):.3f} → "

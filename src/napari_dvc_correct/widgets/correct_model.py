@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from ..engine.field import DisplacementField
 
 FRAMES = {  # the first entry is the panel's default: the engine's measured best (docs/method.md)
@@ -20,10 +18,9 @@ UPDATES = {
 
 @dataclass
 class CorrectionResult:
-    """The corrected field, its equivalent strain on the grid, and where to show it."""
+    """The corrected field and where to show it."""
 
     field: DisplacementField
-    equivalent_strain: np.ndarray
     voxel_size: tuple
     offset: tuple
 
@@ -44,7 +41,6 @@ def run_correction(
     parameter). Returns a :class:`CorrectionResult`.
     """
     from ..engine.correction import correct_iter
-    from ..engine.strain import equivalent_strain_field
 
     corrected = yield from correct_iter(
         reference,
@@ -60,7 +56,6 @@ def run_correction(
             corrected.metadata[key] = field.metadata[key]
     return CorrectionResult(
         field=corrected,
-        equivalent_strain=equivalent_strain_field(corrected),
         voxel_size=tuple(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
         offset=tuple(field.metadata.get("offset", (0.0, 0.0, 0.0))),
     )
@@ -78,4 +73,35 @@ def pass_rows(field: DisplacementField) -> list[tuple[str, str, str, str]]:
         applied = "—" if number == 0 else ("yes" if entry.get("accepted") else "no")
         changed = f"{100 * float(entry.get('fraction_changed', 0.0)):.0f} %"
         rows.append((label, f"{residual:.3f}", applied, changed))
+    return rows
+
+
+def run_series_correction(pairs, fields, **options):
+    """Self-correct every state of a series: ``pairs[k]`` = (G, F_k) for ``fields[k]``.
+
+    Returns the list of :class:`CorrectionResult`, one per state, in order. ``options`` are
+    those of :func:`run_correction`.
+    """
+    from ..engine.progress import Progress
+
+    results = []
+    for k, ((reference, deformed), field) in enumerate(zip(pairs, fields), start=1):
+        yield Progress(f"state {k}/{len(fields)}", 0, 1, "self-correcting")
+        result = yield from run_correction(reference, deformed, field, **options)
+        results.append(result)
+    return results
+
+
+def series_rows(results) -> list[tuple[str, str, str, str]]:
+    """One row per state for the dock's table: state, residual before → after, passes, moved."""
+    rows = []
+    for k, result in enumerate(results, start=1):
+        info = result.field.metadata.get("correction", {})
+        before = info.get("mean_gray_residual_before", float("nan"))
+        after = info.get("mean_gray_residual_after", float("nan"))
+        table = pass_rows(result.field)
+        moved = table[-1][3] if table else "—"
+        rows.append(
+            (f"state {k}", f"{before:.3f} → {after:.3f}", str(info.get("passes_applied", 0)), moved)
+        )
     return rows

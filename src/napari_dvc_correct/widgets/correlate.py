@@ -10,7 +10,9 @@ from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
     QCheckBox,
     QComboBox,
+    QDoubleSpinBox,
     QGroupBox,
+    QHBoxLayout,
     QLabel,
     QListWidget,
     QListWidgetItem,
@@ -20,7 +22,9 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from . import correlate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line
+from . import regions_model
+from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from .regions import RegionBox
 
 MODES = {
     "pair": "Pair: reference → deformed",
@@ -75,9 +79,6 @@ class CorrelateWidget(EngineWidget):
         self.form.addRow("Strategy", self.strategy)
         self.correct_states = QCheckBox("self-correct every state")
         self.form.addRow("", self.correct_states)
-        self.use_mask = QCheckBox("only inside a mask")
-        self.mask = LayerCombo(self.viewer, _is_mask, optional=True)
-        self.form.addRow(self.use_mask, self.mask)
 
         self.subvolume = QSpinBox()
         self.subvolume.setRange(5, 401)
@@ -109,12 +110,29 @@ class CorrelateWidget(EngineWidget):
             "auto: a CUDA GPU when numba sees a working one, else the CPU (the run says which)"
         )
         self.form.addRow("Device", self.device)
+        self.voxel_size = QDoubleSpinBox()
+        self.voxel_size.setDecimals(4)
+        self.voxel_size.setRange(1e-4, 1e6)
+        self.voxel_size.setValue(1.0)
+        self.voxel_size.setToolTip(
+            "Physical size of a voxel (isotropic): it sets the scans' scale, the scale bar, the "
+            "units of the displacements shown and the voxel size written with every export"
+        )
+        self.unit = QComboBox()
+        for unit in model.UNITS:
+            self.unit.addItem(unit or "voxels (no unit)", unit)
+        voxel_row = QHBoxLayout()
+        voxel_row.addWidget(self.voxel_size)
+        voxel_row.addWidget(self.unit)
+        self.form.addRow("Voxel size", voxel_row)
         self.preview = QCheckBox("preview the POI grid and one subvolume")
         self.preview.setChecked(True)
         self.form.addRow(self.preview)
         self.estimate_label = QLabel("")
         self.estimate_label.setWordWrap(True)
         self.form.addRow("Estimate", self.estimate_label)
+        self.region = RegionBox(self.viewer)
+        self.controls.addWidget(self.region)
 
         self.poi_box = QGroupBox("Clicked POI")
         poi_layout = QVBoxLayout(self.poi_box)
@@ -135,14 +153,21 @@ class CorrelateWidget(EngineWidget):
             self.search_radius.valueChanged,
             self.preview.toggled,
             self.series_list.itemChanged,
+            *self.region.changed_signals(),
         ):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
+        self.reference.currentIndexChanged.connect(self._show_voxel_size)
+        self._voxel_edited = False
+        self.voxel_size.valueChanged.connect(lambda *a: setattr(self, "_voxel_edited", True))
+        self.voxel_size.editingFinished.connect(self.apply_voxel_size)
+        self.unit.currentIndexChanged.connect(self.apply_voxel_size)
         self.subvolume.editingFinished.connect(self._make_odd)
         follow_layers(self.viewer, self, self._layers_changed)
         self.viewer.mouse_drag_callbacks.append(self._on_click)
         self._layers_changed()
         self._mode_changed()
+        self._show_voxel_size()
 
     # -- choices ------------------------------------------------------------------------------
     @property
@@ -176,13 +201,66 @@ class CorrelateWidget(EngineWidget):
             elif role == "series":
                 self.mode.setCurrentIndex(list(MODES).index("series4d"))
                 self.reference.set_layer(layer)
-        if self.reference.layer() is self.deformed.layer():
-            others = [x for x in images if x is not self.reference.layer() and x.ndim == 3]
-            if others:
-                self.deformed.set_layer(others[0])
+        if self.current_mode == "pair":
+            pair_in_order(self.reference, self.deformed, event)
         self._refresh_series_list(images)
         if inserted is None or _is_image(inserted) or _is_mask(inserted):
             self._update.trigger()
+
+    def _scans(self) -> list:
+        """The layers the current choice correlates (pair, 4-D series or ticked layers)."""
+        mode = self.current_mode
+        if mode == "pair":
+            chosen = [self.reference.layer(), self.deformed.layer()]
+        elif mode == "series4d":
+            chosen = [self.reference.layer()]
+        else:
+            chosen = [self.viewer.layers[name] for name in self._ticked()]
+        return [x for x in chosen if x is not None]
+
+    def _show_voxel_size(self, *args) -> None:
+        """Show the reference layer's voxel size (its scale along x) and unit."""
+        layer = self.reference.layer()
+        if layer is None:
+            return
+        if layer.ndim in (3, 4):  # the region's defaults follow the scans' size
+            self.region.set_volume(
+                layer.data.shape[-3:], model.layer_volume(layer, 0 if layer.ndim == 4 else None)
+            )
+        self.voxel_size.blockSignals(True)
+        self.voxel_size.setValue(float(np.asarray(layer.scale)[-1]))
+        self.voxel_size.blockSignals(False)
+        unit = str(layer.units[-1]) if getattr(layer, "units", None) else ""
+        symbol = {"nanometer": "nm", "micrometer": "µm", "millimeter": "mm"}.get(unit, "")
+        self.unit.blockSignals(True)
+        self.unit.setCurrentIndex(max(0, self.unit.findData(symbol)))
+        self.unit.blockSignals(False)
+
+    def apply_voxel_size(self, *args) -> None:
+        """Give the chosen scans the voxel size (once typed) and unit of the form.
+
+        The scans' scale, the scale bar, the fields' placement and the exports follow.
+        """
+        edited, self._voxel_edited = self._voxel_edited, False
+        unit = self.unit.currentData()
+        for layer in self._scans():
+            if edited:  # an anisotropic scale stays until the user types a size
+                layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
+            if unit:
+                layer.units = (unit,) * layer.ndim
+        if unit:
+            for layer in self.viewer.layers:  # napari ignores units that disagree
+                if L.plugin_metadata(layer) is not None:
+                    layer.units = (unit,) * layer.ndim
+            L.canvas_overlay(self.viewer, "scale_bar").visible = True
+        self._update.trigger()
+
+    def _ticked(self) -> list[str]:
+        return [
+            self.series_list.item(i).text()
+            for i in range(self.series_list.count())
+            if self.series_list.item(i).checkState() == Qt.CheckState.Checked
+        ]
 
     def _refresh_series_list(self, images) -> None:
         checked = {
@@ -249,11 +327,7 @@ class CorrelateWidget(EngineWidget):
             names = [f"{reference.name}[{t}]" for t in range(n_states)]
             strategy = self.strategy.currentData()
         else:
-            names = [
-                self.series_list.item(i).text()
-                for i in range(self.series_list.count())
-                if self.series_list.item(i).checkState() == Qt.CheckState.Checked
-            ]
+            names = self._ticked()
             if len(names) < 2:
                 raise ValueError("tick at least two layers of the series (first = reference)")
             chosen = [self.viewer.layers[name] for name in names]
@@ -269,15 +343,10 @@ class CorrelateWidget(EngineWidget):
             raise ValueError(
                 f"subvolume {params.subvolume} is larger than the volume {volumes[0].shape}"
             )
-        mask = None
-        if self.use_mask.isChecked():
-            mask_layer = self.mask.layer()
-            if mask_layer is None:
-                raise ValueError(
-                    "'only inside a mask' is ticked but no mask is chosen: pick a Labels or "
-                    "Shapes layer, or untick it"
-                )
-            mask = model.mask_from_layer(mask_layer, volumes[0].shape)
+        voxel_size, offset = model.layer_placement(reference)
+        self.region.set_volume(volumes[0].shape, volumes[0])
+        mask = self.region.mask(volumes[0].shape, volumes[0], (voxel_size, offset))
+        kept = None if mask is None else regions_model.check_kept(mask, params)
         voxel_size, offset = model.layer_placement(reference)
         return model.CorrelationJob(
             volumes=volumes,
@@ -289,7 +358,54 @@ class CorrelateWidget(EngineWidget):
             offset=offset,
             names=names,
             device=self.device.currentData(),
+            unit=self.unit.currentData() or None,
+            kept=kept,
         )
+
+    # -- sessions -------------------------------------------------------------------------------
+    def settings(self) -> dict:
+        """The panel's choices, JSON-friendly (for a session file)."""
+        return {
+            "mode": self.current_mode,
+            "reference": self.reference.currentText(),
+            "deformed": self.deformed.currentText(),
+            "series": self._ticked(),
+            "strategy": self.strategy.currentData(),
+            "correct_states": self.correct_states.isChecked(),
+            "subvolume": self.subvolume.value(),
+            "step": self.step.value(),
+            "order": self.order.currentData(),
+            "search_radius": self.search_radius.value(),
+            "device": self.device.currentData(),
+            "unit": self.unit.currentData(),
+            "region": self.region.settings(),
+        }
+
+    def restore(self, settings: dict) -> None:
+        """Take back :meth:`settings` (missing entries keep their current value)."""
+        for combo, key in (
+            (self.mode, "mode"),
+            (self.strategy, "strategy"),
+            (self.order, "order"),
+            (self.device, "device"),
+        ):
+            if key in settings and combo.findData(settings[key]) >= 0:
+                combo.setCurrentIndex(combo.findData(settings[key]))
+        self.reference.set_layer(settings.get("reference", ""))
+        self.deformed.set_layer(settings.get("deformed", ""))
+        self.set_series_layers(settings.get("series", []))
+        self.correct_states.setChecked(bool(settings.get("correct_states", False)))
+        for box, key in ((self.subvolume, "subvolume"), (self.step, "step")):
+            if key in settings:
+                box.setValue(int(settings[key]))
+        self.search_radius.setValue(int(settings.get("search_radius", 0)))
+        self.unit.blockSignals(True)  # the scans' scale came back with them
+        self.unit.setCurrentIndex(max(0, self.unit.findData(settings.get("unit", ""))))
+        self.unit.blockSignals(False)
+        self._show_voxel_size()
+        if "region" in settings:
+            self.region.restore(settings["region"])
+        self._update.trigger()
 
     # -- preview and estimate ------------------------------------------------------------------
     def update_preview(self) -> None:
@@ -301,11 +417,14 @@ class CorrelateWidget(EngineWidget):
             self._set_preview_visible(False)
             return
         estimate = model.estimate_run(job.shape, job.params, n_pairs=len(job.volumes) - 1)
-        self.estimate_label.setText(estimate.text())
+        region = f"; {job.kept.text()}" if job.kept is not None else ""
+        self.estimate_label.setText(estimate.text() + region)
         if not self.preview.isChecked():
             self._set_preview_visible(False)
             return
         points, box, _ = model.grid_preview(job.shape, job.params)
+        if job.mask is not None:  # the POIs the region keeps, so the region shows
+            points = points[regions_model.kept_at(job.mask, job.params, points)]
         placement = L.dense_placement(job.voxel_size, job.offset)
         points_style = {
             "size": max(1.0, job.params.step / 3),
@@ -321,6 +440,24 @@ class CorrelateWidget(EngineWidget):
         }
         self._show_preview(PREVIEW_POINTS, points, "points", placement, points_style)
         self._show_preview(PREVIEW_BOX, box, "shapes", placement, box_style)
+        self._slice_on_grid(job)
+
+    def _slice_on_grid(self, job) -> None:
+        """In 2-D, move the z slider onto a plane of POIs if it sits between two (or the grid
+        preview shows nothing): the central plane of the grid."""
+        if self.viewer.dims.ndisplay != 2 or self.viewer.dims.ndim < 3:
+            return
+        origin, step, shape = model.grid_for_volume(
+            job.shape, job.params.subvolume, job.params.step
+        )
+        axis = self.viewer.dims.ndim - 3
+        vs, off = float(job.voxel_size[0]), float(job.offset[0])
+        z = (float(self.viewer.dims.point[axis]) - off) / vs  # voxels
+        index = (z - origin[0]) / step[0]
+        on_grid = abs(index - round(index)) * step[0] < 0.5 and 0 <= round(index) < shape[0]
+        if not on_grid:
+            centre = origin[0] + step[0] * (shape[0] // 2)
+            self.viewer.dims.set_point(axis, off + centre * vs)
 
     def _show_preview(self, name: str, data, layer_type: str, placement: dict, style: dict):
         """Update the preview layer ``name`` in place, or make it the first time."""
@@ -343,6 +480,8 @@ class CorrelateWidget(EngineWidget):
     # -- running ------------------------------------------------------------------------------
     def prepare(self):
         self._update.timer.stop()
+        if self._voxel_edited:  # typed but not confirmed yet
+            self.apply_voxel_size()
         job = self.job()
         self._started = (time.perf_counter(), job.shape, job.params, len(job.volumes) - 1)
         return model.run_job(job)
@@ -351,25 +490,19 @@ class CorrelateWidget(EngineWidget):
         started, shape, params, n_pairs = self._started
         model.record_timing(time.perf_counter() - started, shape, params, n_pairs)
         self._set_preview_visible(False)
-        tuples = []
-        series = len(result.fields) > 1
-        for index, (source, field, equivalent) in enumerate(result.fields):
-            layers = L.field_layers(
-                field,
-                source,
-                voxel_size=result.voxel_size,
-                offset=result.offset,
-                equivalent_strain=equivalent,
-                components=not series,
-            )
-            if series and index < len(result.fields) - 1:  # show the last state only
-                for _, kwargs, _ in layers:
-                    kwargs["visible"] = False
-            tuples += layers
-        L.show_layers(self.viewer, tuples)
-        field = result.fields[-1][1]
-        counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
-        self.show_message(f"Done: {counts}.")
+        placement = {"voxel_size": result.voxel_size, "offset": result.offset}
+        if len(result.fields) == 1:
+            source, field = result.fields[0]
+            L.show_field(self.viewer, L.field_layers(field, source, **placement))
+        else:  # a series: one 4-D field, state 0 (no displacement) first
+            source = "series " + result.fields[0][0].split(" ", 2)[2]
+            fields = L.series_fields([item[1] for item in result.fields])
+            L.show_field(self.viewer, L.field_layers(fields, source, **placement))
+        lines = []
+        for source, field in result.fields:
+            counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
+            lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
+        self.show_message("Done: " + "; ".join(lines) + ".")
 
     # -- clicked POI --------------------------------------------------------------------------
     def _field_layer(self):

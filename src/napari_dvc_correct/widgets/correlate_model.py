@@ -49,6 +49,10 @@ class CorrelationJob:
         ``scale`` and ``translate`` (z, y, x) of the reference layer, for display.
     names : list of str
         Names of the layers (or states) the volumes come from.
+    unit : str or None
+        Length unit of ``voxel_size`` (``"µm"``...), None for plain voxels.
+    kept : regions_model.Kept or None
+        How many POIs the region keeps (None for the whole volume).
     device : {"auto", "cpu", "cuda"}
         Where IC-GN runs for a pair (:func:`..engine.backend.select_device`); scan series run on
         the CPU.
@@ -63,6 +67,8 @@ class CorrelationJob:
     offset: tuple = (0.0, 0.0, 0.0)
     names: list = field(default_factory=list)
     device: str = "auto"
+    unit: str | None = None
+    kept: object = None
 
     @property
     def shape(self) -> tuple:
@@ -71,7 +77,7 @@ class CorrelationJob:
 
 @dataclass
 class CorrelationResult:
-    """What a run returns to the panel: one ``(source, field, equivalent strain)`` per field."""
+    """What a run returns to the panel: one ``(source, field)`` per field."""
 
     fields: list
     voxel_size: tuple = (1.0, 1.0, 1.0)
@@ -86,6 +92,8 @@ def _finish(field: DisplacementField, job: CorrelationJob, names) -> Displacemen
         reference_layer=names[0],
         deformed_layer=names[1],
     )
+    if job.unit:
+        field.metadata["unit"] = job.unit
     return field
 
 
@@ -97,7 +105,6 @@ def run_job(job: CorrelationJob):
     was self-corrected), each the total displacement from state 0.
     """
     from ..engine.correlate import correlate_iter
-    from ..engine.strain import equivalent_strain_field
 
     results = []
     if job.strategy == "pair":
@@ -105,14 +112,14 @@ def run_job(job: CorrelationJob):
             job.volumes[0], job.volumes[1], job.params, mask=job.mask, device=job.device
         )
         field = _finish(field, job, job.names)
-        results.append(("uncorrected", field, equivalent_strain_field(field)))
+        results.append(("uncorrected", field))
     else:
         fields = yield from run_series(job)
         suffix = ", corrected" if job.correct_states else ""
         for k, field in enumerate(fields, start=1):
             field = _finish(field, job, [job.names[0], job.names[k]])
             source = f"state {k} ({job.strategy}{suffix})"
-            results.append((source, field, equivalent_strain_field(field)))
+            results.append((source, field))
     return CorrelationResult(results, job.voxel_size, job.offset)
 
 
@@ -138,12 +145,40 @@ def layer_volume(layer, index: int | None = None) -> np.ndarray:
     return data
 
 
+def named_volume(layers, name: str) -> np.ndarray:
+    """The volume a field's metadata names: a layer, or ``"layer[k]"``, state k of a 4-D layer.
+
+    ``layers`` is the viewer's layer list (indexable by name). Raises ValueError when the
+    volume is not open any more.
+    """
+    import re
+
+    match = re.fullmatch(r"(.*)\[(\d+)\]", str(name))
+    if match and match.group(1) in layers:
+        return layer_volume(layers[match.group(1)], int(match.group(2)))
+    if name in layers:
+        return layer_volume(layers[name])
+    raise ValueError(f"the volume '{name}' this field was measured on is not open any more")
+
+
 def layer_placement(layer) -> tuple[tuple, tuple]:
     """``(voxel_size, offset)``: the last three entries of ``scale`` and ``translate``."""
     return (
         tuple(float(v) for v in np.asarray(layer.scale)[-3:]),
         tuple(float(v) for v in np.asarray(layer.translate)[-3:]),
     )
+
+
+#: Length units offered for the voxel size ("" = plain voxels, no physical size).
+UNITS = ("", "nm", "µm", "mm")
+
+
+def voxel_scale(scale, voxel_size: float) -> tuple:
+    """``scale`` of a scan layer with an isotropic ``voxel_size`` on its last three axes."""
+    scale = [float(v) for v in scale]
+    if not voxel_size > 0:
+        raise ValueError(f"the voxel size must be > 0, got {voxel_size}")
+    return tuple(scale[:-3] + [float(voxel_size)] * 3)
 
 
 def check_volume(shape, name: str) -> None:
@@ -193,12 +228,14 @@ def check_mask(mask, volume_shape, name: str = "mask") -> np.ndarray:
 
 
 def mask_from_layer(layer, volume_shape) -> np.ndarray:
-    """Boolean mask from a Labels layer (non-zero) or a Shapes layer (inside any shape)."""
-    if hasattr(layer, "to_labels"):  # Shapes
-        data = layer.to_labels(labels_shape=tuple(volume_shape))
-    else:
-        data = layer.data
-    return check_mask(data, volume_shape, layer.name)
+    """Boolean mask from a Labels layer (non-zero) or a Shapes layer, extruded through z.
+
+    A shape drawn on one slice (of a 2-D or a 3-D Shapes layer) stands for its outline through
+    every slice (:func:`.regions_model.layer_mask`).
+    """
+    from .regions_model import layer_mask
+
+    return check_mask(layer_mask(layer, volume_shape), volume_shape, layer.name)
 
 
 def make_params(

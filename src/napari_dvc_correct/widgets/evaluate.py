@@ -17,10 +17,10 @@ from superqt import QDoubleRangeSlider
 
 from .. import layers as L
 from . import evaluate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line
+from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._plots import CurvesCanvas, HistogramCanvas
 from .correlate import _is_image
-from .correlate_model import layer_placement, layer_volume
+from .correlate_model import layer_placement, layer_volume, named_volume
 
 MODES = {
     "reference": "reference frame: |F(X + u) − G(X)|",
@@ -106,10 +106,7 @@ class EvaluateWidget(EngineWidget):
             source = new_field if new_field is not None else first
             self.reference.set_layer(source.metadata.get("reference_layer", ""))
             self.deformed.set_layer(source.metadata.get("deformed_layer", ""))
-        if event is None and self.reference.layer() is self.deformed.layer():
-            others = [x for x in self.deformed.layers() if x is not self.reference.layer()]
-            if others:
-                self.deformed.set_layer(others[0])
+        pair_in_order(self.reference, self.deformed, event)
 
     def checked_fields(self) -> list[str]:
         return [
@@ -123,25 +120,47 @@ class EvaluateWidget(EngineWidget):
         if layer is None:
             raise ValueError(f"choose the {name} Image layer")
         volume = layer_volume(layer)
+        if volume.ndim == 4 and name == "reference":  # a series: its first state
+            volume = volume[0]
         if volume.ndim != 3:
             raise ValueError(f"'{layer.name}' is not a 3-D volume (shape {volume.shape})")
         return volume
 
     def _reference_changed(self, *args) -> None:
         layer = self.reference.layer()
-        if layer is None or layer.ndim != 3:
+        if layer is None or layer.ndim not in (3, 4):
             return
         key = (layer.name, id(layer.data))
         if key == self._volume_key:
             return
         self._volume_key = key
-        volume = layer_volume(layer)
+        volume = self._volume(self.reference, "reference")
         counts, edges = model.gray_histogram(volume)
         self.histogram.set_histogram(counts, edges)
         self.slider.blockSignals(True)
         self.slider.setRange(float(edges[0]), float(edges[-1]))
         self.slider.blockSignals(False)
         self.auto_thresholds(show=False)
+
+    # -- sessions -------------------------------------------------------------------------------
+    def settings(self) -> dict:
+        """Thresholds, number of phases and residual mode, JSON-friendly (for a session file)."""
+        return {
+            "n_phases": self.n_phases.value(),
+            "thresholds": self.thresholds(),
+            "mode": self.mode.currentData(),
+        }
+
+    def restore(self, settings: dict) -> None:
+        index = self.mode.findData(settings.get("mode"))
+        if index >= 0:
+            self.mode.setCurrentIndex(index)
+        self.n_phases.blockSignals(True)  # no automatic thresholds over the saved ones
+        self.n_phases.setValue(int(settings.get("n_phases", self.n_phases.value())))
+        self.n_phases.blockSignals(False)
+        self._reference_changed()
+        if settings.get("thresholds"):
+            self.set_thresholds(settings["thresholds"], show=False)
 
     # -- thresholds and live phases -----------------------------------------------------------
     def thresholds(self) -> list[float]:
@@ -201,24 +220,61 @@ class EvaluateWidget(EngineWidget):
         self.show_phases = True
         self._live.trigger()
         self._live.flush()
+        self._volume(self.reference, "reference")  # a 2-D image is refused first
+        fields = L.fields_in(self.viewer.layers)
+        chosen = {name: fields[name] for name in self.checked_fields() if name in fields}
+        if not chosen:
+            raise ValueError("no field to evaluate: run Correlate (and Self-correct) first")
+        self._placement = (
+            layer_placement(self.reference.layer()) if self.reference.layer() else None
+        )
+        groups = self._groups(chosen)
+        if len(groups) > 1:  # a series: each state against its own pair of volumes
+            return model.run_groups(groups, self.thresholds(), self.mode.currentData())
+        _, reference, deformed, chosen = groups[0]
+        return model.run_evaluation(
+            reference, deformed, chosen, self.thresholds(), self.mode.currentData()
+        )
+
+    def _panel_pair(self):
         reference = self._volume(self.reference, "reference")
         deformed = self._volume(self.deformed, "deformed")
-        if self.reference.layer() is self.deformed.layer():
+        if self.reference.currentText() == self.deformed.currentText():
             raise ValueError("the reference and deformed volumes are the same layer")
         if reference.shape != deformed.shape:
             raise ValueError(
                 f"reference {reference.shape} and deformed {deformed.shape} differ in shape"
             )
-        fields = L.fields_in(self.viewer.layers)
-        chosen = {name: fields[name] for name in self.checked_fields() if name in fields}
-        if not chosen:
-            raise ValueError("no field to evaluate: run Correlate (and Self-correct) first")
-        self._placement = layer_placement(self.reference.layer())
-        return model.run_evaluation(
-            reference, deformed, chosen, self.thresholds(), self.mode.currentData()
-        )
+        return reference, deformed
+
+    def _groups(self, chosen: dict) -> list:
+        """Chosen fields grouped by the pair of volumes they were measured on.
+
+        A field measured on the states of a series (``"scan[2]"``) is evaluated on them; the
+        others on the panel's reference and deformed volumes.
+        """
+        groups: dict = {}
+        for name, field in chosen.items():
+            pair = (field.metadata.get("reference_layer"), field.metadata.get("deformed_layer"))
+            if "[" in str(pair[1]):
+                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
+                label = f"state {pair[1].rsplit('[', 1)[1].rstrip(']')}"
+            else:
+                pair, label = None, ""
+                volumes = groups[None][1:3] if None in groups else self._panel_pair()
+            entry = groups.setdefault(pair, [label, *volumes, {}])
+            entry[3][name] = field
+        return [tuple(entry) for entry in groups.values()]
 
     def on_result(self, evaluation) -> None:
+        if isinstance(evaluation, list):  # a series: one evaluation per state
+            self.evaluations = evaluation
+            self.evaluation = evaluation[-1][1]
+            self.summary.setText(model.groups_text(evaluation))
+            self.curves.plot(self.evaluation)
+            self.show_message(f"Evaluation done for {len(evaluation)} states.")
+            return
+        self.evaluations = [("", evaluation)]
         self.evaluation = evaluation
         report = model.evaluation_report(evaluation)
         voxel_size, offset = self._placement

@@ -172,3 +172,30 @@ def summary_text(evaluation) -> str:
             f"{item.background_used:.2f}, accuracy index p = {item.accuracy:.4f}"
         )
     return "\n".join(lines)
+
+
+def run_groups(groups, thresholds, mode: str = "reference"):
+    """Evaluate fields measured on different pairs (the states of a series), pair by pair.
+
+    Parameters
+    ----------
+    groups : list of (label, reference, deformed, fields)
+        One entry per pair of volumes, e.g. ``("state 2", G0, F2, {"state 2 (total)": d})``.
+
+    Returns
+    -------
+    list of (label, Evaluation)
+    """
+    from ..engine.progress import Progress
+
+    results = []
+    for index, (label, reference, deformed, fields) in enumerate(groups):
+        yield Progress(f"{label} ({index + 1}/{len(groups)})", 0, 1, "evaluating")
+        evaluation = yield from run_evaluation(reference, deformed, fields, thresholds, mode)
+        results.append((label, evaluation))
+    return results
+
+
+def groups_text(results) -> str:
+    """The per-pair summary: one block of :func:`summary_text` per state."""
+    return "\n".join(f"— {label} —\n{summary_text(evaluation)}" for label, evaluation in results)

@@ -5,15 +5,40 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from qtpy.QtWidgets import QCheckBox, QComboBox, QFileDialog, QHBoxLayout, QLineEdit, QPushButton
+from qtpy.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QFileDialog,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QPushButton,
+)
 
 from .. import layers as L
 from . import export_model as model
 from ._base import EngineWidget, follow_layers
 
 
+def default_folder(viewer) -> Path:
+    """Where exports go unless the user says otherwise: the folder of the first opened scan."""
+    for layer in viewer.layers:
+        path = getattr(getattr(layer, "source", None), "path", None)
+        if path:
+            folder = Path(path)
+            folder = folder if folder.is_dir() else folder.parent
+            if folder.is_dir():
+                return folder
+    return Path.cwd()
+
+
 class ExportWidget(EngineWidget):
-    """Write the current field (uncorrected or corrected) and what was computed from it."""
+    """Write the latest field (the corrected one once there is one) and what came from it.
+
+    The Field choice follows each new result; the line under it says which field the export
+    writes (corrected or not, passes, residuals) and the file name follows the field until the
+    user edits it.
+    """
 
     run_text = "Export"
 
@@ -21,11 +46,15 @@ class ExportWidget(EngineWidget):
         super().__init__(napari_viewer, parent)
         self.field = QComboBox()
         self.form.addRow("Field", self.field)
+        self.writes = QLabel("")
+        self.writes.setWordWrap(True)
+        self.form.addRow("Writes", self.writes)
         self.format = QComboBox()
         for label, suffix in model.FORMATS.items():
             self.format.addItem(label, suffix)
         self.form.addRow("Format", self.format)
-        self.path = QLineEdit(str(Path.home() / "dvc_field.npz"))
+        self.path = QLineEdit("")
+        self._proposed = ""
         browse = QPushButton("Browse…")
         row = QHBoxLayout()
         row.addWidget(self.path)
@@ -38,25 +67,64 @@ class ExportWidget(EngineWidget):
         self.report = QCheckBox("evaluation report (.md and .json)")
         for box in (self.with_strain, self.strain_tiff, self.residual_tiff, self.report):
             self.form.addRow(box)
+        sessions = QHBoxLayout()
+        self.save_session_button = QPushButton("Save session…")
+        self.open_session_button = QPushButton("Open session…")
+        self.save_session_button.setToolTip(
+            "The scans' paths, every panel's parameters and thresholds, and the fields"
+        )
+        sessions.addWidget(self.save_session_button)
+        sessions.addWidget(self.open_session_button)
+        self.form.addRow("Session", sessions)
+        self.save_session_button.clicked.connect(lambda checked=False: self._session_dialog(True))
+        self.open_session_button.clicked.connect(lambda checked=False: self._session_dialog(False))
         browse.clicked.connect(self.browse)
         self.format.currentIndexChanged.connect(self._format_changed)
+        self.field.currentIndexChanged.connect(self._field_changed)
+        for signal in (self.path.textEdited, self.format.currentIndexChanged):
+            signal.connect(lambda *args: self.clear_message())
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
 
     def _layers_changed(self, event=None) -> None:
+        """Keep the list of fields; a new field (the latest result) becomes the choice."""
         current = self.field.currentText()
+        fields = L.fields_in(self.viewer.layers)
+        names = list(fields)
+        inserted = getattr(event, "value", None) if event is not None else None
+        latest = None
+        if inserted is not None and L.field_of(inserted) is not None:
+            source = L.plugin_metadata(inserted)["source"]
+            series = L.series_of(inserted)
+            latest = L.state_source(source, len(series) - 1) if series else source
+        elif current not in names:
+            corrected = [n for n in names if "corrected" in n and "uncorrected" not in n]
+            latest = corrected[-1] if corrected else (names[-1] if names else None)
+        self.field.blockSignals(True)
         self.field.clear()
-        names = list(L.fields_in(self.viewer.layers))
         self.field.addItems(names)
-        if current in names:
-            self.field.setCurrentText(current)
-        elif "corrected" in names:
-            self.field.setCurrentText("corrected")
+        self.field.setCurrentText(latest if latest in names else current)
+        self.field.blockSignals(False)
+        self._field_changed()
+
+    def _field_changed(self, *args) -> None:
+        source = self.field.currentText()
+        field = L.fields_in(self.viewer.layers).get(source)
+        self.writes.setText(model.describe(field, source) if field is not None else "no field yet")
+        # the file name follows the field until the user types their own
+        text = self.path.text().strip()
+        if field is not None and (not text or text == self._proposed):
+            folder = Path(text).parent if text else default_folder(self.viewer)
+            self._proposed = str(folder / model.default_name(source, self.format.currentData()))
+            self.path.setText(self._proposed)
 
     def _format_changed(self, *args) -> None:
         text = self.path.text().strip()
         if text:
+            proposed = text == self._proposed
             self.path.setText(str(Path(text).with_suffix(self.format.currentData())))
+            if proposed:
+                self._proposed = self.path.text()
 
     def set_format(self, suffix: str) -> None:
         """Choose the format by file suffix (``".vti"``, ``".csv"``...)."""
@@ -71,6 +139,54 @@ class ExportWidget(EngineWidget):
         )
         if path:
             self.path.setText(path)
+            self._proposed = ""
+
+    def panels(self) -> dict:
+        """The plugin's other panels docked in the same window, by name (for sessions)."""
+        from .correct import CorrectWidget
+        from .correlate import CorrelateWidget
+        from .evaluate import EvaluateWidget
+
+        found = {}
+        for name, cls in (
+            ("Correlate", CorrelateWidget),
+            ("Self-correct", CorrectWidget),
+            ("Evaluate", EvaluateWidget),
+        ):
+            widgets = self.window().findChildren(cls)
+            if widgets:
+                found[name] = widgets[0]
+        return found
+
+    def _session_dialog(self, save: bool) -> None:
+        from .session_model import SUFFIX
+
+        folder = str(default_folder(self.viewer))
+        if save:
+            path, _ = QFileDialog.getSaveFileName(self, "Save the session", folder, f"*{SUFFIX}")
+        else:
+            path, _ = QFileDialog.getOpenFileName(self, "Open a session", folder, f"*{SUFFIX}")
+        if path:
+            self.session(path, save=save)
+
+    def session(self, path, save: bool = True):
+        """Save the session to ``path`` (or open it); the message line says what happened."""
+        from . import session
+
+        self.clear_message()
+        try:
+            if save:
+                written = session.save_session(self.viewer, path, self.panels())
+                self.show_message(f"Session saved to {written}.")
+                return written
+            content = session.open_session(self.viewer, path, self.panels())
+            self.show_message(
+                f"Session opened: {len(content['scans'])} scans, {len(content['fields'])} fields."
+            )
+            return content
+        except ValueError as error:
+            self.show_message(str(error), error=True)
+            return None
 
     def _layer_of(self, source: str, kind: str):
         for layer in self.viewer.layers:
@@ -86,15 +202,11 @@ class ExportWidget(EngineWidget):
             raise ValueError("no field to export: run Correlate first (or open a field file)")
         field = fields[source]
         path = model.check_path(self.path.text(), self.format.currentData())
-        strain_layer = self._layer_of(source, "equivalent strain")
         strain = None
         if self.with_strain.isChecked() or self.strain_tiff.isChecked():
-            if strain_layer is not None:
-                strain = np.asarray(strain_layer.data)
-            else:
-                from ..engine.strain import equivalent_strain_field
+            from ..engine.strain import equivalent_strain_field
 
-                strain = equivalent_strain_field(field)
+            strain = equivalent_strain_field(field)
         residual = report = None
         if self.residual_tiff.isChecked() or self.report.isChecked():
             residual_layer = self._layer_of(source, "residual")
@@ -111,6 +223,7 @@ class ExportWidget(EngineWidget):
             model.ExportRequest(
                 field=field,
                 path=path,
+                source=source,
                 equivalent_strain=strain,
                 strain_with_field=self.with_strain.isChecked(),
                 strain_tiff=self.strain_tiff.isChecked(),

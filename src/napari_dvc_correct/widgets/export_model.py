@@ -1,4 +1,10 @@
-"""The Export panel without Qt: what to write for a field, as a generator for the worker."""
+"""The Export panel without Qt: what to write for a field, as a generator for the worker.
+
+Every export carries the field's provenance (:func:`provenance`: which field, corrected or not,
+passes, gray residuals, DVC parameters, voxel size): inside the file for NPZ and HDF5 (the
+field's ``metadata["provenance"]``), in a ``STEM_provenance.json`` next to it for VTK, TIFF and
+CSV, which have no place for it.
+"""
 
 from __future__ import annotations
 
@@ -28,6 +34,8 @@ class ExportRequest:
     Attributes
     ----------
     field : DisplacementField
+    source : str
+        The panel's name of the field (recorded in its provenance).
     path : Path
         Target of the field file; the extras are written next to it, named after its stem.
     equivalent_strain : ndarray (nz, ny, nx) or None
@@ -45,6 +53,7 @@ class ExportRequest:
 
     field: DisplacementField
     path: Path
+    source: str = "field"
     equivalent_strain: np.ndarray | None = None
     strain_with_field: bool = True
     strain_tiff: bool = False
@@ -53,6 +62,57 @@ class ExportRequest:
     voxel_size: tuple = (1.0, 1.0, 1.0)
     offset: tuple = (0.0, 0.0, 0.0)
     written: list = field(default_factory=list)
+
+
+#: Formats that keep the field's metadata inside the file (the others get a JSON side file).
+WITH_METADATA = (".npz", ".h5", ".hdf5")
+
+
+def provenance(field: DisplacementField, source: str) -> dict:
+    """Where an exported field comes from, JSON-friendly.
+
+    Keys: ``source`` (the panel's name of the field), ``corrected`` (bool), ``passes_applied``,
+    ``mean_gray_residual_before``/``_after`` (gray levels, None when not corrected),
+    ``correction`` (the options), ``params`` (DVC parameters), ``voxel_size`` (z, y, x),
+    ``unit``, ``reference``/``deformed`` (layer names), ``status_counts``.
+    """
+    info = field.metadata.get("correction") or {}
+    corrected = bool(info) or "correction_passes" in field.metadata
+    return {
+        "source": source,
+        "corrected": corrected,
+        "passes_applied": int(info.get("passes_applied", 0)) if corrected else 0,
+        "mean_gray_residual_before": info.get("mean_gray_residual_before"),
+        "mean_gray_residual_after": info.get("mean_gray_residual_after"),
+        "correction": {k: v for k, v in info.items() if k != "seconds"},
+        "params": dict(field.params),
+        "voxel_size": list(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
+        "unit": field.metadata.get("unit") or "voxel",
+        "reference": field.metadata.get("reference_layer"),
+        "deformed": field.metadata.get("deformed_layer"),
+        "status_counts": field.status_counts(),
+    }
+
+
+def describe(field: DisplacementField, source: str) -> str:
+    """One line for the panel: which field the export writes."""
+    info = provenance(field, source)
+    text = f"the '{source}' field, {field.n_points:,} POIs, "
+    if not info["corrected"]:
+        return text + "not self-corrected"
+    before, after = info["mean_gray_residual_before"], info["mean_gray_residual_after"]
+    text += f"self-corrected ({info['passes_applied']} pass(es)"
+    if before is not None and after is not None:
+        text += f", mean gray residual {before:.3g} → {after:.3g}"
+    return text + ")"
+
+
+def default_name(source: str, suffix: str = ".npz") -> str:
+    """File name the panel proposes for the field ``source``, e.g. ``dvc_corrected.npz``."""
+    slug = "".join(c if c.isalnum() else "_" for c in source).strip("_")
+    while "__" in slug:
+        slug = slug.replace("__", "_")
+    return f"dvc_{slug or 'field'}{suffix}"
 
 
 def check_path(path: str, suffix: str) -> Path:
@@ -73,6 +133,9 @@ def run_export(request: ExportRequest):
     """Write everything the request asks for; yields Progress per file, returns the paths."""
     from ..io import export
 
+    origin = provenance(request.field, request.source)
+    field = request.field.copy()
+    field.metadata["provenance"] = origin
     extra = None
     if request.strain_with_field and request.equivalent_strain is not None:
         if request.path.suffix.lower() != ".npz":
@@ -80,11 +143,13 @@ def run_export(request: ExportRequest):
     stem = request.path.with_suffix("")
 
     def write_field():
-        return export.export_field(
-            request.field, request.path, extra=extra, voxel_size=request.voxel_size
-        )
+        return export.export_field(field, request.path, extra=extra, voxel_size=request.voxel_size)
 
     jobs = [("field", write_field)]
+    if request.path.suffix.lower() not in WITH_METADATA:
+        side = stem.parent / f"{stem.name}_provenance.json"
+        report = {"title": "DVC field provenance", **origin, "metadata": field.metadata}
+        jobs.append(("provenance", lambda: [export.export_report(report, side)]))
     if request.strain_tiff and request.equivalent_strain is not None:
         placement = {
             "scale": np.asarray(request.field.step) * np.asarray(request.voxel_size),

@@ -1,0 +1,235 @@
+"""What a field layer can show, without Qt or napari layers: the quantities and their values.
+
+:data:`QUANTITIES` lists them (displacement, its components, every strain component, principal,
+volumetric, maximum-shear and equivalent strain, ZNCC, status, uncertainty, residual);
+:func:`quantity_values` computes one on the grid of a :class:`DisplacementField` in physical units
+(the field's ``metadata["voxel_size"]`` and ``["unit"]``), :func:`quantity_style` its colours.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .engine.field import DisplacementField, Status
+
+#: Colours of the status codes in the status quantity (converged stays transparent).
+STATUS_COLORS = {
+    None: "transparent",
+    int(Status.CONVERGED): "transparent",
+    int(Status.MAX_ITERATIONS): "yellow",
+    int(Status.DIVERGED): "red",
+    int(Status.OUT_OF_BOUNDS): "magenta",
+    int(Status.MASKED): "gray",
+    int(Status.LOW_TEXTURE): "cyan",
+    int(Status.SINGULAR): "orange",
+    int(Status.LOW_ZNCC): "blue",
+    int(Status.OUTLIER_REPLACED): "lime",
+    int(Status.NOT_COMPUTED): "white",
+}
+
+
+def as_triple(value, default: float) -> np.ndarray:
+    """Three floats (z, y, x) from ``value`` (its last three entries), ``default`` if None."""
+    if value is None:
+        return np.full(3, default, dtype=np.float64)
+    array = np.asarray(value, dtype=np.float64).reshape(-1)
+    return array[-3:] if array.size >= 3 else np.broadcast_to(array, (3,)).astype(np.float64)
+
+
+def _finite_limits(values: np.ndarray, fallback=(0.0, 1.0)) -> list[float]:
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return list(fallback)
+    low, high = float(finite.min()), float(finite.max())
+    return [low, high] if high > low else [low, low + 1.0]
+
+
+# -- quantities --------------------------------------------------------------------------------
+#: What a field layer can show: key -> (what it is, kind). The kind sets the units and colours.
+QUANTITIES = {
+    "|u|": ("displacement magnitude", "magnitude"),
+    "uz": ("displacement along z", "displacement"),
+    "uy": ("displacement along y", "displacement"),
+    "ux": ("displacement along x", "displacement"),
+    "εzz": ("normal strain zz", "strain"),
+    "εyy": ("normal strain yy", "strain"),
+    "εxx": ("normal strain xx", "strain"),
+    "εzy": ("shear strain zy (tensor)", "strain"),
+    "εzx": ("shear strain zx (tensor)", "strain"),
+    "εyx": ("shear strain yx (tensor)", "strain"),
+    "ε1": ("major principal strain", "strain"),
+    "ε2": ("intermediate principal strain", "strain"),
+    "ε3": ("minor principal strain", "strain"),
+    "εvol": ("volumetric strain (trace)", "strain"),
+    "γmax": ("maximum shear strain ε1 − ε3", "positive strain"),
+    "εeq": ("equivalent strain (paper eq. 3)", "positive strain"),
+    "ZNCC": ("zero-normalised cross-correlation", "zncc"),
+    "status": ("matching status of each POI", "status"),
+    "uncertainty": ("displacement uncertainty", "magnitude"),
+    "residual": ("gray residual |F(X + u) − G(X)|", "residual"),
+}
+#: What a new field layer shows.
+DEFAULT_QUANTITY = "|u|"
+_TENSOR_INDEX = {"εzz": (0, 0), "εyy": (1, 1), "εxx": (2, 2), "εzy": (0, 1), "εzx": (0, 2)}
+_TENSOR_INDEX["εyx"] = (1, 2)
+_DISPLACEMENT_KINDS = ("magnitude", "displacement")
+
+
+def field_uncertainty(field: DisplacementField) -> np.ndarray | None:
+    """Per-node displacement uncertainty (voxels, ``(nz, ny, nx)``), if the field has one."""
+    value = getattr(field, "uncertainty", None)
+    if value is None:
+        return None
+    value = np.asarray(value, dtype=np.float64)
+    if value.shape == (*field.shape, 3):
+        return np.linalg.norm(value, axis=-1)
+    return value if value.shape == field.shape else None
+
+
+def available_quantities(field: DisplacementField, residual: bool = False) -> list[str]:
+    """The keys of :data:`QUANTITIES` that ``field`` can show (``residual`` once evaluated)."""
+    keys = [key for key in QUANTITIES if key not in ("uncertainty", "residual")]
+    if field_uncertainty(field) is not None:
+        keys.append("uncertainty")
+    if residual:
+        keys.append("residual")
+    return keys
+
+
+def unit_of(quantity: str, field: DisplacementField | None = None) -> str:
+    """Units of ``quantity``: the field's length unit or a plain word.
+
+    Displacements without a unit are in voxels when the voxel size is 1, else in the units of
+    the layers' scale (``"scale units"``).
+    """
+    kind = QUANTITIES[quantity][1]
+    if kind in _DISPLACEMENT_KINDS:
+        unit = field.metadata.get("unit") if field is not None else None
+        if unit:
+            return str(unit)
+        size = as_triple(field.metadata.get("voxel_size") if field is not None else None, 1.0)
+        return "vx" if np.allclose(size, 1.0) else "scale units"
+    return {"zncc": "–", "status": "code", "residual": "gray levels"}.get(kind, "strain, –")
+
+
+def physical_strain(field: DisplacementField) -> np.ndarray:
+    """Small-strain tensor ``(nz, ny, nx, 3, 3)`` in physical axes (anisotropic voxels included).
+
+    ``du_i/dX_j`` measured in voxels becomes ``du_i/dX_j * vs_i / vs_j`` with ``vs`` the field's
+    ``metadata["voxel_size"]``; NaN at nodes without a usable displacement.
+    """
+    from .engine.strain import displacement_gradient, small_strain
+
+    vs = as_triple(field.metadata.get("voxel_size"), 1.0)
+    gradient = displacement_gradient(field) * (vs[:, None] / vs[None, :])
+    return small_strain(gradient)
+
+
+def quantity_values(
+    field: DisplacementField, quantity: str, cache: dict | None = None
+) -> np.ndarray:
+    """The values of ``quantity`` on the grid of ``field``, ``(nz, ny, nx)`` float32.
+
+    Displacements are in the units of :func:`unit_of` (voxels times the field's voxel size),
+    strains dimensionless, NaN where the node has no usable displacement. ``cache`` (a dict
+    kept by the caller) keeps the strain tensor between calls.
+    """
+    if quantity not in QUANTITIES or quantity == "residual":
+        raise ValueError(f"{quantity!r} is not a grid quantity; choose one of {list(QUANTITIES)}")
+    kind = QUANTITIES[quantity][1]
+    vs = as_triple(field.metadata.get("voxel_size"), 1.0)
+    if quantity == "ZNCC":
+        return field.zncc.astype(np.float32)
+    if quantity == "status":
+        return field.status.astype(np.float32)
+    if quantity == "uncertainty":
+        values = field_uncertainty(field)
+        if values is None:
+            raise ValueError("this field has no uncertainty")
+        values = values * float(np.mean(vs))
+    elif kind in _DISPLACEMENT_KINDS:
+        u = field.u * vs
+        values = (
+            np.linalg.norm(u, axis=-1) if quantity == "|u|" else u[..., "zyx".index(quantity[1])]
+        )
+    else:
+        cache = {} if cache is None else cache
+        key = ("strain", id(field))
+        if key not in cache:
+            cache.clear()
+            cache[key] = physical_strain(field)
+        tensor = cache[key]
+        if quantity in _TENSOR_INDEX:
+            values = tensor[(..., *_TENSOR_INDEX[quantity])]
+        elif quantity == "εvol":
+            values = np.trace(tensor, axis1=-2, axis2=-1)
+        elif quantity == "εeq":
+            from .engine.strain import equivalent_strain
+
+            values = equivalent_strain(tensor)
+        else:
+            from .engine.strain import principal_strains
+
+            principal = principal_strains(tensor)
+            index = {"ε1": 0, "ε2": 1, "ε3": 2}
+            values = (
+                principal[..., 0] - principal[..., 2]
+                if quantity == "γmax"
+                else principal[..., index[quantity]]
+            )
+    values = np.asarray(values, dtype=np.float32).copy()
+    values[~field.valid] = np.nan
+    return values
+
+
+def status_colormap():
+    """A napari colormap for the status codes (converged transparent), for an Image layer."""
+    from napari.utils.colormaps import Colormap
+
+    codes = list(range(max(int(s) for s in Status) + 1))
+    colors = []
+    for code in codes:
+        name = STATUS_COLORS.get(code, "white")
+        colors.append([0, 0, 0, 0] if name == "transparent" else name)
+    from napari.utils.colormaps.standardize_color import transform_color
+
+    rgba = [c if isinstance(c, list) else list(transform_color(c)[0]) for c in colors]
+    controls = np.linspace(0.0, 1.0, len(codes) + 1)
+    return Colormap(rgba, controls=controls, interpolation="zero", name="DVC status")
+
+
+def quantity_style(quantity: str, values: np.ndarray, limits=None) -> dict:
+    """Colormap, contrast limits and rendering of ``quantity`` (napari Image keyword arguments).
+
+    Signed quantities get a diverging map centred on zero; ``limits`` overrides the automatic
+    range (e.g. one range shared by the fields compared).
+    """
+    kind = QUANTITIES[quantity][1]
+    finite = values[np.isfinite(values)]
+    if kind == "status":
+        n = max(int(s) for s in Status) + 1
+        return {"colormap": "DVC status", "contrast_limits": [-0.5, n - 0.5], "rendering": "mip"}
+    if limits is None:
+        if kind in ("displacement", "strain"):
+            high = float(np.percentile(np.abs(finite), 99.5)) if finite.size else 1.0
+            high = high if high > 0 else 1.0
+            limits = [-high, high]
+        elif kind == "zncc":
+            limits = [min(0.5, _finite_limits(values, (0.0, 1.0))[0]), 1.0]
+        else:
+            high = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+            limits = [0.0, high if high > 0 else 1.0]
+    colormap = {
+        "displacement": "coolwarm",
+        "strain": "coolwarm",
+        "magnitude": "viridis",
+        "positive strain": "inferno",
+        "zncc": "magma",
+        "residual": "magma",
+    }[kind]
+    rendering = "mip" if kind in ("magnitude", "positive strain", "residual") else "average"
+    return {
+        "colormap": colormap,
+        "contrast_limits": [float(v) for v in limits],
+        "rendering": rendering,
+    }

@@ -1,0 +1,251 @@
+"""The View dock: one quantity at a time, with its colorbar, before/after toggled, a 3-D view.
+
+Every field shows as one quantity layer and its arrows (:func:`..layers.field_layers`). This dock
+picks the quantity for all of them at once (the same colour range for the fields compared), which
+field is on view (the others are hidden, not stacked), whether the colorbar and arrows show, and
+an oblique 3-D view that shows a band across the specimen rather than looking down z.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from qtpy.QtCore import Qt
+from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButton, QWidget
+
+from .. import layers as L
+from . import profile_model
+from ._base import follow_layers
+from ._plots import ProfileCanvas
+
+#: Camera of the 3-D view (napari's Euler angles, degrees): tilted 20–30° off the y axis, so a
+#: band that contains y (a shear band slipping in the z-x plane) reads as a band, in depth.
+OBLIQUE_ANGLES = (-20.0, 30.0, 120.0)
+ALL_FIELDS = "all (overlaid)"
+PROFILE_LINE = "profile line"
+
+
+class ViewWidget(QWidget):
+    """Choose the quantity shown, the field on view and the 3-D view."""
+
+    def __init__(self, napari_viewer, parent=None) -> None:
+        super().__init__(parent)
+        self.viewer = napari_viewer
+        form = QFormLayout(self)
+        self.quantity = QComboBox()
+        for key, (what, _) in L.QUANTITIES.items():
+            self.quantity.addItem(f"{key} — {what}", key)
+        self.quantity.setCurrentIndex(self.quantity.findData(L.DEFAULT_QUANTITY))
+        form.addRow("Quantity", self.quantity)
+        self.shown = QComboBox()
+        form.addRow("Field on view", self.shown)
+        self.swap = QPushButton("Before ⇄ after")
+        self.swap.setToolTip("Toggle between the uncorrected and the corrected field")
+        form.addRow(self.swap)
+        self.colorbar = QCheckBox("colorbar")
+        self.colorbar.setChecked(True)
+        self.arrows = QCheckBox("displacement arrows")
+        self.arrows.setChecked(True)
+        form.addRow(self.colorbar)
+        form.addRow(self.arrows)
+        self.view_3d = QPushButton("Oblique 3-D view")
+        self.view_2d = QPushButton("2-D slices")
+        form.addRow(self.view_3d)
+        form.addRow(self.view_2d)
+        self.caption = QLabel("")
+        self.caption.setWordWrap(True)
+        self.caption.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        form.addRow(self.caption)
+        self.message = QLabel("")
+        self.message.setWordWrap(True)
+        form.addRow(self.message)
+        self.draw_line = QPushButton("Line profile: draw a line")
+        self.draw_line.setToolTip(
+            "Adds a Shapes layer in line mode: click the start and the end of a line across "
+            "the band; the plot shows the displacement and strain along it for every field"
+        )
+        form.addRow(self.draw_line)
+        self.profile = ProfileCanvas()
+        self.profile.setVisible(False)  # until a line is drawn
+        form.addRow(self.profile)
+        self.draw_line.clicked.connect(lambda checked=False: self.start_line())
+
+        self.quantity.currentIndexChanged.connect(lambda *a: self.set_quantity())
+        self.shown.currentIndexChanged.connect(lambda *a: self.show_source())
+        self.swap.clicked.connect(lambda checked=False: self.before_after())
+        self.colorbar.toggled.connect(lambda *a: self._decorate())
+        self.arrows.toggled.connect(lambda *a: self.show_source())
+        self.view_3d.clicked.connect(lambda checked=False: self.oblique_3d())
+        self.view_2d.clicked.connect(lambda checked=False: setattr(self.viewer.dims, "ndisplay", 2))
+        self._watched: set = set()
+        follow_layers(self.viewer, self, self._layers_changed)
+        self._layers_changed()
+
+    # -- line profile -----------------------------------------------------------------------
+    def start_line(self):
+        """The profile's Shapes layer (made the first time), selected in line-drawing mode."""
+        layer = L.find_layer(self.viewer, PROFILE_LINE)
+        if layer is None:
+            kwargs = {
+                "name": PROFILE_LINE,
+                "ndim": max(3, self.viewer.dims.ndim),
+                "edge_color": "cyan",
+                "edge_width": 1.0,
+                "metadata": {L.MARKER: {"kind": "profile", "source": "profile"}},
+            }
+            (layer,) = L.show_layers(self.viewer, [([], kwargs, "shapes")])
+            layer.events.data.connect(lambda event=None: self.update_profile())
+        self.viewer.layers.selection.active = layer
+        layer.mode = "add_line"
+        return layer
+
+    def update_profile(self):
+        """Plot the profiles along the last line drawn; returns them (or None)."""
+        layer = L.find_layer(self.viewer, PROFILE_LINE)
+        if layer is None or len(layer.data) == 0:
+            return None
+        vertices = np.asarray(layer.data[-1], float)
+        start, end = (np.asarray(layer.data_to_world(v)) for v in (vertices[0], vertices[-1]))
+        fields = {}
+        for quantity_layer in L.quantity_layers(self.viewer):
+            entry = L.plugin_metadata(quantity_layer)
+            fields.setdefault(entry["source"], entry["field"])
+        if not fields:
+            self.message.setText("No field yet: run Correlate.")
+            return None
+        try:
+            groups = profile_model.profiles(fields, self.quantity.currentData(), start, end)
+        except ValueError as error:
+            self.message.setText(str(error))
+            return None
+        self.profile.plot(groups)
+        self.profile.setVisible(True)
+        return groups
+
+    # -- state --------------------------------------------------------------------------------
+    def sources(self) -> list[str]:
+        return [L.plugin_metadata(x)["source"] for x in L.quantity_layers(self.viewer)]
+
+    def _layer(self, source: str, kind: str = "quantity"):
+        for layer in self.viewer.layers:
+            entry = L.plugin_metadata(layer) or {}
+            if entry.get("kind") == kind and entry.get("source") == source:
+                return layer
+        return None
+
+    def _layers_changed(self, event=None) -> None:
+        """Follow new fields: the newest one on view, showing the chosen quantity."""
+        for layer in L.quantity_layers(self.viewer):
+            if id(layer) not in self._watched:  # visibility set elsewhere (a new result...)
+                layer.events.visible.connect(self._visibility_changed)
+                self._watched.add(id(layer))
+        sources = self.sources()
+        self.shown.blockSignals(True)
+        self.shown.clear()
+        self.shown.addItems(sources + ([ALL_FIELDS] if len(sources) > 1 else []))
+        self.shown.blockSignals(False)
+        inserted = getattr(event, "value", None)
+        entry = L.plugin_metadata(inserted) if inserted is not None else None
+        if entry is not None and entry.get("kind") == "quantity":
+            quantity = entry.get("quantity")
+            if quantity != self.quantity.currentData():
+                self.quantity.blockSignals(True)
+                self.quantity.setCurrentIndex(self.quantity.findData(quantity))
+                self.quantity.blockSignals(False)
+        self._decorate()
+
+    def set_quantity(self, quantity: str | None = None) -> None:
+        """Show ``quantity`` (a key of :data:`..layers.QUANTITIES`) in every field layer."""
+        if quantity is not None:
+            self.quantity.setCurrentIndex(self.quantity.findData(quantity))
+            return  # the combo's signal comes back here
+        quantity = self.quantity.currentData()
+        problems = []
+        shown = []
+        for layer in L.quantity_layers(self.viewer):
+            source = L.plugin_metadata(layer)["source"]
+            residual = self._layer(source, "residual")
+            try:
+                L.show_quantity(
+                    layer, quantity, residual=None if residual is None else residual.data
+                )
+                shown.append(layer)
+            except ValueError as error:
+                problems.append(str(error))
+        limits = L.shared_limits(shown, quantity)
+        for layer in shown if limits is not None else []:
+            layer.contrast_limits = limits
+        self.message.setText("; ".join(problems))
+        self._decorate()
+        self.update_profile()
+
+    def show_source(self, source: str | None = None) -> None:
+        """Put the field ``source`` on view (or all of them, overlaid) and hide the others."""
+        if source is not None:
+            self.shown.setCurrentText(source)
+            return
+        chosen = self.shown.currentText()
+        for layer in self.viewer.layers:
+            entry = L.plugin_metadata(layer) or {}
+            if entry.get("kind") in ("quantity", "vectors"):
+                on = chosen == ALL_FIELDS or entry.get("source") == chosen
+                if entry["kind"] == "vectors":
+                    on = on and self.arrows.isChecked()
+                layer.visible = on
+        self._decorate()
+
+    def before_after(self) -> str | None:
+        """Toggle between the uncorrected and the corrected field; the source now on view."""
+        sources = self.sources()
+        pair = [s for s in ("uncorrected", "corrected") if s in sources]
+        if len(pair) < 2:
+            self.message.setText("Before/after needs an uncorrected and a corrected field.")
+            return None
+        visible = self._visible_sources()
+        target = "uncorrected" if visible == ["corrected"] else "corrected"
+        self.show_source(target)
+        return target
+
+    def _visibility_changed(self, event=None) -> None:
+        try:
+            self._decorate()
+        except RuntimeError:  # the dock was closed
+            pass
+
+    def _visible_sources(self) -> list[str]:
+        return [L.plugin_metadata(x)["source"] for x in L.quantity_layers(self.viewer) if x.visible]
+
+    def _decorate(self) -> None:
+        """Colorbar on the one quantity layer on top that is visible; caption with units."""
+        visible = self._visible_sources()
+        if visible:  # the choice says what is on view, however it got there
+            self.shown.blockSignals(True)
+            self.shown.setCurrentText(visible[0] if len(visible) == 1 else ALL_FIELDS)
+            self.shown.blockSignals(False)
+        layers = L.quantity_layers(self.viewer)
+        visible = [x for x in layers if x.visible]
+        top = visible[-1] if visible else None
+        for layer in layers:
+            layer.colorbar.visible = bool(layer is top and self.colorbar.isChecked())
+        text = L.caption(top) if top is not None else "No field yet: run Correlate."
+        self.caption.setText(text)
+        L.text_overlay(self.viewer).text = text if top is not None else ""
+        L.text_overlay(self.viewer).visible = top is not None
+
+    def oblique_3d(self) -> None:
+        """3-D view from an oblique angle, the quantity as an attenuated maximum projection."""
+        self.viewer.dims.ndisplay = 3
+        self.viewer.reset_view()  # (resets the angles too: set them after)
+        self.viewer.camera.angles = OBLIQUE_ANGLES
+        self.viewer.camera.zoom *= 0.75  # the rotated volume fits the canvas
+        for layer in L.quantity_layers(self.viewer):
+            if layer.visible and np.asarray(layer.data).ndim >= 3:
+                layer.rendering = "attenuated_mip"  # the nearest high values, not all of them
+                quantity = L.plugin_metadata(layer).get("quantity")
+                if L.QUANTITIES.get(quantity, ("", ""))[1] == "positive strain":
+                    # the band stands out: the lower half of the values drawn dark
+                    values = np.asarray(layer.data)
+                    finite = values[np.isfinite(values)]
+                    if finite.size:
+                        low, high = np.percentile(finite, [50.0, 99.5])
+                        if high > low:
+                            layer.contrast_limits = [float(low), float(high)]

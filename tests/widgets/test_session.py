@@ -1,0 +1,87 @@
+"""Sessions: save → close → reopen gives back the scans, the panels' settings and the fields."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_dvc_correct._sample_data import soil_pair
+from napari_dvc_correct.layers import fields_in
+from napari_dvc_correct.widgets import CorrectWidget, CorrelateWidget, EvaluateWidget, ExportWidget
+
+
+def _panels(viewer):
+    panels = {}
+    for name in ("Correlate", "Self-correct", "Evaluate", "Export"):
+        _, panels[name] = viewer.window.add_plugin_dock_widget("napari-dvc-correct", name)
+    return panels
+
+
+def test_save_close_reopen(make_napari_viewer, run_panel, tmp_path):
+    reference, deformed, _ = soil_pair((40, 40, 40), slip=2.0)
+    for name, volume in (("scan_0", reference), ("scan_1", deformed)):
+        tifffile.imwrite(tmp_path / f"{name}.tif", volume.astype(np.float32))
+    viewer = make_napari_viewer()
+    panels = _panels(viewer)
+    for name in ("scan_0", "scan_1"):
+        viewer.open(str(tmp_path / f"{name}.tif"), plugin="napari-dvc-correct")
+    correlate = panels["Correlate"]
+    assert isinstance(correlate, CorrelateWidget)
+    correlate.voxel_size.setValue(2.0)
+    correlate.subvolume.setValue(11)
+    correlate.step.setValue(8)
+    correlate.region.set_kind("cylinder")
+    correlate.region.radius.setValue(17.0)
+    run_panel(correlate)
+    assert correlate.last_error is None, correlate.last_error
+    panels["Self-correct"].max_passes.setValue(2)
+    evaluate = panels["Evaluate"]
+    assert isinstance(evaluate, EvaluateWidget)
+    evaluate.set_thresholds([float(np.median(reference))])
+    thresholds = evaluate.thresholds()
+    field = fields_in(viewer.layers)["uncorrected"]
+    export = panels["Export"]
+    assert isinstance(export, ExportWidget)
+    written = export.session(tmp_path / "run")
+    assert export.last_error is None, export.last_error
+    assert written.name == "run.dvc-session.json" and written.is_file()
+    assert (tmp_path / "run_fields" / "uncorrected.npz").is_file()
+    viewer.close()
+
+    viewer = make_napari_viewer()
+    panels = _panels(viewer)
+    content = panels["Export"].session(tmp_path / "run.dvc-session.json", save=False)
+    assert content is not None, panels["Export"].message.text()
+    assert [x.name for x in viewer.layers][:2] == ["scan_0", "scan_1"]
+    np.testing.assert_allclose(viewer.layers["scan_0"].scale, (2.0, 2.0, 2.0))
+    reopened = fields_in(viewer.layers)["uncorrected"]
+    np.testing.assert_allclose(reopened.u, field.u)
+    correlate = panels["Correlate"]
+    assert (correlate.subvolume.value(), correlate.step.value()) == (11, 8)
+    assert correlate.region.current_kind == "cylinder" and correlate.region.radius.value() == 17.0
+    assert (correlate.reference.currentText(), correlate.deformed.currentText()) == (
+        "scan_0",
+        "scan_1",
+    )
+    assert isinstance(panels["Self-correct"], CorrectWidget)
+    assert panels["Self-correct"].max_passes.value() == 2
+    np.testing.assert_allclose(panels["Evaluate"].thresholds(), thresholds)
+
+
+def test_a_scan_that_is_not_a_file_is_refused(make_napari_viewer, tmp_path):
+    viewer = make_napari_viewer()
+    viewer.add_image(np.zeros((8, 8, 8), np.float32), name="made in memory")
+    export = _panels(viewer)["Export"]
+    assert export.session(tmp_path / "s") is None
+    assert "not opened from a file" in export.message.text()
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("content", ["{}", "not json"])
+def test_not_a_session_is_refused(make_napari_viewer, tmp_path, content):
+    path = tmp_path / "x.dvc-session.json"
+    path.write_text(content)
+    export = _panels(make_napari_viewer())["Export"]
+    assert export.session(path, save=False) is None
+    assert "session file" in export.message.text()
