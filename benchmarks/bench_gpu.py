@@ -129,28 +129,21 @@ def run_matcher(kernel, level, centers, guesses, nb, **options):
     params = guesses.copy()
     zncc, status, its = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
     start = time.perf_counter()
-    kernel(
-        level["reference"],
-        level["gradient"],
-        level["coef"],
-        np.zeros((1, 1, 1), bool),
-        False,
-        centers,
-        level["half"],
-        nb,
-        params,
-        zncc,
-        status,
-        its,
-        50,
-        1e-3,
-        0.0,
-        0.5,
-        float(max(level["half"], 4)),
-        icgn.PRODUCT_TABLE,
-        icgn.QUAD_AXES,
-        **options,
+    inputs = icgn.MatchInputs(
+        reference=level["reference"],
+        gradient=level["gradient"],
+        coef_deformed=level["coef"],
+        mask=np.zeros((1, 1, 1), bool),
+        use_mask=False,
+        half=level["half"],
+        nb=nb,
+        max_iterations=50,
+        tolerance=1e-3,
+        min_std=0.0,
+        min_mask_fraction=0.5,
+        max_update=float(max(level["half"], 4)),
     )
+    kernel(inputs, centers, params, zncc, status, its, **options)
     seconds = time.perf_counter() - start
     return params, status, its, seconds
 

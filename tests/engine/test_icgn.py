@@ -17,27 +17,21 @@ def _match(reference, deformed, centers, guess, order, half=10):
     params = icgn.displacement_to_params(guess, None, order)
     n = len(centers)
     zncc, status, its = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
-    icgn.match_many(
-        np.ascontiguousarray(reference, np.float32),
-        gradient,
-        coefficients,
-        np.zeros((1, 1, 1), np.bool_),
-        False,
-        centers,
-        half,
-        icgn.n_monomials(order),
-        params,
-        zncc,
-        status,
-        its,
-        50,
-        1e-4,
-        0.0,
-        0.5,
-        float(half),
-        icgn.PRODUCT_TABLE,
-        icgn.QUAD_AXES,
+    inputs = icgn.MatchInputs(
+        reference=np.ascontiguousarray(reference, np.float32),
+        gradient=gradient,
+        coef_deformed=coefficients,
+        mask=np.zeros((1, 1, 1), np.bool_),
+        use_mask=False,
+        half=half,
+        nb=icgn.n_monomials(order),
+        max_iterations=50,
+        tolerance=1e-4,
+        min_std=0.0,
+        min_mask_fraction=0.5,
+        max_update=float(half),
     )
+    icgn.match_many(inputs, centers, params, zncc, status, its)
     return params, zncc, status, its
 
 

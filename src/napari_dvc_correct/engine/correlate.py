@@ -131,7 +131,7 @@ class _Level:
         high = np.array(self.reference.shape) - 1 - self.half
         return np.clip(coarse, self.half, np.maximum(high, self.half))
 
-    def statistics(self, centers, params, zncc, order, sensitivity, out, index):
+    def statistics(self, centers, warps, zncc, order, sensitivity, out, index):
         """Fill ``out``'s variance, gradient power and sigma at ``index``.
 
         (:func:`.icgn.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``.)
@@ -150,7 +150,7 @@ class _Level:
             np.ascontiguousarray(centers, dtype=np.int64),
             self.half,
             icgn.n_monomials(order),
-            np.ascontiguousarray(params, dtype=np.float64),
+            np.ascontiguousarray(warps, dtype=np.float64),
             np.ascontiguousarray(zncc, dtype=np.float64),
             np.ascontiguousarray(sensitivity, dtype=np.bool_),
             var,
@@ -161,7 +161,30 @@ class _Level:
         out[1][index] = power
         out[2][index] = sig
 
-    def match(self, centers, params, order, settings):
+    def inputs(self, order, params: CorrelationParams) -> icgn.MatchInputs:
+        """The kernels' argument bundle at this level for ``params``."""
+        return icgn.MatchInputs(
+            reference=self.reference,
+            gradient=self.gradient,
+            coef_deformed=self.coef_deformed,
+            mask=self.mask,
+            use_mask=bool(self.use_mask),
+            half=int(self.half),
+            nb=icgn.n_monomials(order),
+            max_iterations=int(params.max_iterations),
+            tolerance=float(params.tolerance),
+            min_std=float(self.min_std),
+            min_mask_fraction=float(params.min_mask_fraction),
+            max_update=float(max(self.half, params.min_max_update)),
+            noise_fraction=float(params.noise_tolerance),
+        )
+
+    def match(self, centers, warps, order, params):
+        """IC-GN at ``centers`` from ``warps`` (N, 3·nb), updated in place.
+
+        ``params`` is the run's :class:`CorrelationParams`. Returns ``(zncc, status,
+        iterations)``.
+        """
         n = len(centers)
         zncc = np.full(n, np.nan)
         status = np.full(n, int(Status.NOT_COMPUTED), np.int64)
@@ -173,26 +196,12 @@ class _Level:
         else:
             kernel = icgn.match_many
         kernel(
-            self.reference,
-            self.gradient,
-            self.coef_deformed,
-            self.mask,
-            self.use_mask,
+            self.inputs(order, params),
             np.ascontiguousarray(centers, dtype=np.int64),
-            self.half,
-            icgn.n_monomials(order),
-            params,
+            warps,
             zncc,
             status,
             iterations,
-            settings.max_iterations,
-            settings.tolerance,
-            self.min_std,
-            settings.min_mask_fraction,
-            float(max(self.half, settings.min_max_update)),
-            icgn.PRODUCT_TABLE,
-            icgn.QUAD_AXES,
-            float(settings.noise_tolerance),
         )
         return zncc, status, iterations
 

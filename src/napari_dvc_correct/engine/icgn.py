@@ -22,6 +22,8 @@ Iterations stop when the incremental warp moves every subvolume corner by less t
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
@@ -627,52 +629,87 @@ def match_one(
     return zncc, _MAX_ITERATIONS, max_iterations
 
 
+class MatchInputs(NamedTuple):
+    """Everything the IC-GN kernels need besides the POIs and their outputs.
+
+    One bundle for :func:`match_many` and :func:`.cuda.match_many_cuda` (built by
+    ``correlate._Level.inputs``).
+
+    Attributes
+    ----------
+    reference : ndarray (nz, ny, nx) float32
+        Reference gray values G.
+    gradient : ndarray (3, nz, ny, nx) float32
+        Gradient of G's B-spline interpolant, ``(d/dz, d/dy, d/dx)``, gray levels per voxel.
+    coef_deformed : ndarray (nz, ny, nx) float32
+        B-spline coefficients of F.
+    mask : ndarray of bool (nz, ny, nx), or any bool array when ``use_mask`` is False
+    use_mask : bool
+    half : int
+        Subvolume half size M (edge 2M + 1), voxels.
+    nb : {4, 10}
+        Monomials of the shape function (first / second order).
+    max_iterations : int
+    tolerance : float
+        Convergence threshold (voxels) on the largest corner motion of the incremental warp.
+    min_std : float
+        Subvolumes whose gray standard deviation is at most this are ``LOW_TEXTURE``.
+    min_mask_fraction : float
+    max_update : float
+        Largest translation change (voxels) from the guess before ``DIVERGED``.
+    noise_fraction : float
+        The noise stop (:func:`_noise_converged`); 0 turns it off.
+    product_table, quad_axes : ndarray int64
+        :data:`PRODUCT_TABLE`, :data:`QUAD_AXES`.
+    """
+
+    reference: np.ndarray
+    gradient: np.ndarray
+    coef_deformed: np.ndarray
+    mask: np.ndarray
+    use_mask: bool
+    half: int
+    nb: int
+    max_iterations: int
+    tolerance: float
+    min_std: float
+    min_mask_fraction: float
+    max_update: float
+    noise_fraction: float = 0.0
+    product_table: np.ndarray = PRODUCT_TABLE
+    quad_axes: np.ndarray = QUAD_AXES
+
+
 @njit(parallel=True, **KERNEL_OPTIONS)
-def match_many(
-    reference,
-    gradient,
-    coef_deformed,
-    mask,
-    use_mask,
-    centers,
-    half,
-    nb,
-    params,
-    zncc,
-    status,
-    iterations,
-    max_iterations,
-    tolerance,
-    min_std,
-    min_mask_fraction,
-    max_update,
-    product_table,
-    quad_axes,
-    noise_fraction=0.0,
-):
-    """IC-GN for many POIs in parallel. ``params`` (N, 3·nb) holds guesses in, results out."""
+def match_many(inputs, centers, params, zncc, status, iterations):
+    """IC-GN for many POIs in parallel (:class:`MatchInputs`).
+
+    ``centers`` (N, 3) int64 POI positions (each subvolume inside the volume); ``params``
+    (N, 3·nb) holds guesses in, results out; ``zncc`` (N,) float64, ``status`` and
+    ``iterations`` (N,) int64 are outputs.
+    """
     for i in prange(centers.shape[0]):
         p = params[i].copy()
         value, code, its = match_one(
-            reference,
-            gradient,
-            coef_deformed,
-            mask,
-            use_mask,
+            inputs.reference,
+            inputs.gradient,
+            inputs.coef_deformed,
+            inputs.mask,
+            inputs.use_mask,
             centers[i, 0],
             centers[i, 1],
             centers[i, 2],
-            half,
-            nb,
+            inputs.half,
+            inputs.nb,
             p,
-            max_iterations,
-            tolerance,
-            min_std,
-            min_mask_fraction,
-            max_update,
-            product_table,
-            quad_axes,
-            noise_fraction,
+            inputs.max_iterations,
+            inputs.tolerance,
+            inputs.min_std,
+            inputs.min_mask_fraction,
+            inputs.max_update,
+            inputs.product_table,
+            inputs.quad_axes,
+            inputs.noise_fraction,
         )
         params[i, :] = p
         zncc[i] = value

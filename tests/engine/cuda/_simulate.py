@@ -53,37 +53,34 @@ def main(cases_path: str, results_path: str) -> int:
             out[f"{name}/device"] = np.array(field.metadata["device"])
             continue
         n = len(case["centers"])
-        args = [
-            case["reference"],
-            case["gradient"],
-            case["coef_deformed"],
-            case["mask"],
-            bool(case["use_mask"]),
-            case["centers"],
-            int(case["half"]),
-            int(case["nb"]),
-        ]
-        settings = [
-            int(case["max_iterations"]),
-            float(case["tolerance"]),
-            float(case["min_std"]),
-            float(case["min_mask_fraction"]),
-            float(case["max_update"]),
-            icgn.PRODUCT_TABLE,
-            icgn.QUAD_AXES,
-            float(case["noise_fraction"]) if "noise_fraction" in case else 0.0,
-        ]
+        inputs = icgn.MatchInputs(
+            reference=case["reference"],
+            gradient=case["gradient"],
+            coef_deformed=case["coef_deformed"],
+            mask=case["mask"],
+            use_mask=bool(case["use_mask"]),
+            half=int(case["half"]),
+            nb=int(case["nb"]),
+            max_iterations=int(case["max_iterations"]),
+            tolerance=float(case["tolerance"]),
+            min_std=float(case["min_std"]),
+            min_mask_fraction=float(case["min_mask_fraction"]),
+            max_update=float(case["max_update"]),
+            noise_fraction=float(case["noise_fraction"]) if "noise_fraction" in case else 0.0,
+        )
         recorded = {}
 
         def recording_launch(*arguments, recorded=recorded, **options):
             # keep the kernel's own statuses (before the CPU re-matches FALLBACK POIs)
             launch(*arguments, **options)
-            recorded["status"] = arguments[10].copy()
+            recorded["status"] = arguments[4].copy()
 
         gpu_icgn._launch = recording_launch
         params = case["params"].copy()
         zncc, status, iterations = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
-        match_many_cuda(*args, params, zncc, status, iterations, *settings, threads_per_block=16)
+        match_many_cuda(
+            inputs, case["centers"], params, zncc, status, iterations, threads_per_block=16
+        )
         gpu_icgn._launch = launch
         out[f"{name}/raw_status"] = recorded["status"]
         out[f"{name}/params"] = params

@@ -61,32 +61,29 @@ def _icgn_case(reference, deformed, centers, truth, order, mask=None):
     }
 
 
+def _inputs(case):
+    return icgn.MatchInputs(
+        reference=case["reference"],
+        gradient=case["gradient"],
+        coef_deformed=case["coef_deformed"],
+        mask=case["mask"],
+        use_mask=bool(case["use_mask"]),
+        half=int(case["half"]),
+        nb=int(case["nb"]),
+        max_iterations=int(case["max_iterations"]),
+        tolerance=float(case["tolerance"]),
+        min_std=float(case["min_std"]),
+        min_mask_fraction=float(case["min_mask_fraction"]),
+        max_update=float(case["max_update"]),
+        noise_fraction=float(case["noise_fraction"]) if "noise_fraction" in case else 0.0,
+    )
+
+
 def _cpu(case):
     n = len(case["centers"])
     params = case["params"].copy()
     zncc, status, iterations = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
-    icgn.match_many(
-        case["reference"],
-        case["gradient"],
-        case["coef_deformed"],
-        case["mask"],
-        bool(case["use_mask"]),
-        case["centers"],
-        int(case["half"]),
-        int(case["nb"]),
-        params,
-        zncc,
-        status,
-        iterations,
-        int(case["max_iterations"]),
-        float(case["tolerance"]),
-        float(case["min_std"]),
-        float(case["min_mask_fraction"]),
-        float(case["max_update"]),
-        icgn.PRODUCT_TABLE,
-        icgn.QUAD_AXES,
-        float(case["noise_fraction"]) if "noise_fraction" in case else 0.0,
-    )
+    icgn.match_many(_inputs(case), case["centers"], params, zncc, status, iterations)
     return {"params": params, "zncc": zncc, "status": status, "iterations": iterations}
 
 

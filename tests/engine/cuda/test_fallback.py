@@ -9,24 +9,24 @@ from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
 
 
-def _inputs():
+def _inputs(nb=4):
     reference = synthetic.textured_volume((24, 24, 24), 1.5, seed=1)
     deformed = synthetic.deform_volume(reference, synthetic.translation((0.4, -0.3, 0.2)))
-    centers = np.array([[10, 10, 10], [13, 12, 11]], np.int64)
-    return (
-        reference,
-        icgn.gradient_volume(prefilter(reference)),
-        prefilter(deformed),
-        np.zeros((1, 1, 1), bool),
-        False,
-        centers,
-        4,
-        4,
+    inputs = icgn.MatchInputs(
+        reference=reference,
+        gradient=icgn.gradient_volume(prefilter(reference)),
+        coef_deformed=prefilter(deformed),
+        mask=np.zeros((1, 1, 1), bool),
+        use_mask=False,
+        half=4,
+        nb=nb,
+        max_iterations=30,
+        tolerance=1e-3,
+        min_std=0.0,
+        min_mask_fraction=0.5,
+        max_update=4.0,
     )
-
-
-def _settings():
-    return (30, 1e-3, 0.0, 0.5, 4.0, icgn.PRODUCT_TABLE, icgn.QUAD_AXES)
+    return inputs, np.array([[10, 10, 10], [13, 12, 11]], np.int64)
 
 
 def _outputs(n):
@@ -37,16 +37,16 @@ def test_gpu_failure_falls_back_to_the_cpu_with_a_warning(monkeypatch):
     from numba.cuda.cudadrv.error import CudaSupportError
 
     def broken(*args, **kwargs):
-        args[8][:] = 99.0  # a half-done launch must not leak into the result
+        args[2][:] = 99.0  # a half-done launch must not leak into the result
         raise CudaSupportError("no driver")
 
     monkeypatch.setattr(gpu_icgn, "_launch", broken)
     inputs = _inputs()
     gpu_out = _outputs(2)
     with pytest.warns(RuntimeWarning, match="GPU failed.*CPU"):
-        gpu_icgn.match_many_cuda(*inputs, *gpu_out, *_settings())
+        gpu_icgn.match_many_cuda(*inputs, *gpu_out)
     cpu_out = _outputs(2)
-    icgn.match_many(*inputs, *cpu_out, *_settings())
+    icgn.match_many(*inputs, *cpu_out)
     np.testing.assert_array_equal(gpu_out[0], cpu_out[0])
     assert np.all(gpu_out[2] == Status.CONVERGED)
     np.testing.assert_allclose(gpu_out[0][:, [0, 4, 8]], [[0.4, -0.3, 0.2]] * 2, atol=0.01)
@@ -60,9 +60,9 @@ def test_gpu_failure_can_be_raised(monkeypatch):
 
     monkeypatch.setattr(gpu_icgn, "_launch", broken)
     with pytest.raises(CudaSupportError):
-        gpu_icgn.match_many_cuda(*_inputs(), *_outputs(2), *_settings(), cpu_fallback=False)
+        gpu_icgn.match_many_cuda(*_inputs(), *_outputs(2), cpu_fallback=False)
 
 
 def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="nb must be"):
-        gpu_icgn.match_many_cuda(*_inputs()[:7], 7, *_outputs(2), *_settings())
+        gpu_icgn.match_many_cuda(*_inputs(nb=7), *_outputs(2))

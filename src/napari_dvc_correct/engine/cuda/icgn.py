@@ -734,26 +734,12 @@ def _gpu_errors() -> tuple[type[BaseException], ...]:
 
 
 def match_many_cuda(
-    reference,
-    gradient,
-    coef_deformed,
-    mask,
-    use_mask,
+    inputs,
     centers,
-    half,
-    nb,
     params,
     zncc,
     status,
     iterations,
-    max_iterations,
-    tolerance,
-    min_std,
-    min_mask_fraction,
-    max_update,
-    product_table,
-    quad_axes,
-    noise_fraction=0.0,
     *,
     threads_per_block: int | None = None,
     max_registers: int | None = None,
@@ -763,28 +749,14 @@ def match_many_cuda(
 
     Parameters
     ----------
-    reference : ndarray (nz, ny, nx) float32
-        Reference gray values G.
-    gradient : ndarray (3, nz, ny, nx) float32
-        Gradient of G's B-spline interpolant, ``(d/dz, d/dy, d/dx)`` in gray levels per voxel.
-    coef_deformed : ndarray (nz, ny, nx) float32
-        B-spline coefficients of F.
-    mask : ndarray of bool (nz, ny, nx), or any bool array when ``use_mask`` is False
-    use_mask : bool
+    inputs : icgn.MatchInputs
+        The volumes and the matching settings, as for the CPU kernel.
     centers : ndarray (N, 3) int64
         POI positions ``(z, y, x)``; each subvolume ``center ± half`` lies inside the volume.
-    half : int
-        Subvolume half size M (edge 2M + 1).
-    nb : {4, 10}
-        Monomials of the shape function (first / second order).
     params : ndarray (N, 3·nb) float64
         Initial guesses in, results out (modified in place), as in the CPU kernel.
     zncc, status, iterations : ndarray (N,)
         Outputs (float64, int64, int64), modified in place.
-    max_iterations, tolerance, min_std, min_mask_fraction, max_update, product_table, quad_axes
-        As in :func:`..icgn.match_many`.
-    noise_fraction : float
-        The noise stop, as in :func:`..icgn.match_many` (0: off).
     threads_per_block : int, optional
         Power of two >= 16 (default 128 on a GPU, 32 in the simulator).
     max_registers : int, optional
@@ -799,35 +771,23 @@ def match_many_cuda(
     n = len(centers)
     if n == 0:
         return
+    nb = inputs.nb
     if nb not in (4, 10):
         raise ValueError(f"nb must be 4 (first order) or 10 (second order), got {nb}")
     if params.shape != (n, 3 * nb):
         raise ValueError(f"params must have shape ({n}, {3 * nb}), got {params.shape}")
     guesses = params.copy()
-    args = (
-        reference,
-        gradient,
-        coef_deformed,
-        mask,
-        use_mask,
-        centers,
-        half,
-        nb,
-        params,
-        zncc,
-        status,
-        iterations,
-        max_iterations,
-        tolerance,
-        min_std,
-        min_mask_fraction,
-        max_update,
-        product_table,
-        quad_axes,
-        noise_fraction,
-    )
     try:
-        _launch(*args, threads_per_block=threads_per_block, max_registers=max_registers)
+        _launch(
+            inputs,
+            centers,
+            params,
+            zncc,
+            status,
+            iterations,
+            threads_per_block=threads_per_block,
+            max_registers=max_registers,
+        )
     except _gpu_errors() as error:
         if not cpu_fallback:
             raise
@@ -838,7 +798,7 @@ def match_many_cuda(
             stacklevel=2,
         )
         params[:] = guesses
-        cpu_icgn.match_many(*args)
+        cpu_icgn.match_many(inputs, centers, params, zncc, status, iterations)
         return
     redo = np.flatnonzero(status == FALLBACK)
     if redo.size:
@@ -847,26 +807,7 @@ def match_many_cuda(
         sub_status = np.empty(redo.size, np.int64)
         sub_its = np.empty(redo.size, np.int64)
         cpu_icgn.match_many(
-            reference,
-            gradient,
-            coef_deformed,
-            mask,
-            use_mask,
-            np.ascontiguousarray(centers[redo]),
-            half,
-            nb,
-            sub_params,
-            sub_zncc,
-            sub_status,
-            sub_its,
-            max_iterations,
-            tolerance,
-            min_std,
-            min_mask_fraction,
-            max_update,
-            product_table,
-            quad_axes,
-            noise_fraction,
+            inputs, np.ascontiguousarray(centers[redo]), sub_params, sub_zncc, sub_status, sub_its
         )
         params[redo] = sub_params
         zncc[redo] = sub_zncc
@@ -875,30 +816,33 @@ def match_many_cuda(
 
 
 def _launch(
-    reference,
-    gradient,
-    coef_deformed,
-    mask,
-    use_mask,
+    inputs,
     centers,
-    half,
-    nb,
     params,
     zncc,
     status,
     iterations,
-    max_iterations,
-    tolerance,
-    min_std,
-    min_mask_fraction,
-    max_update,
-    product_table,
-    quad_axes,
-    noise_fraction=0.0,
     *,
     threads_per_block=None,
     max_registers=None,
 ):
+    (
+        reference,
+        gradient,
+        coef_deformed,
+        mask,
+        use_mask,
+        half,
+        nb,
+        max_iterations,
+        tolerance,
+        min_std,
+        min_mask_fraction,
+        max_update,
+        noise_fraction,
+        product_table,
+        quad_axes,
+    ) = inputs
     threads = int(threads_per_block or default_threads())
     kernel = build_kernel(int(nb), threads, max_registers)
     nz, ny, nx = reference.shape
