@@ -67,7 +67,7 @@ def make_case(case: str, seed: int = 4):
         raise ValueError(f"unknown case {case!r}")
     reference, deformed = synthetic.make_pair(pattern, (N,) * 3, truth, margin=16)
     if noisy:
-        sigma = synthetic.noise_sigma_for(reference, 0.06)
+        sigma = synthetic.ct_noise_sigma(reference, 0.06)
         reference = synthetic.add_noise(reference, sigma, seed=1)
         deformed = synthetic.add_noise(deformed, sigma, seed=2)
     return reference, deformed, truth, params, select

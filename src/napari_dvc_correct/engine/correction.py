@@ -48,7 +48,6 @@ from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from . import warp
 from .cleaning import clean, masked_nodes
@@ -60,6 +59,7 @@ from .interpolation import prefilter
 from .local_acceptance import Judge, accept_locally, flag_and_refill
 from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
+from .pass_params import correction_params
 from .progress import Progress, run_to_completion
 
 FRAMES = ("reference", "loaded")
@@ -70,16 +70,6 @@ CHANGE_THRESHOLD = 0.1
 
 #: Another pass runs only while at least this fraction of the nodes improved above the noise.
 MIN_IMPROVED_FRACTION = 0.01
-
-#: A first-order field whose curvature bends a subvolume by more than this (voxels, see
-#: :func:`field_curvature`) is corrected with second-order matches.
-CURVATURE_VOXELS = 0.1
-
-#: Subvolume of the second-order correcting matches, as a fraction of the first run's.
-PASS_SUBVOLUME_FRACTION = 2.0 / 3.0
-
-#: Smallest subvolume edge of a correcting match (voxels).
-MIN_PASS_SUBVOLUME = 11
 
 
 @dataclass(frozen=True)
@@ -240,74 +230,6 @@ class _Pair:
             if not mask.any():
                 mask = None
         return moved, self.deformed, mask
-
-
-def field_curvature(field: DisplacementField, half: int) -> float:
-    """How far a first-order subvolume is from following ``field``, in voxels.
-
-    The second differences of the node displacements (smoothed over one node) give the field's
-    curvature; over a
-    subvolume of half-size ``M`` a quadratic term ``u'' M^2 / 2`` is what an affine shape function
-    cannot follow. Returns the 90th percentile over the interior nodes of the largest such term
-    (any component, any axis), 0 for grids too small to tell.
-    """
-    u = np.asarray(field.u, dtype=np.float64)
-    if not np.all(np.isfinite(u)):
-        return 0.0
-    # the affine trend has no curvature: remove it so the smoothing's border handling cannot
-    # bend it
-    points = field.points
-    design = np.column_stack([np.ones(len(points)), points])
-    coefficients, *_ = np.linalg.lstsq(design, u.reshape(-1, 3), rcond=None)
-    u = u - (design @ coefficients).reshape(u.shape)
-    # one node of Gaussian smoothing first: the matching noise of the nodes (a few hundredths of
-    # a voxel, independent from node to node) would otherwise read as curvature
-    u = np.stack([ndimage.gaussian_filter(u[..., c], 1.0, mode="nearest") for c in range(3)], -1)
-    # nodes next to the grid's border are bent by the smoothing's border handling
-    u = u[tuple(slice(1, -1) if n >= 5 else slice(None) for n in u.shape[:3])]
-    terms = []
-    for axis in range(3):
-        if u.shape[axis] < 3:
-            continue
-        second = np.diff(u, n=2, axis=axis) / float(field.step[axis]) ** 2
-        terms.append(np.max(np.abs(second), axis=-1).reshape(-1))
-    if not terms:
-        return 0.0
-    values = np.concatenate(terms)
-    values = values[np.isfinite(values)]
-    return float(0.5 * np.percentile(values, 90.0) * half**2) if values.size else 0.0
-
-
-def pass_order(field: DisplacementField, params: CorrelationParams) -> int:
-    """Shape-function order of the correcting matches, chosen from the data (no user parameter).
-
-    Second order where the input field bends inside a subvolume by more than
-    :data:`CURVATURE_VOXELS` (:func:`field_curvature`): the first-order floor then dominates the
-    error, and the correcting match only follows the error of ``D``, whose second-order part a
-    quadratic subvolume can take. First order otherwise (translations, affine fields, gentle
-    gradients), which is cheaper and no less accurate there. ``params.order == 2`` stays 2.
-    """
-    if params.order == 2:
-        return 2
-    return 2 if field_curvature(field, params.half) > CURVATURE_VOXELS else 1
-
-
-def correction_params(field: DisplacementField, params: CorrelationParams) -> CorrelationParams:
-    """Matching parameters of the correcting DVC runs, chosen from the data.
-
-    Where the field bends inside a subvolume (:func:`pass_order` says second order), the
-    correcting matches use the second-order shape function on a subvolume of about
-    :data:`PASS_SUBVOLUME_FRACTION` of the first run's (odd, at least :data:`MIN_PASS_SUBVOLUME`):
-    they only have to find the error of ``D``, a small motion that a smaller subvolume finds as
-    well, and a smaller quadratic subvolume follows a narrow band that neither a large one nor a
-    first-order one can (measured in docs/method.md). Elsewhere the first run's parameters are
-    reused unchanged, as in the paper.
-    """
-    if pass_order(field, params) == 1:
-        return params
-    subvolume = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
-    subvolume = min(params.subvolume, max(MIN_PASS_SUBVOLUME, subvolume))
-    return params.replace(order=2, subvolume=subvolume)
 
 
 def _update(current: DisplacementField, delta: DisplacementField, frame: str, update: str):

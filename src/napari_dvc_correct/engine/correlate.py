@@ -87,7 +87,7 @@ def _grid_centers(grid, volume_shape, half):
 
 
 @dataclass
-class _Level:
+class PyramidLevel:
     """Everything IC-GN needs at one pyramid level."""
 
     factor: int
@@ -531,7 +531,7 @@ def correlate_iter(
 
     yield Progress("prefilter", 0, 1, "prefiltering the volumes")
     t0 = time.perf_counter()
-    fine = _Level.build(
+    fine = PyramidLevel.build(
         1,
         reference,
         deformed,
@@ -567,7 +567,7 @@ def correlate_iter(
             level = (
                 fine
                 if lev == 0
-                else _Level.build(
+                else PyramidLevel.build(
                     2**lev,
                     reference,
                     deformed,

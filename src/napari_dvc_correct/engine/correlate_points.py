@@ -21,11 +21,13 @@ import numpy as np
 
 from . import icgn
 from .backend import select_device
-from .correlate import _GOOD, _Level, correlate, validate_pair
-from .field import DisplacementField, Provenance, Status
+from .correlate import PyramidLevel, correlate, validate_pair
+from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from .params import CorrelationParams
 from .placement import Box, grid_for_region
 from .scattered import ScatteredField, sample_field
+
+GOOD_CODES = np.array([int(s) for s in GOOD_STATUSES])
 
 
 def _guide(reference, deformed, points, params, mask, device) -> DisplacementField:
@@ -112,7 +114,7 @@ def correlate_points(
         g0 = np.nan_to_num(g0)
     order = params.order
     trial = np.ascontiguousarray(icgn.displacement_to_params(u0, g0, order))
-    level = _Level.build(1, reference, deformed, mask, half, params.min_texture, device.kind)
+    level = PyramidLevel.build(1, reference, deformed, mask, half, params.min_texture, device.kind)
     zncc_i, status_i, iterations_i = level.match(centers[inside], trial, order, params)
 
     n = len(points)
@@ -120,7 +122,7 @@ def correlate_points(
     status = np.full(n, int(Status.OUT_OF_BOUNDS), np.int64)
     iterations = np.zeros(n, np.int64)
     zncc[inside], status[inside], iterations[inside] = zncc_i, status_i, iterations_i
-    low = np.isin(status, _GOOD) & ~(zncc >= params.min_zncc)
+    low = np.isin(status, GOOD_CODES) & ~(zncc >= params.min_zncc)
     status[low] = int(Status.LOW_ZNCC)
     displacement = np.full((n, 3), np.nan)
     gradient = np.full((n, 3, 3), np.nan)
@@ -128,7 +130,7 @@ def correlate_points(
     offset = points[inside] - centers[inside]
     displacement[inside] = d_i + np.einsum("nij,nj->ni", g_i, offset)
     gradient[inside] = g_i
-    failed = ~np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
+    failed = ~np.isin(status, np.r_[GOOD_CODES, [int(Status.LOW_ZNCC)]])
     displacement[failed] = np.nan
     gradient[failed] = np.nan
     provenance = np.full(n, int(Provenance.MEASURED), np.uint8)

@@ -633,7 +633,7 @@ class MatchInputs(NamedTuple):
     """Everything the IC-GN kernels need besides the POIs and their outputs.
 
     One bundle for :func:`match_many` and :func:`.cuda.match_many_cuda` (built by
-    ``correlate._Level.inputs``).
+    ``correlate.PyramidLevel.inputs``).
 
     Attributes
     ----------

@@ -264,7 +264,7 @@ def concrete_specimen(
     (fraction of ``matrix_gray``) brighter than the matrix; both phases hold a fine texture of
     amplitude ``texture`` gray levels (sand, pores). Outside a cylinder along z of radius
     ``radius_fraction * min(ny, nx)`` the volume is ``background_gray`` (air, no texture). Noise is
-    not added (see :func:`add_noise`, :func:`noise_sigma_for`).
+    not added (see :func:`add_noise`, :func:`ct_noise_sigma`).
 
     Returns
     -------
@@ -285,12 +285,6 @@ def concrete_specimen(
     inside = 1.0 / (1.0 + np.exp((distance - radius) / 0.7))  # one-voxel soft edge
     volume = background_gray + (volume - background_gray) * inside[None]
     return volume.astype(np.float32)
-
-
-def noise_sigma_for(volume: np.ndarray, fraction: float = 0.06) -> float:
-    """``fraction`` of the volume's p1-p99 gray range (the "6 % noise" of a CT test)."""
-    low, high = np.percentile(volume, [1.0, 99.0])
-    return float(fraction * (high - low))
 
 
 def band_rotation_bending(

@@ -7,7 +7,7 @@ from qtpy.QtWidgets import QComboBox, QSpinBox, QTableWidget, QTableWidgetItem
 from .. import layers as L
 from . import correct_model as model
 from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
-from .correlate import _is_image
+from ._layer_kinds import is_scan
 from .correlate_model import layer_placement, layer_volume, named_volume
 from .regions import RegionBox
 
@@ -21,8 +21,8 @@ class CorrectWidget(EngineWidget):
         super().__init__(napari_viewer, parent)
         self.field = QComboBox()
         self.form.addRow("Field", self.field)
-        self.reference = LayerCombo(self.viewer, _is_image)
-        self.deformed = LayerCombo(self.viewer, _is_image)
+        self.reference = LayerCombo(self.viewer, is_scan)
+        self.deformed = LayerCombo(self.viewer, is_scan)
         self.form.addRow("Reference (G)", self.reference)
         self.form.addRow("Deformed (F)", self.deformed)
         self.frame = QComboBox()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from napari.layers import Image, Labels, Shapes
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
     QCheckBox,
@@ -24,6 +23,7 @@ from .. import layers as L
 from . import correlate_model as model
 from . import regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from ._layer_kinds import is_mask, is_scan, layer_role
 from .regions import RegionBox
 
 MODES = {
@@ -33,26 +33,6 @@ MODES = {
 }
 PREVIEW_POINTS = "POI grid (preview)"
 PREVIEW_BOX = "subvolume (preview)"
-
-
-def _made_by_us(layer) -> bool:
-    """Layers the plugin computed (fields, previews...), as opposed to input scans."""
-    entry = L.plugin_metadata(layer)
-    return entry is not None and "kind" in entry
-
-
-def _role(layer) -> str | None:
-    """``"reference"``, ``"deformed"`` or ``"series"`` for the sample data's layers."""
-    entry = L.plugin_metadata(layer)
-    return entry.get("role") if entry is not None else None
-
-
-def _is_image(layer) -> bool:
-    return isinstance(layer, Image) and not layer.rgb and not _made_by_us(layer)
-
-
-def _is_mask(layer) -> bool:
-    return isinstance(layer, (Labels, Shapes)) and not _made_by_us(layer)
 
 
 class CorrelateWidget(EngineWidget):
@@ -66,8 +46,8 @@ class CorrelateWidget(EngineWidget):
         for key, text in MODES.items():
             self.mode.addItem(text, key)
         self.form.addRow("Input", self.mode)
-        self.reference = LayerCombo(self.viewer, _is_image)
-        self.deformed = LayerCombo(self.viewer, _is_image)
+        self.reference = LayerCombo(self.viewer, is_scan)
+        self.deformed = LayerCombo(self.viewer, is_scan)
         self.form.addRow("Reference (G)", self.reference)
         self.form.addRow("Deformed (F)", self.deformed)
         self.series_list = QListWidget()
@@ -193,7 +173,7 @@ class CorrelateWidget(EngineWidget):
         images = self.reference.layers()
         inserted = getattr(event, "value", None) if event is not None else None
         for layer in images if inserted is None else [inserted]:
-            role = _role(layer)
+            role = layer_role(layer)
             if role == "reference":
                 self.reference.set_layer(layer)
             elif role == "deformed":
@@ -204,7 +184,7 @@ class CorrelateWidget(EngineWidget):
         if self.current_mode == "pair":
             pair_in_order(self.reference, self.deformed, event)
         self._refresh_series_list(images)
-        if inserted is None or _is_image(inserted) or _is_mask(inserted):
+        if inserted is None or is_scan(inserted) or is_mask(inserted):
             self._update.trigger()
 
     def _scans(self) -> list:

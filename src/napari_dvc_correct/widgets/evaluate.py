@@ -18,8 +18,8 @@ from superqt import QDoubleRangeSlider
 from .. import layers as L
 from . import evaluate_model as model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from ._layer_kinds import is_scan
 from ._plots import CurvesCanvas, HistogramCanvas
-from .correlate import _is_image
 from .correlate_model import layer_placement, layer_volume, named_volume
 
 MODES = {
@@ -35,8 +35,8 @@ class EvaluateWidget(EngineWidget):
 
     def __init__(self, napari_viewer, parent=None) -> None:
         super().__init__(napari_viewer, parent)
-        self.reference = LayerCombo(self.viewer, _is_image)
-        self.deformed = LayerCombo(self.viewer, _is_image)
+        self.reference = LayerCombo(self.viewer, is_scan)
+        self.deformed = LayerCombo(self.viewer, is_scan)
         self.form.addRow("Reference (G)", self.reference)
         self.form.addRow("Deformed (F)", self.deformed)
         self.fields = QListWidget()

@@ -16,11 +16,11 @@ from . import session_model as model
 
 def scan_entries(viewer) -> list[dict]:
     """The input scans (Image layers not made by the plugin), in the order opened."""
-    from .correlate import _is_image
+    from ._layer_kinds import is_scan
 
     scans = []
     for layer in viewer.layers:
-        if not _is_image(layer):
+        if not is_scan(layer):
             continue
         path = getattr(getattr(layer, "source", None), "path", None)
         scans.append(
