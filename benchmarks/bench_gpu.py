@@ -149,7 +149,7 @@ def run_matcher(kernel, level, centers, guesses, nb, **options):
 
 
 def workload(args, gpu, name, size, subvolume, step, order, cpu_pois, max_pois):
-    from napari_dvc_correct.engine import icgn
+    from napari_dvc_correct.engine import icgn, icgn_reference, shape_function
     from napari_dvc_correct.engine.cuda import match_many_cuda
     from napari_dvc_correct.engine.interpolation import prefilter
 
@@ -157,7 +157,7 @@ def workload(args, gpu, name, size, subvolume, step, order, cpu_pois, max_pois):
     reference, deformed, truth = make_pair(size)
     level = {
         "reference": reference,
-        "gradient": icgn.gradient_volume(prefilter(reference)),
+        "gradient": icgn_reference.gradient_volume(prefilter(reference)),
         "coef": prefilter(deformed),
         "half": subvolume // 2,
     }
@@ -166,8 +166,8 @@ def workload(args, gpu, name, size, subvolume, step, order, cpu_pois, max_pois):
     if len(centers) > max_pois:  # a centred block of the grid
         middle = len(centers) // 2 - max_pois // 2
         centers = centers[middle : middle + max_pois]
-    nb = icgn.n_monomials(order)
-    guesses = icgn.displacement_to_params(np.rint(truth(centers)), None, order)
+    nb = shape_function.n_monomials(order)
+    guesses = shape_function.displacement_to_params(np.rint(truth(centers)), None, order)
     voxels = subvolume**3
     print(
         f"\n== {name}: {size}³ volume, subvolume {subvolume}³, step {step}, order {order}, "

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import icgn, synthetic
+from napari_dvc_correct.engine import icgn, icgn_reference, shape_function, synthetic
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
 
@@ -12,9 +12,9 @@ CENTER = np.array(SHAPE) / 2
 
 
 def _match(reference, deformed, centers, guess, order, half=10):
-    gradient = icgn.gradient_volume(prefilter(reference))
+    gradient = icgn_reference.gradient_volume(prefilter(reference))
     coefficients = prefilter(deformed)
-    params = icgn.displacement_to_params(guess, None, order)
+    params = shape_function.displacement_to_params(guess, None, order)
     n = len(centers)
     zncc, status, its = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
     inputs = icgn.MatchInputs(
@@ -24,7 +24,7 @@ def _match(reference, deformed, centers, guess, order, half=10):
         mask=np.zeros((1, 1, 1), np.bool_),
         use_mask=False,
         half=half,
-        nb=icgn.n_monomials(order),
+        nb=shape_function.n_monomials(order),
         max_iterations=50,
         tolerance=1e-4,
         min_std=0.0,
@@ -52,7 +52,7 @@ def test_affine_warp_recovered(reference, order):
     deformed = synthetic.deform_volume(reference, truth)
     expected = truth(CENTERS.astype(float))
     params, zncc, status, _ = _match(reference, deformed, CENTERS, np.rint(expected), order)
-    u, grad = icgn.params_to_displacement(params, order)
+    u, grad = shape_function.params_to_displacement(params, order)
     assert np.all(status == Status.CONVERGED)
     assert np.max(np.abs(u - expected)) < 0.01
     assert np.max(np.abs(grad - gradient)) < 1e-3
@@ -70,7 +70,7 @@ def test_second_order_follows_a_quadratic_field_better_than_first(reference):
     for order in (1, 2):
         params, _, status, _ = _match(reference, deformed, CENTERS, np.rint(expected), order, 12)
         assert np.all(status == Status.CONVERGED)
-        u, _ = icgn.params_to_displacement(params, order)
+        u, _ = shape_function.params_to_displacement(params, order)
         errors[order] = np.sqrt(np.mean((u - expected) ** 2))
     assert errors[2] < 0.01
     assert errors[2] < 0.5 * errors[1]
@@ -94,8 +94,8 @@ def test_warp_matrix_composition_matches_function_composition():
     rng = np.random.default_rng(2)
     p = rng.normal(0, 0.05, 30)
     q = rng.normal(0, 0.05, 30)
-    mp = icgn.warp_matrix(p, 10, icgn.PRODUCT_TABLE, icgn.QUAD_AXES)
-    mq = icgn.warp_matrix(q, 10, icgn.PRODUCT_TABLE, icgn.QUAD_AXES)
+    mp = shape_function.warp_matrix(p, 10, shape_function.PRODUCT_TABLE, shape_function.QUAD_AXES)
+    mq = shape_function.warp_matrix(q, 10, shape_function.PRODUCT_TABLE, shape_function.QUAD_AXES)
     composed = mp @ mq
     point = np.array([0.3, -0.2, 0.1])
 

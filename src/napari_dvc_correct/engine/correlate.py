@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from . import icgn
+from . import icgn, icgn_reference, icgn_uncertainty, shape_function
 from .backend import select_device
 from .cleaning import normalized_median_test
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
@@ -108,7 +108,7 @@ class PyramidLevel:
             deformed = bin_volume(deformed, factor)
             if mask is not None:
                 mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
-        gradient = icgn.gradient_volume(prefilter(reference))
+        gradient = icgn_reference.gradient_volume(prefilter(reference))
         if std is None:  # else: the whole volume's, when these are a region of it (tiled)
             std = float(np.std(reference[mask] if mask is not None else reference))
         return cls(
@@ -134,14 +134,14 @@ class PyramidLevel:
     def statistics(self, centers, warps, zncc, order, sensitivity, out, index):
         """Fill ``out``'s variance, gradient power and sigma at ``index``.
 
-        (:func:`.icgn.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``.)
+        (:func:`.icgn_uncertainty.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``.)
         """
         if len(centers) == 0:
             return
         var = np.empty(len(centers))
         power = np.empty(len(centers))
         sig = np.empty((len(centers), 3))
-        icgn.subvolume_statistics(
+        icgn_uncertainty.subvolume_statistics(
             self.reference,
             self.gradient,
             self.coef_deformed,
@@ -149,7 +149,7 @@ class PyramidLevel:
             self.use_mask,
             np.ascontiguousarray(centers, dtype=np.int64),
             self.half,
-            icgn.n_monomials(order),
+            shape_function.n_monomials(order),
             np.ascontiguousarray(warps, dtype=np.float64),
             np.ascontiguousarray(zncc, dtype=np.float64),
             np.ascontiguousarray(sensitivity, dtype=np.bool_),
@@ -170,7 +170,7 @@ class PyramidLevel:
             mask=self.mask,
             use_mask=bool(self.use_mask),
             half=int(self.half),
-            nb=icgn.n_monomials(order),
+            nb=shape_function.n_monomials(order),
             max_iterations=int(params.max_iterations),
             tolerance=float(params.tolerance),
             min_std=float(self.min_std),
@@ -231,7 +231,7 @@ ZNCC_SIGNIFICANCE = 2.5
 #: interpolant (measured 1.386); with the noise estimate it says how much of ``H`` is noise.
 NOISE_GRADIENT_GAIN = 1.39
 #: The uncertainty measures the sensitivity ``A`` from the deformed scan
-#: (:func:`.icgn.subvolume_statistics`) where the noise is more than this fraction of ``H``.
+#: (:func:`.icgn_uncertainty.subvolume_statistics`) where the noise is more than this fraction of ``H``.
 SENSITIVITY_FRACTION = 0.02
 
 #: Uncertainty bound (voxels, :func:`uncertainty_bound`): matches whose predicted uncertainty
@@ -335,7 +335,7 @@ def _repair(
     try_again = np.isin(status, [int(Status.MASKED), int(Status.LOW_TEXTURE)])
     if good.sum() >= settings.median_test_min_pois:
         good &= ~_neighbour_outliers(
-            icgn.params_to_displacement(params, order)[0], good, grid_shape
+            shape_function.params_to_displacement(params, order)[0], good, grid_shape
         )
     bad = (
         ~good
@@ -355,7 +355,7 @@ def _repair(
     )
     if not bad.any() or not good.any():
         return int(bad.sum())
-    nb = icgn.n_monomials(order)
+    nb = shape_function.n_monomials(order)
     grid_index = np.arange(len(centers)).reshape(grid_shape)
     offsets = [
         (a, b, c)
@@ -420,7 +420,7 @@ def _seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
     seed_grid[np.ix_(*axes)] = True
     seeds = np.flatnonzero(seed_grid)
     n_points = len(centers)
-    nb = icgn.n_monomials(order)
+    nb = shape_function.n_monomials(order)
 
     def search(index):
         found, _ = fft_search(
@@ -431,14 +431,14 @@ def _seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
             np.tile(shift, (len(index), 1)),
             radius,
         )
-        return icgn.displacement_to_params(found, None, order)
+        return shape_function.displacement_to_params(found, None, order)
 
     seed_params = np.ascontiguousarray(search(seeds))
     zncc, status, _ = level.match(centers[seeds], seed_params, order, settings)
     good = _is_good(status, zncc, settings.min_zncc)
     if good.sum() >= settings.median_test_min_pois:
         seed_u = np.full((*[len(a) for a in axes], 3), np.nan)
-        seed_u.reshape(-1, 3)[:] = icgn.params_to_displacement(seed_params, order)[0]
+        seed_u.reshape(-1, 3)[:] = shape_function.params_to_displacement(seed_params, order)[0]
         good &= ~_neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
     if not good.any():
         return np.ascontiguousarray(search(np.arange(n_points)))
@@ -523,7 +523,7 @@ def correlate_iter(
     centers, inside = _grid_centers(grid, reference.shape, half)
     n_points = len(centers)
     order = params.order
-    nb = icgn.n_monomials(order)
+    nb = shape_function.n_monomials(order)
     if initial is not None and initial.shape != grid_shape:
         raise ValueError(
             f"initial field grid {initial.shape} differs from the POI grid {grid_shape}"
@@ -547,7 +547,7 @@ def correlate_iter(
     t0 = time.perf_counter()
     radius = params.effective_search_radius
     if initial is not None:
-        guess_params = icgn.displacement_to_params(
+        guess_params = shape_function.displacement_to_params(
             initial.displacement,
             None if initial.gradient is None else initial.gradient.reshape(-1, 3, 3),
             order,
@@ -671,7 +671,7 @@ def correlate_iter(
     timings["uncertainty_s"] = time.perf_counter() - t0
     bound, unsure = uncertainty_bound(sigma, status)
     status[unsure] = int(Status.LOW_ZNCC)
-    displacement, gradient = icgn.params_to_displacement(params_out, order)
+    displacement, gradient = shape_function.params_to_displacement(params_out, order)
     failed = ~np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
     displacement[failed] = np.nan
     gradient[failed] = np.nan

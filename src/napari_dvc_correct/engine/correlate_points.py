@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from . import icgn
+from . import shape_function
 from .backend import select_device
 from .correlate import PyramidLevel, correlate, validate_pair
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
@@ -113,7 +113,7 @@ def correlate_points(
         ).reshape(-1, 3, 3)
         g0 = np.nan_to_num(g0)
     order = params.order
-    trial = np.ascontiguousarray(icgn.displacement_to_params(u0, g0, order))
+    trial = np.ascontiguousarray(shape_function.displacement_to_params(u0, g0, order))
     level = PyramidLevel.build(1, reference, deformed, mask, half, params.min_texture, device.kind)
     zncc_i, status_i, iterations_i = level.match(centers[inside], trial, order, params)
 
@@ -126,7 +126,7 @@ def correlate_points(
     status[low] = int(Status.LOW_ZNCC)
     displacement = np.full((n, 3), np.nan)
     gradient = np.full((n, 3, 3), np.nan)
-    d_i, g_i = icgn.params_to_displacement(trial, order)
+    d_i, g_i = shape_function.params_to_displacement(trial, order)
     offset = points[inside] - centers[inside]
     displacement[inside] = d_i + np.einsum("nij,nj->ni", g_i, offset)
     gradient[inside] = g_i

@@ -103,7 +103,7 @@ class DisplacementField:
         (JSON-serialisable).
     uncertainty : ndarray, shape (nz, ny, nx, 3), float64, optional
         Standard deviation of ``(uz, uy, ux)`` in voxels that the imaging noise leaves in each
-        measured node, estimated from the images alone (:func:`.icgn.subvolume_statistics`); NaN
+        measured node, estimated from the images alone (:func:`.icgn_uncertainty.subvolume_statistics`); NaN
         where no match was measured (failed, masked, or a value filled in by cleaning), or None
         when unknown (fields from older files or other tools).
     """

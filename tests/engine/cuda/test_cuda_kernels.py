@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import icgn, synthetic
+from napari_dvc_correct.engine import icgn, icgn_reference, shape_function, synthetic
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter, sample
 
@@ -42,14 +42,14 @@ def _icgn_case(reference, deformed, centers, truth, order, mask=None):
     return {
         "kind": np.array("icgn"),
         "reference": reference,
-        "gradient": icgn.gradient_volume(prefilter(reference)),
+        "gradient": icgn_reference.gradient_volume(prefilter(reference)),
         "coef_deformed": prefilter(deformed),
         "mask": np.zeros((1, 1, 1), bool) if mask is None else mask,
         "use_mask": np.array(mask is not None),
         "centers": np.asarray(centers, np.int64),
         "half": np.array(HALF),
-        "nb": np.array(icgn.n_monomials(order)),
-        "params": icgn.displacement_to_params(
+        "nb": np.array(shape_function.n_monomials(order)),
+        "params": shape_function.displacement_to_params(
             np.rint(truth(np.asarray(centers, float))), None, order
         ),
         "max_iterations": np.array(30),

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import icgn, synthetic
+from napari_dvc_correct.engine import icgn, icgn_reference, synthetic
 from napari_dvc_correct.engine.cuda import icgn as gpu_icgn
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
@@ -14,7 +14,7 @@ def _inputs(nb=4):
     deformed = synthetic.deform_volume(reference, synthetic.translation((0.4, -0.3, 0.2)))
     inputs = icgn.MatchInputs(
         reference=reference,
-        gradient=icgn.gradient_volume(prefilter(reference)),
+        gradient=icgn_reference.gradient_volume(prefilter(reference)),
         coef_deformed=prefilter(deformed),
         mask=np.zeros((1, 1, 1), bool),
         use_mask=False,

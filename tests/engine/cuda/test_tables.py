@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import icgn
+from napari_dvc_correct.engine import shape_function
 from napari_dvc_correct.engine.cuda.tables import (
     MAX_TERMS,
     monomial_exponents,
@@ -24,7 +24,7 @@ def test_tables_rebuild_the_hessian_and_the_reference_sums(nb):
     b = np.empty(10)
     jac = np.empty((len(xi), 3 * nb))
     for i in range(len(xi)):
-        icgn.monomials(*xi[i], nb, b)
+        shape_function.monomials(*xi[i], nb, b)
         for k in range(3):
             jac[i, k * nb : (k + 1) * nb] = grad[i, k] * b[:nb]
     dg = g - g.mean()
@@ -39,5 +39,5 @@ def test_monomials_start_like_the_cpu_shape_function():
     exps = monomial_exponents(4)
     assert len(exps) == 35 and len({tuple(e) for e in exps}) == 35
     b = np.empty(10)
-    icgn.monomials(2.0, 3.0, 5.0, 10, b)
+    shape_function.monomials(2.0, 3.0, 5.0, 10, b)
     np.testing.assert_array_equal(np.prod([2.0, 3.0, 5.0] ** exps[:10], axis=1), b)

@@ -1,0 +1,150 @@
+"""The reference side of IC-GN, computed once per POI: gradients, steepest-descent terms, Hessian.
+
+``∇G`` of the whole reference volume (from its B-spline coefficients), then per subvolume the
+steepest-descent images ``J = ∇G · ∂W/∂p`` summed into the Hessian ``H = Σ JᵀJ`` (in moments of
+the local coordinates for the affine part), and the translation entries of ``H⁻¹``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from ._numba_setup import KERNEL_OPTIONS
+from .interpolation import gradient_at_voxel
+from .shape_function import PRODUCT_TABLE, cholesky_solve, cholesky_solve_setup, monomials
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def gradient_volume(coefficients):
+    """Gradient of the B-spline interpolant at every voxel, shape (3, nz, ny, nx), float32."""
+    nz, ny, nx = coefficients.shape
+    out = np.empty((3, nz, ny, nx), np.float32)
+    for iz in prange(nz):
+        for iy in range(ny):
+            for ix in range(nx):
+                gz, gy, gx = gradient_at_voxel(coefficients, iz, iy, ix)
+                out[0, iz, iy, ix] = gz
+                out[1, iz, iy, ix] = gy
+                out[2, iz, iy, ix] = gx
+    return out
+
+
+_PAIR = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]], dtype=np.int64)  # (k, k') -> QUAD_AXES row
+
+
+@njit(**KERNEL_OPTIONS)
+def affine_hessian(grad, xi, count):
+    """Σ JᵀJ for the affine shape function through second moments of ∇G ⊗ ∇G.
+
+    ``H[(k, j), (k', j')] = Σ g_k g_k' b_j b_j'`` and ``b_j b_j'`` is one of the 10 monomials of
+    degree ≤ 2, so 6 × 10 moments suffice. Voxels come in (z, y, x) row order: sums along each x-row
+    of ``g_k g_k' · (1, x, x²)`` are folded into the moments once per row.
+    """
+    moments = np.zeros((6, 10))
+    row0 = np.zeros(6)
+    row1 = np.zeros(6)
+    row2 = np.zeros(6)
+    current_z = xi[0, 0] if count else 0.0
+    current_y = xi[0, 1] if count else 0.0
+    for i in range(count + 1):
+        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
+            z = current_z
+            y = current_y
+            for q in range(6):
+                s0 = row0[q]
+                s1 = row1[q]
+                moments[q, 0] += s0
+                moments[q, 1] += z * s0
+                moments[q, 2] += y * s0
+                moments[q, 3] += s1
+                moments[q, 4] += z * z * s0
+                moments[q, 5] += y * y * s0
+                moments[q, 6] += row2[q]
+                moments[q, 7] += z * y * s0
+                moments[q, 8] += y * s1
+                moments[q, 9] += z * s1
+                row0[q] = 0.0
+                row1[q] = 0.0
+                row2[q] = 0.0
+            if i == count:
+                break
+            current_z = xi[i, 0]
+            current_y = xi[i, 1]
+        gz = grad[i, 0]
+        gy = grad[i, 1]
+        gx = grad[i, 2]
+        x = xi[i, 2]
+        products = (gz * gz, gy * gy, gx * gx, gz * gy, gy * gx, gz * gx)
+        for q in range(6):
+            value = products[q]
+            row0[q] += value
+            row1[q] += value * x
+            row2[q] += value * x * x
+    hessian = np.empty((12, 12))
+    for k in range(3):
+        for j in range(4):
+            for k2 in range(3):
+                for j2 in range(4):
+                    hessian[k * 4 + j, k2 * 4 + j2] = moments[_PAIR[k, k2], PRODUCT_TABLE[j, j2]]
+    return hessian
+
+
+@njit(**KERNEL_OPTIONS)
+def reference_terms(g, grad, xi, count, nb):
+    """Mean and norm of the reference subvolume, Cholesky factor of H = Σ JᵀJ, Σ J, Σ J (g − ḡ)."""
+    m_par = 3 * nb
+    mean_g = 0.0
+    for i in range(count):
+        mean_g += g[i]
+    mean_g /= max(count, 1)
+    ss_g = 0.0
+    for i in range(count):
+        d = g[i] - mean_g
+        ss_g += d * d
+    delta_g = np.sqrt(ss_g)
+    sum_j = np.zeros(m_par)
+    sum_jg = np.zeros(m_par)
+    b = np.empty(10)
+    if nb == 4:
+        hessian = affine_hessian(grad, xi, count)
+        for i in range(count):
+            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+            dg = g[i] - mean_g
+            for k in range(3):
+                for j in range(4):
+                    jr = grad[i, k] * b[j]
+                    sum_j[k * 4 + j] += jr
+                    sum_jg[k * 4 + j] += jr * dg
+    else:
+        hessian = np.zeros((m_par, m_par))
+        jac = np.empty(m_par)
+        for i in range(count):
+            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+            for k in range(3):
+                for j in range(nb):
+                    jac[k * nb + j] = grad[i, k] * b[j]
+            dg = g[i] - mean_g
+            for r in range(m_par):
+                jr = jac[r]
+                sum_j[r] += jr
+                sum_jg[r] += jr * dg
+                for c in range(r + 1):
+                    hessian[r, c] += jr * jac[c]
+        for r in range(m_par):
+            for c in range(r):
+                hessian[c, r] = hessian[r, c]
+    ok, low = cholesky_solve_setup(hessian, m_par)
+    return mean_g, delta_g, ok, low, sum_j, sum_jg
+
+
+@njit(**KERNEL_OPTIONS)
+def translation_h_inverse(low, m_par, nb, out):
+    """Diagonal of ``H⁻¹`` at the three translations, from the Cholesky factor of ``H``."""
+    unit = np.zeros(m_par)
+    column = np.empty(m_par)
+    for k in range(3):
+        unit[:] = 0.0
+        unit[k * nb] = 1.0
+        cholesky_solve(low, unit, m_par, column)
+        out[k] = column[k * nb]
