@@ -14,20 +14,27 @@ The pipeline, coarse to fine:
 
 from __future__ import annotations
 
-import heapq
 import time
 from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from . import icgn, icgn_reference, icgn_uncertainty, shape_function
 from .backend import select_device
-from .cleaning import normalized_median_test
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
-from .initial_guess import bin_volume, fft_search, global_shift, pyramid_levels
+from .guided_repair import repair, seed_guesses
+from .initial_guess import bin_volume, global_shift, pyramid_levels
 from .interpolation import prefilter
+from .noise import (
+    MIN_PERFECT_ZNCC,
+    NOISE_GRADIENT_GAIN,
+    SENSITIVITY_FRACTION,
+    ZNCC_SIGNIFICANCE,
+    noise_aware_thresholds,
+    noise_metadata,
+    uncertainty_bound,
+)
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
 from .validation import validate_volume
@@ -206,257 +213,6 @@ class PyramidLevel:
         return zncc, status, iterations
 
 
-def _neighbour_outliers(u, usable, grid_shape, threshold=2.0, noise=0.1):
-    """Usable POIs (flat mask) that fail the normalised median test over their 26 neighbours."""
-    residual = normalized_median_test(
-        u.reshape(*grid_shape, 3), usable.reshape(grid_shape), epsilon=noise
-    )
-    return (np.nan_to_num(residual, nan=0.0) > threshold).reshape(-1) & usable
-
-
-def _is_good(status, zncc, min_zncc):
-    return np.isin(status, _GOOD) & (zncc >= min_zncc)
-
-
-#: POIs whose perfect-match ZNCC at the scans' noise level (:func:`noise_aware_thresholds`) is
-#: below this hold less texture than a ninth of the noise variance: ``LOW_TEXTURE``.
-MIN_PERFECT_ZNCC = 0.1
-
-#: Fitting ``m`` shape-function parameters to pure noise over ``n`` voxels reaches a ZNCC of
-#: about ``sqrt(m / n)``; a match must exceed this many times that (measured on noise-against-
-#: noise subvolumes, 15³, first order: 0.05-0.09, the floor is 0.15).
-ZNCC_SIGNIFICANCE = 2.5
-
-#: Mean square of one gradient component of unit white noise through the cubic B-spline
-#: interpolant (measured 1.386); with the noise estimate it says how much of ``H`` is noise.
-NOISE_GRADIENT_GAIN = 1.39
-#: The uncertainty measures the sensitivity ``A`` from the deformed scan
-#: (:func:`.icgn_uncertainty.subvolume_statistics`) where the noise is more than this fraction of ``H``.
-SENSITIVITY_FRACTION = 0.02
-
-#: Uncertainty bound (voxels, :func:`uncertainty_bound`): matches whose predicted uncertainty
-#: along some axis exceeds ``min(MAX_UNCERTAINTY, max(MIN_UNCERTAINTY_BOUND, UNCERTAINTY_RATIO
-#: × the median of the matched POIs))`` are not trusted and become ``LOW_ZNCC``.
-MAX_UNCERTAINTY = 1.0
-MIN_UNCERTAINTY_BOUND = 0.1
-UNCERTAINTY_RATIO = 10.0
-
-
-def uncertainty_bound(sigma, status):
-    """The uncertainty (voxels) above which a match is not trusted, and the POIs above it.
-
-    A match the images do not pin down has a large uncertainty: on noise-free scans that is one
-    far above the field's typical value (measured: 0.2-2.6 voxels against 1e-4 for the subvolumes
-    that straddle a region that one scan lacks, all 1-8 voxels off), on noisy scans one above a
-    voxel. The bound is ``min(1, max(0.1, 10 × median))`` over the matched POIs' largest
-    component.
-
-    Returns
-    -------
-    bound : float
-    unsure : ndarray of bool (N,)
-        Matched POIs (good status) whose largest component exceeds the bound (or is infinite).
-    """
-    largest = np.max(sigma, axis=1)
-    matched = np.isin(status, _GOOD)
-    known = matched & np.isfinite(largest)
-    typical = float(np.median(largest[known])) if known.any() else 0.0
-    bound = min(MAX_UNCERTAINTY, max(MIN_UNCERTAINTY_BOUND, UNCERTAINTY_RATIO * typical))
-    with np.errstate(invalid="ignore"):
-        unsure = matched & (largest > bound)
-    return bound, unsure
-
-
-def noise_aware_thresholds(variance, zncc, status, min_zncc, floor=0.0):
-    """Imaging noise of the scans and the ZNCC threshold of every POI at that noise.
-
-    With independent noise of variance ``σ_n²`` on both scans and a subvolume whose gray variance
-    is ``s² = σ_t² + σ_n²`` (texture plus noise), a perfect match reaches
-    ``ZNCC* = σ_t² / (σ_t² + σ_n²) = 1 − σ_n² / s²`` (the residual ``(g − ḡ) − (f − f̄)`` holds
-    the two noises, ``Σ r² = 2 n σ_n²``, and ``ZNSSD = Σ r² / (n s²) = 2 (1 − ZNCC)``). So every
-    match gives ``s² (1 − ZNCC)`` as an estimate of ``σ_n²``, too large where the match is wrong
-    or the shape function cannot follow the deformation; their median over the matched POIs is
-    the noise estimate. A POI's threshold is ``min_zncc · ZNCC*``: ``min_zncc`` is read relative
-    to what a perfect match can reach, which is ``min_zncc`` itself on noise-free scans. It is
-    never below ``floor`` (what fitting the shape function to noise alone reaches,
-    ``ZNCC_SIGNIFICANCE · sqrt(3·nb / n)``) nor above ``min_zncc``.
-
-    Parameters
-    ----------
-    variance : ndarray (N,)
-        Gray variance of each POI's reference subvolume (NaN where unknown).
-    zncc, status : ndarray (N,)
-        Results of the matching.
-    min_zncc : float
-    floor : float
-        Lowest threshold.
-
-    Returns
-    -------
-    noise_variance : float
-        ``σ_n²`` in gray levels² (0 when no POI matched).
-    perfect : ndarray (N,)
-        ``ZNCC*`` per POI, in [0, 1] (NaN where the variance is unknown).
-    thresholds : ndarray (N,)
-        ``min_zncc · ZNCC*`` (``min_zncc`` where ``ZNCC*`` is unknown).
-    """
-    matched = np.isin(status, _GOOD) & np.isfinite(zncc) & np.isfinite(variance)
-    estimates = variance[matched] * np.clip(1.0 - zncc[matched], 0.0, None)
-    noise_variance = float(np.median(estimates)) if estimates.size else 0.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        perfect = np.clip(1.0 - noise_variance / variance, 0.0, 1.0)
-    thresholds = np.where(np.isfinite(perfect), min_zncc * perfect, min_zncc)
-    thresholds = np.minimum(np.maximum(thresholds, floor), min_zncc)
-    return noise_variance, perfect, thresholds
-
-
-def _repair(
-    level,
-    centers,
-    grid_shape,
-    params,
-    zncc,
-    status,
-    iterations,
-    order,
-    settings,
-    thresholds=None,
-):
-    """Reliability-guided propagation into POIs that failed or are outliers.
-
-    POIs are taken best first (highest ZNCC); each bad 26-neighbour is matched again with the
-    popped POI's warp carried over to its position (``u + ∇u·Δ``). A new match replaces the old
-    one when it converges above its ZNCC threshold (``thresholds`` (N,), default
-    ``settings.min_zncc``); it then seeds its own neighbours.
-    """
-    if thresholds is None:
-        thresholds = np.full(len(centers), float(settings.min_zncc))
-    good = _is_good(status, zncc, thresholds)
-    try_again = np.isin(status, [int(Status.MASKED), int(Status.LOW_TEXTURE)])
-    if good.sum() >= settings.median_test_min_pois:
-        good &= ~_neighbour_outliers(
-            shape_function.params_to_displacement(params, order)[0], good, grid_shape
-        )
-    bad = (
-        ~good
-        & ~try_again
-        & np.isin(
-            status,
-            np.r_[
-                _GOOD,
-                [
-                    int(Status.DIVERGED),
-                    int(Status.SINGULAR),
-                    int(Status.OUT_OF_BOUNDS),
-                    int(Status.LOW_ZNCC),
-                ],
-            ],
-        )
-    )
-    if not bad.any() or not good.any():
-        return int(bad.sum())
-    nb = shape_function.n_monomials(order)
-    grid_index = np.arange(len(centers)).reshape(grid_shape)
-    offsets = [
-        (a, b, c)
-        for a in (-1, 0, 1)
-        for b in (-1, 0, 1)
-        for c in (-1, 0, 1)
-        if (a, b, c) != (0, 0, 0)
-    ]
-    heap = [(-zncc[i], i) for i in np.flatnonzero(good)]
-    heapq.heapify(heap)
-    attempts = np.zeros(len(centers), np.int64)
-    max_attempts = np.where(
-        status == int(Status.OUT_OF_BOUNDS),
-        settings.repair_attempts_out_of_bounds,
-        settings.repair_attempts,
-    )
-    while heap and bad.any():
-        _, i = heapq.heappop(heap)
-        iz, iy, ix = np.unravel_index(i, grid_shape)
-        for a, b, c in offsets:
-            jz, jy, jx = iz + a, iy + b, ix + c
-            if not (
-                0 <= jz < grid_shape[0] and 0 <= jy < grid_shape[1] and 0 <= jx < grid_shape[2]
-            ):
-                continue
-            j = grid_index[jz, jy, jx]
-            if not bad[j] or attempts[j] >= max_attempts[j]:
-                continue
-            attempts[j] += 1
-            guess = params[i].reshape(3, nb).copy()
-            delta = (centers[j] - centers[i]).astype(np.float64)
-            guess[:, 0] += guess[:, 1:4] @ delta
-            trial = np.ascontiguousarray(guess.reshape(1, -1))
-            t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, order, settings)
-            if t_status[0] in _GOOD and t_zncc[0] >= thresholds[j]:
-                params[j] = trial[0]
-                zncc[j] = t_zncc[0]
-                status[j] = t_status[0]
-                iterations[j] = t_its[0]
-                bad[j] = False
-                heapq.heappush(heap, (-zncc[j], j))
-    return int(bad.sum())
-
-
-def _seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
-    """Initial warps for every POI from an FFT search at a sparse set of seed POIs.
-
-    Seeds sit on a sub-grid about one subvolume apart. Each is searched by FFT cross-correlation
-    within ``radius`` around the rigid ``shift`` and refined by IC-GN; seeds that fail, correlate
-    poorly or disagree with the other seeds are dropped, and every POI receives the affine warp of
-    its nearest good seed carried to its position. Falls back to searching every POI when no seed
-    survives.
-
-    Returns
-    -------
-    ndarray, shape (N, 3·nb)
-        Shape-function parameters at ``level`` (voxels of that level).
-    """
-    stride = max(1, int(round(settings.subvolume / settings.step)))
-    axes = [np.unique(np.r_[np.arange(0, n, stride), n - 1]) for n in grid_shape]
-    seed_grid = np.zeros(grid_shape, bool)
-    seed_grid[np.ix_(*axes)] = True
-    seeds = np.flatnonzero(seed_grid)
-    n_points = len(centers)
-    nb = shape_function.n_monomials(order)
-
-    def search(index):
-        found, _ = fft_search(
-            level.reference,
-            level.deformed,
-            centers[index],
-            level.half,
-            np.tile(shift, (len(index), 1)),
-            radius,
-        )
-        return shape_function.displacement_to_params(found, None, order)
-
-    seed_params = np.ascontiguousarray(search(seeds))
-    zncc, status, _ = level.match(centers[seeds], seed_params, order, settings)
-    good = _is_good(status, zncc, settings.min_zncc)
-    if good.sum() >= settings.median_test_min_pois:
-        seed_u = np.full((*[len(a) for a in axes], 3), np.nan)
-        seed_u.reshape(-1, 3)[:] = shape_function.params_to_displacement(seed_params, order)[0]
-        good &= ~_neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
-    if not good.any():
-        return np.ascontiguousarray(search(np.arange(n_points)))
-    good_grid = np.zeros(grid_shape, bool)
-    good_grid.reshape(-1)[seeds[good]] = True
-    nearest = ndimage.distance_transform_edt(
-        ~good_grid, return_distances=False, return_indices=True
-    )
-    nearest_flat = np.ravel_multi_index(tuple(nearest.reshape(3, -1)), grid_shape)
-    lookup = np.full(n_points, -1)
-    lookup[seeds] = np.arange(len(seeds))
-    source = lookup[nearest_flat]
-    guesses = seed_params[source].reshape(n_points, 3, nb).copy()
-    delta = (centers - centers[seeds][source]).astype(np.float64)
-    guesses[:, :, 0] += np.einsum("nkl,nl->nk", guesses[:, :, 1:4], delta)
-    return np.ascontiguousarray(guesses.reshape(n_points, 3 * nb))
-
-
 def correlate_iter(
     reference: np.ndarray,
     deformed: np.ndarray,
@@ -581,7 +337,7 @@ def correlate_iter(
             level_centers = level.centers_from_fine(centers)
             if guess_params is None:
                 coarse_radius = int(np.ceil(radius / 2**lev)) + (1 if lev else 0)
-                guess_params = _seed_guesses(
+                guess_params = seed_guesses(
                     level, level_centers, grid_shape, shift / 2**lev, coarse_radius, order, params
                 )
                 yield Progress("initial guess", 1, levels + 2, f"seeds matched (level {lev})")
@@ -589,7 +345,7 @@ def correlate_iter(
                 break
             before = guess_params.copy()
             zncc_l, status_l, its_l = level.match(level_centers, guess_params, order, params)
-            _repair(
+            repair(
                 level,
                 level_centers,
                 grid_shape,
@@ -653,7 +409,7 @@ def correlate_iter(
     t0 = time.perf_counter()
     before = params_out.copy()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
-    _repair(
+    repair(
         fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
     )
     timings["repair_s"] = time.perf_counter() - t0
@@ -698,7 +454,7 @@ def correlate_iter(
             "masked": mask is not None,
             "device": device.description,
             "noise": {
-                **_noise_metadata(noise_variance, thresholds, status, params.min_zncc),
+                **noise_metadata(noise_variance, thresholds, status, params.min_zncc),
                 "zncc_threshold_floor": float(floor),
                 "uncertainty_bound": bound,
                 "uncertain": int(unsure.sum()),
@@ -707,21 +463,6 @@ def correlate_iter(
     )
     yield Progress("done", 1, 1, f"{int(np.isin(status, _GOOD).sum())} of {n_points} POIs matched")
     return field
-
-
-def _noise_metadata(noise_variance, thresholds, status, min_zncc):
-    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
-    used = thresholds[measured] if measured.any() else np.array([min_zncc])
-    return {
-        "sigma": float(np.sqrt(noise_variance)),
-        "estimator": "median over matched POIs of s² (1 - ZNCC), s² the subvolume's variance",
-        "zncc_threshold_rule": "min_zncc * (1 - sigma² / s²)",
-        "min_zncc": float(min_zncc),
-        "zncc_threshold_min": float(np.min(used)),
-        "zncc_threshold_median": float(np.median(used)),
-        "zncc_threshold_max": float(np.max(used)),
-        "low_texture_rule": f"1 - sigma² / s² < {MIN_PERFECT_ZNCC}",
-    }
 
 
 # correlate repeats correlate_iter's signature (the duplicate finder pairs them): the blocking

@@ -37,7 +37,7 @@ class CorrelationParams:
     min_zncc : float
         Matches that converge with a ZNCC below ``min_zncc`` times the ZNCC a perfect match
         reaches at the scans' noise level are flagged ``LOW_ZNCC``
-        (:func:`.correlate.noise_aware_thresholds`; on noise-free scans: below ``min_zncc``).
+        (:func:`.noise.noise_aware_thresholds`; on noise-free scans: below ``min_zncc``).
     batch_size : int
         POIs per progress batch.
     noise_tolerance : float
