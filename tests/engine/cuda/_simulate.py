@@ -21,10 +21,10 @@ def main(cases_path: str, results_path: str) -> int:
         raise SystemExit("set NUMBA_ENABLE_CUDASIM=1")
     from napari_dvc_correct.engine import icgn
     from napari_dvc_correct.engine.backend import select_device
-    from napari_dvc_correct.engine.cuda import icgn as gpu_icgn
+    from napari_dvc_correct.engine.cuda import launch as gpu_launch
     from napari_dvc_correct.engine.cuda import match_many_cuda, sample_cuda, simulator_enabled
 
-    launch = gpu_icgn._launch
+    launch = gpu_launch._launch
 
     assert simulator_enabled()
     data = dict(np.load(cases_path))
@@ -75,13 +75,13 @@ def main(cases_path: str, results_path: str) -> int:
             launch(*arguments, **options)
             recorded["status"] = arguments[4].copy()
 
-        gpu_icgn._launch = recording_launch
+        gpu_launch._launch = recording_launch
         params = case["params"].copy()
         zncc, status, iterations = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
         match_many_cuda(
             inputs, case["centers"], params, zncc, status, iterations, threads_per_block=16
         )
-        gpu_icgn._launch = launch
+        gpu_launch._launch = launch
         out[f"{name}/raw_status"] = recorded["status"]
         out[f"{name}/params"] = params
         out[f"{name}/zncc"] = zncc

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.engine import icgn, icgn_reference, synthetic
-from napari_dvc_correct.engine.cuda import icgn as gpu_icgn
+from napari_dvc_correct.engine.cuda import launch as gpu_launch
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
 
@@ -40,11 +40,11 @@ def test_gpu_failure_falls_back_to_the_cpu_with_a_warning(monkeypatch):
         args[2][:] = 99.0  # a half-done launch must not leak into the result
         raise CudaSupportError("no driver")
 
-    monkeypatch.setattr(gpu_icgn, "_launch", broken)
+    monkeypatch.setattr(gpu_launch, "_launch", broken)
     inputs = _inputs()
     gpu_out = _outputs(2)
     with pytest.warns(RuntimeWarning, match="GPU failed.*CPU"):
-        gpu_icgn.match_many_cuda(*inputs, *gpu_out)
+        gpu_launch.match_many_cuda(*inputs, *gpu_out)
     cpu_out = _outputs(2)
     icgn.match_many(*inputs, *cpu_out)
     np.testing.assert_array_equal(gpu_out[0], cpu_out[0])
@@ -58,11 +58,11 @@ def test_gpu_failure_can_be_raised(monkeypatch):
     def broken(*args, **kwargs):
         raise CudaSupportError("no driver")
 
-    monkeypatch.setattr(gpu_icgn, "_launch", broken)
+    monkeypatch.setattr(gpu_launch, "_launch", broken)
     with pytest.raises(CudaSupportError):
-        gpu_icgn.match_many_cuda(*_inputs(), *_outputs(2), cpu_fallback=False)
+        gpu_launch.match_many_cuda(*_inputs(), *_outputs(2), cpu_fallback=False)
 
 
 def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="nb must be"):
-        gpu_icgn.match_many_cuda(*_inputs(nb=7), *_outputs(2))
+        gpu_launch.match_many_cuda(*_inputs(nb=7), *_outputs(2))

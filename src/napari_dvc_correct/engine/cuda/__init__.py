@@ -9,7 +9,8 @@ tests on tiny cases only).
 from __future__ import annotations
 
 from ._numba_cuda import cuda, simulator_enabled
-from .icgn import FALLBACK, match_many_cuda
+from .icgn import FALLBACK
+from .launch import match_many_cuda
 from .memory import clear_device_cache
 from .sampling import sample_cuda
 

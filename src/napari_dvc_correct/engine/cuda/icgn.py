@@ -1,5 +1,5 @@
-"""IC-GN on the GPU: one thread block per POI, the same algorithm and statuses as
-:func:`napari_dvc_correct.engine.icgn.match_many`.
+"""IC-GN on the GPU: the kernel, one thread block per POI, with the same algorithm and statuses
+as :func:`napari_dvc_correct.engine.icgn.match_many`.
 
 Mapping
 -------
@@ -22,15 +22,18 @@ corrected exactly, so a large gray offset (16-bit CT) does not cancel digits.
 
 POIs whose warped subvolume leaves the deformed volume are not handled here (the CPU drops the
 voxels that left and rebuilds the reference terms, which needs per-voxel state): the kernel flags
-them :data:`FALLBACK` and :func:`match_many_cuda` matches them again on the CPU, so results stay
+them :data:`FALLBACK` and :func:`.launch.match_many_cuda` matches them again on the CPU, so results stay
 identical to the CPU path. They are rare (subvolumes at the border moving outwards).
+
+This module builds the kernel (:func:`build_kernel`). Its device helpers (reduction, Cholesky, warp
+algebra) live in :mod:`.device_algebra`; the host side (uploads, launches in chunks, the CPU
+fallback) in :mod:`.launch`.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-import warnings
 
 import numpy as np
 from numba import float32, float64, int32, int64, uint64
@@ -38,16 +41,22 @@ from numba import float32, float64, int32, int64, uint64
 from .. import icgn as cpu_icgn
 from ..field import Status
 from ._numba_cuda import cuda, simulator_enabled
-from .memory import default_threads, to_device_cached
+from .device_algebra import (
+    REDUCE_CHUNK,
+    block_reduce,
+    cholesky,
+    cholesky_solve,
+    factor_value,
+    finish,
+    invert,
+    monomials32,
+    warp_matrix,
+)
 from .sampling import inside, interior, sample_interior, sample_mirrored, split_position
 from .tables import MAX_TERMS, N_SLOTS, reference_tables
 
 #: Status the kernel gives a POI the CPU must match instead (never returned to callers).
 FALLBACK = -1
-#: Values reduced per round of the shared-memory tree reduction.
-REDUCE_CHUNK = 16
-#: Largest number of POIs per kernel launch (keeps a launch well under a display watchdog).
-MAX_POIS_PER_LAUNCH = 8192
 
 _CONVERGED = int(Status.CONVERGED)
 _DIVERGED = int(Status.DIVERGED)
@@ -60,187 +69,6 @@ _ZERO = np.float32(0.0)
 _ONE = np.float32(1.0)
 
 
-# ----------------------------------------------------------------------------- device helpers
-@cuda.jit(device=True)
-def block_reduce(acc, n, red, out, out_base, t, threads):
-    """Sum ``acc[0:n]`` over the block's threads into ``out[out_base:out_base + n]`` (float64).
-
-    Every thread of the block must call it. ``red`` is shared scratch of
-    ``REDUCE_CHUNK * threads`` float64; ``threads`` is a power of two >= REDUCE_CHUNK.
-    """
-    for c0 in range(0, n, REDUCE_CHUNK):
-        m = min(REDUCE_CHUNK, n - c0)
-        for i in range(m):
-            red[i * threads + t] = acc[c0 + i]
-        cuda.syncthreads()
-        s = threads // 2
-        while s > 0:
-            if t < s:
-                for i in range(m):
-                    red[i * threads + t] += red[i * threads + t + s]
-            cuda.syncthreads()
-            s //= 2
-        if t < m:
-            out[out_base + c0 + t] = red[t * threads]
-        cuda.syncthreads()
-
-
-@cuda.jit(device=True, inline="always")
-def monomials32(z, y, x, nb, b):
-    """Shape-function monomials (float32) in the order of :mod:`..icgn`."""
-    b[0] = _ONE
-    b[1] = z
-    b[2] = y
-    b[3] = x
-    if nb == 10:
-        b[4] = z * z
-        b[5] = y * y
-        b[6] = x * x
-        b[7] = z * y
-        b[8] = y * x
-        b[9] = z * x
-
-
-@cuda.jit(device=True, inline="always")
-def factor_value(fid, g0, g1, g2, dg):
-    """Factor ``fid`` of :mod:`.tables` for one voxel (0 for an unused slot)."""
-    if fid < 0:
-        return _ZERO
-    if fid < 3:
-        return g0 if fid == 0 else (g1 if fid == 1 else g2)
-    if fid < 6:
-        return (g0 if fid == 3 else (g1 if fid == 4 else g2)) * dg
-    if fid == 6:
-        return g0 * g0
-    if fid == 7:
-        return g0 * g1
-    if fid == 8:
-        return g0 * g2
-    if fid == 9:
-        return g1 * g1
-    if fid == 10:
-        return g1 * g2
-    if fid == 11:
-        return g2 * g2
-    return dg * dg
-
-
-@cuda.jit(device=True)
-def cholesky(a, m):
-    """In-place lower Cholesky factor of the m×m row-major ``a`` (lower triangle read).
-
-    Same test as the CPU: fails when a pivot is not positive or the smallest pivot is below 1e-12
-    of the largest.
-    """
-    largest = 0.0
-    smallest = math.inf
-    for j in range(m):
-        s = a[j * m + j]
-        for k in range(j):
-            s -= a[j * m + k] * a[j * m + k]
-        if not (s > 0.0):
-            return False
-        d = math.sqrt(s)
-        a[j * m + j] = d
-        largest = max(largest, s)
-        smallest = min(smallest, s)
-        for i in range(j + 1, m):
-            v = a[i * m + j]
-            for k in range(j):
-                v -= a[i * m + k] * a[j * m + k]
-            a[i * m + j] = v / d
-    return not (smallest < 1e-12 * largest)
-
-
-@cuda.jit(device=True)
-def cholesky_solve(low, rhs, m, y, out):
-    for i in range(m):
-        s = rhs[i]
-        for k in range(i):
-            s -= low[i * m + k] * y[k]
-        y[i] = s / low[i * m + i]
-    for i in range(m - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, m):
-            s -= low[k * m + i] * out[k]
-        out[i] = s / low[i * m + i]
-
-
-@cuda.jit(device=True)
-def warp_matrix(p, nb, m, product_table, quad_axes):
-    """``m`` (nb×nb, row-major) with ``b(W(ξ; p)) ≈ m b(ξ)``, as :func:`..icgn.warp_matrix`."""
-    for i in range(nb * nb):
-        m[i] = 0.0
-    m[0] = 1.0
-    for k in range(3):
-        for j in range(nb):
-            m[(1 + k) * nb + j] = p[k * nb + j]
-        m[(1 + k) * nb + 1 + k] += 1.0
-    if nb == 10:
-        for q in range(6):
-            a = quad_axes[q, 0]
-            b = quad_axes[q, 1]
-            row = 4 + q
-            for i in range(nb):
-                ci = m[(1 + a) * nb + i]
-                if ci == 0.0:
-                    continue
-                for j in range(nb):
-                    target = product_table[i, j]
-                    if target >= 0:
-                        m[row * nb + target] += ci * m[(1 + b) * nb + j]
-
-
-@cuda.jit(device=True)
-def invert(m, nb, inv, work):
-    """``inv = m⁻¹`` (nb×nb) by Gauss–Jordan with partial pivoting; False if singular."""
-    w = 2 * nb
-    for i in range(nb):
-        for j in range(nb):
-            work[i * w + j] = m[i * nb + j]
-            work[i * w + nb + j] = 1.0 if i == j else 0.0
-    for col in range(nb):
-        pivot = col
-        best = abs(work[col * w + col])
-        for r in range(col + 1, nb):
-            v = abs(work[r * w + col])
-            if v > best:
-                best = v
-                pivot = r
-        if best == 0.0:
-            return False
-        if pivot != col:
-            for j in range(w):
-                tmp = work[col * w + j]
-                work[col * w + j] = work[pivot * w + j]
-                work[pivot * w + j] = tmp
-        d = work[col * w + col]
-        for j in range(w):
-            work[col * w + j] /= d
-        for r in range(nb):
-            if r != col:
-                f = work[r * w + col]
-                if f != 0.0:
-                    for j in range(w):
-                        work[r * w + j] -= f * work[col * w + j]
-    for i in range(nb):
-        for j in range(nb):
-            inv[i * nb + j] = work[i * w + nb + j]
-    return True
-
-
-@cuda.jit(device=True, inline="always")
-def finish(poi, code, value, its, p_sh, n_par, params, zncc, status, iterations, flag):
-    """Thread 0: write a POI's result and tell the block to stop."""
-    for r in range(n_par):
-        params[poi, r] = p_sh[r]
-    zncc[poi] = value
-    status[poi] = code
-    iterations[poi] = its
-    flag[0] = 1
-
-
-# ----------------------------------------------------------------------------- the kernel
 @functools.cache
 def build_kernel(nb: int, threads: int, max_registers: int | None = None):
     """The IC-GN kernel for ``nb`` monomials (4: first order, 10: second) and a block size.
@@ -699,194 +527,3 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
             )
 
     return kernel
-
-
-@functools.cache
-def _device_tables(nb: int):
-    tables = reference_tables(nb)
-    return (
-        cuda.to_device(tables.pass_slots),
-        cuda.to_device(tables.pass_base),
-        cuda.to_device(tables.pass_count),
-        cuda.to_device(tables.dist),
-        cuda.to_device(tables.dist_n),
-        cuda.to_device(tables.hess_map),
-        cuda.to_device(tables.jsum_map),
-        cuda.to_device(tables.jgsum_map),
-        tables.ssg_index,
-    )
-
-
-def _gpu_errors() -> tuple[type[BaseException], ...]:
-    """Exception types that mean "the GPU failed" (driver, compiler, memory), not a bug."""
-    found = []
-    for module_name, names in (
-        ("numba.cuda.cudadrv.error", ("CudaSupportError", "CudaDriverError", "NvvmError")),
-        ("numba.cuda.cudadrv.error", ("NvvmSupportError", "CudaRuntimeError", "NvrtcError")),
-        ("numba.cuda.cudadrv.driver", ("CudaAPIError", "LinkerError")),
-    ):
-        try:
-            module = __import__(module_name, fromlist=list(names))
-        except ImportError:
-            continue
-        found += [getattr(module, n) for n in names if isinstance(getattr(module, n, None), type)]
-    return tuple(found) or (RuntimeError,)
-
-
-def match_many_cuda(
-    inputs,
-    centers,
-    params,
-    zncc,
-    status,
-    iterations,
-    *,
-    threads_per_block: int | None = None,
-    max_registers: int | None = None,
-    cpu_fallback: bool = True,
-):
-    """IC-GN for many POIs on the GPU; drop-in for :func:`..icgn.match_many` (same arguments).
-
-    Parameters
-    ----------
-    inputs : icgn.MatchInputs
-        The volumes and the matching settings, as for the CPU kernel.
-    centers : ndarray (N, 3) int64
-        POI positions ``(z, y, x)``; each subvolume ``center ± half`` lies inside the volume.
-    params : ndarray (N, 3·nb) float64
-        Initial guesses in, results out (modified in place), as in the CPU kernel.
-    zncc, status, iterations : ndarray (N,)
-        Outputs (float64, int64, int64), modified in place.
-    threads_per_block : int, optional
-        Power of two >= 16 (default 128 on a GPU, 32 in the simulator).
-    max_registers : int, optional
-        Register cap per thread for the kernel (a tuning knob; see ``benchmarks/bench_gpu.py``).
-    cpu_fallback : bool
-        When the GPU fails (driver, compiler, out of memory), warn and match on the CPU instead of
-        raising. POIs whose warped subvolume leaves the volume are always matched on the CPU.
-
-    The volumes stay on the GPU between calls while the same array objects are alive
-    (:mod:`.memory`).
-    """
-    n = len(centers)
-    if n == 0:
-        return
-    nb = inputs.nb
-    if nb not in (4, 10):
-        raise ValueError(f"nb must be 4 (first order) or 10 (second order), got {nb}")
-    if params.shape != (n, 3 * nb):
-        raise ValueError(f"params must have shape ({n}, {3 * nb}), got {params.shape}")
-    guesses = params.copy()
-    try:
-        _launch(
-            inputs,
-            centers,
-            params,
-            zncc,
-            status,
-            iterations,
-            threads_per_block=threads_per_block,
-            max_registers=max_registers,
-        )
-    except _gpu_errors() as error:
-        if not cpu_fallback:
-            raise
-        warnings.warn(
-            f"the GPU failed ({type(error).__name__}: {error}); matching these {n} POIs on the "
-            "CPU instead",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-        params[:] = guesses
-        cpu_icgn.match_many(inputs, centers, params, zncc, status, iterations)
-        return
-    redo = np.flatnonzero(status == FALLBACK)
-    if redo.size:
-        sub_params = np.ascontiguousarray(guesses[redo])
-        sub_zncc = np.empty(redo.size)
-        sub_status = np.empty(redo.size, np.int64)
-        sub_its = np.empty(redo.size, np.int64)
-        cpu_icgn.match_many(
-            inputs, np.ascontiguousarray(centers[redo]), sub_params, sub_zncc, sub_status, sub_its
-        )
-        params[redo] = sub_params
-        zncc[redo] = sub_zncc
-        status[redo] = sub_status
-        iterations[redo] = sub_its
-
-
-def _launch(
-    inputs,
-    centers,
-    params,
-    zncc,
-    status,
-    iterations,
-    *,
-    threads_per_block=None,
-    max_registers=None,
-):
-    (
-        reference,
-        gradient,
-        coef_deformed,
-        mask,
-        use_mask,
-        half,
-        nb,
-        max_iterations,
-        tolerance,
-        min_std,
-        min_mask_fraction,
-        max_update,
-        noise_fraction,
-        product_table,
-        quad_axes,
-    ) = inputs
-    threads = int(threads_per_block or default_threads())
-    kernel = build_kernel(int(nb), threads, max_registers)
-    nz, ny, nx = reference.shape
-    d_reference = to_device_cached(np.ascontiguousarray(reference, np.float32), flat=True)
-    d_gradient = to_device_cached(np.ascontiguousarray(gradient, np.float32), flat=True)
-    d_coef = to_device_cached(np.ascontiguousarray(coef_deformed, np.float32), flat=True)
-    d_mask = to_device_cached(np.ascontiguousarray(mask, np.bool_), flat=True)
-    d_product = to_device_cached(np.ascontiguousarray(product_table, np.int64))
-    d_quad = to_device_cached(np.ascontiguousarray(quad_axes, np.int64))
-    tables = _device_tables(int(nb))
-    n = len(centers)
-    for start in range(0, n, MAX_POIS_PER_LAUNCH):
-        stop = min(start + MAX_POIS_PER_LAUNCH, n)
-        d_centers = cuda.to_device(np.ascontiguousarray(centers[start:stop], np.int64))
-        d_params = cuda.to_device(np.ascontiguousarray(params[start:stop], np.float64))
-        d_zncc = cuda.device_array(stop - start, np.float64)
-        d_status = cuda.device_array(stop - start, np.int64)
-        d_its = cuda.device_array(stop - start, np.int64)
-        kernel[stop - start, threads](
-            d_reference,
-            d_gradient,
-            d_coef,
-            d_mask,
-            bool(use_mask),
-            nz,
-            ny,
-            nx,
-            d_centers,
-            int(half),
-            d_params,
-            d_zncc,
-            d_status,
-            d_its,
-            int(max_iterations),
-            float(tolerance),
-            float(min_std),
-            float(min_mask_fraction),
-            float(max_update),
-            d_product,
-            d_quad,
-            float(noise_fraction),
-            *tables,
-        )
-        params[start:stop] = d_params.copy_to_host()
-        zncc[start:stop] = d_zncc.copy_to_host()
-        status[start:stop] = d_status.copy_to_host()
-        iterations[start:stop] = d_its.copy_to_host()
