@@ -197,3 +197,19 @@ def test_report_json_and_markdown(tmp_path):
     assert data["accuracy index"] == pytest.approx(0.93)
     text = export.export_report(report, tmp_path / "r.md").read_text()
     assert "# accuracy" in text and "| accuracy index | 0.93 |" in text and "## phases" in text
+
+
+def test_the_uncertainty_travels_to_csv_vtk_and_tiff(field, tmp_path):
+    sigma = np.random.default_rng(7).uniform(0.01, 0.2, (*field.shape, 3))
+    sigma[0, 0, 0] = np.nan  # a node without a measured value
+    with_sigma = field.replace(uncertainty=sigma)
+    rows = list(csv.DictReader(open(export.export_csv(with_sigma, tmp_path / "f.csv"))))
+    assert float(rows[1]["uncertainty_uy"]) == pytest.approx(sigma.reshape(-1, 3)[1, 1], rel=1e-6)
+    assert rows[0]["uncertainty_uz"] == "nan"
+    written = export.export_tiff(with_sigma, tmp_path / "f.tif")
+    stack = tifffile.imread(tmp_path / "f_uncertainty_ux.tif")
+    assert any(p.name == "f_uncertainty_ux.tif" for p in written)
+    np.testing.assert_allclose(stack[1:, ...], sigma[1:, ..., 2].astype(np.float32))
+    vti = (export.export_vtk(with_sigma, tmp_path / "f.vti")).read_bytes()
+    assert b"uncertainty_uz" in vti and b"uncertainty_ux" in vti
+    assert "uncertainty_uz" not in open(export.export_csv(field, tmp_path / "g.csv")).readline()

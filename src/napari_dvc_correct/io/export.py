@@ -55,6 +55,15 @@ def _check_extra(field: DisplacementField, extra: dict | None) -> dict[str, np.n
     return checked
 
 
+def _with_uncertainty(field: DisplacementField, extra: dict) -> dict:
+    """``extra`` plus the per-node uncertainty ``uncertainty_uz/uy/ux`` (voxels), if the field has one."""
+    if field.uncertainty is None:
+        return extra
+    sigma = np.asarray(field.uncertainty, np.float32)
+    own = {f"uncertainty_{axis}": sigma[..., k] for k, axis in enumerate(("uz", "uy", "ux"))}
+    return {**extra, **own}
+
+
 def _voxel_size(voxel_size) -> np.ndarray:
     vs = np.ones(3) if voxel_size is None else np.asarray(voxel_size, dtype=np.float64)
     vs = np.broadcast_to(vs, (3,)).astype(np.float64)
@@ -167,7 +176,7 @@ def export_vtk(
     suffix = path.suffix.lower()
     if suffix not in (".vti", ".vtk"):
         raise ValueError(f"{path}: a VTK export must end in .vti (XML) or .vtk (legacy)")
-    extra = _check_extra(field, extra)
+    extra = _with_uncertainty(field, _check_extra(field, extra))
     vs = _voxel_size(voxel_size)
     arrays = _vtk_arrays(field, extra, vs)
     origin = (np.asarray(field.origin) * vs)[::-1]
@@ -335,7 +344,7 @@ def export_tiff(
         The files written.
     """
     path = Path(path)
-    extra = _check_extra(field, extra)
+    extra = _with_uncertainty(field, _check_extra(field, extra))
     vs = _voxel_size(voxel_size)
     suffix = path.suffix if path.suffix.lower() in (".tif", ".tiff") else ".tif"
     stem = path.with_suffix("") if path.suffix.lower() in (".tif", ".tiff") else path
@@ -377,7 +386,7 @@ def export_csv(
     ``extra`` names; with a ``voxel_size`` also the physical position and displacement
     (``z_phys``..., ``uz_phys``...). Rows follow the grid's C order.
     """
-    extra = _check_extra(field, extra)
+    extra = _with_uncertainty(field, _check_extra(field, extra))
     vs = None if voxel_size is None else _voxel_size(voxel_size)
     points, u = field.points, field.displacement
     columns = ["z", "y", "x", "uz", "uy", "ux", "magnitude", "zncc", "status", "status_name"]
