@@ -159,3 +159,14 @@ def test_clean_keeps_measured_uncertainty_and_blanks_it_where_a_value_was_filled
     assert np.all(np.isnan(cleaned.uncertainty[replaced]))
     assert np.all(cleaned.uncertainty[~replaced] == 0.02)
     assert np.all(field.uncertainty == 0.02)  # the input is untouched
+
+
+def test_cleaning_options_are_one_record_checked_once():
+    from napari_dvc_correct.engine.cleaning import CleaningOptions
+
+    options = CleaningOptions(threshold=3.0, fill_masked=True)
+    assert options.replace(smoothing=1.0).smoothing == 1.0 and options.smoothing == 0.0
+    assert options.as_dict()["threshold"] == 3.0 and options.as_dict()["fill_masked"] is True
+    for bad in ({"threshold": 0.0}, {"radius": 0}, {"passes": 0}, {"smoothing": float("nan")}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            CleaningOptions(**bad)

@@ -153,13 +153,16 @@ def correlation_defaults() -> dict:
 
 
 def correction_defaults() -> dict:
-    """Defaults of ``correct_iter`` (frame, update, passes) and of ``clean`` (threshold, smoothing)."""
-    from ..engine.cleaning import clean
+    """Defaults of ``correct_iter`` (frame, update, passes) and of ``CleaningOptions``
+    (threshold, smoothing...)."""
+    from ..engine.cleaning import CleaningOptions
     from ..engine.correction import correct_iter
 
-    values = {}
-    for function in (correct_iter, clean):
-        for name, parameter in inspect.signature(function).parameters.items():
-            if parameter.default is not inspect.Parameter.empty:
-                values.setdefault(name, parameter.default)
+    values = {
+        name: parameter.default
+        for name, parameter in inspect.signature(correct_iter).parameters.items()
+        if parameter.default is not inspect.Parameter.empty
+    }
+    for option in dataclasses.fields(CleaningOptions):
+        values.setdefault(option.name, option.default)
     return values

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -200,40 +201,91 @@ def masked_nodes(field: DisplacementField) -> np.ndarray:
     return (field.status == Status.MASKED) | (field.provenance == Provenance.MASKED)
 
 
+@dataclass(frozen=True)
+class CleaningOptions:
+    """How a field is cleaned (paper step b): the outlier test and what is filled.
+
+    Attributes
+    ----------
+    threshold : float
+        Median-test threshold (2 is the usual choice; larger rejects less), > 0.
+    radius, epsilon : int, float
+        Median-test neighbourhood (nodes, >= 1) and noise level (voxels, >= 0), see
+        :func:`normalized_median_test`.
+    min_zncc : float, optional
+        Also reject nodes whose ZNCC is below this (the matcher already flags ``LOW_ZNCC``
+        with its own noise-aware threshold).
+    passes : int
+        Times the median test is repeated with the rejected nodes left out of the
+        neighbourhoods (a cluster of outliers can pass a single test), >= 1.
+    fill_masked : bool
+        Also fill nodes outside the mask (their provenance stays ``MASKED`` so they are never
+        taken for measurements; useful before densifying, which needs every node).
+    smoothing : float
+        Gaussian sigma in nodes for an optional smoothing after the replacement (0 = none).
+    """
+
+    threshold: float = 2.0
+    radius: int = 1
+    epsilon: float = 0.1
+    min_zncc: float | None = None
+    passes: int = 2
+    fill_masked: bool = False
+    smoothing: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.threshold) and self.threshold > 0):
+            raise ValueError(f"threshold must be > 0, got {self.threshold!r}")
+        if int(self.radius) < 1:
+            raise ValueError(f"radius must be >= 1 node, got {self.radius!r}")
+        if not (np.isfinite(self.epsilon) and self.epsilon >= 0):
+            raise ValueError(f"epsilon must be >= 0 voxel, got {self.epsilon!r}")
+        if int(self.passes) < 1:
+            raise ValueError(f"passes must be >= 1, got {self.passes!r}")
+        if not (np.isfinite(self.smoothing) and self.smoothing >= 0):
+            raise ValueError(f"smoothing must be a finite sigma >= 0 nodes, got {self.smoothing!r}")
+
+    def replace(self, **changes) -> CleaningOptions:
+        """A copy with ``changes`` (checked like a new one)."""
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        """Plain JSON-ready values, as recorded in ``metadata["cleaning"]``."""
+        return {
+            "threshold": float(self.threshold),
+            "radius": int(self.radius),
+            "epsilon": float(self.epsilon),
+            "min_zncc": None if self.min_zncc is None else float(self.min_zncc),
+            "passes": int(self.passes),
+            "fill_masked": bool(self.fill_masked),
+            "smoothing": float(self.smoothing),
+        }
+
+
+def _options(options: CleaningOptions | None, overrides: dict) -> CleaningOptions:
+    options = CleaningOptions() if options is None else options
+    return options.replace(**overrides) if overrides else options
+
+
 def detect_outliers(
-    field: DisplacementField,
-    *,
-    threshold: float = 2.0,
-    radius: int = 1,
-    epsilon: float = 0.1,
-    min_zncc: float | None = None,
-    passes: int = 2,
+    field: DisplacementField, options: CleaningOptions | None = None, **overrides
 ) -> OutlierReport:
     """Bad nodes of ``field``: failed matches, low ZNCC, and normalised-median-test outliers.
 
     Parameters
     ----------
     field : DisplacementField
-    threshold : float
-        Median-test threshold (2 is the usual choice; larger rejects less).
-    radius, epsilon : int, float
-        Median-test neighbourhood (nodes) and noise level (voxels), see
-        :func:`normalized_median_test`.
-    min_zncc : float, optional
-        Also reject nodes whose ZNCC is below this (the matcher already flags ``LOW_ZNCC``
-        with its own threshold).
-    passes : int
-        Times the median test is repeated with the rejected nodes left out of the
-        neighbourhoods (a cluster of outliers can pass a single test).
+    options : CleaningOptions, optional
+        The test's settings (defaults when None); keyword ``overrides`` (``threshold=3``...)
+        change single ones.
 
     Returns
     -------
     OutlierReport
     """
-    if not threshold > 0:
-        raise ValueError(f"threshold must be > 0, got {threshold!r}")
-    if int(passes) < 1:
-        raise ValueError(f"passes must be >= 1, got {passes!r}")
+    options = _options(options, overrides)
+    threshold, radius, epsilon = options.threshold, options.radius, options.epsilon
+    min_zncc, passes = options.min_zncc, options.passes
     masked = masked_nodes(field)
     finite = np.all(np.isfinite(field.u), axis=-1)
     good_status = np.isin(field.status, [int(s) for s in GOOD_STATUSES])
@@ -430,28 +482,16 @@ def smooth(values: np.ndarray, sigma: float, valid: np.ndarray | None = None) ->
 
 # --- the whole step ---------------------------------------------------------------------------
 def clean(
-    field: DisplacementField,
-    *,
-    threshold: float = 2.0,
-    radius: int = 1,
-    epsilon: float = 0.1,
-    min_zncc: float | None = None,
-    passes: int = 2,
-    fill_masked: bool = False,
-    smoothing: float = 0.0,
+    field: DisplacementField, options: CleaningOptions | None = None, **overrides
 ) -> DisplacementField:
     """Replace failed and outlying nodes by thin-plate inpainting from the good ones.
 
     Parameters
     ----------
     field : DisplacementField
-    threshold, radius, epsilon, min_zncc, passes
-        Outlier detection, see :func:`detect_outliers`.
-    fill_masked : bool
-        Also fill nodes outside the mask (their provenance stays ``MASKED`` so they are never
-        taken for measurements; useful before densifying, which needs every node).
-    smoothing : float
-        Gaussian sigma in nodes for an optional smoothing after the replacement (0 = none).
+    options : CleaningOptions, optional
+        The outlier test, whether masked nodes are filled and the optional smoothing (defaults
+        when None); keyword ``overrides`` (``fill_masked=True``...) change single ones.
 
     Returns
     -------
@@ -463,14 +503,9 @@ def clean(
         ``uncertainty`` of replaced nodes is NaN: an inpainted value was not measured, and the
         field cannot say how far it is from the truth (its provenance says so).
     """
-    report = detect_outliers(
-        field,
-        threshold=threshold,
-        radius=radius,
-        epsilon=epsilon,
-        min_zncc=min_zncc,
-        passes=passes,
-    )
+    options = _options(options, overrides)
+    fill_masked, smoothing = options.fill_masked, options.smoothing
+    report = detect_outliers(field, options)
     rejected = report.rejected
     keep = ~(rejected | report.masked)
     if not keep.any():
@@ -498,14 +533,5 @@ def clean(
         if not fill_masked:
             gradient[report.masked] = flat[report.masked]
         result.gradient = gradient.reshape(*field.shape, 3, 3)
-    result.metadata["cleaning"] = {
-        "threshold": float(threshold),
-        "radius": int(radius),
-        "epsilon": float(epsilon),
-        "min_zncc": None if min_zncc is None else float(min_zncc),
-        "passes": int(passes),
-        "fill_masked": bool(fill_masked),
-        "smoothing": float(smoothing),
-        **report.counts(),
-    }
+    result.metadata["cleaning"] = {**options.as_dict(), **report.counts()}
     return result
