@@ -72,7 +72,7 @@ def test_chooser_switches_every_field_with_one_range_and_a_colorbar(view):
 def test_oblique_3d_view(view):
     view.oblique_3d()
     assert view.viewer.dims.ndisplay == 3
-    np.testing.assert_allclose(view.viewer.camera.angles, (-20.0, 30.0, 120.0))
+    np.testing.assert_allclose(view.viewer.scene.camera.angles, (-20.0, 30.0, 120.0))
 
 
 def test_line_profile_follows_the_field(view):

@@ -235,8 +235,10 @@ class ViewWidget(QWidget):
         """3-D view from an oblique angle, the quantity as an attenuated maximum projection."""
         self.viewer.dims.ndisplay = 3
         self.viewer.reset_view()  # (resets the angles too: set them after)
-        self.viewer.camera.angles = OBLIQUE_ANGLES
-        self.viewer.camera.zoom *= 0.75  # the rotated volume fits the canvas
+        scene = getattr(self.viewer, "scene", None)  # napari 0.9; older ones: viewer.camera
+        camera = scene.camera if scene is not None else self.viewer.camera
+        camera.angles = OBLIQUE_ANGLES
+        camera.zoom *= 0.75  # the rotated volume fits the canvas
         for layer in L.quantity_layers(self.viewer):
             if layer.visible and np.asarray(layer.data).ndim >= 3:
                 layer.rendering = "attenuated_mip"  # the nearest high values, not all of them
