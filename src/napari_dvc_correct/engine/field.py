@@ -14,6 +14,7 @@ go between the two (node provenance ``INTERPOLATED``).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -63,6 +64,16 @@ class Provenance(IntEnum):
 
 #: Statuses whose displacement was measured by a match and can be trusted as such.
 GOOD_STATUSES = (Status.CONVERGED, Status.MAX_ITERATIONS)
+
+
+def usable_nodes(status: np.ndarray, provenance: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Nodes (or points) holding a usable displacement: measured with a good status, or filled
+    in (replaced, corrected, interpolated) by post-processing, and finite. ``u`` is ``(..., 3)``."""
+    measured_ok = np.isin(status, [int(s) for s in GOOD_STATUSES])
+    filled = np.isin(
+        provenance, [Provenance.REPLACED, Provenance.CORRECTED, Provenance.INTERPOLATED]
+    )
+    return (measured_ok | filled) & np.all(np.isfinite(u), axis=-1)
 
 
 def _as_triple(value: Any, name: str, dtype=float) -> tuple:
@@ -214,11 +225,7 @@ class DisplacementField:
         A node is usable when it was measured with a good status or was filled in (replaced or
         corrected) by post-processing.
         """
-        measured_ok = np.isin(self.status, [int(s) for s in GOOD_STATUSES])
-        filled = np.isin(
-            self.provenance, [Provenance.REPLACED, Provenance.CORRECTED, Provenance.INTERPOLATED]
-        )
-        return (measured_ok | filled) & np.all(np.isfinite(self.u), axis=-1)
+        return usable_nodes(self.status, self.provenance, self.u)
 
     def status_counts(self) -> dict[str, int]:
         """Number of nodes of each status, by readable name (only the statuses present)."""
@@ -228,20 +235,7 @@ class DisplacementField:
     # -- copies ---------------------------------------------------------------------------
     def copy(self) -> DisplacementField:
         """Deep copy (arrays and dictionaries)."""
-        import copy
-
-        return dataclasses.replace(
-            self,
-            u=self.u.copy(),
-            zncc=self.zncc.copy(),
-            status=self.status.copy(),
-            iterations=self.iterations.copy(),
-            provenance=self.provenance.copy(),
-            gradient=None if self.gradient is None else self.gradient.copy(),
-            uncertainty=None if self.uncertainty is None else self.uncertainty.copy(),
-            params=copy.deepcopy(self.params),
-            metadata=copy.deepcopy(self.metadata),
-        )
+        return copy.deepcopy(self)
 
     def replace(self, **changes: Any) -> DisplacementField:
         """A new field with some attributes changed (like :func:`dataclasses.replace`)."""

@@ -19,14 +19,13 @@ Pure numpy/scipy.
 from __future__ import annotations
 
 import copy
-import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy import ndimage, spatial
 
-from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
+from .field import DisplacementField, Provenance, Status, usable_nodes
 
 
 @dataclass
@@ -102,25 +101,11 @@ class ScatteredField:
     @property
     def valid(self) -> np.ndarray:
         """Points holding a usable displacement (same rule as :attr:`DisplacementField.valid`)."""
-        measured_ok = np.isin(self.status, [int(s) for s in GOOD_STATUSES])
-        filled = np.isin(
-            self.provenance, [Provenance.REPLACED, Provenance.CORRECTED, Provenance.INTERPOLATED]
-        )
-        return (measured_ok | filled) & np.all(np.isfinite(self.u), axis=1)
+        return usable_nodes(self.status, self.provenance, self.u)
 
     def copy(self) -> ScatteredField:
-        return dataclasses.replace(
-            self,
-            points=self.points.copy(),
-            u=self.u.copy(),
-            zncc=self.zncc.copy(),
-            status=self.status.copy(),
-            iterations=self.iterations.copy(),
-            provenance=self.provenance.copy(),
-            gradient=None if self.gradient is None else self.gradient.copy(),
-            params=copy.deepcopy(self.params),
-            metadata=copy.deepcopy(self.metadata),
-        )
+        """Deep copy (arrays and dictionaries)."""
+        return copy.deepcopy(self)
 
     def __repr__(self) -> str:
         return f"ScatteredField(n_points={self.n_points}, valid={int(self.valid.sum())})"
