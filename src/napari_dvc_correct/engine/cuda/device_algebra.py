@@ -9,7 +9,9 @@
   composition ``W(p) ∘ W(Δp)⁻¹``;
 * :func:`finish`: thread 0 writes one POI's result.
 
-Matrices are flat, row-major arrays; sizes are passed as arguments.
+Matrices are flat, row-major arrays; sizes are passed as arguments. ``warp_matrix`` and the
+Cholesky solve repeat the CPU's (:mod:`..shape_function`) line for line on purpose: a CUDA device
+function is compiled on its own and cannot call an ``@njit`` one (the duplicate finder pairs them).
 """
 
 from __future__ import annotations
