@@ -3,25 +3,13 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import residual, synthetic, warp
-from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine import residual, warp
 
 GRADIENT = np.array([[0.05, 0.02, -0.01], [0.0, -0.03, 0.04], [0.02, 0.01, 0.06]])
 
 
-@pytest.fixture(scope="module")
-def pair():
-    reference = synthetic.textured_volume((40, 40, 40), 2.0, seed=3)
-    band = synthetic.shear_band((20.0, 20.0, 20.0), width=7.0, slip=6.0, shift=(1.5, -2.0, 2.5))
-    deformed = synthetic.deform_volume(reference, band)
-    origin, step, shape = grid_for_volume(reference.shape, 9, 3)
-    field = DisplacementField.zeros(origin, step, shape)
-    field.u[:] = synthetic.sample_displacement(band, field.points.reshape(*shape, 3))
-    return reference, deformed, field
-
-
-def test_pull_back_and_forward_warp_undo_a_known_deformation(pair):
-    reference, deformed, field = pair
+def test_pull_back_and_forward_warp_undo_a_known_deformation(sheared_pair):
+    reference, deformed, field = sheared_pair
     contrast = float(reference.std())
     core = (slice(8, 32),) * 3
     pulled = warp.pull_back(deformed, field)
@@ -33,8 +21,8 @@ def test_pull_back_and_forward_warp_undo_a_known_deformation(pair):
     assert np.array_equal(moved, warp.warp_forward(reference, field), equal_nan=True)
 
 
-def test_forward_warp_with_residual_matches_the_separate_calls(pair):
-    reference, deformed, field = pair
+def test_forward_warp_with_residual_matches_the_separate_calls(sheared_pair):
+    reference, deformed, field = sheared_pair
     moved, mean = warp.warp_forward_with_residual(reference, deformed, field, chunk_voxels=4000)
     assert np.array_equal(moved, warp.warp_forward(reference, field), equal_nan=True)
     expected = residual.mean_gray_residual(reference, deformed, field, "loaded")
