@@ -49,13 +49,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import warp
 from .cleaning import clean, masked_nodes
 from .compose import compose
-from .correlate import correlate_iter
+from .correction_volumes import CorrectionVolumes, InMemoryVolumes
 from .field import DisplacementField, Provenance, Status
-from .field_spline import FieldSpline
-from .interpolation import prefilter
 from .local_acceptance import Judge, accept_locally, flag_and_refill
 from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
@@ -160,76 +157,15 @@ def _relabel(progress: Progress, prefix: str) -> Progress:
 def forward_progress(generator, prefix: str):
     """Re-yield an engine generator's progress with stages prefixed by ``prefix``; return its
     result (use as ``result = yield from forward_progress(gen, "pass 1")``)."""
-    while True:
-        try:
-            progress = next(generator)
-        except StopIteration as stop:
-            return stop.value
-        yield _relabel(progress, prefix)
-
-
-def _finite_or_fill(volume: np.ndarray, fill: float) -> np.ndarray:
-    volume = np.asarray(volume, dtype=np.float32)
-    bad = ~np.isfinite(volume)
-    if bad.any():
-        volume = volume.copy()
-        volume[bad] = fill
-    return volume
-
-
-def _hull_mean(difference: np.ndarray, hull) -> float:
-    block = difference[hull]
-    finite = np.isfinite(block)
-    return float(np.mean(block[finite], dtype=np.float64)) if finite.any() else float("nan")
-
-
-class _Pair:
-    """The two volumes with their spline coefficients, prefiltered once for every pass."""
-
-    def __init__(self, reference, deformed, frame: str, mask):
-        self.reference = np.ascontiguousarray(reference, dtype=np.float32)
-        self.deformed = np.ascontiguousarray(deformed, dtype=np.float32)
-        self.frame = frame
-        self.mask = None if mask is None else np.asarray(mask) != 0
-        if frame == "reference":
-            self.coefficients = prefilter(self.deformed)
-            self.fill = float(np.mean(self.deformed))
-        else:
-            self.coefficients = prefilter(self.reference)
-            self.fill = float(np.mean(self.reference))
-            self.mask_coefficients = (
-                None if self.mask is None else prefilter(self.mask.astype(np.float32))
-            )
-
-    def align(self, field: DisplacementField) -> tuple[np.ndarray, float]:
-        """The moved volume for the next DVC, and the mean gray residual of ``field``."""
-        spline = FieldSpline.from_field(field)
-        if self.frame == "reference":
-            moved = warp.pull_back(
-                self.deformed, spline, coefficients=self.coefficients, cval=np.nan
-            )
-            residual = _hull_mean(
-                np.abs(moved - self.reference), spline.hull_slices(self.reference.shape)
-            )
-        else:
-            moved, residual = warp.warp_forward_with_residual(
-                self.reference, self.deformed, spline, coefficients=self.coefficients
-            )
-        return _finite_or_fill(moved, self.fill), residual
-
-    def matching_pair(self, moved: np.ndarray, field: DisplacementField):
-        """``(reference, deformed, mask)`` for the DVC of step e."""
-        if self.frame == "reference":
-            return self.reference, moved, self.mask
-        mask = None
-        if self.mask is not None:
-            warped = warp.warp_forward(
-                self.mask, field, coefficients=self.mask_coefficients, cval=0.0
-            )
-            mask = warped > 0.5
-            if not mask.any():
-                mask = None
-        return moved, self.deformed, mask
+    try:
+        while True:
+            try:
+                progress = next(generator)
+            except StopIteration as stop:
+                return stop.value
+            yield _relabel(progress, prefix)
+    finally:
+        generator.close()  # a cancelled caller stops the inner run too (its Dask work, its files)
 
 
 def _update(current: DisplacementField, delta: DisplacementField, frame: str, update: str):
@@ -324,16 +260,7 @@ def correct_iter(
         ``metadata["correction"]`` holds the options, the residual before and after, the noise
         floor, the order of the correcting matches and the flagged node counts.
     """
-    if frame not in FRAMES:
-        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
-    if update not in UPDATES:
-        raise ValueError(f"update must be one of {UPDATES}, got {update!r}")
-    if int(max_passes) < 1:
-        raise ValueError(f"max_passes must be >= 1, got {max_passes!r}")
-    if not 0.0 <= min_improvement < 1.0:
-        raise ValueError(f"min_improvement must be in [0, 1), got {min_improvement!r}")
-    clean_options = dict(clean_options or {})
-    clean_options["fill_masked"] = True
+    check_options(frame, update, max_passes, min_improvement)
     reference = np.asanyarray(reference)
     deformed = np.asanyarray(deformed)
     if reference.shape != deformed.shape:
@@ -343,37 +270,89 @@ def correct_iter(
         )
     # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
     check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
-    if params is None:
-        params = (
-            CorrelationParams.from_dict(field.params)
-            if field is not None and field.params
-            else CorrelationParams()
+    volumes = InMemoryVolumes(reference, deformed, frame, mask)
+    options = dict(update=update, max_passes=max_passes, min_improvement=min_improvement)
+    return (
+        yield from correct_volumes_iter(
+            volumes, field, params, **options, clean_options=clean_options
         )
+    )
+
+
+def check_options(frame, update, max_passes, min_improvement) -> None:
+    """Raise ``ValueError`` for a correction option out of range (see :func:`correct_iter`)."""
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
+    if update not in UPDATES:
+        raise ValueError(f"update must be one of {UPDATES}, got {update!r}")
+    if int(max_passes) < 1:
+        raise ValueError(f"max_passes must be >= 1, got {max_passes!r}")
+    if not 0.0 <= min_improvement < 1.0:
+        raise ValueError(f"min_improvement must be in [0, 1), got {min_improvement!r}")
+
+
+def params_of(field: DisplacementField | None, params: CorrelationParams | None):
+    """The DVC parameters of a correction: ``params``, else the field's, else the defaults."""
+    if params is not None:
+        return params
+    if field is not None and field.params:
+        return CorrelationParams.from_dict(field.params)
+    return CorrelationParams()
+
+
+def correct_volumes_iter(
+    volumes: CorrectionVolumes,
+    field: DisplacementField | None,
+    params: CorrelationParams | None = None,
+    *,
+    update: str = "exact",
+    max_passes: int = 3,
+    min_improvement: float = 0.01,
+    clean_options: dict | None = None,
+) -> Generator[Progress, None, DisplacementField]:
+    """The correction loop of :func:`correct_iter` on any volume back-end (issue 13).
+
+    ``volumes`` does every volume operation (:class:`.correction_volumes.CorrectionVolumes`:
+    in memory, or block by block from lazy volumes in ``napari_dvc_correct.tiled.correction``);
+    the fields stay in memory. Options and result as :func:`correct_iter` (the frame is
+    ``volumes.frame``); the input volumes and field are checked by the caller. ``volumes`` is
+    closed at the end, also on error or when the generator is closed (cancelled).
+    """
+    check_options(volumes.frame, update, max_passes, min_improvement)
+    try:
+        return (
+            yield from _correction_loop(
+                volumes, field, params_of(field, params), update, max_passes, min_improvement,
+                clean_options,
+            )
+        )  # fmt: skip
+    finally:
+        volumes.close()
+
+
+def _correction_loop(
+    volumes, field, params, update, max_passes, min_improvement, clean_options
+):  # fmt: skip
+    frame = volumes.frame
+    clean_options = dict(clean_options or {})
+    clean_options["fill_masked"] = True
     started = time.perf_counter()
     if field is None:
-        field = yield from forward_progress(
-            correlate_iter(reference, deformed, params, mask=mask), "DVC"
-        )
+        field = yield from forward_progress(volumes.correlate(params), "DVC")
 
     yield Progress("clean", 0, 1, "cleaning the field")
     masked = masked_nodes(field)
     current = clean(field, **clean_options)
     yield Progress("clean", 1, 1, f"{current.metadata['cleaning']['rejected']} nodes replaced")
 
-    pair = _Pair(reference, deformed, frame, mask)
-    judge = Judge(
-        pair.reference,
-        pair.deformed,
-        pair.coefficients if frame == "reference" else prefilter(pair.deformed),
-        current.step,
-        params.half,
-    )
+    residuals = yield from volumes.residuals()
+    judge = Judge(None, None, None, current.step, params.half, residuals=residuals)
     yield Progress("residual", 0, 1, "gray residual of the input field")
     local_current = judge.local(current)
     current, local_current, flagged = flag_and_refill(
         judge, current, local_current, masked, clean_options
     )
-    moved, residual = pair.align(current)
+    moved, residual = yield from volumes.align(current)
     yield Progress("residual", 1, 1, f"mean gray residual {residual:.4g}")
     passes = [
         CorrectionPass(
@@ -403,11 +382,12 @@ def correct_iter(
     unmasked = max(1, int(np.count_nonzero(~masked)))
     for number in range(1, int(max_passes) + 1):
         pass_started = time.perf_counter()
-        g, f, pass_mask = pair.matching_pair(moved, current)
+        pair = yield from volumes.matching_pair(moved, current)
         delta = yield from forward_progress(
-            correlate_iter(g, f, pass_params, mask=pass_mask, grid=grid, initial=zero),
+            volumes.correlate(pass_params, pair, grid=grid, initial=zero),
             f"correction pass {number}",
         )
+        volumes.release(pair[2])
         converged = float(np.mean(delta.valid))
         try:
             delta = clean(delta, **clean_options)
@@ -425,7 +405,7 @@ def correct_iter(
         n_accepted = int(np.count_nonzero(accept))
         applied = n_accepted > 0
         if applied:
-            mixed_moved, mixed_residual = pair.align(mixed)
+            mixed_moved, mixed_residual = yield from volumes.align(mixed)
         else:
             mixed, mixed_moved, mixed_residual, local_mixed = (
                 current,
@@ -464,6 +444,7 @@ def correct_iter(
             break
         excess = record.local_residual_before - min(floor_before, judge.floor)
         removed = record.local_residual_before - record.local_residual_after
+        volumes.release(moved)
         current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
         if record.improved_nodes < MIN_IMPROVED_FRACTION * unmasked:
             break  # no region improves above the noise floor any more

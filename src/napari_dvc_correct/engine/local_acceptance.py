@@ -52,6 +52,52 @@ MIN_USEFUL_CHANGE = 0.01
 FLAG_ERROR = 1.0
 
 
+class ReferenceResiduals:
+    """The volume access of :class:`Judge` for whole arrays: residuals and gradients at nodes.
+
+    ``local_means(field, halves)`` gives, per node, the mean of the reference-frame residual
+    ``|F(X + u(X)) - G(X)|`` over the ``(2h + 1)^3`` box around the node for each ``h`` of
+    ``halves``, and eq. 1's background residual of that residual (inf where it is undefined);
+    ``gradient_means(field, half)`` the mean gray gradient magnitude of ``G`` (Gaussian,
+    sigma 1 voxel) over each node's box. ``napari_dvc_correct.tiled.correction`` gives the same
+    numbers block by block from lazily read volumes.
+    """
+
+    def __init__(self, reference, deformed, deformed_coefficients):
+        self.reference = reference
+        self.deformed = deformed
+        self.coefficients = deformed_coefficients
+        try:
+            self.thresholds_g = phase_thresholds(self.reference, "auto", 2, "reference volume")
+            self.thresholds_f = phase_thresholds(self.deformed, "auto", 2, "deformed volume")
+            self.labels_g = label_phases(self.reference, self.thresholds_g)
+        except ValueError:  # a volume with a single gray value: no phases, no eq. 1
+            self.labels_g = None
+        self._gradient = None
+
+    def local_means(self, field: DisplacementField, halves) -> tuple[list, float]:
+        """Per-node box means of the residual of ``field`` for each half-size, and eq. 1's r0."""
+        spline = FieldSpline.from_field(field)
+        moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
+        residual = np.abs(moved - self.reference)
+        means = [local_mean_residual(residual, field, half) for half in halves]
+        floor = float("inf")
+        if self.labels_g is not None:
+            try:
+                floor = background_residual(
+                    residual, self.labels_g, label_phases(moved, self.thresholds_f)
+                ).mean
+            except ValueError:
+                pass
+        return means, floor
+
+    def gradient_means(self, field: DisplacementField, half: int) -> np.ndarray:
+        """Per-node mean gray gradient magnitude of ``G`` over the node's box."""
+        if self._gradient is None:
+            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
+        return local_mean_residual(self._gradient, field, half)
+
+
 class Judge:
     """Local residuals and the noise floor, in the reference frame, for the acceptance test.
 
@@ -61,19 +107,18 @@ class Judge:
     would mix in the neighbours' (and let a ruined neighbour hide a ruined node).
     """
 
-    def __init__(self, reference, deformed, deformed_coefficients, step, region_half: int):
-        self.reference = reference
-        self.deformed = deformed
-        self.coefficients = deformed_coefficients
+    def __init__(
+        self, reference, deformed, deformed_coefficients, step, region_half: int, *, residuals=None
+    ):
+        # the volume access (in memory unless told otherwise, e.g. tiled.correction's block by
+        # block one); the decisions below only see per-node numbers
+        self.residuals = (
+            ReferenceResiduals(reference, deformed, deformed_coefficients)
+            if residuals is None
+            else residuals
+        )
         self.half = max(2, int(np.ceil(max(step) / 2.0)))
-        try:
-            self.thresholds_g = phase_thresholds(self.reference, "auto", 2, "reference volume")
-            self.thresholds_f = phase_thresholds(self.deformed, "auto", 2, "deformed volume")
-            self.labels_g = label_phases(self.reference, self.thresholds_g)
-        except ValueError:  # a volume with a single gray value: no phases, no eq. 1
-            self.labels_g = None
         self.floor = float("inf")
-        self._gradient = None
         self._useful = None
         self.region_half = int(region_half)
         self.last_region = None
@@ -96,19 +141,9 @@ class Judge:
         nodes' local residuals (eq. 1 is inflated where a flat region agrees in phase with
         textured material), and the smallest seen so far: the noise belongs to the scans.
         """
-        spline = FieldSpline.from_field(field)
-        moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
-        residual = np.abs(moved - self.reference)
-        local = local_mean_residual(residual, field, self.half)
-        self.last_region = local_mean_residual(residual, field, self.region_half)
-        floor = float("inf")
-        if self.labels_g is not None:
-            try:
-                floor = background_residual(
-                    residual, self.labels_g, label_phases(moved, self.thresholds_f)
-                ).mean
-            except ValueError:
-                pass
+        (local, self.last_region), floor = self.residuals.local_means(
+            field, (self.half, self.region_half)
+        )
         if np.isfinite(local).any():
             floor = min(floor, float(np.nanpercentile(local, 25.0)))
         if np.isfinite(floor):
@@ -128,9 +163,7 @@ class Judge:
         return NOISE_Z * self.region_spread * self.floor
 
     def _local_gradient(self, field: DisplacementField, half: int) -> np.ndarray:
-        if self._gradient is None:
-            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
-        return local_mean_residual(self._gradient, field, half)
+        return self.residuals.gradient_means(field, half)
 
     def useful(self, field: DisplacementField) -> np.ndarray:
         """Per node, the residual change that :data:`MIN_USEFUL_CHANGE` voxels explain.

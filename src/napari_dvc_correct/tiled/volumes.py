@@ -19,7 +19,7 @@ The results equal :func:`..engine.field_spline.densify`, :func:`..engine.warp.pu
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Generator
 
 import numpy as np
 
@@ -137,25 +137,33 @@ def _residual_block(out, reference, deformed, spline, block, mode, outside):
 
 
 # --- the driver ----------------------------------------------------------------------------------
-def _write(
-    path,
-    shape,
-    components,
-    function,
-    shared,
-    extra,
-    *,
-    run,
-    metadata,
-    stage,
-    progress: Callable[[Progress], None] | None,
-) -> dict:
-    """Run ``function(out, *shared, block, *extra)`` on every block and commit the output.
+def _write(path, shape, components, function, shared, extra, *, run, metadata, stage, progress):
+    """:func:`write_iter` run to its end, ``progress`` (a callable or None) called on the way.
 
     The public writers below are each one call of this driver: their calls look alike (the
     duplicate finder pairs them) because they name the same slots, filled differently.
+    """
+    writing = write_iter(
+        path, shape, components, function, shared, extra, run=run, metadata=metadata, stage=stage
+    )
+    while True:
+        try:
+            report = next(writing)
+        except StopIteration as stop:
+            return stop.value
+        if progress is not None:
+            progress(report)
 
-    ``run`` is ``(block_shape, scheduler, workers)``.
+
+def write_iter(
+    path, shape, components, function, shared, extra, *, run, metadata, stage
+) -> Generator[Progress, None, dict]:
+    """Run ``function(out, *shared, block, *extra)`` on every block and commit the output.
+
+    A generator: yields a :class:`Progress` after every block and returns the summary dict of
+    the public writers. Closing it early (a cancelled caller) stops the blocks not yet started
+    and removes the unfinished output. ``function`` returns ``(sum, count)`` of what it wrote
+    (the summary's ``mean``). ``run`` is ``(block_shape, scheduler, workers)``.
     """
     import dask
 
@@ -179,8 +187,7 @@ def _write(
             for done, (_, (block_sum, block_count)) in enumerate(finished, start=1):
                 total += block_sum
                 count += block_count
-                if progress is not None:
-                    progress(Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}"))
+                yield Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}")
     except BaseException:
         out.discard()
         raise

@@ -1,0 +1,176 @@
+"""The volume operations of the self-correction, behind one small interface (issue 13).
+
+:func:`.correction.correct_volumes_iter` is the one correction loop (clean, judge, warp, correlate,
+compose, accept node by node, stop). Everything it does to the *volumes* goes through a
+:class:`CorrectionVolumes`; the node arrays (fields) always stay in memory:
+
+* :meth:`~CorrectionVolumes.correlate`: a DVC run (step a, or the correcting DVC of step e on
+  the pair :meth:`~CorrectionVolumes.matching_pair` gives);
+* :meth:`~CorrectionVolumes.align`: bring the pair together with a field (the forward warp of
+  ``G`` in the loaded frame, the pull-back of ``F`` in the reference frame) and the mean gray
+  residual of that field;
+* :meth:`~CorrectionVolumes.matching_pair`: ``(G', F, warped mask)`` or ``(G, F~, mask)`` for
+  the correcting DVC;
+* :meth:`~CorrectionVolumes.residuals`: the reference-frame residuals the local acceptance
+  (:class:`.local_acceptance.Judge`) judges nodes by (:class:`.local_acceptance.ReferenceResiduals`
+  in memory);
+* :meth:`~CorrectionVolumes.release` and :meth:`~CorrectionVolumes.close`: drop a moved volume
+  that is no longer needed, and everything at the end (also on error or cancel).
+
+:class:`InMemoryVolumes` is the in-memory back-end (whole arrays, prefiltered once; the results of
+:func:`.correction.correct_iter`). The out-of-core back-end, lazily read volumes batch by batch on
+Dask, is ``napari_dvc_correct.tiled.correction.TiledVolumes`` (above the engine).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+
+import numpy as np
+
+from . import warp
+from .correlate import correlate_iter
+from .field import DisplacementField
+from .field_spline import FieldSpline
+from .interpolation import prefilter
+from .local_acceptance import ReferenceResiduals
+from .params import CorrelationParams
+from .progress import Progress
+
+
+class CorrectionVolumes:
+    """What the correction loop needs of a pair of volumes (the interface; see the module).
+
+    Attributes
+    ----------
+    frame : {"loaded", "reference"}
+        The frame the correcting DVC matches in.
+    shape : tuple of 3 ints
+        ``(nz, ny, nx)`` of the volumes.
+    """
+
+    frame: str
+    shape: tuple
+
+    def correlate(
+        self,
+        params: CorrelationParams,
+        pair=None,
+        *,
+        grid=None,
+        initial: DisplacementField | None = None,
+    ) -> Generator[Progress, None, DisplacementField]:
+        """A DVC run: of ``(G, F)`` with the input mask when ``pair`` is None (step a), else of
+        ``pair = (g, f, mask)`` from :meth:`matching_pair`, on ``grid`` from ``initial``."""
+        raise NotImplementedError
+
+    def align(self, field: DisplacementField) -> Generator[Progress, None, tuple[object, float]]:
+        """The moved volume for the next DVC and the mean gray residual of ``field`` (gray
+        levels, in the frame's sense: ``|F - G'|`` over the loaded voxels whose reference
+        position lies in the grid's hull, or ``|F~ - G|`` over the hull)."""
+        raise NotImplementedError
+
+    def matching_pair(self, moved, field: DisplacementField) -> Generator[Progress, None, tuple]:
+        """``(reference, deformed, mask)`` for the correcting DVC of step e."""
+        raise NotImplementedError
+
+    def residuals(self) -> Generator[Progress, None, object]:
+        """The reference-frame residual access of the local acceptance (see
+        :class:`.local_acceptance.ReferenceResiduals` for the methods)."""
+        raise NotImplementedError
+
+    def release(self, moved) -> None:
+        """``moved`` (from :meth:`align`) is no longer needed."""
+
+    def close(self) -> None:
+        """Free what the back-end holds (temporary files, connections); called once at the end."""
+
+
+def _finite_or_fill(volume: np.ndarray, fill: float) -> np.ndarray:
+    volume = np.asarray(volume, dtype=np.float32)
+    bad = ~np.isfinite(volume)
+    if bad.any():
+        volume = volume.copy()
+        volume[bad] = fill
+    return volume
+
+
+def _hull_mean(difference: np.ndarray, hull) -> float:
+    block = difference[hull]
+    finite = np.isfinite(block)
+    return float(np.mean(block[finite], dtype=np.float64)) if finite.any() else float("nan")
+
+
+class InMemoryVolumes(CorrectionVolumes):
+    """The two volumes as arrays with their spline coefficients, prefiltered once for every pass.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        ``G`` and ``F`` (checked by the caller), any real dtype; held as float32.
+    frame : {"loaded", "reference"}
+    mask : ndarray, optional
+        Reference-space material mask (non-zero = inside).
+    """
+
+    def __init__(self, reference, deformed, frame: str, mask=None):
+        self._inputs = (reference, deformed, mask)
+        self.reference = np.ascontiguousarray(reference, dtype=np.float32)
+        self.deformed = np.ascontiguousarray(deformed, dtype=np.float32)
+        self.shape = self.reference.shape
+        self.frame = frame
+        self.mask = None if mask is None else np.asarray(mask) != 0
+        if frame == "reference":
+            self.coefficients = prefilter(self.deformed)
+            self.fill = float(np.mean(self.deformed))
+        else:
+            self.coefficients = prefilter(self.reference)
+            self.fill = float(np.mean(self.reference))
+            self.mask_coefficients = (
+                None if self.mask is None else prefilter(self.mask.astype(np.float32))
+            )
+
+    def correlate(self, params, pair=None, *, grid=None, initial=None):
+        if pair is None:
+            reference, deformed, mask = self._inputs
+            return correlate_iter(reference, deformed, params, mask=mask)
+        g, f, mask = pair
+        return correlate_iter(g, f, params, mask=mask, grid=grid, initial=initial)
+
+    def align(self, field):
+        spline = FieldSpline.from_field(field)
+        if self.frame == "reference":
+            moved = warp.pull_back(
+                self.deformed, spline, coefficients=self.coefficients, cval=np.nan
+            )
+            residual = _hull_mean(
+                np.abs(moved - self.reference), spline.hull_slices(self.reference.shape)
+            )
+        else:
+            moved, residual = warp.warp_forward_with_residual(
+                self.reference, self.deformed, spline, coefficients=self.coefficients
+            )
+        return _finite_or_fill(moved, self.fill), residual
+        yield  # a generator without progress: the arrays are at hand
+
+    def matching_pair(self, moved, field):
+        if self.frame == "reference":
+            return self.reference, moved, self.mask
+        mask = None
+        if self.mask is not None:
+            warped = warp.warp_forward(
+                self.mask, field, coefficients=self.mask_coefficients, cval=0.0
+            )
+            mask = warped > 0.5
+            if not mask.any():
+                mask = None
+        return moved, self.deformed, mask
+        yield
+
+    def residuals(self):
+        return ReferenceResiduals(
+            self.reference,
+            self.deformed,
+            self.coefficients if self.frame == "reference" else prefilter(self.deformed),
+        )
+        yield

@@ -1,0 +1,662 @@
+"""The self-correction of volumes larger than memory: the engine's loop on a block-by-block back-end.
+
+:func:`correct_tiled_iter` runs the one correction loop of the engine
+(:func:`..engine.correction.correct_volumes_iter`: clean, judge node by node against the noise,
+warp, correlate, compose, stop) with :class:`TiledVolumes` doing every volume operation on lazily
+read volumes (:mod:`..io.lazy`: TIFF, Zarr, .npy...), as Dask tasks on local threads or a
+``dask.distributed`` cluster (:mod:`.scheduling`). The fields (node arrays) stay in memory.
+
+* **Warp** (step d): the forward warp ``G'`` (or the pull-back ``F~`` in the reference frame) is
+  written block by block to a temporary Zarr array (:func:`.volumes.write_iter`), its mean gray
+  residual summed on the way; the warped mask likewise. Temporary arrays are removed when no
+  longer needed, and all of them at the end, on error and on cancel.
+* **Correcting DVC** (step e): :func:`.correlate.correlate_tiled_iter` on ``(G', F)`` with the
+  pass's parameters, the field's grid and a zero initial field (no search, so no seeds).
+* **Local acceptance**: the per-node means of the reference-frame residual
+  ``|F(X + D(X)) - G(X)|`` over the nodes' cells and subvolumes are computed node block by node
+  block, each block reading only the region its nodes' boxes need (plus the spline support and
+  the prefilter margin in ``F``); eq. 1's background residual is summed over a partition of the
+  voxels; the local gray gradients likewise (with the Gaussian's reach). The phase thresholds
+  (multi-Otsu) are those of the in-memory run exactly: the lattice sample it uses
+  (:data:`..engine.phases.OTSU_SAMPLES` voxels at most) is gathered block by block.
+
+Equal to :func:`..engine.correction.correct_iter` up to float32 rounding of the regions'
+prefilters and box means, and to what batching changes in the correcting DVC (the noise-aware
+thresholds and the reliability-guided repair work per batch); see ``docs/scaling.md``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Generator
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+from scipy import ndimage
+
+from ..engine.correction import check_options, correct_volumes_iter, params_of
+from ..engine.correction_volumes import CorrectionVolumes
+from ..engine.field import DisplacementField
+from ..engine.field_spline import FieldSpline
+from ..engine.local_accuracy import local_mean_residual
+from ..engine.pair_checks import check_field_on_volume
+from ..engine.params import CorrelationParams
+from ..engine.phases import NO_PHASE, OTSU_SAMPLES, label_phases, phase_thresholds
+from ..engine.progress import Progress, run_to_completion
+from ..engine.warp import (
+    INVERT_MAX_ITERATIONS,
+    INVERT_TOLERANCE,
+    pull_back_block,
+    warp_forward_block,
+)
+from ..io.lazy import as_lazy, iter_blocks, open_volume
+from . import scheduling
+from .correlate import correlate_tiled_iter
+from .memory import (
+    PREFILTER_MARGIN,
+    SPLINE_SUPPORT,
+    MemoryBudgetError,
+    _refuse_if_over,
+    available_memory,
+    choose_batch_shape,
+    estimate_peak_memory,
+    format_bytes,
+    parse_memory,
+)
+from .volumes import _forward_values, sample_lazy, write_iter
+
+#: Voxels per block of the warps (z, y, x); also the temporary Zarr arrays' chunks.
+CORRECTION_BLOCK = (32, 128, 128)
+
+#: Grid nodes per block (along each axis) of the local residuals and gradients.
+NODE_BLOCK = 8
+
+#: Voxels read at a time by the statistics pass (phase thresholds, mean gray value).
+STATISTICS_BLOCK_VOXELS = 1 << 23
+
+#: Reach of the Gaussian gradient of :class:`..engine.local_acceptance.ReferenceResiduals`
+#: (sigma 1 voxel, truncated at 4 sigma).
+GRADIENT_REACH = 4
+
+#: Working bytes per voxel of a warp block (positions, inverse map iterates, Jacobians, values).
+BYTES_PER_WARP_VOXEL = 240
+
+#: Working bytes per voxel of a node block's region (G, F~, residual, box filters, F's region
+#: and its coefficients, positions).
+BYTES_PER_NODE_REGION_VOXEL = 120
+
+
+# --- block tasks (run on workers) ----------------------------------------------------------------
+class _NonZero:
+    """A lazy volume read as 0/1 (``!= 0``): the material mask as the engine sees it."""
+
+    def __init__(self, volume):
+        self.volume = volume
+        self.shape = tuple(volume.shape)
+        self.dtype = np.dtype(np.float32)
+
+    def read_region(self, slices):
+        return (self.volume.read_region(slices) != 0).astype(np.float32)
+
+
+def _statistics_block(volume, stride, region):
+    """The lattice sample of ``region`` (every ``stride``-th voxel of the whole volume), the sum
+    and count of its values and how many are not finite."""
+    block = volume.read_region(region)
+    start = [(-s.start) % stride for s in region]
+    sample = block[start[0] :: stride, start[1] :: stride, start[2] :: stride]
+    finite = np.isfinite(block)
+    position = tuple((s.start + k) // stride for s, k in zip(region, start))
+    total = float(np.sum(block[finite], dtype=np.float64))
+    return position, np.asarray(sample, np.float64), total, int(finite.sum()), int((~finite).sum())
+
+
+def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, hull):
+    """The moved volume of one block (written) and the sum and count of its gray residual."""
+    if frame == "loaded":
+        values, in_hull = warp_forward_block(
+            lambda p: sample_lazy(reference, p),
+            spline,
+            block,
+            INVERT_MAX_ITERATIONS,
+            INVERT_TOLERANCE,
+        )
+        defined = np.isfinite(values)
+        difference = np.abs(deformed.read_region(block) - values)[defined & in_hull]
+    else:
+        values = pull_back_block(lambda p: sample_lazy(deformed, p), spline, block)
+        inner = tuple(
+            slice(max(b.start, h.start), min(b.stop, h.stop)) for b, h in zip(block, hull)
+        )
+        difference = np.zeros(0, np.float32)
+        if all(s.stop > s.start for s in inner):
+            local = tuple(slice(i.start - b.start, i.stop - b.start) for i, b in zip(inner, block))
+            difference = np.abs(values[local] - reference.read_region(inner))
+            difference = difference[np.isfinite(difference)]
+        defined = np.isfinite(values)
+    values[~defined] = fill
+    out.write(block, values)
+    return float(np.sum(difference, dtype=np.float64)), int(difference.size)
+
+
+def _warp_mask_block(out, mask, spline, block):
+    values = _forward_values(
+        mask, spline, block, "extrapolate", INVERT_MAX_ITERATIONS, INVERT_TOLERANCE
+    )
+    inside = np.isfinite(values) & (values > 0.5)
+    out.write(block, inside.astype(np.float32))
+    return float(inside.sum()), int(inside.size)
+
+
+def _node_residual_block(reference, deformed, spline, job):
+    """Box means of the reference-frame residual at one block's nodes, and eq. 1's sums over the
+    block's own voxels."""
+    g = reference.read_region(job.region)
+    moved = pull_back_block(lambda p: sample_lazy(deformed, p), spline, job.region)
+    residual = np.abs(moved - g)
+    nodes = SimpleNamespace(points=job.points, shape=(len(job.points),))
+    means = [local_mean_residual(residual, nodes, half) for half in job.halves]
+    total, count = 0.0, 0
+    if job.thresholds is not None:
+        own_g, own_moved, own = g[job.owned], moved[job.owned], residual[job.owned]
+        labels = label_phases(own_g, job.thresholds[0])
+        keep = (labels == label_phases(own_moved, job.thresholds[1])) & (labels < NO_PHASE)
+        keep &= np.isfinite(own)
+        total, count = float(np.sum(own[keep], dtype=np.float64)), int(keep.sum())
+    return job.index, means, total, count
+
+
+def _node_gradient_block(reference, job):
+    """Box means of the Gaussian gray gradient magnitude of ``G`` at one block's nodes."""
+    g = reference.read_region(job.region)
+    gradient = ndimage.gaussian_gradient_magnitude(g, 1.0)[job.inner]
+    nodes = SimpleNamespace(points=job.points, shape=(len(job.points),))
+    return job.index, local_mean_residual(gradient, nodes, job.halves[0])
+
+
+# --- the back-end --------------------------------------------------------------------------------
+class TiledVolumes(CorrectionVolumes):
+    """The correction's volume operations block by block on lazy volumes (see the module).
+
+    Parameters
+    ----------
+    reference, deformed : LazyVolume, path or array, shape (nz, ny, nx)
+        ``G`` and ``F`` (:func:`..io.lazy.as_lazy`).
+    frame : {"loaded", "reference"}
+    mask : LazyVolume, path or array, optional
+        Reference-space material mask (non-zero = inside).
+    batch_shape, max_memory, workers, scheduler, device
+        As :func:`.correlate.correlate_tiled_iter`, for every DVC run; ``workers`` and
+        ``scheduler`` also for the blocks of the warps and residuals.
+    block_shape : tuple of 3 ints
+        Voxels per warp block.
+    node_block : int
+        Grid nodes per block (each axis) of the local residuals.
+    temp_dir : str or PathLike, optional
+        Where the temporary Zarr arrays go (default: the system's temporary folder). On a
+        cluster of several machines it must be a folder every worker sees at the same path.
+    """
+
+    def __init__(
+        self,
+        reference,
+        deformed,
+        frame: str = "loaded",
+        mask=None,
+        *,
+        batch_shape=None,
+        max_memory=None,
+        workers: int | None = None,
+        scheduler=None,
+        device="cpu",
+        block_shape=CORRECTION_BLOCK,
+        node_block: int = NODE_BLOCK,
+        temp_dir=None,
+    ):
+        self.reference = as_lazy(reference)
+        self.deformed = as_lazy(deformed)
+        self.mask = None if mask is None else as_lazy(mask)
+        self.shape = tuple(int(n) for n in self.reference.shape)
+        if tuple(self.deformed.shape) != self.shape:
+            raise ValueError(
+                f"reference {self.shape} and deformed {tuple(self.deformed.shape)} volumes must "
+                "have the same shape"
+            )
+        if self.mask is not None and tuple(self.mask.shape) != self.shape:
+            raise ValueError(
+                f"mask shape {tuple(self.mask.shape)} differs from the volume {self.shape}"
+            )
+        self.frame = frame
+        self.block_shape = tuple(int(b) for b in np.broadcast_to(block_shape, (3,)))
+        self.node_block = max(1, int(node_block))
+        self.max_memory = None if max_memory is None else parse_memory(max_memory)
+        self.batch_shape = batch_shape
+        self.device = device
+        self.workers = min(4, os.cpu_count() or 1) if workers is None else int(workers)
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        self.scheduler = scheduler
+        self.client, self._owns_client = None, False
+        if not scheduling.is_local(scheduler):
+            self.client, self._owns_client = scheduling.connect(scheduler)
+        self._temp_dir = Path(tempfile.mkdtemp(prefix="dvc-correct-", dir=temp_dir))
+        self._temps: dict[int, Path] = {}
+        self._count = 0
+        self._statistics = None
+        self._gradients: dict = {}
+
+    # -- running blocks
+    @property
+    def _where(self):
+        return self.client if self.client is not None else self.scheduler
+
+    def _tasks(self, function, shared, items, stage) -> Generator[Progress, None, list]:
+        import dask
+
+        shared = [dask.delayed(item) for item in shared]
+        task = dask.delayed(function, pure=False)
+        tasks = [task(*shared, item) for item in items]
+        results = [None] * len(tasks)
+        with scheduling.running(tasks, self.scheduler, self.workers, self.client) as finished:
+            for done, (index, result) in enumerate(finished, start=1):
+                results[index] = result
+                yield Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}")
+        return results
+
+    def _temporary(self, name: str) -> Path:
+        self._count += 1
+        return self._temp_dir / f"{name}-{self._count}.zarr"
+
+    def _keep(self, path: Path):
+        volume = open_volume(path)
+        self._temps[id(volume)] = path
+        return volume
+
+    def release(self, moved) -> None:
+        path = self._temps.pop(id(moved), None)
+        if path is not None:
+            shutil.rmtree(path, ignore_errors=True)
+
+    def close(self) -> None:
+        self._temps.clear()
+        shutil.rmtree(self._temp_dir, ignore_errors=True)
+        if self._owns_client:
+            self.client.close()
+            self._owns_client = False
+
+    # -- the whole-volume statistics: phase thresholds and the fill value
+    def statistics(self) -> Generator[Progress, None, SimpleNamespace]:
+        """One read of both volumes: their multi-Otsu thresholds (as in memory) and mean gray."""
+        if self._statistics is not None:
+            return self._statistics
+        stride = max(1, int(np.ceil((float(np.prod(self.shape)) / OTSU_SAMPLES) ** (1.0 / 3.0))))
+        regions = [
+            (z, y, slice(0, self.shape[2]))
+            for z, y in iter_blocks(self.shape, STATISTICS_BLOCK_VOXELS)
+        ]
+        found = {}
+        for name, volume in (("reference", self.reference), ("deformed", self.deformed)):
+            parts = yield from self._tasks(
+                _statistics_block, [volume, stride], regions, f"statistics ({name})"
+            )
+            sample = np.empty([-(-n // stride) for n in self.shape], np.float64)
+            total, count, bad = 0.0, 0, 0
+            for position, piece, block_sum, block_count, block_bad in parts:
+                sample[tuple(slice(p, p + n) for p, n in zip(position, piece.shape))] = piece
+                total, count, bad = total + block_sum, count + block_count, bad + block_bad
+            if bad:
+                raise ValueError(
+                    f"the {name} volume contains {bad} NaN or infinite values: fix or mask them"
+                )
+            found[name] = (sample, total / max(count, 1))
+        try:
+            thresholds = (
+                phase_thresholds(found["reference"][0], "auto", 2, "reference volume"),
+                phase_thresholds(found["deformed"][0], "auto", 2, "deformed volume"),
+            )
+        except ValueError:  # a volume with a single gray value: no phases, no eq. 1
+            thresholds = None
+        self._statistics = SimpleNamespace(
+            thresholds=thresholds,
+            mean_reference=found["reference"][1],
+            mean_deformed=found["deformed"][1],
+        )
+        return self._statistics
+
+    # -- the interface
+    def correlate(self, params, pair=None, *, grid=None, initial=None):
+        run = dict(
+            batch_shape=self.batch_shape,
+            max_memory=self.max_memory,
+            workers=self.workers,
+            scheduler=self._where,
+            device=self.device,
+        )
+        if pair is None:
+            return correlate_tiled_iter(
+                self.reference, self.deformed, params, mask=self.mask, **run
+            )
+        g, f, mask = pair
+        return correlate_tiled_iter(g, f, params, mask=mask, grid=grid, initial=initial, **run)
+
+    def align(self, field):
+        stats = yield from self.statistics()
+        spline = FieldSpline.from_field(field)
+        loaded = self.frame == "loaded"
+        fill = stats.mean_reference if loaded else stats.mean_deformed
+        hull = spline.hull_slices(self.shape)
+        path = self._temporary("warped" if loaded else "pulled-back")
+        summary = yield from write_iter(
+            path,
+            self.shape,
+            1,
+            _warp_residual_block,
+            [self.reference, self.deformed, spline],
+            [self.frame, float(fill), hull],
+            run=(self.block_shape, self._where, self.workers),
+            metadata={"quantity": f"correction: the pair aligned by the field ({self.frame})"},
+            stage="warp",
+        )
+        return self._keep(Path(summary["path"])), float(summary["mean"])
+
+    def matching_pair(self, moved, field):
+        if self.frame == "reference":
+            return self.reference, moved, self.mask
+        mask = None
+        if self.mask is not None:
+            path = self._temporary("mask")
+            summary = yield from write_iter(
+                path,
+                self.shape,
+                1,
+                _warp_mask_block,
+                [_NonZero(self.mask), FieldSpline.from_field(field)],
+                [],
+                run=(self.block_shape, self._where, self.workers),
+                metadata={"quantity": "correction: the mask warped to the loaded state"},
+                stage="warp mask",
+            )
+            mask = self._keep(Path(summary["path"]))
+            if not summary["mean"] > 0:
+                self.release(mask)
+                mask = None
+        return moved, self.deformed, mask
+
+    def residuals(self):
+        stats = yield from self.statistics()
+        return _TiledResiduals(self, stats.thresholds)
+
+
+class _TiledResiduals:
+    """:class:`..engine.local_acceptance.ReferenceResiduals`' numbers, node block by node block."""
+
+    def __init__(self, volumes: TiledVolumes, thresholds):
+        self.volumes = volumes
+        self.thresholds = thresholds
+        self._gradients: dict = {}
+
+    def _jobs(self, field, halves, reach_extra=0, owned=False):
+        shape = np.asarray(self.volumes.shape, np.int64)
+        centers = np.clip(np.rint(field.points).astype(np.int64), 0, shape - 1)
+        centers = centers.reshape(*field.shape, 3)
+        origin, step = np.asarray(field.origin, float), np.asarray(field.step, float)
+        flat = np.arange(field.n_points).reshape(field.shape)
+        reach = max(halves)
+        b = self.volumes.node_block
+        jobs = []
+        for i0 in range(0, field.shape[0], b):
+            for j0 in range(0, field.shape[1], b):
+                for k0 in range(0, field.shape[2], b):
+                    start = np.array([i0, j0, k0])
+                    stop = np.minimum(start + b, field.shape)
+                    window = tuple(slice(a, c) for a, c in zip(start, stop))
+                    points = centers[window].reshape(-1, 3)
+                    lo = np.maximum(points.min(axis=0) - reach, 0)
+                    hi = np.minimum(points.max(axis=0) + reach + 1, shape)
+                    own_lo = np.where(
+                        start == 0, 0, np.clip(np.rint(origin + (start - 0.5) * step), 0, shape)
+                    ).astype(np.int64)
+                    own_hi = np.where(
+                        stop == field.shape,
+                        shape,
+                        np.clip(np.rint(origin + (stop - 0.5) * step), 0, shape),
+                    ).astype(np.int64)
+                    if owned:
+                        lo, hi = np.minimum(lo, own_lo), np.maximum(hi, own_hi)
+                    # the region read: with the filter's reach where the volume goes on
+                    read_lo = np.maximum(lo - reach_extra, 0)
+                    read_hi = np.minimum(hi + reach_extra, shape)
+                    jobs.append(
+                        SimpleNamespace(
+                            index=flat[window].reshape(-1),
+                            points=(points - lo).astype(np.float64),
+                            halves=tuple(int(h) for h in halves),
+                            region=tuple(slice(int(a), int(c)) for a, c in zip(read_lo, read_hi)),
+                            inner=tuple(
+                                slice(int(a - r), int(c - r)) for a, c, r in zip(lo, hi, read_lo)
+                            ),
+                            owned=tuple(
+                                slice(int(a - r), int(c - r))
+                                for a, c, r in zip(own_lo, own_hi, read_lo)
+                            ),
+                            thresholds=self.thresholds,
+                        )
+                    )
+        return jobs
+
+    def local_means(self, field: DisplacementField, halves):
+        volumes = self.volumes
+        jobs = self._jobs(field, halves, owned=True)
+        spline = FieldSpline.from_field(field)
+        results = run_to_completion(
+            volumes._tasks(
+                _node_residual_block,
+                [volumes.reference, volumes.deformed, spline],
+                jobs,
+                "local residual",
+            )
+        )
+        means = [np.full(field.n_points, np.nan) for _ in halves]
+        total, count = 0.0, 0
+        for index, block_means, block_total, block_count in results:
+            for out, values in zip(means, block_means):
+                out[index] = values.reshape(-1)
+            total, count = total + block_total, count + block_count
+        floor = total / count if self.thresholds is not None and count else float("inf")
+        return [m.reshape(field.shape) for m in means], floor
+
+    def gradient_means(self, field: DisplacementField, half: int):
+        key = (tuple(field.origin), tuple(field.step), field.shape, int(half))
+        if key not in self._gradients:
+            volumes = self.volumes
+            jobs = self._jobs(field, (half,), reach_extra=GRADIENT_REACH)
+            results = run_to_completion(
+                volumes._tasks(_node_gradient_block, [volumes.reference], jobs, "local gradient")
+            )
+            means = np.full(field.n_points, np.nan)
+            for index, values in results:
+                means[index] = values.reshape(-1)
+            self._gradients[key] = means.reshape(field.shape)
+        return self._gradients[key]
+
+
+# --- memory and the driver -----------------------------------------------------------------------
+def _warp_bytes(block_shape, reach: float) -> float:
+    block = np.asarray(block_shape, np.float64)
+    region = np.prod(block + 2 * (reach + SPLINE_SUPPORT + PREFILTER_MARGIN))
+    return float(np.prod(block)) * BYTES_PER_WARP_VOXEL + region * 12.0
+
+
+def _node_bytes(step, node_block: int, half: int, reach: float) -> float:
+    edge = np.asarray(step, np.float64) * node_block + 2 * half + 1
+    region = np.prod(edge + 2 * (reach + GRADIENT_REACH))
+    return float(region) * BYTES_PER_NODE_REGION_VOXEL
+
+
+def plan_memory(volumes: TiledVolumes, params: CorrelationParams, field=None) -> tuple[int, int]:
+    """``(estimate, budget)`` bytes of a tiled correction; raises :class:`MemoryBudgetError`.
+
+    The estimate is the largest of: the DVC runs (:func:`.memory.estimate_peak_memory` for the
+    first run's parameters and for second-order correcting matches on the smaller subvolume
+    :func:`..engine.pass_params.correction_params` may choose), the warp blocks and the node
+    blocks of the local residuals, each times the blocks held at once.
+    """
+    from ..engine.pass_params import MIN_PASS_SUBVOLUME, PASS_SUBVOLUME_FRACTION
+
+    shape = volumes.shape
+    dtype = np.result_type(volumes.reference.dtype, volumes.deformed.dtype)
+    masked = volumes.mask is not None
+    if volumes.client is not None:
+        threads, concurrency, limit = scheduling.cluster_resources(volumes.client)
+        budget, where = (limit or available_memory()), "each worker of the cluster"
+    else:
+        concurrency, budget, where = volumes.workers, available_memory(), "this machine"
+    if volumes.max_memory is not None:
+        budget = min(budget, volumes.max_memory)
+    grid = None if field is None else (field.origin, field.step, field.shape)
+    subvolume = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
+    subvolume = min(params.subvolume, max(MIN_PASS_SUBVOLUME, subvolume))
+    candidates = [params, params.replace(order=2, subvolume=subvolume)]
+    estimates = []
+    for candidate in candidates:
+        sizes = dict(workers=concurrency, masked=masked, grid=grid)
+        batch = volumes.batch_shape
+        if batch is None:
+            batch = choose_batch_shape(shape, dtype, candidate, budget, **sizes)
+        batch = tuple(int(b) for b in np.broadcast_to(np.asarray(batch), (3,)))
+        estimate = estimate_peak_memory(shape, dtype, candidate, batch, **sizes)
+        _refuse_if_over(estimate, budget, volumes.max_memory, batch, concurrency, where)
+        estimates.append(estimate)
+    reach = 0.0
+    if field is not None and np.isfinite(field.u).any():
+        reach = float(np.nanmax(np.abs(field.u)))
+    step = params.step if field is None else max(field.step)
+    blocks = concurrency * max(
+        _warp_bytes(volumes.block_shape, reach),
+        _node_bytes(np.broadcast_to(step, (3,)), volumes.node_block, params.half, reach),
+    )
+    estimate = int(max(max(estimates), blocks))
+    if blocks > budget:
+        limit = (
+            f"the limit of {format_bytes(volumes.max_memory)} (--max-memory)"
+            if volumes.max_memory is not None and budget == volumes.max_memory
+            else f"the {format_bytes(budget)} available on {where}"
+        )
+        raise MemoryBudgetError(
+            f"the correction's warp and residual blocks need an estimated "
+            f"{format_bytes(blocks)} ({concurrency} at once), more than {limit}: use fewer "
+            "workers or smaller blocks, or allow more memory (--max-memory)"
+        )
+    return estimate, int(budget)
+
+
+def correct_tiled_iter(
+    reference,
+    deformed,
+    field: DisplacementField | None = None,
+    params: CorrelationParams | None = None,
+    *,
+    frame: str = "loaded",
+    update: str = "exact",
+    max_passes: int = 3,
+    min_improvement: float = 0.01,
+    mask=None,
+    clean_options: dict | None = None,
+    batch_shape=None,
+    max_memory: int | str | None = None,
+    workers: int | None = None,
+    scheduler=None,
+    device="cpu",
+    block_shape=CORRECTION_BLOCK,
+    node_block: int = NODE_BLOCK,
+    temp_dir=None,
+) -> Generator[Progress, None, DisplacementField]:
+    """Self-correct a field of two lazily read volumes, batch by batch; yields progress.
+
+    Parameters
+    ----------
+    reference, deformed : LazyVolume, path or array, shape (nz, ny, nx)
+        ``G`` and ``F`` (:func:`..io.lazy.as_lazy`: TIFF, Zarr, OME-Zarr, .npy, slices...).
+    field, params, frame, update, max_passes, min_improvement, clean_options
+        As :func:`..engine.correction.correct_iter` (``field`` None: a tiled DVC runs first).
+    mask : LazyVolume, path or array, optional
+        Reference-space material mask (non-zero = inside).
+    batch_shape, max_memory, workers, scheduler, device
+        As :func:`.correlate.correlate_tiled_iter`, for every DVC run and (``workers``,
+        ``scheduler``) the blocks of the warps and residuals.
+    block_shape, node_block, temp_dir
+        See :class:`TiledVolumes`.
+
+    Yields
+    ------
+    Progress
+        ``"plan"`` first (the estimated peak memory), then as :func:`correct_iter` with the
+        blocks of the warps and the DVC batches.
+
+    Returns
+    -------
+    DisplacementField
+        As :func:`..engine.correction.correct_iter`; ``metadata["correction"]["tiled"]``
+        records the estimate and the blocks.
+
+    Raises
+    ------
+    MemoryBudgetError
+        Before any work, when the estimated peak memory exceeds the machine or ``max_memory``.
+    """
+    check_options(frame, update, max_passes, min_improvement)
+    volumes = TiledVolumes(
+        reference,
+        deformed,
+        frame,
+        mask,
+        batch_shape=batch_shape,
+        max_memory=max_memory,
+        workers=workers,
+        scheduler=scheduler,
+        device=device,
+        block_shape=block_shape,
+        node_block=node_block,
+        temp_dir=temp_dir,
+    )
+    try:
+        if field is not None:
+            check_field_on_volume(field, volumes.shape)
+        params = params_of(field, params)
+        estimate, budget = plan_memory(volumes, params, field)
+        blocks = int(np.prod([-(-n // b) for n, b in zip(volumes.shape, volumes.block_shape)]))
+        largest = "x".join(str(min(b, n)) for b, n in zip(volumes.block_shape, volumes.shape))
+        at_once = volumes.workers if volumes.client is None else "cluster"
+        yield Progress(
+            "plan",
+            1,
+            1,
+            f"estimated peak memory {format_bytes(estimate)} (allowed {format_bytes(budget)}); "
+            f"warps in {blocks} blocks of up to {largest} voxels ({at_once} at a time)",
+        )
+        result = yield from correct_volumes_iter(
+            volumes,
+            field,
+            params,
+            update=update,
+            max_passes=max_passes,
+            min_improvement=min_improvement,
+            clean_options=clean_options,
+        )
+    finally:
+        volumes.close()  # the temporary arrays, also on error or cancel (idempotent)
+    result.metadata["correction"]["tiled"] = {
+        "estimated_peak_bytes": int(estimate),
+        "block_shape": list(volumes.block_shape),
+        "node_block": int(volumes.node_block),
+        "scheduler": "local threads" if volumes.client is None else str(scheduler),
+    }
+    return result
+
+
+def correct_tiled(reference, deformed, field=None, params=None, **kwargs) -> DisplacementField:
+    """Blocking form of :func:`correct_tiled_iter` (same parameters, no progress)."""
+    return run_to_completion(correct_tiled_iter(reference, deformed, field, params, **kwargs))
