@@ -70,6 +70,44 @@ def test_correlate_self_correct(volumes, tmp_path):
     assert len(field.metadata["correction_passes"]) == 2
 
 
+def test_correct_tiled_gives_the_in_memory_field(volumes, tmp_path, capsys):
+    field_path = tmp_path / "field.npz"
+    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    common = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--max-passes", "2"]
+    assert main([*common, "--out", str(tmp_path / "a.npz"), "--quiet"]) == 0
+    capsys.readouterr()
+    tiled = ["--tiled", "--batch", "2", "--workers", "2"]  # not quiet: the plan is printed
+    assert main([*common, "--out", str(tmp_path / "b.npz"), *tiled]) == 0
+    assert "tiled correction: estimated peak memory" in capsys.readouterr().err
+    a, b = load_field(tmp_path / "a.npz"), load_field(tmp_path / "b.npz")
+    np.testing.assert_array_equal(a.status, b.status)
+    assert np.nanmax(np.abs(a.u - b.u)) < 1e-4  # see tests/tiled/test_correction.py
+    assert b.metadata["correction"]["tiled"]["scheduler"] == "local threads"
+    assert len(b.metadata["correction_passes"]) == len(a.metadata["correction_passes"])
+
+
+def test_correct_tiled_refuses_a_run_over_max_memory_and_writes_nothing(volumes, tmp_path, capsys):
+    field_path = tmp_path / "field.npz"
+    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    out = tmp_path / "corrected.npz"
+    args = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out)]
+    assert main([*args, "--max-memory", "1MB", "--quiet"]) == 2
+    assert "--max-memory" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_correlate_tiled_self_correct(volumes, tmp_path):
+    out = tmp_path / "field.npz"
+    args = ["correlate", volumes[0], volumes[1], "--out", str(out), *DVC, "--tiled"]
+    assert main([*args, "--batch", "2", "--self-correct", "--max-passes", "1"]) == 0
+    field = load_field(out)
+    assert field.metadata["tiled"]["batches"] == 8  # the correlation, in batches
+    assert "tiled" in field.metadata["correction"]  # and the correction, out of core
+    assert len(field.metadata["correction_passes"]) == 2
+    error = field.displacement[field.valid.reshape(-1)] - SHIFT
+    assert np.sqrt(np.mean(error**2)) < 0.05
+
+
 @pytest.mark.parametrize("strategy", ["incremental", "total"])
 def test_series_writes_one_field_per_state_and_a_summary(volumes, tmp_path, strategy):
     out_dir = tmp_path / "series"

@@ -149,3 +149,59 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     field.metadata["reference"] = str(args.reference)
     field.metadata["deformed"] = str(args.deformed)
     return field
+
+
+def run_tiled_correction(args: argparse.Namespace, field, params=None, options=None, progress=None):
+    """Self-correct ``field`` of ``args.reference`` / ``args.deformed`` out of core; return it.
+
+    The volumes (and ``args.mask``) are read lazily; the warps and residuals run block by block
+    and every DVC pass batch by batch (:func:`napari_dvc_correct.tiled.correction.correct_tiled_iter`)
+    with ``--scheduler``, ``--max-memory``, ``--batch`` and ``--workers``. The estimated peak
+    memory is printed to stderr first (unless ``args.quiet``); a run over the limit is refused
+    before any work (:class:`MemoryBudgetError`, a ``ValueError``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options, with those of :func:`add_tiled_arguments`.
+    field : DisplacementField or None
+        The field to correct (None: a tiled DVC runs first).
+    params : CorrelationParams, optional
+        DVC parameters (default: the field's).
+    options : dict, optional
+        Keyword arguments of the correction (``frame``, ``update``, ``max_passes``...).
+    progress : callable, optional
+        Called with every :class:`Progress` (default: the command's progress bar).
+    """
+    from ..io.lazy import open_volume
+    from ..tiled.correction import correct_tiled_iter
+    from ._common import ProgressBar, drive
+
+    reference = open_volume(args.reference)
+    deformed = open_volume(args.deformed)
+    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
+    quiet = bool(getattr(args, "quiet", False))
+    if progress is None:
+        progress = ProgressBar(quiet).update
+
+    class _Reporter:
+        @staticmethod
+        def update(report):
+            if report.stage == "plan" and not quiet:
+                print(f"tiled correction: {report.message}", file=sys.stderr, flush=True)
+            progress(report)
+
+    generator = correct_tiled_iter(
+        reference,
+        deformed,
+        field,
+        params,
+        mask=mask,
+        batch_shape=getattr(args, "batch", None),
+        max_memory=getattr(args, "max_memory", None),
+        workers=getattr(args, "workers", None),
+        scheduler=getattr(args, "scheduler", None) or None,
+        device=getattr(args, "device", "cpu"),
+        **(options or {}),
+    )
+    return drive(generator, _Reporter())

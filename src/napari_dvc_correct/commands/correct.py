@@ -12,6 +12,7 @@ import time
 
 from . import _field_formats, _grid_options
 from ._common import ProgressBar, check_output_path, correction_defaults, drive
+from ._tiled_options import add_tiled_arguments, run_tiled_correction, wants_tiled
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -39,6 +40,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     _field_formats.add_field_format_arguments(parser)
     _field_formats.add_correction_field_arguments(parser)
     _grid_options.add_grid_arguments(parser, points=False)
+    add_tiled_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -166,9 +168,13 @@ def apply_self_correction(args, field, reference, deformed):
     from ..engine.correction import correct_iter
     from ..io.volumes import read_volume
 
+    options = correction_options_from_args(args)
+    if wants_tiled(args):  # out of core: lazily read volumes, blocks and batches on dask
+        corrected = run_tiled_correction(args, field, None, options)
+        print(pass_table(corrected))
+        return corrected
     mask_path = getattr(args, "mask", None)
     mask = read_volume(mask_path) if mask_path else None
-    options = correction_options_from_args(args)
     bar = ProgressBar(getattr(args, "quiet", False))
     corrected = drive(correct_iter(reference, deformed, field, mask=mask, **options), bar)
     print(pass_table(corrected))
@@ -185,16 +191,26 @@ def run(args) -> int:
     out = check_output_path(args.out, suffixes=None, inputs=inputs)
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
     options = correction_options_from_args(args)
-    reference = read_volume(args.reference)
-    imported, params = _field_formats.prepare_correction_field(args, reference.shape)
-    field = imported.field
-    print(f"field: {imported.describe()}")
-    deformed = read_volume(args.deformed)
-    mask = read_volume(args.mask) if args.mask else None
-    # one check for both frames: the loaded frame would otherwise drop an empty mask silently
-    check_pair_and_fields(reference, deformed, field, mask, check_finite=False)
-    bar = ProgressBar(args.quiet)
-    corrected = drive(correct_iter(reference, deformed, field, params, mask=mask, **options), bar)
+    if wants_tiled(args):  # out of core: the volumes are read lazily, block by block
+        from ..io.lazy import open_volume
+
+        shape = open_volume(args.reference).shape
+        imported, params = _field_formats.prepare_correction_field(args, shape)
+        print(f"field: {imported.describe()}")
+        corrected = run_tiled_correction(args, imported.field, params, options)
+    else:
+        reference = read_volume(args.reference)
+        imported, params = _field_formats.prepare_correction_field(args, reference.shape)
+        field = imported.field
+        print(f"field: {imported.describe()}")
+        deformed = read_volume(args.deformed)
+        mask = read_volume(args.mask) if args.mask else None
+        # one check for both frames: the loaded frame would otherwise drop an empty mask silently
+        check_pair_and_fields(reference, deformed, field, mask, check_finite=False)
+        bar = ProgressBar(args.quiet)
+        corrected = drive(
+            correct_iter(reference, deformed, field, params, mask=mask, **options), bar
+        )
     corrected.metadata["reference"] = str(args.reference)
     corrected.metadata["deformed"] = str(args.deformed)
     corrected.metadata["corrected_from"] = str(args.field)

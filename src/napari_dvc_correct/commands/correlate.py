@@ -137,9 +137,7 @@ def run(args) -> int:
     if getattr(args, "self_correct", False):
         from .correct import apply_self_correction
 
-        if reference is None:
-            reference = read_volume(args.reference)
-            deformed = read_volume(args.deformed)
+        # tiled runs (reference None) correct out of core too (apply_self_correction sees it)
         field = apply_self_correction(args, field, reference, deformed)
     _field_formats.write_output_field(args, field, out)
     print(summary(field, time.perf_counter() - started))

@@ -1,0 +1,146 @@
+"""Tiled self-correction: the in-memory correction's field, from lazy files, block by block.
+
+The case is a small version of tests/engine/test_correction.py's: a noisy two-phase volume under a
+shear band on a rigid shift, whose first-order DVC the correction improves. The tiled run reads the
+reference from a TIFF stack and the deformed volume from a Zarr array, warps in 12 blocks,
+correlates each pass in 8 batches and judges the nodes in 8 node blocks.
+
+Tolerance: every block reads the volumes' values exactly and prefilters a region whose margin
+makes its coefficients equal the whole volume's to float32 rounding; the correcting DVC starts from
+a zero field (no seed search), so the batches start every POI where the in-memory run does. The
+fields then agree to rounding (measured 1.5e-7 voxel); the test allows 1e-4 voxel, ten times
+below the IC-GN tolerance, and asks for the same statuses and the same acceptance counts.
+"""
+
+import threading
+
+import numpy as np
+import pytest
+import tifffile
+import zarr
+
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correction import correct, correction_table
+from napari_dvc_correct.engine.correlate import correlate
+from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.progress import run_to_completion
+from napari_dvc_correct.tiled.correction import correct_tiled, correct_tiled_iter
+from napari_dvc_correct.tiled.memory import MemoryBudgetError
+
+SIZE = 48
+BAND = synthetic.shear_band((SIZE / 2,) * 3, width=8.0, slip=6.0, shift=(3.0, -2.0, 4.0))
+PARAMS = CorrelationParams(subvolume=17, step=6)  # a 5x5x5 grid
+RUN = dict(batch_shape=(3, 3, 3), block_shape=(16, 32, 32), node_block=3, workers=2)
+PASSES = 2
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("tiled_correction")
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.two_phase_volume(s, seed=4), (SIZE,) * 3, BAND, margin=16
+    )
+    reference = synthetic.add_noise(reference, 4.0, seed=1).astype(np.float32)
+    deformed = synthetic.add_noise(deformed, 4.0, seed=2).astype(np.float32)
+    tifffile.imwrite(folder / "g.tif", reference)
+    zarr.create_array(str(folder / "f.zarr"), data=deformed, chunks=(16, 16, 16))
+    measured = correlate(reference, deformed, PARAMS)
+    in_memory = correct(reference, deformed, measured, max_passes=PASSES)
+    return folder, reference, deformed, measured, in_memory
+
+
+@pytest.fixture(scope="module")
+def tiled(case):
+    folder, _, _, measured, _ = case
+    temp = folder / "temporary"
+    temp.mkdir()
+    field = correct_tiled(
+        folder / "g.tif", str(folder / "f.zarr"), measured, max_passes=PASSES, temp_dir=temp, **RUN
+    )
+    return field, temp
+
+
+def _rmse(field):
+    error = field.displacement - BAND(field.points)
+    return float(np.sqrt(np.nanmean(np.sum(error**2, axis=1))))
+
+
+def test_equals_the_in_memory_correction(case, tiled):
+    _, _, _, measured, in_memory = case
+    field, _ = tiled
+    assert _rmse(in_memory) < 0.75 * _rmse(measured)  # the case is one the correction improves
+    np.testing.assert_array_equal(field.status, in_memory.status)
+    np.testing.assert_array_equal(field.provenance, in_memory.provenance)
+    assert np.max(np.abs(field.u - in_memory.u)) < 1e-4
+    a, b = correction_table(in_memory), correction_table(field)
+    assert len(a) == len(b) == PASSES + 1 and sum(p.accepted for p in b[1:]) >= 1
+    for x, y in zip(a, b):
+        assert (x.accepted_nodes, x.rejected_nodes, x.improved_nodes) == (
+            y.accepted_nodes,
+            y.rejected_nodes,
+            y.improved_nodes,
+        )
+        assert y.mean_gray_residual == pytest.approx(x.mean_gray_residual, rel=1e-5)
+        assert y.noise_floor == pytest.approx(x.noise_floor, rel=1e-5)
+        assert y.local_residual_after == pytest.approx(x.local_residual_after, rel=1e-5)
+    info = field.metadata["correction"]
+    assert info["tiled"]["block_shape"] == [16, 32, 32]
+    assert info["pass_order"] == in_memory.metadata["correction"]["pass_order"]
+
+
+def test_temporary_arrays_are_removed(tiled):
+    _, temp = tiled
+    assert temp.exists() and not any(temp.iterdir())
+
+
+def test_cancel_stops_the_blocks_and_removes_the_temporary_arrays(case, tmp_path):
+    folder, _, _, measured, _ = case
+    generator = correct_tiled_iter(
+        folder / "g.tif", folder / "f.zarr", measured, temp_dir=tmp_path, **RUN
+    )
+    stages = []
+    for report in generator:
+        stages.append(report.stage)
+        if report.stage == "warp" and report.done == 2:  # in the middle of the first warp
+            break
+    generator.close()
+    assert stages[0] == "plan" and "statistics (reference)" in stages
+    assert not any(tmp_path.iterdir())
+    assert not [t for t in threading.enumerate() if t.name == "dvc-dask-local"]
+
+
+def test_refuses_a_run_over_max_memory_before_any_work(case, tmp_path):
+    folder, _, _, measured, _ = case
+    generator = correct_tiled_iter(
+        folder / "g.tif", folder / "f.zarr", measured, temp_dir=tmp_path, max_memory="1MB"
+    )
+    with pytest.raises(MemoryBudgetError, match="--max-memory"):
+        next(generator)
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_distributed_cluster_gives_the_local_field(case, tiled):
+    import distributed
+
+    folder, _, _, measured, _ = case
+    local, _ = tiled
+    with distributed.LocalCluster(
+        n_workers=2,
+        processes=True,
+        threads_per_worker=1,
+        dashboard_address=None,
+        memory_limit="2GiB",
+    ) as cluster:
+        remote = run_to_completion(
+            correct_tiled_iter(
+                folder / "g.tif",
+                str(folder / "f.zarr"),
+                measured,
+                max_passes=PASSES,
+                scheduler=cluster.scheduler_address,
+                **{k: v for k, v in RUN.items() if k != "workers"},
+            )
+        )
+    assert remote.metadata["correction"]["tiled"]["scheduler"] == cluster.scheduler_address
+    np.testing.assert_array_equal(remote.status, local.status)
+    np.testing.assert_allclose(remote.u, local.u, rtol=0, atol=1e-9)
