@@ -76,9 +76,11 @@ def test_correct_tiled_gives_the_in_memory_field(volumes, tmp_path, capsys):
     common = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--max-passes", "2"]
     assert main([*common, "--out", str(tmp_path / "a.npz"), "--quiet"]) == 0
     capsys.readouterr()
-    tiled = ["--tiled", "--batch", "2", "--workers", "2"]  # not quiet: the plan is printed
-    assert main([*common, "--out", str(tmp_path / "b.npz"), *tiled]) == 0
+    (tmp_path / "temporary").mkdir()
+    tiled = ["--batch", "2", "--workers", "2", "--temp-dir", str(tmp_path / "temporary")]
+    assert main([*common, "--out", str(tmp_path / "b.npz"), *tiled]) == 0  # not quiet: the plan
     assert "tiled correction: estimated peak memory" in capsys.readouterr().err
+    assert not any((tmp_path / "temporary").iterdir())  # the warped volumes are gone
     a, b = load_field(tmp_path / "a.npz"), load_field(tmp_path / "b.npz")
     np.testing.assert_array_equal(a.status, b.status)
     assert np.nanmax(np.abs(a.u - b.u)) < 1e-4  # see tests/tiled/test_correction.py

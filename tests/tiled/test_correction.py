@@ -22,6 +22,7 @@ import zarr
 from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correction import correct, correction_table
 from napari_dvc_correct.engine.correlate import correlate
+from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.engine.progress import run_to_completion
 from napari_dvc_correct.tiled.correction import correct_tiled, correct_tiled_iter
@@ -86,6 +87,26 @@ def test_equals_the_in_memory_correction(case, tiled):
     info = field.metadata["correction"]
     assert info["tiled"]["block_shape"] == [16, 32, 32]
     assert info["pass_order"] == in_memory.metadata["correction"]["pass_order"]
+
+
+@pytest.mark.parametrize("frame", ["loaded", "reference"])
+def test_with_a_mask_in_either_frame_as_in_memory(case, frame):
+    folder, reference, deformed, measured, _ = case
+    mask = np.ones(reference.shape, np.uint8)
+    mask[:, :, :10] = 0  # the first grid column's subvolumes are mostly outside
+    np.save(folder / f"mask_{frame}.npy", mask * 255)  # any non-zero value is material
+    options = dict(frame=frame, max_passes=1)
+    a = correct(reference, deformed, measured, mask=mask.astype(bool), **options)
+    b = correct_tiled(
+        folder / "g.tif", folder / "f.zarr", measured, mask=folder / f"mask_{frame}.npy",
+        **options, **RUN,
+    )  # fmt: skip
+    assert np.sum(a.status == Status.MASKED) >= 20  # the mask is used
+    np.testing.assert_array_equal(a.status, b.status)
+    assert np.max(np.abs(a.u - b.u)) < 1e-4
+    x, y = correction_table(a)[1], correction_table(b)[1]
+    assert (x.accepted_nodes, x.rejected_nodes) == (y.accepted_nodes, y.rejected_nodes)
+    assert y.mean_gray_residual == pytest.approx(x.mean_gray_residual, rel=1e-5)
 
 
 def test_temporary_arrays_are_removed(tiled):

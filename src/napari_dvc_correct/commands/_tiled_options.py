@@ -54,7 +54,8 @@ def _positive(text: str) -> int:
 
 
 def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--tiled``, ``--scheduler``, ``--max-memory``, ``--batch`` and ``--workers``."""
+    """Add ``--tiled``, ``--scheduler``, ``--max-memory``, ``--batch``, ``--workers`` and
+    ``--temp-dir``."""
     group = parser.add_argument_group(
         "large volumes",
         "Correlate batch by batch, reading only each batch's region of the volumes (TIFF, Zarr, "
@@ -89,6 +90,13 @@ def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
         type=_positive,
         help="batches correlated at once on this machine (default: up to 4)",
     )
+    group.add_argument(
+        "--temp-dir",
+        metavar="FOLDER",
+        help="where a tiled self-correction writes its temporary warped volumes (default: the "
+        "system's temporary folder; on a cluster of several machines, a folder every worker "
+        "sees at the same path). They are removed at the end",
+    )
 
 
 def wants_tiled(args: argparse.Namespace) -> bool:
@@ -99,6 +107,7 @@ def wants_tiled(args: argparse.Namespace) -> bool:
         or getattr(args, "max_memory", None)
         or getattr(args, "batch", None)
         or getattr(args, "workers", None)
+        or getattr(args, "temp_dir", None)
     )
 
 
@@ -202,6 +211,7 @@ def run_tiled_correction(args: argparse.Namespace, field, params=None, options=N
         workers=getattr(args, "workers", None),
         scheduler=getattr(args, "scheduler", None) or None,
         device=getattr(args, "device", "cpu"),
+        temp_dir=getattr(args, "temp_dir", None),
         **(options or {}),
     )
     return drive(generator, _Reporter())

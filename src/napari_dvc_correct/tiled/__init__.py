@@ -2,17 +2,22 @@
 
 * :mod:`.correlate`: :func:`correlate_tiled` — the in-memory :func:`..engine.correlate.correlate`
   batch by batch on lazily read volumes, equal to it within the IC-GN tolerance;
+* :mod:`.correction`: :func:`correct_tiled` — the engine's self-correction loop with every volume
+  operation block by block (warps to temporary Zarr, tiled correcting DVC, local residuals);
 * :mod:`.volumes`: dense fields, warps, residuals and strain written block by block to Zarr/TIFF;
 * :mod:`.memory`: halos, region sizes, the peak-memory estimate and refusal;
 * :mod:`.scheduling`: dask's local threads or a ``dask.distributed`` cluster.
 """
 
+from .correction import correct_tiled, correct_tiled_iter
 from .correlate import correlate_tiled, correlate_tiled_iter
 from .memory import MemoryBudgetError, choose_batch_shape, estimate_peak_memory
 
 __all__ = [
     "MemoryBudgetError",
     "choose_batch_shape",
+    "correct_tiled",
+    "correct_tiled_iter",
     "correlate_tiled",
     "correlate_tiled_iter",
     "estimate_peak_memory",
