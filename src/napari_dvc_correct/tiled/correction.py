@@ -246,7 +246,6 @@ class TiledVolumes(CorrectionVolumes):
         self._temps: dict[int, Path] = {}
         self._count = 0
         self._statistics = None
-        self._gradients: dict = {}
 
     # -- running blocks
     @property
