@@ -37,6 +37,11 @@ Beyond the paper (issue 10):
 * every pass is recorded as a :class:`CorrectionPass` in ``field.metadata["correction_passes"]``
   (as dicts, for JSON; :func:`correction_table` reads them back).
 
+One loop, two volume back-ends (issue 13): :func:`correct_volumes_iter` is the loop; every volume
+operation goes through a :class:`.correction_volumes.CorrectionVolumes`, in memory for
+:func:`correct_iter` (:class:`.correction_volumes.InMemoryVolumes`) or block by block from lazily
+read volumes for ``napari_dvc_correct.tiled.correction.correct_tiled_iter``.
+
 See ``docs/method.md`` for the measurements behind the defaults.
 """
 
