@@ -20,12 +20,15 @@ import tifffile
 import zarr
 
 from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.cleaning import clean
 from napari_dvc_correct.engine.correction import correct, correction_table
 from napari_dvc_correct.engine.correlate import correlate
 from napari_dvc_correct.engine.field import Status
+from napari_dvc_correct.engine.interpolation import prefilter
+from napari_dvc_correct.engine.local_acceptance import ReferenceResiduals
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.engine.progress import run_to_completion
-from napari_dvc_correct.tiled.correction import correct_tiled, correct_tiled_iter
+from napari_dvc_correct.tiled.correction import TiledVolumes, correct_tiled, correct_tiled_iter
 from napari_dvc_correct.tiled.memory import MemoryBudgetError
 
 SIZE = 48
@@ -64,6 +67,27 @@ def tiled(case):
 def _rmse(field):
     error = field.displacement - BAND(field.points)
     return float(np.sqrt(np.nanmean(np.sum(error**2, axis=1))))
+
+
+def test_node_residuals_block_by_block_equal_the_whole_volume(case):
+    folder, reference, deformed, measured, _ = case
+    field = clean(measured)
+    whole = ReferenceResiduals(reference, deformed, prefilter(deformed))
+    volumes = TiledVolumes(folder / "g.tif", folder / "f.zarr", node_block=2, workers=2)
+    try:
+        blocks = run_to_completion(volumes.residuals())  # 27 node blocks of up to 2x2x2 nodes
+        (cell, region), floor = whole.local_means(field, (3, 8))
+        (cell_b, region_b), floor_b = blocks.local_means(field, (3, 8))
+        np.testing.assert_allclose(cell_b, cell, rtol=1e-5)
+        np.testing.assert_allclose(region_b, region, rtol=1e-5)
+        assert np.isfinite(floor) and floor_b == pytest.approx(floor, rel=1e-6)
+        np.testing.assert_allclose(
+            blocks.gradient_means(field, 3), whole.gradient_means(field, 3), rtol=1e-5
+        )
+        np.testing.assert_array_equal(blocks.thresholds[0], whole.thresholds_g)
+        np.testing.assert_array_equal(blocks.thresholds[1], whole.thresholds_f)
+    finally:
+        volumes.close()
 
 
 def test_equals_the_in_memory_correction(case, tiled):
