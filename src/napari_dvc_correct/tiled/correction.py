@@ -157,8 +157,7 @@ def _node_residual_block(reference, deformed, spline, job):
     g = reference.read_region(job.region)
     moved = pull_back_block(lambda p: sample_lazy(deformed, p), spline, job.region)
     residual = np.abs(moved - g)
-    nodes = SimpleNamespace(points=job.points, shape=(len(job.points),))
-    means = [local_mean_residual(residual, nodes, half) for half in job.halves]
+    means = [local_mean_residual(residual, job.nodes, half) for half in job.halves]
     total, count = 0.0, 0
     if job.thresholds is not None:
         own_g, own_moved, own = g[job.owned], moved[job.owned], residual[job.owned]
@@ -173,8 +172,7 @@ def _node_gradient_block(reference, job):
     """Box means of the Gaussian gray gradient magnitude of ``G`` at one block's nodes."""
     g = reference.read_region(job.region)
     gradient = ndimage.gaussian_gradient_magnitude(g, 1.0)[job.inner]
-    nodes = SimpleNamespace(points=job.points, shape=(len(job.points),))
-    return job.index, local_mean_residual(gradient, nodes, job.halves[0])
+    return job.index, local_mean_residual(gradient, job.nodes, job.halves[0])
 
 
 # --- the back-end --------------------------------------------------------------------------------
@@ -431,7 +429,13 @@ class _TiledResiduals:
                     jobs.append(
                         SimpleNamespace(
                             index=flat[window].reshape(-1),
-                            points=(points - lo).astype(np.float64),
+                            # the block's nodes as a grid in the region's voxels (whole-voxel
+                            # grids, so rounding commutes with the shift)
+                            nodes=DisplacementField.zeros(
+                                tuple(float(v) for v in origin + start * step - lo),
+                                tuple(float(v) for v in step),
+                                tuple(int(n) for n in stop - start),
+                            ),
                             halves=tuple(int(h) for h in halves),
                             region=tuple(slice(int(a), int(c)) for a, c in zip(read_lo, read_hi)),
                             inner=tuple(
@@ -624,6 +628,12 @@ def correct_tiled_iter(
     try:
         if field is not None:
             check_field_on_volume(field, volumes.shape)
+            nodes = np.concatenate([np.asarray(field.origin), np.asarray(field.step)])
+            if np.max(np.abs(nodes - np.rint(nodes))) > 1e-6:
+                raise ValueError(
+                    f"the field's grid (origin {field.origin}, step {field.step}) is not on "
+                    "whole voxels: regrid it (correct --grid-step N) or correct it in memory"
+                )
         params = params_of(field, params)
         estimate, budget = plan_memory(volumes, params, field)
         blocks = int(np.prod([-(-n // b) for n, b in zip(volumes.shape, volumes.block_shape)]))
