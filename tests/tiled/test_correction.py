@@ -5,11 +5,13 @@ shear band on a rigid shift, whose first-order DVC the correction improves. The 
 reference from a TIFF stack and the deformed volume from a Zarr array, warps in 12 blocks,
 correlates each pass in 8 batches and judges the nodes in 8 node blocks.
 
-Tolerance: every block reads the volumes' values exactly and prefilters a region whose margin
-makes its coefficients equal the whole volume's to float32 rounding; the correcting DVC starts from
-a zero field (no seed search), so the batches start every POI where the in-memory run does. The
-fields then agree to rounding (measured 1.5e-7 voxel); the test allows 1e-4 voxel, ten times
-below the IC-GN tolerance, and asks for the same statuses and the same acceptance counts.
+Tolerance: every block reads the volumes' values exactly and prefilters a region whose 12-voxel
+margin makes its coefficients equal the whole volume's to ~2.4e-7 of the gray range (measured in
+docs/scaling.md), so warped grays and residuals agree to ~1e-5 relative; the correcting DVC starts
+from a zero field (no seed search), so the batches start every POI where the in-memory run does.
+The fields then agree to 1.5e-7 voxel (measured); the test allows 1e-4 voxel, ten times below the
+IC-GN tolerance, residual means to 1e-4 relative, and asks for the same statuses and the same
+acceptance counts.
 """
 
 import threading
@@ -78,11 +80,13 @@ def test_node_residuals_block_by_block_equal_the_whole_volume(case):
         blocks = run_to_completion(volumes.residuals())  # 27 node blocks of up to 2x2x2 nodes
         (cell, region), floor = whole.local_means(field, (3, 8))
         (cell_b, region_b), floor_b = blocks.local_means(field, (3, 8))
-        np.testing.assert_allclose(cell_b, cell, rtol=1e-5)
-        np.testing.assert_allclose(region_b, region, rtol=1e-5)
-        assert np.isfinite(floor) and floor_b == pytest.approx(floor, rel=1e-6)
-        np.testing.assert_allclose(
-            blocks.gradient_means(field, 3), whole.gradient_means(field, 3), rtol=1e-5
+        # a region's prefilter equals the whole volume's to ~2.4e-7 of the gray range at the
+        # 12-voxel margin (docs/scaling.md): ~5e-5 gray levels here, ~1e-5 of a cell's residual
+        np.testing.assert_allclose(cell_b, cell, rtol=1e-4)
+        np.testing.assert_allclose(region_b, region, rtol=1e-4)
+        assert np.isfinite(floor) and floor_b == pytest.approx(floor, rel=1e-5)
+        np.testing.assert_allclose(  # G is read exactly: only the box sums' rounding
+            blocks.gradient_means(field, 3), whole.gradient_means(field, 3), rtol=1e-6
         )
         np.testing.assert_array_equal(blocks.thresholds[0], whole.thresholds_g)
         np.testing.assert_array_equal(blocks.thresholds[1], whole.thresholds_f)
@@ -105,9 +109,9 @@ def test_equals_the_in_memory_correction(case, tiled):
             y.rejected_nodes,
             y.improved_nodes,
         )
-        assert y.mean_gray_residual == pytest.approx(x.mean_gray_residual, rel=1e-5)
-        assert y.noise_floor == pytest.approx(x.noise_floor, rel=1e-5)
-        assert y.local_residual_after == pytest.approx(x.local_residual_after, rel=1e-5)
+        assert y.mean_gray_residual == pytest.approx(x.mean_gray_residual, rel=1e-4)
+        assert y.noise_floor == pytest.approx(x.noise_floor, rel=1e-4)
+        assert y.local_residual_after == pytest.approx(x.local_residual_after, rel=1e-4)
     info = field.metadata["correction"]
     assert info["tiled"]["block_shape"] == [16, 32, 32]
     assert info["pass_order"] == in_memory.metadata["correction"]["pass_order"]
@@ -130,7 +134,7 @@ def test_with_a_mask_in_either_frame_as_in_memory(case, frame):
     assert np.max(np.abs(a.u - b.u)) < 1e-4
     x, y = correction_table(a)[1], correction_table(b)[1]
     assert (x.accepted_nodes, x.rejected_nodes) == (y.accepted_nodes, y.rejected_nodes)
-    assert y.mean_gray_residual == pytest.approx(x.mean_gray_residual, rel=1e-5)
+    assert y.mean_gray_residual == pytest.approx(x.mean_gray_residual, rel=1e-4)
 
 
 def test_temporary_arrays_are_removed(tiled):
