@@ -129,7 +129,7 @@ def test_with_a_mask_in_either_frame_as_in_memory(case, frame):
         folder / "g.tif", folder / "f.zarr", measured, mask=folder / f"mask_{frame}.npy",
         **options, **RUN,
     )  # fmt: skip
-    assert np.sum(a.status == Status.MASKED) >= 20  # the mask is used
+    assert np.any(a.status == Status.MASKED)  # the mask is used
     np.testing.assert_array_equal(a.status, b.status)
     assert np.max(np.abs(a.u - b.u)) < 1e-4
     x, y = correction_table(a)[1], correction_table(b)[1]
