@@ -182,3 +182,25 @@ def test_bad_input_is_the_in_memory_error_and_writes_nothing(pair, tmp_path):
     with pytest.raises(ValueError, match="NaN or infinite"):
         evaluate_tiled(reference, broken, fields, block_shape=BLOCK, outputs=outputs)
     assert not list(tmp_path.iterdir())
+
+
+def test_a_distributed_cluster_gives_the_local_evaluation(pair, tmp_path):
+    """Two worker processes read the files by path and write the residual themselves."""
+    import distributed
+
+    folder, _, _, fields = pair
+    local = evaluate_tiled(folder / "G.tif", folder / "F.zarr", fields, block_shape=BLOCK)
+    outputs = {("residual", "wrong"): tmp_path / "residual.tif"}
+    with distributed.LocalCluster(
+        n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None,
+        memory_limit="2GiB",
+    ) as cluster:  # fmt: skip
+        remote = evaluate_tiled(folder / "G.tif", folder / "F.zarr", fields, block_shape=BLOCK,
+                                scheduler=cluster.scheduler_address, outputs=outputs)  # fmt: skip
+    for x, y in zip(local.fields, remote.fields):  # the same code on the same blocks
+        assert (x.mean_residual, x.background, x.accuracy) == (
+            y.mean_residual, y.background, y.accuracy,
+        )  # fmt: skip
+        np.testing.assert_array_equal(x.local_residual, y.local_residual)
+        np.testing.assert_array_equal(x.bins.mean_residual, y.bins.mean_residual)
+    assert np.isfinite(np.asarray(remote["wrong"].residual)).any()
