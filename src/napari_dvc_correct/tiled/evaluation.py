@@ -346,25 +346,21 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
         )  # fmt: skip
 
         # pass 1: finite values, gray ranges, multi-Otsu samples
-        auto = [
-            p is None or (isinstance(p, str) and p == "auto")
-            for p in (phases, phases if phases_deformed is None else phases_deformed)
-        ]
+        choices = (phases, phases if phases_deformed is None else phases_deformed)
+        auto = [p is None or (isinstance(p, str) and p == "auto") for p in choices]
+        for choice, is_auto in zip(choices, auto):
+            if isinstance(choice, str) and not is_auto:
+                raise ValueError(f"phases must be 'auto' or a list of thresholds, got {choice!r}")
         stride = otsu_stride(shape) if any(auto) else None
         volumes = [dask.delayed(reference), dask.delayed(deformed)]
         scan = dask.delayed(_scan_block, pure=False)
         tasks = [scan(*volumes, block, stride) for block in blocks]
         scanned = yield from _run(tasks, scheduler, workers, client, "scan")
         thresholds = []
-        for k, (choice, name) in enumerate(
-            zip((phases, phases if phases_deformed is None else phases_deformed),
-                ("reference volume", "deformed volume"))
-        ):  # fmt: skip
+        for k, (choice, name) in enumerate(zip(choices, ("reference volume", "deformed volume"))):
             if auto[k]:
                 sample = np.concatenate([item[k][2] for item in scanned])
                 thresholds.append(otsu_thresholds(sample, n_phases))
-            elif isinstance(choice, str):
-                raise ValueError(f"phases must be 'auto' or a list of thresholds, got {choice!r}")
             else:
                 low = min(item[k][0] for item in scanned)
                 high = max(item[k][1] for item in scanned)
