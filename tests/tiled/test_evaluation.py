@@ -177,6 +177,13 @@ def test_bad_input_is_the_in_memory_error_and_writes_nothing(pair, tmp_path):
     with pytest.raises(ValueError, match="has no voxel"):  # a phase empty in the reference
         evaluate_tiled(folder / "G.tif", folder / "F.zarr", fields, block_shape=BLOCK,
                        phases=[150.0, 150.0001], outputs=outputs)  # fmt: skip
+    with pytest.raises(ValueError, match="phase 2 does not exist"):  # found after the blocks
+        evaluate_tiled(folder / "G.tif", folder / "F.zarr", fields, block_shape=BLOCK,
+                       phase_pair=(0, 2), outputs=outputs)  # fmt: skip
+    with pytest.raises(ValueError, match="names no evaluated field"):
+        evaluate_tiled(
+            reference, deformed, fields, outputs={("residual", "other"): tmp_path / "r.tif"}
+        )
     broken = deformed.copy()
     broken[30, 5, 7] = np.nan
     with pytest.raises(ValueError, match="NaN or infinite"):

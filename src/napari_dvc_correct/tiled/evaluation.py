@@ -34,7 +34,12 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ..engine.accuracy import assemble_evaluation, check_same_phase_count, plan_evaluation
+from ..engine.accuracy import (
+    assemble_evaluation,
+    check_same_phase_count,
+    phase_contrast,
+    plan_evaluation,
+)
 from ..engine.accuracy_blocks import FieldAccumulator, field_block, field_partial
 from ..engine.binning import node_voxels
 from ..engine.field_spline import FieldSpline
@@ -303,6 +308,11 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
             raise ValueError(f"field {name!r} holds NaN displacements: clean it first")
     items = [item for _, item in plan.named]
     outputs = dict(outputs or {})
+    names = [name for name, _ in plan.named]
+    metadata = {key: _description(key) for key in outputs}
+    for key in outputs:
+        if isinstance(key, tuple) and key[1] not in names:
+            raise ValueError(f"output {key!r} names no evaluated field (fields: {names})")
 
     client, owned = (None, False)
     if not scheduling.is_local(scheduler):
@@ -369,9 +379,9 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
 
         # pass 2: phases and every field's totals, block by block
         for key, path in outputs.items():
-            dtype = np.float32 if key[0] == "residual" else np.uint8
+            dtype = np.float32 if metadata[key]["quantity"] == "gray residual" else np.uint8
             created[key] = create_output(
-                path, shape, dtype, chunks=block_shape, metadata=_description(key)
+                path, shape, dtype, chunks=block_shape, metadata=metadata[key]
             )
         splines = [dask.delayed(FieldSpline.from_field(item)) for item in items]
         setup = (
@@ -406,6 +416,9 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
         ):
             total.check_nonempty(t, name)
         tables = tuple(total.table(t) for total, t in zip(phase_totals, thresholds))
+        phase_contrast(*tables, phase_pair)  # errors of the assembly, before any output is kept
+        for accumulator in accumulators:
+            accumulator.background()
         final = {key: open_volume(output.commit()) for key, output in created.items()}
     except BaseException:
         for output in created.values():
