@@ -172,8 +172,8 @@ def add_tiled_evaluation_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(
         "large volumes",
         "Evaluate block by block, reading only each block's region of the volumes (TIFF, Zarr, "
-        "OME-Zarr, .npy, folders of TIFF slices); the same numbers as in memory. Any of these "
-        "options turns it on.",
+        "OME-Zarr, .npy, folders of TIFF slices); the numbers of the in-memory run (to float32 "
+        "rounding). Any of these options turns it on.",
     )
     group.add_argument(
         "--tiled",

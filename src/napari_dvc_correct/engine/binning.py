@@ -121,7 +121,9 @@ def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
         high = np.clip(c[meets] + half + 1 - s.start, 0, s.stop - s.start)
         local.append((low, high))
     table = np.zeros(tuple(n + 1 for n in residual.shape))
-    table[1:, 1:, 1:] = np.where(finite, residual, 0.0).cumsum(0).cumsum(1).cumsum(2)
+    table[1:, 1:, 1:] = (
+        np.where(finite, residual, 0.0).cumsum(0, dtype=np.float64).cumsum(1).cumsum(2)
+    )
     counts = np.zeros(table.shape, np.int64)
     counts[1:, 1:, 1:] = finite.cumsum(0, dtype=np.int64).cumsum(1).cumsum(2)
 
