@@ -211,3 +211,20 @@ def test_a_distributed_cluster_gives_the_local_evaluation(pair, tmp_path):
         np.testing.assert_array_equal(x.local_residual, y.local_residual)
         np.testing.assert_array_equal(x.bins.mean_residual, y.bins.mean_residual)
     assert np.isfinite(np.asarray(remote["wrong"].residual)).any()
+
+
+def test_a_cancelled_run_stops_and_leaves_no_output(pair, tmp_path):
+    folder, _, _, fields = pair
+    outputs = {
+        ("residual", "exact"): tmp_path / "residual.tif",
+        "labels_deformed": tmp_path / "l.zarr",
+    }
+    generator = evaluate_tiled_iter(folder / "G.tif", folder / "F.zarr", fields,
+                                    block_shape=(8, 8, 8), workers=1, outputs=outputs)  # fmt: skip
+    for report in generator:
+        if report.stage == "evaluate":  # the outputs exist (as temporary files) from here on
+            assert report.done < report.total
+            break
+    assert len(list(tmp_path.iterdir())) == 2  # being written
+    generator.close()
+    assert not list(tmp_path.iterdir())
