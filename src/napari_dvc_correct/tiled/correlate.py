@@ -84,6 +84,7 @@ class BatchJob:
     threads: int | None = None
     use_mask: bool = False
     device: str = "cpu"
+    grid_anchor: tuple | None = None  # (whole-grid index of the sub-grid's first POI, grid shape)
 
     @property
     def region_voxels(self) -> int:
@@ -150,6 +151,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
                 rigid_shift=job.shift,
                 texture_std=job.texture_std,
                 device=job.device,
+                grid_anchor=job.grid_anchor,
             )
         )
     del g, f, m
@@ -241,6 +243,7 @@ def _make_jobs(batches, params, shape, grid, levels, whole, margin, initial, opt
                 texture_std=whole.texture_std,
                 initial_u=initial_u,
                 initial_gradient=initial_gradient,
+                grid_anchor=(tuple(a for a, _ in ext), tuple(grid_shape)),
                 **options,
             )
         )
