@@ -123,6 +123,11 @@ def repair(
     return int(bad.sum())
 
 
+def _whole_seed_axis(total, stride):
+    """Seed indices along one axis of the whole grid: every ``stride`` POIs and the last."""
+    return np.unique(np.r_[np.arange(0, int(total), stride), int(total) - 1])
+
+
 def seed_axes(grid_shape, stride, anchor=None):
     """Indices of the seed POIs along each axis of a POI grid, laid out on the whole grid.
 
@@ -144,7 +149,7 @@ def seed_axes(grid_shape, stride, anchor=None):
         first, total = int(first), int(total)
         if not (0 <= first and first + int(n) <= total):
             raise ValueError(f"grid box at {offset} of shape {grid_shape} exceeds the grid {whole}")
-        index = np.unique(np.r_[np.arange(0, total, stride), total - 1]) - first
+        index = _whole_seed_axis(total, stride) - first
         axes.append(index[(index >= 0) & (index < n)])
     return axes
 
@@ -167,7 +172,7 @@ def _testable_seeds(axes, grid_shape, stride, anchor):
     per_axis = []
     whole_count = 1
     for index, first, total in zip(axes, offset, whole):
-        full = np.unique(np.r_[np.arange(0, int(total), stride), int(total) - 1])
+        full = _whole_seed_axis(total, stride)
         whole_count *= len(full)
         m = len(index)
         ok = np.ones(m, bool)
@@ -197,8 +202,11 @@ def seed_guesses(level, centers, grid_shape, shift, radius, order, settings, anc
     in memory: the median test judges the seeds whose neighbour seeds are all in the box (or
     beyond the whole grid's border); seeds at the box's other faces are kept untested, so they
     differ from the in-memory run only where it rejects them as outliers. A box whose margin
-    reaches ``stride // 2`` POIs beyond its own POIs (one POI for subvolume / step below 4) thus
-    reproduces the in-memory guesses of its own POIs wherever no seed near them is an outlier.
+    reaches ``stride // 2`` POIs beyond its own POIs (one POI for a stride of 2 or 3) thus
+    reproduces the in-memory guesses of its own POIs wherever the seeds near them converge and
+    none is an outlier; where seeds fail, the nearest good seed is farther away and the margin
+    must reach it. A box without any good seed falls back to searching all its POIs, which the
+    in-memory run does only when no seed of the whole grid is good.
 
     Returns
     -------
