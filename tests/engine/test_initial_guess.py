@@ -130,7 +130,7 @@ def test_global_shift_of_a_sub_voxel_shift_is_within_one_voxel(texture):
 
 # --- fft_search --------------------------------------------------------------------------------
 # subvolumes (half 7) whose displaced copy stays inside the volume; (8, 24, 24) reads a region
-# that sticks out of the volume (padded with the mean gray value)
+# that sticks out of the volume (padded with the mean gray value of its part inside)
 CENTERS = np.array([[16, 16, 16], [24, 24, 24], [30, 20, 26], [8, 24, 24], [20, 34, 12]])
 
 

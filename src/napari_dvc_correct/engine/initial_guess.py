@@ -109,7 +109,9 @@ def fft_search(
 
     The ZNCC of every shift is computed at once per POI: the numerator by FFT cross-correlation,
     the deformed windows' sums and sums of squares by cumulative sums. POIs are processed in
-    batches of stacked FFTs.
+    batches of stacked FFTs. Where a POI's search window leaves the volume, the part beyond is
+    filled with the mean gray value of its part inside (a local value, so a region of the volume
+    holding the window gives the same answer as the whole volume).
 
     Parameters
     ----------
