@@ -18,7 +18,7 @@ read volumes (:mod:`..io.lazy`: TIFF, Zarr, .npy...), as Dask tasks on local thr
   the prefilter margin in ``F``); eq. 1's background residual is summed over a partition of the
   voxels; the local gray gradients likewise (with the Gaussian's reach). The phase thresholds
   (multi-Otsu) are those of the in-memory run exactly: the lattice sample it uses
-  (:data:`..engine.phases.OTSU_SAMPLES` voxels at most) is gathered block by block.
+  (:func:`..engine.phases.lattice_sample`) is gathered block by block.
 
 Equal to :func:`..engine.correction.correct_iter` up to float32 rounding of the regions'
 prefilters and box means, and to what batching changes in the correcting DVC (the noise-aware
@@ -44,7 +44,7 @@ from ..engine.field_spline import FieldSpline
 from ..engine.local_accuracy import local_mean_residual
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.params import CorrelationParams
-from ..engine.phases import NO_PHASE, OTSU_SAMPLES, label_phases, phase_thresholds
+from ..engine.phases import NO_PHASE, label_phases, lattice_sample, otsu_stride, otsu_thresholds
 from ..engine.progress import Progress, run_to_completion
 from ..engine.warp import (
     INVERT_MAX_ITERATIONS,
@@ -103,15 +103,12 @@ class _NonZero:
 
 
 def _statistics_block(volume, stride, region):
-    """The lattice sample of ``region`` (every ``stride``-th voxel of the whole volume), the sum
-    and count of its values and how many are not finite."""
+    """The voxels of ``region`` on the lattice multi-Otsu samples, the sum and count of its
+    finite values and how many are not finite."""
     block = volume.read_region(region)
-    start = [(-s.start) % stride for s in region]
-    sample = block[start[0] :: stride, start[1] :: stride, start[2] :: stride]
     finite = np.isfinite(block)
-    position = tuple((s.start + k) // stride for s, k in zip(region, start))
     total = float(np.sum(block[finite], dtype=np.float64))
-    return position, np.asarray(sample, np.float64), total, int(finite.sum()), int((~finite).sum())
+    return lattice_sample(block, region, stride), total, int(finite.sum()), int((~finite).sum())
 
 
 def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, hull):
@@ -289,7 +286,7 @@ class TiledVolumes(CorrectionVolumes):
         """One read of both volumes: their multi-Otsu thresholds (as in memory) and mean gray."""
         if self._statistics is not None:
             return self._statistics
-        stride = max(1, int(np.ceil((float(np.prod(self.shape)) / OTSU_SAMPLES) ** (1.0 / 3.0))))
+        stride = otsu_stride(self.shape)
         regions = [
             (z, y, slice(0, self.shape[2]))
             for z, y in iter_blocks(self.shape, STATISTICS_BLOCK_VOXELS)
@@ -299,20 +296,19 @@ class TiledVolumes(CorrectionVolumes):
             parts = yield from self._tasks(
                 _statistics_block, [volume, stride], regions, f"statistics ({name})"
             )
-            sample = np.empty([-(-n // stride) for n in self.shape], np.float64)
-            total, count, bad = 0.0, 0, 0
-            for position, piece, block_sum, block_count, block_bad in parts:
-                sample[tuple(slice(p, p + n) for p, n in zip(position, piece.shape))] = piece
-                total, count, bad = total + block_sum, count + block_count, bad + block_bad
+            bad = sum(part[3] for part in parts)
             if bad:
                 raise ValueError(
                     f"the {name} volume contains {bad} NaN or infinite values: fix or mask them"
                 )
-            found[name] = (sample, total / max(count, 1))
+            count = sum(part[2] for part in parts)
+            # the whole volume's lattice sample in another order, which a histogram ignores
+            sample = np.concatenate([part[0] for part in parts])
+            found[name] = (sample, sum(part[1] for part in parts) / max(count, 1))
         try:
             thresholds = (
-                phase_thresholds(found["reference"][0], "auto", 2, "reference volume"),
-                phase_thresholds(found["deformed"][0], "auto", 2, "deformed volume"),
+                otsu_thresholds(found["reference"][0], 2),
+                otsu_thresholds(found["deformed"][0], 2),
             )
         except ValueError:  # a volume with a single gray value: no phases, no eq. 1
             thresholds = None
