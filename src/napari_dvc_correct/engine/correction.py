@@ -345,7 +345,8 @@ def correct_iter(
         :class:`CorrectionPass` per pass as a dict (pass 0 = the cleaned input; read them with
         :func:`correction_table`).
         ``metadata["correction"]`` holds the options, the residual before and after, the noise
-        floor, the order of the correcting matches and the flagged node counts.
+        floor, the order, subvolume and grid shape (of the last pass) of the correcting matches
+        and the flagged node counts.
     """
     if frame not in FRAMES:
         raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -524,6 +525,7 @@ def correct_iter(
         "noise_floor": judge.floor,
         "pass_order": int(pass_params.order),
         "pass_subvolume": int(pass_params.subvolume),
+        "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
         "seconds": time.perf_counter() - started,
