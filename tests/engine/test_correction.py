@@ -81,7 +81,8 @@ def test_correction_lowers_error_outliers_and_gray_residual(shear_band_case):
     assert usable.mean() > 0.95
     rmse_before = np.sqrt(np.mean(before[usable] ** 2))
     rmse_after = np.sqrt(np.mean(after[usable] ** 2))
-    assert rmse_after < 0.75 * rmse_before, (rmse_before, rmse_after)
+    # (0.64x before the correcting grid followed the displaced nodes, 0.33x now)
+    assert rmse_after < 0.5 * rmse_before, (rmse_before, rmse_after)
     off_before = np.mean(before[usable] > 1.0)
     off_after = np.mean(after[usable] > 1.0)
     assert off_before > 0.03  # the uncorrected field really has nodes off by a voxel
@@ -151,6 +152,8 @@ def test_passes_are_reported_and_corrected_nodes_marked(shear_band_case):
     # refused in every pass: the nodes that the displacement carries more than a step beyond the
     # last place a correcting subvolume fits in the volume (72 of 512 here)
     assert refused_nodes.mean() < 0.2
+    assert 0 < applied[0].unsupported_nodes <= applied[0].rejected_nodes
+    assert refused_nodes.sum() <= applied[-1].unsupported_nodes
     assert np.all(corrected_nodes | replaced_nodes | refused_nodes)
     info = corrected.metadata["correction"]
     assert info["frame"] == "loaded" and info["update"] == "exact"

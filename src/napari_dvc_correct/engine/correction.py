@@ -108,6 +108,9 @@ class CorrectionPass:
         Fraction of good matches of the pass's DVC.
     seconds : float
         Wall time of the pass.
+    unsupported_nodes : int
+        Of the refused nodes, those refused because their update would read ``ΔD`` more than a
+        step beyond the good correcting matches (:func:`.local_acceptance.unsupported_updates`).
     """
 
     number: int
@@ -125,6 +128,7 @@ class CorrectionPass:
     max_change: float
     converged_fraction: float
     seconds: float
+    unsupported_nodes: int = 0
 
     def to_dict(self) -> dict:
         """Plain dict for the field's JSON metadata (``number`` stored as ``"pass"``, the key
@@ -147,6 +151,7 @@ class CorrectionPass:
             "accepted_nodes": 0,
             "rejected_nodes": 0,
             "improved_nodes": 0,
+            "unsupported_nodes": 0,
         }
         names = {f.name for f in dataclasses.fields(cls)}
         merged = {**defaults, **{k: v for k, v in values.items() if k in names}}
@@ -483,6 +488,7 @@ def correct_iter(
             max_change=float(np.max(change)) if change.size else 0.0,
             converged_fraction=converged,
             seconds=time.perf_counter() - pass_started,
+            unsupported_nodes=int(np.count_nonzero(refuse.reshape(accept.shape) & ~masked)),
         )
         passes.append(record)
         yield Progress(
