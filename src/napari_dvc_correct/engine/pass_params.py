@@ -117,6 +117,11 @@ def correction_grid(
         Parameters of the correcting matches (:func:`correction_params`).
     read_points : ndarray, shape (n, 3)
         Positions ``(z, y, x)`` in voxels; non-finite rows are ignored.
+
+    Returns
+    -------
+    origin, step, shape : tuples of 3
+        Origin and step in voxels (whole voxels where ``field``'s are), node counts.
     """
     origin = np.asarray(field.origin, dtype=np.float64)
     step = np.asarray(field.step, dtype=np.float64)
