@@ -5,7 +5,8 @@
   scipy.fft/ndimage and the engine's modules; no kernel loaded yet);
 * ``correlate``: ``napari-dvc-correct correlate`` on a small pair on disk (``--size``³ float32
   ``.npy``, subvolume 15, step 8), with numba's cache **cold** (a fresh ``NUMBA_CACHE_DIR``: every
-  kernel the run uses is compiled) and **warm** (the same folder again: loaded from the cache).
+  kernel the run uses is compiled) and **warm** (the same folder again: loaded from the cache);
+  ``--no-cold`` uses each checkout's own cache instead (warm when it has run before).
   The engine's own stage times come from the field file (``prefilter_s`` includes loading, or
   compiling, the first kernel and numba's one-off set-up).
 
@@ -57,12 +58,16 @@ def _wall(command: list[str], env: dict, cwd: Path) -> float:
     return seconds
 
 
-def _environment(checkout: Path, cache: Path) -> dict:
+def _environment(checkout: Path, cache: Path | None) -> dict:
+    """``checkout``'s package first on the path; numba's cache in ``cache`` (None: numba's own,
+    next to the sources, as a user's warm install has it)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
         p for p in (str(checkout / "src"), env.get("PYTHONPATH", "")) if p
     )
-    env["NUMBA_CACHE_DIR"] = str(cache)
+    env.pop("NUMBA_CACHE_DIR", None)
+    if cache is not None:
+        env["NUMBA_CACHE_DIR"] = str(cache)
     return env
 
 
@@ -89,11 +94,11 @@ def measure(checkouts: list[Path], size: int, repeat: int, cold: bool) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         ref, dfm = _pair(folder, size)
-        caches = {c: folder / f"cache{i}" for i, c in enumerate(checkouts)}
+        caches = {c: folder / f"cache{i}" if cold else None for i, c in enumerate(checkouts)}
         out = folder / "field.npz"
         correlate = [py, "-m", "napari_dvc_correct.cli", "correlate", str(ref), str(dfm)]
         correlate += ["--subvolume", "15", "--step", "8", "--quiet", "--out", str(out)]
-        for checkout in checkouts:  # the first run fills the cache: cold
+        for checkout in checkouts:  # the first run fills the cache: cold (else a warm-up)
             env = _environment(checkout, caches[checkout])
             seconds = _wall(correlate, env, folder)
             if cold:
@@ -121,7 +126,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=48, help="edge of the test pair (voxels)")
     parser.add_argument("--repeat", type=int, default=5)
-    parser.add_argument("--no-cold", action="store_true", help="skip reporting the cold run")
+    parser.add_argument(
+        "--no-cold",
+        action="store_true",
+        help="no cold run: use each checkout's own (warm) numba cache",
+    )
     parser.add_argument(
         "--checkout",
         action="append",
