@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import queue
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 LOCAL_SCHEDULERS = (None, "threads", "threading", "sync", "synchronous")
 
@@ -27,9 +28,10 @@ def is_local(scheduler) -> bool:
 def run_local(tasks, workers: int = 1, synchronous: bool = False):
     """Compute delayed ``tasks`` on dask's local scheduler; yield ``(index, result)`` as they finish.
 
-    The computation runs in a background thread; its exceptions are re-raised here. Closing the
-    generator early (a cancelled run) stops the computation: no task starts after that, the tasks
-    already running finish, and the call returns once the background thread has ended.
+    The computation runs in a background thread; its exceptions are re-raised here, once the
+    tasks still running have ended. Closing the generator early (a cancelled run) stops the
+    computation: no task starts after that, the tasks already running finish, and the call
+    returns once they and the background thread have ended.
     """
     import dask
 
@@ -46,6 +48,10 @@ def run_local(tasks, workers: int = 1, synchronous: bool = False):
             finished.put((keys[key], result))
 
     outcome: dict = {}
+    # our own pool, so that a failed or cancelled run returns only once the tasks already running
+    # have ended (dask's scheduler returns at the first error): none writes after the caller
+    # has cleaned up (an unfinished output, a temporary array)
+    pool = None if synchronous else ThreadPoolExecutor(max(1, int(workers)))
 
     def compute():
         try:
@@ -53,12 +59,16 @@ def run_local(tasks, workers: int = 1, synchronous: bool = False):
                 *tasks,
                 scheduler="sync" if synchronous else "threads",
                 num_workers=max(1, int(workers)),
+                **({} if pool is None else {"pool": pool}),
                 # (start, start_state, pretask, posttask, finish), local to this computation
                 callbacks=[(None, None, pretask, posttask, None)],
             )
         except BaseException as error:  # re-raised in the caller's thread
             outcome["error"] = error
+            cancelled.set()  # the tasks not started yet need not run
         finally:
+            if pool is not None:
+                pool.shutdown(wait=True)
             finished.put(None)
 
     thread = threading.Thread(target=compute, name="dvc-dask-local", daemon=True)
