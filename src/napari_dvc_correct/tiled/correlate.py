@@ -265,7 +265,7 @@ def _seed_jobs(batches, params, shape, grid, levels, whole, options):
     reaches = halo(params, levels)
     jobs = []
     for core_ranges in batches:
-        picks = [np.flatnonzero((a >= lo) & (a < hi)) for a, (lo, hi) in zip(axes, core_ranges)]
+        picks = [np.flatnonzero((a >= b0) & (a < b1)) for a, (b0, b1) in zip(axes, core_ranges)]
         if min(len(p) for p in picks) == 0:
             continue
         index = np.stack(np.meshgrid(*[a[p] for a, p in zip(axes, picks)], indexing="ij"), -1)
