@@ -36,14 +36,15 @@ from ._numba_setup import KERNEL_OPTIONS
 from .field_spline_kernels import HULL_TOLERANCE, _eval_one, newton_inverse
 
 #: A cell passes when its centre's interpolation error is below ``accuracy / CHECK_SAFETY``.
-CHECK_SAFETY = 4.0
+CHECK_SAFETY = 2.0
 
 #: Interpolation nodes per axis (quintic Lagrange), and how many lie below a cell's first node.
 TAPS = 6
 BELOW = 2
 
-#: A cell fails when the volume ratio ``det(I + du/dX)`` is below this at one of its nodes (folds).
-MIN_DETERMINANT = 0.2
+#: A cell fails when the inverse gain ``||(I + du/dX)^-1||`` exceeds this at one of its nodes
+#: (the map is nearly singular there: folds, extreme compression).
+MAX_GAIN = 5.0
 
 #: Largest coarse stride (voxels) chosen automatically.
 MAX_STRIDE = 4
@@ -149,12 +150,22 @@ def _solve(spline, z, y, x, max_iterations, tolerance, position, value, jacobian
     )
 
 
+@njit(**KERNEL_OPTIONS)
+def _inverse_gain(jacobian):
+    """``||(I + J)^-1||_inf`` (the factor from a residual to a position error), inf if singular."""
+    a = np.eye(3) + jacobian
+    det = np.linalg.det(a)
+    if not abs(det) > 1e-12:
+        return np.inf
+    return np.abs(np.linalg.inv(a)).sum(axis=1).max()
+
+
 @njit(parallel=True, **KERNEL_OPTIONS)
-def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok, determinant):
+def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok, gain):
     """Exact inverse displacement ``v = x - X`` (nz, ny, nx, 3) at coarse nodes ``first_node + i``.
 
-    Cold starts only, so a node's answer does not depend on its neighbours. ``determinant`` gets
-    ``det(I + du/dX)`` at the last Newton iterate.
+    Cold starts only, so a node's answer does not depend on its neighbours. ``gain`` gets
+    :func:`_inverse_gain` at the last Newton iterate (NaN where Newton did not converge).
     """
     nz, ny, nx = ok.shape
     for a in prange(nz):
@@ -176,59 +187,94 @@ def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok
                 v[a, b, d, 0] = z - position[0]
                 v[a, b, d, 1] = y - position[1]
                 v[a, b, d, 2] = x - position[2]
-                determinant[a, b, d] = np.linalg.det(np.eye(3) + jacobian)
+                gain[a, b, d] = _inverse_gain(jacobian) if ok[a, b, d] else np.nan
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _check_weights(half):
+    if half:
+        return _lagrange_weights(0.5)
+    return (0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
-def _check_cells(
-    spline, first_node, stride, max_iterations, tolerance, limit, v, ok, determinant, fail
-):
-    """Flag the coarse cells (nz, ny, nx) whose interpolation cannot be trusted.
+def _check_points(spline, first_node, stride, limit, v, gain, bad):
+    """Check the interpolation at 7 points of each coarse cell (nz, ny, nx) of ``bad``.
 
-    Cell ``(a, b, d)`` lies between box-local coarse nodes ``a + BELOW`` and ``a + BELOW + 1``
-    (and so on) and is interpolated from nodes ``a .. a + TAPS - 1``. It fails when one of those
-    did not converge or has a volume ratio below :data:`MIN_DETERMINANT`, or when the interpolated
-    inverse at its centre differs from the exact one by ``limit`` voxels or more (or Newton does
-    not converge there).
+    The points are the cell's low corner moved by half a cell along 1, 2 or 3 axes (3 edge
+    midpoints, 3 face centres, the centre: where the per-axis interpolation errors peak). A point
+    fails when its residual ``X + u(X) - x`` times the largest inverse gain at the cell's corner
+    nodes (an estimate of the position error, see :func:`_inverse_gain`) reaches ``limit`` voxels;
+    bit ``4 oz + 2 oy + ox`` of ``bad`` is set for the point at offsets ``o / 2``.
     """
-    centre = _lagrange_weights(0.5)
-    nz, ny, nx = fail.shape
+    nz, ny, nx = bad.shape
     for a in prange(nz):
         value = np.empty(3)
-        jacobian = np.empty((3, 3))
-        position = np.empty(3)
         guess = np.empty(3)
         for b in range(ny):
             for d in range(nx):
-                good = True
-                guess[:] = 0.0
+                g = 0.0
+                for i in range(2):
+                    for j in range(2):
+                        for k in range(2):
+                            g = max(g, gain[a + BELOW + i, b + BELOW + j, d + BELOW + k])
+                mask = 0
+                for bit in range(1, 8):
+                    oz = (bit >> 2) & 1
+                    oy = (bit >> 1) & 1
+                    ox = bit & 1
+                    wz = _check_weights(oz == 1)
+                    wy = _check_weights(oy == 1)
+                    wx = _check_weights(ox == 1)
+                    guess[:] = 0.0
+                    for i in range(TAPS):
+                        if wz[i] != 0.0:
+                            for j in range(TAPS):
+                                if wy[j] != 0.0:
+                                    wij = wz[i] * wy[j]
+                                    for k in range(TAPS):
+                                        if wx[k] != 0.0:
+                                            w = wij * wx[k]
+                                            for c in range(3):
+                                                guess[c] += w * v[a + i, b + j, d + k, c]
+                    z = (first_node[0] + a + BELOW + 0.5 * oz) * stride
+                    y = (first_node[1] + b + BELOW + 0.5 * oy) * stride
+                    x = (first_node[2] + d + BELOW + 0.5 * ox) * stride
+                    _eval_one(*spline, z - guess[0], y - guess[1], x - guess[2], value)
+                    residual = max(
+                        abs(value[0] - guess[0]), abs(value[1] - guess[1]), abs(value[2] - guess[2])
+                    )
+                    if not residual * g < limit:  # also catches NaN gains
+                        mask |= 1 << bit
+                bad[a, b, d] = mask
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def _combine(ok, gain, bad, fail):
+    """A cell fails if a node it is interpolated from did not converge or is (nearly) singular,
+    or if a check point on its closure failed (its own, or its upper neighbours' low faces)."""
+    nz, ny, nx = fail.shape
+    for a in prange(nz):
+        for b in range(ny):
+            for d in range(nx):
+                failed = False
                 for i in range(TAPS):
                     for j in range(TAPS):
-                        wij = centre[i] * centre[j]
                         for k in range(TAPS):
                             node = (a + i, b + j, d + k)
-                            if not ok[node] or determinant[node] < MIN_DETERMINANT:
-                                good = False
-                            w = wij * centre[k]
-                            for c in range(3):
-                                guess[c] += w * v[a + i, b + j, d + k, c]
-                if good:
-                    z = (first_node[0] + a + BELOW + 0.5) * stride
-                    y = (first_node[1] + b + BELOW + 0.5) * stride
-                    x = (first_node[2] + d + BELOW + 0.5) * stride
-                    position[0] = z - guess[0]
-                    position[1] = y - guess[1]
-                    position[2] = x - guess[2]
-                    good = _solve(
-                        spline, z, y, x, max_iterations, tolerance, position, value, jacobian
-                    )
-                    error = max(
-                        abs(z - guess[0] - position[0]),
-                        abs(y - guess[1] - position[1]),
-                        abs(x - guess[2] - position[2]),
-                    )
-                    good = good and error < limit
-                fail[a, b, d] = not good
+                            if not ok[node] or not gain[node] <= MAX_GAIN:
+                                failed = True
+                for delta in range(8):
+                    dz = (delta >> 2) & 1
+                    dy = (delta >> 1) & 1
+                    dx = delta & 1
+                    # points of the neighbour a + delta on this cell's closure: offset 0 where
+                    # delta is 1
+                    mask = bad[a + dz, b + dy, d + dx]
+                    for bit in range(1, 8):
+                        if (mask >> bit) & 1 and (bit & delta) == 0:
+                            failed = True
+                fail[a, b, d] = failed
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -378,7 +424,6 @@ def invert_lattice(
     first_cell = starts // stride
     first_node = first_cell - BELOW
     cells = (starts + counts - 1) // stride - first_cell + 1
-    nodes = tuple(int(n) for n in cells + TAPS - 1)
     args = (
         spline.extended,
         spline.pad,
@@ -388,14 +433,17 @@ def invert_lattice(
         spline.trend_matrix,
     )
     iterations = (int(max_iterations), float(tolerance))
+    # one more node and check cell above the box: the upper faces of its last cells
+    nodes = tuple(int(n) for n in cells + TAPS)
     v = np.empty((*nodes, 3))
     node_ok = np.empty(nodes, np.bool_)
-    determinant = np.empty(nodes)
-    _coarse_inverse(args, first_node, stride, *iterations, v, node_ok, determinant)
+    gain = np.empty(nodes)
+    _coarse_inverse(args, first_node, stride, *iterations, v, node_ok, gain)
     fail = np.zeros(tuple(int(n) for n in cells), np.bool_)
     if stride > 1:
-        limit = float(accuracy) / CHECK_SAFETY
-        _check_cells(args, first_node, stride, *iterations, limit, v, node_ok, determinant, fail)
+        bad = np.empty(tuple(int(n) for n in cells + 1), np.int64)
+        _check_points(args, first_node, stride, float(accuracy) / CHECK_SAFETY, v, gain, bad)
+        _combine(node_ok, gain, bad, fail)
     axes = [_axis_weights(int(starts[a]), int(counts[a]), stride) for a in range(3)]
     polish = max(float(tolerance), polish_step(accuracy))
     _interpolate(
