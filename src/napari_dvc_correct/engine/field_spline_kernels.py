@@ -74,6 +74,7 @@ def _eval_one(extended, pad, origin, step, trend_offset, trend_matrix, z, y, x, 
     wz = bspline_weights(fz)
     wy = bspline_weights(fy)
     wx0, wx1, wx2, wx3 = bspline_weights(fx)
+    e = extended
     v0 = 0.0
     v1 = 0.0
     v2 = 0.0
@@ -81,26 +82,16 @@ def _eval_one(extended, pad, origin, step, trend_offset, trend_matrix, z, y, x, 
         p0 = 0.0
         p1 = 0.0
         p2 = 0.0
+        za = iz + a
         for b in range(4):
-            row = extended[iz + a, iy + b]
-            r0 = (
-                wx0 * row[ix, 0]
-                + wx1 * row[ix + 1, 0]
-                + wx2 * row[ix + 2, 0]
-                + wx3 * row[ix + 3, 0]
-            )
-            r1 = (
-                wx0 * row[ix, 1]
-                + wx1 * row[ix + 1, 1]
-                + wx2 * row[ix + 2, 1]
-                + wx3 * row[ix + 3, 1]
-            )
-            r2 = (
-                wx0 * row[ix, 2]
-                + wx1 * row[ix + 1, 2]
-                + wx2 * row[ix + 2, 2]
-                + wx3 * row[ix + 3, 2]
-            )
+            yb = iy + b
+            # explicit taps, no row views (a view costs as much as the 12 multiply-adds)
+            r0 = wx0 * e[za, yb, ix, 0] + wx1 * e[za, yb, ix + 1, 0]
+            r0 += wx2 * e[za, yb, ix + 2, 0] + wx3 * e[za, yb, ix + 3, 0]
+            r1 = wx0 * e[za, yb, ix, 1] + wx1 * e[za, yb, ix + 1, 1]
+            r1 += wx2 * e[za, yb, ix + 2, 1] + wx3 * e[za, yb, ix + 3, 1]
+            r2 = wx0 * e[za, yb, ix, 2] + wx1 * e[za, yb, ix + 1, 2]
+            r2 += wx2 * e[za, yb, ix + 2, 2] + wx3 * e[za, yb, ix + 3, 2]
             p0 += wy[b] * r0
             p1 += wy[b] * r1
             p2 += wy[b] * r2
@@ -235,6 +226,9 @@ def _eval_one_with_jacobian(
         out[c] += trend_matrix[c, 2] * tx
         for a in range(3):
             jacobian[c, a] = trend_matrix[c, a] / step[a]
+    wx0, wx1, wx2, wx3 = wx
+    dx0, dx1, dx2, dx3 = dx
+    e = extended
     for c in range(3):
         value = 0.0
         grad_z = 0.0
@@ -244,12 +238,15 @@ def _eval_one_with_jacobian(
             plane_v = 0.0
             plane_y = 0.0
             plane_x = 0.0
+            za = iz + a
             for b in range(4):
-                row = extended[iz + a, iy + b]
-                rv = wx[0] * row[ix, c] + wx[1] * row[ix + 1, c]
-                rv += wx[2] * row[ix + 2, c] + wx[3] * row[ix + 3, c]
-                rd = dx[0] * row[ix, c] + dx[1] * row[ix + 1, c]
-                rd += dx[2] * row[ix + 2, c] + dx[3] * row[ix + 3, c]
+                yb = iy + b
+                t0 = e[za, yb, ix, c]
+                t1 = e[za, yb, ix + 1, c]
+                t2 = e[za, yb, ix + 2, c]
+                t3 = e[za, yb, ix + 3, c]
+                rv = wx0 * t0 + wx1 * t1 + wx2 * t2 + wx3 * t3
+                rd = dx0 * t0 + dx1 * t1 + dx2 * t2 + dx3 * t3
                 plane_v += wy[b] * rv
                 plane_y += dy[b] * rv
                 plane_x += wy[b] * rd

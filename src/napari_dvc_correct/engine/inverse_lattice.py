@@ -153,11 +153,33 @@ def _solve(spline, z, y, x, max_iterations, tolerance, position, value, jacobian
 @njit(**KERNEL_OPTIONS)
 def _inverse_gain(jacobian):
     """``||(I + J)^-1||_inf`` (the factor from a residual to a position error), inf if singular."""
-    a = np.eye(3) + jacobian
-    det = np.linalg.det(a)
+    a00 = 1.0 + jacobian[0, 0]
+    a01 = jacobian[0, 1]
+    a02 = jacobian[0, 2]
+    a10 = jacobian[1, 0]
+    a11 = 1.0 + jacobian[1, 1]
+    a12 = jacobian[1, 2]
+    a20 = jacobian[2, 0]
+    a21 = jacobian[2, 1]
+    a22 = 1.0 + jacobian[2, 2]
+    c00 = a11 * a22 - a12 * a21
+    c01 = a02 * a21 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c10 = a12 * a20 - a10 * a22
+    c11 = a00 * a22 - a02 * a20
+    c12 = a02 * a10 - a00 * a12
+    c20 = a10 * a21 - a11 * a20
+    c21 = a01 * a20 - a00 * a21
+    c22 = a00 * a11 - a01 * a10
+    det = a00 * c00 + a10 * c01 + a20 * c02
     if not abs(det) > 1e-12:
         return np.inf
-    return np.abs(np.linalg.inv(a)).sum(axis=1).max()
+    rows = max(
+        abs(c00) + abs(c01) + abs(c02),
+        abs(c10) + abs(c11) + abs(c12),
+        abs(c20) + abs(c21) + abs(c22),
+    )
+    return rows / abs(det)
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -190,13 +212,6 @@ def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok
                 gain[a, b, d] = _inverse_gain(jacobian) if ok[a, b, d] else np.nan
 
 
-@njit(inline="always", **KERNEL_OPTIONS)
-def _check_weights(half):
-    if half:
-        return _lagrange_weights(0.5)
-    return (0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
-
-
 @njit(parallel=True, **KERNEL_OPTIONS)
 def _check_points(spline, first_node, stride, limit, v, gain, bad):
     """Check the interpolation at 7 points of each coarse cell (nz, ny, nx) of ``bad``.
@@ -207,10 +222,13 @@ def _check_points(spline, first_node, stride, limit, v, gain, bad):
     nodes (an estimate of the position error, see :func:`_inverse_gain`) reaches ``limit`` voxels;
     bit ``4 oz + 2 oy + ox`` of ``bad`` is set for the point at offsets ``o / 2``.
     """
+    centre = _lagrange_weights(0.5)
     nz, ny, nx = bad.shape
     for a in prange(nz):
         value = np.empty(3)
-        guess = np.empty(3)
+        along_x = np.empty((2, TAPS, TAPS, 3))  # (ox, z node, y node, component)
+        along_y = np.empty((2, 2, TAPS, 3))  # (oy, ox, z node, component)
+        guess = np.empty((2, 2, 2, 3))  # (oz, oy, ox, component)
         for b in range(ny):
             for d in range(nx):
                 g = 0.0
@@ -218,32 +236,44 @@ def _check_points(spline, first_node, stride, limit, v, gain, bad):
                     for j in range(2):
                         for k in range(2):
                             g = max(g, gain[a + BELOW + i, b + BELOW + j, d + BELOW + k])
+                # the interpolated inverse displacement at the 8 points, separably
+                for i in range(TAPS):
+                    for j in range(TAPS):
+                        for c in range(3):
+                            along_x[0, i, j, c] = v[a + i, b + j, d + BELOW, c]
+                            total = 0.0
+                            for k in range(TAPS):
+                                total += centre[k] * v[a + i, b + j, d + k, c]
+                            along_x[1, i, j, c] = total
+                for ox in range(2):
+                    for i in range(TAPS):
+                        for c in range(3):
+                            along_y[0, ox, i, c] = along_x[ox, i, BELOW, c]
+                            total = 0.0
+                            for j in range(TAPS):
+                                total += centre[j] * along_x[ox, i, j, c]
+                            along_y[1, ox, i, c] = total
+                for oy in range(2):
+                    for ox in range(2):
+                        for c in range(3):
+                            guess[0, oy, ox, c] = along_y[oy, ox, BELOW, c]
+                            total = 0.0
+                            for i in range(TAPS):
+                                total += centre[i] * along_y[oy, ox, i, c]
+                            guess[1, oy, ox, c] = total
                 mask = 0
                 for bit in range(1, 8):
                     oz = (bit >> 2) & 1
                     oy = (bit >> 1) & 1
                     ox = bit & 1
-                    wz = _check_weights(oz == 1)
-                    wy = _check_weights(oy == 1)
-                    wx = _check_weights(ox == 1)
-                    guess[:] = 0.0
-                    for i in range(TAPS):
-                        if wz[i] != 0.0:
-                            for j in range(TAPS):
-                                if wy[j] != 0.0:
-                                    wij = wz[i] * wy[j]
-                                    for k in range(TAPS):
-                                        if wx[k] != 0.0:
-                                            w = wij * wx[k]
-                                            for c in range(3):
-                                                guess[c] += w * v[a + i, b + j, d + k, c]
                     z = (first_node[0] + a + BELOW + 0.5 * oz) * stride
                     y = (first_node[1] + b + BELOW + 0.5 * oy) * stride
                     x = (first_node[2] + d + BELOW + 0.5 * ox) * stride
-                    _eval_one(*spline, z - guess[0], y - guess[1], x - guess[2], value)
-                    residual = max(
-                        abs(value[0] - guess[0]), abs(value[1] - guess[1]), abs(value[2] - guess[2])
-                    )
+                    g0 = guess[oz, oy, ox, 0]
+                    g1 = guess[oz, oy, ox, 1]
+                    g2 = guess[oz, oy, ox, 2]
+                    _eval_one(*spline, z - g0, y - g1, x - g2, value)
+                    residual = max(abs(value[0] - g0), abs(value[1] - g1), abs(value[2] - g2))
                     if not residual * g < limit:  # also catches NaN gains
                         mask |= 1 << bit
                 bad[a, b, d] = mask
@@ -336,21 +366,17 @@ def _interpolate(
             index = (a * ny + b) * nx
             for d in range(nx):
                 xd = x_node[d]
-                w = x_weight[d]
-                for c in range(3):
-                    value[c] = (
-                        w[0] * row[xd, c]
-                        + w[1] * row[xd + 1, c]
-                        + w[2] * row[xd + 2, c]
-                        + w[3] * row[xd + 3, c]
-                        + w[4] * row[xd + 4, c]
-                        + w[5] * row[xd + 5, c]
-                    )
+                w0 = x_weight[d, 0]
+                w1 = x_weight[d, 1]
+                w2 = x_weight[d, 2]
+                w3 = x_weight[d, 3]
+                w4 = x_weight[d, 4]
+                w5 = x_weight[d, 5]
                 x = float(box_start[2] + d)
-                position[0] = z - value[0]
-                position[1] = y - value[1]
-                position[2] = x - value[2]
-                solved = zy_node_voxel and w[BELOW] == 1.0  # a coarse node: v is exact there
+                position[0] = z - _taps6(row, xd, 0, w0, w1, w2, w3, w4, w5)
+                position[1] = y - _taps6(row, xd, 1, w0, w1, w2, w3, w4, w5)
+                position[2] = x - _taps6(row, xd, 2, w0, w1, w2, w3, w4, w5)
+                solved = zy_node_voxel and w2 == 1.0  # a coarse node: v is exact there
                 ok = True
                 if solved:
                     ok = node_ok[za + BELOW, yb + BELOW, xd + BELOW]
@@ -367,6 +393,18 @@ def _interpolate(
                     and _inside(position[1], origin[1], step[1], grid_shape[1])
                     and _inside(position[2], origin[2], step[2], grid_shape[2])
                 )
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _taps6(row, first, c, w0, w1, w2, w3, w4, w5):
+    return (
+        w0 * row[first, c]
+        + w1 * row[first + 1, c]
+        + w2 * row[first + 2, c]
+        + w3 * row[first + 3, c]
+        + w4 * row[first + 4, c]
+        + w5 * row[first + 5, c]
+    )
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
