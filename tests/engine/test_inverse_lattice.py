@@ -1,7 +1,9 @@
 """The lattice inverse (engine/inverse_lattice.py) against per-voxel Newton (FieldSpline.invert).
 
-The accuracy asked is 1e-3 voxel (warp.INVERSE_ACCURACY): far below the DVC's own uncertainty, so
-the forward warp's gray values move by less than 1e-3 times their gradient.
+The accuracy asked is 1e-3 voxel (warp.INVERSE_ACCURACY) where the reference position lies in the
+grid's hull: far below the DVC's own uncertainty, so the forward warp's gray values move by less
+than 1e-3 times their gradient. Beyond the hull, where the field is an extrapolation, 10 times that
+(inverse_lattice.OUTSIDE_RELAXATION) unless asked otherwise.
 """
 
 import numpy as np
@@ -10,7 +12,11 @@ import pytest
 from napari_dvc_correct.engine import field_spline, synthetic, warp
 from napari_dvc_correct.engine.field import DisplacementField
 from napari_dvc_correct.engine.interpolation import prefilter, sample_with_gradient
-from napari_dvc_correct.engine.inverse_lattice import auto_stride
+from napari_dvc_correct.engine.inverse_lattice import (
+    OUTSIDE_RELAXATION,
+    LatticeInverter,
+    auto_stride,
+)
 
 ACCURACY = 1e-3
 SHAPE = (48, 52, 56)
@@ -29,6 +35,15 @@ def _exact(spline, box=BOX):
 
 def _error(fast, exact):
     return np.abs(fast.positions - exact).max(axis=1)
+
+
+def _assert_close(fast, exact, spline):
+    """Within the accuracy where ``X`` is in the hull, within the relaxed one elsewhere."""
+    error = _error(fast, exact)
+    hull = field_spline.inside_hull(spline, exact)
+    assert error[hull].max() < ACCURACY
+    assert error.max() < OUTSIDE_RELAXATION * ACCURACY
+    return error
 
 
 def _band(width=8.0, slip=6.0):
@@ -59,8 +74,8 @@ def test_smooth_large_displacement_is_mostly_interpolated_within_the_accuracy():
     exact, converged = _exact(spline)
     fast = spline.invert_lattice(BOX, accuracy=ACCURACY)
     assert converged.all() and fast.converged.all()
-    assert _error(fast, exact).max() < ACCURACY
-    assert fast.exact.mean() < 0.3
+    _assert_close(fast, exact, spline)
+    assert fast.exact.mean() < 0.1
 
 
 def test_narrow_shear_band_falls_back_to_newton_in_the_band_only():
@@ -68,8 +83,7 @@ def test_narrow_shear_band_falls_back_to_newton_in_the_band_only():
     exact, converged = _exact(spline)
     fast = spline.invert_lattice(BOX, accuracy=ACCURACY)
     assert converged.all() and fast.converged.all()
-    error = _error(fast, exact)
-    assert error.max() < ACCURACY
+    _assert_close(fast, exact, spline)
     # without the check (any error accepted) the interpolation misses by more: the check is needed
     unchecked = spline.invert_lattice(BOX, accuracy=1e6)
     assert _error(unchecked, exact).max() > 3 * ACCURACY
@@ -78,7 +92,7 @@ def test_narrow_shear_band_falls_back_to_newton_in_the_band_only():
     distance = np.abs((exact - (24.0, 26.0, 28.0)) @ normal)
     hull = field_spline.inside_hull(spline, exact)
     near, far = distance < 8.0, (distance > 16.0) & hull
-    assert fast.exact[near].mean() > 0.8
+    assert fast.exact[near & hull].mean() > 0.8
     assert fast.exact[far].mean() < 0.1
 
 
@@ -88,10 +102,14 @@ def test_borders_and_extrapolation_beyond_the_hull():
     exact, converged = _exact(spline)
     fast = spline.invert_lattice(BOX, accuracy=ACCURACY)
     assert converged.all() and fast.converged.all()
-    assert _error(fast, exact).max() < ACCURACY
+    _assert_close(fast, exact, spline)
     hull = field_spline.inside_hull(spline, exact)
     assert 0.1 < hull.mean() < 0.7
     assert np.array_equal(fast.in_hull, field_spline.inside_hull(spline, fast.positions))
+    # asked for the same accuracy outside the hull, it gets it, with more Newton there
+    strict = spline.invert_lattice(BOX, accuracy=ACCURACY, outside_accuracy=ACCURACY)
+    assert _error(strict, exact).max() < ACCURACY
+    assert strict.exact[~hull].mean() > fast.exact[~hull].mean() + 0.05
 
 
 def test_points_that_do_not_converge_are_flagged_and_converged_points_solve_the_equation():
@@ -100,16 +118,19 @@ def test_points_that_do_not_converge_are_flagged_and_converged_points_solve_the_
     assert 0 < (~converged).sum()
     fast = spline.invert_lattice(BOX, accuracy=ACCURACY)
     assert (~fast.converged).sum() > 0
-    assert fast.exact[~converged].all()  # where Newton fails, the fast path runs Newton too
+    # where Newton fails in the hull, the fast path runs Newton too (outside it, it may accept
+    # an interpolated root within the relaxed accuracy: checked with the residual below)
+    assert fast.exact[~converged & fast.in_hull].all()
     targets = warp.box_lattice(BOX)
     good = fast.converged
     assert good.mean() > 0.9
-    residual = np.abs(fast.positions + spline(fast.positions) - targets)[good].max()
-    assert residual < ACCURACY
+    residual = np.abs(fast.positions + spline(fast.positions) - targets).max(axis=1)
+    assert residual[good & fast.in_hull].max() < ACCURACY
+    assert residual[good].max() < OUTSIDE_RELAXATION * ACCURACY
     # where the map folds over, x has several reference positions and Newton from two starts
     # may find two of them; elsewhere the answers agree
     error = _error(fast, exact)[converged & good]
-    assert np.all((error < ACCURACY) | (error > 0.5))
+    assert np.all((error < OUTSIDE_RELAXATION * ACCURACY) | (error > 0.5))
     assert 0.5 < np.mean(error < ACCURACY) < 0.95
 
 
@@ -125,6 +146,10 @@ def test_the_answer_does_not_depend_on_how_the_volume_is_cut_into_boxes():
         expected = positions[box].reshape(-1, 3)
         assert np.array_equal(part.positions, expected)
         assert np.array_equal(part.exact, whole.exact.reshape(SHAPE)[box].ravel())
+    # plane ranges of one inverter (the coarse stage shared) give the same answer
+    inverter = LatticeInverter(spline, BOX)
+    planes = [inverter.solve(slice(z, min(z + 7, SHAPE[0]))).positions for z in range(0, 48, 7)]
+    assert np.array_equal(np.concatenate(planes), whole.positions)
 
 
 def test_forward_warp_equals_the_exact_warp_within_the_gradient_times_the_accuracy():
@@ -139,7 +164,9 @@ def test_forward_warp_equals_the_exact_warp_within_the_gradient_times_the_accura
     assert defined.mean() > 0.7
     source, _ = _exact(spline)
     gradient = sample_with_gradient(coefficients, source[defined.ravel()])[:, 1:]
-    bound = ACCURACY * np.abs(gradient).sum(axis=1) + 1e-5
+    hull = field_spline.inside_hull(spline, source[defined.ravel()])
+    accuracy = np.where(hull, ACCURACY, OUTSIDE_RELAXATION * ACCURACY)
+    bound = accuracy * np.abs(gradient).sum(axis=1) + 1e-5
     assert np.all(np.abs(fast - exact)[defined] <= bound)
     assert np.abs(fast - exact)[defined].max() > 0  # the two paths really differ
     assert (fast_hull != exact_hull).mean() < 1e-3
@@ -151,3 +178,5 @@ def test_invalid_arguments_are_refused():
         spline.invert_lattice(BOX, stride=0)
     with pytest.raises(ValueError, match="accuracy"):
         spline.invert_lattice(BOX, accuracy=0.0)
+    with pytest.raises(ValueError, match="accuracy"):
+        spline.invert_lattice(BOX, outside_accuracy=-1.0)

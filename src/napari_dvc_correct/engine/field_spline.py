@@ -241,14 +241,18 @@ class FieldSpline:
         tolerance: float = 1e-4,
         accuracy: float = 1e-3,
         stride: int | None = None,
+        outside_accuracy: float | None = None,
     ) -> LatticeInverse:
         """:meth:`invert` at every voxel of ``box`` (3 slices of voxel indices), much faster.
 
         Exact on a coarse lattice, interpolated between its nodes where a check shows the
-        interpolation within ``accuracy`` voxels, Newton per voxel elsewhere; see
+        interpolation within ``accuracy`` voxels (``outside_accuracy`` where the field is
+        extrapolated beyond the grid's hull), Newton per voxel elsewhere; see
         :func:`.inverse_lattice.invert_lattice`.
         """
-        return invert_lattice(self, box, max_iterations, tolerance, accuracy, stride)
+        return invert_lattice(
+            self, box, max_iterations, tolerance, accuracy, stride, outside_accuracy
+        )
 
 
 def _check_outside(outside: str) -> None:

@@ -46,6 +46,11 @@ BELOW = 2
 #: (the map is nearly singular there: folds, extreme compression).
 MAX_GAIN = 5.0
 
+#: Outside the grid's hull the field is an extrapolation (linear padding of the node values, off
+#: by far more than a tenth of a voxel from any real motion there): its inverse is accepted within
+#: this many times the accuracy asked in the hull.
+OUTSIDE_RELAXATION = 10.0
+
 #: Largest coarse stride (voxels) chosen automatically.
 MAX_STRIDE = 4
 
@@ -213,15 +218,18 @@ def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
-def _check_points(spline, first_node, stride, limit, v, gain, bad):
+def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, v, gain, bad):
     """Check the interpolation at 7 points of each coarse cell (nz, ny, nx) of ``bad``.
 
     The points are the cell's low corner moved by half a cell along 1, 2 or 3 axes (3 edge
     midpoints, 3 face centres, the centre: where the per-axis interpolation errors peak). A point
     fails when its residual ``X + u(X) - x`` times the largest inverse gain at the cell's corner
     nodes (an estimate of the position error, see :func:`_inverse_gain`) reaches ``limit`` voxels;
-    bit ``4 oz + 2 oy + ox`` of ``bad`` is set for the point at offsets ``o / 2``.
+    bit ``4 oz + 2 oy + ox`` of ``bad`` is set for the point at offsets ``o / 2``. Cells whose 8
+    corners all map at least a voxel outside the grid's hull use ``outside_limit``.
     """
+    origin = spline[2]
+    step = spline[3]
     centre = _lagrange_weights(0.5)
     nz, ny, nx = bad.shape
     for a in prange(nz):
@@ -232,10 +240,22 @@ def _check_points(spline, first_node, stride, limit, v, gain, bad):
         for b in range(ny):
             for d in range(nx):
                 g = 0.0
+                outside = np.inf
                 for i in range(2):
                     for j in range(2):
                         for k in range(2):
-                            g = max(g, gain[a + BELOW + i, b + BELOW + j, d + BELOW + k])
+                            node = (a + BELOW + i, b + BELOW + j, d + BELOW + k)
+                            g = max(g, gain[node])
+                            far = 0.0
+                            for c in range(3):
+                                p = (first_node[c] + node[c]) * stride - v[
+                                    node[0], node[1], node[2], c
+                                ]
+                                low = origin[c] - p
+                                high = p - (origin[c] + (grid_shape[c] - 1) * step[c])
+                                far = max(far, low, high)
+                            outside = min(outside, far)
+                cell_limit = outside_limit if outside >= 1.0 else limit
                 # the interpolated inverse displacement at the 8 points, separably
                 for i in range(TAPS):
                     for j in range(TAPS):
@@ -274,7 +294,7 @@ def _check_points(spline, first_node, stride, limit, v, gain, bad):
                     g2 = guess[oz, oy, ox, 2]
                     _eval_one(*spline, z - g0, y - g1, x - g2, value)
                     residual = max(abs(value[0] - g0), abs(value[1] - g1), abs(value[2] - g2))
-                    if not residual * g < limit:  # also catches NaN gains
+                    if not residual * g < cell_limit:  # also catches NaN gains
                         mask |= 1 << bit
                 bad[a, b, d] = mask
 
@@ -413,6 +433,112 @@ def _inside(position, origin, step, n):
     return t >= -HULL_TOLERANCE and t <= n - 1 + HULL_TOLERANCE
 
 
+class LatticeInverter:
+    """The coarse stage of :func:`invert_lattice` for a box, then its voxels plane range by range.
+
+    Building one runs Newton at the coarse nodes and checks every cell (a few percent of the
+    work); :meth:`solve` interpolates (and runs Newton in failed cells) for any range of the
+    box's z planes, so a large box can be processed in slabs without repeating the coarse stage
+    and without holding all its positions.
+
+    Parameters are those of :func:`invert_lattice`.
+    """
+
+    def __init__(
+        self,
+        spline,
+        box,
+        max_iterations: int = 50,
+        tolerance: float = 1e-4,
+        accuracy: float = 1e-3,
+        stride: int | None = None,
+        outside_accuracy: float | None = None,
+    ) -> None:
+        if spline.components != 3:
+            raise ValueError("invert_lattice needs a displacement spline (3 components)")
+        stride = auto_stride(spline.step) if stride is None else int(stride)
+        if stride < 1:
+            raise ValueError(f"stride must be a positive number of voxels, got {stride}")
+        outside_accuracy = (
+            OUTSIDE_RELAXATION * accuracy if outside_accuracy is None else outside_accuracy
+        )
+        if not (accuracy > 0 and outside_accuracy > 0):
+            raise ValueError(
+                f"accuracy and outside_accuracy must be positive numbers of voxels, got "
+                f"{accuracy} and {outside_accuracy}"
+            )
+        self.spline = spline
+        self.box = tuple(slice(int(s.start), int(s.stop)) for s in box)
+        self.stride = stride
+        self.max_iterations = int(max_iterations)
+        self.polish = max(float(tolerance), polish_step(accuracy))
+        self.starts = np.array([s.start for s in self.box], np.int64)
+        self.counts = np.array([s.stop - s.start for s in self.box], np.int64)
+        self.args = (
+            spline.extended,
+            spline.pad,
+            spline.origin,
+            spline.step,
+            spline.trend_offset,
+            spline.trend_matrix,
+        )
+        if np.prod(self.counts) == 0:
+            return
+        first_cell = self.starts // stride
+        first_node = first_cell - BELOW
+        cells = (self.starts + self.counts - 1) // stride - first_cell + 1
+        # one more node and check cell above the box: the upper faces of its last cells
+        nodes = tuple(int(n) for n in cells + TAPS)
+        self.v = np.empty((*nodes, 3))
+        self.node_ok = np.empty(nodes, np.bool_)
+        gain = np.empty(nodes)
+        iterations = (self.max_iterations, float(tolerance))
+        _coarse_inverse(self.args, first_node, stride, *iterations, self.v, self.node_ok, gain)
+        self.fail = np.zeros(tuple(int(n) for n in cells), np.bool_)
+        if stride > 1:
+            bad = np.empty(tuple(int(n) for n in cells + 1), np.int64)
+            limits = (float(accuracy) / CHECK_SAFETY, float(outside_accuracy) / CHECK_SAFETY)
+            _check_points(
+                self.args, spline.grid_shape, first_node, stride, *limits, self.v, gain, bad
+            )
+            _combine(self.node_ok, gain, bad, self.fail)
+        self.axes = [
+            _axis_weights(int(self.starts[a]), int(self.counts[a]), stride) for a in (1, 2)
+        ]
+
+    def solve(self, planes: slice | None = None) -> LatticeInverse:
+        """Positions for the box's z planes ``planes`` (indices within the box; all by default)."""
+        start, stop, _ = (planes or slice(None)).indices(int(self.counts[0]))
+        stop = max(start, stop)
+        n = (stop - start) * int(self.counts[1] * self.counts[2])
+        result = LatticeInverse(
+            np.empty((n, 3)), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_)
+        )
+        if n == 0:
+            return result
+        z0 = int(self.starts[0])
+        z_node, z_weight = _axis_weights(z0 + start, stop - start, self.stride)
+        z_node += (z0 + start) // self.stride - z0 // self.stride
+        starts = self.starts.copy()
+        starts[0] = z0 + start
+        _interpolate(
+            self.args,
+            self.spline.grid_shape,
+            starts,
+            z_node,
+            z_weight,
+            *self.axes[0],
+            *self.axes[1],
+            self.max_iterations,
+            self.polish,
+            self.v,
+            self.node_ok,
+            self.fail,
+            *result,
+        )
+        return result
+
+
 def invert_lattice(
     spline,
     box,
@@ -420,6 +546,7 @@ def invert_lattice(
     tolerance: float = 1e-4,
     accuracy: float = 1e-3,
     stride: int | None = None,
+    outside_accuracy: float | None = None,
 ) -> LatticeInverse:
     """Reference positions ``X`` with ``X + u(X) = x`` at every voxel ``x`` of ``box``.
 
@@ -438,64 +565,16 @@ def invert_lattice(
     stride : int, optional
         Coarse lattice spacing in voxels (default :func:`auto_stride` of the node step). 1 solves
         every voxel by Newton.
+    outside_accuracy : float, optional
+        The same for cells that map at least a voxel outside the grid's hull, where the field is
+        extrapolated (default :data:`OUTSIDE_RELAXATION` times ``accuracy``).
 
     Returns
     -------
     LatticeInverse
         Per voxel of ``box`` in C order.
     """
-    if spline.components != 3:
-        raise ValueError("invert_lattice needs a displacement spline (3 components)")
-    stride = auto_stride(spline.step) if stride is None else int(stride)
-    if stride < 1:
-        raise ValueError(f"stride must be a positive number of voxels, got {stride}")
-    if not accuracy > 0:
-        raise ValueError(f"accuracy must be a positive number of voxels, got {accuracy}")
-    starts = np.array([s.start for s in box], np.int64)
-    counts = np.array([s.stop - s.start for s in box], np.int64)
-    n = int(np.prod(counts))
-    result = LatticeInverse(
-        np.empty((n, 3)), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_)
+    inverter = LatticeInverter(
+        spline, box, max_iterations, tolerance, accuracy, stride, outside_accuracy
     )
-    if n == 0:
-        return result
-    first_cell = starts // stride
-    first_node = first_cell - BELOW
-    cells = (starts + counts - 1) // stride - first_cell + 1
-    args = (
-        spline.extended,
-        spline.pad,
-        spline.origin,
-        spline.step,
-        spline.trend_offset,
-        spline.trend_matrix,
-    )
-    iterations = (int(max_iterations), float(tolerance))
-    # one more node and check cell above the box: the upper faces of its last cells
-    nodes = tuple(int(n) for n in cells + TAPS)
-    v = np.empty((*nodes, 3))
-    node_ok = np.empty(nodes, np.bool_)
-    gain = np.empty(nodes)
-    _coarse_inverse(args, first_node, stride, *iterations, v, node_ok, gain)
-    fail = np.zeros(tuple(int(n) for n in cells), np.bool_)
-    if stride > 1:
-        bad = np.empty(tuple(int(n) for n in cells + 1), np.int64)
-        _check_points(args, first_node, stride, float(accuracy) / CHECK_SAFETY, v, gain, bad)
-        _combine(node_ok, gain, bad, fail)
-    axes = [_axis_weights(int(starts[a]), int(counts[a]), stride) for a in range(3)]
-    polish = max(float(tolerance), polish_step(accuracy))
-    _interpolate(
-        args,
-        spline.grid_shape,
-        starts,
-        *axes[0],
-        *axes[1],
-        *axes[2],
-        int(max_iterations),
-        polish,
-        v,
-        node_ok,
-        fail,
-        *result,
-    )
-    return result
+    return inverter.solve()

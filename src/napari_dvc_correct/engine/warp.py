@@ -32,6 +32,7 @@ from .field_spline import (
     inside_hull,
 )
 from .interpolation import prefilter, sample
+from .inverse_lattice import LatticeInverter
 from .slabs import iter_slabs
 
 #: A sampler of a volume: positions ``(N, 3)`` ``(z, y, x)`` in voxels -> float32 values ``(N,)``,
@@ -60,6 +61,11 @@ def box_lattice(box: tuple[slice, slice, slice]) -> np.ndarray:
     return np.stack([g.reshape(-1) for g in grids], axis=1)
 
 
+def whole_box(shape) -> tuple[slice, slice, slice]:
+    """The box of every voxel of a volume of ``shape``."""
+    return tuple(slice(0, int(n)) for n in shape)
+
+
 def box_shape(box: tuple[slice, slice, slice]) -> tuple[int, int, int]:
     return tuple(s.stop - s.start for s in box)
 
@@ -84,13 +90,15 @@ def warp_forward_block(
     max_iterations: int = INVERT_MAX_ITERATIONS,
     tolerance: float = INVERT_TOLERANCE,
     accuracy: float | None = INVERSE_ACCURACY,
+    chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``G(X)`` with ``X + u(X) = x`` at every loaded-state voxel ``x`` of ``box``.
 
-    ``X`` comes from :meth:`.field_spline.FieldSpline.invert_lattice` (within ``accuracy``
-    voxels of Newton's answer, and the same whichever boxes a volume is cut into), or with
-    ``accuracy=None`` from Newton at every voxel (:meth:`.field_spline.FieldSpline.invert`,
-    several times slower).
+    ``X`` comes from :class:`.inverse_lattice.LatticeInverter` (within ``accuracy`` voxels of
+    Newton's answer in the grid's hull and 10 times that beyond it, and the same whichever boxes
+    a volume is cut into), or with ``accuracy=None`` from Newton at every voxel
+    (:meth:`.field_spline.FieldSpline.invert`, several times slower). Positions are computed and
+    sampled ``chunk_voxels`` at a time (whole z planes); the coarse stage runs once per box.
 
     Returns
     -------
@@ -99,17 +107,27 @@ def warp_forward_block(
     in_hull : ndarray of bool, same shape
         Where ``X`` lies in the grid's hull (where the field was measured).
     """
-    if accuracy is None:
-        source, converged = spline.invert(box_lattice(box), max_iterations, tolerance)
-        in_hull = inside_hull(spline, source)
-    else:
-        source, converged, in_hull, _ = spline.invert_lattice(
-            box, max_iterations, tolerance, accuracy
-        )
-    values = np.asarray(sample_reference(source), np.float32)
-    values[~converged] = np.nan
     shape = box_shape(box)
-    return values.reshape(shape), in_hull.reshape(shape)
+    values = np.empty(shape, np.float32)
+    in_hull = np.empty(shape, np.bool_)
+    if accuracy is not None:
+        inverter = LatticeInverter(spline, box, max_iterations, tolerance, accuracy)
+    for planes in iter_slabs(shape, chunk_voxels):
+        if accuracy is None:
+            sub = (
+                slice(box[0].start + planes.start, box[0].start + planes.stop),
+                box[1],
+                box[2],
+            )
+            source, converged = spline.invert(box_lattice(sub), max_iterations, tolerance)
+            hull = inside_hull(spline, source)
+        else:
+            source, converged, hull, _ = inverter.solve(planes)
+        sampled = np.asarray(sample_reference(source), np.float32)
+        sampled[~converged] = np.nan
+        values[planes] = sampled.reshape(-1, *shape[1:])
+        in_hull[planes] = hull.reshape(-1, *shape[1:])
+    return values, in_hull
 
 
 def coefficients_of(volume, coefficients, name: str) -> np.ndarray:
@@ -235,15 +253,15 @@ def warp_forward(
     shape = coefficients.shape if shape is None else check_shape(shape)
     spline = as_field_spline(field)
     sampler = spline_sampler(coefficients)
-    result = np.empty(shape, np.float32)
-    for z, box in slab_boxes(shape, chunk_voxels):
-        values, in_hull = warp_forward_block(sampler, spline, box, max_iterations, tolerance)
-        bad = ~np.isfinite(values)
-        if outside == "nan":
-            bad |= ~in_hull
-        values[bad] = cval
-        result[z] = values
-    return result
+    # one box: the coarse stage of the inverse runs once, positions are made slab by slab
+    values, in_hull = warp_forward_block(
+        sampler, spline, whole_box(shape), max_iterations, tolerance, chunk_voxels=chunk_voxels
+    )
+    bad = ~np.isfinite(values)
+    if outside == "nan":
+        bad |= ~in_hull
+    values[bad] = cval
+    return values
 
 
 def warp_forward_with_residual(
@@ -274,14 +292,15 @@ def warp_forward_with_residual(
     shape = check_shape(deformed.shape)
     spline = as_field_spline(field)
     sampler = spline_sampler(coefficients)
-    result = np.empty(shape, np.float32)
+    result, in_hull = warp_forward_block(
+        sampler, spline, whole_box(shape), max_iterations, tolerance, chunk_voxels=chunk_voxels
+    )
     total, count = 0.0, 0
-    for z, box in slab_boxes(shape, chunk_voxels):
-        values, in_hull = warp_forward_block(sampler, spline, box, max_iterations, tolerance)
+    for z in iter_slabs(shape, chunk_voxels):
+        values = result[z]
         defined = np.isfinite(values)
-        difference = np.abs(deformed[z].astype(np.float32) - values)[defined & in_hull]
+        difference = np.abs(deformed[z].astype(np.float32) - values)[defined & in_hull[z]]
         total += float(np.sum(difference, dtype=np.float64))
         count += int(difference.size)
         values[~defined] = cval
-        result[z] = values
     return result, (total / count if count else float("nan"))
