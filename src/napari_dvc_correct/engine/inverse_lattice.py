@@ -51,6 +51,9 @@ MAX_GAIN = 5.0
 #: this many times the accuracy asked in the hull.
 OUTSIDE_RELAXATION = 10.0
 
+#: Coarse nodes per warm-start chain along x (whole-volume coarse indices, see _coarse_inverse).
+CHAIN = 8
+
 #: Largest coarse stride (voxels) chosen automatically.
 MAX_STRIDE = 4
 
@@ -191,10 +194,14 @@ def _inverse_gain(jacobian):
 def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok, gain):
     """Exact inverse displacement ``v = x - X`` (nz, ny, nx, 3) at coarse nodes ``first_node + i``.
 
-    Cold starts only, so a node's answer does not depend on its neighbours. ``gain`` gets
-    :func:`_inverse_gain` at the last Newton iterate (NaN where Newton did not converge).
+    Along x each node starts from its converged lower neighbour's answer, shifted by the stride
+    (2 Newton steps instead of 3 or 4 from ``X = x - u(x)``); the chains restart cold at the
+    whole-volume coarse indices that are multiples of :data:`CHAIN`, so a node's answer does not
+    depend on where a box begins. ``gain`` gets :func:`_inverse_gain` at the last Newton iterate
+    (NaN where Newton did not converge).
     """
     nz, ny, nx = ok.shape
+    chain_start = (first_node[2] // CHAIN) * CHAIN  # whole-volume coarse x index
     for a in prange(nz):
         value = np.empty(3)
         jacobian = np.empty((3, 3))
@@ -202,19 +209,26 @@ def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok
         z = float((first_node[0] + a) * stride)
         for b in range(ny):
             y = float((first_node[1] + b) * stride)
-            for d in range(nx):
-                x = float((first_node[2] + d) * stride)
-                _eval_one(*spline, z, y, x, value)
-                position[0] = z - value[0]
-                position[1] = y - value[1]
-                position[2] = x - value[2]
-                ok[a, b, d] = _solve(
+            previous_ok = False
+            for node in range(chain_start, first_node[2] + nx):
+                x = float(node * stride)
+                if node % CHAIN != 0 and previous_ok:
+                    position[2] += stride
+                else:
+                    _eval_one(*spline, z, y, x, value)
+                    position[0] = z - value[0]
+                    position[1] = y - value[1]
+                    position[2] = x - value[2]
+                previous_ok = _solve(
                     spline, z, y, x, max_iterations, tolerance, position, value, jacobian
                 )
-                v[a, b, d, 0] = z - position[0]
-                v[a, b, d, 1] = y - position[1]
-                v[a, b, d, 2] = x - position[2]
-                gain[a, b, d] = _inverse_gain(jacobian) if ok[a, b, d] else np.nan
+                d = node - first_node[2]
+                if d >= 0:
+                    ok[a, b, d] = previous_ok
+                    v[a, b, d, 0] = z - position[0]
+                    v[a, b, d, 1] = y - position[1]
+                    v[a, b, d, 2] = x - position[2]
+                    gain[a, b, d] = _inverse_gain(jacobian) if previous_ok else np.nan
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
