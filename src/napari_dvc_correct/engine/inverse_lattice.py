@@ -1,26 +1,33 @@
-"""The inverse of a field spline on a voxel lattice: exact on a coarse lattice, interpolated, verified.
+"""The inverse of a field spline on a voxel lattice: exact on a coarse lattice, interpolated, checked.
 
 The forward warp needs, at every loaded-state voxel ``x``, the reference position ``X`` with
 ``X + u(X) = x``. Newton at every voxel (:meth:`.field_spline.FieldSpline.invert`) costs about two
 tricubic evaluations of the field with its Jacobian per voxel. The inverse displacement
-``v(x) = x - X(x)`` is as smooth as the field, so :func:`invert_lattice`
+``v(x) = x - X(x)`` is nearly as smooth as the field, so :class:`LatticeInverter`
 
-1. solves the inverse exactly (Newton, cold start ``X = x - u(x)``) on a coarse lattice of
-   voxels whose indices are multiples of ``stride`` along each axis (the whole volume's indices,
-   not the box's: a box's answer does not depend on how a volume is cut into boxes);
-2. checks every coarse cell (the ``stride³`` voxels between 8 coarse nodes): the cubic
-   interpolation of ``v`` at the cell's centre (where the interpolation error of a smooth function
-   peaks) against the exact inverse there (Newton from the interpolated guess), and that the cell's
-   4 × 4 × 4 interpolation nodes all converged;
-3. interpolates ``v`` to every voxel (4-point Lagrange cubic along each axis, separably: a dozen
-   multiply-adds per voxel) in the cells that pass, and runs Newton per voxel, from the interpolated
-   guess, in the cells that fail (narrow shear bands, folds, kinks of the extrapolated field,
-   points that do not converge): those voxels get the exact per-voxel answer and its convergence
-   flag.
+1. solves the inverse exactly (Newton) on a coarse lattice of voxels whose indices are multiples
+   of ``stride`` along each axis (:func:`auto_stride`: half the node step, at most 4). The
+   indices are the whole volume's, not the box's, and each node's Newton start is fixed by them
+   (warm-start chains along x restart cold every :data:`CHAIN` nodes): a box's answer does not
+   depend on how a volume is cut into boxes (tiled and in-memory warps agree bit for bit);
+2. checks every coarse cell (the ``stride³`` voxels between 8 coarse nodes) at 7 points, its low
+   corner moved by half a cell along 1, 2 or 3 axes (edge midpoints, face centres, centre: where
+   the interpolation errors of each axis peak; a point on a shared face or edge counts for every
+   cell that has it): the residual ``X + u(X) - x`` of the interpolated inverse times the
+   inverse gain ``||(I + du/dX)^-1||`` must stay below ``accuracy / CHECK_SAFETY``. A cell also
+   fails when one of its 6³ interpolation nodes did not converge or is nearly singular
+   (:data:`MAX_GAIN`: folds, extreme compression);
+3. interpolates ``v`` to every voxel (6-point Lagrange along each axis, separably: about 20
+   multiply-adds per voxel) in the cells that pass, and runs Newton per voxel, from the
+   interpolated guess, in the cells that fail (narrow shear bands, folds, the kinks of the
+   extrapolated field beyond the grid's hull, points that do not converge): those voxels get
+   Newton's answer (to a step of :func:`polish_step`) and its convergence flag.
 
-The centre check passes when the interpolation error there is below ``accuracy / CHECK_SAFETY``;
-the factor covers cells whose error peaks off-centre (measured on shear bands: the largest error in
-a cell is at most about 1.6 times its centre error, see ``tests/engine/test_inverse_lattice.py``).
+Measured on shear bands and smooth fields (``tests/engine/test_inverse_lattice.py``): the largest
+error in a cell that passes is at most 1.15 times the largest check-point estimate, so
+``CHECK_SAFETY = 2`` keeps every voxel within ``accuracy``. Where a cell's 8 corners all map at
+least a voxel outside the grid's hull, the field is an extrapolation and ``outside_accuracy``
+(:data:`OUTSIDE_RELAXATION` times ``accuracy`` by default) applies instead.
 
 Positions are ``(z, y, x)`` voxels.
 """

@@ -3,14 +3,16 @@
 * :func:`pull_back` resamples the deformed volume into the reference frame,
   ``F~(X) = F(X + u(X))`` (no inversion needed);
 * :func:`warp_forward` moves the reference volume to the loaded state, ``G'(X + u(X)) = G(X)``
-  (paper step d), solving ``X + u(X) = x`` for every loaded voxel ``x`` by Newton's fixed-point
-  iteration (:meth:`.field_spline.FieldSpline.invert`);
+  (paper step d), solving ``X + u(X) = x`` for every loaded voxel ``x``: Newton on a coarse
+  lattice, checked interpolation between its nodes, Newton per voxel where the check fails
+  (:class:`.inverse_lattice.LatticeInverter`, within :data:`INVERSE_ACCURACY` of per-voxel Newton,
+  :meth:`.field_spline.FieldSpline.invert`, which ``accuracy=None`` asks for);
 * :func:`warp_forward_with_residual` does the forward warp and the loaded-state mean gray residual
   with one inversion (what a correction pass needs).
 
 One pair of block helpers, :func:`pull_back_block` and :func:`warp_forward_block`, does the work
-for any box of voxels and any sampler of the volume: the functions here call them slab by slab
-with the in-memory B-spline sampler, :mod:`.residual` for the gray residuals, and
+for any box of voxels and any sampler of the volume: the functions here call them on the whole
+volume (positions made and sampled slab by slab) with the in-memory B-spline sampler, :mod:`.residual` for the gray residuals, and
 :mod:`napari_dvc_correct.tiled.volumes` block by block with a sampler that reads a lazy volume.
 
 Volumes are sampled with the tricubic B-spline of :mod:`.interpolation`. All positions are
