@@ -130,7 +130,7 @@ def test_global_shift_of_a_sub_voxel_shift_is_within_one_voxel(texture):
 
 # --- fft_search --------------------------------------------------------------------------------
 # subvolumes (half 7) whose displaced copy stays inside the volume; (8, 24, 24) reads a region
-# that sticks out of the volume (padded with the mean gray value)
+# that sticks out of the volume (padded with the mean gray value of its part inside)
 CENTERS = np.array([[16, 16, 16], [24, 24, 24], [30, 20, 26], [8, 24, 24], [20, 34, 12]])
 
 
@@ -192,3 +192,23 @@ def test_fft_search_flat_subvolume_has_nan_peak_and_keeps_its_guess(texture):
     # its neighbour in the same batch is unaffected
     np.testing.assert_array_equal(np.rint(displacement[1]), [2, 0, 0])
     assert peak[1] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_fft_search_at_the_border_reads_only_near_its_window(texture):
+    """The part of a search window beyond the volume is filled from the window itself.
+
+    So a region of the volume (a tiled batch, which pads the window with the same local value)
+    gives the same answer as the whole volume: here a POI at the low z border, whose window
+    sticks out of the volume, searched in the whole volume and in a crop far from its other
+    sides, one of them darker overall (a fill taken over the whole volume would differ).
+    """
+    deformed = _roll(texture, (-3, 2, 1))
+    deformed[:, :, 30:] -= 0.4  # far from the POI: changes the whole volume's mean only
+    center = np.array([[8, 20, 14]])  # half 7, radius 5: z window from -4, beyond the volume
+    guesses = np.zeros((1, 3))
+    whole = fft_search(texture, deformed, center, 7, guesses, 5)
+    crop = (slice(0, 30), slice(4, 40), slice(0, 30))
+    region = fft_search(texture[crop], deformed[crop], center - [0, 4, 0], 7, guesses, 5)
+    np.testing.assert_allclose(region[0], whole[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(region[1], whole[1], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.rint(whole[0]), [[-3, 2, 1]])

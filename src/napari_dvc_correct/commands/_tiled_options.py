@@ -149,3 +149,60 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     field.metadata["reference"] = str(args.reference)
     field.metadata["deformed"] = str(args.deformed)
     return field
+
+
+def _block(text: str) -> tuple[int, int, int]:
+    try:
+        values = [int(v) for v in text.replace("x", ",").split(",") if v.strip()]
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a block shape: give N or NZ,NY,NX voxels"
+        ) from error
+    if len(values) == 1:
+        values = values * 3
+    if len(values) != 3 or min(values) < 1:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a block shape: give N or NZ,NY,NX voxels"
+        )
+    return tuple(values)
+
+
+def add_tiled_evaluation_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--tiled``, ``--scheduler``, ``--max-memory``, ``--block`` and ``--workers`` for ``evaluate``."""
+    group = parser.add_argument_group(
+        "large volumes",
+        "Evaluate block by block, reading only each block's region of the volumes (TIFF, Zarr, "
+        "OME-Zarr, .npy, folders of TIFF slices); the numbers of the in-memory run (to float32 "
+        "rounding). Any of these options turns it on.",
+    )
+    group.add_argument(
+        "--tiled",
+        action="store_true",
+        help="evaluate in blocks from lazily read volumes, on dask's local threads",
+    )
+    group.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="send the blocks to a dask.distributed scheduler (e.g. tcp://10.0.0.5:8786)",
+    )
+    group.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        type=_memory,
+        help="peak memory the run may use (e.g. 2GB); picks the block size. The estimated peak "
+        "is printed before the run, which is refused if it exceeds this or the machine",
+    )
+    group.add_argument(
+        "--block",
+        metavar="N|NZ,NY,NX",
+        type=_block,
+        help="voxels per block (default: the largest cube up to 128 that fits the memory)",
+    )
+    group.add_argument(
+        "--workers", metavar="N", type=_positive, help="blocks evaluated at once (default: up to 4)"
+    )
+
+
+def wants_tiled_evaluation(args: argparse.Namespace) -> bool:
+    """True when any of :func:`add_tiled_evaluation_arguments`' options was given."""
+    return wants_tiled(args) or bool(getattr(args, "block", None))

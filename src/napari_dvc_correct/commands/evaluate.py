@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ._common import UserError
 from ._field_formats import add_field_format_arguments, read_input_field
+from ._tiled_options import add_tiled_evaluation_arguments, wants_tiled_evaluation
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -89,6 +90,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--out-dir", required=True, help="folder for the report (created)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_field_format_arguments(parser, output=False)
+    add_tiled_evaluation_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -177,33 +179,32 @@ def run(args) -> int:
         name: read_input_field(args, path, sniff=k > 0).field
         for k, (name, path) in enumerate(zip(names, paths))
     }
-    reference = read_volume(args.reference)
-    deformed = read_volume(args.deformed)
-    check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
+    if wants_tiled_evaluation(args):
+        from ..io.lazy import open_volume
+
+        reference = open_volume(args.reference)
+        deformed = open_volume(args.deformed)
+    else:
+        reference = read_volume(args.reference)
+        deformed = read_volume(args.deformed)
+        check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
     fields = {}
     for name, field in loaded.items():
         fields[name], note = ready_for_evaluation(field, name)
         if note:
             print(note)
-
-    evaluation = drive(
-        evaluate_iter(
-            reference,
-            deformed,
-            fields,
-            phases=phases,
-            phases_deformed=phases_deformed,
-            n_phases=args.n_phases,
-            phase_pair=pair,
-            mode=args.mode,
-            strain_measure=args.strain,
-            strain_method=args.gradient,
-            strain_window=args.strain_window,
-            n_bins=args.bins,
-            bin_by=args.bin_by,
-            shared_background=not args.own_background,
-        ),
-        ProgressBar(args.quiet),
+    options = dict(
+        phases=phases,
+        phases_deformed=phases_deformed,
+        n_phases=args.n_phases,
+        phase_pair=pair,
+        mode=args.mode,
+        strain_measure=args.strain,
+        strain_method=args.gradient,
+        strain_window=args.strain_window,
+        n_bins=args.bins,
+        bin_by=args.bin_by,
+        shared_background=not args.own_background,
     )
     inputs = {
         "reference": f"{args.reference} {tuple(reference.shape)}",
@@ -213,7 +214,14 @@ def run(args) -> int:
             for name, path in zip(names, paths)
         },
     }
+    evaluation = None
+    if not wants_tiled_evaluation(args):
+        evaluation = drive(
+            evaluate_iter(reference, deformed, fields, **options), ProgressBar(args.quiet)
+        )
     with output_set(out_dir, REPORT_PATTERNS, {"command": "evaluate"}) as temp:
+        if evaluation is None:  # tiled: the volumes are written into the set as they are made
+            evaluation = _evaluate_tiled(args, reference, deformed, fields, options, temp)
         files = write_report(evaluation, temp, inputs=inputs, volumes=not args.no_volumes)
     for item in evaluation.fields:
         print(
@@ -224,3 +232,47 @@ def run(args) -> int:
     count = sum(len(paths) for paths in files.values())
     print(f"wrote {count} files to {out_dir} (open {out_dir / 'report.md'})")
     return 0
+
+
+def _evaluate_tiled(args, reference, deformed, fields, options, out_dir):
+    """The evaluation block by block (``--tiled``); the volumes go straight into ``out_dir``.
+
+    The estimated peak memory is printed before any work; a run over the budget is refused
+    with :class:`~napari_dvc_correct.tiled.memory.MemoryBudgetError` before anything is written.
+    """
+    import sys
+
+    from ..report import file_stem, unique_names
+    from ..tiled.evaluation import evaluate_tiled_iter
+    from ._common import ProgressBar, drive
+
+    outputs = {}
+    if not args.no_volumes:  # the names write_report gives them
+        outputs = {
+            "labels_reference": out_dir / "labels_reference.tif",
+            "labels_deformed": out_dir / "labels_deformed.tif",
+        }
+        for name, stem in zip(fields, unique_names([file_stem(n) for n in fields])):
+            outputs["residual", name] = out_dir / f"residual_{stem}.tif"
+            outputs["labels_mapped", name] = out_dir / f"labels_mapped_{stem}.tif"
+    bar = ProgressBar(args.quiet)
+
+    class _Reporter:
+        @staticmethod
+        def update(report):
+            if report.stage == "plan" and not args.quiet:
+                print(f"tiled: {report.message}", file=sys.stderr, flush=True)
+            bar.update(report)
+
+    generator = evaluate_tiled_iter(
+        reference,
+        deformed,
+        fields,
+        outputs=outputs,
+        block_shape=args.block,
+        max_memory=args.max_memory,
+        workers=args.workers,
+        scheduler=args.scheduler or None,
+        **options,
+    )
+    return drive(generator, _Reporter())

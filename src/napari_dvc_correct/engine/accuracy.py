@@ -30,7 +30,12 @@ from dataclasses import field as dataclass_field
 
 import numpy as np
 
-from .binning import StrainBins, bin_residual_by_strain, strain_bin_edges
+from .accuracy_blocks import (  # noqa: F401 (part of this module's interface)
+    BackgroundResidual,
+    background_residual,
+    corrected_residual,
+)
+from .binning import StrainBins
 from .field import DisplacementField
 from .local_accuracy import (  # noqa: F401 (part of this module's interface)
     honest_accuracy,
@@ -39,16 +44,12 @@ from .local_accuracy import (  # noqa: F401 (part of this module's interface)
     region_half,
 )
 from .phases import (
-    NO_PHASE,
     PhaseStats,
-    label_phases,
     phase_table,
     phase_thresholds,
     segment_phases,
 )
 from .progress import Progress, run_to_completion
-from .slabs import iter_slabs
-from .strain import equivalent_strain_field
 
 
 # --- grid quantities ready to display -------------------------------------------------------------
@@ -69,90 +70,6 @@ def check_field_fits(field: DisplacementField, volume_shape, name: str = "field"
 
 
 # --- background residual, eq. 1, and accuracy index, eq. 2 ----------------------------------------
-@dataclass(frozen=True)
-class BackgroundResidual:
-    """Mean gray residual where both states hold the same phase (the imaging-noise estimate).
-
-    Attributes
-    ----------
-    mean : float
-        ``r0`` of eq. 1: the mean residual over every voxel whose phase agrees in both states
-        (pooled over phases), gray levels.
-    voxels : int
-        Number of such voxels with a finite residual.
-    per_phase : tuple of (phase, mean, voxels)
-        The same, phase by phase (mean NaN for a phase with no agreeing voxel).
-    """
-
-    mean: float
-    voxels: int
-    per_phase: tuple
-
-
-def background_residual(
-    residual: np.ndarray, labels_reference: np.ndarray, labels_mapped: np.ndarray
-) -> BackgroundResidual:
-    """Background (imaging-noise) residual, paper eq. 1.
-
-    Parameters
-    ----------
-    residual : ndarray, shape (nz, ny, nx), float
-        Gray residual volume ``r`` (NaN where undefined).
-    labels_reference : ndarray, shape (nz, ny, nx), integer
-        Phases ``0 .. 254`` of the state the residual's voxels belong to (``G`` for the
-        reference-frame residual ``|F(X + u) - G(X)|``); :data:`~.phases.NO_PHASE` (255) where
-        undefined.
-    labels_mapped : ndarray, shape (nz, ny, nx), integer
-        Phases of the other state brought onto the same voxels by the field (phases of
-        ``F(X + u(X))``), same convention.
-
-    Returns
-    -------
-    BackgroundResidual
-
-    Raises
-    ------
-    ValueError
-        If the shapes differ or no voxel has the same phase in both states with a finite
-        residual (the field cannot be this wrong, or the phases were mislabelled).
-    """
-    residual = np.asanyarray(residual)
-    if not (residual.shape == labels_reference.shape == labels_mapped.shape):
-        raise ValueError(
-            f"residual {residual.shape}, reference labels {labels_reference.shape} and mapped "
-            f"labels {labels_mapped.shape} must have the same shape"
-        )
-    sums = np.zeros(NO_PHASE)
-    counts = np.zeros(NO_PHASE, np.int64)
-    n = 0  # phases present in the reference labels
-    for zs in iter_slabs(residual.shape):
-        r = np.asarray(residual[zs], dtype=np.float64)
-        a = np.asarray(labels_reference[zs])
-        defined = (a >= 0) & (a < NO_PHASE)
-        if defined.any():
-            n = max(n, int(a[defined].max()) + 1)
-        keep = (a == np.asarray(labels_mapped[zs])) & defined & np.isfinite(r)
-        sums += np.bincount(a[keep], weights=r[keep], minlength=NO_PHASE)
-        counts += np.bincount(a[keep], minlength=NO_PHASE)
-    total = int(counts.sum())
-    if total == 0:
-        raise ValueError(
-            "no voxel holds the same phase in both states with a finite residual: the "
-            "background residual is undefined (check the thresholds and the field)"
-        )
-    per_phase = tuple(
-        (k, float(sums[k] / counts[k]) if counts[k] else float("nan"), int(counts[k]))
-        for k in range(n)
-    )
-    return BackgroundResidual(mean=float(sums.sum() / total), voxels=total, per_phase=per_phase)
-
-
-def corrected_residual(residual: np.ndarray, background: BackgroundResidual | float) -> np.ndarray:
-    """Corrected residual ``r' = r - r0`` (eq. 1), float32, same shape; may be negative."""
-    r0 = background.mean if isinstance(background, BackgroundResidual) else float(background)
-    return (np.asarray(residual, dtype=np.float32) - np.float32(r0)).astype(np.float32)
-
-
 def default_phase_pair(stats: Sequence[PhaseStats]) -> tuple[int, int]:
     """The two most abundant phases, in label order (the pair eq. 2 uses for ``N > 2``)."""
     if len(stats) < 2:
@@ -356,6 +273,125 @@ def _named_fields(fields) -> list[tuple[str, DisplacementField]]:
     return items
 
 
+# --- the grid side of an evaluation, and its assembly (shared with tiled.evaluation) ---------
+@dataclass
+class EvaluationPlan:
+    """The grid-side part of an evaluation: fields, their strains, the binning and its edges."""
+
+    named: list  # [(name, DisplacementField)]
+    strains: list  # equivalent strain on each field's grid
+    bin_fields: list  # per field: the field whose grid bins its residual
+    bin_strains: list  # per field: the strain that bins it
+    edges: np.ndarray
+    mode: str
+    options: dict
+
+
+def plan_evaluation(
+    fields,
+    volume_shape,
+    *,
+    mode: str = "reference",
+    strain_measure: str = "small",
+    strain_method: str = "central",
+    strain_window: int = 5,
+    n_bins: int = 10,
+    bin_edges=None,
+    shared_background: bool = True,
+    bin_by: str | None = None,
+) -> EvaluationPlan:
+    """Check the fields against the volume shape; strains and strain-bin edges (no volume read).
+
+    See :func:`.accuracy.evaluate_iter` for the parameters.
+    """
+    from .binning import strain_bin_edges
+    from .strain import equivalent_strain_field
+
+    named = _named_fields(fields)
+    if mode not in ("reference", "loaded"):
+        raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
+    for name, item in named:
+        check_field_fits(item, volume_shape, name=f"field {name!r}")
+    strains = [
+        equivalent_strain_field(
+            item, measure=strain_measure, method=strain_method, window=strain_window
+        )
+        for _, item in named
+    ]
+    names = [name for name, _ in named]
+    if bin_by is not None and bin_by not in names:
+        raise ValueError(f"bin_by names no evaluated field: {bin_by!r} (fields: {names})")
+    which = [k if bin_by is None else names.index(bin_by) for k in range(len(named))]
+    bin_strains = [strains[k] for k in which]
+    edges = (
+        strain_bin_edges(bin_strains, n_bins)
+        if bin_edges is None
+        else np.asarray(bin_edges, dtype=np.float64)
+    )
+    options = {
+        "strain_measure": strain_measure,
+        "strain_method": strain_method,
+        "strain_window": int(strain_window),
+        "shared_background": bool(shared_background),
+        "bin_by": bin_by,
+    }
+    return EvaluationPlan(
+        named, strains, [named[k][1] for k in which], bin_strains, edges, mode, options
+    )
+
+
+def check_same_phase_count(thresholds_g, thresholds_f) -> None:
+    if np.size(thresholds_g) != np.size(thresholds_f):
+        raise ValueError(
+            f"the reference has {np.size(thresholds_g) + 1} phases and the deformed volume "
+            f"{np.size(thresholds_f) + 1}: give both states the same number of thresholds"
+        )
+
+
+def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels):
+    """The :class:`.accuracy.Evaluation`: the contrast, ``r0`` (shared or own), eq. 2 everywhere.
+
+    Parameters
+    ----------
+    plan : EvaluationPlan
+    thresholds, tables, labels : pairs (reference, deformed)
+        Phase thresholds, :func:`.phases.phase_table` rows and label volumes (or None).
+    phase_pair : (int, int) or None
+    partial : list of dict
+        :func:`field_partial` of every field, in the plan's order.
+    """
+    contrast, pair = phase_contrast(tables[0], tables[1], phase_pair)
+    shared = min(p["background"].mean for p in partial)
+    results = []
+    for p in partial:
+        r0 = shared if plan.options["shared_background"] else p["background"].mean
+        local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
+        results.append(
+            FieldEvaluation(
+                **p,
+                local_accuracy=local_accuracy,
+                local_accuracy_index=honest_accuracy(local_accuracy),
+                background_used=r0,
+                accuracy=accuracy_index(p["mean_residual"], r0, contrast),
+                bin_accuracy=accuracy_index(p["bins"].mean_residual, r0, contrast),
+            )
+        )
+    return Evaluation(
+        mode=plan.mode,
+        thresholds_reference=thresholds[0],
+        thresholds_deformed=thresholds[1],
+        phases_reference=tables[0],
+        phases_deformed=tables[1],
+        contrast=contrast,
+        phase_pair=pair,
+        edges=plan.edges,
+        options=dict(plan.options),
+        fields=results,
+        labels_reference=labels[0],
+        labels_deformed=labels[1],
+    )
+
+
 def evaluate_iter(
     reference: np.ndarray,
     deformed: np.ndarray,
@@ -420,146 +456,64 @@ def evaluate_iter(
     ValueError
         Bad thresholds, an empty phase, a field that does not fit the volume or holds NaN.
     """
+    from .accuracy_blocks import FieldAccumulator, field_block, field_partial
+    from .binning import node_voxels
     from .field_spline import FieldSpline
     from .interpolation import prefilter
     from .pair_checks import check_pair_and_fields
-    from .residual import moved_and_residual
+    from .warp import slab_boxes, spline_sampler
 
     reference = np.asanyarray(reference)
     deformed = np.asanyarray(deformed)
-    named = _named_fields(fields)
-    if mode not in ("reference", "loaded"):
-        raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
-    for name, item in named:
-        check_field_fits(item, reference.shape, name=f"field {name!r}")
-    check_pair_and_fields(reference, deformed, dict(named))  # finite volumes, recorded shape
+    plan = plan_evaluation(
+        fields, reference.shape, mode=mode, strain_measure=strain_measure,
+        strain_method=strain_method, strain_window=strain_window, n_bins=n_bins,
+        bin_edges=bin_edges, shared_background=shared_background, bin_by=bin_by,
+    )  # fmt: skip
+    check_pair_and_fields(reference, deformed, dict(plan.named))  # finite volumes, shape
 
     yield Progress("phases", 0, 2, "segmenting the phases")
     thresholds_g = phase_thresholds(reference, phases, n_phases, "reference volume")
     phases_f = phases if phases_deformed is None else phases_deformed
     thresholds_f = phase_thresholds(deformed, phases_f, n_phases, "deformed volume")
-    if thresholds_g.size != thresholds_f.size:
-        raise ValueError(
-            f"the reference has {thresholds_g.size + 1} phases and the deformed volume "
-            f"{thresholds_f.size + 1}: give both states the same number of thresholds"
-        )
+    check_same_phase_count(thresholds_g, thresholds_f)
     labels_g = segment_phases(reference, thresholds_g, "reference volume")
     labels_f = segment_phases(deformed, thresholds_f, "deformed volume")
-    table_g = phase_table(reference, labels_g, thresholds_g)
-    table_f = phase_table(deformed, labels_f, thresholds_f)
-    contrast, pair = phase_contrast(table_g, table_f, phase_pair)
+    tables = (
+        phase_table(reference, labels_g, thresholds_g),
+        phase_table(deformed, labels_f, thresholds_f),
+    )
+    phase_contrast(*tables, phase_pair)  # an undefined contrast fails before the residuals
     yield Progress("phases", 2, 2, "phases segmented")
 
-    strains = [
-        equivalent_strain_field(
-            item, measure=strain_measure, method=strain_method, window=strain_window
-        )
-        for _, item in named
-    ]
-    names = [name for name, _ in named]
-    if bin_by is not None and bin_by not in names:
-        raise ValueError(f"bin_by names no evaluated field: {bin_by!r} (fields: {names})")
-    binning = [
-        (item, strain)
-        if bin_by is None
-        else (named[names.index(bin_by)][1], strains[names.index(bin_by)])
-        for (_, item), strain in zip(named, strains)
-    ]
-    edges = (
-        strain_bin_edges([strain for _, strain in binning], n_bins)
-        if bin_edges is None
-        else np.asarray(bin_edges, dtype=np.float64)
-    )
-
     if mode == "reference":
-        coefficients = prefilter(deformed)
-        own_labels = labels_g
+        own, other, own_labels, other_thresholds = reference, deformed, labels_g, thresholds_f
     else:
-        coefficients = prefilter(reference)
-        own_labels = labels_f
+        own, other, own_labels, other_thresholds = deformed, reference, labels_f, thresholds_g
+    sampler = spline_sampler(prefilter(other))
 
     partial = []
-    for index, ((name, item), strain, (bin_field, bin_strain)) in enumerate(
-        zip(named, strains, binning)
-    ):
-        yield Progress("residual", index, len(named), f"gray residual of {name}")
+    for index, (name, item) in enumerate(plan.named):
+        yield Progress("residual", index, len(plan.named), f"gray residual of {name}")
         spline = FieldSpline.from_field(item)
-        if mode == "reference":
-            moved, residual = moved_and_residual(
-                reference, deformed, spline, "reference", deformed_coefficients=coefficients
-            )
-            mapped = label_phases(moved, thresholds_f)
-            positions = None
-        else:
-            moved, residual = moved_and_residual(
-                reference, deformed, spline, "loaded", reference_coefficients=coefficients
-            )
-            mapped = label_phases(moved, thresholds_g)
-
-            def positions(points, spline=spline):
-                return spline.invert(points)[0]
-
-        del moved
-        background = background_residual(residual, own_labels, mapped)
-        total, count = 0.0, 0
-        for zs in iter_slabs(residual.shape):
-            block = residual[zs]
-            finite = np.isfinite(block)
-            total += float(np.sum(block[finite], dtype=np.float64))
-            count += int(finite.sum())
-        bins = bin_residual_by_strain(residual, bin_strain, bin_field, edges, positions)
-        local = local_mean_residual(residual, item, region_half(item))
-        partial.append(
-            dict(
-                name=name,
-                field=item,
-                equivalent_strain=strain,
-                mean_residual=total / count if count else float("nan"),
-                voxels=count,
-                background=background,
-                bins=bins,
-                local_residual=local,
-                residual=residual if keep_volumes else None,
-                labels_mapped=mapped if keep_volumes else None,
-            )
-        )
-    yield Progress("residual", len(named), len(named), "residuals done")
-
-    shared = min(p["background"].mean for p in partial)
-    results = []
-    for p in partial:
-        r0 = shared if shared_background else p["background"].mean
-        local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
-        results.append(
-            FieldEvaluation(
-                **p,
-                local_accuracy=local_accuracy,
-                local_accuracy_index=honest_accuracy(local_accuracy),
-                background_used=r0,
-                accuracy=accuracy_index(p["mean_residual"], r0, contrast),
-                bin_accuracy=accuracy_index(p["bins"].mean_residual, r0, contrast),
-            )
-        )
-    return Evaluation(
-        mode=mode,
-        thresholds_reference=thresholds_g,
-        thresholds_deformed=thresholds_f,
-        phases_reference=table_g,
-        phases_deformed=table_f,
-        contrast=contrast,
-        phase_pair=pair,
-        edges=edges,
-        options={
-            "strain_measure": strain_measure,
-            "strain_method": strain_method,
-            "strain_window": int(strain_window),
-            "shared_background": bool(shared_background),
-            "bin_by": bin_by,
-        },
-        fields=results,
-        labels_reference=labels_g if keep_volumes else None,
-        labels_deformed=labels_f if keep_volumes else None,
-    )
+        totals = FieldAccumulator(item, plan.bin_fields[index])
+        centers, half = node_voxels(item, own.shape), region_half(item)
+        residual = np.empty(own.shape, np.float32) if keep_volumes else None
+        mapped = np.empty(own.shape, np.uint8) if keep_volumes else None
+        for z, box in slab_boxes(own.shape):
+            block, _, block_residual, block_mapped = field_block(
+                own[z], sampler, spline, box, mode, other_thresholds, own_labels[z],
+                plan.bin_fields[index], centers, half,
+            )  # fmt: skip
+            totals.add(block)
+            if keep_volumes:
+                residual[z], mapped[z] = block_residual, block_mapped
+        partial.append(field_partial(plan, index, totals, residual, mapped))
+    yield Progress("residual", len(plan.named), len(plan.named), "residuals done")
+    return assemble_evaluation(
+        plan, (thresholds_g, thresholds_f), tables, phase_pair, partial,
+        (labels_g, labels_f) if keep_volumes else (None, None),
+    )  # fmt: skip
 
 
 def evaluate_fields(reference, deformed, fields, **options) -> Evaluation:

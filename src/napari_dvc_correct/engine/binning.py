@@ -59,11 +59,156 @@ def strain_bin_edges(strains: Sequence[np.ndarray], n_bins: int = 10, upper=None
     return np.linspace(0.0, upper, int(n_bins) + 1)
 
 
+@dataclass
+class GridPart:
+    """Sums and counts over the sub-grid ``lo .. lo + sums.shape`` of a grid (one block's share)."""
+
+    lo: tuple
+    sums: np.ndarray
+    counts: np.ndarray
+
+    def add_to(self, sums: np.ndarray, counts: np.ndarray) -> None:
+        """Add this part into whole-grid ``sums`` (float64) and ``counts`` (int64), in place."""
+        if self.sums.size == 0:
+            return
+        where = tuple(slice(int(a), int(a) + n) for a, n in zip(self.lo, self.sums.shape))
+        sums[where] += self.sums
+        counts[where] += self.counts
+
+
+def _empty_part() -> GridPart:
+    return GridPart((0, 0, 0), np.zeros((0, 0, 0)), np.zeros((0, 0, 0), np.int64))
+
+
+def node_voxels(field: DisplacementField, volume_shape) -> tuple[np.ndarray, ...]:
+    """Per axis, the voxel nearest to each node (rounded, clipped into the volume), int64."""
+    return tuple(
+        np.clip(np.rint(c), 0, int(n) - 1).astype(np.int64)
+        for c, n in zip(field.axis_coordinates(), volume_shape)
+    )
+
+
+def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
+    """Sums and counts of the finite residual voxels of ``box`` in every node's ``(2M+1)^3`` box.
+
+    Parameters
+    ----------
+    residual : ndarray, shape box_shape(box), float
+        The residual on the voxels of ``box`` (NaN where undefined).
+    box : tuple of 3 slices
+        Where the block lies in the volume (voxels).
+    centers : tuple of 3 int arrays
+        Per axis, each node's voxel (:func:`node_voxels`); the grid is separable.
+    half : int
+        ``M``: node ``i``'s box spans ``centers[i] - M .. centers[i] + M``.
+
+    Returns
+    -------
+    GridPart
+        Over the nodes whose boxes meet the block; their sums (float64) and counts (int64) of
+        the block's share. Summed over blocks that tile a volume, the whole boxes (clipped at the
+        volume's borders).
+    """
+    half = int(half)
+    finite = np.isfinite(residual)
+    ranges, local = [], []
+    for s, c in zip(box, centers):
+        meets = np.flatnonzero((c + half >= s.start) & (c - half < s.stop))
+        if meets.size == 0:
+            return _empty_part()
+        ranges.append(meets)
+        low = np.clip(c[meets] - half - s.start, 0, s.stop - s.start)
+        high = np.clip(c[meets] + half + 1 - s.start, 0, s.stop - s.start)
+        local.append((low, high))
+    table = np.zeros(tuple(n + 1 for n in residual.shape))
+    table[1:, 1:, 1:] = (
+        np.where(finite, residual, 0.0).cumsum(0, dtype=np.float64).cumsum(1).cumsum(2)
+    )
+    counts = np.zeros(table.shape, np.int64)
+    counts[1:, 1:, 1:] = finite.cumsum(0, dtype=np.int64).cumsum(1).cumsum(2)
+
+    def box_total(values):
+        total = 0
+        for corner in range(8):
+            picks = [local[a][(corner >> (2 - a)) & 1] for a in range(3)]
+            sign = (-1) ** (3 - sum((corner >> (2 - a)) & 1 for a in range(3)))
+            total = total + sign * values[np.ix_(*picks)]
+        return total
+
+    lo = tuple(int(r[0]) for r in ranges)
+    # the nodes meeting the block form an index range per axis (centres increase with the index)
+    return GridPart(lo, box_total(table), box_total(counts))
+
+
 def _cell_index(coords: np.ndarray, origin: float, step: float, n: int):
     """Nearest node index along one axis, and whether ``coords`` lie in the grid's cells."""
     position = (coords - origin) / step + 0.5  # cell k spans [k - 1/2, k + 1/2) steps
     inside = (position >= 0.0) & (position < n)
     return np.clip(np.floor(position), 0, n - 1).astype(np.int64), inside
+
+
+def cell_sums_block(
+    residual: np.ndarray, box, field: DisplacementField, positions: np.ndarray | None = None
+):
+    """Residual sum and voxel count per node cell from one block of voxels.
+
+    Parameters
+    ----------
+    residual : ndarray, shape of ``box``, float
+        The residual on the voxels of ``box`` (NaN voxels are skipped).
+    box : tuple of 3 slices
+        Where the block lies in the volume (voxels).
+    field : DisplacementField
+        Supplies the grid (origin, step, shape).
+    positions : ndarray, shape (N, 3), optional
+        Reference positions of the block's voxels in C order (for a residual in the loaded
+        state); default the voxel positions themselves.
+
+    Returns
+    -------
+    GridPart
+        Sums (float64) and counts (int64) over the cells the block reaches.
+    """
+    grid = field.shape
+    origin, step = field.origin, field.step
+    r = np.asarray(residual, dtype=np.float64)
+    if positions is None:
+        index, inside = [], []
+        for a, s in enumerate(box):
+            coords = np.arange(s.start, s.stop, dtype=np.float64)
+            i, o = _cell_index(coords, origin[a], step[a], grid[a])
+            index.append(i)
+            inside.append(o)
+        keep = (
+            inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+        ) & np.isfinite(r)
+        if not keep.any():
+            return _empty_part()
+        lo = [int(i[o].min()) for i, o in zip(index, inside)]
+        hi = [int(i[o].max()) + 1 for i, o in zip(index, inside)]
+        shape = [h - lo_ for lo_, h in zip(lo, hi)]
+        local = [np.clip(i - lo_, 0, n - 1) for i, lo_, n in zip(index, lo, shape)]
+        flat = (local[0][:, None, None] * shape[1] + local[1][None, :, None]) * shape[2] + local[2][
+            None, None, :
+        ]
+        flat = np.broadcast_to(flat, r.shape)
+    else:
+        mapped = np.asarray(positions, dtype=np.float64)
+        index = [_cell_index(mapped[:, a], origin[a], step[a], grid[a]) for a in range(3)]
+        inside = (index[0][1] & index[1][1] & index[2][1]).reshape(r.shape)
+        keep = inside & np.isfinite(r)
+        if not keep.any():
+            return _empty_part()
+        kept = keep.reshape(-1)
+        lo = [int(i[kept].min()) for i, _ in index]
+        hi = [int(i[kept].max()) + 1 for i, _ in index]
+        shape = [h - lo_ for lo_, h in zip(lo, hi)]
+        local = [np.clip(i - lo_, 0, n - 1) for (i, _), lo_, n in zip(index, lo, shape)]
+        flat = ((local[0] * shape[1] + local[1]) * shape[2] + local[2]).reshape(r.shape)
+    n_cells = int(np.prod(shape))
+    sums = np.bincount(flat[keep], weights=r[keep], minlength=n_cells).reshape(shape)
+    counts = np.bincount(flat[keep], minlength=n_cells).astype(np.int64).reshape(shape)
+    return GridPart(tuple(lo), sums, counts)
 
 
 def cell_sums(
@@ -88,35 +233,18 @@ def cell_sums(
     sums : ndarray, shape grid, float64
     counts : ndarray, shape grid, int64
     """
-    grid = field.shape
-    n_cells = int(np.prod(grid))
-    sums = np.zeros(n_cells)
-    counts = np.zeros(n_cells, np.int64)
-    origin, step = field.origin, field.step
+    sums = np.zeros(field.shape)
+    counts = np.zeros(field.shape, np.int64)
     for zs in iter_slabs(residual.shape):
-        r = np.asarray(residual[zs], dtype=np.float64)
-        if reference_positions is None:
-            z = np.arange(zs.start, zs.stop, dtype=np.float64)
-            iz, oz = _cell_index(z, origin[0], step[0], grid[0])
-            iy, oy = _cell_index(
-                np.arange(r.shape[1], dtype=np.float64), origin[1], step[1], grid[1]
-            )
-            ix, ox = _cell_index(
-                np.arange(r.shape[2], dtype=np.float64), origin[2], step[2], grid[2]
-            )
-            flat = (iz[:, None, None] * grid[1] + iy[None, :, None]) * grid[2] + ix[None, None, :]
-            keep = oz[:, None, None] & oy[None, :, None] & ox[None, None, :] & np.isfinite(r)
-        else:
-            positions = np.indices(r.shape, dtype=np.float64).reshape(3, -1).T
-            positions[:, 0] += zs.start
-            mapped = np.asarray(reference_positions(positions), dtype=np.float64)
-            index = [_cell_index(mapped[:, a], origin[a], step[a], grid[a]) for a in range(3)]
-            flat = ((index[0][0] * grid[1] + index[1][0]) * grid[2] + index[2][0]).reshape(r.shape)
-            inside = (index[0][1] & index[1][1] & index[2][1]).reshape(r.shape)
-            keep = inside & np.isfinite(r)
-        sums += np.bincount(flat[keep], weights=r[keep], minlength=n_cells)
-        counts += np.bincount(flat[keep], minlength=n_cells)
-    return sums.reshape(grid), counts.reshape(grid)
+        box = (zs, slice(0, residual.shape[1]), slice(0, residual.shape[2]))
+        positions = None
+        if reference_positions is not None:
+            r_shape = (zs.stop - zs.start, residual.shape[1], residual.shape[2])
+            points = np.indices(r_shape, dtype=np.float64).reshape(3, -1).T
+            points[:, 0] += zs.start
+            positions = reference_positions(points)
+        cell_sums_block(np.asarray(residual[zs]), box, field, positions).add_to(sums, counts)
+    return sums, counts
 
 
 def bin_cells_by_strain(

@@ -224,6 +224,7 @@ def correlate_iter(
     rigid_shift=None,
     device="cpu",
     texture_std=None,
+    grid_anchor=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -249,6 +250,12 @@ def correlate_iter(
         Gray standard deviation of the whole reference volume (inside the mask) binned by each
         pyramid factor ``1, 2, 4...``, for the low-texture test, when these volumes are a region
         of larger ones (:mod:`.tiled`). Default: computed from these volumes.
+    grid_anchor : (offset, whole_shape), optional
+        When ``grid`` is a box of a larger POI grid (a batch of :mod:`.tiled`): the whole-grid
+        index ``(z, y, x)`` of its first POI and the whole grid's shape, so that the seeds of the
+        initial guess are the whole grid's (:func:`.guided_repair.seed_axes`) and the batch
+        computes what the in-memory run computes for its POIs. Default: ``grid`` is the whole
+        grid.
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.
@@ -338,7 +345,14 @@ def correlate_iter(
             if guess_params is None:
                 coarse_radius = int(np.ceil(radius / 2**lev)) + (1 if lev else 0)
                 guess_params = seed_guesses(
-                    level, level_centers, grid_shape, shift / 2**lev, coarse_radius, order, params
+                    level,
+                    level_centers,
+                    grid_shape,
+                    shift / 2**lev,
+                    coarse_radius,
+                    order,
+                    params,
+                    anchor=grid_anchor,
                 )
                 yield Progress("initial guess", 1, levels + 2, f"seeds matched (level {lev})")
             if lev == 0:
@@ -478,6 +492,7 @@ def correlate(
     rigid_shift=None,
     device="cpu",
     texture_std=None,
+    grid_anchor=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -491,5 +506,6 @@ def correlate(
             rigid_shift=rigid_shift,
             device=device,
             texture_std=texture_std,
+            grid_anchor=grid_anchor,
         )
     )

@@ -123,14 +123,90 @@ def repair(
     return int(bad.sum())
 
 
-def seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
+def _whole_seed_axis(total, stride):
+    """Seed indices along one axis of the whole grid: every ``stride`` POIs and the last."""
+    return np.unique(np.r_[np.arange(0, int(total), stride), int(total) - 1])
+
+
+def seed_axes(grid_shape, stride, anchor=None):
+    """Indices of the seed POIs along each axis of a POI grid, laid out on the whole grid.
+
+    Seeds sit at whole-grid indices ``0, stride, 2·stride…`` and at the whole grid's last index.
+    ``anchor`` is ``(offset, whole_shape)`` when the grid is the box of a larger grid that starts
+    at whole-grid index ``offset`` (a batch of :mod:`..tiled`); the seeds are then those of the
+    whole grid that fall in the box, so every batch uses the in-memory run's seeds. Default: the
+    grid is the whole grid.
+
+    Returns
+    -------
+    list of 3 int ndarrays
+        Local indices (into ``grid_shape``), increasing; an axis may be empty in a box narrower
+        than ``stride``.
+    """
+    offset, whole = ((0, 0, 0), grid_shape) if anchor is None else anchor
+    axes = []
+    for n, first, total in zip(grid_shape, offset, whole):
+        first, total = int(first), int(total)
+        if not (0 <= first and first + int(n) <= total):
+            raise ValueError(f"grid box at {offset} of shape {grid_shape} exceeds the grid {whole}")
+        index = _whole_seed_axis(total, stride) - first
+        axes.append(index[(index >= 0) & (index < n)])
+    return axes
+
+
+def _testable_seeds(axes, grid_shape, stride, anchor):
+    """Seeds whose median test (:func:`neighbour_outliers` on the seeds' sub-grid) sees in the
+    box what it sees in the whole grid, and the whole grid's number of seeds.
+
+    The test of a seed reads its 26 neighbours on the seeds' sub-grid, or the values extrapolated
+    from the two next seeds where the whole grid ends (:func:`.cleaning.normalized_median_test`):
+    a seed at a face of the box that is not a face of the whole grid lacks neighbours there.
+
+    Returns
+    -------
+    testable : ndarray of bool, shape (n_seeds,)
+        C order of the seeds' sub-grid.
+    whole_count : int
+    """
+    offset, whole = ((0, 0, 0), grid_shape) if anchor is None else anchor
+    per_axis = []
+    whole_count = 1
+    for index, first, total in zip(axes, offset, whole):
+        full = _whole_seed_axis(total, stride)
+        whole_count *= len(full)
+        m = len(index)
+        ok = np.ones(m, bool)
+        complete = m >= 3 or m == len(full)  # the border's extrapolation reads two more seeds
+        if m and not (index[0] + first == full[0] and complete):
+            ok[0] = False
+        if m and not (index[-1] + first == full[-1] and complete):
+            ok[-1] = False
+        per_axis.append(ok)
+    testable = per_axis[0][:, None, None] & per_axis[1][None, :, None] & per_axis[2][None, None, :]
+    return testable.reshape(-1), whole_count
+
+
+def seed_guesses(level, centers, grid_shape, shift, radius, order, settings, anchor=None):
     """Initial warps for every POI from an FFT search at a sparse set of seed POIs.
 
-    Seeds sit on a sub-grid about one subvolume apart. Each is searched by FFT cross-correlation
+    Seeds sit on a sub-grid about one subvolume apart (:func:`seed_axes`; ``anchor`` places a
+    box of a larger grid on the whole grid's seeds). Each is searched by FFT cross-correlation
     within ``radius`` around the rigid ``shift`` and refined by IC-GN; seeds that fail, correlate
     poorly or disagree with the other seeds are dropped, and every POI receives the affine warp of
     its nearest good seed carried to its position. Falls back to searching every POI when no seed
     survives.
+
+    In a box with ``anchor``, a POI gets the in-memory run's guess when its nearest good seed
+    lies in the box (the nearest-seed search, :func:`scipy.ndimage.distance_transform_edt`,
+    breaks ties the same way in the box as in the whole grid) and the seeds near it are judged as
+    in memory: the median test judges the seeds whose neighbour seeds are all in the box (or
+    beyond the whole grid's border); seeds at the box's other faces are kept untested, so they
+    differ from the in-memory run only where it rejects them as outliers. A box whose margin
+    reaches ``stride // 2`` POIs beyond its own POIs (one POI for a stride of 2 or 3) thus
+    reproduces the in-memory guesses of its own POIs wherever the seeds near them converge and
+    none is an outlier; where seeds fail, the nearest good seed is farther away and the margin
+    must reach it. A box without any good seed falls back to searching all its POIs, which the
+    in-memory run does only when no seed of the whole grid is good.
 
     Returns
     -------
@@ -138,7 +214,7 @@ def seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
         Shape-function parameters at ``level`` (voxels of that level).
     """
     stride = max(1, int(round(settings.subvolume / settings.step)))
-    axes = [np.unique(np.r_[np.arange(0, n, stride), n - 1]) for n in grid_shape]
+    axes = seed_axes(grid_shape, stride, anchor)
     seed_grid = np.zeros(grid_shape, bool)
     seed_grid[np.ix_(*axes)] = True
     seeds = np.flatnonzero(seed_grid)
@@ -159,10 +235,14 @@ def seed_guesses(level, centers, grid_shape, shift, radius, order, settings):
     seed_params = np.ascontiguousarray(search(seeds))
     zncc, status, _ = level.match(centers[seeds], seed_params, order, settings)
     good = is_good(status, zncc, settings.min_zncc)
-    if good.sum() >= settings.median_test_min_pois:
+    testable, whole_count = _testable_seeds(axes, grid_shape, stride, anchor)
+    # in a box: the whole grid's count of seeds stands for its count of good ones (unknown here)
+    enough = good.sum() if anchor is None else whole_count * bool(good.any())
+    if enough >= settings.median_test_min_pois:
         seed_u = np.full((*[len(a) for a in axes], 3), np.nan)
         seed_u.reshape(-1, 3)[:] = shape_function.params_to_displacement(seed_params, order)[0]
-        good &= ~neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
+        outliers = neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
+        good &= ~(outliers & testable)  # a seed at a face of the box is kept untested
     if not good.any():
         return np.ascontiguousarray(search(np.arange(n_points)))
     good_grid = np.zeros(grid_shape, bool)

@@ -109,7 +109,9 @@ def fft_search(
 
     The ZNCC of every shift is computed at once per POI: the numerator by FFT cross-correlation,
     the deformed windows' sums and sums of squares by cumulative sums. POIs are processed in
-    batches of stacked FFTs.
+    batches of stacked FFTs. Where a POI's search window leaves the volume, the part beyond is
+    filled with the mean gray value of its part inside (a local value, so a region of the volume
+    holding the window gives the same answer as the whole volume).
 
     Parameters
     ----------
@@ -136,7 +138,6 @@ def fft_search(
     edge = 2 * half + 1
     span = edge + 2 * radius
     n_shifts = 2 * radius + 1
-    fill = float(np.mean(deformed[:: max(1, deformed.shape[0] // 16)]))
     shape = np.array(deformed.shape)
     guesses = np.rint(guesses).astype(np.int64)
     out = np.zeros((len(centers), 3))
@@ -157,18 +158,23 @@ def fft_search(
             if np.all(low >= 0) and np.all(high <= shape):
                 regions[row] = deformed[low[0] : high[0], low[1] : high[1], low[2] : high[2]]
                 continue
-            regions[row] = fill
+            # beyond the volume: the mean of the window's part inside it (a local value, so a
+            # region of the volume (tiled batches) fills as the whole volume does)
             src_low = np.maximum(low, 0)
             src_high = np.minimum(high, shape)
             if np.all(src_high > src_low):
+                inside = deformed[
+                    src_low[0] : src_high[0], src_low[1] : src_high[1], src_low[2] : src_high[2]
+                ]
+                regions[row] = float(np.mean(inside, dtype=np.float64))
                 regions[
                     row,
                     src_low[0] - low[0] : src_high[0] - low[0],
                     src_low[1] - low[1] : src_high[1] - low[1],
                     src_low[2] - low[2] : src_high[2] - low[2],
-                ] = deformed[
-                    src_low[0] : src_high[0], src_low[1] : src_high[1], src_low[2] : src_high[2]
-                ]
+                ] = inside
+            else:
+                regions[row] = float(np.mean(subs[row]))
         subs -= subs.mean(axis=(1, 2, 3), keepdims=True)
         norm_sub = np.sqrt(np.sum(subs * subs, axis=(1, 2, 3)))
         spectrum = sfft.rfftn(regions, s=fft_shape, axes=(1, 2, 3), workers=-1)

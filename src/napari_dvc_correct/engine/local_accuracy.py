@@ -11,7 +11,6 @@ gives every field both.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from .field import DisplacementField
 
@@ -36,18 +35,25 @@ def local_mean_residual(residual: np.ndarray, field: DisplacementField, half: in
     ndarray, shape field.shape, float64
         Mean of the finite residual voxels of each node's box, gray levels; NaN where the box
         holds none.
+
+    Notes
+    -----
+    Computed slab by slab from integral images in float64 (:func:`.binning.node_box_sums`, the
+    code tiled evaluation runs block by block).
     """
-    residual = np.asarray(residual, dtype=np.float32)
-    finite = np.isfinite(residual)
-    size = 2 * int(half) + 1
-    sums = ndimage.uniform_filter(np.where(finite, residual, np.float32(0)), size, mode="constant")
-    counts = ndimage.uniform_filter(finite.astype(np.float32), size, mode="constant")
-    index = np.rint(field.points).astype(np.intp)
-    index = tuple(np.clip(index[:, a], 0, residual.shape[a] - 1) for a in range(3))
-    total, count = sums[index].astype(np.float64), counts[index].astype(np.float64)
+    from .binning import node_box_sums, node_voxels
+    from .slabs import iter_slabs
+
+    shape = np.shape(residual)
+    centers = node_voxels(field, shape)
+    sums = np.zeros(field.shape)
+    counts = np.zeros(field.shape, np.int64)
+    for zs in iter_slabs(shape):
+        box = (zs, slice(0, shape[1]), slice(0, shape[2]))
+        part = node_box_sums(np.asarray(residual[zs], np.float32), box, centers, half)
+        part.add_to(sums, counts)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count > 0.5 / size**3, total / count, np.nan)
-    return mean.reshape(field.shape)
+        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
 
 
 def local_accuracy_map(local_residual: np.ndarray, background, contrast: float) -> np.ndarray:

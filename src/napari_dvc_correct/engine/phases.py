@@ -55,12 +55,37 @@ def auto_thresholds(volume: np.ndarray, n_phases: int = 2) -> np.ndarray:
     -------
     ndarray, shape (n_phases - 1,), float64, increasing
     """
-    from skimage.filters import threshold_multiotsu
-
     volume = _check_volume(volume, "volume")
     n_phases = _check_n_phases(n_phases)
-    stride = max(1, int(np.ceil((volume.size / OTSU_SAMPLES) ** (1.0 / 3.0))))
-    sample = np.asarray(volume[::stride, ::stride, ::stride], dtype=np.float64).ravel()
+    stride = otsu_stride(volume.shape)
+    return otsu_thresholds(np.asarray(volume[::stride, ::stride, ::stride]).ravel(), n_phases)
+
+
+def otsu_stride(shape) -> int:
+    """Stride of the regular lattice that :func:`auto_thresholds` samples (<= OTSU_SAMPLES voxels)."""
+    size = float(np.prod([int(n) for n in shape]))
+    return max(1, int(np.ceil((size / OTSU_SAMPLES) ** (1.0 / 3.0))))
+
+
+def lattice_sample(block: np.ndarray, box, stride: int) -> np.ndarray:
+    """The voxels of ``block`` (at ``box`` in the volume) on the lattice ``volume[::s, ::s, ::s]``.
+
+    Concatenated over blocks that tile the volume, the same values as the whole volume's
+    lattice (in another order, which a histogram ignores). Returns a 1-D array, block's dtype.
+    """
+    picks = tuple(slice((-int(s.start)) % int(stride), None, int(stride)) for s in box)
+    return np.asarray(block)[picks].ravel()
+
+
+def otsu_thresholds(sample: np.ndarray, n_phases: int = 2) -> np.ndarray:
+    """Multi-Otsu thresholds of a gray sample (a 256-bin histogram over the sample's range).
+
+    Each threshold is the upper edge of its histogram bin (see :func:`auto_thresholds`).
+    """
+    from skimage.filters import threshold_multiotsu
+
+    n_phases = _check_n_phases(n_phases)
+    sample = np.asarray(sample, dtype=np.float64).ravel()
     sample = sample[np.isfinite(sample)]
     if sample.size == 0 or sample.min() == sample.max():
         raise ValueError("the volume has a single gray value: it cannot be split into phases")
@@ -202,18 +227,10 @@ def segment_phases(volume: np.ndarray, thresholds, name: str = "volume") -> np.n
     if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
         raise ValueError(f"gray thresholds must be strictly increasing, got {thresholds!r}")
     labels = label_phases(volume, values)
-    counts = np.zeros(NO_PHASE + 1, np.int64)
+    totals = PhaseTotals(values.size + 1)
     for zs in iter_slabs(volume.shape):
-        counts += np.bincount(labels[zs].ravel(), minlength=NO_PHASE + 1)
-    empty = np.flatnonzero(counts[: values.size + 1] == 0)
-    if empty.size:
-        phase = int(empty[0])
-        low = "-inf" if phase == 0 else f"{values[phase - 1]:g}"
-        high = "+inf" if phase == values.size else f"{values[phase]:g}"
-        raise ValueError(
-            f"phase {phase} (gray {low} .. {high}) has no voxel in the {name}: move the "
-            "thresholds or ask for fewer phases"
-        )
+        totals.counts += np.bincount(labels[zs].ravel(), minlength=NO_PHASE + 1)
+    totals.check_nonempty(values, name)
     return labels
 
 
@@ -244,6 +261,69 @@ class PhaseStats:
     fraction: float
 
 
+class PhaseTotals:
+    """Per-phase gray sums and voxel counts and the gray range of one state, block by block.
+
+    ``add`` a block's grays with its labels, ``merge`` another's totals; :meth:`table` gives
+    :func:`phase_table`'s rows and :meth:`check_nonempty` :func:`segment_phases`' check.
+    """
+
+    def __init__(self, n_phases: int) -> None:
+        self.n = int(n_phases)
+        self.sums = np.zeros(self.n)
+        self.counts = np.zeros(NO_PHASE + 1, np.int64)
+        self.low, self.high = np.inf, -np.inf
+
+    def add(self, gray: np.ndarray, labels: np.ndarray) -> PhaseTotals:
+        lab = np.asarray(labels).ravel()
+        values = np.asarray(gray, dtype=np.float64).ravel()
+        self.sums += np.bincount(lab, weights=values, minlength=self.n)[: self.n]
+        self.counts += np.bincount(lab, minlength=NO_PHASE + 1)[: NO_PHASE + 1]
+        finite = values[np.isfinite(values)]
+        if finite.size:
+            self.low = min(self.low, float(finite.min()))
+            self.high = max(self.high, float(finite.max()))
+        return self
+
+    def merge(self, other: PhaseTotals) -> PhaseTotals:
+        self.sums += other.sums
+        self.counts += other.counts
+        self.low, self.high = min(self.low, other.low), max(self.high, other.high)
+        return self
+
+    def check_nonempty(self, thresholds, name: str = "volume") -> None:
+        """Raise ``ValueError`` naming the first phase with no voxel."""
+        values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
+        empty = np.flatnonzero(self.counts[: values.size + 1] == 0)
+        if empty.size:
+            phase = int(empty[0])
+            low = "-inf" if phase == 0 else f"{values[phase - 1]:g}"
+            high = "+inf" if phase == values.size else f"{values[phase]:g}"
+            raise ValueError(
+                f"phase {phase} (gray {low} .. {high}) has no voxel in the {name}: move the "
+                "thresholds or ask for fewer phases"
+            )
+
+    def table(self, thresholds) -> list[PhaseStats]:
+        """Table 1 rows of this state (see :func:`phase_table`)."""
+        values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
+        n = self.n
+        counts = self.counts[:n]
+        bounds = [self.low, *values.tolist(), self.high]
+        total = max(1, int(counts.sum()))
+        return [
+            PhaseStats(
+                phase=k,
+                lower=float(bounds[k]),
+                upper=float(bounds[k + 1]),
+                mean_gray=float(self.sums[k] / counts[k]) if counts[k] else float("nan"),
+                voxels=int(counts[k]),
+                fraction=float(counts[k] / total),
+            )
+            for k in range(n)
+        ]
+
+
 def phase_table(volume: np.ndarray, labels: np.ndarray, thresholds) -> list[PhaseStats]:
     """Gray range, mean gray and size of each phase (paper Table 1, one state).
 
@@ -261,27 +341,9 @@ def phase_table(volume: np.ndarray, labels: np.ndarray, thresholds) -> list[Phas
     list of PhaseStats, one per phase, in label order.
     """
     values = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
-    n = values.size + 1
     if labels.shape != volume.shape:
         raise ValueError(f"labels {labels.shape} and volume {volume.shape} differ in shape")
-    sums = np.zeros(n)
-    counts = np.zeros(n, np.int64)
+    totals = PhaseTotals(values.size + 1)
     for zs in iter_slabs(volume.shape):
-        lab = np.asarray(labels[zs]).ravel()
-        gray = np.asarray(volume[zs], dtype=np.float64).ravel()
-        sums += np.bincount(lab, weights=gray, minlength=n)[:n]
-        counts += np.bincount(lab, minlength=n)[:n]
-    low, high = gray_range(volume)
-    bounds = [low, *values.tolist(), high]
-    total = max(1, int(counts.sum()))
-    return [
-        PhaseStats(
-            phase=k,
-            lower=float(bounds[k]),
-            upper=float(bounds[k + 1]),
-            mean_gray=float(sums[k] / counts[k]) if counts[k] else float("nan"),
-            voxels=int(counts[k]),
-            fraction=float(counts[k] / total),
-        )
-        for k in range(n)
-    ]
+        totals.add(volume[zs], labels[zs])
+    return totals.table(values)

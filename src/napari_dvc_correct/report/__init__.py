@@ -47,6 +47,14 @@ def _stems(evaluation: Evaluation) -> list[str]:
     return unique_names([file_stem(item.name) for item in evaluation.fields])
 
 
+def _written_at(volume, target: Path) -> bool:
+    """True for a lazy volume that is the file ``target`` already (tiled evaluation wrote it)."""
+    path = getattr(volume, "path", None)
+    if isinstance(volume, np.ndarray) or path is None or not target.exists():
+        return False
+    return os.path.samefile(path, target)
+
+
 def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Path]:
     """Write the residual, label and strain volumes of an evaluation as TIFF stacks.
 
@@ -66,7 +74,8 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
     ):
         if labels is not None:
             target = out_dir / f"labels_{state}.tif"
-            export_volume_tiff(labels, target, description={"quantity": f"phases, {state}"})
+            if not _written_at(labels, target):
+                export_volume_tiff(labels, target, description={"quantity": f"phases, {state}"})
             written.append(target)
     for stem, item in zip(_stems(evaluation), evaluation.fields):
         for prefix, volume, quantity in (
@@ -75,9 +84,10 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
         ):
             if volume is not None:
                 target = out_dir / f"{prefix}_{stem}.tif"
-                export_volume_tiff(
-                    volume, target, description={"quantity": quantity, "field": item.name}
-                )
+                if not _written_at(volume, target):
+                    export_volume_tiff(
+                        volume, target, description={"quantity": quantity, "field": item.name}
+                    )
                 written.append(target)
         target = out_dir / f"equivalent_strain_{stem}.tif"
         export_volume_tiff(

@@ -80,13 +80,33 @@ def plot_accuracy_vs_strain(evaluation: Evaluation, path: str | os.PathLike) -> 
     return _save(figure, path)
 
 
-def _middle_slices(volume: np.ndarray) -> list[tuple[str, np.ndarray]]:
+def _middle_slices(volume) -> list[tuple[str, np.ndarray]]:
+    """The three middle planes of an array or a lazy volume (only they are read)."""
     nz, ny, nx = volume.shape
     return [
-        (f"z = {nz // 2}", volume[nz // 2]),
-        (f"y = {ny // 2}", volume[:, ny // 2, :]),
-        (f"x = {nx // 2}", volume[:, :, nx // 2]),
+        (f"z = {nz // 2}", np.asarray(volume[nz // 2 : nz // 2 + 1, :, :])[0]),
+        (f"y = {ny // 2}", np.asarray(volume[:, ny // 2 : ny // 2 + 1, :])[:, 0, :]),
+        (f"x = {nx // 2}", np.asarray(volume[:, :, nx // 2 : nx // 2 + 1])[:, :, 0]),
     ]
+
+
+def _finite_sample(volume, most: int = 2_000_000) -> np.ndarray:
+    """Every ``k``-th finite value of an array or a lazy volume in C order (at most ~``most``).
+
+    Read slab by slab, twice (count, then take), so a residual on disk is never loaded whole.
+    """
+    from ..engine.slabs import iter_slabs
+
+    slabs = list(iter_slabs(volume.shape))
+    counts = [int(np.count_nonzero(np.isfinite(np.asarray(volume[zs])))) for zs in slabs]
+    stride = max(1, sum(counts) // most)
+    parts, offset = [], 0
+    for zs, count in zip(slabs, counts):
+        values = np.asarray(volume[zs])
+        values = values[np.isfinite(values)]
+        parts.append(values[(-offset) % stride :: stride])
+        offset += count
+    return np.concatenate(parts) if parts else np.zeros(0, np.float32)
 
 
 def plot_residual_slices(evaluation: Evaluation, path: str | os.PathLike) -> Path | None:
@@ -123,9 +143,7 @@ def plot_residual_histogram(evaluation: Evaluation, path: str | os.PathLike) -> 
         return None
     samples = []
     for item in items:
-        values = item.residual[np.isfinite(item.residual)]
-        stride = max(1, values.size // 2_000_000)
-        samples.append(values[::stride])
+        samples.append(_finite_sample(item.residual))
     top = float(np.percentile(np.concatenate(samples), 99.5)) if samples else 1.0
     bins = np.linspace(0.0, max(top, 1e-6), 80)
     figure = _figure(6.4, 4.0)

@@ -2,12 +2,15 @@
 
 * :mod:`.correlate`: :func:`correlate_tiled` — the in-memory :func:`..engine.correlate.correlate`
   batch by batch on lazily read volumes, equal to it within the IC-GN tolerance;
+* :mod:`.evaluation`: :func:`evaluate_tiled` — the in-memory accuracy evaluation block by block,
+  equal to it to float32 rounding;
 * :mod:`.volumes`: dense fields, warps, residuals and strain written block by block to Zarr/TIFF;
 * :mod:`.memory`: halos, region sizes, the peak-memory estimate and refusal;
 * :mod:`.scheduling`: dask's local threads or a ``dask.distributed`` cluster.
 """
 
 from .correlate import correlate_tiled, correlate_tiled_iter
+from .evaluation import evaluate_tiled, evaluate_tiled_iter
 from .memory import MemoryBudgetError, choose_batch_shape, estimate_peak_memory
 
 __all__ = [
@@ -16,4 +19,6 @@ __all__ = [
     "correlate_tiled",
     "correlate_tiled_iter",
     "estimate_peak_memory",
+    "evaluate_tiled",
+    "evaluate_tiled_iter",
 ]

@@ -13,8 +13,12 @@
    :func:`.correlate.correlate_iter` on it — the same pyramid, integer search, IC-GN and
    reliability-guided repair as in memory — with the whole volume's rigid shift and gray
    statistics (``rigid_shift``, ``texture_std``), on its POIs — plus, optionally, ``margin``
-   layers of neighbouring POIs so that the repair and the median test see at the batch's border
-   the neighbours they see in memory (only the batch's own POIs are kept).
+   layers of neighbouring POIs so that the initial guess, the repair and the median test see at
+   the batch's border the neighbours they see in memory (only the batch's own POIs are kept).
+   The seeds of the initial guess are the whole grid's (``grid_anchor``,
+   :func:`..engine.guided_repair.seed_axes`), so a batch whose margin reaches the nearest good
+   seed of each of its POIs (``round(subvolume / step) // 2`` POIs where the seeds near it
+   converge) gives those POIs the in-memory field, to float rounding.
 3. The batches' results are assembled into one field.
 
 The halo around a batch's POIs (per side, in voxels) covers the subvolume half-size widened by
@@ -84,6 +88,7 @@ class BatchJob:
     threads: int | None = None
     use_mask: bool = False
     device: str = "cpu"
+    grid_anchor: tuple | None = None  # (whole-grid index of the sub-grid's first POI, grid shape)
 
     @property
     def region_voxels(self) -> int:
@@ -150,6 +155,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
                 rigid_shift=job.shift,
                 texture_std=job.texture_std,
                 device=job.device,
+                grid_anchor=job.grid_anchor,
             )
         )
     del g, f, m
@@ -241,6 +247,7 @@ def _make_jobs(batches, params, shape, grid, levels, whole, margin, initial, opt
                 texture_std=whole.texture_std,
                 initial_u=initial_u,
                 initial_gradient=initial_gradient,
+                grid_anchor=(tuple(a for a, _ in ext), tuple(grid_shape)),
                 **options,
             )
         )
@@ -292,8 +299,9 @@ def correlate_tiled_iter(
         ``"tcp://10.0.0.5:8786"``); or a ``distributed.Client``.
     margin : int
         Layers of neighbouring POIs matched with each batch (and then dropped) so that the
-        reliability-guided repair and the median test see, at the batch's border, the neighbours
-        they see in memory. Costs ``((b + 2m) / b)³`` times the work for batches of ``b³`` POIs
+        initial guess (the nearest good seed), the reliability-guided repair and the median test
+        see, at the batch's border, the neighbours they see in memory; then the batch's POIs get
+        the in-memory field. Costs ``((b + 2m) / b)³`` times the work for batches of ``b³`` POIs
         (2.1 for 7³ batches and a margin of 1); 0 (default) matches every POI once.
     device : {"cpu", "cuda", "auto"}
         Where each batch's IC-GN runs (see :func:`.correlate.correlate_iter`); on a cluster, on
