@@ -37,6 +37,7 @@ from .field_spline_kernels import (
     _eval_points,
     _invert_points,
     extend_coefficients,
+    hull_bounds,
 )
 from .inverse_lattice import LatticeInverse, invert_lattice
 from .slabs import iter_slabs
@@ -368,6 +369,10 @@ def check_shape(shape) -> tuple[int, int, int]:
 
 
 def inside_hull(spline: FieldSpline, points: np.ndarray) -> np.ndarray:
-    """True for positions ``(N, 3)`` inside the box spanned by the spline's grid nodes."""
-    t = (points - spline.origin) / spline.step
-    return np.all((t >= -HULL_TOLERANCE) & (t <= spline.grid_shape - 1 + HULL_TOLERANCE), axis=1)
+    """True for positions ``(N, 3)`` inside the box spanned by the spline's grid nodes.
+
+    The box is widened by :data:`HULL_TOLERANCE` grid units (:func:`hull_bounds`), as in the
+    lattice inverse's kernels.
+    """
+    low, high = hull_bounds(spline)
+    return np.all((points >= low) & (points <= high), axis=1)

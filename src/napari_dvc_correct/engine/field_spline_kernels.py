@@ -18,6 +18,13 @@ from .interpolation import _mirror, bspline_derivative_weights, bspline_weights
 HULL_TOLERANCE = 1e-6
 
 
+def hull_bounds(spline) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest and highest positions ``(z, y, x)`` (voxels) of a spline's hull, tolerance included."""
+    low = spline.origin - HULL_TOLERANCE * spline.step
+    high = spline.origin + (spline.grid_shape - 1 + HULL_TOLERANCE) * spline.step
+    return low, high
+
+
 # ----------------------------------------------------------------------------------
 @njit(inline="always", **KERNEL_OPTIONS)
 def _clamp(value, low, high):

@@ -40,7 +40,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
-from .field_spline_kernels import HULL_TOLERANCE, _eval_one, newton_inverse
+from .field_spline_kernels import _eval_one, hull_bounds, newton_inverse
 
 #: A cell passes when its centre's interpolation error is below ``accuracy / CHECK_SAFETY``.
 CHECK_SAFETY = 2.0
@@ -351,7 +351,8 @@ def _combine(ok, gain, bad, fail):
 @njit(parallel=True, **KERNEL_OPTIONS)
 def _interpolate(
     spline,
-    grid_shape,
+    hull_low,
+    hull_high,
     box_start,
     z_node,
     z_weight,
@@ -370,8 +371,6 @@ def _interpolate(
     exact,
 ):
     """Interpolate ``v`` to every voxel of the box (C order), Newton in the failed cells."""
-    origin = spline[2]
-    step = spline[3]
     nz = z_node.shape[0]
     ny = y_node.shape[0]
     nx = x_node.shape[0]
@@ -430,9 +429,9 @@ def _interpolate(
                 converged[index + d] = ok
                 exact[index + d] = solved
                 in_hull[index + d] = (
-                    _inside(position[0], origin[0], step[0], grid_shape[0])
-                    and _inside(position[1], origin[1], step[1], grid_shape[1])
-                    and _inside(position[2], origin[2], step[2], grid_shape[2])
+                    hull_low[0] <= position[0] <= hull_high[0]
+                    and hull_low[1] <= position[1] <= hull_high[1]
+                    and hull_low[2] <= position[2] <= hull_high[2]
                 )
 
 
@@ -446,12 +445,6 @@ def _taps6(row, first, c, w0, w1, w2, w3, w4, w5):
         + w4 * row[first + 4, c]
         + w5 * row[first + 5, c]
     )
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def _inside(position, origin, step, n):
-    t = (position - origin) / step
-    return t >= -HULL_TOLERANCE and t <= n - 1 + HULL_TOLERANCE
 
 
 class LatticeInverter:
@@ -493,6 +486,7 @@ class LatticeInverter:
         self.stride = stride
         self.max_iterations = int(max_iterations)
         self.polish = max(float(tolerance), polish_step(accuracy))
+        self.hull = hull_bounds(spline)
         self.starts = np.array([s.start for s in self.box], np.int64)
         self.counts = np.array([s.stop - s.start for s in self.box], np.int64)
         self.args = (
@@ -544,7 +538,7 @@ class LatticeInverter:
         starts[0] = z0 + start
         _interpolate(
             self.args,
-            self.spline.grid_shape,
+            *self.hull,
             starts,
             z_node,
             z_weight,
