@@ -413,25 +413,32 @@ def _interpolate(
                 w4 = x_weight[d, 4]
                 w5 = x_weight[d, 5]
                 x = float(box_start[2] + d)
-                position[0] = z - _taps6(row, xd, 0, w0, w1, w2, w3, w4, w5)
-                position[1] = y - _taps6(row, xd, 1, w0, w1, w2, w3, w4, w5)
-                position[2] = x - _taps6(row, xd, 2, w0, w1, w2, w3, w4, w5)
+                p0 = z - _taps6(row, xd, 0, w0, w1, w2, w3, w4, w5)
+                p1 = y - _taps6(row, xd, 1, w0, w1, w2, w3, w4, w5)
+                p2 = x - _taps6(row, xd, 2, w0, w1, w2, w3, w4, w5)
                 solved = zy_node_voxel and w2 == 1.0  # a coarse node: v is exact there
                 ok = True
                 if solved:
                     ok = node_ok[za + BELOW, yb + BELOW, xd + BELOW]
                 elif fail[za, yb, xd]:
                     solved = True
+                    position[0] = p0
+                    position[1] = p1
+                    position[2] = p2
                     ok = _solve(spline, z, y, x, max_iterations, polish, position, value, jacobian)
-                positions[index + d, 0] = position[0]
-                positions[index + d, 1] = position[1]
-                positions[index + d, 2] = position[2]
-                converged[index + d] = ok
-                exact[index + d] = solved
-                in_hull[index + d] = (
-                    hull_low[0] <= position[0] <= hull_high[0]
-                    and hull_low[1] <= position[1] <= hull_high[1]
-                    and hull_low[2] <= position[2] <= hull_high[2]
+                    p0 = position[0]
+                    p1 = position[1]
+                    p2 = position[2]
+                i = index + d
+                positions[i, 0] = p0
+                positions[i, 1] = p1
+                positions[i, 2] = p2
+                converged[i] = ok
+                exact[i] = solved
+                in_hull[i] = (
+                    hull_low[0] <= p0 <= hull_high[0]
+                    and hull_low[1] <= p1 <= hull_high[1]
+                    and hull_low[2] <= p2 <= hull_high[2]
                 )
 
 
