@@ -12,8 +12,8 @@
 
 One pair of block helpers, :func:`pull_back_block` and :func:`warp_forward_block`, does the work
 for any box of voxels and any sampler of the volume: the functions here call them on the whole
-volume (positions made and sampled slab by slab) with the in-memory B-spline sampler, :mod:`.residual` for the gray residuals, and
-:mod:`napari_dvc_correct.tiled.volumes` block by block with a sampler that reads a lazy volume.
+volume (positions made and sampled slab by slab) with the in-memory B-spline sampler,
+:mod:`.residual` for the gray residuals, and :mod:`napari_dvc_correct.tiled.volumes` block by block with a sampler that reads a lazy volume.
 
 Volumes are sampled with the tricubic B-spline of :mod:`.interpolation`. All positions are
 ``(z, y, x)`` in reference voxels.
@@ -220,12 +220,13 @@ def warp_forward(
     max_iterations: int = INVERT_MAX_ITERATIONS,
     tolerance: float = INVERT_TOLERANCE,
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
+    accuracy: float | None = INVERSE_ACCURACY,
 ) -> np.ndarray:
     """The reference volume moved to the loaded state: ``G'(X + u(X)) = G(X)`` (paper step d).
 
     For each voxel ``x`` of the loaded state the reference position ``X`` with ``X + u(X) = x`` is
-    found by fixed-point iteration on the dense field (Newton steps, see
-    :meth:`FieldSpline.invert`), then ``G'(x) = G(X)``.
+    found (Newton on a coarse lattice and checked interpolation, see :func:`warp_forward_block`),
+    then ``G'(x) = G(X)``.
 
     Parameters
     ----------
@@ -246,6 +247,9 @@ def warp_forward(
         Fixed-point iteration limit and convergence threshold (voxels).
     chunk_voxels : int
         Voxels processed at a time.
+    accuracy : float or None
+        Largest error (voxels) of the inverse map against per-voxel Newton in the grid's hull (10
+        times that beyond it); None runs Newton at every voxel (several times slower).
 
     Returns
     -------
@@ -257,7 +261,7 @@ def warp_forward(
     sampler = spline_sampler(coefficients)
     # one box: the coarse stage of the inverse runs once, positions are made slab by slab
     values, in_hull = warp_forward_block(
-        sampler, spline, whole_box(shape), max_iterations, tolerance, chunk_voxels=chunk_voxels
+        sampler, spline, whole_box(shape), max_iterations, tolerance, accuracy, chunk_voxels
     )
     bad = ~np.isfinite(values)
     if outside == "nan":
@@ -276,6 +280,7 @@ def warp_forward_with_residual(
     max_iterations: int = INVERT_MAX_ITERATIONS,
     tolerance: float = INVERT_TOLERANCE,
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
+    accuracy: float | None = INVERSE_ACCURACY,
 ) -> tuple[np.ndarray, float]:
     """:func:`warp_forward` (field extrapolated) and the loaded-state mean gray residual at once.
 
@@ -295,7 +300,7 @@ def warp_forward_with_residual(
     spline = as_field_spline(field)
     sampler = spline_sampler(coefficients)
     result, in_hull = warp_forward_block(
-        sampler, spline, whole_box(shape), max_iterations, tolerance, chunk_voxels=chunk_voxels
+        sampler, spline, whole_box(shape), max_iterations, tolerance, accuracy, chunk_voxels
     )
     total, count = 0.0, 0
     for z in iter_slabs(shape, chunk_voxels):
