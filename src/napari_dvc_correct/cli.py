@@ -31,20 +31,23 @@ def _terminate(signum, frame):
     raise Terminated()
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(commands=SUBCOMMANDS) -> argparse.ArgumentParser:
+    """The command line's parser, with the subcommands ``commands`` (default: all of them)."""
     parser = argparse.ArgumentParser(
         prog="napari-dvc-correct",
         description="Digital Volume Correlation with a self-correcting displacement field.",
     )
     subparsers = parser.add_subparsers(dest="command", required=True)
-    for name in SUBCOMMANDS:
+    for name in commands:
         module = importlib.import_module(f"napari_dvc_correct.commands.{name}")
         module.add_parser(subparsers)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # a named subcommand needs only its own parser (and imports): quicker start-up
+    parser = build_parser((argv[0],) if argv and argv[0] in SUBCOMMANDS else SUBCOMMANDS)
     args = parser.parse_args(argv)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None

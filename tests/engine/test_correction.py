@@ -81,13 +81,13 @@ def test_correction_lowers_error_outliers_and_gray_residual(shear_band_case):
     assert usable.mean() > 0.95
     rmse_before = np.sqrt(np.mean(before[usable] ** 2))
     rmse_after = np.sqrt(np.mean(after[usable] ** 2))
-    assert rmse_after < 0.75 * rmse_before, (rmse_before, rmse_after)
+    # (0.64x before the correcting grid followed the displaced nodes, 0.33x now)
+    assert rmse_after < 0.5 * rmse_before, (rmse_before, rmse_after)
     off_before = np.mean(before[usable] > 1.0)
     off_after = np.mean(after[usable] > 1.0)
     assert off_before > 0.03  # the uncorrected field really has nodes off by a voxel
-    # second-order correcting matches leave a few grid-border nodes off by a voxel (see
-    # docs/method.md, limits); first-order ones reached 0.1x here
-    assert off_after < 0.6 * off_before, (off_before, off_after)
+    # (before updates that extrapolate the correcting field were refused: 0.7x)
+    assert off_after < 0.3 * off_before, (off_before, off_after)
     # the gray residual, measured the same way for both fields
     from napari_dvc_correct.engine.cleaning import clean
 
@@ -95,6 +95,24 @@ def test_correction_lowers_error_outliers_and_gray_residual(shear_band_case):
     residual_after = residual.mean_gray_residual(reference, deformed, corrected)
     assert residual_after < residual_before - 0.5, (residual_before, residual_after)
     assert residual_after < 0.95 * residual_before
+
+
+def test_the_correction_does_not_harm_good_nodes_of_the_shear_band(shear_band_case):
+    """The faces' nodes are carried 8-12 voxels beyond the field's grid; when the correcting DVC
+    ran on that grid only, their update was the spline's extrapolation of ΔD, which took nodes
+    0.1-0.3 voxel off to 1-1.5 voxel, still CONVERGED and CORRECTED (18 nodes > 1 voxel off)."""
+    _, _, measured, corrected = shear_band_case
+    before, after = _node_errors(measured), _node_errors(corrected)
+    good = np.isin(corrected.status.reshape(-1), [int(s) for s in GOOD_STATUSES])
+    corrected_nodes = corrected.provenance.reshape(-1) == Provenance.CORRECTED
+    # no node more than a voxel off is presented as a good corrected measurement ...
+    assert not np.any((after > 1.0) & good & corrected_nodes), np.flatnonzero(
+        (after > 1.0) & good & corrected_nodes
+    )
+    # ... and no node that was within half a voxel ends more than a voxel off
+    assert not np.any((before < 0.5) & (after > 1.0)), np.flatnonzero(
+        (before < 0.5) & (after > 1.0)
+    )
 
 
 def test_corrected_field_beats_the_first_order_floor(shear_band_case):
@@ -131,7 +149,11 @@ def test_passes_are_reported_and_corrected_nodes_marked(shear_band_case):
     replaced_nodes = corrected.provenance == Provenance.REPLACED
     refused_nodes = corrected.provenance == Provenance.MEASURED  # refused in every pass
     assert corrected_nodes.mean() > 0.6
-    assert refused_nodes.mean() < 0.1
+    # refused in every pass: the nodes that the displacement carries more than a step beyond the
+    # last place a correcting subvolume fits in the volume (72 of 512 here)
+    assert refused_nodes.mean() < 0.2
+    assert 0 < applied[0].unsupported_nodes <= applied[0].rejected_nodes
+    assert refused_nodes.sum() <= applied[-1].unsupported_nodes
     assert np.all(corrected_nodes | replaced_nodes | refused_nodes)
     info = corrected.metadata["correction"]
     assert info["frame"] == "loaded" and info["update"] == "exact"

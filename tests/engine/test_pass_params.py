@@ -8,6 +8,7 @@ from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.engine.pass_params import (
     MIN_PASS_SUBVOLUME,
+    correction_grid,
     correction_params,
     field_curvature,
     pass_order,
@@ -42,3 +43,24 @@ def test_bending_fields_are_corrected_with_smaller_second_order_subvolumes():
     assert chosen.order == 2 and chosen.subvolume == 15  # 2/3 of the half-size, odd
     small = correction_params(field, CorrelationParams(subvolume=11, step=6))
     assert small.subvolume == MIN_PASS_SUBVOLUME == 11
+
+
+def test_the_correcting_grid_follows_the_displaced_nodes_as_far_as_a_subvolume_fits():
+    # the shear band's grid: 64^3, nodes 14, 19, ..., 49; correcting subvolume 17 (half 8) fits
+    # with its centre in [8, 55]
+    field = DisplacementField.zeros((14.0, 14.0, 14.0), (5.0, 5.0, 5.0), (8, 8, 8))
+    params = CorrelationParams(subvolume=17, step=5, order=2)
+    shift = np.array([8.0, -6.0, 2.4])  # z: 1.6 steps up, y: 1.2 steps down, x: < half a step
+    origin, step, shape = correction_grid(field, (64,) * 3, params, field.points + shift)
+    # z: one more node (54; 59 would not fit), y: one more below (9), x unchanged
+    assert origin == (14.0, 9.0, 14.0) and step == field.step and shape == (9, 9, 8)
+    # the first run's subvolume (25) fits nowhere beyond the grid: unchanged
+    big = CorrelationParams(subvolume=25, step=5)
+    assert correction_grid(field, (64,) * 3, big, field.points + shift) == (
+        field.origin,
+        field.step,
+        field.shape,
+    )
+    # never smaller than the field's grid, whatever the read points
+    inward = correction_grid(field, (64,) * 3, params, field.points[:1] * 0 + 30.0)
+    assert inward == (field.origin, field.step, field.shape)

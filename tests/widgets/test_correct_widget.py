@@ -82,8 +82,9 @@ def test_same_layer_twice_a_message(correlated):
 
 
 def test_a_region_limits_the_correction(correlated, run_panel, small):
-    """Outside the region no correction is measured: those nodes' update is interpolated from
-    the measured ones (provenance replaced), inside it is measured (provenance corrected)."""
+    """Outside the region no correction is measured: those nodes are never corrected (an update
+    read more than a step beyond the measured ones is refused: the node keeps its value; a nearer
+    one is interpolated, provenance replaced); inside it is measured (provenance corrected)."""
     from napari_dvc_correct.engine.field import Provenance as P
 
     viewer = correlated.viewer
@@ -98,7 +99,12 @@ def test_a_region_limits_the_correction(correlated, run_panel, small):
     x = corrected.axis_coordinates()[2]
     outside = x > 25.5 + small.subvolume / 2
     assert outside.any()
-    assert np.all(corrected.provenance[:, :, outside] == P.REPLACED)
+    kept = corrected.provenance[:, :, outside] == P.MEASURED
+    assert np.all(kept | (corrected.provenance[:, :, outside] == P.REPLACED))
+    uncorrected = field_of(viewer.layers["|u| (uncorrected)"])
+    np.testing.assert_array_equal(
+        corrected.u[:, :, outside][kept], uncorrected.u[:, :, outside][kept]
+    )
     inside = x < 25.5 - small.subvolume / 2
     assert np.any(corrected.provenance[:, :, inside] == P.CORRECTED)
     assert not np.any(corrected.provenance[:, :, inside] == P.REPLACED)

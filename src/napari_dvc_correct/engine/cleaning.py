@@ -23,8 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
-from scipy import ndimage, sparse
-from scipy.sparse import linalg as sparse_linalg
+from scipy import ndimage
 
 from ._numba_setup import KERNEL_OPTIONS
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
@@ -328,6 +327,8 @@ def _stencils(step) -> list[tuple[np.ndarray, np.ndarray]]:
 
 def _thin_plate_system(values, unknown, step):
     """Sparse ``D_U`` (rows × unknowns) and right-hand side ``-D_K k`` (rows × C)."""
+    from scipy import sparse  # here: scipy.sparse is slow to import (CLI start-up)
+
     shape = unknown.shape
     number = np.full(shape, -1, np.intp)
     number[unknown] = np.arange(int(unknown.sum()))
@@ -414,6 +415,9 @@ def inpaint(
         return result[..., 0] if scalar else result
     if not known.any():
         raise ValueError("cannot inpaint: no node holds a known finite value")
+    from scipy import sparse  # here: scipy.sparse is slow to import (CLI start-up)
+    from scipy.sparse import linalg as sparse_linalg
+
     matrix, rhs = _thin_plate_system(values, unknown, step)
     normal = (matrix.T @ matrix).tocsc()
     normal_rhs = matrix.T @ rhs

@@ -56,10 +56,10 @@ from .correlate import correlate_iter
 from .field import DisplacementField, Provenance, Status
 from .field_spline import FieldSpline
 from .interpolation import prefilter
-from .local_acceptance import Judge, accept_locally, flag_and_refill
+from .local_acceptance import Judge, accept_locally, flag_and_refill, unsupported_updates
 from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
-from .pass_params import correction_params
+from .pass_params import correction_grid, correction_params
 from .progress import Progress, run_to_completion
 
 FRAMES = ("reference", "loaded")
@@ -108,6 +108,9 @@ class CorrectionPass:
         Fraction of good matches of the pass's DVC.
     seconds : float
         Wall time of the pass.
+    unsupported_nodes : int
+        Of the refused nodes, those refused because their update would read ``ΔD`` more than a
+        step beyond the good correcting matches (:func:`.local_acceptance.unsupported_updates`).
     """
 
     number: int
@@ -125,6 +128,7 @@ class CorrectionPass:
     max_change: float
     converged_fraction: float
     seconds: float
+    unsupported_nodes: int = 0
 
     def to_dict(self) -> dict:
         """Plain dict for the field's JSON metadata (``number`` stored as ``"pass"``, the key
@@ -147,6 +151,7 @@ class CorrectionPass:
             "accepted_nodes": 0,
             "rejected_nodes": 0,
             "improved_nodes": 0,
+            "unsupported_nodes": 0,
         }
         names = {f.name for f in dataclasses.fields(cls)}
         merged = {**defaults, **{k: v for k, v in values.items() if k in names}}
@@ -240,22 +245,45 @@ def _update(current: DisplacementField, delta: DisplacementField, frame: str, up
     return compose(current, delta)
 
 
+def _zeros(grid) -> DisplacementField:
+    """The zero start of a correcting DVC on ``grid`` (origin, step, shape)."""
+    zero = DisplacementField.zeros(*grid)
+    zero.gradient = np.zeros((*grid[2], 3, 3))
+    return zero
+
+
+def _read_points(current: DisplacementField, frame: str, update: str) -> np.ndarray:
+    """Where each node's update reads ``ΔD``: ``X + D(X)`` (loaded frame, exact), else ``X``."""
+    if frame == "loaded" and update == "exact":
+        return current.points + current.u.reshape(-1, 3)
+    return current.points
+
+
 def _finish_pass(
     candidate: DisplacementField,
     delta: DisplacementField,
     input_field: DisplacementField,
     masked: np.ndarray,
+    read_points: np.ndarray,
 ) -> DisplacementField:
     """Quality arrays of a corrected field: those of the correcting match; masked nodes kept.
 
-    Nodes where the correcting match failed or was masked (its value interpolated from the
-    neighbours' by the cleaning) are ``REPLACED``, the others ``CORRECTED``.
+    A node's correcting match is the node of ``delta`` nearest to where its update reads ``ΔD``
+    (``read_points``: its displaced position in the loaded frame, itself otherwise). Nodes where
+    that match failed or was masked (its value interpolated from the neighbours' by the
+    cleaning) are ``REPLACED``, the others ``CORRECTED``.
     """
-    candidate.zncc = delta.zncc.copy()
-    candidate.status = delta.status.copy()
-    candidate.iterations = delta.iterations.copy()
+    index = np.rint((read_points - np.asarray(delta.origin)) / np.asarray(delta.step))
+    index = np.nan_to_num(index, nan=0.0)
+    nearest = tuple(
+        np.clip(index[:, a], 0, delta.shape[a] - 1).astype(np.intp).reshape(candidate.shape)
+        for a in range(3)
+    )
+    candidate.zncc = delta.zncc[nearest].copy()
+    candidate.status = delta.status[nearest].copy()
+    candidate.iterations = delta.iterations[nearest].copy()
     candidate.provenance = np.full(candidate.shape, Provenance.CORRECTED, np.uint8)
-    interpolated = np.isin(delta.provenance, [Provenance.REPLACED, Provenance.MASKED])
+    interpolated = np.isin(delta.provenance[nearest], [Provenance.REPLACED, Provenance.MASKED])
     candidate.provenance[interpolated] = Provenance.REPLACED
     candidate.provenance[masked] = Provenance.MASKED
     candidate.status[masked] = input_field.status[masked]
@@ -322,7 +350,8 @@ def correct_iter(
         :class:`CorrectionPass` per pass as a dict (pass 0 = the cleaned input; read them with
         :func:`correction_table`).
         ``metadata["correction"]`` holds the options, the residual before and after, the noise
-        floor, the order of the correcting matches and the flagged node counts.
+        floor, the order, subvolume and grid shape (of the last pass) of the correcting matches
+        and the flagged node counts.
     """
     if frame not in FRAMES:
         raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -397,15 +426,21 @@ def correct_iter(
     ]
     grid = (current.origin, current.step, current.shape)
     pass_params = correction_params(current, params)
-    zero = DisplacementField.zeros(current.origin, current.step, current.shape)
-    zero.gradient = np.zeros((*current.shape, 3, 3))
     residual_before = residual
     unmasked = max(1, int(np.count_nonzero(~masked)))
     for number in range(1, int(max_passes) + 1):
         pass_started = time.perf_counter()
         g, f, pass_mask = pair.matching_pair(moved, current)
+        read_points = _read_points(current, frame, update)
+        pass_grid = (
+            grid
+            if update == "sum"
+            else correction_grid(current, reference.shape, pass_params, read_points)
+        )
         delta = yield from forward_progress(
-            correlate_iter(g, f, pass_params, mask=pass_mask, grid=grid, initial=zero),
+            correlate_iter(
+                g, f, pass_params, mask=pass_mask, grid=pass_grid, initial=_zeros(pass_grid)
+            ),
             f"correction pass {number}",
         )
         converged = float(np.mean(delta.valid))
@@ -414,11 +449,14 @@ def correct_iter(
         except ValueError:
             passes.append(_failed_pass(number, converged, pass_started, passes[-1]))
             break
-        candidate = _finish_pass(_update(current, delta, frame, update), delta, field, masked)
+        candidate = _finish_pass(
+            _update(current, delta, frame, update), delta, field, masked, read_points
+        )
         yield Progress("residual", 0, 1, f"local acceptance of pass {number}")
         floor_before = judge.floor
+        refuse = unsupported_updates(delta, read_points)
         mixed, local_mixed, accept, improved = accept_locally(
-            judge, current, local_current, candidate
+            judge, current, local_current, candidate, refuse=refuse
         )
         accept[masked] = False
         improved[masked] = False
@@ -450,6 +488,7 @@ def correct_iter(
             max_change=float(np.max(change)) if change.size else 0.0,
             converged_fraction=converged,
             seconds=time.perf_counter() - pass_started,
+            unsupported_nodes=int(np.count_nonzero(refuse.reshape(accept.shape) & ~masked)),
         )
         passes.append(record)
         yield Progress(
@@ -492,6 +531,7 @@ def correct_iter(
         "noise_floor": judge.floor,
         "pass_order": int(pass_params.order),
         "pass_subvolume": int(pass_params.subvolume),
+        "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
         "seconds": time.perf_counter() - started,

@@ -93,6 +93,14 @@ def _grid_centers(grid, volume_shape, half):
     return centers, inside
 
 
+def _read_only(volume: np.ndarray) -> np.ndarray:
+    """A read-only view: the kernels then see one array type whether the volume came from a
+    read-only memory map or was computed, so numba compiles (and loads) one signature, not two."""
+    view = volume.view()
+    view.flags.writeable = False
+    return view
+
+
 @dataclass
 class PyramidLevel:
     """Everything IC-GN needs at one pyramid level."""
@@ -120,7 +128,7 @@ class PyramidLevel:
             std = float(np.std(reference[mask] if mask is not None else reference))
         return cls(
             factor=factor,
-            reference=reference,
+            reference=_read_only(reference),
             deformed=deformed,
             gradient=gradient,
             coef_deformed=prefilter(deformed),

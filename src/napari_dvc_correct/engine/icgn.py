@@ -103,9 +103,10 @@ def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, s
             sum_f += f
             sum_ff += f * f
             sum_gf += (g[i] - mean_g) * f
-            f0 = grad[i, 0] * f
-            f1 = grad[i, 1] * f
-            f2 = grad[i, 2] * f
+            fd = np.float64(f)
+            f0 = grad[i, 0] * fd
+            f1 = grad[i, 1] * fd
+            f2 = grad[i, 2] * fd
             s00 += f0
             s01 += f0 * z
             s02 += f0 * y
@@ -155,7 +156,7 @@ def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, s
         sum_ff += f * f
         sum_gf += (g[i] - mean_g) * f
         for k in range(3):
-            gf = grad[i, k] * f
+            gf = grad[i, k] * np.float64(f)
             for j in range(nb):
                 sum_jf[k * nb + j] += gf * b[j]
     return sum_f, sum_ff, sum_gf, n_outside
@@ -230,9 +231,11 @@ def match_one(
     m_par = 3 * nb
     edge = 2 * half + 1
     n_total = edge * edge * edge
-    g = np.empty(n_total)
-    grad = np.empty((n_total, 3))
-    xi = np.empty((n_total, 3))
+    # the subvolume in float32, as G and ∇G are stored (exact; every sum is float64): half the
+    # memory traffic of float64 copies in each sampling pass
+    g = np.empty(n_total, np.float32)
+    grad = np.empty((n_total, 3), np.float32)
+    xi = np.empty((n_total, 3), np.float32)
     count = 0
     for dz in range(-half, half + 1):
         z = cz + dz

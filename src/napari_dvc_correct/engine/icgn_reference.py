@@ -34,19 +34,23 @@ _PAIR = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]], dtype=np.int64)  # (k, k') -
 
 
 @njit(**KERNEL_OPTIONS)
-def affine_hessian(grad, xi, count):
-    """Σ JᵀJ for the affine shape function through second moments of ∇G ⊗ ∇G.
+def affine_terms(g, grad, xi, count, mean_g):
+    """First order in one pass: ``Σ(g − ḡ)²``, ``H = Σ JᵀJ``, ``Σ J`` and ``Σ J (g − ḡ)``.
 
     ``H[(k, j), (k', j')] = Σ g_k g_k' b_j b_j'`` and ``b_j b_j'`` is one of the 10 monomials of
     degree ≤ 2, so 6 × 10 moments suffice. Voxels come in (z, y, x) row order: sums along each x-row
-    of ``g_k g_k' · (1, x, x²)`` are folded into the moments once per row.
+    of ``g_k g_k' · (1, x, x²)`` are folded into the moments once per row. Inputs may be float32
+    (the gathered subvolume); every product and sum is float64.
     """
     moments = np.zeros((6, 10))
     row0 = np.zeros(6)
     row1 = np.zeros(6)
     row2 = np.zeros(6)
-    current_z = xi[0, 0] if count else 0.0
-    current_y = xi[0, 1] if count else 0.0
+    sum_j = np.zeros(12)
+    sum_jg = np.zeros(12)
+    ss_g = 0.0
+    current_z = np.float64(xi[0, 0]) if count else 0.0
+    current_y = np.float64(xi[0, 1]) if count else 0.0
     for i in range(count + 1):
         if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
             z = current_z
@@ -69,61 +73,73 @@ def affine_hessian(grad, xi, count):
                 row2[q] = 0.0
             if i == count:
                 break
-            current_z = xi[i, 0]
-            current_y = xi[i, 1]
-        gz = grad[i, 0]
-        gy = grad[i, 1]
-        gx = grad[i, 2]
-        x = xi[i, 2]
+            current_z = np.float64(xi[i, 0])
+            current_y = np.float64(xi[i, 1])
+        gz = np.float64(grad[i, 0])
+        gy = np.float64(grad[i, 1])
+        gx = np.float64(grad[i, 2])
+        x = np.float64(xi[i, 2])
         products = (gz * gz, gy * gy, gx * gx, gz * gy, gy * gx, gz * gx)
         for q in range(6):
             value = products[q]
             row0[q] += value
             row1[q] += value * x
             row2[q] += value * x * x
+        dg = g[i] - mean_g
+        ss_g += dg * dg
+        z = current_z
+        y = current_y
+        for k in range(3):
+            gk = gz if k == 0 else (gy if k == 1 else gx)
+            gkz = gk * z
+            gky = gk * y
+            gkx = gk * x
+            sum_j[4 * k] += gk
+            sum_j[4 * k + 1] += gkz
+            sum_j[4 * k + 2] += gky
+            sum_j[4 * k + 3] += gkx
+            sum_jg[4 * k] += gk * dg
+            sum_jg[4 * k + 1] += gkz * dg
+            sum_jg[4 * k + 2] += gky * dg
+            sum_jg[4 * k + 3] += gkx * dg
     hessian = np.empty((12, 12))
     for k in range(3):
         for j in range(4):
             for k2 in range(3):
                 for j2 in range(4):
                     hessian[k * 4 + j, k2 * 4 + j2] = moments[_PAIR[k, k2], PRODUCT_TABLE[j, j2]]
-    return hessian
+    return ss_g, hessian, sum_j, sum_jg
 
 
 @njit(**KERNEL_OPTIONS)
 def reference_terms(g, grad, xi, count, nb):
-    """Mean and norm of the reference subvolume, Cholesky factor of H = Σ JᵀJ, Σ J, Σ J (g − ḡ)."""
+    """Mean and norm of the reference subvolume, Cholesky factor of H = Σ JᵀJ, Σ J, Σ J (g − ḡ).
+
+    ``g`` (count,), ``grad`` and ``xi`` (count, 3) may be float32; the sums are float64.
+    """
     m_par = 3 * nb
     mean_g = 0.0
     for i in range(count):
         mean_g += g[i]
     mean_g /= max(count, 1)
-    ss_g = 0.0
-    for i in range(count):
-        d = g[i] - mean_g
-        ss_g += d * d
-    delta_g = np.sqrt(ss_g)
-    sum_j = np.zeros(m_par)
-    sum_jg = np.zeros(m_par)
-    b = np.empty(10)
     if nb == 4:
-        hessian = affine_hessian(grad, xi, count)
-        for i in range(count):
-            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
-            dg = g[i] - mean_g
-            for k in range(3):
-                for j in range(4):
-                    jr = grad[i, k] * b[j]
-                    sum_j[k * 4 + j] += jr
-                    sum_jg[k * 4 + j] += jr * dg
+        ss_g, hessian, sum_j, sum_jg = affine_terms(g, grad, xi, count, mean_g)
     else:
+        ss_g = 0.0
+        for i in range(count):
+            d = g[i] - mean_g
+            ss_g += d * d
+        sum_j = np.zeros(m_par)
+        sum_jg = np.zeros(m_par)
+        b = np.empty(10)
         hessian = np.zeros((m_par, m_par))
         jac = np.empty(m_par)
         for i in range(count):
-            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
+            monomials(np.float64(xi[i, 0]), np.float64(xi[i, 1]), np.float64(xi[i, 2]), nb, b)
             for k in range(3):
+                gk = np.float64(grad[i, k])
                 for j in range(nb):
-                    jac[k * nb + j] = grad[i, k] * b[j]
+                    jac[k * nb + j] = gk * b[j]
             dg = g[i] - mean_g
             for r in range(m_par):
                 jr = jac[r]
@@ -134,6 +150,7 @@ def reference_terms(g, grad, xi, count, nb):
         for r in range(m_par):
             for c in range(r):
                 hessian[c, r] = hessian[r, c]
+    delta_g = np.sqrt(ss_g)
     ok, low = cholesky_solve_setup(hessian, m_par)
     return mean_g, delta_g, ok, low, sum_j, sum_jg
 

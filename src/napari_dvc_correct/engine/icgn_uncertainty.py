@@ -12,8 +12,196 @@ from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
 from .icgn_reference import reference_terms, translation_h_inverse
-from .interpolation import sample_with_gradient_point
-from .shape_function import cholesky_solve_setup, compose_inverse, monomials
+from .interpolation import (
+    bspline_derivative_weights,
+    bspline_weights,
+    sample_with_gradient_point,
+)
+from .shape_function import PRODUCT_TABLE, cholesky_solve_setup, compose_inverse, monomials
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _value_and_gradient(coefficients, z, y, x):
+    """:func:`.sample_with_gradient_point` with direct indexing where all 64 taps are inside."""
+    nz, ny, nx = coefficients.shape
+    if not (1.0 <= z < nz - 2.0 and 1.0 <= y < ny - 2.0 and 1.0 <= x < nx - 2.0):
+        return sample_with_gradient_point(coefficients, z, y, x)
+    iz = int(z)
+    iy = int(y)
+    ix = int(x)
+    wz = bspline_weights(z - iz)
+    wy = bspline_weights(y - iy)
+    wx = bspline_weights(x - ix)
+    dz = bspline_derivative_weights(z - iz)
+    dy = bspline_derivative_weights(y - iy)
+    dx = bspline_derivative_weights(x - ix)
+    v = 0.0
+    gz = 0.0
+    gy = 0.0
+    gx = 0.0
+    for a in range(4):
+        plane_v = 0.0
+        plane_dy = 0.0
+        plane_dx = 0.0
+        for b in range(4):
+            row = coefficients[iz - 1 + a, iy - 1 + b]
+            c0 = row[ix - 1]
+            c1 = row[ix]
+            c2 = row[ix + 1]
+            c3 = row[ix + 2]
+            row_v = wx[0] * c0 + wx[1] * c1 + wx[2] * c2 + wx[3] * c3
+            row_d = dx[0] * c0 + dx[1] * c1 + dx[2] * c2 + dx[3] * c3
+            plane_v += wy[b] * row_v
+            plane_dy += dy[b] * row_v
+            plane_dx += wy[b] * row_d
+        v += wz[a] * plane_v
+        gz += dz[a] * plane_v
+        gy += wz[a] * plane_dy
+        gx += wz[a] * plane_dx
+    return v, gz, gy, gx
+
+
+@njit(**KERNEL_OPTIONS)
+def _affine_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
+    """First order: ``Σ J_G ⊗ ∇F(W) b bᵀ`` (as 9 × 10 moments), ``Σ J_F``, ``Σ J_F (g − ḡ)``, ``Σf``,
+    ``Σf²`` and the voxels used, in one pass with x-row sums folded into the moments (as in
+    :func:`.icgn_reference.affine_terms`)."""
+    nz, ny, nx = coef.shape
+    moments = np.zeros((9, 10))
+    row0 = np.zeros(9)
+    row1 = np.zeros(9)
+    row2 = np.zeros(9)
+    gf = np.empty(9)
+    sum_jf = np.zeros(12)
+    sum_jfg = np.zeros(12)
+    used = 0
+    sum_f = 0.0
+    sum_ff = 0.0
+    current_z = np.float64(xi[0, 0]) if count else 0.0
+    current_y = np.float64(xi[0, 1]) if count else 0.0
+    for i in range(count + 1):
+        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
+            z = current_z
+            y = current_y
+            for q in range(9):
+                s0 = row0[q]
+                s1 = row1[q]
+                moments[q, 0] += s0
+                moments[q, 1] += z * s0
+                moments[q, 2] += y * s0
+                moments[q, 3] += s1
+                moments[q, 4] += z * z * s0
+                moments[q, 5] += y * y * s0
+                moments[q, 6] += row2[q]
+                moments[q, 7] += z * y * s0
+                moments[q, 8] += y * s1
+                moments[q, 9] += z * s1
+                row0[q] = 0.0
+                row1[q] = 0.0
+                row2[q] = 0.0
+            if i == count:
+                break
+            current_z = np.float64(xi[i, 0])
+            current_y = np.float64(xi[i, 1])
+        z = current_z
+        y = current_y
+        x = np.float64(xi[i, 2])
+        wz = cz + p[0] + (1.0 + p[1]) * z + p[2] * y + p[3] * x
+        wy = cy + p[4] + p[5] * z + (1.0 + p[6]) * y + p[7] * x
+        wx = cx + p[8] + p[9] * z + p[10] * y + (1.0 + p[11]) * x
+        if not (0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1):
+            continue
+        f, fz, fy, fx = _value_and_gradient(coef, wz, wy, wx)
+        used += 1
+        sum_f += f
+        sum_ff += f * f
+        dg = g[i] - mean_g
+        for k in range(3):
+            gk = np.float64(grad[i, k])
+            gf[3 * k] = gk * fz
+            gf[3 * k + 1] = gk * fy
+            gf[3 * k + 2] = gk * fx
+        for q in range(9):
+            value = gf[q]
+            row0[q] += value
+            row1[q] += value * x
+            row2[q] += value * x * x
+        for l in range(3):
+            fl = fz if l == 0 else (fy if l == 1 else fx)
+            sum_jf[4 * l] += fl
+            sum_jf[4 * l + 1] += fl * z
+            sum_jf[4 * l + 2] += fl * y
+            sum_jf[4 * l + 3] += fl * x
+            sum_jfg[4 * l] += fl * dg
+            sum_jfg[4 * l + 1] += fl * z * dg
+            sum_jfg[4 * l + 2] += fl * y * dg
+            sum_jfg[4 * l + 3] += fl * x * dg
+    cross = np.empty((12, 12))
+    for k in range(3):
+        for l in range(3):
+            q = 3 * k + l
+            for j in range(4):
+                for j2 in range(4):
+                    cross[k * 4 + j, l * 4 + j2] = moments[q, PRODUCT_TABLE[j, j2]]
+    return cross, sum_jf, sum_jfg, used, sum_f, sum_ff
+
+
+@njit(**KERNEL_OPTIONS)
+def _sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb):
+    """:func:`_affine_sensitivity_sums` for any order (``Σ g_k f_l b_j b_j'`` per pair)."""
+    nz, ny, nx = coef.shape
+    m_par = 3 * nb
+    # Σ g_k f_l b_j b_j' for j <= j' (the products are symmetric in j, j')
+    moments = np.zeros((9, nb, nb))
+    sum_jf = np.zeros(m_par)
+    sum_jfg = np.zeros(m_par)
+    gf = np.empty(9)
+    b = np.empty(10)
+    used = 0
+    sum_f = 0.0
+    sum_ff = 0.0
+    for i in range(count):
+        monomials(np.float64(xi[i, 0]), np.float64(xi[i, 1]), np.float64(xi[i, 2]), nb, b)
+        wz = cz + xi[i, 0]
+        wy = cy + xi[i, 1]
+        wx = cx + xi[i, 2]
+        for j in range(nb):
+            wz += p[j] * b[j]
+            wy += p[nb + j] * b[j]
+            wx += p[2 * nb + j] * b[j]
+        if not (0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1):
+            continue
+        f, fz, fy, fx = sample_with_gradient_point(coef, wz, wy, wx)
+        used += 1
+        sum_f += f
+        sum_ff += f * f
+        dg = g[i] - mean_g
+        for k in range(3):
+            gk = np.float64(grad[i, k])
+            gf[3 * k] = gk * fz
+            gf[3 * k + 1] = gk * fy
+            gf[3 * k + 2] = gk * fx
+        for j in range(nb):
+            bj = b[j]
+            sum_jf[j] += fz * bj
+            sum_jf[nb + j] += fy * bj
+            sum_jf[2 * nb + j] += fx * bj
+            sum_jfg[j] += fz * bj * dg
+            sum_jfg[nb + j] += fy * bj * dg
+            sum_jfg[2 * nb + j] += fx * bj * dg
+            for j2 in range(j, nb):
+                bb = bj * b[j2]
+                for q in range(9):
+                    moments[q, j, j2] += gf[q] * bb
+    cross = np.empty((m_par, m_par))
+    for k in range(3):
+        for l in range(3):
+            q = 3 * k + l
+            for j in range(nb):
+                for j2 in range(nb):
+                    value = moments[q, j, j2] if j <= j2 else moments[q, j2, j]
+                    cross[k * nb + j, l * nb + j2] = value
+    return cross, sum_jf, sum_jfg, used, sum_f, sum_ff
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -83,9 +271,9 @@ def subvolume_statistics(
         cz = centers[n, 0]
         cy = centers[n, 1]
         cx = centers[n, 2]
-        g = np.empty(n_total)
-        grad = np.empty((n_total, 3))
-        xi = np.empty((n_total, 3))
+        g = np.empty(n_total, np.float32)  # exact copies, as in icgn.match_one
+        grad = np.empty((n_total, 3), np.float32)
+        xi = np.empty((n_total, 3), np.float32)
         count = 0
         for dz in range(-half, half + 1):
             for dy in range(-half, half + 1):
@@ -138,56 +326,14 @@ def subvolume_statistics(
                 sigma[n, k] = np.sqrt(residual * h_inv[k]) if ok_perp else np.inf
             continue
         # A from the deformed volume's gradient at the warped voxels
-        # Σ g_k f_l b_j b_j' for j <= j' (the products are symmetric in j, j')
-        moments = np.zeros((9, nb, nb))
-        sum_jf = np.zeros(m_par)
-        sum_jfg = np.zeros(m_par)
-        gf = np.empty(9)
-        b = np.empty(10)
-        used = 0
-        sum_f = 0.0
-        sum_ff = 0.0
-        for i in range(count):
-            monomials(xi[i, 0], xi[i, 1], xi[i, 2], nb, b)
-            wz = cz + xi[i, 0]
-            wy = cy + xi[i, 1]
-            wx = cx + xi[i, 2]
-            for j in range(nb):
-                wz += params[n, j] * b[j]
-                wy += params[n, nb + j] * b[j]
-                wx += params[n, 2 * nb + j] * b[j]
-            if not (0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1):
-                continue
-            f, fz, fy, fx = sample_with_gradient_point(coef_deformed, wz, wy, wx)
-            used += 1
-            sum_f += f
-            sum_ff += f * f
-            dg = g[i] - mean_g
-            for k in range(3):
-                gk = grad[i, k]
-                gf[3 * k] = gk * fz
-                gf[3 * k + 1] = gk * fy
-                gf[3 * k + 2] = gk * fx
-            for j in range(nb):
-                bj = b[j]
-                sum_jf[j] += fz * bj
-                sum_jf[nb + j] += fy * bj
-                sum_jf[2 * nb + j] += fx * bj
-                sum_jfg[j] += fz * bj * dg
-                sum_jfg[nb + j] += fy * bj * dg
-                sum_jfg[2 * nb + j] += fx * bj * dg
-                for j2 in range(j, nb):
-                    bb = bj * b[j2]
-                    for q in range(9):
-                        moments[q, j, j2] += gf[q] * bb
-        cross = np.empty((m_par, m_par))
-        for k in range(3):
-            for l in range(3):
-                q = 3 * k + l
-                for j in range(nb):
-                    for j2 in range(nb):
-                        value = moments[q, j, j2] if j <= j2 else moments[q, j2, j]
-                        cross[k * nb + j, l * nb + j2] = value
+        if nb == 4:
+            cross, sum_jf, sum_jfg, used, sum_f, sum_ff = _affine_sensitivity_sums(
+                coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, params[n]
+            )
+        else:
+            cross, sum_jf, sum_jfg, used, sum_f, sum_ff = _sensitivity_sums(
+                coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, params[n], nb
+            )
         if used < m_par + 3:
             continue
         ss_f = sum_ff - sum_f * sum_f / used

@@ -8,7 +8,10 @@ residual rose by more than resampling the imaging noise can explain, given the n
 (eq. 1 of the paper, or the lower quartile of the local residuals where that is smaller). A node
 *improves above the floor* when the residual over its subvolume fell by more than the noise allows
 and more than a :data:`MIN_USEFUL_CHANGE` displacement explains. Nodes whose local residual no
-error below :data:`FLAG_ERROR` voxels explains are flagged. See ``docs/method.md``.
+error below :data:`FLAG_ERROR` voxels explains are flagged. A node whose update would read the
+correcting field more than :data:`MEASURED_REACH` grid steps beyond its outermost good nodes (an
+extrapolation, not a measurement) is refused before any residual is looked at
+(:func:`unsupported_updates`). See ``docs/method.md``.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from scipy import ndimage
 from . import warp
 from .accuracy import background_residual
 from .cleaning import clean
-from .field import DisplacementField, Provenance, Status
+from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from .field_spline import FieldSpline
 from .local_accuracy import local_mean_residual
 from .phases import label_phases, phase_thresholds
@@ -50,6 +53,12 @@ MIN_USEFUL_CHANGE = 0.01
 #: Nodes whose local residual exceeds the noise floor by more than an error of this many voxels
 #: explains (from the local gray gradient) are flagged ``OUTLIER_REPLACED`` and refilled.
 FLAG_ERROR = 1.0
+
+#: How far (grid steps of the correcting field) beyond its outermost good measured nodes a node's
+#: update may read it. Further out the spline extrapolates the correcting field linearly: on the
+#: shear band of docs/method.md (17-voxel displacements, step 5) updates read 0-6 voxels beyond the
+#: hull cut the error 0.6 -> 0.1-0.3 voxel, those 7-13 voxels beyond raised it 0.4 -> 0.6-1.5.
+MEASURED_REACH = 1.0
 
 
 class Judge:
@@ -187,16 +196,53 @@ def mix_fields(current: DisplacementField, candidate: DisplacementField, accept:
     return mixed
 
 
-def accept_locally(judge: Judge, current, local_current, candidate):
+def unsupported_updates(delta: DisplacementField, read_points: np.ndarray) -> np.ndarray:
+    """Nodes whose update reads ``delta`` too far outside the region it was measured in.
+
+    Parameters
+    ----------
+    delta : DisplacementField
+        The correcting field ``ΔD`` (after cleaning), on its own grid.
+    read_points : ndarray, shape (n_nodes, 3)
+        Where each node's update reads ``ΔD`` (voxels, (z, y, x)): ``X + D(X)`` for the exact
+        update in the loaded frame, the node ``X`` itself otherwise.
+
+    Returns
+    -------
+    ndarray of bool, shape (n_nodes,)
+        True where a read point lies more than :data:`MEASURED_REACH` grid steps (per axis)
+        outside the bounding box of ``delta``'s good measured nodes (status in
+        :data:`.field.GOOD_STATUSES`, provenance ``MEASURED``), or is not finite. There ``ΔD`` is
+        the spline's extrapolation of the border nodes (large displacements carry the faces'
+        nodes one or two steps beyond the correcting grid), which nothing in the images
+        supports; the node keeps its previous value.
+    """
+    points = np.asarray(read_points, dtype=np.float64).reshape(-1, 3)
+    good = np.isin(delta.status.reshape(-1), [int(s) for s in GOOD_STATUSES]) & (
+        delta.provenance.reshape(-1) == Provenance.MEASURED
+    )
+    if not good.any():
+        return np.ones(len(points), bool)
+    measured = delta.points[good]
+    lo, hi = measured.min(axis=0), measured.max(axis=0)
+    beyond = np.maximum(lo - points, points - hi) / np.asarray(delta.step, dtype=np.float64)
+    return ~(np.max(beyond, axis=1) <= MEASURED_REACH)
+
+
+def accept_locally(judge: Judge, current, local_current, candidate, refuse=None):
     """Node by node: keep the candidate's value unless its local residual rose above the noise.
 
-    Returns the mixed field, its local residual, the accepted and the improved node masks.
+    ``refuse`` (bool, the grid's shape, optional) marks nodes refused whatever their residual
+    (:func:`unsupported_updates`). Returns the mixed field, its local residual, the accepted and
+    the improved node masks.
     """
     tolerance = judge.tolerance
     region_current = judge.last_region
     local = judge.local(candidate)
     rose = local > local_current + tolerance
     rose |= np.isnan(local)  # a region the candidate sends out of the scan cannot be judged
+    if refuse is not None:
+        rose |= np.asarray(refuse, bool).reshape(rose.shape)
     accept = ~rose
     mixed, local_mixed = candidate, local
     for _ in range(ACCEPTANCE_SWEEPS):

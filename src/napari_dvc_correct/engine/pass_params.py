@@ -92,3 +92,49 @@ def correction_params(field: DisplacementField, params: CorrelationParams) -> Co
     subvolume = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
     subvolume = min(params.subvolume, max(MIN_PASS_SUBVOLUME, subvolume))
     return params.replace(order=2, subvolume=subvolume)
+
+
+def correction_grid(
+    field: DisplacementField, volume_shape, params: CorrelationParams, read_points: np.ndarray
+) -> tuple[tuple, tuple, tuple]:
+    """POI grid ``(origin, step, shape)`` of the correcting DVC runs.
+
+    ``field``'s lattice (same origin and step), extended by whole steps towards the nodes'
+    read points (where their updates read ``ΔD``: ``X + D(X)`` in the loaded frame) as far as the
+    lattice node nearest to the outermost read point, and no further than the correcting
+    subvolume (``params.half``) fits in the volume. Under a large displacement the faces' nodes
+    are carried one or more steps beyond ``field``'s grid; without these nodes their update would
+    be the spline's extrapolation of ``ΔD``, not a measurement. Never smaller than ``field``'s
+    grid; unchanged where every read point lies within half a step of it.
+
+    Parameters
+    ----------
+    field : DisplacementField
+        The field being corrected (its grid is the lattice).
+    volume_shape : tuple of 3 ints
+        ``(nz, ny, nx)`` of the volumes.
+    params : CorrelationParams
+        Parameters of the correcting matches (:func:`correction_params`).
+    read_points : ndarray, shape (n, 3)
+        Positions ``(z, y, x)`` in voxels; non-finite rows are ignored.
+
+    Returns
+    -------
+    origin, step, shape : tuples of 3
+        Origin and step in voxels (whole voxels where ``field``'s are), node counts.
+    """
+    origin = np.asarray(field.origin, dtype=np.float64)
+    step = np.asarray(field.step, dtype=np.float64)
+    last = np.asarray(field.shape) - 1
+    points = np.asarray(read_points, dtype=np.float64).reshape(-1, 3)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points):
+        return field.origin, field.step, field.shape
+    half = params.half
+    fits_lo = np.ceil((half - origin) / step)
+    fits_hi = np.floor((np.asarray(volume_shape, dtype=np.float64) - 1 - half - origin) / step)
+    lo = np.minimum(0, np.maximum(np.rint((points.min(axis=0) - origin) / step), fits_lo))
+    hi = np.maximum(last, np.minimum(np.rint((points.max(axis=0) - origin) / step), fits_hi))
+    new_origin = origin + lo * step
+    shape = (hi - lo + 1).astype(int)
+    return tuple(float(o) for o in new_origin), field.step, tuple(int(n) for n in shape)

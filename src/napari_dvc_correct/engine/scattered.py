@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import ndimage, spatial
 
 from .field import DisplacementField, Provenance, Status, usable_nodes
 
@@ -184,6 +183,8 @@ def default_grid(points: np.ndarray, step=None) -> tuple[tuple, tuple, tuple]:
         if len(points) < 2:
             step = 1
         else:
+            from scipy import spatial  # here: scipy.spatial is slow to import (CLI start-up)
+
             distance, _ = spatial.cKDTree(points).query(points, k=2)
             step = max(1, int(round(float(np.median(distance[:, 1])))))
     steps = np.broadcast_to(np.asarray(step, dtype=np.int64), (3,))
@@ -251,6 +252,8 @@ def to_grid(scattered: ScatteredField, grid=None, tolerance: float = 1e-6) -> Di
     provenance = np.full(n_nodes, int(Provenance.NOT_COMPUTED), np.uint8)
     usable = scattered.valid
     # nodes sitting on one of the points keep that point's values
+    from scipy import spatial  # here: scipy.spatial is slow to import (CLI start-up)
+
     distance, nearest = spatial.cKDTree(scattered.points).query(nodes)
     on_point = distance <= tolerance
     source = nearest[on_point]
@@ -344,6 +347,8 @@ def sample_field(
         np.abs(index - nearest) * np.asarray(grid_field.step) <= tolerance, axis=1
     )
     flat = np.ravel_multi_index(tuple(nearest.T), grid_field.shape)
+    from scipy import ndimage  # here: keeps importing this module (and the CLI) quick
+
     usable = grid_field.valid
     u = np.full((len(points), 3), np.nan)
     coords = index.T
