@@ -27,13 +27,14 @@ import numpy as np
 
 from .binning import GridPart, cell_sums_block, node_box_sums
 from .field import DisplacementField
-from .field_spline import FieldSpline, inside_hull
+from .field_spline import FieldSpline
+from .inverse_lattice import LatticeInverter
 from .phases import NO_PHASE, label_phases
 from .slabs import iter_slabs
 from .warp import (
+    INVERSE_ACCURACY,
     INVERT_MAX_ITERATIONS,
     INVERT_TOLERANCE,
-    box_lattice,
     box_shape,
     pull_back_block,
 )
@@ -190,10 +191,15 @@ def field_block(
         residual = np.abs(moved - np.asarray(own_block, np.float32))
         positions = None
     else:
-        source, converged = spline.invert(box_lattice(box), INVERT_MAX_ITERATIONS, INVERT_TOLERANCE)
+        # the forward warp's inverse (coarse Newton, checked interpolation), anchored on
+        # whole-volume indices: any cutting of the volume into boxes gives the same positions
+        inverse = LatticeInverter(
+            spline, box, INVERT_MAX_ITERATIONS, INVERT_TOLERANCE, INVERSE_ACCURACY
+        ).solve()
+        source = inverse.positions
         moved = np.asarray(sample_other(source), np.float32)
-        moved[~converged] = np.nan
-        moved[~inside_hull(spline, source)] = np.nan
+        moved[~inverse.converged] = np.nan
+        moved[~inverse.in_hull] = np.nan
         moved = moved.reshape(box_shape(box))
         residual = np.abs(np.asarray(own_block, np.float32) - moved)
         positions = source

@@ -23,7 +23,7 @@ import numpy as np
 from . import icgn, icgn_reference, icgn_uncertainty, shape_function
 from .backend import select_device
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
-from .guided_repair import repair, seed_guesses
+from .guided_repair import repair, search_seeds, seed_guesses
 from .initial_guess import bin_volume, global_shift, pyramid_levels
 from .interpolation import prefilter
 from .noise import (
@@ -221,6 +221,71 @@ class PyramidLevel:
         return zncc, status, iterations
 
 
+def _pyramid_level(lev, reference, deformed, mask, params, device_kind, texture_std):
+    """:class:`PyramidLevel` ``lev`` (factor ``2**lev``) as :func:`correlate_iter` builds it."""
+    return PyramidLevel.build(
+        2**lev,
+        reference,
+        deformed,
+        mask,
+        params.half if lev == 0 else max(4, params.half // 2**lev),
+        params.min_texture,
+        device_kind,
+        std=None if texture_std is None else texture_std[2**lev],
+    )
+
+
+def correlate_seeds(
+    reference,
+    deformed,
+    params: CorrelationParams,
+    centers,
+    *,
+    levels: int,
+    rigid_shift,
+    mask=None,
+    texture_std=None,
+    device="cpu",
+):
+    """The seeds of :func:`correlate_iter`'s initial guess, matched at ``centers`` alone.
+
+    What :func:`.guided_repair.seed_guesses` computes for its seeds at the coarsest of
+    ``levels`` pyramid levels: FFT search within the level's radius around ``rigid_shift``, then
+    IC-GN (:func:`.guided_repair.search_seeds`). For :mod:`.tiled`'s seed pass, on a region
+    of the volumes.
+
+    Parameters
+    ----------
+    reference, deformed, mask, texture_std, device
+        As for :func:`correlate_iter` (volumes may be a region of the whole ones).
+    centers : ndarray of int, shape (S, 3)
+        Seed POI centres, voxels of ``reference``.
+    levels : int
+        Pyramid levels of the whole volume.
+    rigid_shift : array-like of 3 ints
+        The whole volume's rigid shift (voxels).
+
+    Returns
+    -------
+    params : ndarray, shape (S, 3·nb)
+        Shape-function parameters at the coarsest level (its voxels).
+    zncc, status : ndarray, shape (S,)
+    level_centers : ndarray of int, shape (S, 3)
+        The seeds' centres at that level, in its voxels of ``reference``.
+    """
+    device = select_device(device)
+    reference, deformed, mask = validate_pair(reference, deformed, params, mask)
+    level = _pyramid_level(levels, reference, deformed, mask, params, device.kind, texture_std)
+    level_centers = level.centers_from_fine(np.asarray(centers, np.int64).reshape(-1, 3))
+    shift = np.rint(np.asarray(rigid_shift, np.float64)).astype(np.int64).reshape(3)
+    radius = params.effective_search_radius
+    coarse_radius = int(np.ceil(radius / 2**levels)) + (1 if levels else 0)
+    seed_params, zncc, status = search_seeds(
+        level, level_centers, shift / 2**levels, coarse_radius, params.order, params
+    )
+    return seed_params, zncc, status, level_centers
+
+
 def correlate_iter(
     reference: np.ndarray,
     deformed: np.ndarray,
@@ -233,6 +298,7 @@ def correlate_iter(
     device="cpu",
     texture_std=None,
     grid_anchor=None,
+    seeds=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -264,6 +330,10 @@ def correlate_iter(
         initial guess are the whole grid's (:func:`.guided_repair.seed_axes`) and the batch
         computes what the in-memory run computes for its POIs. Default: ``grid`` is the whole
         grid.
+    seeds : guided_repair.GivenSeeds, optional
+        The seeds of the initial guess, matched and judged on the whole grid (:mod:`.tiled`'s
+        seed pass): every POI starts from its nearest good seed of the whole grid, as in memory,
+        and the pyramid has the whole volume's ``seeds.levels``. Default: seeds searched here.
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.
@@ -332,21 +402,18 @@ def correlate_iter(
             if rigid_shift is None
             else np.rint(np.asarray(rigid_shift, np.float64)).astype(np.int64).reshape(3)
         )
-        levels = pyramid_levels(radius, params.subvolume, reference.shape)
+        levels = (
+            pyramid_levels(radius, params.subvolume, reference.shape)
+            if seeds is None
+            else int(seeds.levels)
+        )
         guess_params = None
         for lev in range(levels, -1, -1):
             level = (
                 fine
                 if lev == 0
-                else PyramidLevel.build(
-                    2**lev,
-                    reference,
-                    deformed,
-                    mask,
-                    max(4, half // 2**lev),
-                    params.min_texture,
-                    device.kind,
-                    std=None if texture_std is None else texture_std[2**lev],
+                else _pyramid_level(
+                    lev, reference, deformed, mask, params, device.kind, texture_std
                 )
             )
             level_centers = level.centers_from_fine(centers)
@@ -361,6 +428,7 @@ def correlate_iter(
                     order,
                     params,
                     anchor=grid_anchor,
+                    seeds=seeds,
                 )
                 yield Progress("initial guess", 1, levels + 2, f"seeds matched (level {lev})")
             if lev == 0:
@@ -501,6 +569,7 @@ def correlate(
     device="cpu",
     texture_std=None,
     grid_anchor=None,
+    seeds=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -515,5 +584,6 @@ def correlate(
             device=device,
             texture_std=texture_std,
             grid_anchor=grid_anchor,
+            seeds=seeds,
         )
     )

@@ -36,7 +36,10 @@ from .field_spline_kernels import (
     _eval_lattice,
     _eval_points,
     _invert_points,
+    extend_coefficients,
+    hull_bounds,
 )
+from .inverse_lattice import LatticeInverse, invert_lattice
 from .slabs import iter_slabs
 
 #: Nodes added on each side of the grid (linear extrapolation) before the spline fit.
@@ -109,6 +112,8 @@ class FieldSpline:
         for c in range(self.components):
             coefficients[..., c] = ndimage.spline_filter(padded[..., c], order=3, mode="mirror")
         self.coefficients = np.ascontiguousarray(coefficients)
+        # mirrored copy for the point kernels of 3-component splines (no mirroring per tap)
+        self.extended = extend_coefficients(self.coefficients) if self.components == 3 else None
         self.pad = PAD_NODES
 
     @classmethod
@@ -117,8 +122,9 @@ class FieldSpline:
         return cls(field.origin, field.step, field.u)
 
     def _args(self):
+        """Arguments of the 3-component point kernels (extended coefficients first)."""
         return (
-            self.coefficients,
+            self.extended,
             self.pad,
             self.origin,
             self.step,
@@ -145,7 +151,9 @@ class FieldSpline:
         for start in range(0, points.shape[0], chunk_points):
             stop = start + chunk_points
             _eval_points(
-                *self._args(),
+                self.coefficients,
+                self.extended if self.extended is not None else self.coefficients,
+                *self._args()[1:],
                 self.grid_shape,
                 points[start:stop],
                 outside == "nan",
@@ -226,6 +234,26 @@ class FieldSpline:
             *self._args(), targets, int(max_iterations), float(tolerance), out, converged
         )
         return out, converged
+
+    def invert_lattice(
+        self,
+        box,
+        max_iterations: int = 50,
+        tolerance: float = 1e-4,
+        accuracy: float = 1e-3,
+        stride: int | None = None,
+        outside_accuracy: float | None = None,
+    ) -> LatticeInverse:
+        """:meth:`invert` at every voxel of ``box`` (3 slices of voxel indices), much faster.
+
+        Exact on a coarse lattice, interpolated between its nodes where a check shows the
+        interpolation within ``accuracy`` voxels (``outside_accuracy`` where the field is
+        extrapolated beyond the grid's hull), Newton per voxel elsewhere; see
+        :func:`.inverse_lattice.invert_lattice`.
+        """
+        return invert_lattice(
+            self, box, max_iterations, tolerance, accuracy, stride, outside_accuracy
+        )
 
 
 def _check_outside(outside: str) -> None:
@@ -341,6 +369,10 @@ def check_shape(shape) -> tuple[int, int, int]:
 
 
 def inside_hull(spline: FieldSpline, points: np.ndarray) -> np.ndarray:
-    """True for positions ``(N, 3)`` inside the box spanned by the spline's grid nodes."""
-    t = (points - spline.origin) / spline.step
-    return np.all((t >= -HULL_TOLERANCE) & (t <= spline.grid_shape - 1 + HULL_TOLERANCE), axis=1)
+    """True for positions ``(N, 3)`` inside the box spanned by the spline's grid nodes.
+
+    The box is widened by :data:`HULL_TOLERANCE` grid units (:func:`hull_bounds`), as in the
+    lattice inverse's kernels.
+    """
+    low, high = hull_bounds(spline)
+    return np.all((points >= low) & (points <= high), axis=1)

@@ -9,6 +9,7 @@ from their best neighbours, best ZNCC first (Pan 2009). Both work on one pyramid
 from __future__ import annotations
 
 import heapq
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -186,7 +187,99 @@ def _testable_seeds(axes, grid_shape, stride, anchor):
     return testable.reshape(-1), whole_count
 
 
-def seed_guesses(level, centers, grid_shape, shift, radius, order, settings, anchor=None):
+@dataclass
+class GivenSeeds:
+    """Seeds matched and judged on the whole grid, handed to a box of it (:mod:`..tiled`).
+
+    :func:`seed_guesses` then carries these seeds' warps instead of searching its own seeds, so
+    every POI of the box starts from the in-memory run's guess.
+
+    Attributes
+    ----------
+    levels : int
+        Pyramid levels of the whole volume (the seeds' level has factor ``2**levels``); the box
+        uses these rather than counting levels from its region's size.
+    params : ndarray, shape (S, 3·nb)
+        Shape-function parameters of the good seeds the box needs, in voxels of that level.
+    centers : ndarray of int, shape (S, 3)
+        Their centres at that level, in the binned voxels of the volumes given to the box.
+    source : ndarray of int, shape (N,), or None
+        Row of ``params`` of each POI's nearest good seed on the whole grid (C order of the box);
+        None when no seed of the whole grid is good (every POI is then searched).
+    """
+
+    levels: int
+    params: np.ndarray
+    centers: np.ndarray
+    source: np.ndarray | None
+
+
+def search_seeds(level, centers, shift, radius, order, settings):
+    """FFT search within ``radius`` around ``shift`` at ``centers`` (level voxels), then IC-GN.
+
+    Returns
+    -------
+    params : ndarray, shape (S, 3·nb)
+    zncc, status : ndarray, shape (S,)
+    """
+    params = np.ascontiguousarray(_search(level, centers, shift, radius, order))
+    zncc, status, _ = level.match(centers, params, order, settings)
+    return params, zncc, status
+
+
+def _search(level, centers, shift, radius, order):
+    found, _ = fft_search(
+        level.reference,
+        level.deformed,
+        centers,
+        level.half,
+        np.tile(shift, (len(centers), 1)),
+        radius,
+    )
+    return shape_function.displacement_to_params(found, None, order)
+
+
+def judge_seeds(params, zncc, status, seed_shape, order, settings, testable=None, count=None):
+    """Good seeds: converged above ``settings.min_zncc`` and not outliers among the seeds.
+
+    The median test (:func:`neighbour_outliers` on the seeds' sub-grid ``seed_shape``, C order)
+    runs when ``count`` (default: the number of good seeds) reaches
+    ``settings.median_test_min_pois``; it judges only the ``testable`` seeds (default all).
+    """
+    good = is_good(status, zncc, settings.min_zncc)
+    if (good.sum() if count is None else count) >= settings.median_test_min_pois:
+        seed_u = np.full((*seed_shape, 3), np.nan)
+        seed_u.reshape(-1, 3)[:] = shape_function.params_to_displacement(params, order)[0]
+        outliers = neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
+        good &= ~(outliers if testable is None else outliers & testable)
+    return good
+
+
+def nearest_seeds(good_grid):
+    """Flat index (C order) of the nearest ``True`` node of ``good_grid`` for every node.
+
+    :func:`scipy.ndimage.distance_transform_edt` on the whole grid; ties are broken as it breaks
+    them. Memory: about 21 bytes per node.
+    """
+    nearest = ndimage.distance_transform_edt(
+        ~good_grid, return_distances=False, return_indices=True
+    )
+    return np.ravel_multi_index(tuple(nearest.reshape(3, -1)), good_grid.shape)
+
+
+def carry_seeds(params, seed_centers, centers, order):
+    """Each POI's seed warp (rows ``params``, at ``seed_centers``) carried to ``centers``:
+    ``u + ∇u·Δ`` (affine part)."""
+    nb = shape_function.n_monomials(order)
+    guesses = params.reshape(len(centers), 3, nb).copy()
+    delta = (centers - seed_centers).astype(np.float64)
+    guesses[:, :, 0] += np.einsum("nkl,nl->nk", guesses[:, :, 1:4], delta)
+    return np.ascontiguousarray(guesses.reshape(len(centers), 3 * nb))
+
+
+def seed_guesses(
+    level, centers, grid_shape, shift, radius, order, settings, anchor=None, seeds=None
+):
     """Initial warps for every POI from an FFT search at a sparse set of seed POIs.
 
     Seeds sit on a sub-grid about one subvolume apart (:func:`seed_axes`; ``anchor`` places a
@@ -196,65 +289,58 @@ def seed_guesses(level, centers, grid_shape, shift, radius, order, settings, anc
     its nearest good seed carried to its position. Falls back to searching every POI when no seed
     survives.
 
-    In a box with ``anchor``, a POI gets the in-memory run's guess when its nearest good seed
-    lies in the box (the nearest-seed search, :func:`scipy.ndimage.distance_transform_edt`,
-    breaks ties the same way in the box as in the whole grid) and the seeds near it are judged as
-    in memory: the median test judges the seeds whose neighbour seeds are all in the box (or
-    beyond the whole grid's border); seeds at the box's other faces are kept untested, so they
-    differ from the in-memory run only where it rejects them as outliers. A box whose margin
-    reaches ``stride // 2`` POIs beyond its own POIs (one POI for a stride of 2 or 3) thus
-    reproduces the in-memory guesses of its own POIs wherever the seeds near them converge and
-    none is an outlier; where seeds fail, the nearest good seed is farther away and the margin
-    must reach it. A box without any good seed falls back to searching all its POIs, which the
-    in-memory run does only when no seed of the whole grid is good.
+    ``seeds`` (:class:`GivenSeeds`): the seeds were matched and judged on the whole grid already
+    (:mod:`..tiled`'s seed pass); each POI takes its given nearest good seed, exactly as in
+    memory, and nothing is searched unless no seed is good.
+
+    In a box with ``anchor`` and no ``seeds``, a POI gets the in-memory run's guess when its
+    nearest good seed lies in the box (the nearest-seed search,
+    :func:`scipy.ndimage.distance_transform_edt`, breaks ties the same way in the box as in the
+    whole grid) and the seeds near it are judged as in memory: the median test judges the seeds
+    whose neighbour seeds are all in the box (or beyond the whole grid's border); seeds at the
+    box's other faces are kept untested, so they differ from the in-memory run only where it
+    rejects them as outliers. A box whose margin reaches ``stride // 2`` POIs beyond its own POIs
+    (one POI for a stride of 2 or 3) thus reproduces the in-memory guesses of its own POIs
+    wherever the seeds near them converge and none is an outlier; where seeds fail, the nearest
+    good seed is farther away and the margin must reach it. A box without any good seed falls
+    back to searching all its POIs, which the in-memory run does only when no seed of the whole
+    grid is good.
 
     Returns
     -------
     ndarray, shape (N, 3·nb)
         Shape-function parameters at ``level`` (voxels of that level).
     """
+    n_points = len(centers)
+    if seeds is not None:
+        if seeds.source is None:
+            return np.ascontiguousarray(_search(level, centers, shift, radius, order))
+        source = np.asarray(seeds.source)
+        return carry_seeds(seeds.params[source], seeds.centers[source], centers, order)
     stride = max(1, int(round(settings.subvolume / settings.step)))
     axes = seed_axes(grid_shape, stride, anchor)
     seed_grid = np.zeros(grid_shape, bool)
     seed_grid[np.ix_(*axes)] = True
-    seeds = np.flatnonzero(seed_grid)
-    n_points = len(centers)
-    nb = shape_function.n_monomials(order)
-
-    def search(index):
-        found, _ = fft_search(
-            level.reference,
-            level.deformed,
-            centers[index],
-            level.half,
-            np.tile(shift, (len(index), 1)),
-            radius,
-        )
-        return shape_function.displacement_to_params(found, None, order)
-
-    seed_params = np.ascontiguousarray(search(seeds))
-    zncc, status, _ = level.match(centers[seeds], seed_params, order, settings)
-    good = is_good(status, zncc, settings.min_zncc)
+    seed_index = np.flatnonzero(seed_grid)
+    seed_params, zncc, status = search_seeds(
+        level, centers[seed_index], shift, radius, order, settings
+    )
     testable, whole_count = _testable_seeds(axes, grid_shape, stride, anchor)
     # in a box: the whole grid's count of seeds stands for its count of good ones (unknown here)
-    enough = good.sum() if anchor is None else whole_count * bool(good.any())
-    if enough >= settings.median_test_min_pois:
-        seed_u = np.full((*[len(a) for a in axes], 3), np.nan)
-        seed_u.reshape(-1, 3)[:] = shape_function.params_to_displacement(seed_params, order)[0]
-        outliers = neighbour_outliers(seed_u.reshape(-1, 3), good, seed_u.shape[:3])
-        good &= ~(outliers & testable)  # a seed at a face of the box is kept untested
-    if not good.any():
-        return np.ascontiguousarray(search(np.arange(n_points)))
-    good_grid = np.zeros(grid_shape, bool)
-    good_grid.reshape(-1)[seeds[good]] = True
-    nearest = ndimage.distance_transform_edt(
-        ~good_grid, return_distances=False, return_indices=True
+    good_count = (
+        None
+        if anchor is None
+        else whole_count * bool(is_good(status, zncc, settings.min_zncc).any())
     )
-    nearest_flat = np.ravel_multi_index(tuple(nearest.reshape(3, -1)), grid_shape)
+    good = judge_seeds(
+        seed_params, zncc, status, [len(a) for a in axes], order, settings, testable, good_count
+    )
+    if not good.any():
+        return np.ascontiguousarray(_search(level, centers, shift, radius, order))
+    good_grid = np.zeros(grid_shape, bool)
+    good_grid.reshape(-1)[seed_index[good]] = True
+    nearest_flat = nearest_seeds(good_grid)
     lookup = np.full(n_points, -1)
-    lookup[seeds] = np.arange(len(seeds))
+    lookup[seed_index] = np.arange(len(seed_index))
     source = lookup[nearest_flat]
-    guesses = seed_params[source].reshape(n_points, 3, nb).copy()
-    delta = (centers - centers[seeds][source]).astype(np.float64)
-    guesses[:, :, 0] += np.einsum("nkl,nl->nk", guesses[:, :, 1:4], delta)
-    return np.ascontiguousarray(guesses.reshape(n_points, 3 * nb))
+    return carry_seeds(seed_params[source], centers[seed_index][source], centers, order)

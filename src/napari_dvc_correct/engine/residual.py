@@ -51,8 +51,13 @@ def _iter_moved(
             yield z, moved, np.abs(moved - reference[z].astype(np.float32))
     else:
         sampler = spline_sampler(coefficients_of(reference, reference_coefficients, "reference"))
-        for z, box in slab_boxes(deformed.shape, chunk_voxels):
-            moved, in_hull = warp_forward_block(sampler, spline, box)
+        # one box: the inverse's coarse stage runs once, its positions slab by slab
+        whole = tuple(slice(0, int(n)) for n in deformed.shape)
+        moved_all, in_hull_all = warp_forward_block(
+            sampler, spline, whole, chunk_voxels=chunk_voxels
+        )
+        for z, _ in slab_boxes(deformed.shape, chunk_voxels):
+            moved, in_hull = moved_all[z], in_hull_all[z]
             if region == "hull":
                 moved[~in_hull] = np.nan
             yield z, moved, np.abs(deformed[z].astype(np.float32) - moved)

@@ -3,15 +3,17 @@
 * :func:`pull_back` resamples the deformed volume into the reference frame,
   ``F~(X) = F(X + u(X))`` (no inversion needed);
 * :func:`warp_forward` moves the reference volume to the loaded state, ``G'(X + u(X)) = G(X)``
-  (paper step d), solving ``X + u(X) = x`` for every loaded voxel ``x`` by Newton's fixed-point
-  iteration (:meth:`.field_spline.FieldSpline.invert`);
+  (paper step d), solving ``X + u(X) = x`` for every loaded voxel ``x``: Newton on a coarse
+  lattice, checked interpolation between its nodes, Newton per voxel where the check fails
+  (:class:`.inverse_lattice.LatticeInverter`, within :data:`INVERSE_ACCURACY` of per-voxel Newton,
+  :meth:`.field_spline.FieldSpline.invert`, which ``accuracy=None`` asks for);
 * :func:`warp_forward_with_residual` does the forward warp and the loaded-state mean gray residual
   with one inversion (what a correction pass needs).
 
 One pair of block helpers, :func:`pull_back_block` and :func:`warp_forward_block`, does the work
-for any box of voxels and any sampler of the volume: the functions here call them slab by slab
-with the in-memory B-spline sampler, :mod:`.residual` for the gray residuals, and
-:mod:`napari_dvc_correct.tiled.volumes` block by block with a sampler that reads a lazy volume.
+for any box of voxels and any sampler of the volume: the functions here call them on the whole
+volume (positions made and sampled slab by slab) with the in-memory B-spline sampler,
+:mod:`.residual` for the gray residuals, and :mod:`napari_dvc_correct.tiled.volumes` block by block with a sampler that reads a lazy volume.
 
 Volumes are sampled with the tricubic B-spline of :mod:`.interpolation`. All positions are
 ``(z, y, x)`` in reference voxels.
@@ -32,6 +34,7 @@ from .field_spline import (
     inside_hull,
 )
 from .interpolation import prefilter, sample
+from .inverse_lattice import LatticeInverter
 from .slabs import iter_slabs
 
 #: A sampler of a volume: positions ``(N, 3)`` ``(z, y, x)`` in voxels -> float32 values ``(N,)``,
@@ -41,6 +44,12 @@ Sampler = Callable[[np.ndarray], np.ndarray]
 #: Newton iterations and step tolerance (voxels) of the inverse map, unless told otherwise.
 INVERT_MAX_ITERATIONS = 50
 INVERT_TOLERANCE = 1e-4
+
+#: Largest error (voxels) of the forward warp's inverse map against per-voxel Newton (see
+#: :func:`.inverse_lattice.invert_lattice`): 1e-3 voxel moves gray values by 1e-3 times their
+#: gradient, far below the DVC's own uncertainty (0.01 - 0.05 voxel), so a correction computed on
+#: the warped volume is not biased by it.
+INVERSE_ACCURACY = 1e-3
 
 
 def box_axes(box: tuple[slice, slice, slice]) -> list[np.ndarray]:
@@ -52,6 +61,11 @@ def box_lattice(box: tuple[slice, slice, slice]) -> np.ndarray:
     """Voxel positions ``(N, 3)`` ``(z, y, x)`` of every voxel of ``box``, in C order."""
     grids = np.meshgrid(*box_axes(box), indexing="ij")
     return np.stack([g.reshape(-1) for g in grids], axis=1)
+
+
+def whole_box(shape) -> tuple[slice, slice, slice]:
+    """The box of every voxel of a volume of ``shape``."""
+    return tuple(slice(0, int(n)) for n in shape)
 
 
 def box_shape(box: tuple[slice, slice, slice]) -> tuple[int, int, int]:
@@ -77,8 +91,16 @@ def warp_forward_block(
     box,
     max_iterations: int = INVERT_MAX_ITERATIONS,
     tolerance: float = INVERT_TOLERANCE,
+    accuracy: float | None = INVERSE_ACCURACY,
+    chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``G(X)`` with ``X + u(X) = x`` at every loaded-state voxel ``x`` of ``box``.
+
+    ``X`` comes from :class:`.inverse_lattice.LatticeInverter` (within ``accuracy`` voxels of
+    Newton's answer in the grid's hull and 10 times that beyond it, and the same whichever boxes
+    a volume is cut into), or with ``accuracy=None`` from Newton at every voxel
+    (:meth:`.field_spline.FieldSpline.invert`, several times slower). Positions are computed and
+    sampled ``chunk_voxels`` at a time (whole z planes); the coarse stage runs once per box.
 
     Returns
     -------
@@ -87,11 +109,27 @@ def warp_forward_block(
     in_hull : ndarray of bool, same shape
         Where ``X`` lies in the grid's hull (where the field was measured).
     """
-    source, converged = spline.invert(box_lattice(box), max_iterations, tolerance)
-    values = np.asarray(sample_reference(source), np.float32)
-    values[~converged] = np.nan
     shape = box_shape(box)
-    return values.reshape(shape), inside_hull(spline, source).reshape(shape)
+    values = np.empty(shape, np.float32)
+    in_hull = np.empty(shape, np.bool_)
+    if accuracy is not None:
+        inverter = LatticeInverter(spline, box, max_iterations, tolerance, accuracy)
+    for planes in iter_slabs(shape, chunk_voxels):
+        if accuracy is None:
+            sub = (
+                slice(box[0].start + planes.start, box[0].start + planes.stop),
+                box[1],
+                box[2],
+            )
+            source, converged = spline.invert(box_lattice(sub), max_iterations, tolerance)
+            hull = inside_hull(spline, source)
+        else:
+            source, converged, hull, _ = inverter.solve(planes)
+        sampled = np.asarray(sample_reference(source), np.float32)
+        sampled[~converged] = np.nan
+        values[planes] = sampled.reshape(-1, *shape[1:])
+        in_hull[planes] = hull.reshape(-1, *shape[1:])
+    return values, in_hull
 
 
 def coefficients_of(volume, coefficients, name: str) -> np.ndarray:
@@ -182,12 +220,13 @@ def warp_forward(
     max_iterations: int = INVERT_MAX_ITERATIONS,
     tolerance: float = INVERT_TOLERANCE,
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
+    accuracy: float | None = INVERSE_ACCURACY,
 ) -> np.ndarray:
     """The reference volume moved to the loaded state: ``G'(X + u(X)) = G(X)`` (paper step d).
 
     For each voxel ``x`` of the loaded state the reference position ``X`` with ``X + u(X) = x`` is
-    found by fixed-point iteration on the dense field (Newton steps, see
-    :meth:`FieldSpline.invert`), then ``G'(x) = G(X)``.
+    found (Newton on a coarse lattice and checked interpolation, see :func:`warp_forward_block`),
+    then ``G'(x) = G(X)``.
 
     Parameters
     ----------
@@ -208,6 +247,9 @@ def warp_forward(
         Fixed-point iteration limit and convergence threshold (voxels).
     chunk_voxels : int
         Voxels processed at a time.
+    accuracy : float or None
+        Largest error (voxels) of the inverse map against per-voxel Newton in the grid's hull (10
+        times that beyond it); None runs Newton at every voxel (several times slower).
 
     Returns
     -------
@@ -217,15 +259,15 @@ def warp_forward(
     shape = coefficients.shape if shape is None else check_shape(shape)
     spline = as_field_spline(field)
     sampler = spline_sampler(coefficients)
-    result = np.empty(shape, np.float32)
-    for z, box in slab_boxes(shape, chunk_voxels):
-        values, in_hull = warp_forward_block(sampler, spline, box, max_iterations, tolerance)
-        bad = ~np.isfinite(values)
-        if outside == "nan":
-            bad |= ~in_hull
-        values[bad] = cval
-        result[z] = values
-    return result
+    # one box: the coarse stage of the inverse runs once, positions are made slab by slab
+    values, in_hull = warp_forward_block(
+        sampler, spline, whole_box(shape), max_iterations, tolerance, accuracy, chunk_voxels
+    )
+    bad = ~np.isfinite(values)
+    if outside == "nan":
+        bad |= ~in_hull
+    values[bad] = cval
+    return values
 
 
 def warp_forward_with_residual(
@@ -238,6 +280,7 @@ def warp_forward_with_residual(
     max_iterations: int = INVERT_MAX_ITERATIONS,
     tolerance: float = INVERT_TOLERANCE,
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
+    accuracy: float | None = INVERSE_ACCURACY,
 ) -> tuple[np.ndarray, float]:
     """:func:`warp_forward` (field extrapolated) and the loaded-state mean gray residual at once.
 
@@ -256,14 +299,15 @@ def warp_forward_with_residual(
     shape = check_shape(deformed.shape)
     spline = as_field_spline(field)
     sampler = spline_sampler(coefficients)
-    result = np.empty(shape, np.float32)
+    result, in_hull = warp_forward_block(
+        sampler, spline, whole_box(shape), max_iterations, tolerance, accuracy, chunk_voxels
+    )
     total, count = 0.0, 0
-    for z, box in slab_boxes(shape, chunk_voxels):
-        values, in_hull = warp_forward_block(sampler, spline, box, max_iterations, tolerance)
+    for z in iter_slabs(shape, chunk_voxels):
+        values = result[z]
         defined = np.isfinite(values)
-        difference = np.abs(deformed[z].astype(np.float32) - values)[defined & in_hull]
+        difference = np.abs(deformed[z].astype(np.float32) - values)[defined & in_hull[z]]
         total += float(np.sum(difference, dtype=np.float64))
         count += int(difference.size)
         values[~defined] = cval
-        result[z] = values
     return result, (total / count if count else float("nan"))

@@ -8,18 +8,28 @@
    volumes, for the rigid shift; the gray standard deviation of ``G`` (inside the mask) binned by
    every pyramid factor is accumulated for the low-texture test. The pass also checks that every
    value is finite.
-2. **Batches**: the POI grid is split into boxes of ``batch_shape`` POIs. Each batch (a
-   ``dask.delayed`` task) reads its region of ``G`` and ``F`` plus a halo and runs
-   :func:`.correlate.correlate_iter` on it — the same pyramid, integer search, IC-GN and
-   reliability-guided repair as in memory — with the whole volume's rigid shift and gray
-   statistics (``rigid_shift``, ``texture_std``), on its POIs — plus, optionally, ``margin``
-   layers of neighbouring POIs so that the initial guess, the repair and the median test see at
-   the batch's border the neighbours they see in memory (only the batch's own POIs are kept).
-   The seeds of the initial guess are the whole grid's (``grid_anchor``,
-   :func:`..engine.guided_repair.seed_axes`), so a batch whose margin reaches the nearest good
-   seed of each of its POIs (``round(subvolume / step) // 2`` POIs where the seeds near it
-   converge) gives those POIs the in-memory field, to float rounding.
-3. The batches' results are assembled into one field.
+2. **Seed pass**: the POI grid is split into boxes of ``batch_shape`` POIs. The seeds of the
+   initial guess (every ``round(subvolume / step)`` POIs of the whole grid,
+   :func:`..engine.guided_repair.seed_axes`) are matched first, one ``dask.delayed`` task per box
+   that holds seeds, each reading only the region of its seeds (:func:`match_seeds`,
+   :func:`.correlate.correlate_seeds`: FFT search and IC-GN at the coarsest pyramid level).
+   The seeds are then judged on the whole seed grid (ZNCC, status, median test) and every POI
+   is given its nearest good seed of the whole grid, exactly as
+   :func:`..engine.guided_repair.seed_guesses` does in memory (``seeds=`` of
+   :func:`.correlate.correlate_iter`); each batch receives the seeds its POIs need.
+3. **Batches**: each box (a ``dask.delayed`` task) reads its region of ``G`` and ``F`` plus a
+   halo and runs :func:`.correlate.correlate_iter` on it — the same pyramid, IC-GN and
+   reliability-guided repair as in memory — with the whole volume's rigid shift, gray statistics
+   and seeds (``rigid_shift``, ``texture_std``, ``seeds``), on its POIs plus ``margin`` layers of
+   neighbouring POIs (default 1), so that the repair and the median test see at the batch's
+   border the neighbours they see in memory (only the batch's own POIs are kept). Every POI
+   starts from its in-memory guess whatever the margin; what differs without a margin is the
+   repair at the full resolution, which re-matches a failed POI from its best neighbour, and
+   that neighbour may lie in the next batch (measured on a rotation with failing seeds at one
+   face, 4x4x10-POI batches: margin 0 left 16 of 1000 POIs up to 3.6e-4 voxel away; margin 1
+   gave the in-memory field to 4e-8 voxel, the coarse prefilter at the regions' edges). A
+   repair chain that runs more than ``margin`` POIs across a face still differs there.
+4. The batches' results are assembled into one field.
 
 The halo around a batch's POIs (per side, in voxels) covers the subvolume half-size widened by
 :data:`.memory.STRAIN_ALLOWANCE` for the shape function, the search radius around the rigid shift, the
@@ -44,10 +54,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..engine.correlate import correlate_iter
+from ..engine.correlate import correlate_iter, correlate_seeds
 from ..engine.field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
+from ..engine.guided_repair import GivenSeeds, judge_seeds, nearest_seeds, seed_axes
 from ..engine.params import CorrelationParams
 from ..engine.progress import Progress, run_to_completion
+from ..engine.shape_function import n_monomials
 from ..io.lazy import as_lazy
 from . import scheduling
 from .memory import (
@@ -89,6 +101,7 @@ class BatchJob:
     use_mask: bool = False
     device: str = "cpu"
     grid_anchor: tuple | None = None  # (whole-grid index of the sub-grid's first POI, grid shape)
+    seeds: GivenSeeds | None = None  # the seed pass's seeds for this sub-grid
 
     @property
     def region_voxels(self) -> int:
@@ -156,6 +169,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
                 texture_std=job.texture_std,
                 device=job.device,
                 grid_anchor=job.grid_anchor,
+                seeds=job.seeds,
             )
         )
     del g, f, m
@@ -185,6 +199,124 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
         timings=timings,
         uncertainty=None if result.uncertainty is None else result.uncertainty[core].reshape(-1, 3),
     )
+
+
+# --- the seed pass ------------------------------------------------------------------------------
+@dataclass
+class SeedJob:
+    """The seeds of the initial guess that fall in one batch's box (small, like :class:`BatchJob`)."""
+
+    params: CorrelationParams
+    rows: np.ndarray  # (S,) rows of these seeds in the whole grid's seed table
+    centers: np.ndarray  # (S, 3) int voxels of the whole volume
+    region_low: np.ndarray  # (3,) region [low, high) in voxels
+    region_high: np.ndarray
+    levels: int
+    shift: np.ndarray
+    texture_std: dict
+    threads: int | None = None
+    use_mask: bool = False
+    device: str = "cpu"
+
+
+def match_seeds(job: SeedJob, reference, deformed, mask=None):
+    """Match one box's seeds in its region (:func:`.correlate.correlate_seeds`).
+
+    Returns ``(rows, params, zncc, status, centers)``: ``centers`` at the coarsest level, in
+    binned voxels of the whole volume.
+    """
+    if job.threads:
+        import numba
+
+        numba.set_num_threads(max(1, min(int(job.threads), numba.config.NUMBA_NUM_THREADS)))
+    lo, hi = job.region_low, job.region_high
+    region = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+    f = 2**job.levels
+    m = mask.read_region(region) != 0 if job.use_mask and mask is not None else None
+    if m is not None and not m.any():  # no material here: the seeds are masked
+        n = len(job.rows)
+        nb = 3 * n_monomials(job.params.order)
+        coarse = np.rint((job.centers - (f - 1) / 2.0) / f).astype(np.int64)
+        status = np.full(n, int(Status.MASKED), np.int64)
+        return job.rows, np.full((n, nb), np.nan), np.full(n, np.nan), status, coarse
+    g = reference.read_region(region)
+    d = deformed.read_region(region)
+    params, zncc, status, centers = correlate_seeds(
+        g,
+        d,
+        job.params,
+        job.centers - lo,
+        levels=job.levels,
+        rigid_shift=job.shift,
+        mask=m,
+        texture_std=job.texture_std,
+        device=job.device,
+    )
+    return job.rows, params, zncc, status, centers + lo // f
+
+
+def _seed_jobs(batches, params, shape, grid, levels, whole, options):
+    """One :class:`SeedJob` per batch box holding seeds; the seeds' whole-grid flat indices."""
+    origin, step, grid_shape = grid
+    stride = max(1, int(round(params.subvolume / params.step)))
+    axes = seed_axes(grid_shape, stride)
+    seed_flat = np.ravel_multi_index(np.meshgrid(*axes, indexing="ij"), grid_shape).ravel()
+    rows = np.arange(len(seed_flat)).reshape([len(a) for a in axes])
+    reaches = halo(params, levels)
+    jobs = []
+    for core_ranges in batches:
+        picks = [np.flatnonzero((a >= b0) & (a < b1)) for a, (b0, b1) in zip(axes, core_ranges)]
+        if min(len(p) for p in picks) == 0:
+            continue
+        index = np.stack(np.meshgrid(*[a[p] for a, p in zip(axes, picks)], indexing="ij"), -1)
+        centers = origin + step * index.reshape(-1, 3)
+        lo, hi = _region(
+            centers.min(0), centers.max(0), whole.shift, whole.shift, reaches, 2**levels, shape
+        )
+        jobs.append(
+            SeedJob(
+                params=params,
+                rows=rows[np.ix_(*picks)].ravel(),
+                centers=centers,
+                region_low=lo,
+                region_high=hi,
+                levels=levels,
+                shift=whole.shift,
+                texture_std=whole.texture_std,
+                **options,
+            )
+        )
+    return jobs, seed_flat, [len(a) for a in axes]
+
+
+def _give_seeds(jobs, results, seed_flat, seed_shape, grid_shape, levels, params):
+    """Judge the whole grid's seeds as in memory and hand each batch the seeds it needs."""
+    n = len(seed_flat)
+    nb3 = results[0][1].shape[1]
+    seed_params = np.full((n, nb3), np.nan)
+    zncc = np.full(n, np.nan)
+    status = np.full(n, int(Status.NOT_COMPUTED), np.int64)
+    centers = np.zeros((n, 3), np.int64)
+    for rows, p, z, s, c in results:
+        seed_params[rows], zncc[rows], status[rows], centers[rows] = p, z, s, c
+    good = judge_seeds(seed_params, zncc, status, seed_shape, params.order, params)
+    f = 2**levels
+    if not good.any():
+        for job in jobs:
+            job.seeds = GivenSeeds(levels, seed_params[:0], centers[:0], None)
+        return 0
+    good_grid = np.zeros(grid_shape, bool)
+    good_grid.reshape(-1)[seed_flat[good]] = True
+    lookup = np.full(int(np.prod(grid_shape)), -1)
+    lookup[seed_flat] = np.arange(n)
+    source = lookup[nearest_seeds(good_grid)].reshape(grid_shape)
+    del good_grid, lookup
+    for job in jobs:
+        window = tuple(slice(a, a + b) for a, b in zip(job.grid_anchor[0], job.sub_shape))
+        rows, inverse = np.unique(source[window].ravel(), return_inverse=True)
+        local = centers[rows] - job.region_low // f
+        job.seeds = GivenSeeds(levels, seed_params[rows], local, inverse.reshape(-1))
+    return int(good.sum())
 
 
 # --- the driver --------------------------------------------------------------------------------
@@ -267,8 +399,9 @@ def correlate_tiled_iter(
     workers: int | None = None,
     threads_per_task: int | None = None,
     scheduler=None,
-    margin: int = 0,
+    margin: int = 1,
     device="cpu",
+    seed_pass: bool = True,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F) batch by batch; yields progress, returns the field.
 
@@ -299,19 +432,28 @@ def correlate_tiled_iter(
         ``"tcp://10.0.0.5:8786"``); or a ``distributed.Client``.
     margin : int
         Layers of neighbouring POIs matched with each batch (and then dropped) so that the
-        initial guess (the nearest good seed), the reliability-guided repair and the median test
-        see, at the batch's border, the neighbours they see in memory; then the batch's POIs get
-        the in-memory field. Costs ``((b + 2m) / b)³`` times the work for batches of ``b³`` POIs
-        (2.1 for 7³ batches and a margin of 1); 0 (default) matches every POI once.
+        reliability-guided repair and the median test see, at the batch's border, the
+        neighbours they see in memory (the seeds come from the seed pass); then the batch's POIs
+        get the in-memory field. Costs ``((b + 2m) / b)³`` times the work for batches of ``b³``
+        POIs (2.1 for 7³ batches and the default margin of 1, 1.3 for 20³); 0 matches every POI
+        once, and POIs that the repair re-matches near a batch's face may then differ from
+        memory by up to the IC-GN tolerance's trace (3.6e-4 voxel measured at tolerance 1e-5).
+        Without the seed pass the margin must also reach each POI's nearest good seed.
     device : {"cpu", "cuda", "auto"}
         Where each batch's IC-GN runs (see :func:`.correlate.correlate_iter`); on a cluster, on
         the workers' devices.
+    seed_pass : bool
+        Match the initial guess's seeds on the whole grid before the batches (default; see the
+        module's docstring). False: each batch searches the whole grid's seeds in its box
+        (``grid_anchor``), which differs from memory at the batch faces unless ``margin``
+        reaches each POI's nearest good seed.
 
     Yields
     ------
     Progress
         The plan (with the estimated peak memory), the whole-volume pass (rigid shift, gray
-        statistics), one report per batch.
+        statistics), the seed pass (stage ``"seeds"``, one report per box of seeds), one report
+        per batch (stage ``"IC-GN"``).
 
     Returns
     -------
@@ -447,6 +589,36 @@ def correlate_tiled_iter(
         import dask
 
         volumes = [None if v is None else dask.delayed(v) for v in (reference, deformed, mask)]
+        t0 = time.perf_counter()
+        good_seeds = None
+        if initial is None and seed_pass:
+            seed_jobs, seed_flat, seed_shape = _seed_jobs(
+                batches,
+                params,
+                shape,
+                grid,
+                levels,
+                whole,
+                dict(threads=threads_per_task, use_mask=masked, device=device),
+            )
+            seed_task = dask.delayed(match_seeds, pure=False)
+            seed_results = []
+            with scheduling.running(
+                [seed_task(job, *volumes) for job in seed_jobs], scheduler, workers, client
+            ) as finished:
+                for done, (_, result) in enumerate(finished, start=1):
+                    seed_results.append(result)
+                    yield Progress(
+                        "seeds",
+                        done,
+                        len(seed_jobs),
+                        f"seeds of batch {done} of {len(seed_jobs)} matched",
+                    )
+            good_seeds = _give_seeds(
+                jobs, seed_results, seed_flat, seed_shape, grid_shape, levels, params
+            )
+            del seed_results
+        seed_seconds = time.perf_counter() - t0
         task = dask.delayed(match_batch, pure=False)
         batch_tasks = [task(job, *volumes) for job in jobs]
         n_points = int(np.prod(grid_shape))
@@ -486,6 +658,7 @@ def correlate_tiled_iter(
     matched = totals.get("points", 0)
     timings = {
         "whole_volume_s": shift_seconds,
+        "seeds_s": seed_seconds,
         "batches_s": batch_seconds,
         "total_s": time.perf_counter() - started,
         "task_s": {k: v for k, v in totals.items() if k.endswith("_s")},
@@ -521,6 +694,8 @@ def correlate_tiled_iter(
                 "scheduler": "local threads" if client is None else str(scheduler),
                 "estimated_peak_bytes": int(actual),
                 "largest_region_voxels": int(largest.region_voxels),
+                "seed_pass": good_seeds is not None,
+                "good_seeds": good_seeds,
             },
         },
     )
