@@ -116,19 +116,18 @@ def test_plain_correlate_imports_only_what_it_uses_and_loads_each_kernel_once(tm
     assert report["signatures"] == 1
 
 
-def test_correction_defaults_from_the_source_equal_the_imported_ones():
-    assert _common.correction_defaults() == _common._correction_defaults_imported()
+def test_correction_defaults_are_those_the_engine_uses():
+    import inspect
 
+    from napari_dvc_correct.engine.cleaning import CleaningOptions, clean
+    from napari_dvc_correct.engine.correction import correct_iter
 
-def test_correction_defaults_fall_back_to_importing(monkeypatch):
-    def unreadable():
-        raise ValueError("a default that is not a literal")
-
-    monkeypatch.setattr(_common, "_correction_defaults_from_source", unreadable)
-    assert (
-        _common.correction_defaults()["max_passes"]
-        == (_common._correction_defaults_imported()["max_passes"])
-    )
+    defaults = _common.correction_defaults()
+    signature = inspect.signature(correct_iter).parameters
+    for name in ("frame", "update", "max_passes", "min_improvement"):
+        assert defaults[name] == signature[name].default
+    assert defaults["threshold"] == CleaningOptions().threshold
+    assert clean.__module__ == "napari_dvc_correct.engine.cleaning"
 
 
 @pytest.mark.parametrize("argv", [["correlate", "--help"], ["--help"]])

@@ -10,12 +10,8 @@ This module imports no engine code at import time (the CLI stays quick to start)
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import dataclasses
-import functools
-import importlib.util
-import inspect
 import os
 import sys
 from collections.abc import Iterable, Iterator
@@ -156,61 +152,8 @@ def correlation_defaults() -> dict:
 
 
 def correction_defaults() -> dict:
-    """Defaults of ``correct_iter`` (frame, update, passes) and of ``CleaningOptions``
-    (threshold, smoothing...).
+    """Defaults of the self-correction and of the cleaning (frame, update, passes, threshold,
+    smoothing...), from :mod:`..engine.options`, which loads neither numba nor scipy."""
+    from ..engine.options import defaults
 
-    Read from the engine's source text when the defaults there are literals (as they are), so
-    building a parser imports neither numba nor scipy; else from the imported objects.
-    """
-    try:
-        return dict(_correction_defaults_from_source())
-    except (OSError, SyntaxError, ValueError, LookupError):
-        return _correction_defaults_imported()
-
-
-def _correction_defaults_imported() -> dict:
-    from ..engine.cleaning import CleaningOptions
-    from ..engine.correction import correct_iter
-
-    values = {
-        name: parameter.default
-        for name, parameter in inspect.signature(correct_iter).parameters.items()
-        if parameter.default is not inspect.Parameter.empty
-    }
-    for option in dataclasses.fields(CleaningOptions):
-        values.setdefault(option.name, option.default)
-    return values
-
-
-@functools.cache
-def _correction_defaults_from_source() -> tuple:
-    """``(name, default)`` pairs of :func:`_correction_defaults_imported`, from the source.
-
-    Raises ValueError (a default that is not a literal) or LookupError (a definition not found).
-    """
-    values = {}
-    function = _definition("napari_dvc_correct.engine.correction", "correct_iter", ast.FunctionDef)
-    arguments = function.args
-    positional = arguments.posonlyargs + arguments.args
-    pairs = list(zip(positional[len(positional) - len(arguments.defaults) :], arguments.defaults))
-    pairs += [(a, d) for a, d in zip(arguments.kwonlyargs, arguments.kw_defaults) if d is not None]
-    for argument, default in pairs:
-        values[argument.arg] = ast.literal_eval(default)
-    options = _definition("napari_dvc_correct.engine.cleaning", "CleaningOptions", ast.ClassDef)
-    for item in options.body:
-        if isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
-            if item.value is None:
-                raise ValueError(f"CleaningOptions.{item.target.id} has no default")
-            values.setdefault(item.target.id, ast.literal_eval(item.value))
-    return tuple(values.items())
-
-
-def _definition(module: str, name: str, kind: type):
-    spec = importlib.util.find_spec(module)
-    if spec is None or not spec.origin:
-        raise LookupError(module)
-    tree = ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
-    for node in tree.body:
-        if isinstance(node, kind) and node.name == name:
-            return node
-    raise LookupError(f"{module}.{name}")
+    return defaults()

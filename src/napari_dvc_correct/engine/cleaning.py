@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +26,7 @@ from scipy import ndimage
 
 from ._numba_setup import KERNEL_OPTIONS
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
+from .options import CleaningOptions
 
 #: Unknown nodes up to which the inpainting uses a direct sparse solver.
 DIRECT_SOLVE_LIMIT = 3_000
@@ -198,67 +198,6 @@ class OutlierReport:
 def masked_nodes(field: DisplacementField) -> np.ndarray:
     """Nodes outside the mask (status or provenance ``MASKED``), bool (nz, ny, nx)."""
     return (field.status == Status.MASKED) | (field.provenance == Provenance.MASKED)
-
-
-@dataclass(frozen=True)
-class CleaningOptions:
-    """How a field is cleaned (paper step b): the outlier test and what is filled.
-
-    Attributes
-    ----------
-    threshold : float
-        Median-test threshold (2 is the usual choice; larger rejects less), > 0.
-    radius, epsilon : int, float
-        Median-test neighbourhood (nodes, >= 1) and noise level (voxels, >= 0), see
-        :func:`normalized_median_test`.
-    min_zncc : float, optional
-        Also reject nodes whose ZNCC is below this (the matcher already flags ``LOW_ZNCC``
-        with its own noise-aware threshold).
-    passes : int
-        Times the median test is repeated with the rejected nodes left out of the
-        neighbourhoods (a cluster of outliers can pass a single test), >= 1.
-    fill_masked : bool
-        Also fill nodes outside the mask (their provenance stays ``MASKED`` so they are never
-        taken for measurements; useful before densifying, which needs every node).
-    smoothing : float
-        Gaussian sigma in nodes for an optional smoothing after the replacement (0 = none).
-    """
-
-    threshold: float = 2.0
-    radius: int = 1
-    epsilon: float = 0.1
-    min_zncc: float | None = None
-    passes: int = 2
-    fill_masked: bool = False
-    smoothing: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.threshold) and self.threshold > 0):
-            raise ValueError(f"threshold must be > 0, got {self.threshold!r}")
-        if int(self.radius) < 1:
-            raise ValueError(f"radius must be >= 1 node, got {self.radius!r}")
-        if not (np.isfinite(self.epsilon) and self.epsilon >= 0):
-            raise ValueError(f"epsilon must be >= 0 voxel, got {self.epsilon!r}")
-        if int(self.passes) < 1:
-            raise ValueError(f"passes must be >= 1, got {self.passes!r}")
-        if not (np.isfinite(self.smoothing) and self.smoothing >= 0):
-            raise ValueError(f"smoothing must be a finite sigma >= 0 nodes, got {self.smoothing!r}")
-
-    def replace(self, **changes) -> CleaningOptions:
-        """A copy with ``changes`` (checked like a new one)."""
-        return dataclasses.replace(self, **changes)
-
-    def as_dict(self) -> dict:
-        """Plain JSON-ready values, as recorded in ``metadata["cleaning"]``."""
-        return {
-            "threshold": float(self.threshold),
-            "radius": int(self.radius),
-            "epsilon": float(self.epsilon),
-            "min_zncc": None if self.min_zncc is None else float(self.min_zncc),
-            "passes": int(self.passes),
-            "fill_masked": bool(self.fill_masked),
-            "smoothing": float(self.smoothing),
-        }
 
 
 def _options(options: CleaningOptions | None, overrides: dict) -> CleaningOptions:

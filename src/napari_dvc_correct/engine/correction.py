@@ -59,13 +59,11 @@ from .compose import compose
 from .correction_volumes import CorrectionVolumes, InMemoryVolumes
 from .field import DisplacementField, Provenance, Status
 from .local_acceptance import Judge, accept_locally, flag_and_refill, unsupported_updates
+from .options import CorrectionOptions
 from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
 from .pass_params import correction_grid, correction_params
 from .progress import Progress, run_to_completion
-
-FRAMES = ("reference", "loaded")
-UPDATES = ("exact", "sum")
 
 #: A node counts as "changed" by a pass when its displacement moves by more than this (voxels).
 CHANGE_THRESHOLD = 0.1
@@ -237,10 +235,10 @@ def correct_iter(
     field: DisplacementField | None = None,
     params: CorrelationParams | None = None,
     *,
-    frame: str = "loaded",
-    update: str = "exact",
-    max_passes: int = 3,
-    min_improvement: float = 0.01,
+    frame: str = CorrectionOptions.frame,
+    update: str = CorrectionOptions.update,
+    max_passes: int = CorrectionOptions.max_passes,
+    min_improvement: float = CorrectionOptions.min_improvement,
     mask: np.ndarray | None = None,
     clean_options: dict | None = None,
 ) -> Generator[Progress, None, DisplacementField]:
@@ -315,14 +313,7 @@ def correct_iter(
 
 def check_options(frame, update, max_passes, min_improvement) -> None:
     """Raise ``ValueError`` for a correction option out of range (see :func:`correct_iter`)."""
-    if frame not in FRAMES:
-        raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
-    if update not in UPDATES:
-        raise ValueError(f"update must be one of {UPDATES}, got {update!r}")
-    if int(max_passes) < 1:
-        raise ValueError(f"max_passes must be >= 1, got {max_passes!r}")
-    if not 0.0 <= min_improvement < 1.0:
-        raise ValueError(f"min_improvement must be in [0, 1), got {min_improvement!r}")
+    CorrectionOptions(frame, update, max_passes, min_improvement)
 
 
 def params_of(field: DisplacementField | None, params: CorrelationParams | None):
@@ -339,9 +330,9 @@ def correct_volumes_iter(
     field: DisplacementField | None,
     params: CorrelationParams | None = None,
     *,
-    update: str = "exact",
-    max_passes: int = 3,
-    min_improvement: float = 0.01,
+    update: str = CorrectionOptions.update,
+    max_passes: int = CorrectionOptions.max_passes,
+    min_improvement: float = CorrectionOptions.min_improvement,
     clean_options: dict | None = None,
 ) -> Generator[Progress, None, DisplacementField]:
     """The correction loop of :func:`correct_iter` on any volume back-end (issue 13).
