@@ -144,8 +144,9 @@ def test_temporary_arrays_are_removed(tiled):
 
 def test_cancel_stops_the_blocks_and_removes_the_temporary_arrays(case, tmp_path):
     folder, _, _, measured, _ = case
+    temp = tmp_path / "not" / "there yet"  # a folder the user names is created
     generator = correct_tiled_iter(
-        folder / "g.tif", folder / "f.zarr", measured, temp_dir=tmp_path, **RUN
+        folder / "g.tif", folder / "f.zarr", measured, temp_dir=temp, **RUN
     )
     stages = []
     for report in generator:
@@ -154,7 +155,7 @@ def test_cancel_stops_the_blocks_and_removes_the_temporary_arrays(case, tmp_path
             break
     generator.close()
     assert stages[0] == "plan" and "statistics (reference)" in stages
-    assert not any(tmp_path.iterdir())
+    assert temp.is_dir() and not any(temp.iterdir())
     assert not [t for t in threading.enumerate() if t.name == "dvc-dask-local"]
 
 

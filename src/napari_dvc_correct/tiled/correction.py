@@ -237,6 +237,8 @@ class TiledVolumes(CorrectionVolumes):
         self.client, self._owns_client = None, False
         if not scheduling.is_local(scheduler):
             self.client, self._owns_client = scheduling.connect(scheduler)
+        if temp_dir is not None:
+            Path(temp_dir).mkdir(parents=True, exist_ok=True)  # a folder named by the user
         self._temp_dir = Path(tempfile.mkdtemp(prefix="dvc-correct-", dir=temp_dir))
         self._temps: dict[int, Path] = {}
         self._count = 0
