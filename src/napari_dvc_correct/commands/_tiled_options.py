@@ -111,6 +111,42 @@ def wants_tiled(args: argparse.Namespace) -> bool:
     )
 
 
+def _lazy_inputs_and_reporter(args: argparse.Namespace, progress, label: str):
+    """``(reference, deformed, reporter, common)`` of a tiled command (``common`` holds the mask).
+
+    The volumes (and ``args.mask``) opened lazily; a reporter that prints the plan's memory
+    estimate to stderr (``label: ...``, unless ``args.quiet``) and forwards every report to
+    ``progress`` (default: the command's progress bar); the keyword arguments every tiled run
+    takes from the options of :func:`add_tiled_arguments`.
+    """
+    from ..io.lazy import open_volume
+    from ._common import ProgressBar
+
+    reference = open_volume(args.reference)
+    deformed = open_volume(args.deformed)
+    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
+    quiet = bool(getattr(args, "quiet", False))
+    if progress is None:
+        progress = ProgressBar(quiet).update
+
+    class _Reporter:
+        @staticmethod
+        def update(report):
+            if report.stage == "plan" and not quiet:
+                print(f"{label}: {report.message}", file=sys.stderr, flush=True)
+            progress(report)
+
+    common = dict(
+        mask=mask,
+        batch_shape=getattr(args, "batch", None),
+        max_memory=getattr(args, "max_memory", None),
+        workers=getattr(args, "workers", None),
+        scheduler=getattr(args, "scheduler", None) or None,
+        device=getattr(args, "device", "cpu"),  # chosen by each batch's worker ("auto": its GPU)
+    )
+    return reference, deformed, _Reporter(), common
+
+
 def run_tiled(args: argparse.Namespace, params, progress=None):
     """Correlate ``args.reference`` with ``args.deformed`` by batches; return the field.
 
@@ -125,36 +161,11 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     progress : callable, optional
         Called with every :class:`Progress` (default: the command's progress bar).
     """
-    from ..io.lazy import open_volume
     from ..tiled import correlate_tiled_iter
-    from ._common import ProgressBar, drive
+    from ._common import drive
 
-    reference = open_volume(args.reference)
-    deformed = open_volume(args.deformed)
-    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
-    quiet = bool(getattr(args, "quiet", False))
-    if progress is None:
-        progress = ProgressBar(quiet).update
-
-    class _Reporter:
-        @staticmethod
-        def update(report):
-            if report.stage == "plan" and not quiet:
-                print(f"tiled: {report.message}", file=sys.stderr, flush=True)
-            progress(report)
-
-    generator = correlate_tiled_iter(
-        reference,
-        deformed,
-        params,
-        mask=mask,
-        batch_shape=getattr(args, "batch", None),
-        max_memory=getattr(args, "max_memory", None),
-        workers=getattr(args, "workers", None),
-        scheduler=getattr(args, "scheduler", None) or None,
-        device=getattr(args, "device", "cpu"),  # chosen by each batch's worker ("auto": its GPU)
-    )
-    field = drive(generator, _Reporter())
+    reference, deformed, reporter, common = _lazy_inputs_and_reporter(args, progress, "tiled")
+    field = drive(correlate_tiled_iter(reference, deformed, params, **common), reporter)
     field.metadata["reference"] = str(args.reference)
     field.metadata["deformed"] = str(args.deformed)
     return field
@@ -182,39 +193,22 @@ def run_tiled_correction(args: argparse.Namespace, field, params=None, options=N
     progress : callable, optional
         Called with every :class:`Progress` (default: the command's progress bar).
     """
-    from ..io.lazy import open_volume
     from ..tiled.correction import correct_tiled_iter
-    from ._common import ProgressBar, drive
+    from ._common import drive
 
-    reference = open_volume(args.reference)
-    deformed = open_volume(args.deformed)
-    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
-    quiet = bool(getattr(args, "quiet", False))
-    if progress is None:
-        progress = ProgressBar(quiet).update
-
-    class _Reporter:
-        @staticmethod
-        def update(report):
-            if report.stage == "plan" and not quiet:
-                print(f"tiled correction: {report.message}", file=sys.stderr, flush=True)
-            progress(report)
-
+    reference, deformed, reporter, common = _lazy_inputs_and_reporter(
+        args, progress, "tiled correction"
+    )
     generator = correct_tiled_iter(
         reference,
         deformed,
         field,
         params,
-        mask=mask,
-        batch_shape=getattr(args, "batch", None),
-        max_memory=getattr(args, "max_memory", None),
-        workers=getattr(args, "workers", None),
-        scheduler=getattr(args, "scheduler", None) or None,
-        device=getattr(args, "device", "cpu"),
         temp_dir=getattr(args, "temp_dir", None),
+        **common,
         **(options or {}),
     )
-    return drive(generator, _Reporter())
+    return drive(generator, reporter)
 
 
 def _block(text: str) -> tuple[int, int, int]:
