@@ -33,6 +33,32 @@ def gradient_volume(coefficients):
 _PAIR = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]], dtype=np.int64)  # (k, k') -> QUAD_AXES row
 
 
+@njit(inline="always", **KERNEL_OPTIONS)
+def fold_row(moments, row0, row1, row2, z, y, n):
+    """Add one (z, y) row's sums to the moments and clear them.
+
+    ``row0[q]``, ``row1[q]`` and ``row2[q]`` hold a row's sums of quantity ``q`` times 1, x and
+    x²; ``moments[q]`` gathers ``Σ 1, z, y, x, z², y², x², zy, yx, zx`` times the quantity over
+    the rows folded so far (the affine shape function's products, 10 per quantity).
+    """
+    for q in range(n):
+        s0 = row0[q]
+        s1 = row1[q]
+        moments[q, 0] += s0
+        moments[q, 1] += z * s0
+        moments[q, 2] += y * s0
+        moments[q, 3] += s1
+        moments[q, 4] += z * z * s0
+        moments[q, 5] += y * y * s0
+        moments[q, 6] += row2[q]
+        moments[q, 7] += z * y * s0
+        moments[q, 8] += y * s1
+        moments[q, 9] += z * s1
+        row0[q] = 0.0
+        row1[q] = 0.0
+        row2[q] = 0.0
+
+
 @njit(**KERNEL_OPTIONS)
 def affine_terms(g, grad, xi, count, mean_g):
     """First order in one pass: ``Σ(g − ḡ)²``, ``H = Σ JᵀJ``, ``Σ J`` and ``Σ J (g − ḡ)``.
@@ -55,22 +81,7 @@ def affine_terms(g, grad, xi, count, mean_g):
         if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
             z = current_z
             y = current_y
-            for q in range(6):
-                s0 = row0[q]
-                s1 = row1[q]
-                moments[q, 0] += s0
-                moments[q, 1] += z * s0
-                moments[q, 2] += y * s0
-                moments[q, 3] += s1
-                moments[q, 4] += z * z * s0
-                moments[q, 5] += y * y * s0
-                moments[q, 6] += row2[q]
-                moments[q, 7] += z * y * s0
-                moments[q, 8] += y * s1
-                moments[q, 9] += z * s1
-                row0[q] = 0.0
-                row1[q] = 0.0
-                row2[q] = 0.0
+            fold_row(moments, row0, row1, row2, z, y, 6)
             if i == count:
                 break
             current_z = np.float64(xi[i, 0])

@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
-from .icgn_reference import reference_terms, translation_h_inverse
+from .icgn_reference import fold_row, reference_terms, translation_h_inverse
 from .interpolation import (
     bspline_derivative_weights,
     bspline_weights,
@@ -83,22 +83,7 @@ def _affine_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
         if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
             z = current_z
             y = current_y
-            for q in range(9):
-                s0 = row0[q]
-                s1 = row1[q]
-                moments[q, 0] += s0
-                moments[q, 1] += z * s0
-                moments[q, 2] += y * s0
-                moments[q, 3] += s1
-                moments[q, 4] += z * z * s0
-                moments[q, 5] += y * y * s0
-                moments[q, 6] += row2[q]
-                moments[q, 7] += z * y * s0
-                moments[q, 8] += y * s1
-                moments[q, 9] += z * s1
-                row0[q] = 0.0
-                row1[q] = 0.0
-                row2[q] = 0.0
+            fold_row(moments, row0, row1, row2, z, y, 9)
             if i == count:
                 break
             current_z = np.float64(xi[i, 0])
