@@ -77,6 +77,11 @@ __all__ = ["CorrectionPass", "correct", "correct_iter", "correct_volumes_iter", 
 #: Another pass runs only while at least this fraction of the nodes improved above the noise.
 MIN_IMPROVED_FRACTION = 0.01
 
+#: ... and while at least this fraction moved by enough to improve in another pass
+#: (:func:`.pass_reach.changed_nodes`): the same share, predicted before the pass instead of
+#: found after it.
+MIN_CHANGED_FRACTION = MIN_IMPROVED_FRACTION
+
 
 def _relabel(progress: Progress, prefix: str) -> Progress:
     return Progress(f"{prefix}: {progress.stage}", progress.done, progress.total, progress.message)
@@ -438,6 +443,18 @@ def _correction_loop(
         removed = record.local_residual_before - record.local_residual_after
         volumes.release(moved)
         current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
+        # a further pass can change only what this one moved by enough (pass_reach)
+        changed, tolerance = changed_nodes(
+            node_change, judge.useful(current), judge.region_tolerance
+        )
+        changed &= ~masked
+        if number < max_passes and changed.sum() < MIN_CHANGED_FRACTION * unmasked:
+            stop = (
+                f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
+                f"above the noise floor in another pass (about {tolerance:.3g} voxel): it could "
+                "only confirm"
+            )
+            break
         if record.improved_nodes < MIN_IMPROVED_FRACTION * unmasked:
             stop = (
                 f"pass {number} improved {record.improved_nodes} nodes above the noise floor "
@@ -448,18 +465,6 @@ def _correction_loop(
             stop = (
                 f"pass {number} removed {removed / excess:.1%} of the residual above the floor "
                 f"(at most min_improvement {min_improvement:.0%})"
-            )
-            break
-        # a further pass can change only what this one moved by enough (pass_reach)
-        changed, tolerance = changed_nodes(
-            node_change, judge.useful(current), judge.region_tolerance
-        )
-        changed &= ~masked
-        if number < max_passes and changed.sum() < MIN_IMPROVED_FRACTION * unmasked:
-            stop = (
-                f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
-                f"above the noise floor in another pass (about {tolerance:.3g} voxel): it could "
-                "only confirm"
             )
             break
         next_pass = (changed, node_change, tolerance, change_vectors)
