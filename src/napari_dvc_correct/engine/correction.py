@@ -337,6 +337,7 @@ def _correction_loop(
     unmasked = max(1, int(np.count_nonzero(~masked)))
     stop = f"max_passes ({int(max_passes)}) reached"
     previous_raw, next_pass = None, None
+    stages = {"setup_s": passes[0].seconds}
     for number in range(1, int(max_passes) + 1):
         pass_started = time.perf_counter()
         read_points = _read_points(current, frame, update)
@@ -355,7 +356,9 @@ def _correction_loop(
             )  # fmt: skip
             selection = selection if not selection.matched.all() else None
         active = None if selection is None else selection.matched
+        t0 = time.perf_counter()
         pair = yield from volumes.matching_pair(moved, current)
+        t1 = time.perf_counter()
         delta = yield from forward_progress(
             volumes.correlate(
                 pass_params, pair, grid=pass_grid, initial=_zeros(pass_grid), active=active
@@ -363,11 +366,13 @@ def _correction_loop(
             f"correction pass {number}",
         )
         volumes.release(pair[2])
+        _add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
+        t0 = time.perf_counter()
         if selection is not None:
             reused = delta.points.reshape(*delta.shape, 3)[~selection.matched]
             loaded = frame == "loaded" and update == "exact"
-            applied = applied_change(current, change_vectors, reused, loaded)
-            delta = reuse(delta, previous_raw, selection.matched, applied)
+            taken = applied_change(current, change_vectors, reused, loaded)
+            delta = reuse(delta, previous_raw, selection.matched, taken)
         previous_raw = delta
         judged = np.ones(current.shape, bool) if selection is None else selection.judged
         converged = float(np.mean(delta.valid))
@@ -392,8 +397,11 @@ def _correction_loop(
         improved[masked] = False
         n_accepted = int(np.count_nonzero(accept))
         applied = n_accepted > 0
+        t1 = time.perf_counter()
+        _add_stages(stages, None, acceptance_s=t1 - t0)
         if applied:
             mixed_moved, mixed_residual = yield from volumes.align(mixed)
+            _add_stages(stages, None, warp_s=time.perf_counter() - t1)
         else:
             mixed, mixed_moved, mixed_residual, local_mixed = (
                 current,
@@ -497,10 +505,23 @@ def _correction_loop(
         "flagged_after": int(flagged_after),
         "stop_reason": stop,
         "selective": bool(selective),
+        "stages": stages,
         "seconds": time.perf_counter() - started,
     }
     yield Progress("done", 1, 1, f"mean gray residual {residual_before:.4g} -> {residual:.4g}")
     return result
+
+
+def _add_stages(stages: dict, delta, **seconds) -> None:
+    """Add wall times to ``stages`` (with the correcting DVC's IC-GN and statistics)."""
+    for key, value in seconds.items():
+        stages[key] = stages.get(key, 0.0) + float(value)
+    timings = {} if delta is None else delta.metadata.get("timings", {})
+    timings = timings.get("task_s", timings)  # a tiled run sums its batches' stages there
+    for key, name in (("icgn_s", "correcting_icgn_s"), ("noise_s", "correcting_statistics_s")):
+        stages[name] = stages.get(name, 0.0) + float(timings.get(key, 0.0))
+    if "uncertainty_s" in timings:
+        stages["correcting_statistics_s"] += float(timings["uncertainty_s"])
 
 
 def _mean(values: np.ndarray) -> float:
