@@ -29,7 +29,13 @@ Beyond the paper (issue 10):
   ``r0`` of eq. 1, or the lower quartile of the local residuals where eq. 1 is spoilt), else it
   keeps its previous value. A pass cannot make a node measurably worse;
 * passes repeat (``max_passes``) while some region (a node's subvolume) improves by more than
-  the noise allows, not while the global mean falls (under noise it barely moves);
+  the noise allows, not while the global mean falls (under noise it barely moves), and only
+  while enough nodes moved by enough to improve in another pass (:mod:`.pass_reach`; a pass
+  that could only confirm is not run); the reason the loop stopped is recorded;
+* after the first pass, a pass matches again only near the nodes the previous one changed
+  (the subvolume's half-width plus the spline's reach) and judges only the nodes whose update
+  can differ; the other matches are the previous pass's, less what it applied, and the other
+  nodes keep their value (``selective=False`` matches and judges every node);
 * the correcting matches use the second-order shape function when the field bends inside a
   subvolume (:func:`pass_order`, chosen from the data, no user parameter);
 * nodes whose local residual only an error of more than a voxel explains are flagged
@@ -220,8 +226,10 @@ def correct_iter(
         :class:`CorrectionPass` per pass as a dict (pass 0 = the cleaned input; read them with
         :func:`correction_table`).
         ``metadata["correction"]`` holds the options, the residual before and after, the noise
-        floor, the order, subvolume and grid shape (of the last pass) of the correcting matches
-        and the flagged node counts.
+        floor, the order, subvolume and grid shape (of the last pass) of the correcting matches,
+        the flagged node counts, ``stop_reason`` (why the loop stopped, also the last record's
+        ``stop``) and ``stages`` (wall seconds of the set-up, warps, correcting DVC with its
+        IC-GN and statistics, and local acceptance).
     """
     check_options(frame, update, max_passes, min_improvement)
     reference = np.asanyarray(reference)
