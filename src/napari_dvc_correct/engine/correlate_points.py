@@ -32,10 +32,10 @@ from .correlate import PyramidLevel, correlate, validate_pair
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from .noise import (
     MIN_PERFECT_ZNCC,
-    ZNCC_SIGNIFICANCE,
     noise_aware_thresholds,
     noise_estimates,
     noise_metadata,
+    zncc_floor,
 )
 from .params import CorrelationParams
 from .placement import Box, grid_for_region
@@ -62,7 +62,6 @@ def _guide_noise(guide: DisplacementField):
 def _thresholds(level, centers, trial, zncc, status, order, params, guide):
     """Each point's ZNCC threshold, the LOW_TEXTURE points and ``metadata["noise"]``."""
     n = len(centers)
-    nb = shape_function.n_monomials(order)
     stats = (np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan))
     matched = np.flatnonzero(np.isin(status, GOOD_CODES))
     cheap = np.zeros(len(matched), bool)
@@ -77,7 +76,7 @@ def _thresholds(level, centers, trial, zncc, status, order, params, guide):
     if source == "fixed":
         noise_variance, thresholds = 0.0, np.full(n, float(params.min_zncc))
     else:
-        floor = ZNCC_SIGNIFICANCE * np.sqrt(3 * nb / params.subvolume**3)
+        floor = zncc_floor(order, params.subvolume)
         noise_variance, perfect, thresholds = noise_aware_thresholds(
             variance, zncc, status, params.min_zncc, floor, noise_variance=given
         )

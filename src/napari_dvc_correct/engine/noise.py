@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .field import GOOD_STATUSES, Status
+from .shape_function import n_monomials
 
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
@@ -23,6 +24,14 @@ MIN_PERFECT_ZNCC = 0.1
 #: about ``sqrt(m / n)``; a match must exceed this many times that (measured on noise-against-
 #: noise subvolumes, 15³, first order: 0.05-0.09, the floor is 0.15).
 ZNCC_SIGNIFICANCE = 2.5
+
+
+def zncc_floor(order: int, subvolume: int) -> float:
+    """Lowest ZNCC threshold: :data:`ZNCC_SIGNIFICANCE` times what fitting the shape function of
+    ``order`` to noise alone reaches over a ``subvolume³`` subvolume, ``sqrt(3·nb / n)``."""
+    nb = n_monomials(order)
+    return float(ZNCC_SIGNIFICANCE * np.sqrt(3 * nb / subvolume**3))
+
 
 #: Mean square of one gradient component of unit white noise through the cubic B-spline
 #: interpolant (measured 1.386); with the noise estimate it says how much of ``H`` is noise.
