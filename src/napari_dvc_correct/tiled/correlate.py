@@ -198,14 +198,52 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchMatch:
     return BatchMatch(matched, matched.noise_estimates(core), timings)
 
 
+class _RegionLevel:
+    """The batch's full-resolution :class:`.correlate.PyramidLevel`, read and prefiltered again
+    only when the judge needs it: to repair a POI, or to measure an uncertainty again (noisy
+    scans, repaired POIs). A clean batch with nothing to repair reads nothing."""
+
+    def __init__(self, job, reference, deformed, mask, timings):
+        self._args = (job, reference, deformed, mask)
+        self._level = None
+        self._timings = timings
+
+    def _built(self):
+        if self._level is None:
+            started = time.perf_counter()
+            job = self._args[0]
+            g, f, m = _read(*self._args)
+            g, f, m = validate_pair(g, f, job.params, m)
+            self._level = PyramidLevel.build(
+                1,
+                g,
+                f,
+                m,
+                job.params.half,
+                job.params.min_texture,
+                select_device(job.device).kind,
+                std=None if job.texture_std is None else job.texture_std[1],
+            )
+            self._timings["judge_prefilter_s"] = time.perf_counter() - started
+        return self._level
+
+    def match(self, centers, warps, order, params):
+        return self._built().match(centers, warps, order, params)
+
+    def statistics(self, centers, warps, zncc, order, sensitivity, out, index):
+        if len(centers):
+            self._built().statistics(centers, warps, zncc, order, sensitivity, out, index)
+
+
 def judge_batch(
     job: BatchJob, batch: BatchMatch, noise_variance, reference, deformed, mask=None
 ) -> BatchResult:
     """Second task of a batch: its POIs judged at the whole run's ``noise_variance``.
 
-    Reads the region again (the prefilter is rebuilt, not held between the tasks) and runs
-    :func:`.judge.judge_iter` (thresholds, repair, uncertainties) as in memory; the uncertainty
-    bound, another median over the whole run, is left to the driver.
+    Runs :func:`.judge.judge_iter` (thresholds, repair, uncertainties) as in memory, reading the
+    region again where it needs the volumes (:class:`_RegionLevel`: the prefilter is rebuilt,
+    not held between the tasks); the uncertainty bound, another median over the whole run, is
+    left to the driver.
     """
     started = time.perf_counter()
     timings = dict(batch.timings)
@@ -221,20 +259,7 @@ def judge_batch(
         )
         thresholds = np.full(int(np.prod(shape)), float(job.params.min_zncc))
     else:
-        g, f, m = _read(job, reference, deformed, mask)
-        timings["read_s"] += time.perf_counter() - started
-        g, f, m = validate_pair(g, f, job.params, m)
-        fine = PyramidLevel.build(
-            1,
-            g,
-            f,
-            m,
-            job.params.half,
-            job.params.min_texture,
-            select_device(job.device).kind,
-            std=None if job.texture_std is None else job.texture_std[1],
-        )
-        del g, f, m
+        fine = _RegionLevel(job, reference, deformed, mask, timings)
         result, thresholds = run_to_completion(
             judge_iter(batch.matched, fine, job.params, noise_variance=noise_variance, bound=False)
         )
@@ -255,6 +280,7 @@ def judge_batch(
         region_voxels=job.region_voxels,
     )
     timings.pop("match_task_s", None)
+    timings["total_s"] = timings["task_s"]  # not since the first task began (the wait between)
     return BatchResult(
         core_index=job.core_index,
         u=result.u[core].reshape(-1, 3),
