@@ -49,7 +49,7 @@ BYTES_PER_BATCH_POINT = 1200
 #: Bytes per POI of the assembled field (u, gradient, zncc, status... and the collected results).
 BYTES_PER_FIELD_POINT = 400
 
-#: Bytes per matched POI held between a batch's two tasks (:func:`.correlate.match_batch`: the
+#: Bytes per matched POI held between a batch's two tasks (:func:`.batches.match_batch`: the
 #: shape-function parameters, up to 240 bytes at second order, ZNCC, status, iterations, centre,
 #: variance, power and uncertainty), for every POI of the grid and its batch's margin.
 BYTES_PER_HELD_POINT = 400
