@@ -56,9 +56,7 @@ def _dock(viewer, cls):
     return widget
 
 
-def test_tiff_pair_to_corrected_export(
-    make_napari_viewer, tiff_pair, run_panel, tmp_path, qtbot
-):
+def test_tiff_pair_to_corrected_export(make_napari_viewer, tiff_pair, run_panel, tmp_path, qtbot):
     viewer = make_napari_viewer()
     correlate = _dock(viewer, CorrelateWidget)
     evaluate = _dock(viewer, EvaluateWidget)

@@ -17,7 +17,15 @@ from superqt import QDoubleRangeSlider
 
 from .. import layers as L
 from . import evaluate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from ._base import (
+    Debouncer,
+    EngineWidget,
+    LatestWorker,
+    LayerCombo,
+    follow_layers,
+    one_line,
+    pair_in_order,
+)
 from ._layer_kinds import is_scan
 from ._plots import CurvesCanvas, HistogramCanvas
 from .correlate_model import layer_placement, layer_volume, named_volume
@@ -77,6 +85,7 @@ class EvaluateWidget(EngineWidget):
         # when the panel opens with automatic thresholds
         self.show_phases = False
         self._live = Debouncer(self.update_phases, 150, self)
+        self._phases_worker = LatestWorker(self.phase_label.setText)
         self.slider.valueChanged.connect(self._thresholds_moved)
         self.slider.sliderPressed.connect(self._enable_phases)
         self.n_phases.valueChanged.connect(self.auto_thresholds)
@@ -193,19 +202,39 @@ class EvaluateWidget(EngineWidget):
         self.histogram.set_thresholds(values)
         self._live.trigger()
 
-    def update_phases(self) -> None:
-        """Recompute the phase labels and per-phase mean gray (debounced from the slider)."""
+    def update_phases(self):
+        """Recompute the phase labels and per-phase mean gray (debounced from the slider).
+
+        The labels of the whole volume are computed in a worker (returned; None when the
+        choice is bad); a newer threshold supersedes it, and the layer follows the latest.
+        """
         try:
             layer = self.reference.layer()
             volume = self._volume(self.reference, "reference")
-            preview = model.phase_preview(volume, self.thresholds())
+            thresholds = self.thresholds()
+            model.check_thresholds(thresholds)
         except ValueError as error:
+            self._phases_worker.cancel()
             self.phase_label.setText(one_line(error))
-            return
+            return None
+        placement = layer_placement(layer)
+        return self._phases_worker.start(
+            _phase_preview,
+            volume,
+            thresholds,
+            on_returned=lambda preview: self._show_phases(preview, placement),
+        )
+
+    @property
+    def phases_busy(self) -> bool:
+        """True while the phase labels of the latest thresholds are computed."""
+        return self._phases_worker.busy
+
+    def _show_phases(self, preview, placement) -> None:
         self.phase_label.setText(preview.text())
         if not self.show_phases:
             return
-        voxel_size, offset = layer_placement(layer)
+        voxel_size, offset = placement
         existing = L.find_layer(self.viewer, "phases")
         if existing is not None:
             existing.data = preview.labels
@@ -289,3 +318,10 @@ class EvaluateWidget(EngineWidget):
         self.summary.setText(model.summary_text(evaluation))
         self.curves.plot(evaluation)
         self.show_message("Evaluation done.")
+
+
+def _phase_preview(volume, thresholds):
+    """Worker: :func:`.evaluate_model.phase_preview` (a generator, so a newer threshold can
+    stop it before it starts). Touches no layer."""
+    yield None
+    return model.phase_preview(volume, thresholds)

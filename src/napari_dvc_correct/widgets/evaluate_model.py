@@ -56,13 +56,19 @@ class PhasePreview:
         )
 
 
+def check_thresholds(thresholds) -> np.ndarray:
+    """The gray thresholds as float64, refused unless one or more and strictly increasing."""
+    values = np.asarray(thresholds, dtype=np.float64)
+    if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
+        raise ValueError(f"thresholds must be strictly increasing, got {list(values)}")
+    return values
+
+
 def phase_preview(volume: np.ndarray, thresholds) -> PhasePreview:
     """Split ``volume`` by increasing ``thresholds``; labels shifted by one for a Labels layer."""
     from ..engine.phases import NO_PHASE, label_phases, phase_table
 
-    values = np.asarray(thresholds, dtype=np.float64)
-    if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
-        raise ValueError(f"thresholds must be strictly increasing, got {list(values)}")
+    values = check_thresholds(thresholds)
     labels = label_phases(volume, values)
     # unassigned (NaN) voxels go to label N, which phase_table leaves out of phases 0..N-1
     table = phase_table(volume, np.where(labels == NO_PHASE, values.size + 1, labels), values)
