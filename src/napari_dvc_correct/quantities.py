@@ -182,6 +182,46 @@ def quantity_values(
     return values
 
 
+def point_quantities(points_field) -> dict[str, np.ndarray]:
+    """Every quantity of :data:`QUANTITIES` a field at scattered points can show, per point.
+
+    ``points_field`` is a :class:`..engine.scattered.ScatteredField`. Displacements are in the
+    units of :func:`unit_of` (voxels times ``metadata["voxel_size"]``); strains come from each
+    point's matched displacement gradient (the subvolume's own first-order warp, physical axes),
+    not from neighbouring points; NaN where the point has no usable value. Returns float64
+    arrays ``(N,)`` by quantity key, in :data:`QUANTITIES` order.
+    """
+    from .engine.strain import equivalent_strain, principal_strains, small_strain
+
+    vs = as_triple(points_field.metadata.get("voxel_size"), 1.0)
+    valid = np.asarray(points_field.valid, dtype=bool)
+    u = np.where(valid[:, None], points_field.u, np.nan) * vs
+    values = {"|u|": np.linalg.norm(u, axis=1)}
+    for axis, name in enumerate(("uz", "uy", "ux")):
+        values[name] = u[:, axis]
+    if points_field.gradient is not None:
+        gradient = np.asarray(points_field.gradient, dtype=np.float64) * (vs[:, None] / vs[None, :])
+        gradient[~valid] = np.nan
+        tensor = small_strain(gradient)
+        for name, index in _TENSOR_INDEX.items():
+            values[name] = tensor[(..., *index)]
+        principal = principal_strains(tensor)
+        values.update(
+            {
+                "ε1": principal[:, 0],
+                "ε2": principal[:, 1],
+                "ε3": principal[:, 2],
+                "εvol": np.trace(tensor, axis1=-2, axis2=-1),
+                "γmax": principal[:, 0] - principal[:, 2],
+                "εeq": equivalent_strain(tensor),
+            }
+        )
+    values["ZNCC"] = np.asarray(points_field.zncc, dtype=np.float64)
+    values["status"] = np.asarray(points_field.status, dtype=np.float64)
+    order = list(QUANTITIES)
+    return {key: values[key] for key in sorted(values, key=order.index)}
+
+
 def status_colormap():
     """A napari colormap for the status codes (converged transparent), for an Image layer."""
     from napari.utils.colormaps import Colormap

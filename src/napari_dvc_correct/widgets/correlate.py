@@ -20,16 +20,21 @@ from qtpy.QtWidgets import (
 )
 
 from .. import layers as L
+from .. import point_layers as P
 from . import correlate_model as model
 from . import regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
-from ._layer_kinds import is_mask, is_scan, layer_role
+from ._layer_kinds import is_mask, is_scan, is_user_points, layer_role
 from .regions import RegionBox
 
 MODES = {
     "pair": "Pair: reference → deformed",
     "series4d": "Series: one 4-D layer (state, z, y, x)",
     "series": "Series: several layers (in list order)",
+}
+PLACEMENTS = {
+    "grid": "regular grid (one POI every Step)",
+    "points": "the points of a Points layer",
 }
 PREVIEW_POINTS = "POI grid (preview)"
 PREVIEW_BOX = "subvolume (preview)"
@@ -79,6 +84,21 @@ class CorrelateWidget(EngineWidget):
         self.search_radius.setSpecialValueText("auto")
         self.search_radius.setSuffix(" vx")
         self.search_radius.setToolTip("Largest displacement to search for; 0 = auto")
+        self.placement = QComboBox()
+        for key, text in PLACEMENTS.items():
+            self.placement.addItem(text, key)
+        self.placement.setToolTip(
+            "Where the points of interest are: a grid over the volume (or the region), or the "
+            "points of a napari Points layer drawn over the scans (a pair only; the Step then "
+            "sets the grid of the initial guess around them)"
+        )
+        self.points = LayerCombo(self.viewer, is_user_points)
+        self.points.setToolTip(
+            "A Points layer with 3-D points (z, y, x) over the reference scan; each point is "
+            "matched at its nearest voxel and its subvolume must fit inside the volume"
+        )
+        self.form.addRow("POIs", self.placement)
+        self.form.addRow("Points layer", self.points)
         self.form.addRow("Subvolume", self.subvolume)
         self.form.addRow("Step", self.step)
         self.form.addRow("Shape function", self.order)
@@ -133,10 +153,14 @@ class CorrelateWidget(EngineWidget):
             self.search_radius.valueChanged,
             self.preview.toggled,
             self.series_list.itemChanged,
+            self.placement.currentIndexChanged,
+            self.points.currentIndexChanged,
             *self.region.changed_signals(),
         ):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
+        self.placement.currentIndexChanged.connect(self._mode_changed)
+        self._watched_points: set = set()
         self.reference.currentIndexChanged.connect(self._show_voxel_size)
         self._voxel_edited = False
         self.voxel_size.valueChanged.connect(lambda *a: setattr(self, "_voxel_edited", True))
@@ -167,6 +191,7 @@ class CorrelateWidget(EngineWidget):
         label = self.form.labelForField(self.reference)
         if label is not None:
             label.setText("4-D series" if mode == "series4d" else "Reference (G)")
+        self.points.setEnabled(self.placement.currentData() == "points")
 
     def _layers_changed(self, event=None) -> None:
         """Pick sensible inputs: the roles the sample data declares, else two different images."""
@@ -184,7 +209,13 @@ class CorrelateWidget(EngineWidget):
         if self.current_mode == "pair":
             pair_in_order(self.reference, self.deformed, event)
         self._refresh_series_list(images)
-        if inserted is None or is_scan(inserted) or is_mask(inserted):
+        for layer in self.points.layers():  # moving or adding a point updates the estimate
+            if id(layer) not in self._watched_points:
+                layer.events.data.connect(self._update.trigger)
+                self._watched_points.add(id(layer))
+        if inserted is not None and is_user_points(inserted):
+            self.points.set_layer(inserted)
+        if inserted is None or is_scan(inserted) or is_mask(inserted) or is_user_points(inserted):
             self._update.trigger()
 
     def _scans(self) -> list:
@@ -328,6 +359,7 @@ class CorrelateWidget(EngineWidget):
         mask = self.region.mask(volumes[0].shape, volumes[0], (voxel_size, offset))
         kept = None if mask is None else regions_model.check_kept(mask, params)
         voxel_size, offset = model.layer_placement(reference)
+        points, points_layer = self._points(reference, strategy, volumes[0].shape, params)
         return model.CorrelationJob(
             volumes=volumes,
             params=params,
@@ -340,7 +372,18 @@ class CorrelateWidget(EngineWidget):
             device=self.device.currentData(),
             unit=self.unit.currentData() or None,
             kept=kept,
+            points=points,
+            points_layer=points_layer,
         )
+
+    def _points(self, reference, strategy, shape, params):
+        """The chosen points of interest in reference voxels and their layer's name, or
+        ``(None, "")`` for the grid; ValueError when they cannot be used."""
+        if self.placement.currentData() != "points":
+            return None, ""
+        layer = self.points.layer()
+        points = model.job_points(layer, reference, strategy, shape, params)
+        return points, layer.name
 
     # -- sessions -------------------------------------------------------------------------------
     def settings(self) -> dict:
@@ -359,6 +402,8 @@ class CorrelateWidget(EngineWidget):
             "device": self.device.currentData(),
             "unit": self.unit.currentData(),
             "region": self.region.settings(),
+            "placement": self.placement.currentData(),
+            "points": self.points.currentText(),
         }
 
     def restore(self, settings: dict) -> None:
@@ -368,11 +413,13 @@ class CorrelateWidget(EngineWidget):
             (self.strategy, "strategy"),
             (self.order, "order"),
             (self.device, "device"),
+            (self.placement, "placement"),
         ):
             if key in settings and combo.findData(settings[key]) >= 0:
                 combo.setCurrentIndex(combo.findData(settings[key]))
         self.reference.set_layer(settings.get("reference", ""))
         self.deformed.set_layer(settings.get("deformed", ""))
+        self.points.set_layer(settings.get("points", ""))
         self.set_series_layers(settings.get("series", []))
         self.correct_states.setChecked(bool(settings.get("correct_states", False)))
         for box, key in ((self.subvolume, "subvolume"), (self.step, "step")):
@@ -394,6 +441,14 @@ class CorrelateWidget(EngineWidget):
             job = self.job()
         except ValueError as error:
             self.estimate_label.setText(one_line(error))
+            self._set_preview_visible(False)
+            return
+        if job.points is not None:
+            self.estimate_label.setText(
+                f"{len(job.points):,} points of interest from '{job.points_layer}', each with "
+                f"its {job.params.subvolume}³ subvolume inside the volume; initial guess on a "
+                f"grid of step {job.params.step} around them"
+            )
             self._set_preview_visible(False)
             return
         estimate = model.estimate_run(job.shape, job.params, n_pairs=len(job.volumes) - 1)
@@ -471,6 +526,9 @@ class CorrelateWidget(EngineWidget):
         model.record_timing(time.perf_counter() - started, shape, params, n_pairs)
         self._set_preview_visible(False)
         placement = {"voxel_size": result.voxel_size, "offset": result.offset}
+        if result.fields and result.fields[0][0] == "points":
+            self._show_points_result(result.fields[0][1], placement)
+            return
         if len(result.fields) == 1:
             source, field = result.fields[0]
             L.show_field(self.viewer, L.field_layers(field, source, **placement))
@@ -483,6 +541,19 @@ class CorrelateWidget(EngineWidget):
             counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
             lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
         self.show_message("Done: " + "; ".join(lines) + ".")
+
+    def _show_points_result(self, points_field, placement) -> None:
+        """The points coloured by the quantity on view (default |u|) with their arrows."""
+        current = next((x for x in L.quantity_layers(self.viewer) if x.visible), None)
+        quantity = L.plugin_metadata(current).get("quantity") if current is not None else None
+        tuples = P.points_layers(points_field, "points", quantity=quantity or "|u|", **placement)
+        layer, _ = L.show_layers(self.viewer, tuples)
+        caption = P.points_caption(layer)
+        L.text_overlay(self.viewer).text = caption
+        L.text_overlay(self.viewer).visible = True
+        L.canvas_overlay(self.viewer, "scale_bar").visible = True
+        counts = ", ".join(f"{n} {k}" for k, n in P.status_counts(points_field).items())
+        self.show_message(f"Done: {points_field.n_points} points: {counts}. Colours: {caption}.")
 
     # -- clicked POI --------------------------------------------------------------------------
     def _field_layer(self):

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..engine.field import DisplacementField, Provenance, Status, grid_for_volume
 from ..engine.params import CorrelationParams
+from ..engine.progress import Progress
 from ..tiled.memory import format_bytes
 
 #: Cost of one IC-GN iteration per subvolume voxel (seconds, one core; see :func:`estimate_run`).
@@ -53,6 +54,11 @@ class CorrelationJob:
         Length unit of ``voxel_size`` (``"µm"``...), None for plain voxels.
     kept : regions_model.Kept or None
         How many POIs the region keeps (None for the whole volume).
+    points : ndarray (N, 3) or None
+        Points of interest in reference voxel indices (z, y, x), fractional allowed
+        (:func:`points_in_voxels`); None for the regular grid. A pair only.
+    points_layer : str
+        Name of the Points layer they come from.
     device : {"auto", "cpu", "cuda"}
         Where IC-GN runs for a pair (:func:`..engine.backend.select_device`); scan series run on
         the CPU.
@@ -69,6 +75,8 @@ class CorrelationJob:
     device: str = "auto"
     unit: str | None = None
     kept: object = None
+    points: np.ndarray | None = None
+    points_layer: str = ""
 
     @property
     def shape(self) -> tuple:
@@ -98,6 +106,14 @@ def _finish(field: DisplacementField, job: CorrelationJob, names) -> Displacemen
 
 
 def run_job(job: CorrelationJob):
+    """Generator run by the panel's worker: the grid run (:func:`run_grid_job`) or, when the
+    job has points, :func:`run_points_job`."""
+    if job.points is not None:
+        return (yield from run_points_job(job))
+    return (yield from run_grid_job(job))
+
+
+def run_grid_job(job: CorrelationJob):
     """Generator run by the panel's worker: yields Progress, returns a :class:`CorrelationResult`.
 
     A pair gives one field, source ``"uncorrected"``; a series gives one field per state after
@@ -121,6 +137,134 @@ def run_job(job: CorrelationJob):
             source = f"state {k} ({job.strategy}{suffix})"
             results.append((source, field))
     return CorrelationResult(results, job.voxel_size, job.offset)
+
+
+def run_points_job(job: CorrelationJob):
+    """DVC at the job's points (:func:`..engine.correlate_points.correlate_points`).
+
+    The guide field (the initial guess of every point) is correlated first on a grid of the
+    job's step over the points' bounding box, with progress and cancel; then IC-GN runs at each
+    point. Returns a :class:`CorrelationResult` with one ``("points", ScatteredField)``; the
+    field's metadata says where it belongs (voxel size, offset, layers).
+    """
+    from ..engine.correlate import correlate_iter
+    from ..engine.correlate_points import correlate_points
+    from ..engine.placement import Box, grid_for_region
+
+    params, points = job.params, np.asarray(job.points, dtype=np.float64)
+    reference, deformed = job.volumes[0], job.volumes[1]
+    check_points(points, job.shape, params.subvolume, job.points_layer)
+    lo = points.min(axis=0) - params.step  # as correlate_points' own guide
+    hi = points.max(axis=0) + params.step + 1
+    grid = grid_for_region(reference.shape, params.subvolume, params.step, Box(lo, hi))
+    guide = yield from correlate_iter(
+        reference, deformed, params, mask=job.mask, grid=grid, device=job.device
+    )
+    yield Progress("IC-GN at the points", 0, len(points), f"{len(points)} points")
+    result = correlate_points(
+        reference, deformed, points, params, mask=job.mask, guide=guide, device=job.device
+    )
+    result.metadata.update(
+        voxel_size=list(job.voxel_size),
+        offset=list(job.offset),
+        reference_layer=job.names[0],
+        deformed_layer=job.names[1],
+        points_layer=job.points_layer,
+    )
+    if job.unit:
+        result.metadata["unit"] = job.unit
+    return CorrelationResult([("points", result)], job.voxel_size, job.offset)
+
+
+def job_points(points_layer, reference_layer, strategy: str, shape, params) -> np.ndarray:
+    """The points of interest of a run from ``points_layer``, in reference voxels (checked).
+
+    Raises ValueError for a series, without a Points layer, or when a point's subvolume does
+    not fit (:func:`check_points`).
+    """
+    if strategy != "pair":
+        raise ValueError(
+            "points of interest from a Points layer work on a pair: choose 'Pair' as the "
+            "input, or the regular grid for a series"
+        )
+    if points_layer is None:
+        raise ValueError(
+            "choose the Points layer of the points of interest (add one with the "
+            "'New points layer' button of the layer list and click on the scan)"
+        )
+    points = points_in_voxels(points_layer, reference_layer)
+    check_points(points, shape, params.subvolume, points_layer.name)
+    return points
+
+
+def points_in_voxels(points_layer, image_layer) -> np.ndarray:
+    """The points of a napari Points layer as voxel indices ``(z, y, x)`` of an Image layer.
+
+    A Points layer stores its ``data`` in its own data coordinates; the world position of a
+    point is ``data * scale + translate`` of the Points layer (identity for a layer added with
+    ``viewer.add_points`` on top of the scans: its data are then world coordinates), and the
+    voxel index in the scan is ``(world - translate) / scale`` of the Image layer. Only the last
+    three axes count (a point on a 4-D series keeps its z, y, x). Rotations, shears and affine
+    transforms of either layer are not taken into account.
+
+    Returns
+    -------
+    ndarray (N, 3), float64
+        Fractional voxel indices (voxel ``i`` is centred at ``i``), in the layer's order.
+    """
+    data = np.asarray(points_layer.data, dtype=np.float64)
+    if data.ndim != 2 or data.shape[1] < 3:
+        raise ValueError(
+            f"the Points layer '{points_layer.name}' has {data.shape[-1] if data.ndim == 2 else 0}"
+            "-D points: points of interest need (z, y, x); add the Points layer while the 3-D "
+            "scans are open (3-D points)"
+        )
+    if len(data) == 0:
+        raise ValueError(f"the Points layer '{points_layer.name}' holds no point: add some first")
+    p_scale = np.asarray(points_layer.scale, dtype=np.float64)[-3:]
+    p_translate = np.asarray(points_layer.translate, dtype=np.float64)[-3:]
+    world = data[:, -3:] * p_scale + p_translate
+    scale = np.asarray(image_layer.scale, dtype=np.float64)[-3:]
+    translate = np.asarray(image_layer.translate, dtype=np.float64)[-3:]
+    return (world - translate) / scale
+
+
+def check_points(points: np.ndarray, volume_shape, subvolume: int, name: str = "points") -> None:
+    """Refuse points whose subvolume would not fit in the volume, saying which and by how much.
+
+    A point is matched at its nearest voxel ``c = rint(p)``; its subvolume of ``subvolume``
+    voxels fits when ``M <= c <= n - 1 - M`` on every axis (``M = subvolume // 2``), as in
+    :func:`..engine.correlate_points.correlate_points`.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"the points of '{name}' have non-finite coordinates")
+    half = int(subvolume) // 2
+    shape = np.asarray(volume_shape, dtype=np.float64)
+    centers = np.rint(points)
+    outside = np.any((centers < 0) | (centers > shape - 1), axis=1)
+    near = np.any((centers < half) | (centers > shape - 1 - half), axis=1) & ~outside
+    if not (outside.any() or near.any()):
+        return
+    parts = []
+    if outside.any():
+        parts.append(f"{int(outside.sum())} outside the volume {tuple(int(n) for n in shape)}")
+    if near.any():
+        parts.append(
+            f"{int(near.sum())} closer than {half} voxels to its border (half the subvolume "
+            f"of {subvolume})"
+        )
+    bad = np.flatnonzero(outside | near)[:3]
+    where = ", ".join(
+        f"#{i} at (z, y, x) = ({points[i, 0]:.1f}, {points[i, 1]:.1f}, {points[i, 2]:.1f})"
+        for i in bad
+    )
+    low, high = half, (shape - 1 - half).astype(int)
+    raise ValueError(
+        f"{len(points)} points in '{name}': " + " and ".join(parts) + f" (e.g. {where}); "
+        f"keep them within z {low}–{high[0]}, y {low}–{high[1]}, x {low}–{high[2]} voxels, "
+        "or choose a smaller subvolume"
+    )
 
 
 def run_series(job: CorrelationJob):

@@ -19,6 +19,7 @@ from qtpy.QtCore import Qt
 from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButton, QWidget
 
 from .. import layers as L
+from .. import point_layers as P
 from . import profile_model
 from ._base import LatestWorker, follow_layers
 from ._plots import ProfileCanvas
@@ -191,6 +192,8 @@ class ViewWidget(QWidget):
             self.quantity.setCurrentIndex(self.quantity.findData(quantity))
             return self._quantity_worker.worker  # the combo's signal came back here
         quantity = self.quantity.currentData()
+        for layer in P.points_result_layers(self.viewer):  # a colour per point: at once
+            P.color_points(layer, quantity)
         ready, problems, todo = {}, [], []
         for layer in L.quantity_layers(self.viewer):
             entry = L.plugin_metadata(layer)
@@ -298,6 +301,9 @@ class ViewWidget(QWidget):
         for layer in layers:
             layer.colorbar.visible = bool(layer is top and self.colorbar.isChecked())
         text = L.caption(top) if top is not None else "No field yet: run Correlate."
+        points = [x for x in P.points_result_layers(self.viewer) if x.visible]
+        if top is None and points:  # only points of interest: their colours are the caption
+            top, text = points[-1], P.points_caption(points[-1])
         self.caption.setText(text)
         L.text_overlay(self.viewer).text = text if top is not None else ""
         L.text_overlay(self.viewer).visible = top is not None
