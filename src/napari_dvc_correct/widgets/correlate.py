@@ -154,12 +154,12 @@ class CorrelateWidget(EngineWidget):
             self.preview.toggled,
             self.series_list.itemChanged,
             self.placement.currentIndexChanged,
-            self.points.currentIndexChanged,
             *self.region.changed_signals(),
         ):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
         self.placement.currentIndexChanged.connect(self._mode_changed)
+        self.points.currentIndexChanged.connect(self._points_edited)
         self._watched_points: set = set()
         self.reference.currentIndexChanged.connect(self._show_voxel_size)
         self._voxel_edited = False
@@ -211,11 +211,16 @@ class CorrelateWidget(EngineWidget):
         self._refresh_series_list(images)
         for layer in self.points.layers():  # moving or adding a point updates the estimate
             if id(layer) not in self._watched_points:
-                layer.events.data.connect(self._update.trigger)
+                layer.events.data.connect(self._points_edited)
                 self._watched_points.add(id(layer))
         if inserted is not None and is_user_points(inserted):
             self.points.set_layer(inserted)
-        if inserted is None or is_scan(inserted) or is_mask(inserted) or is_user_points(inserted):
+        poi_input = self.placement.currentData() == "points" and is_user_points(inserted)
+        if inserted is None or is_scan(inserted) or is_mask(inserted) or poi_input:
+            self._update.trigger()
+
+    def _points_edited(self, event=None) -> None:
+        if self.placement.currentData() == "points":
             self._update.trigger()
 
     def _scans(self) -> list:
