@@ -23,6 +23,18 @@ from .quantities import (
 )
 
 
+def point_spacing(points: np.ndarray, default: float = 1.0) -> float:
+    """Median distance from a point to its nearest neighbour (voxels); ``default`` for one."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) < 2:
+        return float(default)
+    from scipy.spatial import cKDTree
+
+    distance, _ = cKDTree(points).query(points, k=2)
+    spacing = float(np.median(distance[:, 1]))
+    return spacing if spacing > 0 else float(default)
+
+
 def status_counts(points_field) -> dict[str, int]:
     """Number of points of each status, by readable name (only the statuses present)."""
     from .engine.field import Status
@@ -82,8 +94,9 @@ def points_layers(
       :func:`.quantities.point_quantities` as a feature (napari shows them under the cursor;
       :func:`color_points` switches the colour), points without a value drawn hollow;
     * the displacement arrows from each point (voxels, same placement, so an arrow has its true
-      length in world units unless ``exaggerate``: then the longest spans two subvolume radii
-      when the largest displacement is smaller, and ``length`` says the factor).
+      length in world units unless ``exaggerate``: then, as for a grid, the longest spans the
+      typical spacing of the points when the largest displacement is under half of it, and
+      ``length`` says the factor).
 
     Both carry ``metadata["dvc_correct"]`` with kind ``"points"``/``"point vectors"``, the
     source and the field (``"points_field"``).
@@ -96,8 +109,7 @@ def points_layers(
     half = float(points_field.params.get("subvolume", 9)) / 2
     size = max(2.0, half / 2)
     key = f"points ({source})"
-    extra = {"quantity": quantity, "unit": unit_of(quantity, None), "key": key}
-    extra["unit"] = _points_unit(points_field, quantity)
+    extra = {"quantity": quantity, "unit": _points_unit(points_field, quantity), "key": key}
     point_kwargs = {
         "name": layer_name(quantity, source),
         "features": values,
@@ -112,9 +124,10 @@ def points_layers(
     point_kwargs["metadata"][MARKER].update(extra)
     u = np.where(valid[:, None], points_field.u, 0.0)
     magnitude = np.linalg.norm(u, axis=1)
+    spacing = point_spacing(points_field.points, default=2 * half)
     length = 1.0
-    if exaggerate and magnitude.size and 0 < magnitude.max() < half:
-        length = float(2 * half / magnitude.max())
+    if exaggerate and magnitude.size and 0 < magnitude.max() < 0.5 * spacing:
+        length = float(spacing / magnitude.max())
     data = np.stack([points_field.points, u], axis=1)[valid]
     vector_kwargs = {
         "name": layer_name("displacement", source),
