@@ -92,7 +92,8 @@ def points_layers(
     * a Points layer at the points (voxel positions, placed with ``scale = voxel_size`` and
       ``translate = offset`` like the scans), coloured by ``quantity`` with every quantity of
       :func:`.quantities.point_quantities` as a feature (napari shows them under the cursor;
-      :func:`color_points` switches the colour), points without a value drawn hollow;
+      :func:`color_points` switches the colour), points without a value drawn hollow with a
+      red rim; the discs are at most 0.7 of the points' typical spacing across;
     * the displacement arrows from each point (voxels, same placement, so an arrow has its true
       length in world units unless ``exaggerate``: then, as for a grid, the longest spans the
       typical spacing of the points when the largest displacement is under half of it, and
@@ -107,16 +108,17 @@ def points_layers(
     valid = np.asarray(points_field.valid, dtype=bool)
     placement = dense_placement(voxel_size, offset)
     half = float(points_field.params.get("subvolume", 9)) / 2
-    size = max(2.0, half / 2)
+    spacing = point_spacing(points_field.points, default=2 * half)
+    size = max(1.5, min(half / 2, 0.7 * spacing))  # discs that do not hide their neighbours
     key = f"points ({source})"
     extra = {"quantity": quantity, "unit": _points_unit(points_field, quantity), "key": key}
     point_kwargs = {
         "name": layer_name(quantity, source),
         "features": values,
         "size": size,
-        "border_width": 0.15,
+        "border_width": 0.08,
         "border_width_is_relative": True,
-        "border_color": ["black" if v else "red" for v in valid],
+        "border_color": ["#202020" if v else "red" for v in valid],
         "metadata": {MARKER: {"kind": "points", "source": source, "points_field": points_field}},
         **points_style(values, quantity),
         **placement,
@@ -124,7 +126,6 @@ def points_layers(
     point_kwargs["metadata"][MARKER].update(extra)
     u = np.where(valid[:, None], points_field.u, 0.0)
     magnitude = np.linalg.norm(u, axis=1)
-    spacing = point_spacing(points_field.points, default=2 * half)
     length = 1.0
     if exaggerate and magnitude.size and 0 < magnitude.max() < 0.5 * spacing:
         length = float(spacing / magnitude.max())
@@ -132,9 +133,8 @@ def points_layers(
     vector_kwargs = {
         "name": layer_name("displacement", source),
         "features": {"magnitude": magnitude[valid]},
-        "edge_color": "magnitude",
-        "edge_colormap": "viridis",
-        "edge_width": max(0.5, size / 6),
+        "edge_color": "black",  # the points carry the colours; one colour reads over both
+        "edge_width": max(0.3, size / 8),
         "vector_style": "arrow",
         "length": length,
         "metadata": {
@@ -175,15 +175,16 @@ def color_points(layer, quantity: str) -> bool:
 
 
 def points_caption(layer) -> str:
-    """What a points layer's colours show, with units and the colour range."""
+    """What a points layer's colours show, with units and the colour range (short enough for
+    the canvas overlay), e.g. ``"ux [vx] at the points: displacement along x; coolwarm -2.9 to
+    2.9"``."""
     entry = plugin_metadata(layer) or {}
     quantity = entry.get("quantity", "")
     what = QUANTITIES.get(quantity, ("", ""))[0]
-    text = f"{quantity} [{entry.get('unit', '')}]: {what} at the points of interest"
+    text = f"{quantity} [{entry.get('unit', '')}] at the points: {what}"
     if quantity != "status" and quantity:
         low, high = layer.face_contrast_limits
-        colormap = layer.face_colormap.name
-        text += f", {colormap} from {low:.3g} to {high:.3g}"
+        text += f"; {layer.face_colormap.name} {low:.3g} to {high:.3g}"
     else:
-        text += ", converged white, failed in colour"
+        text += "; converged white, failed in colour"
     return text

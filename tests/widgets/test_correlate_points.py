@@ -72,14 +72,15 @@ def test_points_layer_run_gives_readable_point_layers(points_panel, run_panel, s
     np.testing.assert_allclose(arrows.scale, small.voxel_size)
     text = widget.message.text()
     assert "Done: 4 points" in text and "|u| [vx]" not in text and "scale units" in text
-    assert "viridis from 0" in L.text_overlay(viewer).text
+    assert "at the points" in L.text_overlay(viewer).text
+    assert "viridis 0 to" in L.text_overlay(viewer).text
     # the View panel recolours the points with the chosen quantity
     view = ViewWidget(viewer)
     viewer.window.add_dock_widget(view)
     view.set_quantity("ZNCC")
     assert layer.name == "ZNCC (points)"
     assert layer.face_colormap.name == "magma"
-    assert "ZNCC" in view.caption.text() and "points of interest" in view.caption.text()
+    assert "ZNCC" in view.caption.text() and "at the points" in view.caption.text()
     view.set_quantity("εzx")
     low, high = layer.face_contrast_limits
     assert low == -high  # signed: centred on zero
