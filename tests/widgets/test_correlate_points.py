@@ -131,7 +131,7 @@ def test_point_layers_without_napari_viewer():
     (points, kwargs, kind), (vectors, vkwargs, vkind) = P.points_layers(field, quantity="status")
     assert (kind, vkind) == ("points", "vectors")
     assert kwargs["face_color"] == ["white", "red"]
-    assert kwargs["border_color"] == ["black", "red"]
+    assert kwargs["border_color"] == ["#202020", "red"]  # a red rim: no value here
     assert len(vectors) == 1  # no arrow where there is no displacement
     spacing = np.linalg.norm([10.0, 10.0, 10.5])  # the points' typical spacing
     assert vkwargs["length"] == pytest.approx(spacing / 0.5)  # exaggerated: it says how much
