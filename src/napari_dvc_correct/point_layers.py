@@ -188,3 +188,23 @@ def points_caption(layer) -> str:
     else:
         text += "; converged white, failed in colour"
     return text
+
+
+def show_points(viewer, points_field, placement: dict) -> str:
+    """Show a points result (replacing the last one): the points coloured by the quantity on
+    view (default ``|u|``) and their arrows, the caption on the canvas. Returns the panel's
+    message: the counts by status and what the colours show."""
+    from .layers import canvas_overlay, quantity_layers, show_layers, text_overlay
+
+    current = next((x for x in quantity_layers(viewer) if x.visible), None)
+    quantity = plugin_metadata(current).get("quantity") if current is not None else None
+    tuples = points_layers(
+        points_field, "points", quantity=quantity or DEFAULT_QUANTITY, **placement
+    )
+    layer, _ = show_layers(viewer, tuples)
+    caption = points_caption(layer)
+    text_overlay(viewer).text = caption
+    text_overlay(viewer).visible = True
+    canvas_overlay(viewer, "scale_bar").visible = True
+    counts = ", ".join(f"{n} {k}" for k, n in status_counts(points_field).items())
+    return f"Done: {points_field.n_points} points: {counts}. Colours: {caption}."

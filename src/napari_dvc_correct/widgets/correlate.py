@@ -134,6 +134,7 @@ class CorrelateWidget(EngineWidget):
         self.region = RegionBox(self.viewer)
         self.controls.addWidget(self.region)
 
+        self.region.failed.connect(self.estimate_label.setText)
         self.poi_box = QGroupBox("Clicked POI")
         poi_layout = QVBoxLayout(self.poi_box)
         self.poi_label = QLabel("Click a point of the field to see its values.")
@@ -441,7 +442,17 @@ class CorrelateWidget(EngineWidget):
 
     # -- preview and estimate ------------------------------------------------------------------
     def update_preview(self) -> None:
-        """Redraw the POI grid preview and the estimate (debounced from every change)."""
+        """Redraw the POI grid preview and the estimate (debounced from every change).
+
+        A region's mask is computed in a worker first (a threshold with pores filled takes
+        seconds on a large scan); the preview follows when it is ready."""
+        scans = [x for x in self._scans() if x.ndim in (3, 4)]
+        if scans:  # (the reference, or state 0 of a 4-D series: what job() measures on)
+            volume = model.layer_volume(scans[0], 0 if scans[0].ndim == 4 else None)
+            self.region.set_volume(volume.shape, volume)
+            if self.region.compute_ahead(volume, self.update_preview):
+                self.estimate_label.setText("computing the region's mask…")
+                return
         try:
             job = self.job()
         except ValueError as error:
@@ -532,7 +543,7 @@ class CorrelateWidget(EngineWidget):
         self._set_preview_visible(False)
         placement = {"voxel_size": result.voxel_size, "offset": result.offset}
         if result.fields and result.fields[0][0] == "points":
-            self._show_points_result(result.fields[0][1], placement)
+            self.show_message(P.show_points(self.viewer, result.fields[0][1], placement))
             return
         if len(result.fields) == 1:
             source, field = result.fields[0]
@@ -546,19 +557,6 @@ class CorrelateWidget(EngineWidget):
             counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
             lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
         self.show_message("Done: " + "; ".join(lines) + ".")
-
-    def _show_points_result(self, points_field, placement) -> None:
-        """The points coloured by the quantity on view (default |u|) with their arrows."""
-        current = next((x for x in L.quantity_layers(self.viewer) if x.visible), None)
-        quantity = L.plugin_metadata(current).get("quantity") if current is not None else None
-        tuples = P.points_layers(points_field, "points", quantity=quantity or "|u|", **placement)
-        layer, _ = L.show_layers(self.viewer, tuples)
-        caption = P.points_caption(layer)
-        L.text_overlay(self.viewer).text = caption
-        L.text_overlay(self.viewer).visible = True
-        L.canvas_overlay(self.viewer, "scale_bar").visible = True
-        counts = ", ".join(f"{n} {k}" for k, n in P.status_counts(points_field).items())
-        self.show_message(f"Done: {points_field.n_points} points: {counts}. Colours: {caption}.")
 
     # -- clicked POI --------------------------------------------------------------------------
     def _field_layer(self):
