@@ -210,3 +210,19 @@ def test_a_worker_error_shows_as_a_message(view, qtbot, monkeypatch, error):
     settle(qtbot, view)
     assert "cannot be computed" in view.message.text()
     assert L.plugin_metadata(L.quantity_layers(view.viewer)[0])["quantity"] == "|u|"
+
+
+def test_a_new_result_shows_the_quantity_on_view_and_the_chooser_says_so(view, qtbot):
+    """A new field comes on view with the quantity looked at; the chooser names what is shown
+    (it said |u| before, while the layers showed εeq)."""
+    view.set_quantity("εeq")
+    settle(qtbot, view)
+    L.show_field(view.viewer, L.field_layers(_shear(1.2), "corrected"))
+    (shown,) = [x for x in L.quantity_layers(view.viewer) if x.visible]
+    assert L.plugin_metadata(shown)["quantity"] == "εeq"
+    assert view.quantity.currentData() == "εeq"
+    # a choice the fields cannot show is said, and the chooser comes back to what is shown
+    view.set_quantity("residual")
+    settle(qtbot, view)
+    assert "run Evaluate first" in view.message.text()
+    assert view.quantity.currentData() == "εeq"

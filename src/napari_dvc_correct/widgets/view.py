@@ -159,6 +159,7 @@ class ViewWidget(QWidget):
         for layer in L.quantity_layers(self.viewer):
             if id(layer) not in self._watched:  # visibility set elsewhere (a new result...)
                 layer.events.visible.connect(self._visibility_changed)
+                layer.events.name.connect(self._visibility_changed)  # its quantity changed
                 self._watched.add(id(layer))
                 L.remember_quantity(layer)  # switching back to it is instant
         sources = self.sources()
@@ -298,6 +299,12 @@ class ViewWidget(QWidget):
         layers = L.quantity_layers(self.viewer)
         visible = [x for x in layers if x.visible]
         top = visible[-1] if visible else None
+        shown = L.plugin_metadata(top).get("quantity") if top is not None else None
+        if shown is not None and shown != self.quantity.currentData() and not self.busy:
+            # what is on view, however it got there (a new result shows the last quantity)
+            self.quantity.blockSignals(True)
+            self.quantity.setCurrentIndex(self.quantity.findData(shown))
+            self.quantity.blockSignals(False)
         for layer in layers:
             layer.colorbar.visible = bool(layer is top and self.colorbar.isChecked())
         text = L.caption(top) if top is not None else "No field yet: run Correlate."
