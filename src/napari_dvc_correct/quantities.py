@@ -8,6 +8,8 @@ volumetric, maximum-shear and equivalent strain, ZNCC, status, uncertainty, resi
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from .engine.field import DisplacementField, Status
@@ -125,6 +127,25 @@ def physical_strain(field: DisplacementField) -> np.ndarray:
     return small_strain(gradient)
 
 
+#: Values computed ahead (:func:`compute_ahead`): id(field) -> (weak reference, {quantity: values}).
+_AHEAD: dict[int, tuple] = {}
+
+
+def compute_ahead(field: DisplacementField, quantity: str) -> None:
+    """Compute ``quantity`` of ``field`` now and keep it while the field lives.
+
+    A panel's worker calls it for a new result with the quantity on view, so showing the result
+    (main thread) finds the strain ready in :func:`quantity_values`.
+    """
+    values = quantity_values(field, quantity)
+    key = id(field)
+    entry = _AHEAD.get(key)
+    if entry is None or entry[0]() is not field:
+        entry = (weakref.ref(field, lambda ref, key=key: _AHEAD.pop(key, None)), {})
+        _AHEAD[key] = entry
+    entry[1][quantity] = values
+
+
 def quantity_values(
     field: DisplacementField, quantity: str, cache: dict | None = None
 ) -> np.ndarray:
@@ -136,6 +157,9 @@ def quantity_values(
     """
     if quantity not in QUANTITIES or quantity == "residual":
         raise ValueError(f"{quantity!r} is not a grid quantity; choose one of {list(QUANTITIES)}")
+    ahead = _AHEAD.get(id(field))
+    if ahead is not None and ahead[0]() is field and quantity in ahead[1]:
+        return ahead[1][quantity]
     kind = QUANTITIES[quantity][1]
     vs = as_triple(field.metadata.get("voxel_size"), 1.0)
     if quantity == "ZNCC":

@@ -226,3 +226,33 @@ def test_a_new_result_shows_the_quantity_on_view_and_the_chooser_says_so(view, q
     settle(qtbot, view)
     assert "run Evaluate first" in view.message.text()
     assert view.quantity.currentData() == "εeq"
+
+
+def test_a_new_result_brings_its_strain_computed_in_the_worker(correlated, run_panel, qtbot):
+    """The run's worker computes the quantity on view for the new field: showing it on the
+    main thread computes no strain tensor."""
+    import threading
+
+    from napari_dvc_correct import quantities
+
+    viewer = correlated.viewer
+    view = ViewWidget(viewer)
+    viewer.window.add_dock_widget(view)
+    view.set_quantity("εeq")
+    settle(qtbot, view)
+    calls = []
+    original = quantities.physical_strain
+
+    def recording(field):
+        calls.append(threading.current_thread() is threading.main_thread())
+        return original(field)
+
+    quantities.physical_strain = recording
+    try:
+        run_panel(correlated)
+    finally:
+        quantities.physical_strain = original
+    layer = viewer.layers["εeq (uncorrected)"]
+    assert layer.visible and view.quantity.currentData() == "εeq"
+    assert calls and not any(calls), calls  # computed, and never on the main thread
+    np.testing.assert_array_equal(layer.data, L.quantity_values(L.field_of(layer), "εeq"))

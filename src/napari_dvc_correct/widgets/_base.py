@@ -55,6 +55,42 @@ def _guarded(generator: Generator) -> Generator:
         raise EngineError(str(error)) from error
 
 
+def _shown_ahead(generator: Generator, quantity: str | None) -> Generator:
+    """Run ``generator``; then, still in the worker, compute ``quantity`` (what the View panel
+    shows) of the fields it returns, so showing them on the main thread computes no strain."""
+    result = yield from generator
+    if quantity and quantity not in ("|u|", "residual"):
+        from ..quantities import compute_ahead
+
+        for field in _result_fields(result):
+            try:
+                compute_ahead(field, quantity)
+            except ValueError:  # e.g. no uncertainty: the layer keeps its default
+                pass
+    return result
+
+
+def _result_fields(result) -> list:
+    """The grid fields in a panel's result (a correlation, a correction, a list of them)."""
+    from ..engine.field import DisplacementField
+
+    items = result if isinstance(result, list) else [result]
+    found = []
+    for item in items:
+        for entry in [getattr(item, "field", None), *(getattr(item, "fields", None) or [])]:
+            field = entry[1] if isinstance(entry, tuple) and len(entry) == 2 else entry
+            if isinstance(field, DisplacementField):
+                found.append(field)
+    return found
+
+
+def _visible_quantity(viewer) -> str | None:
+    from ..layers import plugin_metadata, quantity_layers
+
+    shown = next((x for x in quantity_layers(viewer) if x.visible), None)
+    return plugin_metadata(shown).get("quantity") if shown is not None else None
+
+
 def follow_layers(viewer, widget, callback: Callable, moves: bool = False) -> None:
     """Call ``callback`` when layers are added or removed (and moved), until ``widget`` is deleted.
 
@@ -296,6 +332,8 @@ class EngineWidget(QWidget):
         """Run ``generator`` in a thread worker wired to this panel's slots."""
         # errored handled here: without it superqt re-raises the error on the main thread (a
         # traceback notification in napari, an abort in a plain Qt host)
+        quantity = _visible_quantity(self.viewer) if self.viewer is not None else None
+        generator = _shown_ahead(generator, quantity)
         worker = create_worker(
             _guarded, generator, _start_thread=False, _connect={"errored": self._on_errored}
         )
