@@ -10,13 +10,11 @@ from qtpy.QtWidgets import (
     QCheckBox,
     QComboBox,
     QDoubleSpinBox,
-    QGroupBox,
     QHBoxLayout,
     QLabel,
     QListWidget,
     QListWidgetItem,
     QSpinBox,
-    QVBoxLayout,
 )
 
 from .. import layers as L
@@ -25,6 +23,7 @@ from . import correlate_model as model
 from . import regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._layer_kinds import is_mask, is_scan, is_user_points, layer_role
+from .poi_readout import PoiReadout, poi_readout_box
 from .regions import RegionBox
 
 MODES = {
@@ -40,7 +39,7 @@ PREVIEW_POINTS = "POI grid (preview)"
 PREVIEW_BOX = "subvolume (preview)"
 
 
-class CorrelateWidget(EngineWidget):
+class CorrelateWidget(PoiReadout, EngineWidget):
     """Run DVC between two scans (or along a scan series) and show the field as layers."""
 
     run_text = "Run DVC"
@@ -135,12 +134,7 @@ class CorrelateWidget(EngineWidget):
         self.controls.addWidget(self.region)
 
         self.region.failed.connect(self.estimate_label.setText)
-        self.poi_box = QGroupBox("Clicked POI")
-        poi_layout = QVBoxLayout(self.poi_box)
-        self.poi_label = QLabel("Click a point of the field to see its values.")
-        self.poi_label.setWordWrap(True)
-        self.poi_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
-        poi_layout.addWidget(self.poi_label)
+        self.poi_box, self.poi_label = poi_readout_box()
         self.body.addWidget(self.poi_box)
 
         self._update = Debouncer(self.update_preview, 200, self)
@@ -557,40 +551,3 @@ class CorrelateWidget(EngineWidget):
             counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
             lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
         self.show_message("Done: " + "; ".join(lines) + ".")
-
-    # -- clicked POI --------------------------------------------------------------------------
-    def _field_layer(self):
-        """The field layer whose values a click shows: the selected one, else the topmost."""
-        active = self.viewer.layers.selection.active
-        if active is not None and L.field_of(active) is not None:
-            return active
-        for layer in reversed(self.viewer.layers):
-            if L.field_of(layer) is not None and layer.visible:
-                return layer
-        return None
-
-    def inspect(self, world_position) -> dict | None:
-        """Show the values of the node nearest to ``world_position`` (z, y, x world units)."""
-        layer = self._field_layer()
-        if layer is None:
-            return None
-        field = L.field_of(layer)
-        entry = L.plugin_metadata(layer)
-        voxel_size = np.asarray(field.metadata.get("voxel_size", (1, 1, 1)), float)
-        offset = np.asarray(field.metadata.get("offset", (0, 0, 0)), float)
-        position = (np.asarray(world_position, float)[-3:] - offset) / voxel_size
-        index = model.nearest_node(field, position)
-        if index is None:
-            return None
-        values = model.describe_poi(field, index)
-        self.poi_label.setText(model.poi_text(values, entry.get("source", "")))
-        return values
-
-    def _on_click(self, viewer, event) -> None:
-        if event.type != "mouse_press" or event.button != 1:
-            return
-        try:
-            self.inspect(event.position)
-        except RuntimeError:  # the dock was closed: stop listening
-            if self._on_click in viewer.mouse_drag_callbacks:
-                viewer.mouse_drag_callbacks.remove(self._on_click)
