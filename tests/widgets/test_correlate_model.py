@@ -8,6 +8,7 @@ import pytest
 from napari_dvc_correct.engine.field import DisplacementField, Status, grid_for_volume
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.widgets import correlate_model as model
+from napari_dvc_correct.widgets import points_model
 
 
 @pytest.mark.parametrize(
@@ -124,41 +125,45 @@ def test_points_in_voxels_undoes_both_layers_placement():
     image = _layer(scale=(2.0, 1.5, 1.5), translate=(10.0, -4.0, 0.0))
     world = voxels * np.array(image.scale) + np.array(image.translate)
     # points added with viewer.add_points: data in world coordinates
-    np.testing.assert_allclose(model.points_in_voxels(_layer(world), image), voxels)
+    np.testing.assert_allclose(points_model.points_in_voxels(_layer(world), image), voxels)
     # a Points layer with its own scale and translate (and a leading state axis)
     own_scale, own_translate = np.array([0.5, 3.0, 1.0]), np.array([1.0, 2.0, -3.0])
     data = (world - own_translate) / own_scale
     data4 = np.concatenate([np.full((2, 1), 2.0), data], axis=1)
     points = _layer(data4, scale=(1.0, *own_scale), translate=(0.0, *own_translate))
-    np.testing.assert_allclose(model.points_in_voxels(points, image), voxels)
+    np.testing.assert_allclose(points_model.points_in_voxels(points, image), voxels)
     with pytest.raises(ValueError, match="2-D points"):
-        model.points_in_voxels(_layer(np.zeros((3, 2))), image)
+        points_model.points_in_voxels(_layer(np.zeros((3, 2))), image)
     with pytest.raises(ValueError, match="holds no point"):
-        model.points_in_voxels(_layer(np.zeros((0, 3))), image)
+        points_model.points_in_voxels(_layer(np.zeros((0, 3))), image)
 
 
 def test_check_points_says_which_points_do_not_fit_and_why():
     shape, subvolume = (40, 50, 60), 15  # M = 7: centres 7..32, 7..42, 7..52
-    model.check_points(np.array([[7.0, 7.0, 7.0], [32.4, 42.0, 52.0]]), shape, subvolume)
+    points_model.check_points(np.array([[7.0, 7.0, 7.0], [32.4, 42.0, 52.0]]), shape, subvolume)
     with pytest.raises(ValueError) as outside:
-        model.check_points(np.array([[20.0, 20.0, 20.0], [20.0, 20.0, 60.0]]), shape, 15, "p")
+        points_model.check_points(
+            np.array([[20.0, 20.0, 20.0], [20.0, 20.0, 60.0]]), shape, 15, "p"
+        )
     text = str(outside.value)
     assert "1 outside the volume (40, 50, 60)" in text and "#1 at (z, y, x)" in text
     assert "z 7–32, y 7–42, x 7–52" in text
     with pytest.raises(ValueError, match="1 closer than 7 voxels to its border"):
-        model.check_points(np.array([[6.4, 20.0, 20.0], [20.0, 20.0, 20.0]]), shape, 15)
+        points_model.check_points(np.array([[6.4, 20.0, 20.0], [20.0, 20.0, 20.0]]), shape, 15)
     with pytest.raises(ValueError, match="non-finite"):
-        model.check_points(np.array([[np.nan, 1.0, 1.0]]), shape, 15)
+        points_model.check_points(np.array([[np.nan, 1.0, 1.0]]), shape, 15)
 
 
 def test_job_points_refuses_a_series_and_a_missing_layer():
     params = CorrelationParams(subvolume=15, step=8)
     image = _layer()
     with pytest.raises(ValueError, match="work on a pair"):
-        model.job_points(_layer(np.full((1, 3), 20.0)), image, "total", (48,) * 3, params)
+        points_model.job_points(_layer(np.full((1, 3), 20.0)), image, "total", (48,) * 3, params)
     with pytest.raises(ValueError, match="choose the Points layer"):
-        model.job_points(None, image, "pair", (48,) * 3, params)
-    points = model.job_points(_layer(np.full((1, 3), 20.0)), image, "pair", (48,) * 3, params)
+        points_model.job_points(None, image, "pair", (48,) * 3, params)
+    points = points_model.job_points(
+        _layer(np.full((1, 3), 20.0)), image, "pair", (48,) * 3, params
+    )
     np.testing.assert_array_equal(points, [[20.0, 20.0, 20.0]])
 
 
@@ -207,3 +212,31 @@ def test_run_points_job_equals_the_engine_and_finds_a_translation():
     assert field.metadata["points_layer"] == "pois" and field.metadata["unit"] == "µm"
     assert field.metadata["voxel_size"] == [2.0, 2.0, 2.0]
     assert run_to_completion(model.run_job(job)).fields[0][0] == "points"
+
+
+def test_suggest_and_check_tiled():
+    import dask.array as da
+
+    small = np.zeros((8, 8, 8), np.float32)
+    assert not model.suggest_tiled([small], memory=1 << 30)
+    assert model.suggest_tiled([da.from_array(small, chunks=4)], memory=1 << 30)  # lazy
+    assert model.suggest_tiled([small], memory=8 * 8 * 8 * 4 * 6)  # larger than half of it
+    assert model.check_tiled("pair", None, " auto ") is None
+    assert model.check_tiled("pair", None, "2GB") == "2GB"
+    with pytest.raises(ValueError):
+        model.check_tiled("pair", None, "lots")
+    with pytest.raises(ValueError, match="correlates a pair"):
+        model.check_tiled("total", None, "")
+    with pytest.raises(ValueError, match="points of interest run in memory"):
+        model.check_tiled("pair", np.zeros((1, 3)), "")
+
+
+def test_automatic_thresholds_of_a_lazy_volume_read_only_the_lattice():
+    import dask.array as da
+
+    from napari_dvc_correct.engine.synthetic import two_phase_volume
+    from napari_dvc_correct.widgets.evaluate_model import automatic_thresholds
+
+    volume = two_phase_volume((40, 40, 40), seed=2)
+    lazy = da.from_array(volume, chunks=20)
+    np.testing.assert_array_equal(automatic_thresholds(lazy, 3), automatic_thresholds(volume, 3))

@@ -12,6 +12,7 @@ from qtpy.QtWidgets import (
     QDoubleSpinBox,
     QHBoxLayout,
     QLabel,
+    QLineEdit,
     QListWidget,
     QListWidgetItem,
     QSpinBox,
@@ -20,7 +21,7 @@ from qtpy.QtWidgets import (
 from .. import layers as L
 from .. import point_layers as P
 from . import correlate_model as model
-from . import regions_model
+from . import points_model, regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._layer_kinds import is_mask, is_scan, is_user_points, layer_role
 from .poi_readout import PoiReadout, poi_readout_box
@@ -124,6 +125,19 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         voxel_row.addWidget(self.voxel_size)
         voxel_row.addWidget(self.unit)
         self.form.addRow("Voxel size", voxel_row)
+        self.tiled = QCheckBox("out of core (tiled): read the scans block by block")
+        self.tiled.setToolTip(
+            "For scans larger than memory or opened lazily (Dask/Zarr): the field is the "
+            "in-memory one (to ~1e-7 voxel), measured in batches that fit the memory limit; "
+            "ticked by itself for such scans. A pair, on the grid."
+        )
+        self.max_memory = QLineEdit()
+        self.max_memory.setPlaceholderText("auto (about 1 GiB per batch)")
+        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB or 800MB")
+        tiled_row = QHBoxLayout()
+        tiled_row.addWidget(self.tiled)
+        tiled_row.addWidget(self.max_memory)
+        self.form.addRow(tiled_row)
         self.preview = QCheckBox("preview the POI grid and one subvolume")
         self.preview.setChecked(True)
         self.form.addRow(self.preview)
@@ -147,6 +161,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             self.order.currentIndexChanged,
             self.search_radius.valueChanged,
             self.preview.toggled,
+            self.tiled.toggled,
             self.series_list.itemChanged,
             self.placement.currentIndexChanged,
             *self.region.changed_signals(),
@@ -230,10 +245,13 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         return [x for x in chosen if x is not None]
 
     def _show_voxel_size(self, *args) -> None:
-        """Show the reference layer's voxel size (its scale along x) and unit."""
+        """Show the reference layer's voxel size (its scale along x) and unit; tick 'out of
+        core' for a lazily backed or very large scan."""
         layer = self.reference.layer()
         if layer is None:
             return
+        if layer.ndim == 3:
+            self.tiled.setChecked(model.suggest_tiled([model.layer_volume(layer)]))
         if layer.ndim in (3, 4):  # the region's defaults follow the scans' size
             self.region.set_volume(
                 layer.data.shape[-3:], model.layer_volume(layer, 0 if layer.ndim == 4 else None)
@@ -360,6 +378,8 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         kept = None if mask is None else regions_model.check_kept(mask, params)
         voxel_size, offset = model.layer_placement(reference)
         points, points_layer = self._points(reference, strategy, volumes[0].shape, params)
+        tiled = self.tiled.isChecked()
+        memory = model.check_tiled(strategy, points, self.max_memory.text()) if tiled else None
         return model.CorrelationJob(
             volumes=volumes,
             params=params,
@@ -374,6 +394,8 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             kept=kept,
             points=points,
             points_layer=points_layer,
+            tiled=tiled,
+            max_memory=memory,
         )
 
     def _points(self, reference, strategy, shape, params):
@@ -382,7 +404,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         if self.placement.currentData() != "points":
             return None, ""
         layer = self.points.layer()
-        points = model.job_points(layer, reference, strategy, shape, params)
+        points = points_model.job_points(layer, reference, strategy, shape, params)
         return points, layer.name
 
     # -- sessions -------------------------------------------------------------------------------
@@ -403,6 +425,8 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             "unit": self.unit.currentData(),
             "region": self.region.settings(),
             "placement": self.placement.currentData(),
+            "tiled": self.tiled.isChecked(),
+            "max_memory": self.max_memory.text(),
             "points": self.points.currentText(),
         }
 
@@ -422,6 +446,8 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         self.points.set_layer(settings.get("points", ""))
         self.set_series_layers(settings.get("series", []))
         self.correct_states.setChecked(bool(settings.get("correct_states", False)))
+        self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
+        self.max_memory.setText(str(settings.get("max_memory", "")))
         for box, key in ((self.subvolume, "subvolume"), (self.step, "step")):
             if key in settings:
                 box.setValue(int(settings[key]))

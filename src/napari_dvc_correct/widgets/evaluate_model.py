@@ -35,9 +35,16 @@ def gray_histogram(volume: np.ndarray, bins: int = 128) -> tuple[np.ndarray, np.
 
 
 def automatic_thresholds(volume: np.ndarray, n_phases: int) -> np.ndarray:
-    """Multi-Otsu thresholds for ``n_phases`` phases (engine's :func:`auto_thresholds`)."""
-    from ..engine.phases import auto_thresholds
+    """Multi-Otsu thresholds for ``n_phases`` phases (engine's :func:`auto_thresholds`).
 
+    A lazy volume (Dask, Zarr) is read only on the engine's sampling lattice, never whole; the
+    thresholds are the same.
+    """
+    from ..engine.phases import auto_thresholds, otsu_stride
+
+    if not isinstance(volume, np.ndarray):  # a lazy scan: read only the lattice Otsu samples
+        stride = otsu_stride(volume.shape)
+        volume = np.asarray(volume[::stride, ::stride, ::stride])
     return np.asarray(auto_thresholds(volume, int(n_phases)), dtype=np.float64)
 
 
