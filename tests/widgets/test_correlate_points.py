@@ -136,37 +136,3 @@ def test_point_layers_without_napari_viewer():
     spacing = np.linalg.norm([10.0, 10.0, 10.5])  # the points' typical spacing
     assert vkwargs["length"] == pytest.approx(spacing / 0.5)  # exaggerated: it says how much
     assert np.isnan(kwargs["features"]["εeq"][1]) and kwargs["features"]["εeq"][0] == 0.0
-
-
-def test_a_lazy_pair_runs_out_of_core_and_gives_the_in_memory_field(
-    make_napari_viewer, pair48, run_panel, small
-):
-    """Dask-backed scans tick 'out of core' by themselves; the tiled run's field is the
-    in-memory one (the tiled engine's promise, ~1e-7 voxel)."""
-    import dask.array as da
-
-    from napari_dvc_correct.engine.correlate import correlate
-    from napari_dvc_correct.engine.params import CorrelationParams
-
-    reference, deformed, _ = pair48
-    viewer = make_napari_viewer()
-    for name, data in (("reference", reference), ("deformed", deformed)):
-        viewer.add_image(da.from_array(data, chunks=24), name=name, scale=small.voxel_size)
-    widget = CorrelateWidget(viewer)
-    viewer.window.add_dock_widget(widget)
-    widget.subvolume.setValue(small.subvolume)
-    widget.step.setValue(small.step)
-    assert widget.tiled.isChecked()
-    widget.max_memory.setText("lots")
-    assert widget.run() is None and "lots" in widget.message.text()
-    widget.max_memory.setText("1GB")
-    assert widget.job().tiled and widget.job().max_memory == "1GB"
-    run_panel(widget)
-    assert widget.last_error is None, widget.last_error
-    field = L.field_of(viewer.layers["|u| (uncorrected)"])
-    params = CorrelationParams(subvolume=small.subvolume, step=small.step)
-    memory = correlate(reference, deformed, params)
-    np.testing.assert_array_equal(field.status, memory.status)
-    good = memory.valid
-    assert np.max(np.abs(field.u[good] - memory.u[good])) < 1e-4
-    assert widget.settings()["tiled"] is True
