@@ -250,12 +250,17 @@ def residual_layer(
     """Dense gray residual ``|F(X + u(X)) - G(X)|`` (gray levels), a hidden Image layer.
 
     Kept as its own (hidden) layer so Export and the View panel find the residual of each field.
+    A lazy array (the Zarr residual of an out-of-core evaluation) stays lazy.
     """
-    residual = np.asarray(residual, dtype=np.float32)
+    if isinstance(residual, np.ndarray):
+        residual = sample = np.asarray(residual, dtype=np.float32)
+    else:  # a lazy (Zarr) residual of an out-of-core run: shown lazily, ranged on a sample
+        stride = max(1, int(np.ceil((float(np.prod(residual.shape)) / (1 << 21)) ** (1 / 3))))
+        sample = np.asarray(residual[::stride, ::stride, ::stride], dtype=np.float32)
     kwargs = {
         "name": layer_name("residual volume", source),
         "colormap": "gray",
-        "contrast_limits": [0.0, max(1e-6, float(np.nanpercentile(residual, 99.5)))],
+        "contrast_limits": [0.0, max(1e-6, float(np.nanpercentile(sample, 99.5)))],
         "visible": False,
         "metadata": _meta("residual", source),
         **dense_placement(voxel_size, offset),

@@ -75,3 +75,46 @@ def test_a_lazy_pair_self_corrects_out_of_core(make_napari_viewer, pair48, run_p
     np.testing.assert_array_equal(tiled.status, memory.status)
     good = memory.valid
     assert np.max(np.abs(tiled.u[good] - memory.u[good])) < 1e-4
+
+
+def test_a_lazy_pair_evaluates_out_of_core(make_napari_viewer, pair48, run_panel, small):
+    """The Evaluate panel ticks 'out of core' for Dask-backed scans; the residual comes back as
+    a lazy Zarr layer and the accuracy is the in-memory one."""
+    import dask.array as da
+
+    from napari_dvc_correct.engine.accuracy import evaluate_iter
+    from napari_dvc_correct.engine.progress import run_to_completion
+    from napari_dvc_correct.widgets import EvaluateWidget
+    from napari_dvc_correct.widgets.evaluate_model import ready_for_evaluation
+
+    reference, deformed, _ = pair48
+    viewer = make_napari_viewer()
+    for name, data in (("reference", reference), ("deformed", deformed)):
+        viewer.add_image(da.from_array(data, chunks=24), name=name)
+    correlate = CorrelateWidget(viewer)
+    viewer.window.add_dock_widget(correlate)
+    correlate.subvolume.setValue(small.subvolume)
+    correlate.step.setValue(small.step)
+    run_panel(correlate)
+    field = L.field_of(viewer.layers["|u| (uncorrected)"])
+    evaluate = EvaluateWidget(viewer)
+    viewer.window.add_dock_widget(evaluate)
+    assert evaluate.tiled.isChecked()
+    run_panel(evaluate)
+    assert evaluate.last_error is None, evaluate.last_error
+    layer = viewer.layers["residual volume (uncorrected)"]
+    assert not isinstance(layer.data, np.ndarray)  # read lazily from its Zarr file
+    assert layer.data.shape == reference.shape
+    memory = run_to_completion(
+        evaluate_iter(
+            reference,
+            deformed,
+            {"uncorrected": ready_for_evaluation(field)},
+            phases=evaluate.thresholds(),
+            keep_volumes=True,
+        )
+    )
+    (tiled_item,), (memory_item,) = evaluate.evaluation.fields, memory.fields
+    assert abs(tiled_item.accuracy - memory_item.accuracy) < 1e-9
+    assert abs(tiled_item.mean_residual - memory_item.mean_residual) < 1e-6
+    np.testing.assert_allclose(np.asarray(layer.data), memory_item.residual, atol=1e-4)
