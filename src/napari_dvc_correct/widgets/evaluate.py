@@ -69,8 +69,10 @@ class EvaluateWidget(EngineWidget):
             "by itself). Same numbers as in memory. A pair, not a series."
         )
         self.max_memory = QLineEdit()
-        self.max_memory.setPlaceholderText("auto")
+        self.max_memory.setPlaceholderText("memory: auto")
         self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB")
+        self.max_memory.setEnabled(False)  # until out of core is ticked
+        self.tiled.toggled.connect(self.max_memory.setEnabled)
         tiled_row = QHBoxLayout()
         tiled_row.addWidget(self.tiled)
         tiled_row.addWidget(self.max_memory)

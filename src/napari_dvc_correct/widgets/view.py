@@ -229,7 +229,11 @@ class ViewWidget(QWidget):
         """One field's values (main thread): kept in its cache, and shown if still wanted."""
         name, entry, key, result, problem = value
         if result is not None:
-            entry.setdefault("shown", {})[key] = result
+            shown = entry.setdefault("shown", {})
+            if key[0] == "residual":  # one residual kept: an older one is a whole volume
+                for old in [k for k in shown if k[0] == "residual"]:
+                    del shown[old]
+            shown[key] = result
         if current and self._pending is not None:
             if result is not None:
                 self._pending["ready"][name] = result
