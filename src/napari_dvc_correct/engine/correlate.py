@@ -141,7 +141,8 @@ class PyramidLevel:
     def statistics(self, centers, warps, zncc, order, sensitivity, out, index):
         """Fill ``out``'s variance, gradient power and sigma at ``index``.
 
-        (:func:`.icgn_uncertainty.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``.)
+        (:func:`.icgn_uncertainty.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``,
+        an entry None where not wanted.)
         """
         if len(centers) == 0:
             return
@@ -164,9 +165,28 @@ class PyramidLevel:
             power,
             sig,
         )
+        for target, values in zip(out, (var, power, sig)):
+            if target is not None:  # None: not wanted
+                target[index] = values
+
+    def moments(self, centers, order, out, index):
+        """Fill ``out = (variance, power)`` at ``index`` (:func:`.icgn_uncertainty.subvolume_moments`)."""
+        var = np.full(len(centers), np.nan)
+        power = np.full(len(centers), np.nan)
+        if len(centers):
+            icgn_uncertainty.subvolume_moments(
+                self.reference,
+                self.gradient,
+                self.mask,
+                self.use_mask,
+                np.ascontiguousarray(centers, dtype=np.int64),
+                self.half,
+                shape_function.n_monomials(order),
+                var,
+                power,
+            )
         out[0][index] = var
         out[1][index] = power
-        out[2][index] = sig
 
     def inputs(self, order, params: CorrelationParams) -> icgn.MatchInputs:
         """The kernels' argument bundle at this level for ``params``."""

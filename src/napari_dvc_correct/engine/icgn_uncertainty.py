@@ -190,6 +190,59 @@ def _sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb):
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
+def subvolume_moments(reference, gradient, mask, use_mask, centers, half, nb, variance, power):
+    """Gray variance and gradient power of each POI's reference subvolume, from plain sums.
+
+    The noise stage's part of :func:`subvolume_statistics` (the same numbers, without ``H``):
+    ``variance = Σ(g − ḡ)² / n`` and ``power = Σ |∇G|² / n`` over the ``n`` unmasked voxels,
+    summed in float64 from the float32 volumes as there.
+
+    Parameters
+    ----------
+    reference, gradient, mask, use_mask, centers, half, nb
+        As in :func:`subvolume_statistics` (``nb`` only sets the ``3·nb + 3`` voxels needed).
+    variance : ndarray (N,) float64, out
+        Gray variance (gray levels²); NaN where fewer than ``3·nb + 3`` voxels are usable.
+    power : ndarray (N,) float64, out
+        Mean of ``|∇G|²`` (gray²/voxel²); NaN where the variance is.
+    """
+    m_par = 3 * nb
+    for n in prange(centers.shape[0]):
+        cz = centers[n, 0]
+        cy = centers[n, 1]
+        cx = centers[n, 2]
+        count = 0
+        sum_g = 0.0
+        sum_power = 0.0
+        for z in range(cz - half, cz + half + 1):
+            for y in range(cy - half, cy + half + 1):
+                for x in range(cx - half, cx + half + 1):
+                    if use_mask and not mask[z, y, x]:
+                        continue
+                    sum_g += np.float64(reference[z, y, x])
+                    for k in range(3):
+                        gk = np.float64(gradient[k, z, y, x])
+                        sum_power += gk * gk
+                    count += 1
+        variance[n] = np.nan
+        power[n] = np.nan
+        if count < m_par + 3:
+            continue
+        mean_g = sum_g / count
+        ss_g = 0.0
+        for z in range(cz - half, cz + half + 1):
+            for y in range(cy - half, cy + half + 1):
+                for x in range(cx - half, cx + half + 1):
+                    if use_mask and not mask[z, y, x]:
+                        continue
+                    d = np.float64(reference[z, y, x]) - mean_g
+                    ss_g += d * d
+        delta_g = np.sqrt(ss_g)  # as reference_terms: Σ(g − ḡ)² through its square root
+        variance[n] = delta_g * delta_g / count
+        power[n] = sum_power / count
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
 def subvolume_statistics(
     reference,
     gradient,

@@ -59,7 +59,7 @@ class MatchedGrid:
     variance, power : ndarray, shape (N,)
         Gray variance (gray levels²) and gradient power of each reference subvolume.
     sigma : ndarray, shape (N, 3)
-        First uncertainty estimate (voxels).
+        Uncertainty (voxels): NaN until :func:`judge_iter` measures it.
     metadata : dict
         The field's metadata so far (volume shape, global shift, pyramid levels, timings...).
     started : float
@@ -86,13 +86,10 @@ class MatchedGrid:
 
 
 def match_statistics(fine, matched: MatchedGrid, order) -> None:
-    """Fill ``matched``'s variance, power and first sigma from ``fine`` (the cheap estimate)."""
+    """Fill ``matched``'s variance and power from ``fine`` (plain sums; the noise estimate's
+    ingredients). The uncertainty is measured once, by :func:`judge_iter`."""
     todo = matched.todo
-    stats = (matched.variance, matched.power, matched.sigma)
-    cheap = np.zeros(len(todo), bool)
-    fine.statistics(
-        matched.centers[todo], matched.params[todo], matched.zncc[todo], order, cheap, stats, todo
-    )
+    fine.moments(matched.centers[todo], order, (matched.variance, matched.power), todo)
 
 
 def judge_iter(
@@ -130,7 +127,6 @@ def judge_iter(
     centers, params_out = matched.centers, matched.params
     zncc, status, iterations = matched.zncc, matched.status, matched.iterations
     variance, power, sigma = matched.variance, matched.power, matched.sigma
-    stats = (variance, power, sigma)
     timings = matched.metadata["timings"]
     n_points = len(centers)
 
@@ -145,7 +141,6 @@ def judge_iter(
     timings["noise_s"] = timings.get("noise_s", 0.0) + time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    before = params_out.copy()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
     repair(
         fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
@@ -155,13 +150,20 @@ def judge_iter(
     low = np.isin(status, _GOOD) & ~(zncc >= thresholds)
     status[low] = int(Status.LOW_ZNCC)
     t0 = time.perf_counter()
-    # where the reference's noise is a sizeable part of H, measure the sensitivity A; elsewhere
-    # keep the first pass's estimate unless the repair changed the match
+    # once per measured POI, at its final match: where the reference's noise is a sizeable part
+    # of H, with the sensitivity A measured from the deformed scan, elsewhere from H⊥ alone
     noisy = 3.0 * NOISE_GRADIENT_GAIN * noise_variance > SENSITIVITY_FRACTION * power
-    changed = np.any(params_out != before, axis=1)
-    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
-    redo = np.flatnonzero(measured & (noisy | changed))
-    fine.statistics(centers[redo], params_out[redo], zncc[redo], order, noisy[redo], stats, redo)
+    measured = np.flatnonzero(np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]]))
+    stats = (None, None, sigma)  # variance and power: match_statistics'
+    fine.statistics(
+        centers[measured],
+        params_out[measured],
+        zncc[measured],
+        order,
+        noisy[measured],
+        stats,
+        measured,
+    )
     timings["uncertainty_s"] = time.perf_counter() - t0
     noise = {
         **noise_metadata(noise_variance, thresholds, status, params.min_zncc),
