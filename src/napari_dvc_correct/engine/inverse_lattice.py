@@ -18,7 +18,8 @@ tricubic evaluations of the field with its Jacobian per voxel. The inverse displ
    fails when one of its 6³ interpolation nodes did not converge or is nearly singular
    (:data:`MAX_GAIN`: folds, extreme compression);
 3. interpolates ``v`` to every voxel (6-point Lagrange along each axis, separably: about 20
-   multiply-adds per voxel) in the cells that pass, and runs Newton per voxel, from the
+   multiply-adds per voxel; the kernels are in :mod:`.inverse_fill`, which can also sample the
+   reference volume there at once, :meth:`LatticeInverter.warp`) in the cells that pass, and runs Newton per voxel, from the
    interpolated guess, in the cells that fail (narrow shear bands, folds, the kinks of the
    extrapolated field beyond the grid's hull, points that do not converge): those voxels get
    Newton's answer (to a step of :func:`polish_step`) and its convergence flag.
@@ -40,14 +41,19 @@ import numpy as np
 from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
-from .field_spline_kernels import _eval_one, hull_bounds, newton_inverse
+from .field_spline_kernels import _eval_one, hull_bounds
+from .inverse_fill import (
+    BELOW,
+    TAPS,
+    axis_weights,
+    interpolate_planes,
+    lagrange_weights,
+    solve,
+    warp_planes,
+)
 
 #: A cell passes when its centre's interpolation error is below ``accuracy / CHECK_SAFETY``.
 CHECK_SAFETY = 2.0
-
-#: Interpolation nodes per axis (quintic Lagrange), and how many lie below a cell's first node.
-TAPS = 6
-BELOW = 2
 
 #: A cell fails when the inverse gain ``||(I + du/dX)^-1||`` exceeds this at one of its nodes
 #: (the map is nearly singular there: folds, extreme compression).
@@ -105,64 +111,6 @@ def auto_stride(step) -> int:
     rate low on fields the node grid resolves.
     """
     return int(max(1, min(MAX_STRIDE, np.floor(float(np.min(step)) / 2.0))))
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def _lagrange_weights(t):
-    """6-point Lagrange (quintic) weights of the nodes at -2 .. 3 for a position ``t`` in [0, 1).
-
-    Exact (0, 0, 1, 0, 0, 0) at ``t = 0``.
-    """
-    a = t + 2.0
-    b = t + 1.0
-    c = t
-    d = t - 1.0
-    e = t - 2.0
-    f = t - 3.0
-    return (
-        b * c * d * e * f / -120.0,
-        a * c * d * e * f / 24.0,
-        a * b * d * e * f / -12.0,
-        a * b * c * e * f / 12.0,
-        a * b * c * d * f / -24.0,
-        a * b * c * d * e / 120.0,
-    )
-
-
-@njit(**KERNEL_OPTIONS)
-def _axis_weights(start, count, stride):
-    """Per voxel of one box axis: first of its 4 coarse nodes (box-local) and their weights."""
-    first_cell = start // stride
-    node = np.empty(count, np.int64)
-    weight = np.empty((count, TAPS))
-    for i in range(count):
-        cell = (start + i) // stride
-        t = (start + i - cell * stride) / stride
-        node[i] = cell - first_cell
-        w = _lagrange_weights(t)
-        for k in range(TAPS):
-            weight[i, k] = w[k]
-    return node, weight
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def _solve(spline, z, y, x, max_iterations, tolerance, position, value, jacobian):
-    return newton_inverse(
-        spline[0],
-        spline[1],
-        spline[2],
-        spline[3],
-        spline[4],
-        spline[5],
-        z,
-        y,
-        x,
-        max_iterations,
-        tolerance,
-        position,
-        value,
-        jacobian,
-    )
 
 
 @njit(**KERNEL_OPTIONS)
@@ -226,7 +174,7 @@ def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok
                     position[0] = z - value[0]
                     position[1] = y - value[1]
                     position[2] = x - value[2]
-                previous_ok = _solve(
+                previous_ok = solve(
                     spline, z, y, x, max_iterations, tolerance, position, value, jacobian
                 )
                 d = node - first_node[2]
@@ -251,7 +199,7 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
     """
     origin = spline[2]
     step = spline[3]
-    centre = _lagrange_weights(0.5)
+    centre = lagrange_weights(0.5)
     nz, ny, nx = bad.shape
     for a in prange(nz):
         value = np.empty(3)
@@ -348,112 +296,6 @@ def _combine(ok, gain, bad, fail):
                 fail[a, b, d] = failed
 
 
-@njit(parallel=True, **KERNEL_OPTIONS)
-def _interpolate(
-    spline,
-    hull_low,
-    hull_high,
-    box_start,
-    z_node,
-    z_weight,
-    y_node,
-    y_weight,
-    x_node,
-    x_weight,
-    max_iterations,
-    polish,
-    v,
-    node_ok,
-    fail,
-    positions,
-    converged,
-    in_hull,
-    exact,
-):
-    """Interpolate ``v`` to every voxel of the box (C order), Newton in the failed cells."""
-    nz = z_node.shape[0]
-    ny = y_node.shape[0]
-    nx = x_node.shape[0]
-    cy, cx = v.shape[1], v.shape[2]
-    for a in prange(nz):
-        value = np.empty(3)
-        jacobian = np.empty((3, 3))
-        position = np.empty(3)
-        plane = np.zeros((cy, cx, 3))
-        row = np.empty((cx, 3))
-        za = z_node[a]
-        for i in range(TAPS):
-            w = z_weight[a, i]
-            if w != 0.0:
-                source = v[za + i]
-                for j in range(cy):
-                    for k in range(cx):
-                        for c in range(3):
-                            plane[j, k, c] += w * source[j, k, c]
-        z = float(box_start[0] + a)
-        z_node_voxel = z_weight[a, BELOW] == 1.0
-        for b in range(ny):
-            yb = y_node[b]
-            row[:] = 0.0
-            for j in range(TAPS):
-                w = y_weight[b, j]
-                if w != 0.0:
-                    for k in range(cx):
-                        for c in range(3):
-                            row[k, c] += w * plane[yb + j, k, c]
-            y = float(box_start[1] + b)
-            zy_node_voxel = z_node_voxel and y_weight[b, BELOW] == 1.0
-            index = (a * ny + b) * nx
-            for d in range(nx):
-                xd = x_node[d]
-                w0 = x_weight[d, 0]
-                w1 = x_weight[d, 1]
-                w2 = x_weight[d, 2]
-                w3 = x_weight[d, 3]
-                w4 = x_weight[d, 4]
-                w5 = x_weight[d, 5]
-                x = float(box_start[2] + d)
-                p0 = z - _taps6(row, xd, 0, w0, w1, w2, w3, w4, w5)
-                p1 = y - _taps6(row, xd, 1, w0, w1, w2, w3, w4, w5)
-                p2 = x - _taps6(row, xd, 2, w0, w1, w2, w3, w4, w5)
-                solved = zy_node_voxel and w2 == 1.0  # a coarse node: v is exact there
-                ok = True
-                if solved:
-                    ok = node_ok[za + BELOW, yb + BELOW, xd + BELOW]
-                elif fail[za, yb, xd]:
-                    solved = True
-                    position[0] = p0
-                    position[1] = p1
-                    position[2] = p2
-                    ok = _solve(spline, z, y, x, max_iterations, polish, position, value, jacobian)
-                    p0 = position[0]
-                    p1 = position[1]
-                    p2 = position[2]
-                i = index + d
-                positions[i, 0] = p0
-                positions[i, 1] = p1
-                positions[i, 2] = p2
-                converged[i] = ok
-                exact[i] = solved
-                in_hull[i] = (
-                    hull_low[0] <= p0 <= hull_high[0]
-                    and hull_low[1] <= p1 <= hull_high[1]
-                    and hull_low[2] <= p2 <= hull_high[2]
-                )
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def _taps6(row, first, c, w0, w1, w2, w3, w4, w5):
-    return (
-        w0 * row[first, c]
-        + w1 * row[first + 1, c]
-        + w2 * row[first + 2, c]
-        + w3 * row[first + 3, c]
-        + w4 * row[first + 4, c]
-        + w5 * row[first + 5, c]
-    )
-
-
 class LatticeInverter:
     """The coarse stage of :func:`invert_lattice` for a box, then its voxels plane range by range.
 
@@ -524,26 +366,16 @@ class LatticeInverter:
                 self.args, spline.grid_shape, first_node, stride, *limits, self.v, gain, bad
             )
             _combine(self.node_ok, gain, bad, self.fail)
-        self.axes = [
-            _axis_weights(int(self.starts[a]), int(self.counts[a]), stride) for a in (1, 2)
-        ]
+        self.axes = [axis_weights(int(self.starts[a]), int(self.counts[a]), stride) for a in (1, 2)]
 
-    def solve(self, planes: slice | None = None) -> LatticeInverse:
-        """Positions for the box's z planes ``planes`` (indices within the box; all by default)."""
-        start, stop, _ = (planes or slice(None)).indices(int(self.counts[0]))
-        stop = max(start, stop)
-        n = (stop - start) * int(self.counts[1] * self.counts[2])
-        result = LatticeInverse(
-            np.empty((n, 3)), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_)
-        )
-        if n == 0:
-            return result
+    def _plane_args(self, start: int, stop: int):
+        """The fill kernels' arguments for the box's z planes ``start .. stop`` (box indices)."""
         z0 = int(self.starts[0])
-        z_node, z_weight = _axis_weights(z0 + start, stop - start, self.stride)
+        z_node, z_weight = axis_weights(z0 + start, stop - start, self.stride)
         z_node += (z0 + start) // self.stride - z0 // self.stride
         starts = self.starts.copy()
         starts[0] = z0 + start
-        _interpolate(
+        return (
             self.args,
             *self.hull,
             starts,
@@ -556,9 +388,52 @@ class LatticeInverter:
             self.v,
             self.node_ok,
             self.fail,
-            *result,
         )
+
+    def _planes(self, planes: slice | None) -> tuple[int, int]:
+        start, stop, _ = (planes or slice(None)).indices(int(self.counts[0]))
+        return start, max(start, stop)
+
+    def solve(self, planes: slice | None = None) -> LatticeInverse:
+        """Positions for the box's z planes ``planes`` (indices within the box; all by default)."""
+        start, stop = self._planes(planes)
+        n = (stop - start) * int(self.counts[1] * self.counts[2])
+        result = LatticeInverse(
+            np.empty((n, 3)), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_)
+        )
+        if n > 0:
+            interpolate_planes(*self._plane_args(start, stop), *result)
         return result
+
+    def warp(
+        self, coefficients: np.ndarray, planes: slice | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The forward warp of the box's z planes ``planes``: ``G(X)`` sampled as ``X`` is made.
+
+        Parameters
+        ----------
+        coefficients : ndarray, shape (nz, ny, nx), float32
+            ``interpolation.prefilter(G)`` of the whole reference volume (whole-volume indices).
+        planes : slice, optional
+            z planes within the box (all by default).
+
+        Returns
+        -------
+        values : ndarray, shape (planes, box ny, box nx), float32
+            ``G(X)`` at the positions :meth:`solve` gives (the same bit for bit); NaN where
+            Newton did not converge or ``X`` is outside ``G``. Equal to
+            ``interpolation.sample(coefficients, X)`` to float32 rounding.
+        in_hull : ndarray of bool, same shape
+            Where ``X`` lies in the grid's hull.
+        """
+        start, stop = self._planes(planes)
+        shape = (stop - start, int(self.counts[1]), int(self.counts[2]))
+        values = np.empty(shape, np.float32)
+        in_hull = np.empty(shape, np.bool_)
+        if values.size > 0:
+            coefficients = np.ascontiguousarray(coefficients, dtype=np.float32)
+            warp_planes(*self._plane_args(start, stop), coefficients, values, in_hull)
+        return values, in_hull
 
 
 def invert_lattice(

@@ -1,0 +1,404 @@
+"""The per-voxel stage of the lattice inverse: interpolation between coarse nodes, Newton where
+a cell failed its check, and the forward warp's sampling of ``G`` fused with both.
+
+:class:`.inverse_lattice.LatticeInverter` solves the inverse displacement ``v = x - X`` exactly
+on a coarse lattice and marks the cells whose interpolation fails its check. The kernels here
+fill a box's voxels from that, plane by plane (in parallel over z planes) and row by row:
+
+* :func:`interpolate_planes` writes the reference positions ``X`` (with their convergence, hull
+  and "solved by Newton" flags) of every voxel;
+* :func:`warp_planes` samples ``G`` at ``X`` as soon as a row of positions is made (the positions
+  never leave the cache): the forward warp's values and hull flags, nothing else.
+
+Both make a row's positions with the same code (:func:`_fill_row`), so their positions agree bit
+for bit. Per voxel the interpolation is 6-point Lagrange along x of a row already interpolated
+along z and y (18 multiply-adds), and :func:`sample_taps_by_rows` samples ``G`` with 16
+four-wide row sums (SIMD over the 4 contiguous x taps).
+
+Positions are ``(z, y, x)`` voxels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from ._numba_setup import KERNEL_OPTIONS
+from .field_spline_kernels import newton_inverse
+from .interpolation import _weights32, in_interior, sample_mirrored
+
+#: Interpolation nodes per axis (quintic Lagrange), and how many lie below a cell's first node.
+TAPS = 6
+BELOW = 2
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def lagrange_weights(t):
+    """6-point Lagrange (quintic) weights of the nodes at -2 .. 3 for a position ``t`` in [0, 1).
+
+    Exact (0, 0, 1, 0, 0, 0) at ``t = 0``.
+    """
+    a = t + 2.0
+    b = t + 1.0
+    c = t
+    d = t - 1.0
+    e = t - 2.0
+    f = t - 3.0
+    return (
+        b * c * d * e * f / -120.0,
+        a * c * d * e * f / 24.0,
+        a * b * d * e * f / -12.0,
+        a * b * c * e * f / 12.0,
+        a * b * c * d * f / -24.0,
+        a * b * c * d * e / 120.0,
+    )
+
+
+@njit(**KERNEL_OPTIONS)
+def axis_weights(start, count, stride):
+    """Per voxel of one box axis: first of its 6 coarse nodes (box-local) and their weights."""
+    first_cell = start // stride
+    node = np.empty(count, np.int64)
+    weight = np.empty((count, TAPS))
+    for i in range(count):
+        cell = (start + i) // stride
+        t = (start + i - cell * stride) / stride
+        node[i] = cell - first_cell
+        w = lagrange_weights(t)
+        for k in range(TAPS):
+            weight[i, k] = w[k]
+    return node, weight
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def solve(spline, z, y, x, max_iterations, tolerance, position, value, jacobian):
+    """:func:`.field_spline_kernels.newton_inverse` with the spline's arguments as one tuple."""
+    return newton_inverse(
+        spline[0],
+        spline[1],
+        spline[2],
+        spline[3],
+        spline[4],
+        spline[5],
+        z,
+        y,
+        x,
+        max_iterations,
+        tolerance,
+        position,
+        value,
+        jacobian,
+    )
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _taps6(row, first, c, w0, w1, w2, w3, w4, w5):
+    return (
+        w0 * row[first, c]
+        + w1 * row[first + 1, c]
+        + w2 * row[first + 2, c]
+        + w3 * row[first + 3, c]
+        + w4 * row[first + 4, c]
+        + w5 * row[first + 5, c]
+    )
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _fill_plane(v, za, z_weight, a, plane):
+    """``v`` interpolated along z to box plane ``a``: ``plane`` (cy, cx, 3)."""
+    plane[:] = 0.0
+    cy, cx = plane.shape[0], plane.shape[1]
+    for i in range(TAPS):
+        w = z_weight[a, i]
+        if w != 0.0:
+            source = v[za + i]
+            for j in range(cy):
+                for k in range(cx):
+                    for c in range(3):
+                        plane[j, k, c] += w * source[j, k, c]
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _fill_line(plane, yb, y_weight, b, line):
+    """``plane`` interpolated along y to box row ``b``: ``line`` (cx, 3)."""
+    line[:] = 0.0
+    cx = line.shape[0]
+    for j in range(TAPS):
+        w = y_weight[b, j]
+        if w != 0.0:
+            for k in range(cx):
+                for c in range(3):
+                    line[k, c] += w * plane[yb + j, k, c]
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _fill_row(
+    spline,
+    z,
+    y,
+    x0,
+    za,
+    yb,
+    zy_node_voxel,
+    x_node,
+    x_weight,
+    max_iterations,
+    polish,
+    line,
+    node_ok,
+    fail,
+    value,
+    jacobian,
+    position,
+    out,
+    ok_out,
+    exact_out,
+    first,
+):
+    """Positions of one box row (x from ``x0``) into ``out[first + d]`` and their flags.
+
+    Interpolated from ``line`` (``v`` along x at the row's z and y) where the cell passed its
+    check, exact at the coarse nodes, Newton from the interpolated guess in failed cells.
+    """
+    for d in range(x_node.shape[0]):
+        xd = x_node[d]
+        w0 = x_weight[d, 0]
+        w1 = x_weight[d, 1]
+        w2 = x_weight[d, 2]
+        w3 = x_weight[d, 3]
+        w4 = x_weight[d, 4]
+        w5 = x_weight[d, 5]
+        x = float(x0 + d)
+        p0 = z - _taps6(line, xd, 0, w0, w1, w2, w3, w4, w5)
+        p1 = y - _taps6(line, xd, 1, w0, w1, w2, w3, w4, w5)
+        p2 = x - _taps6(line, xd, 2, w0, w1, w2, w3, w4, w5)
+        solved = zy_node_voxel and w2 == 1.0  # a coarse node: v is exact there
+        ok = True
+        if solved:
+            ok = node_ok[za + BELOW, yb + BELOW, xd + BELOW]
+        elif fail[za, yb, xd]:
+            solved = True
+            position[0] = p0
+            position[1] = p1
+            position[2] = p2
+            ok = solve(spline, z, y, x, max_iterations, polish, position, value, jacobian)
+            p0 = position[0]
+            p1 = position[1]
+            p2 = position[2]
+        i = first + d
+        out[i, 0] = p0
+        out[i, 1] = p1
+        out[i, 2] = p2
+        ok_out[i] = ok
+        exact_out[i] = solved
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _in_hull(hull_low, hull_high, p0, p1, p2):
+    return (
+        hull_low[0] <= p0 <= hull_high[0]
+        and hull_low[1] <= p1 <= hull_high[1]
+        and hull_low[2] <= p2 <= hull_high[2]
+    )
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def interpolate_planes(
+    spline,
+    hull_low,
+    hull_high,
+    box_start,
+    z_node,
+    z_weight,
+    y_node,
+    y_weight,
+    x_node,
+    x_weight,
+    max_iterations,
+    polish,
+    v,
+    node_ok,
+    fail,
+    positions,
+    converged,
+    in_hull,
+    exact,
+):
+    """Positions ``(N, 3)`` and flags ``(N,)`` of every voxel of the box's planes (C order)."""
+    nz = z_node.shape[0]
+    ny = y_node.shape[0]
+    nx = x_node.shape[0]
+    cy, cx = v.shape[1], v.shape[2]
+    for a in prange(nz):
+        value = np.empty(3)
+        jacobian = np.empty((3, 3))
+        position = np.empty(3)
+        plane = np.empty((cy, cx, 3))
+        line = np.empty((cx, 3))
+        za = z_node[a]
+        _fill_plane(v, za, z_weight, a, plane)
+        z = float(box_start[0] + a)
+        z_node_voxel = z_weight[a, BELOW] == 1.0
+        for b in range(ny):
+            yb = y_node[b]
+            _fill_line(plane, yb, y_weight, b, line)
+            index = (a * ny + b) * nx
+            _fill_row(
+                spline,
+                z,
+                float(box_start[1] + b),
+                box_start[2],
+                za,
+                yb,
+                z_node_voxel and y_weight[b, BELOW] == 1.0,
+                x_node,
+                x_weight,
+                max_iterations,
+                polish,
+                line,
+                node_ok,
+                fail,
+                value,
+                jacobian,
+                position,
+                positions,
+                converged,
+                exact,
+                index,
+            )
+            for d in range(nx):
+                i = index + d
+                in_hull[i] = _in_hull(
+                    hull_low, hull_high, positions[i, 0], positions[i, 1], positions[i, 2]
+                )
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _taps4(c, z, y, ix, w, s0, s1, s2, s3):
+    """The 4 contiguous x taps of row ``(z, y)`` from ``ix - 1``, weighted by ``w``, added."""
+    return (
+        s0 + w * c[z, y, ix - 1],
+        s1 + w * c[z, y, ix],
+        s2 + w * c[z, y, ix + 1],
+        s3 + w * c[z, y, ix + 2],
+    )
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _plane_taps(c, z, iy, ix, wz, wy0, wy1, wy2, wy3, s0, s1, s2, s3):
+    s0, s1, s2, s3 = _taps4(c, z, iy - 1, ix, wz * wy0, s0, s1, s2, s3)
+    s0, s1, s2, s3 = _taps4(c, z, iy, ix, wz * wy1, s0, s1, s2, s3)
+    s0, s1, s2, s3 = _taps4(c, z, iy + 1, ix, wz * wy2, s0, s1, s2, s3)
+    return _taps4(c, z, iy + 2, ix, wz * wy3, s0, s1, s2, s3)
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def sample_taps_by_rows(coefficients, z, y, x):
+    """Tricubic B-spline value at ``(z, y, x)``; requires :func:`.interpolation.in_interior`.
+
+    The 16 rows of 4 contiguous x taps are summed with their ``(z, y)`` weight into 4 float32
+    columns (independent sums: one four-wide multiply-add per row), weighted along x at the end.
+    Equals :func:`.interpolation.sample_interior` to float32 rounding (another summation order).
+    """
+    iz = int(z)
+    iy = int(y)
+    ix = int(x)
+    wz0, wz1, wz2, wz3 = _weights32(np.float32(z - iz))
+    wy0, wy1, wy2, wy3 = _weights32(np.float32(y - iy))
+    wx0, wx1, wx2, wx3 = _weights32(np.float32(x - ix))
+    c = coefficients
+    s0 = s1 = s2 = s3 = np.float32(0.0)
+    s0, s1, s2, s3 = _plane_taps(c, iz - 1, iy, ix, wz0, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
+    s0, s1, s2, s3 = _plane_taps(c, iz, iy, ix, wz1, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
+    s0, s1, s2, s3 = _plane_taps(c, iz + 1, iy, ix, wz2, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
+    s0, s1, s2, s3 = _plane_taps(c, iz + 2, iy, ix, wz3, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
+    return wx0 * s0 + wx1 * s1 + wx2 * s2 + wx3 * s3
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def sample_or_nan(coefficients, z, y, x):
+    """Value at ``(z, y, x)``, NaN outside ``[0, n - 1]`` along any axis (or not finite)."""
+    nz, ny, nx = coefficients.shape
+    if not (0.0 <= z <= nz - 1 and 0.0 <= y <= ny - 1 and 0.0 <= x <= nx - 1):
+        return np.float32(np.nan)
+    if in_interior(coefficients, z, y, x):
+        return sample_taps_by_rows(coefficients, z, y, x)
+    return np.float32(sample_mirrored(coefficients, z, y, x))
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def warp_planes(
+    spline,
+    hull_low,
+    hull_high,
+    box_start,
+    z_node,
+    z_weight,
+    y_node,
+    y_weight,
+    x_node,
+    x_weight,
+    max_iterations,
+    polish,
+    v,
+    node_ok,
+    fail,
+    coefficients,
+    values,
+    in_hull,
+):
+    """``G(X)`` (``values``, (nz, ny, nx) float32, NaN where Newton did not converge or ``X`` is
+    outside ``G``) and the hull flags of every voxel of the box's planes; positions stay in a row
+    buffer."""
+    nz = z_node.shape[0]
+    ny = y_node.shape[0]
+    nx = x_node.shape[0]
+    cy, cx = v.shape[1], v.shape[2]
+    for a in prange(nz):
+        value = np.empty(3)
+        jacobian = np.empty((3, 3))
+        position = np.empty(3)
+        plane = np.empty((cy, cx, 3))
+        line = np.empty((cx, 3))
+        row = np.empty((nx, 3))
+        row_ok = np.empty(nx, np.bool_)
+        row_exact = np.empty(nx, np.bool_)
+        za = z_node[a]
+        _fill_plane(v, za, z_weight, a, plane)
+        z = float(box_start[0] + a)
+        z_node_voxel = z_weight[a, BELOW] == 1.0
+        for b in range(ny):
+            yb = y_node[b]
+            _fill_line(plane, yb, y_weight, b, line)
+            _fill_row(
+                spline,
+                z,
+                float(box_start[1] + b),
+                box_start[2],
+                za,
+                yb,
+                z_node_voxel and y_weight[b, BELOW] == 1.0,
+                x_node,
+                x_weight,
+                max_iterations,
+                polish,
+                line,
+                node_ok,
+                fail,
+                value,
+                jacobian,
+                position,
+                row,
+                row_ok,
+                row_exact,
+                0,
+            )
+            for d in range(nx):
+                p0 = row[d, 0]
+                p1 = row[d, 1]
+                p2 = row[d, 2]
+                in_hull[a, b, d] = _in_hull(hull_low, hull_high, p0, p1, p2)
+                if row_ok[d]:
+                    values[a, b, d] = sample_or_nan(coefficients, p0, p1, p2)
+                else:
+                    values[a, b, d] = np.nan
