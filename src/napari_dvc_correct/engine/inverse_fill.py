@@ -26,6 +26,7 @@ from numba import njit, prange
 from ._numba_setup import KERNEL_OPTIONS
 from .field_spline_kernels import newton_inverse
 from .interpolation import _weights32, in_interior, sample_mirrored
+from .simd import rows16
 
 #: Interpolation nodes per axis (quintic Lagrange), and how many lie below a cell's first node.
 TAPS = 6
@@ -274,30 +275,13 @@ def interpolate_planes(
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def _taps4(c, z, y, ix, w, s0, s1, s2, s3):
-    """The 4 contiguous x taps of row ``(z, y)`` from ``ix - 1``, weighted by ``w``, added."""
-    return (
-        s0 + w * c[z, y, ix - 1],
-        s1 + w * c[z, y, ix],
-        s2 + w * c[z, y, ix + 1],
-        s3 + w * c[z, y, ix + 2],
-    )
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def _plane_taps(c, z, iy, ix, wz, wy0, wy1, wy2, wy3, s0, s1, s2, s3):
-    s0, s1, s2, s3 = _taps4(c, z, iy - 1, ix, wz * wy0, s0, s1, s2, s3)
-    s0, s1, s2, s3 = _taps4(c, z, iy, ix, wz * wy1, s0, s1, s2, s3)
-    s0, s1, s2, s3 = _taps4(c, z, iy + 1, ix, wz * wy2, s0, s1, s2, s3)
-    return _taps4(c, z, iy + 2, ix, wz * wy3, s0, s1, s2, s3)
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def sample_taps_by_rows(coefficients, z, y, x):
-    """Tricubic B-spline value at ``(z, y, x)``; requires :func:`.interpolation.in_interior`.
+def sample_taps_by_rows(flat, ny, nx, z, y, x):
+    """Tricubic B-spline value at ``(z, y, x)`` of coefficients ``(nz, ny, nx)`` given flat (C
+    order) as ``flat``; requires :func:`.interpolation.in_interior`.
 
     The 16 rows of 4 contiguous x taps are summed with their ``(z, y)`` weight into 4 float32
-    columns (independent sums: one four-wide multiply-add per row), weighted along x at the end.
+    columns (:func:`.simd.rows16`: one four-wide load and multiply-add per row), weighted along x
+    at the end.
     Equals :func:`.interpolation.sample_interior` to float32 rounding (another summation order).
     """
     iz = int(z)
@@ -306,23 +290,22 @@ def sample_taps_by_rows(coefficients, z, y, x):
     wz0, wz1, wz2, wz3 = _weights32(np.float32(z - iz))
     wy0, wy1, wy2, wy3 = _weights32(np.float32(y - iy))
     wx0, wx1, wx2, wx3 = _weights32(np.float32(x - ix))
-    c = coefficients
-    s0 = s1 = s2 = s3 = np.float32(0.0)
-    s0, s1, s2, s3 = _plane_taps(c, iz - 1, iy, ix, wz0, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
-    s0, s1, s2, s3 = _plane_taps(c, iz, iy, ix, wz1, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
-    s0, s1, s2, s3 = _plane_taps(c, iz + 1, iy, ix, wz2, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
-    s0, s1, s2, s3 = _plane_taps(c, iz + 2, iy, ix, wz3, wy0, wy1, wy2, wy3, s0, s1, s2, s3)
+    first = np.uint64(((iz - 1) * ny + iy - 1) * nx + ix - 1)
+    s0, s1, s2, s3 = rows16(
+        flat, first, np.uint64(nx), np.uint64(ny * nx), (wz0, wz1, wz2, wz3), (wy0, wy1, wy2, wy3)
+    )
     return wx0 * s0 + wx1 * s1 + wx2 * s2 + wx3 * s3
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def sample_or_nan(coefficients, z, y, x):
-    """Value at ``(z, y, x)``, NaN outside ``[0, n - 1]`` along any axis (or not finite)."""
+def sample_or_nan(coefficients, flat, z, y, x):
+    """Value at ``(z, y, x)``, NaN outside ``[0, n - 1]`` along any axis (or not finite);
+    ``flat`` is ``coefficients`` (C contiguous) as one axis."""
     nz, ny, nx = coefficients.shape
     if not (0.0 <= z <= nz - 1 and 0.0 <= y <= ny - 1 and 0.0 <= x <= nx - 1):
         return np.float32(np.nan)
     if in_interior(coefficients, z, y, x):
-        return sample_taps_by_rows(coefficients, z, y, x)
+        return sample_taps_by_rows(flat, ny, nx, z, y, x)
     return np.float32(sample_mirrored(coefficients, z, y, x))
 
 
@@ -354,6 +337,7 @@ def warp_planes(
     ny = y_node.shape[0]
     nx = x_node.shape[0]
     cy, cx = v.shape[1], v.shape[2]
+    flat = coefficients.reshape(-1)
     for a in prange(nz):
         value = np.empty(3)
         jacobian = np.empty((3, 3))
@@ -399,6 +383,6 @@ def warp_planes(
                 p2 = row[d, 2]
                 in_hull[a, b, d] = _in_hull(hull_low, hull_high, p0, p1, p2)
                 if row_ok[d]:
-                    values[a, b, d] = sample_or_nan(coefficients, p0, p1, p2)
+                    values[a, b, d] = sample_or_nan(coefficients, flat, p0, p1, p2)
                 else:
                     values[a, b, d] = np.nan

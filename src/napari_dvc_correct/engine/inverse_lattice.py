@@ -5,11 +5,12 @@ The forward warp needs, at every loaded-state voxel ``x``, the reference positio
 tricubic evaluations of the field with its Jacobian per voxel. The inverse displacement
 ``v(x) = x - X(x)`` is nearly as smooth as the field, so :class:`LatticeInverter`
 
-1. solves the inverse exactly (Newton) on a coarse lattice of voxels whose indices are multiples
-   of ``stride`` along each axis (:func:`auto_stride`: half the node step, at most 4). The
-   indices are the whole volume's, not the box's, and each node's Newton start is fixed by them
-   (warm-start chains along x restart cold every :data:`CHAIN` nodes): a box's answer does not
-   depend on how a volume is cut into boxes (tiled and in-memory warps agree bit for bit);
+1. solves the inverse (Newton, to a step of :func:`polish_step`) on a coarse lattice of voxels
+   whose indices are multiples of ``stride`` along each axis (:func:`auto_stride`: half the node
+   step, at most 4). The indices are the whole volume's, not the box's, and each node's Newton
+   start is fixed by them (warm-start chains along x, extrapolated from the two nodes below,
+   restart cold every :data:`CHAIN` nodes): a box's answer does not depend on how a volume is
+   cut into boxes (tiled and in-memory warps agree bit for bit);
 2. checks every coarse cell (the ``stride³`` voxels between 8 coarse nodes) at 7 points, its low
    corner moved by half a cell along 1, 2 or 3 axes (edge midpoints, face centres, centre: where
    the interpolation errors of each axis peak; a point on a shared face or edge counts for every
@@ -19,8 +20,8 @@ tricubic evaluations of the field with its Jacobian per voxel. The inverse displ
    (:data:`MAX_GAIN`: folds, extreme compression);
 3. interpolates ``v`` to every voxel (6-point Lagrange along each axis, separably: about 20
    multiply-adds per voxel; the kernels are in :mod:`.inverse_fill`, which can also sample the
-   reference volume there at once, :meth:`LatticeInverter.warp`) in the cells that pass, and runs Newton per voxel, from the
-   interpolated guess, in the cells that fail (narrow shear bands, folds, the kinks of the
+   reference volume there at once, :meth:`LatticeInverter.warp`) in the cells that pass, and
+   runs Newton per voxel, from the interpolated guess, in the cells that fail (narrow shear bands, folds, the kinks of the
    extrapolated field beyond the grid's hull, points that do not converge): those voxels get
    Newton's answer (to a step of :func:`polish_step`) and its convergence flag.
 
@@ -149,41 +150,68 @@ def _inverse_gain(jacobian):
 def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok, gain):
     """Exact inverse displacement ``v = x - X`` (nz, ny, nx, 3) at coarse nodes ``first_node + i``.
 
-    Along x each node starts from its converged lower neighbour's answer, shifted by the stride
-    (2 Newton steps instead of 3 or 4 from ``X = x - u(x)``); the chains restart cold at the
-    whole-volume coarse indices that are multiples of :data:`CHAIN`, so a node's answer does not
-    depend on where a box begins. ``gain`` gets :func:`_inverse_gain` at the last Newton iterate
-    (NaN where Newton did not converge).
+    Along x each node starts from its converged lower neighbours' answers: extrapolated linearly
+    from the two below it (one Newton step to ``tolerance`` where the field is smooth), or the
+    one below shifted by the stride. The chains restart cold (``X = x - u(x)``) at whole-volume
+    coarse indices ``CHAIN k - BELOW`` (a whole volume's first node), so a node's answer does
+    not depend on where a box begins. ``gain`` gets :func:`_inverse_gain` at the last Newton
+    iterate (NaN where Newton did not converge).
     """
     nz, ny, nx = ok.shape
-    chain_start = (first_node[2] // CHAIN) * CHAIN  # whole-volume coarse x index
+    # whole-volume coarse x index of the chain holding the box's first node
+    chain_start = ((first_node[2] + BELOW) // CHAIN) * CHAIN - BELOW
     for a in prange(nz):
         value = np.empty(3)
         jacobian = np.empty((3, 3))
         position = np.empty(3)
+        below = np.empty(3)
         z = float((first_node[0] + a) * stride)
         for b in range(ny):
             y = float((first_node[1] + b) * stride)
-            previous_ok = False
+            solved = 0  # converged nodes in a row below this one, in this chain
             for node in range(chain_start, first_node[2] + nx):
                 x = float(node * stride)
-                if node % CHAIN != 0 and previous_ok:
+                if (node + BELOW) % CHAIN == 0:
+                    solved = 0
+                if solved >= 2:
+                    for c in range(3):
+                        last = position[c]
+                        position[c] = 2.0 * last - below[c]
+                        below[c] = last
+                elif solved == 1:
+                    for c in range(3):
+                        below[c] = position[c]
                     position[2] += stride
                 else:
                     _eval_one(*spline, z, y, x, value)
                     position[0] = z - value[0]
                     position[1] = y - value[1]
                     position[2] = x - value[2]
-                previous_ok = solve(
+                converged = solve(
                     spline, z, y, x, max_iterations, tolerance, position, value, jacobian
                 )
+                solved = solved + 1 if converged else 0
                 d = node - first_node[2]
                 if d >= 0:
-                    ok[a, b, d] = previous_ok
+                    ok[a, b, d] = converged
                     v[a, b, d, 0] = z - position[0]
                     v[a, b, d, 1] = y - position[1]
                     v[a, b, d, 2] = x - position[2]
-                    gain[a, b, d] = _inverse_gain(jacobian) if previous_ok else np.nan
+                    gain[a, b, d] = _inverse_gain(jacobian) if converged else np.nan
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _halves_x(source, count, centre, out):
+    """``source`` (n, m, 3) at x node ``d + BELOW`` (``out[0]``) and half a cell above it
+    (``out[1]``), for ``d < count``: ``out`` (2, n, count, 3)."""
+    for j in range(source.shape[0]):
+        for d in range(count):
+            for c in range(3):
+                out[0, j, d, c] = source[j, d + BELOW, c]
+                total = 0.0
+                for k in range(TAPS):
+                    total += centre[k] * source[j, d + k, c]
+                out[1, j, d, c] = total
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -196,16 +224,39 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
     nodes (an estimate of the position error, see :func:`_inverse_gain`) reaches ``limit`` voxels;
     bit ``4 oz + 2 oy + ox`` of ``bad`` is set for the point at offsets ``o / 2``. Cells whose 8
     corners all map at least a voxel outside the grid's hull use ``outside_limit``.
+
+    The interpolated inverse at the points is made plane of cells by plane of cells, separably
+    (along z, then x, then y: each node row's half-cell values once, not once per cell).
     """
     origin = spline[2]
     step = spline[3]
     centre = lagrange_weights(0.5)
     nz, ny, nx = bad.shape
+    rows, columns = v.shape[1], v.shape[2]
     for a in prange(nz):
         value = np.empty(3)
-        along_x = np.empty((2, TAPS, TAPS, 3))  # (ox, z node, y node, component)
-        along_y = np.empty((2, 2, TAPS, 3))  # (oy, ox, z node, component)
-        guess = np.empty((2, 2, 2, 3))  # (oz, oy, ox, component)
+        along_z = np.empty((2, rows, columns, 3))  # (oz, y node, x node, component)
+        along_x = np.empty((2, rows, nx, 3))  # (ox, y node, cell, component)
+        guess = np.empty((2, 2, 2, ny, nx, 3))  # (oz, oy, ox, cell y, cell x, component)
+        along_z[0] = v[a + BELOW]
+        along_z[1] = 0.0
+        for i in range(TAPS):
+            w = centre[i]
+            for j in range(rows):
+                for k in range(columns):
+                    for c in range(3):
+                        along_z[1, j, k, c] += w * v[a + i, j, k, c]
+        for oz in range(2):
+            _halves_x(along_z[oz], nx, centre, along_x)
+            for ox in range(2):
+                for b in range(ny):
+                    for d in range(nx):
+                        for c in range(3):
+                            guess[oz, 0, ox, b, d, c] = along_x[ox, b + BELOW, d, c]
+                            total = 0.0
+                            for j in range(TAPS):
+                                total += centre[j] * along_x[ox, b + j, d, c]
+                            guess[oz, 1, ox, b, d, c] = total
         for b in range(ny):
             for d in range(nx):
                 g = 0.0
@@ -225,31 +276,6 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
                                 far = max(far, low, high)
                             outside = min(outside, far)
                 cell_limit = outside_limit if outside >= 1.0 else limit
-                # the interpolated inverse displacement at the 8 points, separably
-                for i in range(TAPS):
-                    for j in range(TAPS):
-                        for c in range(3):
-                            along_x[0, i, j, c] = v[a + i, b + j, d + BELOW, c]
-                            total = 0.0
-                            for k in range(TAPS):
-                                total += centre[k] * v[a + i, b + j, d + k, c]
-                            along_x[1, i, j, c] = total
-                for ox in range(2):
-                    for i in range(TAPS):
-                        for c in range(3):
-                            along_y[0, ox, i, c] = along_x[ox, i, BELOW, c]
-                            total = 0.0
-                            for j in range(TAPS):
-                                total += centre[j] * along_x[ox, i, j, c]
-                            along_y[1, ox, i, c] = total
-                for oy in range(2):
-                    for ox in range(2):
-                        for c in range(3):
-                            guess[0, oy, ox, c] = along_y[oy, ox, BELOW, c]
-                            total = 0.0
-                            for i in range(TAPS):
-                                total += centre[i] * along_y[oy, ox, i, c]
-                            guess[1, oy, ox, c] = total
                 mask = 0
                 for bit in range(1, 8):
                     oz = (bit >> 2) & 1
@@ -258,9 +284,9 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
                     z = (first_node[0] + a + BELOW + 0.5 * oz) * stride
                     y = (first_node[1] + b + BELOW + 0.5 * oy) * stride
                     x = (first_node[2] + d + BELOW + 0.5 * ox) * stride
-                    g0 = guess[oz, oy, ox, 0]
-                    g1 = guess[oz, oy, ox, 1]
-                    g2 = guess[oz, oy, ox, 2]
+                    g0 = guess[oz, oy, ox, b, d, 0]
+                    g1 = guess[oz, oy, ox, b, d, 1]
+                    g2 = guess[oz, oy, ox, b, d, 2]
                     _eval_one(*spline, z - g0, y - g1, x - g2, value)
                     residual = max(abs(value[0] - g0), abs(value[1] - g1), abs(value[2] - g2))
                     if not residual * g < cell_limit:  # also catches NaN gains
@@ -356,7 +382,9 @@ class LatticeInverter:
         self.v = np.empty((*nodes, 3))
         self.node_ok = np.empty(nodes, np.bool_)
         gain = np.empty(nodes)
-        iterations = (self.max_iterations, float(tolerance))
+        # the nodes to a step of polish_step, like the voxels of failed cells: errors below
+        # accuracy / 10, and the check sees them (they enter the interpolated guesses)
+        iterations = (self.max_iterations, self.polish)
         _coarse_inverse(self.args, first_node, stride, *iterations, self.v, self.node_ok, gain)
         self.fail = np.zeros(tuple(int(n) for n in cells), np.bool_)
         if stride > 1:
