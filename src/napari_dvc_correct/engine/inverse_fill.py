@@ -13,7 +13,7 @@ fill a box's voxels from that, plane by plane (in parallel over z planes) and ro
 Both make a row's positions with the same code (:func:`_fill_row`), so their positions agree bit
 for bit. Per voxel the interpolation is 6-point Lagrange along x of a row already interpolated
 along z and y (18 multiply-adds), and :func:`sample_taps_by_rows` samples ``G`` with 16
-four-wide row sums (SIMD over the 4 contiguous x taps).
+four-wide row sums (SIMD over the 4 contiguous x taps, :mod:`.simd`).
 
 Positions are ``(z, y, x)`` voxels.
 """
@@ -25,8 +25,8 @@ from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
 from .field_spline_kernels import newton_inverse
-from .interpolation import _weights32, in_interior, sample_mirrored
-from .simd import rows16
+from .interpolation import in_interior, sample_mirrored
+from .simd import bspline_value
 
 #: Interpolation nodes per axis (quintic Lagrange), and how many lie below a cell's first node.
 TAPS = 6
@@ -279,22 +279,15 @@ def sample_taps_by_rows(flat, ny, nx, z, y, x):
     """Tricubic B-spline value at ``(z, y, x)`` of coefficients ``(nz, ny, nx)`` given flat (C
     order) as ``flat``; requires :func:`.interpolation.in_interior`.
 
-    The 16 rows of 4 contiguous x taps are summed with their ``(z, y)`` weight into 4 float32
-    columns (:func:`.simd.rows16`: one four-wide load and multiply-add per row), weighted along x
-    at the end.
+    Four-wide sums over the 16 rows of 4 contiguous x taps (:func:`.simd.bspline_value`).
     Equals :func:`.interpolation.sample_interior` to float32 rounding (another summation order).
     """
     iz = int(z)
     iy = int(y)
     ix = int(x)
-    wz0, wz1, wz2, wz3 = _weights32(np.float32(z - iz))
-    wy0, wy1, wy2, wy3 = _weights32(np.float32(y - iy))
-    wx0, wx1, wx2, wx3 = _weights32(np.float32(x - ix))
     first = np.uint64(((iz - 1) * ny + iy - 1) * nx + ix - 1)
-    s0, s1, s2, s3 = rows16(
-        flat, first, np.uint64(nx), np.uint64(ny * nx), (wz0, wz1, wz2, wz3), (wy0, wy1, wy2, wy3)
-    )
-    return wx0 * s0 + wx1 * s1 + wx2 * s2 + wx3 * s3
+    fractions = (np.float32(z - iz), np.float32(y - iy), np.float32(x - ix))
+    return bspline_value(flat, first, np.uint64(nx), np.uint64(ny * nx), *fractions)
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
