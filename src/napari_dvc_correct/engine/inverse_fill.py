@@ -11,8 +11,9 @@ fill a box's voxels from that, plane by plane (in parallel over z planes) and ro
   never leave the cache): the forward warp's values and hull flags, nothing else.
 
 Both make a row's positions with the same code (:func:`_fill_row`), so their positions agree bit
-for bit. Per voxel the interpolation is 6-point Lagrange along x of a row already interpolated
-along z and y (18 multiply-adds), and :func:`sample_taps_by_rows` samples ``G`` with 16
+for bit. The interpolation is 6-point Lagrange along z (per plane), y (per row) and x, each pass
+a loop over contiguous values that LLVM vectorises (``v`` is held component-major; along x one
+pass per phase of the coarse stride, :func:`_fill_cells`), and :func:`sample_taps_by_rows` samples ``G`` with 16
 four-wide row sums (SIMD over the 4 contiguous x taps, :mod:`.simd`).
 
 Positions are ``(z, y, x)`` voxels.
@@ -92,44 +93,74 @@ def solve(spline, z, y, x, max_iterations, tolerance, position, value, jacobian)
     )
 
 
-@njit(inline="always", **KERNEL_OPTIONS)
-def _taps6(row, first, c, w0, w1, w2, w3, w4, w5):
-    return (
-        w0 * row[first, c]
-        + w1 * row[first + 1, c]
-        + w2 * row[first + 2, c]
-        + w3 * row[first + 3, c]
-        + w4 * row[first + 4, c]
-        + w5 * row[first + 5, c]
-    )
+@njit(**KERNEL_OPTIONS)
+def phase_table(start, count, stride):
+    """Per voxel of the box's x axis its phase ``(start + d) % stride``, and per phase the 6
+    weights of :func:`lagrange_weights` (those of :func:`axis_weights`, the same numbers)."""
+    phase = np.empty(count, np.int64)
+    for d in range(count):
+        phase[d] = (start + d) % stride
+    table = np.empty((stride, TAPS))
+    for p in range(stride):
+        w = lagrange_weights(p / stride)
+        for k in range(TAPS):
+            table[p, k] = w[k]
+    return phase, table
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
 def _fill_plane(v, za, z_weight, a, plane):
-    """``v`` interpolated along z to box plane ``a``: ``plane`` (cy, cx, 3)."""
+    """``v`` (3, nz, ny, nx) interpolated along z to box plane ``a``: ``plane`` (3, cy, cx)."""
     plane[:] = 0.0
-    cy, cx = plane.shape[0], plane.shape[1]
-    for i in range(TAPS):
-        w = z_weight[a, i]
-        if w != 0.0:
-            source = v[za + i]
-            for j in range(cy):
-                for k in range(cx):
-                    for c in range(3):
-                        plane[j, k, c] += w * source[j, k, c]
+    cy, cx = plane.shape[1], plane.shape[2]
+    for c in range(3):
+        for i in range(TAPS):
+            w = z_weight[a, i]
+            if w != 0.0:
+                source = v[c, za + i]
+                target = plane[c]
+                for j in range(cy):
+                    for k in range(cx):
+                        target[j, k] += w * source[j, k]
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
 def _fill_line(plane, yb, y_weight, b, line):
-    """``plane`` interpolated along y to box row ``b``: ``line`` (cx, 3)."""
+    """``plane`` interpolated along y to box row ``b``: ``line`` (3, cx)."""
     line[:] = 0.0
-    cx = line.shape[0]
-    for j in range(TAPS):
-        w = y_weight[b, j]
-        if w != 0.0:
-            for k in range(cx):
-                for c in range(3):
-                    line[k, c] += w * plane[yb + j, k, c]
+    cx = line.shape[1]
+    for c in range(3):
+        for j in range(TAPS):
+            w = y_weight[b, j]
+            if w != 0.0:
+                for k in range(cx):
+                    line[c, k] += w * plane[c, yb + j, k]
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _fill_cells(line, table, cells):
+    """``line`` (3, cx) interpolated along x at every phase of every cell: ``cells`` (stride, 3,
+    cx - 5), contiguous along the cells (the loops vectorise)."""
+    count = cells.shape[2]
+    for p in range(table.shape[0]):
+        w0 = table[p, 0]
+        w1 = table[p, 1]
+        w2 = table[p, 2]
+        w3 = table[p, 3]
+        w4 = table[p, 4]
+        w5 = table[p, 5]
+        for c in range(3):
+            source = line[c]
+            target = cells[p, c]
+            for m in range(count):
+                target[m] = (
+                    w0 * source[m]
+                    + w1 * source[m + 1]
+                    + w2 * source[m + 2]
+                    + w3 * source[m + 3]
+                    + w4 * source[m + 4]
+                    + w5 * source[m + 5]
+                )
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
@@ -142,10 +173,10 @@ def _fill_row(
     yb,
     zy_node_voxel,
     x_node,
-    x_weight,
+    x_phase,
     max_iterations,
     polish,
-    line,
+    cells,
     node_ok,
     fail,
     value,
@@ -158,22 +189,17 @@ def _fill_row(
 ):
     """Positions of one box row (x from ``x0``) into ``out[first + d]`` and their flags.
 
-    Interpolated from ``line`` (``v`` along x at the row's z and y) where the cell passed its
+    Interpolated (``cells``: :func:`_fill_cells` of the row's ``v``) where the cell passed its
     check, exact at the coarse nodes, Newton from the interpolated guess in failed cells.
     """
     for d in range(x_node.shape[0]):
         xd = x_node[d]
-        w0 = x_weight[d, 0]
-        w1 = x_weight[d, 1]
-        w2 = x_weight[d, 2]
-        w3 = x_weight[d, 3]
-        w4 = x_weight[d, 4]
-        w5 = x_weight[d, 5]
+        phase = x_phase[d]
         x = float(x0 + d)
-        p0 = z - _taps6(line, xd, 0, w0, w1, w2, w3, w4, w5)
-        p1 = y - _taps6(line, xd, 1, w0, w1, w2, w3, w4, w5)
-        p2 = x - _taps6(line, xd, 2, w0, w1, w2, w3, w4, w5)
-        solved = zy_node_voxel and w2 == 1.0  # a coarse node: v is exact there
+        p0 = z - cells[phase, 0, xd]
+        p1 = y - cells[phase, 1, xd]
+        p2 = x - cells[phase, 2, xd]
+        solved = zy_node_voxel and phase == 0  # a coarse node: v is exact there
         ok = True
         if solved:
             ok = node_ok[za + BELOW, yb + BELOW, xd + BELOW]
@@ -214,7 +240,8 @@ def interpolate_planes(
     y_node,
     y_weight,
     x_node,
-    x_weight,
+    x_phase,
+    table,
     max_iterations,
     polish,
     v,
@@ -229,13 +256,15 @@ def interpolate_planes(
     nz = z_node.shape[0]
     ny = y_node.shape[0]
     nx = x_node.shape[0]
-    cy, cx = v.shape[1], v.shape[2]
+    cy, cx = v.shape[2], v.shape[3]
+    stride = table.shape[0]
     for a in prange(nz):
         value = np.empty(3)
         jacobian = np.empty((3, 3))
         position = np.empty(3)
-        plane = np.empty((cy, cx, 3))
-        line = np.empty((cx, 3))
+        plane = np.empty((3, cy, cx))
+        line = np.empty((3, cx))
+        cells = np.empty((stride, 3, cx - TAPS + 1))
         za = z_node[a]
         _fill_plane(v, za, z_weight, a, plane)
         z = float(box_start[0] + a)
@@ -243,6 +272,7 @@ def interpolate_planes(
         for b in range(ny):
             yb = y_node[b]
             _fill_line(plane, yb, y_weight, b, line)
+            _fill_cells(line, table, cells)
             index = (a * ny + b) * nx
             _fill_row(
                 spline,
@@ -253,10 +283,10 @@ def interpolate_planes(
                 yb,
                 z_node_voxel and y_weight[b, BELOW] == 1.0,
                 x_node,
-                x_weight,
+                x_phase,
                 max_iterations,
                 polish,
-                line,
+                cells,
                 node_ok,
                 fail,
                 value,
@@ -313,7 +343,8 @@ def warp_planes(
     y_node,
     y_weight,
     x_node,
-    x_weight,
+    x_phase,
+    table,
     max_iterations,
     polish,
     v,
@@ -329,14 +360,16 @@ def warp_planes(
     nz = z_node.shape[0]
     ny = y_node.shape[0]
     nx = x_node.shape[0]
-    cy, cx = v.shape[1], v.shape[2]
+    cy, cx = v.shape[2], v.shape[3]
+    stride = table.shape[0]
     flat = coefficients.reshape(-1)
     for a in prange(nz):
         value = np.empty(3)
         jacobian = np.empty((3, 3))
         position = np.empty(3)
-        plane = np.empty((cy, cx, 3))
-        line = np.empty((cx, 3))
+        plane = np.empty((3, cy, cx))
+        line = np.empty((3, cx))
+        cells = np.empty((stride, 3, cx - TAPS + 1))
         row = np.empty((nx, 3))
         row_ok = np.empty(nx, np.bool_)
         row_exact = np.empty(nx, np.bool_)
@@ -347,6 +380,7 @@ def warp_planes(
         for b in range(ny):
             yb = y_node[b]
             _fill_line(plane, yb, y_weight, b, line)
+            _fill_cells(line, table, cells)
             _fill_row(
                 spline,
                 z,
@@ -356,10 +390,10 @@ def warp_planes(
                 yb,
                 z_node_voxel and y_weight[b, BELOW] == 1.0,
                 x_node,
-                x_weight,
+                x_phase,
                 max_iterations,
                 polish,
-                line,
+                cells,
                 node_ok,
                 fail,
                 value,

@@ -49,6 +49,7 @@ from .inverse_fill import (
     axis_weights,
     interpolate_planes,
     lagrange_weights,
+    phase_table,
     solve,
     warp_planes,
 )
@@ -394,7 +395,13 @@ class LatticeInverter:
                 self.args, spline.grid_shape, first_node, stride, *limits, self.v, gain, bad
             )
             _combine(self.node_ok, gain, bad, self.fail)
-        self.axes = [axis_weights(int(self.starts[a]), int(self.counts[a]), stride) for a in (1, 2)]
+        # the fill kernels read v component by component (their loops vectorise)
+        self.v_planes = np.ascontiguousarray(np.moveaxis(self.v, -1, 0))
+        x_start, x_count = int(self.starts[2]), int(self.counts[2])
+        self.axes = [
+            axis_weights(int(self.starts[1]), int(self.counts[1]), stride),
+            (axis_weights(x_start, x_count, stride)[0], *phase_table(x_start, x_count, stride)),
+        ]
 
     def _plane_args(self, start: int, stop: int):
         """The fill kernels' arguments for the box's z planes ``start .. stop`` (box indices)."""
@@ -413,7 +420,7 @@ class LatticeInverter:
             *self.axes[1],
             self.max_iterations,
             self.polish,
-            self.v,
+            self.v_planes,
             self.node_ok,
             self.fail,
         )
