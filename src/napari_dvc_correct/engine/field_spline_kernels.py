@@ -40,6 +40,10 @@ def extend_coefficients(coefficients: np.ndarray) -> np.ndarray:
     grid coordinate is clamped to ``[0, n - 1]`` and its taps run from ``floor - 1`` to
     ``floor + 2``, i.e. from -1 to ``n + 1``, stored at ``index + 1``; the 4 taps along x are
     contiguous (one vector load, :mod:`.simd`).
+
+    The kernels of :mod:`.inverse_lattice` and :mod:`.inverse_fill` compile these point kernels
+    into their own, and numba's cache checks only the content of a kernel's own file: after a
+    change of this layout, clear the ``__pycache__`` numba files of those modules too.
     """
     out = coefficients
     for axis in range(3):
@@ -55,6 +59,25 @@ def _mirror_host(index: int, n: int) -> int:
     period = 2 * (n - 1)
     index = abs(index) % period
     return period - index if index > n - 1 else index
+
+
+#: 1/6, a product instead of a division (numba keeps divisions as written; 15 of them per
+#: evaluation cost more than its 192 multiply-adds).
+SIXTH = 1.0 / 6.0
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _weights(t):
+    """:func:`.interpolation.bspline_weights` with products by :data:`SIXTH` (equal to rounding)."""
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    return (
+        s * s * s * SIXTH,
+        (3.0 * t3 - 6.0 * t2 + 4.0) * SIXTH,
+        (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) * SIXTH,
+        t3 * SIXTH,
+    )
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
@@ -93,11 +116,11 @@ def _eval_one(extended, pad, origin, step, trend_offset, trend_matrix, z, y, x, 
     ty, iy, fy, _ = _tap_origin(y, origin[1], step[1], pad, extended.shape[2] - 3)
     tx, ix, fx, _ = _tap_origin(x, origin[2], step[2], pad, extended.shape[3] - 3)
     v0, v1, v2 = field_taps(
-        extended.reshape(-1),
+        extended,
         *_first_tap(extended, iz, iy, ix),
-        bspline_weights(fz),
-        bspline_weights(fy),
-        bspline_weights(fx),
+        _weights(fz),
+        _weights(fy),
+        _weights(fx),
     )
     out[0] = (
         v0
@@ -201,16 +224,17 @@ def _eval_points(
 @njit(inline="always", **KERNEL_OPTIONS)
 def _weights_and_derivatives(position, origin, step, pad, size):
     t, i, f, clamped = _tap_origin(position, origin, step, pad, size)
-    w = bspline_weights(f)
+    w = _weights(f)
+    inverse = 1.0 / step
     if clamped:
         d = (0.0, 0.0, 0.0, 0.0)
     else:
         d0, d1, d2, d3 = bspline_derivative_weights(f)
-        d = (d0 / step, d1 / step, d2 / step, d3 / step)
-    return t, i, w, d
+        d = (d0 * inverse, d1 * inverse, d2 * inverse, d3 * inverse)
+    return t, i, w, d, inverse
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(inline="always", **KERNEL_OPTIONS)
 def _eval_one_with_jacobian(
     extended, pad, origin, step, trend_offset, trend_matrix, z, y, x, out, jacobian
 ):
@@ -220,30 +244,33 @@ def _eval_one_with_jacobian(
     each component are summed four-wide, value and 3 derivatives at once
     (:func:`.simd.field_taps_with_gradient`).
     """
-    tz, iz, wz, dz = _weights_and_derivatives(z, origin[0], step[0], pad, extended.shape[1] - 3)
-    ty, iy, wy, dy = _weights_and_derivatives(y, origin[1], step[1], pad, extended.shape[2] - 3)
-    tx, ix, wx, dx = _weights_and_derivatives(x, origin[2], step[2], pad, extended.shape[3] - 3)
+    tz, iz, wz, dz, sz = _weights_and_derivatives(z, origin[0], step[0], pad, extended.shape[1] - 3)
+    ty, iy, wy, dy, sy = _weights_and_derivatives(y, origin[1], step[1], pad, extended.shape[2] - 3)
+    tx, ix, wx, dx, sx = _weights_and_derivatives(x, origin[2], step[2], pad, extended.shape[3] - 3)
     sums = field_taps_with_gradient(
-        extended.reshape(-1), *_first_tap(extended, iz, iy, ix), wz, wy, wx, dz, dy, dx
+        extended, *_first_tap(extended, iz, iy, ix), wz, wy, wx, dz, dy, dx
     )
     v0, v1, v2, gz0, gz1, gz2, gy0, gy1, gy2, gx0, gx1, gx2 = sums
-    _trend_row(trend_offset, trend_matrix, step, tz, ty, tx, 0, v0, gz0, gy0, gx0, out, jacobian)
-    _trend_row(trend_offset, trend_matrix, step, tz, ty, tx, 1, v1, gz1, gy1, gx1, out, jacobian)
-    _trend_row(trend_offset, trend_matrix, step, tz, ty, tx, 2, v2, gz2, gy2, gx2, out, jacobian)
+    t = (tz, ty, tx)
+    inverse = (sz, sy, sx)
+    _trend_row(trend_offset, trend_matrix, inverse, t, 0, v0, gz0, gy0, gx0, out, jacobian)
+    _trend_row(trend_offset, trend_matrix, inverse, t, 1, v1, gz1, gy1, gx1, out, jacobian)
+    _trend_row(trend_offset, trend_matrix, inverse, t, 2, v2, gz2, gy2, gx2, out, jacobian)
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def _trend_row(trend_offset, trend_matrix, step, tz, ty, tx, c, v, gz, gy, gx, out, jacobian):
-    """Component ``c``: the trend added to the spline sums (value and derivatives)."""
-    value = trend_offset[c] + trend_matrix[c, 0] * tz + trend_matrix[c, 1] * ty
-    value += trend_matrix[c, 2] * tx
+def _trend_row(trend_offset, trend_matrix, inverse, t, c, v, gz, gy, gx, out, jacobian):
+    """Component ``c``: the trend added to the spline sums (value and derivatives);
+    ``inverse`` holds ``1 / step`` and ``t`` the grid coordinates, per axis."""
+    value = trend_offset[c] + trend_matrix[c, 0] * t[0] + trend_matrix[c, 1] * t[1]
+    value += trend_matrix[c, 2] * t[2]
     out[c] = value + v
-    jacobian[c, 0] = trend_matrix[c, 0] / step[0] + gz
-    jacobian[c, 1] = trend_matrix[c, 1] / step[1] + gy
-    jacobian[c, 2] = trend_matrix[c, 2] / step[2] + gx
+    jacobian[c, 0] = trend_matrix[c, 0] * inverse[0] + gz
+    jacobian[c, 1] = trend_matrix[c, 1] * inverse[1] + gy
+    jacobian[c, 2] = trend_matrix[c, 2] * inverse[2] + gx
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(inline="always", **KERNEL_OPTIONS)
 def newton_inverse(
     extended,
     pad,

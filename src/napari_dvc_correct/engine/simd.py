@@ -156,7 +156,8 @@ def _field_codegen(gradient):
 def field_taps(typingctx, flat, first, row, plane, component, wz, wy, wx):
     """A 3-component tricubic spline's taps weighted: ``(v0, v1, v2)`` (float64).
 
-    ``flat`` holds the coefficients component-major, ``(3, nz, ny, nx)`` in C order (float64);
+    ``flat`` holds the coefficients component-major, ``(3, nz, ny, nx)``, C-contiguous float64
+    (any number of dimensions: only its data pointer is used, no view is made per call);
     ``first`` is the flat index of component 0's first tap, ``row``, ``plane`` and ``component``
     (uint64) the strides of y, z and the component; ``wz, wy, wx`` the 4 weights per axis
     (tuples of float64). Four-wide loads of the 4 contiguous x taps; each z plane's rows summed
