@@ -105,7 +105,7 @@ def _first_tap(extended, iz, iy, ix):
     return first, row, plane, np.uint64(pz) * plane
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(inline="always", **KERNEL_OPTIONS)
 def _eval_one(extended, pad, origin, step, trend_offset, trend_matrix, z, y, x, out):
     """Spline value (3 components) at ``(z, y, x)`` (voxels) into ``out`` (3,); extrapolates.
 

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
-from .field_spline_kernels import newton_inverse
+from .field_spline_kernels import _eval_one, newton_inverse
 from .interpolation import in_interior, sample_mirrored
 from .simd import bspline_value
 
@@ -70,6 +70,13 @@ def axis_weights(start, count, stride):
         for k in range(TAPS):
             weight[i, k] = w[k]
     return node, weight
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def evaluate(spline, z, y, x, out):
+    """:func:`.field_spline_kernels._eval_one` with the spline's arguments as one tuple, inlined
+    (no call: the array arguments' reference counts cost as much as the evaluation)."""
+    _eval_one(spline[0], spline[1], spline[2], spline[3], spline[4], spline[5], z, y, x, out)
 
 
 @njit(inline="always", **KERNEL_OPTIONS)

@@ -42,11 +42,12 @@ import numpy as np
 from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
-from .field_spline_kernels import _eval_one, hull_bounds
+from .field_spline_kernels import hull_bounds
 from .inverse_fill import (
     BELOW,
     TAPS,
     axis_weights,
+    evaluate,
     interpolate_planes,
     lagrange_weights,
     phase_table,
@@ -184,7 +185,7 @@ def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok
                         below[c] = position[c]
                     position[2] += stride
                 else:
-                    _eval_one(*spline, z, y, x, value)
+                    evaluate(spline, z, y, x, value)
                     position[0] = z - value[0]
                     position[1] = y - value[1]
                     position[2] = x - value[2]
@@ -288,7 +289,7 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
                     g0 = guess[oz, oy, ox, b, d, 0]
                     g1 = guess[oz, oy, ox, b, d, 1]
                     g2 = guess[oz, oy, ox, b, d, 2]
-                    _eval_one(*spline, z - g0, y - g1, x - g2, value)
+                    evaluate(spline, z - g0, y - g1, x - g2, value)
                     residual = max(abs(value[0] - g0), abs(value[1] - g1), abs(value[2] - g2))
                     if not residual * g < cell_limit:  # also catches NaN gains
                         mask |= 1 << bit
