@@ -30,11 +30,7 @@ from numba import njit, prange
 from ._numba_setup import FAST_KERNEL_OPTIONS, KERNEL_OPTIONS
 from .field import Status
 from .icgn_reference import reference_terms, translation_h_inverse
-from .interpolation import (
-    in_interior,
-    sample_interior,
-    sample_mirrored,
-)
+from .interpolation import in_interior, sample_mirrored
 from .shape_function import (
     PRODUCT_TABLE,
     QUAD_AXES,
@@ -44,6 +40,7 @@ from .shape_function import (
     parameters_from_matrix,
     warp_matrix,
 )
+from .simd_taps import sample_interior_vector
 
 _CONVERGED = int(Status.CONVERGED)
 _DIVERGED = int(Status.DIVERGED)
@@ -61,9 +58,12 @@ def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, s
     Samples ``F`` at every warped voxel and returns ``(Σf, Σf², Σ(g − ḡ)f, voxels outside)``,
     filling ``sum_jf = Σ J f``. Voxels whose warped position leaves ``F`` are flagged in
     ``outside``. (The in-volume test is written out in both branches: moving it into a helper
-    that returns ``(value, inside)`` measured 18% slower.)
+    that returns ``(value, inside)`` measured 18% slower.) Interior samples use the vector tap
+    sum of :mod:`.simd_taps`.
     """
     nz, ny, nx = coef.shape
+    flat = coef.reshape(coef.size)
+    plane = ny * nx
     sum_f = 0.0
     sum_ff = 0.0
     sum_gf = 0.0
@@ -93,7 +93,7 @@ def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, s
             wy = t1 + a10 * z + a11 * y + a12 * x
             wx = t2 + a20 * z + a21 * y + a22 * x
             if in_interior(coef, wz, wy, wx):
-                f = sample_interior(coef, wz, wy, wx)
+                f = sample_interior_vector(flat, plane, nx, wz, wy, wx)
             elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
                 f = sample_mirrored(coef, wz, wy, wx)
             else:
@@ -145,7 +145,7 @@ def _sample_pass(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, s
             wy += p[nb + j] * b[j]
             wx += p[2 * nb + j] * b[j]
         if in_interior(coef, wz, wy, wx):
-            f = sample_interior(coef, wz, wy, wx)
+            f = sample_interior_vector(flat, plane, nx, wz, wy, wx)
         elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
             f = sample_mirrored(coef, wz, wy, wx)
         else:
