@@ -2,7 +2,9 @@
 
 :func:`sample_pass` runs in two loops. The first computes each voxel's warped position and
 samples ``F`` there (the vector tap sum of :mod:`.simd_taps` in the interior, mirrored taps near
-the border) into a float32 buffer; the second sums ``Σf``, ``Σf²``, ``Σ(g − ḡ)f`` and
+the border) into a float32 buffer, chunk by chunk: positions, in-volume flags, tap offsets and
+fractions for a chunk of voxels first (loops LLVM vectorizes across voxels), then the tap sums
+(measured 1.3× the per-voxel loop). The second loop sums ``Σf``, ``Σf²``, ``Σ(g − ḡ)f`` and
 ``Σ J f`` from it. Separate loops keep each one's values in registers (measured 1.3× one fused
 loop). All sums are float64.
 """
@@ -13,16 +15,84 @@ import numpy as np
 from numba import njit
 
 from ._numba_setup import FAST_KERNEL_OPTIONS
-from .interpolation import in_interior, sample_mirrored
-from .simd_taps import sample_interior_vector
+from .interpolation import sample_mirrored
+from .simd_taps import taps64
+
+#: Voxels per chunk of :func:`_affine_samples`: the chunk's positions, tap offsets and fractions
+#: (about 10 kB) stay in L1.
+CHUNK = 256
+
+
+@njit(inline="always", **FAST_KERNEL_OPTIONS)
+def _chunk_buffers():
+    return (
+        np.empty(CHUNK),  # z positions
+        np.empty(CHUNK),  # y
+        np.empty(CHUNK),  # x
+        np.empty(CHUNK, np.int64),  # flat index of the tap (-1, -1, -1)
+        np.empty(CHUNK, np.float32),  # fractional z
+        np.empty(CHUNK, np.float32),  # fractional y
+        np.empty(CHUNK, np.float32),  # fractional x
+        np.empty(CHUNK, np.bool_),  # all 64 taps inside
+    )
+
+
+@njit(inline="always", **FAST_KERNEL_OPTIONS)
+def _axis(position, n, limit, stride, starts, fraction, first):
+    """Integer part (clamped to ``[1, limit]``, so any position is safe) and fraction along one axis."""
+    for j in range(n):
+        w = position[j]
+        k = int(min(max(w, 1.0), limit))
+        if first:
+            starts[j] = (k - 1) * stride
+        else:
+            starts[j] += (k - 1) * stride
+        fraction[j] = np.float32(w - k)
+
+
+@njit(inline="always", **FAST_KERNEL_OPTIONS)
+def _sample_chunk(coef, flat, c0, n, buffers, outside, values):
+    """Sample ``F`` at a chunk's positions into ``values[c0:c0 + n]``; returns the voxels outside.
+
+    The flags, integer parts and fractions are separate branch-free loops over the chunk, which
+    LLVM vectorizes across voxels; the tap sums then run per voxel (:func:`.simd_taps.taps64`).
+    """
+    nz, ny, nx = coef.shape
+    plane = ny * nx
+    pz, py, px, starts, fz, fy, fx, inner = buffers
+    lz = nz - 2.0
+    ly = ny - 2.0
+    lx = nx - 2.0
+    for j in range(n):
+        wz = pz[j]
+        wy = py[j]
+        wx = px[j]
+        inner[j] = (wz >= 1.0) & (wz < lz) & (wy >= 1.0) & (wy < ly) & (wx >= 1.0) & (wx < lx)
+    _axis(pz, n, lz, plane, starts, fz, True)
+    _axis(py, n, ly, nx, starts, fy, False)
+    _axis(px, n, lx, 1, starts, fx, False)
+    n_outside = 0
+    for j in range(n):
+        if inner[j]:
+            values[c0 + j] = taps64(flat, starts[j], nx, plane, fz[j], fy[j], fx[j])
+        else:
+            wz = pz[j]
+            wy = py[j]
+            wx = px[j]
+            if 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
+                values[c0 + j] = sample_mirrored(coef, wz, wy, wx)
+            else:
+                outside[c0 + j] = True
+                n_outside += 1
+    return n_outside
 
 
 @njit(**FAST_KERNEL_OPTIONS)
 def _affine_samples(coef, xi, count, cz, cy, cx, p, outside, values):
     """Samples of ``F`` at the first-order warp of every voxel; returns the voxels outside."""
-    nz, ny, nx = coef.shape
     flat = coef.reshape(coef.size)
-    plane = ny * nx
+    buffers = _chunk_buffers()
+    pz, py, px = buffers[0], buffers[1], buffers[2]
     t0 = cz + p[0]
     t1 = cy + p[4]
     t2 = cx + p[8]
@@ -36,21 +106,16 @@ def _affine_samples(coef, xi, count, cz, cy, cx, p, outside, values):
     a21 = p[10]
     a22 = 1.0 + p[11]
     n_outside = 0
-    for i in range(count):
-        z = xi[i, 0]
-        y = xi[i, 1]
-        x = xi[i, 2]
-        wz = t0 + a00 * z + a01 * y + a02 * x
-        wy = t1 + a10 * z + a11 * y + a12 * x
-        wx = t2 + a20 * z + a21 * y + a22 * x
-        # the in-volume test is written out: a helper returning (value, inside) measured slower
-        if in_interior(coef, wz, wy, wx):
-            values[i] = sample_interior_vector(flat, plane, nx, wz, wy, wx)
-        elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
-            values[i] = sample_mirrored(coef, wz, wy, wx)
-        else:
-            outside[i] = True
-            n_outside += 1
+    for c0 in range(0, count, CHUNK):
+        n = min(CHUNK, count - c0)
+        for j in range(n):
+            z = xi[c0 + j, 0]
+            y = xi[c0 + j, 1]
+            x = xi[c0 + j, 2]
+            pz[j] = t0 + a00 * z + a01 * y + a02 * x
+            py[j] = t1 + a10 * z + a11 * y + a12 * x
+            px[j] = t2 + a20 * z + a21 * y + a22 * x
+        n_outside += _sample_chunk(coef, flat, c0, n, buffers, outside, values)
     return n_outside
 
 
@@ -73,30 +138,26 @@ def _quadratic_term(p, q, z, y, x, zz, yy, xx, zy, yx, zx):
 @njit(**FAST_KERNEL_OPTIONS)
 def _quadratic_samples(coef, xi, count, cz, cy, cx, p, outside, values):
     """:func:`_affine_samples` for the second-order warp (``p`` has 30 entries)."""
-    nz, ny, nx = coef.shape
     flat = coef.reshape(coef.size)
-    plane = ny * nx
+    buffers = _chunk_buffers()
+    pz, py, px = buffers[0], buffers[1], buffers[2]
     n_outside = 0
-    for i in range(count):
-        z = np.float64(xi[i, 0])
-        y = np.float64(xi[i, 1])
-        x = np.float64(xi[i, 2])
-        zz = z * z
-        yy = y * y
-        xx = x * x
-        zy = z * y
-        yx = y * x
-        zx = z * x
-        wz = cz + z + _quadratic_term(p, 0, z, y, x, zz, yy, xx, zy, yx, zx)
-        wy = cy + y + _quadratic_term(p, 10, z, y, x, zz, yy, xx, zy, yx, zx)
-        wx = cx + x + _quadratic_term(p, 20, z, y, x, zz, yy, xx, zy, yx, zx)
-        if in_interior(coef, wz, wy, wx):
-            values[i] = sample_interior_vector(flat, plane, nx, wz, wy, wx)
-        elif 0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1:
-            values[i] = sample_mirrored(coef, wz, wy, wx)
-        else:
-            outside[i] = True
-            n_outside += 1
+    for c0 in range(0, count, CHUNK):
+        n = min(CHUNK, count - c0)
+        for j in range(n):
+            z = np.float64(xi[c0 + j, 0])
+            y = np.float64(xi[c0 + j, 1])
+            x = np.float64(xi[c0 + j, 2])
+            zz = z * z
+            yy = y * y
+            xx = x * x
+            zy = z * y
+            yx = y * x
+            zx = z * x
+            pz[j] = cz + z + _quadratic_term(p, 0, z, y, x, zz, yy, xx, zy, yx, zx)
+            py[j] = cy + y + _quadratic_term(p, 10, z, y, x, zz, yy, xx, zy, yx, zx)
+            px[j] = cx + x + _quadratic_term(p, 20, z, y, x, zz, yy, xx, zy, yx, zx)
+        n_outside += _sample_chunk(coef, flat, c0, n, buffers, outside, values)
     return n_outside
 
 
