@@ -250,12 +250,17 @@ def residual_layer(
     """Dense gray residual ``|F(X + u(X)) - G(X)|`` (gray levels), a hidden Image layer.
 
     Kept as its own (hidden) layer so Export and the View panel find the residual of each field.
+    A lazy array (the Zarr residual of an out-of-core evaluation) stays lazy.
     """
-    residual = np.asarray(residual, dtype=np.float32)
+    if isinstance(residual, np.ndarray):
+        residual = sample = np.asarray(residual, dtype=np.float32)
+    else:  # a lazy (Zarr) residual of an out-of-core run: shown lazily, ranged on a sample
+        stride = max(1, int(np.ceil((float(np.prod(residual.shape)) / (1 << 21)) ** (1 / 3))))
+        sample = np.asarray(residual[::stride, ::stride, ::stride], dtype=np.float32)
     kwargs = {
         "name": layer_name("residual volume", source),
         "colormap": "gray",
-        "contrast_limits": [0.0, max(1e-6, float(np.nanpercentile(residual, 99.5)))],
+        "contrast_limits": [0.0, max(1e-6, float(np.nanpercentile(sample, 99.5)))],
         "visible": False,
         "metadata": _meta("residual", source),
         **dense_placement(voxel_size, offset),
@@ -355,26 +360,34 @@ def quantity_layers(viewer) -> list:
     return [x for x in viewer.layers if (plugin_metadata(x) or {}).get("kind") == "quantity"]
 
 
-def show_quantity(layer, quantity: str, *, residual=None, limits=None) -> None:
-    """Switch a quantity layer to ``quantity`` in place (data, placement, colours, name).
+def quantity_update(layer_or_entry, quantity: str, *, residual=None, limits=None) -> tuple:
+    """What :func:`apply_quantity` needs to switch a quantity layer to ``quantity``.
 
-    ``residual`` is the dense gray residual for ``quantity="residual"``; ``limits`` a shared
-    contrast range. Raises ValueError when the field cannot show ``quantity``.
+    The expensive half of :func:`show_quantity` (strain tensors, eigenvalues, percentiles):
+    pure numpy on the layer's field(s), no layer touched, so a thread worker may run it. Takes
+    the layer or its plugin metadata entry (read it on the main thread and hand the entry to a
+    worker). Returns ``(data, kwargs)``; raises ValueError when the field cannot show
+    ``quantity``.
     """
-    entry = plugin_metadata(layer)
-    fields = series_of(layer) or entry["field"]
-    voxel_size = entry["field"].metadata.get("voxel_size")
-    offset = entry["field"].metadata.get("offset")
+    entry = plugin_metadata(layer_or_entry)
+    entry = layer_or_entry if entry is None else entry
+    fields = series_of({MARKER: entry}) or entry["field"]
     data, kwargs, _ = quantity_layer(
         fields,
         entry["source"],
         quantity,
-        voxel_size=voxel_size,
-        offset=offset,
+        voxel_size=entry["field"].metadata.get("voxel_size"),
+        offset=entry["field"].metadata.get("offset"),
         residual=residual,
         limits=limits,
         caches=entry.setdefault("cache", {}),
     )
+    return data, kwargs
+
+
+def apply_quantity(layer, data, kwargs: dict) -> None:
+    """Put a :func:`quantity_update` result into ``layer`` (main thread: touches the layer)."""
+    entry = plugin_metadata(layer)
     layer.data = data
     layer.scale, layer.translate = kwargs["scale"], kwargs["translate"]
     layer.colormap = kwargs["colormap"]
@@ -383,6 +396,37 @@ def show_quantity(layer, quantity: str, *, residual=None, limits=None) -> None:
     new = kwargs["metadata"][MARKER]
     entry.update(quantity=new["quantity"], unit=new["unit"])
     layer.name = kwargs["name"]
+
+
+def remember_quantity(layer) -> None:
+    """Keep what a quantity layer shows now in its field's cache (:func:`apply_quantity` input),
+    so switching back to it needs no computing. The residual is not kept (it changes with each
+    evaluation)."""
+    entry = plugin_metadata(layer)
+    quantity = entry.get("quantity")
+    if quantity is None or quantity == "residual":
+        return
+    kwargs = {
+        "name": layer_name(quantity, entry["source"]),
+        "scale": tuple(layer.scale),
+        "translate": tuple(layer.translate),
+        "colormap": layer.colormap,
+        "contrast_limits": list(layer.contrast_limits),
+        "rendering": layer.rendering,
+        "metadata": {MARKER: {"quantity": quantity, "unit": entry.get("unit", "")}},
+    }
+    entry.setdefault("shown", {}).setdefault((quantity, None), (layer.data, kwargs))
+
+
+def show_quantity(layer, quantity: str, *, residual=None, limits=None) -> None:
+    """Switch a quantity layer to ``quantity`` in place (data, placement, colours, name).
+
+    ``residual`` is the dense gray residual for ``quantity="residual"``; ``limits`` a shared
+    contrast range. Raises ValueError when the field cannot show ``quantity``. Computes on the
+    calling thread; the View panel runs :func:`quantity_update` in a worker instead.
+    """
+    data, kwargs = quantity_update(layer, quantity, residual=residual, limits=limits)
+    apply_quantity(layer, data, kwargs)
 
 
 def shared_limits(layers, quantity: str) -> list[float] | None:

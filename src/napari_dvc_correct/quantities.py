@@ -8,6 +8,8 @@ volumetric, maximum-shear and equivalent strain, ZNCC, status, uncertainty, resi
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from .engine.field import DisplacementField, Status
@@ -125,6 +127,25 @@ def physical_strain(field: DisplacementField) -> np.ndarray:
     return small_strain(gradient)
 
 
+#: Values computed ahead (:func:`compute_ahead`): id(field) -> (weak reference, {quantity: values}).
+_AHEAD: dict[int, tuple] = {}
+
+
+def compute_ahead(field: DisplacementField, quantity: str) -> None:
+    """Compute ``quantity`` of ``field`` now and keep it while the field lives.
+
+    A panel's worker calls it for a new result with the quantity on view, so showing the result
+    (main thread) finds the strain ready in :func:`quantity_values`.
+    """
+    values = quantity_values(field, quantity)
+    key = id(field)
+    entry = _AHEAD.get(key)
+    if entry is None or entry[0]() is not field:
+        entry = (weakref.ref(field, lambda ref, key=key: _AHEAD.pop(key, None)), {})
+        _AHEAD[key] = entry
+    entry[1][quantity] = values
+
+
 def quantity_values(
     field: DisplacementField, quantity: str, cache: dict | None = None
 ) -> np.ndarray:
@@ -136,6 +157,9 @@ def quantity_values(
     """
     if quantity not in QUANTITIES or quantity == "residual":
         raise ValueError(f"{quantity!r} is not a grid quantity; choose one of {list(QUANTITIES)}")
+    ahead = _AHEAD.get(id(field))
+    if ahead is not None and ahead[0]() is field and quantity in ahead[1]:
+        return ahead[1][quantity]
     kind = QUANTITIES[quantity][1]
     vs = as_triple(field.metadata.get("voxel_size"), 1.0)
     if quantity == "ZNCC":
@@ -180,6 +204,46 @@ def quantity_values(
     values = np.asarray(values, dtype=np.float32).copy()
     values[~field.valid] = np.nan
     return values
+
+
+def point_quantities(points_field) -> dict[str, np.ndarray]:
+    """Every quantity of :data:`QUANTITIES` a field at scattered points can show, per point.
+
+    ``points_field`` is a :class:`..engine.scattered.ScatteredField`. Displacements are in the
+    units of :func:`unit_of` (voxels times ``metadata["voxel_size"]``); strains come from each
+    point's matched displacement gradient (the subvolume's own first-order warp, physical axes),
+    not from neighbouring points; NaN where the point has no usable value. Returns float64
+    arrays ``(N,)`` by quantity key, in :data:`QUANTITIES` order.
+    """
+    from .engine.strain import equivalent_strain, principal_strains, small_strain
+
+    vs = as_triple(points_field.metadata.get("voxel_size"), 1.0)
+    valid = np.asarray(points_field.valid, dtype=bool)
+    u = np.where(valid[:, None], points_field.u, np.nan) * vs
+    values = {"|u|": np.linalg.norm(u, axis=1)}
+    for axis, name in enumerate(("uz", "uy", "ux")):
+        values[name] = u[:, axis]
+    if points_field.gradient is not None:
+        gradient = np.asarray(points_field.gradient, dtype=np.float64) * (vs[:, None] / vs[None, :])
+        gradient[~valid] = np.nan
+        tensor = small_strain(gradient)
+        for name, index in _TENSOR_INDEX.items():
+            values[name] = tensor[(..., *index)]
+        principal = principal_strains(tensor)
+        values.update(
+            {
+                "ε1": principal[:, 0],
+                "ε2": principal[:, 1],
+                "ε3": principal[:, 2],
+                "εvol": np.trace(tensor, axis1=-2, axis2=-1),
+                "γmax": principal[:, 0] - principal[:, 2],
+                "εeq": equivalent_strain(tensor),
+            }
+        )
+    values["ZNCC"] = np.asarray(points_field.zncc, dtype=np.float64)
+    values["status"] = np.asarray(points_field.status, dtype=np.float64)
+    order = list(QUANTITIES)
+    return {key: values[key] for key in sorted(values, key=order.index)}
 
 
 def status_colormap():

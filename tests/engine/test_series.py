@@ -101,3 +101,22 @@ def test_bad_input_is_refused(states):
         series(states, PARAMS, strategy="sideways")
     with pytest.raises(ValueError, match="same shape"):
         series([states[0], states[1][:-1]], PARAMS)
+
+
+def test_incremental_series_at_points_follows_the_points(states):
+    """Each increment measured where the points are in the previous state and added: the
+    total at the first state's points is the known U_0→2, its gradient the product rule's."""
+    points = np.array([[20.0, 20.0, 20.0], [15.5, 22.25, 18.0], [24.0, 17.0, 21.5]])
+    result = series(states, PARAMS, strategy="incremental", points=points)
+    truth = _state_field(2)
+    total = result.totals[1]
+    np.testing.assert_array_equal(total.points, points)
+    assert total.valid.all()
+    assert np.abs(total.u - truth(points)).max() < 0.05
+    np.testing.assert_allclose(total.gradient, np.broadcast_to(2 * GRADIENT, (3, 3, 3)), atol=5e-3)
+    increment = result.increments[1]
+    np.testing.assert_allclose(increment.points, points + _state_field(1)(points), atol=0.05)
+    with pytest.raises(ValueError, match="self-corrected"):
+        series(states, PARAMS, points=points, correct_total=True)
+    with pytest.raises(ValueError, match="total strategy"):
+        series(states, PARAMS, points=points, mask=np.ones(SHAPE, bool))

@@ -7,6 +7,7 @@ from napari_dvc_correct.engine.field import grid_for_volume
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.tiled.memory import (
     BYTES_PER_FIELD_POINT,
+    BYTES_PER_HELD_POINT,
     BYTES_PER_SEED_POINT,
     COARSE_PREFILTER_MARGIN,
     PREFILTER_MARGIN,
@@ -119,7 +120,7 @@ def test_without_workers_the_estimate_is_the_fixed_part():
     grid = grid_for_volume(SHAPE, PARAMS.subvolume, PARAMS.step)
     points = int(np.prod(grid[2]))
     for dtype, itemsize in ((np.uint8, 1), (np.uint16, 2), (np.float32, 4)):
-        per_point = BYTES_PER_FIELD_POINT + BYTES_PER_SEED_POINT
+        per_point = BYTES_PER_FIELD_POINT + BYTES_PER_SEED_POINT + BYTES_PER_HELD_POINT
         fixed = points * per_point + SHIFT_BLOCK_VOXELS * (2 * (4 + itemsize) + 8)
         assert estimate_peak_memory(SHAPE, dtype, PARAMS, (4, 4, 4), workers=0) == fixed
 

@@ -24,10 +24,12 @@ def test_thresholds_split_the_histogram_and_update_the_phases_live(viewer_pair, 
     assert len(widget.histogram.lines) == 1
     assert widget.histogram.lines[0].get_xdata()[0] == pytest.approx(threshold)
     widget._live.flush()
+    qtbot.waitUntil(lambda: not widget.phases_busy, timeout=10_000)  # computed in a worker
     assert "phase 1: mean gray" in widget.phase_label.text()
     assert "phases" not in viewer_pair.layers  # not before the user touches the thresholds
     widget.auto_button.click()
     widget._live.flush()
+    qtbot.waitUntil(lambda: not widget.phases_busy, timeout=10_000)
     phases = viewer_pair.layers["phases"]
     np.testing.assert_allclose(phases.scale, small.voxel_size)
     np.testing.assert_allclose(phases.translate, small.offset)
@@ -43,7 +45,31 @@ def test_thresholds_split_the_histogram_and_update_the_phases_live(viewer_pair, 
     widget.n_phases.setValue(3)
     assert len(widget.thresholds()) == 3 - 1
     widget._live.flush()
+    qtbot.waitUntil(lambda: not widget.phases_busy, timeout=10_000)
     assert set(np.unique(viewer_pair.layers["phases"].data)) == {1, 2, 3}
+
+
+def test_the_latest_thresholds_win(viewer_pair, qtbot):
+    """Phase labels of the whole volume come from a worker; a quick second choice supersedes
+    the first, and the layer shows the labels of the last one."""
+    widget = _dock(viewer_pair)
+    reference = viewer_pair.layers["reference"].data
+    widget.set_thresholds([120.0])
+    first = widget.update_phases()
+    widget.set_thresholds([150.0])
+    second = widget.update_phases()
+    assert first is not None and second is not None and first is not second
+    qtbot.waitUntil(lambda: not widget.phases_busy, timeout=10_000)
+    qtbot.waitUntil(lambda: not first.is_running, timeout=10_000)
+    qtbot.wait(200)  # and the debounced call the slider triggered
+    qtbot.waitUntil(lambda: not widget.phases_busy, timeout=10_000)
+    np.testing.assert_array_equal(
+        viewer_pair.layers["phases"].data, np.where(reference >= 150.0, 2, 1)
+    )
+    widget.set_thresholds([150.0, 140.0], show=False)  # not increasing: said, nothing computed
+    widget._live.flush()
+    assert widget.update_phases() is None
+    assert "strictly increasing" in widget.phase_label.text()
 
 
 def test_evaluate_adds_residual_layers_and_plots(correlated, run_panel, small):

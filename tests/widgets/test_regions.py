@@ -67,12 +67,12 @@ def panel(viewer_pair, small):
     return widget
 
 
-def test_a_cylinder_keeps_the_pois_inside_it(panel, run_panel, small):
+def test_a_cylinder_keeps_the_pois_inside_it(panel, run_panel, small, qtbot):
     panel.region.set_kind("cylinder")
     panel.region.set_volume(small.shape)
     panel.region.radius.setValue(14.0)
-    panel._update.flush()
-    assert "the region keeps" in panel.estimate_label.text()
+    panel._update.flush()  # the mask is made in a worker, then the preview follows
+    qtbot.waitUntil(lambda: "the region keeps" in panel.estimate_label.text(), timeout=20_000)
     kept = model.kept_pois(panel.region.mask(small.shape), panel.params())
     assert 0 < kept.kept < kept.total
     assert len(panel.viewer.layers[PREVIEW_POINTS].data) == kept.kept  # the preview shows them
@@ -86,6 +86,33 @@ def test_a_cylinder_keeps_the_pois_inside_it(panel, run_panel, small):
     assert np.all(masked[distance > 14.0 + small.subvolume / 2])  # mostly outside
     assert not masked[distance < 14.0 - small.subvolume / 2].any()  # wholly inside
     assert (~masked).sum() > 0 and masked.sum() > 0
+
+
+def test_a_threshold_mask_is_made_in_a_worker_then_kept(panel, small, qtbot):
+    """The threshold region (pores filled: seconds on a large scan) is computed off the main
+    thread; the preview then uses it, and the run takes the same mask without computing."""
+    reference = panel.viewer.layers["reference"].data
+    panel.region.set_kind("threshold")
+    panel.region.threshold.setValue(135.0)
+    panel._update.flush()
+    assert panel.estimate_label.text() == "computing the region's mask…"
+    assert panel.region.busy
+    qtbot.waitUntil(lambda: "the region keeps" in panel.estimate_label.text(), timeout=20_000)
+    stored = panel.region._cache[1]
+    expected = model.threshold_mask(reference, 135.0, True)
+    np.testing.assert_array_equal(stored, expected)
+    assert panel.job().mask is stored  # no second computation for the run
+    assert panel.region.pending(reference.shape, reference) is None
+    # a quick second threshold supersedes the first: the kept mask is the last one's
+    panel.region.threshold.setValue(120.0)
+    panel.update_preview()
+    panel.region.threshold.setValue(150.0)
+    panel.update_preview()
+    qtbot.waitUntil(lambda: not panel.region.busy, timeout=20_000)
+    qtbot.waitUntil(lambda: "the region keeps" in panel.estimate_label.text(), timeout=20_000)
+    np.testing.assert_array_equal(
+        panel.region.mask(reference.shape, reference), model.threshold_mask(reference, 150.0, True)
+    )
 
 
 def test_a_region_that_keeps_no_poi_is_refused(panel, small):

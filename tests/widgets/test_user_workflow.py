@@ -56,7 +56,7 @@ def _dock(viewer, cls):
     return widget
 
 
-def test_tiff_pair_to_corrected_export(make_napari_viewer, tiff_pair, run_panel, tmp_path):
+def test_tiff_pair_to_corrected_export(make_napari_viewer, tiff_pair, run_panel, tmp_path, qtbot):
     viewer = make_napari_viewer()
     correlate = _dock(viewer, CorrelateWidget)
     evaluate = _dock(viewer, EvaluateWidget)
@@ -130,6 +130,7 @@ def test_tiff_pair_to_corrected_export(make_napari_viewer, tiff_pair, run_panel,
     # the View panel switches the quantity of both fields and toggles before/after
     view = _dock(viewer, ViewWidget)
     view.set_quantity("εeq")
+    qtbot.waitUntil(lambda: not view.busy, timeout=30_000)  # computed in a worker
     assert viewer.layers["εeq (corrected)"].visible
     assert "εeq" in view.caption.text() and "strain" in view.caption.text()
     assert view.before_after() == "uncorrected"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -25,6 +27,11 @@ def _shear(scale: float = 1.0) -> DisplacementField:
     )
 
 
+def settle(qtbot, view) -> None:
+    """Wait for the View panel's workers (quantity and profile) to finish."""
+    qtbot.waitUntil(lambda: not view.busy, timeout=30_000)
+
+
 @pytest.fixture
 def view(make_napari_viewer):
     viewer = make_napari_viewer()
@@ -36,13 +43,14 @@ def view(make_napari_viewer):
     return widget
 
 
-def test_chooser_switches_every_field_with_one_range_and_a_colorbar(view):
+def test_chooser_switches_every_field_with_one_range_and_a_colorbar(view, qtbot):
     viewer = view.viewer
     assert len(viewer.layers) == 5  # the scan, and two layers per field
     offered = [view.quantity.itemData(i) for i in range(view.quantity.count())]
     for key in ("|u|", "uz", "εzz", "εzx", "ε1", "ε3", "εvol", "γmax", "εeq", "ZNCC", "status"):
         assert key in offered
     view.set_quantity("εzx")
+    settle(qtbot, view)
     corrected, uncorrected = viewer.layers["εzx (corrected)"], viewer.layers["εzx (uncorrected)"]
     inner = (slice(1, -1),) * 3
     np.testing.assert_allclose(corrected.data[inner], A / 2, rtol=1e-5)
@@ -57,6 +65,7 @@ def test_chooser_switches_every_field_with_one_range_and_a_colorbar(view):
     assert "εzx" in view.caption.text() and "strain" in view.caption.text()
     assert L.text_overlay(viewer).text == view.caption.text()
     view.set_quantity("|u|")
+    settle(qtbot, view)
     assert "[vx]" in view.caption.text()
     view.colorbar.setChecked(False)
     assert not viewer.layers["|u| (corrected)"].colorbar.visible
@@ -75,13 +84,16 @@ def test_oblique_3d_view(view):
     np.testing.assert_allclose(view.viewer.scene.camera.angles, (-20.0, 30.0, 120.0))
 
 
-def test_line_profile_follows_the_field(view):
+def test_line_profile_follows_the_field(view, qtbot):
     view.set_quantity("εzx")
+    settle(qtbot, view)
     layer = view.start_line()
     assert layer.mode == "add_line"
     # a line along z through the column of nodes at y = x = 12 (world = voxels here)
     layer.add_lines(np.array([[6.0, 12.0, 12.0], [30.0, 12.0, 12.0]]))
-    displacement, strain = view.update_profile()
+    view.update_profile()
+    settle(qtbot, view)
+    displacement, strain = view.profile_groups
     assert [p.source for p in displacement] == ["uncorrected", "corrected"]
     corrected = displacement[1]
     z = 6.0 + corrected.distance
@@ -91,3 +103,156 @@ def test_line_profile_follows_the_field(view):
     np.testing.assert_allclose(strain[1].values[middle], A / 2, rtol=1e-5)
     np.testing.assert_allclose(strain[0].values[middle], 1.1 * A / 2, rtol=1e-5)
     assert len(view.profile.axes[0].lines) == 2
+
+
+def _large(n: int = 64) -> DisplacementField:
+    """A field of n³ nodes with a smooth, non-trivial strain (the eigenvalues cost ~0.3–1 s)."""
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float)] * 3, indexing="ij")
+    u = np.stack([0.01 * x * y / n, 0.02 * np.sin(z / 7.0) * n, 0.03 * z + 0.01 * x], axis=-1)
+    return DisplacementField(
+        origin=(4, 4, 4),
+        step=(2, 2, 2),
+        u=u,
+        metadata={"voxel_size": [1.0, 1.0, 1.0], "offset": [0.0, 0.0, 0.0]},
+    )
+
+
+@pytest.fixture
+def large_view(make_napari_viewer):
+    viewer = make_napari_viewer()
+    widget = ViewWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    field = _large()
+    L.show_field(viewer, L.field_layers(field, "uncorrected"))
+    return widget, field
+
+
+def test_the_ui_stays_responsive_while_a_large_strain_computes(large_view, qtbot):
+    """Largest gap between 10 ms timer ticks on the main thread while ε1 of 64³ nodes computes."""
+    from qtpy.QtCore import QTimer
+
+    view, field = large_view
+    ticks = []
+    timer = QTimer()
+    timer.setInterval(10)
+    timer.timeout.connect(lambda: ticks.append(time.perf_counter()))
+    timer.start()
+    qtbot.wait(50)
+    called = time.perf_counter()
+    worker = view.set_quantity("ε1")
+    returned = time.perf_counter()
+    assert worker is not None, "nothing was computed in a worker"
+    ended = []
+    worker.finished.connect(lambda: ended.append(time.perf_counter()))
+    settle(qtbot, view)
+    qtbot.waitUntil(lambda: bool(ended), timeout=30_000)
+    timer.stop()
+    print(f"set_quantity held the main thread {1000 * (returned - called):.0f} ms")
+    assert returned - called < 0.1  # the call only starts the worker
+    during = np.asarray([t for t in ticks if called <= t <= ended[0]])
+    assert ended[0] - called > 0.2, "the computation was too short to say anything"
+    gaps = np.diff(during)
+    assert len(gaps) > 10
+    print(f"largest gap {gaps.max() * 1000:.0f} ms over {ended[0] - called:.2f} s")
+    assert gaps.max() < 0.2, f"largest gap {gaps.max() * 1000:.0f} ms"
+    layer = view.viewer.layers["ε1 (uncorrected)"]
+    np.testing.assert_array_equal(layer.data, L.quantity_values(field, "ε1"))
+
+
+def test_the_last_choice_wins_and_switching_back_is_instant(large_view, qtbot):
+    view, field = large_view
+    viewer = view.viewer
+    first = view.set_quantity("ε1")
+    second = view.set_quantity("εeq")  # before the first is done: it supersedes it
+    assert first is not None and second is not None and first is not second
+    assert "computing" in view.message.text()
+    assert "|u| (uncorrected)" in viewer.layers  # the old quantity stays until the new is ready
+    settle(qtbot, view)
+    qtbot.waitUntil(lambda: first.is_running is False, timeout=30_000)
+    qtbot.wait(50)  # the first worker's queued signals, if any, are delivered
+    (layer,) = L.quantity_layers(viewer)
+    assert L.plugin_metadata(layer)["quantity"] == "εeq"
+    assert layer.name == "εeq (uncorrected)"
+    np.testing.assert_array_equal(layer.data, L.quantity_values(field, "εeq"))
+    assert view.message.text() == ""
+    # both seen quantities are cached: switching back computes nothing, at once
+    assert view.set_quantity("|u|") is None
+    assert L.plugin_metadata(layer)["quantity"] == "|u|"
+    np.testing.assert_array_equal(layer.data, L.quantity_values(field, "|u|"))
+    assert view.set_quantity("εeq") is None
+    np.testing.assert_array_equal(layer.data, L.quantity_values(field, "εeq"))
+    low, high = layer.contrast_limits
+    assert 0 <= low < high  # a positive strain's range came back with it
+
+
+def test_a_switch_during_a_computation_to_a_cached_quantity_wins(large_view, qtbot):
+    view, field = large_view
+    worker = view.set_quantity("εzx")
+    assert view.set_quantity("|u|") is None  # cached (what the layer showed first)
+    (layer,) = L.quantity_layers(view.viewer)
+    assert L.plugin_metadata(layer)["quantity"] == "|u|"
+    qtbot.waitUntil(lambda: worker.is_running is False, timeout=30_000)
+    qtbot.wait(50)
+    assert L.plugin_metadata(layer)["quantity"] == "|u|"  # the late εzx did not come back
+    np.testing.assert_array_equal(layer.data, L.quantity_values(field, "|u|"))
+
+
+@pytest.mark.parametrize("error", [ValueError, TypeError])
+def test_a_worker_error_shows_as_a_message(view, qtbot, monkeypatch, error):
+    """A bad choice (ValueError, per field) and a bug (any other error: the worker's errored
+    handler) both end as one line in the panel, the layers unchanged."""
+
+    def broken(*args, **kwargs):
+        raise error("the strain cannot be computed here")
+
+    monkeypatch.setattr(L, "quantity_update", broken)
+    view.set_quantity("εvol")
+    settle(qtbot, view)
+    assert "cannot be computed" in view.message.text()
+    assert L.plugin_metadata(L.quantity_layers(view.viewer)[0])["quantity"] == "|u|"
+
+
+def test_a_new_result_shows_the_quantity_on_view_and_the_chooser_says_so(view, qtbot):
+    """A new field comes on view with the quantity looked at; the chooser names what is shown
+    (it said |u| before, while the layers showed εeq)."""
+    view.set_quantity("εeq")
+    settle(qtbot, view)
+    L.show_field(view.viewer, L.field_layers(_shear(1.2), "corrected"))
+    (shown,) = [x for x in L.quantity_layers(view.viewer) if x.visible]
+    assert L.plugin_metadata(shown)["quantity"] == "εeq"
+    assert view.quantity.currentData() == "εeq"
+    # a choice the fields cannot show is said, and the chooser comes back to what is shown
+    view.set_quantity("residual")
+    settle(qtbot, view)
+    assert "run Evaluate first" in view.message.text()
+    assert view.quantity.currentData() == "εeq"
+
+
+def test_a_new_result_brings_its_strain_computed_in_the_worker(correlated, run_panel, qtbot):
+    """The run's worker computes the quantity on view for the new field: showing it on the
+    main thread computes no strain tensor."""
+    import threading
+
+    from napari_dvc_correct import quantities
+
+    viewer = correlated.viewer
+    view = ViewWidget(viewer)
+    viewer.window.add_dock_widget(view)
+    view.set_quantity("εeq")
+    settle(qtbot, view)
+    calls = []
+    original = quantities.physical_strain
+
+    def recording(field):
+        calls.append(threading.current_thread() is threading.main_thread())
+        return original(field)
+
+    quantities.physical_strain = recording
+    try:
+        run_panel(correlated)
+    finally:
+        quantities.physical_strain = original
+    layer = viewer.layers["εeq (uncorrected)"]
+    assert layer.visible and view.quantity.currentData() == "εeq"
+    assert calls and not any(calls), calls  # computed, and never on the main thread
+    np.testing.assert_array_equal(layer.data, L.quantity_values(L.field_of(layer), "εeq"))

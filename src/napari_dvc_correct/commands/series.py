@@ -4,6 +4,11 @@ Writes one field file per loaded state (``state_01.npz`` = ``U_0→1`` ...), the
 the incremental strategy (``increment_00_01.npz`` ...) and ``summary.csv`` (one row per state),
 as one set (:func:`._common.output_set`): nothing is written if the run fails or is interrupted,
 and a new run into the same folder replaces the earlier set whole.
+
+The POIs are placed as for ``correlate`` (``--roi``, ``--cylinder``, ``--origin``, ``--points``;
+:mod:`._grid_options`) and the fields written in any of its formats (``--out-format``, ``--xyz``;
+:mod:`._field_formats`): the files take that format's suffix (``state_01.tsv`` for spam...);
+the default is our ``.npz`` on a grid and a ``.csv`` table at ``--points``.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ SUMMARY_COLUMNS = (
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    from . import _field_formats, _grid_options
     from .correct import add_self_correct_argument
     from .correlate import add_correlation_arguments
 
@@ -50,6 +56,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--mask", help="mask volume in the first state (non-zero = material)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_correlation_arguments(parser)
+    _grid_options.add_grid_arguments(parser)
+    _field_formats.add_field_format_arguments(parser, field_input=False)
     add_self_correct_argument(parser)
     parser.add_argument(
         "--correct",
@@ -81,14 +89,29 @@ def write_summary(rows: list[dict], path: Path) -> None:
 
 
 #: Files a series writes (an older series folder holding only these may be replaced).
-SERIES_PATTERNS = ("state_*.npz", "increment_*_*.npz", "summary.csv")
+SERIES_PATTERNS = ("state_*", "increment_*_*", "summary.csv")
+
+
+def field_suffix(args, at_points: bool) -> str:
+    """The suffix of the series' field files for ``--out-format`` (refused before any work where
+    it cannot hold the fields)."""
+    from ._field_formats import OUTPUT_SUFFIXES
+
+    chosen = getattr(args, "out_format", "auto") or "auto"
+    fmt = ("table" if at_points else "npz") if chosen == "auto" else chosen
+    if at_points and fmt == "npz":
+        raise ValueError(
+            "--out-format npz holds grids: write a series at --points as table, spam, idvc or aldvc"
+        )
+    suffixes = {v: k for k, v in OUTPUT_SUFFIXES.items()}
+    return suffixes.get(fmt, ".txt")
 
 
 def run(args) -> int:
     from ..engine.pair_checks import check_pair
     from ..engine.series import series_iter
-    from ..io.npz import save_field
     from ..io.volumes import read_volume
+    from . import _field_formats, _grid_options
     from ._common import ProgressBar, check_output_dir, drive, output_set
     from .correct import correction_options_from_args
     from .correlate import params_from_args
@@ -101,10 +124,21 @@ def run(args) -> int:
     )
     params = params_from_args(args)
     options = correction_options_from_args(args)
+    at_points = bool(getattr(args, "points", None))
+    suffix = field_suffix(args, at_points)
+    points = None
+    if at_points:
+        if args.self_correct:
+            raise ValueError("--points does not combine with --self-correct")
+        if any(getattr(args, name, None) for name in ("roi", "cylinder", "origin")):
+            raise ValueError("give --points or --roi/--cylinder/--origin, not both")
+        points = _grid_options.load_points(args.points)
     volumes = [read_volume(path) for path in args.volumes]
     mask = read_volume(args.mask) if args.mask else None
     for k in range(1, len(volumes)):
         check_pair(volumes[0], volumes[k], mask, check_finite=False)  # read_volume did
+    shape = volumes[0].shape
+    grid = None if at_points else _grid_options.grid_from_args(args, shape, params)
     correct_increments = args.self_correct and args.correct in ("increments", "both")
     correct_total = args.self_correct and args.correct in ("total", "both")
     bar = ProgressBar(args.quiet)
@@ -117,24 +151,32 @@ def run(args) -> int:
             correct_total=correct_total,
             correction_options=options,
             mask=mask,
+            grid=grid,
+            points=points,
         ),
         bar,
     )
+
+    def placed(field):
+        return field if at_points else _grid_options.finish_grid_field(args, field, shape)
 
     rows = result.summary()
     rows[0]["volume"] = args.volumes[0]
     with output_set(out_dir, SERIES_PATTERNS, {"command": "series"}) as temp:
         for k, total in enumerate(result.totals, start=1):
+            total = placed(total)
             total.metadata["reference"] = str(args.volumes[0])
             total.metadata["deformed"] = str(args.volumes[k])
-            name = f"state_{k:02d}.npz"
-            save_field(total, temp / name)
+            name = f"state_{k:02d}{suffix}"
+            _field_formats.write_output_field(args, total, str(temp / name))
             rows[k]["volume"] = args.volumes[k]
             rows[k]["field_file"] = name
         for k, increment in enumerate(result.increments, start=1):
+            increment = placed(increment)
             increment.metadata["reference"] = str(args.volumes[k - 1])
             increment.metadata["deformed"] = str(args.volumes[k])
-            save_field(increment, temp / f"increment_{k - 1:02d}_{k:02d}.npz")
+            name = f"increment_{k - 1:02d}_{k:02d}{suffix}"
+            _field_formats.write_output_field(args, increment, str(temp / name))
         write_summary(rows, temp / "summary.csv")
     for row in rows[1:]:
         print(

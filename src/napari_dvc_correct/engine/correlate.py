@@ -22,19 +22,11 @@ import numpy as np
 
 from . import icgn, icgn_reference, icgn_uncertainty, shape_function
 from .backend import select_device
-from .field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
+from .field import GOOD_STATUSES, DisplacementField, Status, grid_for_volume
 from .guided_repair import repair, search_seeds, seed_guesses
 from .initial_guess import bin_volume, global_shift, pyramid_levels
 from .interpolation import prefilter
-from .noise import (
-    MIN_PERFECT_ZNCC,
-    NOISE_GRADIENT_GAIN,
-    SENSITIVITY_FRACTION,
-    ZNCC_SIGNIFICANCE,
-    noise_aware_thresholds,
-    noise_metadata,
-    uncertainty_bound,
-)
+from .judge import MatchedGrid, judge_iter, match_statistics
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
 from .validation import validate_volume
@@ -286,7 +278,7 @@ def correlate_seeds(
     return seed_params, zncc, status, level_centers
 
 
-def correlate_iter(
+def match_iter(
     reference: np.ndarray,
     deformed: np.ndarray,
     params: CorrelationParams | None = None,
@@ -299,55 +291,18 @@ def correlate_iter(
     texture_std=None,
     grid_anchor=None,
     seeds=None,
-) -> Generator[Progress, None, DisplacementField]:
-    """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
+) -> Generator[Progress, None, tuple[MatchedGrid, PyramidLevel]]:
+    """The first half of :func:`correlate_iter` (same parameters): the POIs matched, not judged.
 
-    Parameters
-    ----------
-    reference, deformed : ndarray, shape (nz, ny, nx)
-        The two volumes, any real dtype (processed as float32). Axis order (z, y, x).
-    params : CorrelationParams, optional
-        Subvolume, step, shape-function order, search radius... (defaults if None).
-    mask : ndarray of bool, shape (nz, ny, nx), optional
-        Reference-space mask of the material: only voxels inside it enter the matching, and POIs
-        with less than ``params.min_mask_fraction`` of their subvolume inside get ``MASKED``.
-    grid : (origin, step, shape), optional
-        POI grid in reference voxels; whole-voxel positions. Default:
-        :func:`grid_for_volume` ``(shape, subvolume, step)``.
-    initial : DisplacementField, optional
-        Initial guess on the same grid (skips the global and FFT searches).
-    rigid_shift : array-like of 3 ints, optional
-        Rigid shift ``(z, y, x)`` voxels to search around instead of estimating it from these
-        volumes: the whole volume's shift when they are a region of larger volumes
-        (:mod:`.tiled`).
-    texture_std : mapping of int to float, optional
-        Gray standard deviation of the whole reference volume (inside the mask) binned by each
-        pyramid factor ``1, 2, 4...``, for the low-texture test, when these volumes are a region
-        of larger ones (:mod:`.tiled`). Default: computed from these volumes.
-    grid_anchor : (offset, whole_shape), optional
-        When ``grid`` is a box of a larger POI grid (a batch of :mod:`.tiled`): the whole-grid
-        index ``(z, y, x)`` of its first POI and the whole grid's shape, so that the seeds of the
-        initial guess are the whole grid's (:func:`.guided_repair.seed_axes`) and the batch
-        computes what the in-memory run computes for its POIs. Default: ``grid`` is the whole
-        grid.
-    seeds : guided_repair.GivenSeeds, optional
-        The seeds of the initial guess, matched and judged on the whole grid (:mod:`.tiled`'s
-        seed pass): every POI starts from its nearest good seed of the whole grid, as in memory,
-        and the pyramid has the whole volume's ``seeds.levels``. Default: seeds searched here.
-    device : {"cpu", "cuda", "auto"} or backend.Device
-        Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
-        a warning). The field's ``metadata["device"]`` says which was used.
-
-    Yields
-    ------
-    Progress
-        One report per stage and per batch of POIs.
+    Prefilter, initial guess and full-resolution IC-GN, then each POI's subvolume statistics
+    (:func:`.judge.match_statistics`); :func:`.judge.judge_iter` does the rest. :mod:`..tiled`
+    runs the two halves as separate tasks, with the whole run's noise estimate in between.
 
     Returns
     -------
-    DisplacementField
-        ``u`` in voxels at each POI, with ``zncc``, ``status``, ``iterations`` and the shape
-        function's displacement ``gradient``.
+    matched : judge.MatchedGrid
+    fine : PyramidLevel
+        The full-resolution level (the volumes' prefilter and gradient), for the judge's repair.
     """
     params = CorrelationParams() if params is None else params
     device = select_device(device)
@@ -480,62 +435,19 @@ def correlate_iter(
     timings["icgn_s"] = time.perf_counter() - t0
     timings["voxel_iterations"] = int(iterations.sum()) * params.subvolume**3
 
-    # imaging noise and the ZNCC threshold it allows (noise_aware_thresholds)
+    # the noise estimates' ingredients (judge.match_statistics)
     t0 = time.perf_counter()
-    variance = np.full(n_points, np.nan)
-    power = np.full(n_points, np.nan)
-    sigma = np.full((n_points, 3), np.nan)
-    stats = (variance, power, sigma)
-    cheap = np.zeros(len(todo), bool)
-    fine.statistics(centers[todo], params_out[todo], zncc[todo], order, cheap, stats, todo)
-    floor = ZNCC_SIGNIFICANCE * np.sqrt(3 * nb / params.subvolume**3)
-    noise_variance, perfect, thresholds = noise_aware_thresholds(
-        variance, zncc, status, params.min_zncc, floor
-    )
-    textureless = np.isin(status, _GOOD) & (perfect < MIN_PERFECT_ZNCC)
-    status[textureless] = int(Status.LOW_TEXTURE)
-    timings["noise_s"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    before = params_out.copy()
-    yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
-    repair(
-        fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
-    )
-    timings["repair_s"] = time.perf_counter() - t0
-
-    low = np.isin(status, _GOOD) & ~(zncc >= thresholds)
-    status[low] = int(Status.LOW_ZNCC)
-    t0 = time.perf_counter()
-    # where the reference's noise is a sizeable part of H, measure the sensitivity A; elsewhere
-    # keep the first pass's estimate unless the repair changed the match
-    noisy = 3.0 * NOISE_GRADIENT_GAIN * noise_variance > SENSITIVITY_FRACTION * power
-    changed = np.any(params_out != before, axis=1)
-    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
-    redo = np.flatnonzero(measured & (noisy | changed))
-    fine.statistics(centers[redo], params_out[redo], zncc[redo], order, noisy[redo], stats, redo)
-    timings["uncertainty_s"] = time.perf_counter() - t0
-    bound, unsure = uncertainty_bound(sigma, status)
-    status[unsure] = int(Status.LOW_ZNCC)
-    displacement, gradient = shape_function.params_to_displacement(params_out, order)
-    failed = ~np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
-    displacement[failed] = np.nan
-    gradient[failed] = np.nan
-    sigma[failed] = np.nan
-    provenance = np.full(n_points, int(Provenance.MEASURED), np.uint8)
-    provenance[status == int(Status.MASKED)] = int(Provenance.MASKED)
-    timings["total_s"] = time.perf_counter() - start_time
-    field = DisplacementField(
-        origin=origin,
-        step=step,
-        u=displacement.reshape(*grid_shape, 3),
-        zncc=zncc.reshape(grid_shape).astype(np.float32),
-        status=status.reshape(grid_shape).astype(np.uint8),
-        iterations=iterations.reshape(grid_shape).astype(np.int32),
-        provenance=provenance.reshape(grid_shape),
-        gradient=gradient.reshape(*grid_shape, 3, 3),
-        uncertainty=sigma.reshape(*grid_shape, 3),
-        params=params.to_dict(),
+    matched = MatchedGrid(
+        grid=(origin, step, grid_shape),
+        centers=centers,
+        todo=todo,
+        params=params_out,
+        zncc=zncc,
+        status=status,
+        iterations=iterations,
+        variance=np.full(n_points, np.nan),
+        power=np.full(n_points, np.nan),
+        sigma=np.full((n_points, 3), np.nan),
         metadata={
             "volume_shape": list(reference.shape),
             "global_shift": [int(s) for s in shift],
@@ -543,15 +455,92 @@ def correlate_iter(
             "timings": timings,
             "masked": mask is not None,
             "device": device.description,
-            "noise": {
-                **noise_metadata(noise_variance, thresholds, status, params.min_zncc),
-                "zncc_threshold_floor": float(floor),
-                "uncertainty_bound": bound,
-                "uncertain": int(unsure.sum()),
-            },
         },
+        started=start_time,
     )
-    yield Progress("done", 1, 1, f"{int(np.isin(status, _GOOD).sum())} of {n_points} POIs matched")
+    match_statistics(fine, matched, order)
+    timings["noise_s"] = time.perf_counter() - t0
+    return matched, fine
+
+
+def correlate_iter(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    params: CorrelationParams | None = None,
+    *,
+    mask: np.ndarray | None = None,
+    grid: tuple | None = None,
+    initial: DisplacementField | None = None,
+    rigid_shift=None,
+    device="cpu",
+    texture_std=None,
+    grid_anchor=None,
+    seeds=None,
+) -> Generator[Progress, None, DisplacementField]:
+    """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        The two volumes, any real dtype (processed as float32). Axis order (z, y, x).
+    params : CorrelationParams, optional
+        Subvolume, step, shape-function order, search radius... (defaults if None).
+    mask : ndarray of bool, shape (nz, ny, nx), optional
+        Reference-space mask of the material: only voxels inside it enter the matching, and POIs
+        with less than ``params.min_mask_fraction`` of their subvolume inside get ``MASKED``.
+    grid : (origin, step, shape), optional
+        POI grid in reference voxels; whole-voxel positions. Default:
+        :func:`grid_for_volume` ``(shape, subvolume, step)``.
+    initial : DisplacementField, optional
+        Initial guess on the same grid (skips the global and FFT searches).
+    rigid_shift : array-like of 3 ints, optional
+        Rigid shift ``(z, y, x)`` voxels to search around instead of estimating it from these
+        volumes: the whole volume's shift when they are a region of larger volumes
+        (:mod:`.tiled`).
+    texture_std : mapping of int to float, optional
+        Gray standard deviation of the whole reference volume (inside the mask) binned by each
+        pyramid factor ``1, 2, 4...``, for the low-texture test, when these volumes are a region
+        of larger ones (:mod:`.tiled`). Default: computed from these volumes.
+    grid_anchor : (offset, whole_shape), optional
+        When ``grid`` is a box of a larger POI grid (a batch of :mod:`.tiled`): the whole-grid
+        index ``(z, y, x)`` of its first POI and the whole grid's shape, so that the seeds of the
+        initial guess are the whole grid's (:func:`.guided_repair.seed_axes`) and the batch
+        computes what the in-memory run computes for its POIs. Default: ``grid`` is the whole
+        grid.
+    seeds : guided_repair.GivenSeeds, optional
+        The seeds of the initial guess, matched and judged on the whole grid (:mod:`.tiled`'s
+        seed pass): every POI starts from its nearest good seed of the whole grid, as in memory,
+        and the pyramid has the whole volume's ``seeds.levels``. Default: seeds searched here.
+    device : {"cpu", "cuda", "auto"} or backend.Device
+        Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
+        a warning). The field's ``metadata["device"]`` says which was used.
+
+    Yields
+    ------
+    Progress
+        One report per stage and per batch of POIs.
+
+    Returns
+    -------
+    DisplacementField
+        ``u`` in voxels at each POI, with ``zncc``, ``status``, ``iterations`` and the shape
+        function's displacement ``gradient``.
+    """
+    params = CorrelationParams() if params is None else params
+    matched, fine = yield from match_iter(
+        reference,
+        deformed,
+        params,
+        mask=mask,
+        grid=grid,
+        initial=initial,
+        rigid_shift=rigid_shift,
+        device=device,
+        texture_std=texture_std,
+        grid_anchor=grid_anchor,
+        seeds=seeds,
+    )
+    field, _ = yield from judge_iter(matched, fine, params)
     return field
 
 

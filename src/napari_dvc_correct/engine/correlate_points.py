@@ -11,6 +11,13 @@
    ``u(p) = u(c) + ∇u · (p - c)`` with ``|p - c| <= 0.87`` voxel.
 
 A point whose subvolume does not fit in the volume is ``OUT_OF_BOUNDS`` (NaN displacement).
+
+Matches are judged by the grid's noise-aware ZNCC threshold (:func:`.noise.noise_aware_thresholds`:
+``min_zncc · (1 − σ_n² / s²)`` per point, ``LOW_TEXTURE`` where ``1 − σ_n² / s²`` is below
+:data:`.noise.MIN_PERFECT_ZNCC`), with the noise ``σ_n²`` estimated from the points' own matches
+when at least :data:`MIN_NOISE_POINTS` matched, else from the guide's (its grid covers the points'
+region), else (a given guide without a noise estimate) the fixed ``min_zncc``;
+``metadata["noise"]`` says which.
 """
 
 from __future__ import annotations
@@ -23,11 +30,66 @@ from . import shape_function
 from .backend import select_device
 from .correlate import PyramidLevel, correlate, validate_pair
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
+from .noise import (
+    MIN_PERFECT_ZNCC,
+    noise_aware_thresholds,
+    noise_estimates,
+    noise_metadata,
+    zncc_floor,
+)
 from .params import CorrelationParams
 from .placement import Box, grid_for_region
 from .scattered import ScatteredField, sample_field
 
 GOOD_CODES = np.array([int(s) for s in GOOD_STATUSES])
+
+#: Fewest matched points whose median ``s² (1 − ZNCC)`` is taken as the noise estimate. The
+#: median of ``n`` estimates scatters by about ``1.25 / sqrt(n)`` of their spread (23 % at 30),
+#: and a few bad matches among a handful of points move it far; below this the guide's estimate
+#: (median over its grid, the same region) is used, and the fixed ``min_zncc`` without one.
+MIN_NOISE_POINTS = 30
+
+
+def _guide_noise(guide: DisplacementField):
+    """The guide's recorded noise variance and how many matched POIs it came from (or None)."""
+    sigma = (guide.metadata or {}).get("noise", {}).get("sigma")
+    count = int(np.isin(guide.status, GOOD_CODES).sum()) if guide.status is not None else 0
+    if sigma is None or not np.isfinite(sigma) or count < MIN_NOISE_POINTS:
+        return None, count
+    return float(sigma) ** 2, count
+
+
+def _thresholds(level, centers, trial, zncc, status, order, params, guide):
+    """Each point's ZNCC threshold, the LOW_TEXTURE points and ``metadata["noise"]``."""
+    n = len(centers)
+    stats = (np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan))
+    matched = np.flatnonzero(np.isin(status, GOOD_CODES))
+    cheap = np.zeros(len(matched), bool)
+    level.statistics(centers[matched], trial[matched], zncc[matched], order, cheap, stats, matched)
+    variance = stats[0]
+    own = len(noise_estimates(variance, zncc, status))
+    given, source, count = None, "points", own
+    if own < MIN_NOISE_POINTS:
+        given, count = _guide_noise(guide)
+        source = "guide" if given is not None else "fixed"
+    textureless = np.zeros(n, bool)
+    if source == "fixed":
+        noise_variance, thresholds = 0.0, np.full(n, float(params.min_zncc))
+    else:
+        floor = zncc_floor(order, params.subvolume)
+        noise_variance, perfect, thresholds = noise_aware_thresholds(
+            variance, zncc, status, params.min_zncc, floor, noise_variance=given
+        )
+        textureless = np.isin(status, GOOD_CODES) & (perfect < MIN_PERFECT_ZNCC)
+    metadata = {
+        **noise_metadata(noise_variance, thresholds, status, params.min_zncc),
+        "source": source,
+        "estimates": int(count),
+        "min_points": MIN_NOISE_POINTS,
+    }
+    if source == "fixed":
+        metadata["zncc_threshold_rule"] = "min_zncc (too few matched points, no guide estimate)"
+    return thresholds, textureless, metadata
 
 
 def _guide(reference, deformed, points, params, mask, device) -> DisplacementField:
@@ -80,7 +142,9 @@ def correlate_points(
     -------
     ScatteredField
         One entry per input point, in the input order: ``u`` and ``gradient`` at exactly the
-        point, ZNCC, status, iterations; ``metadata["guide_grid"]`` describes the guide.
+        point, ZNCC, status, iterations; ``metadata["guide_grid"]`` describes the guide,
+        ``metadata["noise"]`` the ZNCC thresholds (``"source"``: ``"points"``, ``"guide"`` or
+        ``"fixed"``, and ``"estimates"``, the matched POIs the noise estimate came from).
     """
     params = CorrelationParams() if params is None else params
     started = time.perf_counter()
@@ -122,7 +186,12 @@ def correlate_points(
     status = np.full(n, int(Status.OUT_OF_BOUNDS), np.int64)
     iterations = np.zeros(n, np.int64)
     zncc[inside], status[inside], iterations[inside] = zncc_i, status_i, iterations_i
-    low = np.isin(status, GOOD_CODES) & ~(zncc >= params.min_zncc)
+    thresholds, textureless, noise = _thresholds(
+        level, centers[inside], trial, zncc_i, status_i, order, params, guide
+    )
+    status[np.flatnonzero(inside)[textureless]] = int(Status.LOW_TEXTURE)
+    low = np.isin(status, GOOD_CODES)
+    low[inside] &= ~(zncc_i >= thresholds)
     status[low] = int(Status.LOW_ZNCC)
     displacement = np.full((n, 3), np.nan)
     gradient = np.full((n, 3, 3), np.nan)
@@ -152,6 +221,7 @@ def correlate_points(
                 "shape": list(guide.shape),
             },
             "device": device.description,
+            "noise": noise,
             "timings": {"total_s": time.perf_counter() - started},
         },
     )

@@ -88,6 +88,16 @@ def _noise_converged(dp, nb, h_inv, delta_g, zncc, count, previous, noise_fracti
     return False, d
 
 
+#: A match whose incremental warp has not become :data:`STALL_FACTOR` times shorter than its
+#: shortest so far in this many iterations with steps above its noise level cannot converge (it
+#: oscillates, wanders or grows): it stops as ``DIVERGED`` instead of running to
+#: ``max_iterations``. Steady convergence at a step ratio below
+#: ``STALL_FACTOR ** (1 / STALL_ITERATIONS)`` (0.987) never stalls; steps below the noise level
+#: (``d < 1`` in :func:`_noise_converged`) are left to the noise stop.
+STALL_ITERATIONS = 8
+STALL_FACTOR = 0.9
+
+
 @njit(**KERNEL_OPTIONS)
 def match_one(
     reference,
@@ -156,6 +166,8 @@ def match_one(
     h_inv = np.empty(3)
     translation_h_inverse(low, m_par, nb, h_inv)
     previous = np.inf
+    shortest = np.inf
+    since_shortest = 0
     sum_jf = np.empty(m_par)
     rhs = np.empty(m_par)
     dp = np.empty(m_par)
@@ -229,7 +241,8 @@ def match_one(
                 moved_far = True
         if not finite or moved_far:
             return zncc, _DIVERGED, iteration
-        if np.sqrt(largest) < tolerance:
+        motion = np.sqrt(largest)
+        if motion < tolerance:
             return zncc, _CONVERGED, iteration
         if noise_fraction > 0.0:
             stop, previous = _noise_converged(
@@ -237,6 +250,13 @@ def match_one(
             )
             if stop:
                 return zncc, _CONVERGED, iteration
+        if motion < STALL_FACTOR * shortest:
+            shortest = motion
+            since_shortest = 0
+        elif not (previous < 1.0):  # above the noise level (below it the noise stop decides)
+            since_shortest += 1
+            if since_shortest >= STALL_ITERATIONS:
+                return zncc, _DIVERGED, iteration
     return zncc, _MAX_ITERATIONS, max_iterations
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .field import GOOD_STATUSES, Status
+from .shape_function import n_monomials
 
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
@@ -23,6 +24,14 @@ MIN_PERFECT_ZNCC = 0.1
 #: about ``sqrt(m / n)``; a match must exceed this many times that (measured on noise-against-
 #: noise subvolumes, 15³, first order: 0.05-0.09, the floor is 0.15).
 ZNCC_SIGNIFICANCE = 2.5
+
+
+def zncc_floor(order: int, subvolume: int) -> float:
+    """Lowest ZNCC threshold: :data:`ZNCC_SIGNIFICANCE` times what fitting the shape function of
+    ``order`` to noise alone reaches over a ``subvolume³`` subvolume, ``sqrt(3·nb / n)``."""
+    nb = n_monomials(order)
+    return float(ZNCC_SIGNIFICANCE * np.sqrt(3 * nb / subvolume**3))
+
 
 #: Mean square of one gradient component of unit white noise through the cubic B-spline
 #: interpolant (measured 1.386); with the noise estimate it says how much of ``H`` is noise.
@@ -64,7 +73,18 @@ def uncertainty_bound(sigma, status):
     return bound, unsure
 
 
-def noise_aware_thresholds(variance, zncc, status, min_zncc, floor=0.0):
+def noise_estimates(variance, zncc, status):
+    """Each matched POI's estimate ``s² (1 − ZNCC)`` of the noise variance (gray levels²).
+
+    The estimates of :func:`noise_aware_thresholds`, for a run that takes their median over
+    POIs it holds in several parts (:mod:`..tiled`): the POIs with a good status and a finite
+    ZNCC and variance, in their order.
+    """
+    matched = np.isin(status, _GOOD) & np.isfinite(zncc) & np.isfinite(variance)
+    return variance[matched] * np.clip(1.0 - zncc[matched], 0.0, None)
+
+
+def noise_aware_thresholds(variance, zncc, status, min_zncc, floor=0.0, noise_variance=None):
     """Imaging noise of the scans and the ZNCC threshold of every POI at that noise.
 
     With independent noise of variance ``σ_n²`` on both scans and a subvolume whose gray variance
@@ -87,6 +107,9 @@ def noise_aware_thresholds(variance, zncc, status, min_zncc, floor=0.0):
     min_zncc : float
     floor : float
         Lowest threshold.
+    noise_variance : float, optional
+        ``σ_n²`` already estimated (the median of :func:`noise_estimates` over the whole run's
+        POIs, when these are a part of them): used instead of these POIs' median.
 
     Returns
     -------
@@ -97,9 +120,10 @@ def noise_aware_thresholds(variance, zncc, status, min_zncc, floor=0.0):
     thresholds : ndarray (N,)
         ``min_zncc · ZNCC*`` (``min_zncc`` where ``ZNCC*`` is unknown).
     """
-    matched = np.isin(status, _GOOD) & np.isfinite(zncc) & np.isfinite(variance)
-    estimates = variance[matched] * np.clip(1.0 - zncc[matched], 0.0, None)
-    noise_variance = float(np.median(estimates)) if estimates.size else 0.0
+    if noise_variance is None:
+        estimates = noise_estimates(variance, zncc, status)
+        noise_variance = float(np.median(estimates)) if estimates.size else 0.0
+    noise_variance = float(noise_variance)
     with np.errstate(divide="ignore", invalid="ignore"):
         perfect = np.clip(1.0 - noise_variance / variance, 0.0, 1.0)
     thresholds = np.where(np.isfinite(perfect), min_zncc * perfect, min_zncc)

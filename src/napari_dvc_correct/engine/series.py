@@ -11,6 +11,12 @@ The self-correction (:mod:`.correction`) can be applied to every increment
 (``correct_increments``, against ``Vk−1`` and ``Vk``) and/or to every merged total
 (``correct_total``, against ``V0`` and ``Vk``; the corrected total is the one the next increment
 is composed onto). With the total strategy both options mean "correct each total".
+
+The POIs are a grid (``grid``, default the whole volume's) or a list of points (``points``,
+:func:`.correlate_points.correlate_points`; results at exactly those points of the first state).
+At points the incremental strategy follows each point: the increment ``k−1→k`` is measured at
+``X + U_0→k−1(X)`` and added, ``U_0→k(X) = U_0→k−1(X) + u_k−1→k(X + U_0→k−1(X))``, with no
+interpolation; a point lost in one state stays lost in the later ones.
 """
 
 from __future__ import annotations
@@ -26,10 +32,12 @@ from .cleaning import clean
 from .compose import compose
 from .correction import correct_iter, forward_progress
 from .correlate import correlate_iter
-from .field import DisplacementField, grid_for_volume
+from .correlate_points import correlate_points
+from .field import DisplacementField, Provenance, Status, grid_for_volume
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
 from .residual import mean_gray_residual
+from .scattered import ScatteredField
 
 STRATEGIES = ("total", "incremental")
 
@@ -69,7 +77,7 @@ class SeriesResult:
         ]
         for state, total in enumerate(self.totals, start=1):
             valid = total.valid
-            magnitude = total.magnitude[valid]
+            magnitude = np.linalg.norm(total.u, axis=-1)[valid]
             zncc = total.zncc[valid]
             info = total.metadata.get("series", {})
             rows.append(
@@ -115,6 +123,8 @@ def series_iter(
     correct_total: bool = False,
     correction_options: dict | None = None,
     mask: np.ndarray | None = None,
+    grid: tuple | None = None,
+    points: np.ndarray | None = None,
 ) -> Generator[Progress, None, SeriesResult]:
     """Displacement fields of a scan series, yielding progress; returns a :class:`SeriesResult`.
 
@@ -134,6 +144,13 @@ def series_iter(
     mask : ndarray of bool, shape (nz, ny, nx), optional
         Material mask in the first state's voxels; for increments it is carried to state
         ``k-1`` by the merged field.
+    grid : (origin, step, shape), optional
+        POI grid in the first state's voxels (e.g. :func:`.placement.grid_for_region`); default
+        :func:`.field.grid_for_volume`.
+    points : array-like, shape (N, 3), optional
+        Points of interest ``(z, y, x)`` in the first state's voxels instead of a grid: the
+        totals (and increments) are :class:`.scattered.ScatteredField` at those points. Not
+        with a self-correction, nor with a mask in the incremental strategy.
 
     Yields
     ------
@@ -145,7 +162,17 @@ def series_iter(
     volumes = _check_volumes(volumes)
     params = CorrelationParams() if params is None else params
     options = dict(correction_options or {})
-    grid = grid_for_volume(np.shape(volumes[0]), params.subvolume, params.step)
+    if points is not None:
+        if correct_increments or correct_total:
+            raise ValueError("a series at points cannot be self-corrected (it needs a grid)")
+        if grid is not None:
+            raise ValueError("give a grid or points, not both")
+        if mask is not None and strategy == "incremental":
+            raise ValueError("a mask with points needs the total strategy")
+        result = yield from _points_series(volumes, params, strategy, mask, points)
+        return result
+    if grid is None:
+        grid = grid_for_volume(np.shape(volumes[0]), params.subvolume, params.step)
     result = SeriesResult(strategy=strategy)
     n = len(volumes)
     first = volumes[0]
@@ -212,6 +239,77 @@ def series_iter(
         yield Progress(label, 1, 1, f"mean gray residual {residual:.4g}")
     yield Progress("done", n - 1, n - 1, f"{n - 1} states in {time.perf_counter() - started:.1f} s")
     return result
+
+
+def _points_series(volumes, params, strategy, mask, points):
+    """:func:`series_iter` at points (see the module's docstring)."""
+    points = np.asarray(points, np.float64)
+    result = SeriesResult(strategy=strategy)
+    n = len(volumes)
+    started = time.perf_counter()
+    for k in range(1, n):
+        label = f"state {k}/{n - 1}"
+        state_started = time.perf_counter()
+        yield Progress(label, 0, 1, f"correlating at {len(points)} points")
+        if strategy == "total" or k == 1:
+            total = correlate_points(volumes[0], volumes[k], points, params, mask=mask)
+            if strategy == "incremental":
+                result.increments.append(total.copy())
+        else:
+            previous = result.totals[-1]
+            here = previous.valid
+            if not here.any():
+                raise ValueError(f"state {k}: no point is left to follow (all lost before)")
+            moved = points[here] + previous.u[here]
+            step = correlate_points(volumes[k - 1], volumes[k], moved, params)
+            at = points.copy()
+            at[here] = moved  # the lost points keep their first-state position
+            result.increments.append(_at_all_points(step, at, here))
+            total = _at_all_points(step, points, here)
+            total.u[here] = previous.u[here] + step.u
+            # the deformation gradients multiply: I + ∇U_0→k = (I + ∇u_k−1→k)(I + ∇U_0→k−1)
+            g_prev, g_step = previous.gradient[here], step.gradient
+            total.gradient[here] = g_prev + g_step + g_step @ g_prev
+        total.metadata["series"] = {
+            "state": k,
+            "strategy": strategy,
+            "reference_state": 0,
+            "points": len(points),
+            "seconds": time.perf_counter() - state_started,
+        }
+        result.totals.append(total)
+        yield Progress(label, 1, 1, f"{int(total.valid.sum())} of {len(points)} points matched")
+    yield Progress("done", n - 1, n - 1, f"{n - 1} states in {time.perf_counter() - started:.1f} s")
+    return result
+
+
+def _at_all_points(step: ScatteredField, positions, here) -> ScatteredField:
+    """``step`` (measured at the points ``here`` only) at all ``positions``: NaN and
+    ``NOT_COMPUTED`` at the others."""
+    n = len(positions)
+    u = np.full((n, 3), np.nan)
+    u[here] = step.u
+    zncc = np.full(n, np.nan, np.float32)
+    zncc[here] = step.zncc
+    status = np.full(n, int(Status.NOT_COMPUTED), np.uint8)
+    status[here] = step.status
+    iterations = np.zeros(n, np.int32)
+    iterations[here] = step.iterations
+    gradient = np.full((n, 3, 3), np.nan)
+    gradient[here] = step.gradient
+    provenance = np.full(n, int(Provenance.NOT_COMPUTED), np.uint8)
+    provenance[here] = step.provenance
+    return ScatteredField(
+        points=positions,
+        u=u,
+        zncc=zncc,
+        status=status,
+        iterations=iterations,
+        provenance=provenance,
+        gradient=gradient,
+        params=dict(step.params),
+        metadata=dict(step.metadata),
+    )
 
 
 def _residual(reference, deformed, total: DisplacementField) -> float:

@@ -21,8 +21,9 @@ read volumes (:mod:`..io.lazy`: TIFF, Zarr, .npy...), as Dask tasks on local thr
   (:func:`..engine.phases.lattice_sample`) is gathered block by block.
 
 Equal to :func:`..engine.correction.correct_iter` up to float32 rounding of the regions'
-prefilters and box means, and to what batching changes in the correcting DVC (the noise-aware
-thresholds and the reliability-guided repair work per batch); see ``docs/scaling.md``.
+prefilters and box means, and to what batching changes in the correcting DVC (the
+reliability-guided repair works per batch; the noise-aware thresholds are the whole run's,
+:func:`.correlate.correlate_tiled_iter`); see ``docs/scaling.md``.
 """
 
 from __future__ import annotations

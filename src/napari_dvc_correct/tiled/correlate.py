@@ -17,19 +17,27 @@
    is given its nearest good seed of the whole grid, exactly as
    :func:`..engine.guided_repair.seed_guesses` does in memory (``seeds=`` of
    :func:`.correlate.correlate_iter`); each batch receives the seeds its POIs need.
-3. **Batches**: each box (a ``dask.delayed`` task) reads its region of ``G`` and ``F`` plus a
-   halo and runs :func:`.correlate.correlate_iter` on it — the same pyramid, IC-GN and
-   reliability-guided repair as in memory — with the whole volume's rigid shift, gray statistics
-   and seeds (``rigid_shift``, ``texture_std``, ``seeds``), on its POIs plus ``margin`` layers of
-   neighbouring POIs (default 1), so that the repair and the median test see at the batch's
-   border the neighbours they see in memory (only the batch's own POIs are kept). Every POI
+3. **Batches**, in two tasks each (``dask.delayed``), each reading its region of ``G`` and ``F``
+   plus a halo. The first (:func:`.batches.match_batch`) runs the first half of
+   :func:`.correlate.correlate_iter` (:func:`.correlate.match_iter`: the same pyramid and IC-GN
+   as in memory) with the whole volume's rigid shift, gray statistics and seeds
+   (``rigid_shift``, ``texture_std``, ``seeds``), on its POIs plus ``margin`` layers of
+   neighbouring POIs (default 1). It returns the matched POIs and the noise estimates
+   ``s² (1 − ZNCC)`` of the batch's own POIs. The noise of the scans is then the median over all
+   batches' POIs, exactly the in-memory run's (:func:`..engine.noise.noise_aware_thresholds`).
+   The second task (:func:`.batches.judge_batch`) judges the batch at that noise
+   (:func:`..engine.judge.judge_iter`: thresholds, ``LOW_TEXTURE``, the reliability-guided
+   repair, ``LOW_ZNCC``, the uncertainties), reading the region again only if it repairs a POI
+   or measures an uncertainty again, so that every POI gets the in-memory threshold. The margin lets the repair and the median test see, at the batch's
+   border, the neighbours they see in memory (only the batch's own POIs are kept). Every POI
    starts from its in-memory guess whatever the margin; what differs without a margin is the
    repair at the full resolution, which re-matches a failed POI from its best neighbour, and
    that neighbour may lie in the next batch (measured on a rotation with failing seeds at one
    face, 4x4x10-POI batches: margin 0 left 16 of 1000 POIs up to 3.6e-4 voxel away; margin 1
    gave the in-memory field to 4e-8 voxel, the coarse prefilter at the regions' edges). A
    repair chain that runs more than ``margin`` POIs across a face still differs there.
-4. The batches' results are assembled into one field.
+4. The batches' results are assembled into one field, and the uncertainty bound (a median over
+   the whole run's POIs too, :func:`..engine.noise.uncertainty_bound`) is applied to it.
 
 The halo around a batch's POIs (per side, in voxels) covers the subvolume half-size widened by
 :data:`.memory.STRAIN_ALLOWANCE` for the shape function, the search radius around the rigid shift, the
@@ -50,17 +58,16 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Generator
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..engine.correlate import correlate_iter
 from ..engine.field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
-from ..engine.guided_repair import GivenSeeds
+from ..engine.noise import noise_metadata, uncertainty_bound, zncc_floor
 from ..engine.params import CorrelationParams
 from ..engine.progress import Progress, run_to_completion
 from ..io.lazy import as_lazy
 from . import scheduling
+from .batches import BatchJob, judge_batch, match_batch
 from .memory import (
     _batch_bytes,
     _levels,
@@ -78,127 +85,6 @@ from .whole_volume import combine, volume_tasks
 
 #: Default memory per concurrent batch when neither ``batch_shape`` nor ``max_memory`` is given.
 DEFAULT_BATCH_BYTES = 1 << 30
-
-
-# --- one batch ---------------------------------------------------------------------------------
-@dataclass
-class BatchJob:
-    """What one batch task needs (small; the volumes travel separately)."""
-
-    params: CorrelationParams
-    origin: np.ndarray  # (3,) voxels: first POI of the extended sub-grid
-    step: np.ndarray  # (3,) voxels
-    sub_shape: tuple  # extended sub-grid shape (batch + margin, clipped to the grid)
-    core: tuple  # slices of the batch's own POIs inside the extended sub-grid
-    core_index: np.ndarray  # (m,) flat indices of those POIs in the whole grid
-    region_low: np.ndarray  # (3,) region [low, high) in voxels
-    region_high: np.ndarray
-    shift: np.ndarray | None  # whole-volume rigid shift (None with an initial field)
-    texture_std: dict | None  # whole-volume gray std per binning factor
-    initial_u: np.ndarray | None = None  # (*sub_shape, 3)
-    initial_gradient: np.ndarray | None = None  # (*sub_shape, 3, 3)
-    threads: int | None = None
-    use_mask: bool = False
-    device: str = "cpu"
-    grid_anchor: tuple | None = None  # (whole-grid index of the sub-grid's first POI, grid shape)
-    seeds: GivenSeeds | None = None  # the seed pass's seeds for this sub-grid
-
-    @property
-    def region_voxels(self) -> int:
-        return int(np.prod(self.region_high - self.region_low))
-
-
-@dataclass
-class BatchResult:
-    """The batch's own POIs, flat in C order of its box."""
-
-    core_index: np.ndarray
-    u: np.ndarray
-    gradient: np.ndarray
-    zncc: np.ndarray
-    status: np.ndarray
-    iterations: np.ndarray
-    timings: dict = field(default_factory=dict)
-    uncertainty: np.ndarray | None = None  # (n, 3) voxels, the region's own noise estimate
-
-
-def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchResult:
-    """Correlate one batch in its region with :func:`.correlate.correlate_iter`.
-
-    ``reference``, ``deformed`` and ``mask`` are lazy volumes (:mod:`..io.lazy`).
-    """
-    started = time.perf_counter()
-    if job.threads:
-        import numba
-
-        numba.set_num_threads(max(1, min(int(job.threads), numba.config.NUMBA_NUM_THREADS)))
-    lo, hi = job.region_low, job.region_high
-    region = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
-    g = reference.read_region(region)
-    f = deformed.read_region(region)
-    m = mask.read_region(region) != 0 if job.use_mask and mask is not None else None
-    read_s = time.perf_counter() - started
-    local_origin = tuple(float(v) for v in job.origin - lo)
-    step = tuple(float(v) for v in job.step)
-    grid = (local_origin, step, job.sub_shape)
-    if m is not None and not m.any():  # nothing of the material here: every POI is masked
-        shape = job.sub_shape
-        result = DisplacementField(
-            local_origin,
-            step,
-            np.full((*shape, 3), np.nan),
-            status=np.full(shape, int(Status.MASKED), np.uint8),
-            provenance=np.full(shape, int(Provenance.MASKED), np.uint8),
-            gradient=np.full((*shape, 3, 3), np.nan),
-        )
-    else:
-        initial = None
-        if job.initial_u is not None:
-            initial = DisplacementField(
-                local_origin, step, job.initial_u, gradient=job.initial_gradient
-            )
-        result = run_to_completion(
-            correlate_iter(
-                g,
-                f,
-                job.params,
-                mask=m,
-                grid=grid,
-                initial=initial,
-                rigid_shift=job.shift,
-                texture_std=job.texture_std,
-                device=job.device,
-                grid_anchor=job.grid_anchor,
-                seeds=job.seeds,
-            )
-        )
-    del g, f, m
-    core = job.core
-    gradient = (
-        result.gradient if result.gradient is not None else np.full((*job.sub_shape, 3, 3), np.nan)
-    )
-    timings = {
-        k: v for k, v in result.metadata.get("timings", {}).items() if isinstance(v, (int, float))
-    }
-    iterations = result.iterations[core].reshape(-1)
-    timings.update(
-        read_s=read_s,
-        task_s=time.perf_counter() - started,
-        voxel_iterations=int(iterations.sum()) * job.params.subvolume**3,
-        points=int(len(job.core_index)),
-        computed_points=int(np.prod(job.sub_shape)),
-        region_voxels=job.region_voxels,
-    )
-    return BatchResult(
-        core_index=job.core_index,
-        u=result.u[core].reshape(-1, 3),
-        gradient=gradient[core].reshape(-1, 3, 3),
-        zncc=result.zncc[core].reshape(-1),
-        status=result.status[core].reshape(-1),
-        iterations=iterations,
-        timings=timings,
-        uncertainty=None if result.uncertainty is None else result.uncertainty[core].reshape(-1, 3),
-    )
 
 
 # --- the driver --------------------------------------------------------------------------------
@@ -335,7 +221,7 @@ def correlate_tiled_iter(
     Progress
         The plan (with the estimated peak memory), the whole-volume pass (rigid shift, gray
         statistics), the seed pass (stage ``"seeds"``, one report per box of seeds), one report
-        per batch (stage ``"IC-GN"``).
+        per batch matched (stage ``"IC-GN"``), then one per batch judged (stage ``"repair"``).
 
     Returns
     -------
@@ -501,18 +387,32 @@ def correlate_tiled_iter(
             )
             del seed_results
         seed_seconds = time.perf_counter() - t0
-        task = dask.delayed(match_batch, pure=False)
-        batch_tasks = [task(job, *volumes) for job in jobs]
         n_points = int(np.prod(grid_shape))
+        t0 = time.perf_counter()
+        task = dask.delayed(match_batch, pure=False)
+        matches = [None] * len(jobs)
+        with scheduling.running(
+            [task(job, *volumes) for job in jobs], scheduler, workers, client
+        ) as finished:
+            for done, (i, result) in enumerate(finished, start=1):
+                matches[i] = result
+                yield Progress("IC-GN", done, len(jobs), f"batch {done} of {len(jobs)} matched")
+        # the whole run's noise: the median over every batch's own POIs, as in memory
+        estimates = np.concatenate([m.estimates for m in matches])
+        noise_variance = float(np.median(estimates)) if estimates.size else 0.0
+        del estimates
         u = np.full((n_points, 3), np.nan)
         gradient = np.full((n_points, 3, 3), np.nan)
         zncc = np.full(n_points, np.nan, np.float32)
         status = np.full(n_points, int(Status.NOT_COMPUTED), np.uint8)
         iterations = np.zeros(n_points, np.int32)
         uncertainty = np.full((n_points, 3), np.nan)
+        thresholds = np.full(n_points, float(params.min_zncc))
         totals: dict = {}
-        t0 = time.perf_counter()
-        with scheduling.running(batch_tasks, scheduler, workers, client) as finished:
+        task = dask.delayed(judge_batch, pure=False)
+        judge_tasks = [task(job, m, noise_variance, *volumes) for job, m in zip(jobs, matches)]
+        del matches
+        with scheduling.running(judge_tasks, scheduler, workers, client) as finished:
             for done, (_, result) in enumerate(finished, start=1):
                 index = result.core_index
                 u[index] = result.u
@@ -520,21 +420,33 @@ def correlate_tiled_iter(
                 zncc[index] = result.zncc
                 status[index] = result.status
                 iterations[index] = result.iterations
+                thresholds[index] = result.thresholds
                 if result.uncertainty is not None:
                     uncertainty[index] = result.uncertainty
                 for key, value in result.timings.items():
                     totals[key] = totals.get(key, 0) + value
                 yield Progress(
-                    "IC-GN",
+                    "repair",
                     done,
                     len(jobs),
-                    f"batch {done} of {len(jobs)} ({totals.get('points', 0)} of {n_points} POIs)",
+                    f"batch {done} of {len(jobs)} judged ({totals.get('points', 0)} of "
+                    f"{n_points} POIs)",
                 )
+        del judge_tasks
         batch_seconds = time.perf_counter() - t0
     finally:
         if owns_client:
             client.close()
 
+    # the uncertainty bound over the whole run's POIs, as in memory
+    bound, unsure = uncertainty_bound(uncertainty, status)
+    status[unsure] = int(Status.LOW_ZNCC)
+    noise = {
+        **noise_metadata(noise_variance, thresholds, status, params.min_zncc),
+        "zncc_threshold_floor": zncc_floor(params.order, params.subvolume),
+        "uncertainty_bound": bound,
+        "uncertain": int(unsure.sum()),
+    }
     provenance = np.full(n_points, int(Provenance.MEASURED), np.uint8)
     provenance[status == int(Status.MASKED)] = int(Provenance.MASKED)
     matched = totals.get("points", 0)
@@ -567,6 +479,7 @@ def correlate_tiled_iter(
             "pyramid_levels": int(levels),
             "timings": timings,
             "masked": masked,
+            "noise": noise,
             "tiled": {
                 "batch_shape": list(batch_shape),
                 "batches": len(jobs),

@@ -49,6 +49,11 @@ BYTES_PER_BATCH_POINT = 1200
 #: Bytes per POI of the assembled field (u, gradient, zncc, status... and the collected results).
 BYTES_PER_FIELD_POINT = 400
 
+#: Bytes per matched POI held between a batch's two tasks (:func:`.batches.match_batch`: the
+#: shape-function parameters, up to 240 bytes at second order, ZNCC, status, iterations, centre,
+#: variance, power and uncertainty), for every POI of the grid and its batch's margin.
+BYTES_PER_HELD_POINT = 400
+
 #: Bytes per POI of the seed pass's hand-out (:mod:`.correlate`): the nearest-seed search on the
 #: whole grid (about 21) and the seed row of every POI (8), with some room.
 BYTES_PER_SEED_POINT = 40
@@ -228,8 +233,8 @@ def estimate_peak_memory(
     -------
     int
         Bytes: ``workers`` batches (their regions at every pyramid level, the integer search's
-        FFTs, their POIs) plus the assembled field, the seed pass's hand-out and the blocks of
-        the rigid-shift pass. The seed pass's tasks read a box's seeds' region, no larger than
+        FFTs, their POIs) plus the assembled field, the matched POIs held between a batch's two
+        tasks, the seed pass's hand-out and the blocks of the rigid-shift pass. The seed pass's tasks read a box's seeds' region, no larger than
         its batch's, and bin it to the coarsest level: they fit in a batch's estimate.
     """
     params = CorrelationParams() if params is None else params
@@ -247,8 +252,9 @@ def estimate_peak_memory(
     extent = np.minimum(span + reach + 2**levels + 1, volume_shape)
     itemsize = np.dtype(dtype).itemsize
     batch = _batch_bytes(float(np.prod(extent)), int(np.prod(ext)), itemsize, masked, levels)
+    held = BYTES_PER_HELD_POINT * float(np.prod(ext)) / float(np.prod(batch_shape))
     fixed = int(np.prod(grid_shape)) * (
-        BYTES_PER_FIELD_POINT + BYTES_PER_SEED_POINT
+        BYTES_PER_FIELD_POINT + BYTES_PER_SEED_POINT + held
     ) + SHIFT_BLOCK_VOXELS * (2 * (4 + itemsize) + 8)
     return int(max(int(workers), 0) * batch + fixed)
 

@@ -26,7 +26,7 @@ from .memory import _region, halo
 # --- the seed pass ------------------------------------------------------------------------------
 @dataclass
 class SeedJob:
-    """The seeds of the initial guess that fall in one batch's box (small, like :class:`.correlate.BatchJob`)."""
+    """The seeds of the initial guess that fall in one batch's box (small, like :class:`.batches.BatchJob`)."""
 
     params: CorrelationParams
     rows: np.ndarray  # (S,) rows of these seeds in the whole grid's seed table

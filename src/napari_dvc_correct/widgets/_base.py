@@ -55,6 +55,42 @@ def _guarded(generator: Generator) -> Generator:
         raise EngineError(str(error)) from error
 
 
+def _shown_ahead(generator: Generator, quantity: str | None) -> Generator:
+    """Run ``generator``; then, still in the worker, compute ``quantity`` (what the View panel
+    shows) of the fields it returns, so showing them on the main thread computes no strain."""
+    result = yield from generator
+    if quantity and quantity not in ("|u|", "residual"):
+        from ..quantities import compute_ahead
+
+        for field in _result_fields(result):
+            try:
+                compute_ahead(field, quantity)
+            except ValueError:  # e.g. no uncertainty: the layer keeps its default
+                pass
+    return result
+
+
+def _result_fields(result) -> list:
+    """The grid fields in a panel's result (a correlation, a correction, a list of them)."""
+    from ..engine.field import DisplacementField
+
+    items = result if isinstance(result, list) else [result]
+    found = []
+    for item in items:
+        for entry in [getattr(item, "field", None), *(getattr(item, "fields", None) or [])]:
+            field = entry[1] if isinstance(entry, tuple) and len(entry) == 2 else entry
+            if isinstance(field, DisplacementField):
+                found.append(field)
+    return found
+
+
+def _visible_quantity(viewer) -> str | None:
+    from ..layers import plugin_metadata, quantity_layers
+
+    shown = next((x for x in quantity_layers(viewer) if x.visible), None)
+    return plugin_metadata(shown).get("quantity") if shown is not None else None
+
+
 def follow_layers(viewer, widget, callback: Callable, moves: bool = False) -> None:
     """Call ``callback`` when layers are added or removed (and moved), until ``widget`` is deleted.
 
@@ -296,6 +332,8 @@ class EngineWidget(QWidget):
         """Run ``generator`` in a thread worker wired to this panel's slots."""
         # errored handled here: without it superqt re-raises the error on the main thread (a
         # traceback notification in napari, an abort in a plain Qt host)
+        quantity = _visible_quantity(self.viewer) if self.viewer is not None else None
+        generator = _shown_ahead(generator, quantity)
         worker = create_worker(
             _guarded, generator, _start_thread=False, _connect={"errored": self._on_errored}
         )
@@ -370,3 +408,92 @@ class Debouncer:
         if self.timer.isActive():
             self.timer.stop()
             self.timer.timeout.emit()
+
+
+class LatestWorker:
+    """Derived values computed off the main thread, where only the latest request counts.
+
+    :meth:`start` runs a generator function in a thread worker (signals connected before it
+    starts, an ``errored`` handler always). A new :meth:`start` supersedes the running one: that
+    one is asked to stop at its next ``yield`` (a computation between two yields cannot be
+    interrupted) and its later results reach ``on_yielded`` with ``current=False`` (to be cached,
+    not shown); its ``returned`` and errors are dropped. Layers are touched only in the slots,
+    which run on the main thread.
+
+    Parameters
+    ----------
+    on_error : callable(str)
+        Shows the one-line message of an error of the latest computation.
+    """
+
+    def __init__(self, on_error: Callable[[str], None]) -> None:
+        self.on_error = on_error
+        self.generation = 0
+        self.worker: GeneratorWorker | None = None
+
+    @property
+    def busy(self) -> bool:
+        """True while the latest computation runs."""
+        return self.worker is not None
+
+    def start(
+        self,
+        function: Callable[..., Generator],
+        *args,
+        on_yielded: Callable | None = None,
+        on_returned: Callable | None = None,
+    ) -> GeneratorWorker:
+        """Run ``function(*args)`` (a generator function) in a worker; returns the worker.
+
+        ``on_yielded(value, current)`` gets every yielded value; ``on_returned(value)`` the
+        return value, only if no later :meth:`start` came.
+        """
+        self.cancel()
+        self.generation += 1
+        generation = self.generation
+
+        def current() -> bool:
+            return generation == self.generation
+
+        def yielded(value) -> None:
+            if on_yielded is not None:
+                _unless_closed(on_yielded, value, current())
+
+        def returned(value) -> None:
+            if on_returned is not None and current():
+                _unless_closed(on_returned, value)
+
+        def errored(error: Exception) -> None:
+            if not isinstance(error, ValueError):
+                log.error("computing for display failed", exc_info=(type(error), error, None))
+            if current():
+                _unless_closed(self.on_error, one_line(error))
+
+        def finished() -> None:
+            if self.worker is worker:
+                self.worker = None
+
+        worker = create_worker(
+            _guarded, function(*args), _start_thread=False, _connect={"errored": errored}
+        )
+        worker.yielded.connect(yielded)
+        worker.returned.connect(returned)
+        worker.finished.connect(finished)
+        self.worker = worker
+        worker.start()
+        return worker
+
+    def cancel(self) -> None:
+        """Stop the running computation at its next yield; nothing of it is shown."""
+        self.generation += 1
+        if self.worker is not None:
+            self.worker.quit()
+            self.worker = None
+
+
+def _unless_closed(callback: Callable, *args) -> None:
+    try:
+        callback(*args)
+    except RuntimeError as error:  # the dock was closed while the worker ran
+        if "deleted" not in str(error):
+            raise

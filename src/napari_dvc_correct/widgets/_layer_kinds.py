@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from napari.layers import Image, Labels, Shapes
+from napari.layers import Image, Labels, Points, Shapes
 
 from .. import layers as L
 
@@ -27,3 +27,8 @@ def is_scan(layer) -> bool:
 def is_mask(layer) -> bool:
     """A layer that can serve as a region: labels or shapes the user made."""
     return isinstance(layer, (Labels, Shapes)) and not made_by_us(layer)
+
+
+def is_user_points(layer) -> bool:
+    """A Points layer the user made (points of interest), not one of our previews or results."""
+    return isinstance(layer, Points) and not made_by_us(layer)

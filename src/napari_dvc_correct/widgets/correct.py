@@ -2,13 +2,27 @@
 
 from __future__ import annotations
 
-from qtpy.QtWidgets import QComboBox, QSpinBox, QTableWidget, QTableWidgetItem
+from qtpy.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QHBoxLayout,
+    QLineEdit,
+    QSpinBox,
+    QTableWidget,
+    QTableWidgetItem,
+)
 
 from .. import layers as L
 from . import correct_model as model
 from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
 from ._layer_kinds import is_scan
-from .correlate_model import layer_placement, layer_volume, named_volume
+from .correlate_model import (
+    check_tiled,
+    layer_placement,
+    layer_volume,
+    named_volume,
+    suggest_tiled,
+)
 from .regions import RegionBox
 
 
@@ -37,6 +51,20 @@ class CorrectWidget(EngineWidget):
         self.form.addRow("Frame", self.frame)
         self.form.addRow("Update", self.update_rule)
         self.form.addRow("Passes (at most)", self.max_passes)
+        self.tiled = QCheckBox("out of core (tiled)")
+        self.tiled.setToolTip(
+            "Warps and correlates block by block through temporary Zarr arrays, for scans "
+            "larger than memory or opened lazily (Dask/Zarr; then ticked by itself). A pair."
+        )
+        self.max_memory = QLineEdit()
+        self.max_memory.setPlaceholderText("memory: auto")
+        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB")
+        self.max_memory.setEnabled(False)  # until out of core is ticked
+        self.tiled.toggled.connect(self.max_memory.setEnabled)
+        tiled_row = QHBoxLayout()
+        tiled_row.addWidget(self.tiled)
+        tiled_row.addWidget(self.max_memory)
+        self.form.addRow(tiled_row)
         self.region = RegionBox(self.viewer)  # masked nodes keep their input values
         self.controls.addWidget(self.region)
         self.reference.currentIndexChanged.connect(self._reference_changed)
@@ -91,6 +119,8 @@ class CorrectWidget(EngineWidget):
         if layer is not None and layer.ndim in (3, 4):
             volume = layer_volume(layer, 0 if layer.ndim == 4 else None)
             self.region.set_volume(volume.shape, volume)
+            if layer.ndim == 3:  # a lazily backed or very large scan: out of core
+                self.tiled.setChecked(suggest_tiled([volume]))
 
     def _mask(self, volume, layer=None):
         """The region's mask for the volumes of ``volume`` (None: the whole volume)."""
@@ -137,8 +167,12 @@ class CorrectWidget(EngineWidget):
                 "volumes of the same shape"
             )
         mask = self._mask(g, reference)
+        tiled = self.tiled.isChecked()
+        memory = check_tiled("pair", None, self.max_memory.text()) if tiled else None
         self.table.setRowCount(0)
-        return model.run_correction(g, f, chosen, mask=mask, **self._options())
+        return model.run_correction(
+            g, f, chosen, mask=mask, tiled=tiled, max_memory=memory, **self._options()
+        )
 
     def settings(self) -> dict:
         """The panel's options, JSON-friendly (for a session file)."""
@@ -147,6 +181,8 @@ class CorrectWidget(EngineWidget):
             "update": self.update_rule.currentData(),
             "max_passes": self.max_passes.value(),
             "region": self.region.settings(),
+            "tiled": self.tiled.isChecked(),
+            "max_memory": self.max_memory.text(),
         }
 
     def restore(self, settings: dict) -> None:
@@ -155,6 +191,8 @@ class CorrectWidget(EngineWidget):
             if index >= 0:
                 combo.setCurrentIndex(index)
         self.max_passes.setValue(int(settings.get("max_passes", self.max_passes.value())))
+        self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
+        self.max_memory.setText(str(settings.get("max_memory", "")))
         if "region" in settings:
             self.region.restore(settings["region"])
 

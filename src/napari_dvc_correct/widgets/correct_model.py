@@ -34,23 +34,28 @@ def run_correction(
     update: str = "exact",
     max_passes: int = 3,
     mask=None,
+    tiled: bool = False,
+    max_memory: str | None = None,
 ):
     """Generator for the panel's worker: the self-correction of ``field``, then its strain.
 
     The DVC parameters are those that produced ``field`` (the paper's point: no new
-    parameter). Returns a :class:`CorrectionResult`.
+    parameter). With ``tiled`` the correction runs out of core
+    (:func:`..tiled.correction.correct_tiled_iter`: the volumes read and warped block by block
+    into temporary Zarr arrays, removed at the end or on cancel), within ``max_memory``
+    (``"4GB"``...; None = automatic). Returns a :class:`CorrectionResult`.
     """
-    from ..engine.correction import correct_iter
+    options = {"frame": frame, "update": update, "max_passes": int(max_passes), "mask": mask}
+    if tiled:
+        from ..tiled.correction import correct_tiled_iter
 
-    corrected = yield from correct_iter(
-        reference,
-        deformed,
-        field,
-        frame=frame,
-        update=update,
-        max_passes=int(max_passes),
-        mask=mask,
-    )
+        corrected = yield from correct_tiled_iter(
+            reference, deformed, field, max_memory=max_memory, **options
+        )
+    else:
+        from ..engine.correction import correct_iter
+
+        corrected = yield from correct_iter(reference, deformed, field, **options)
     for key in ("voxel_size", "offset", "reference_layer", "deformed_layer"):
         if key in field.metadata:
             corrected.metadata[key] = field.metadata[key]

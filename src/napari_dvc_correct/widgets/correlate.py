@@ -10,20 +10,21 @@ from qtpy.QtWidgets import (
     QCheckBox,
     QComboBox,
     QDoubleSpinBox,
-    QGroupBox,
     QHBoxLayout,
     QLabel,
+    QLineEdit,
     QListWidget,
     QListWidgetItem,
     QSpinBox,
-    QVBoxLayout,
 )
 
 from .. import layers as L
+from .. import point_layers as P
 from . import correlate_model as model
-from . import regions_model
+from . import points_model, regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
-from ._layer_kinds import is_mask, is_scan, layer_role
+from ._layer_kinds import is_mask, is_scan, is_user_points, layer_role
+from .poi_readout import PoiReadout, poi_readout_box
 from .regions import RegionBox
 
 MODES = {
@@ -31,11 +32,15 @@ MODES = {
     "series4d": "Series: one 4-D layer (state, z, y, x)",
     "series": "Series: several layers (in list order)",
 }
+PLACEMENTS = {
+    "grid": "regular grid (one POI every Step)",
+    "points": "the points of a Points layer",
+}
 PREVIEW_POINTS = "POI grid (preview)"
 PREVIEW_BOX = "subvolume (preview)"
 
 
-class CorrelateWidget(EngineWidget):
+class CorrelateWidget(PoiReadout, EngineWidget):
     """Run DVC between two scans (or along a scan series) and show the field as layers."""
 
     run_text = "Run DVC"
@@ -79,6 +84,21 @@ class CorrelateWidget(EngineWidget):
         self.search_radius.setSpecialValueText("auto")
         self.search_radius.setSuffix(" vx")
         self.search_radius.setToolTip("Largest displacement to search for; 0 = auto")
+        self.placement = QComboBox()
+        for key, text in PLACEMENTS.items():
+            self.placement.addItem(text, key)
+        self.placement.setToolTip(
+            "Where the points of interest are: a grid over the volume (or the region), or the "
+            "points of a napari Points layer drawn over the scans (a pair only; the Step then "
+            "sets the grid of the initial guess around them)"
+        )
+        self.points = LayerCombo(self.viewer, is_user_points)
+        self.points.setToolTip(
+            "A Points layer with 3-D points (z, y, x) over the reference scan; each point is "
+            "matched at its nearest voxel and its subvolume must fit inside the volume"
+        )
+        self.form.addRow("POIs", self.placement)
+        self.form.addRow("Points layer", self.points)
         self.form.addRow("Subvolume", self.subvolume)
         self.form.addRow("Step", self.step)
         self.form.addRow("Shape function", self.order)
@@ -105,6 +125,21 @@ class CorrelateWidget(EngineWidget):
         voxel_row.addWidget(self.voxel_size)
         voxel_row.addWidget(self.unit)
         self.form.addRow("Voxel size", voxel_row)
+        self.tiled = QCheckBox("out of core (tiled)")
+        self.tiled.setToolTip(
+            "For scans larger than memory or opened lazily (Dask/Zarr): the field is the "
+            "in-memory one (to ~1e-7 voxel), measured in batches that fit the memory limit; "
+            "ticked by itself for such scans. A pair, on the grid."
+        )
+        self.max_memory = QLineEdit()
+        self.max_memory.setPlaceholderText("memory: auto")
+        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB or 800MB")
+        self.max_memory.setEnabled(False)  # until out of core is ticked
+        self.tiled.toggled.connect(self.max_memory.setEnabled)
+        tiled_row = QHBoxLayout()
+        tiled_row.addWidget(self.tiled)
+        tiled_row.addWidget(self.max_memory)
+        self.form.addRow(tiled_row)
         self.preview = QCheckBox("preview the POI grid and one subvolume")
         self.preview.setChecked(True)
         self.form.addRow(self.preview)
@@ -114,12 +149,8 @@ class CorrelateWidget(EngineWidget):
         self.region = RegionBox(self.viewer)
         self.controls.addWidget(self.region)
 
-        self.poi_box = QGroupBox("Clicked POI")
-        poi_layout = QVBoxLayout(self.poi_box)
-        self.poi_label = QLabel("Click a point of the field to see its values.")
-        self.poi_label.setWordWrap(True)
-        self.poi_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
-        poi_layout.addWidget(self.poi_label)
+        self.region.failed.connect(self.estimate_label.setText)
+        self.poi_box, self.poi_label = poi_readout_box()
         self.body.addWidget(self.poi_box)
 
         self._update = Debouncer(self.update_preview, 200, self)
@@ -132,11 +163,16 @@ class CorrelateWidget(EngineWidget):
             self.order.currentIndexChanged,
             self.search_radius.valueChanged,
             self.preview.toggled,
+            self.tiled.toggled,
             self.series_list.itemChanged,
+            self.placement.currentIndexChanged,
             *self.region.changed_signals(),
         ):
             signal.connect(self._update.trigger)
         self.mode.currentIndexChanged.connect(self._mode_changed)
+        self.placement.currentIndexChanged.connect(self._mode_changed)
+        self.points.currentIndexChanged.connect(self._points_edited)
+        self._watched_points: set = set()
         self.reference.currentIndexChanged.connect(self._show_voxel_size)
         self._voxel_edited = False
         self.voxel_size.valueChanged.connect(lambda *a: setattr(self, "_voxel_edited", True))
@@ -167,6 +203,7 @@ class CorrelateWidget(EngineWidget):
         label = self.form.labelForField(self.reference)
         if label is not None:
             label.setText("4-D series" if mode == "series4d" else "Reference (G)")
+        self.points.setEnabled(self.placement.currentData() == "points")
 
     def _layers_changed(self, event=None) -> None:
         """Pick sensible inputs: the roles the sample data declares, else two different images."""
@@ -184,7 +221,18 @@ class CorrelateWidget(EngineWidget):
         if self.current_mode == "pair":
             pair_in_order(self.reference, self.deformed, event)
         self._refresh_series_list(images)
-        if inserted is None or is_scan(inserted) or is_mask(inserted):
+        for layer in self.points.layers():  # moving or adding a point updates the estimate
+            if id(layer) not in self._watched_points:
+                layer.events.data.connect(self._points_edited)
+                self._watched_points.add(id(layer))
+        if inserted is not None and is_user_points(inserted):
+            self.points.set_layer(inserted)
+        poi_input = self.placement.currentData() == "points" and is_user_points(inserted)
+        if inserted is None or is_scan(inserted) or is_mask(inserted) or poi_input:
+            self._update.trigger()
+
+    def _points_edited(self, event=None) -> None:
+        if self.placement.currentData() == "points":
             self._update.trigger()
 
     def _scans(self) -> list:
@@ -199,10 +247,13 @@ class CorrelateWidget(EngineWidget):
         return [x for x in chosen if x is not None]
 
     def _show_voxel_size(self, *args) -> None:
-        """Show the reference layer's voxel size (its scale along x) and unit."""
+        """Show the reference layer's voxel size (its scale along x) and unit; tick 'out of
+        core' for a lazily backed or very large scan."""
         layer = self.reference.layer()
         if layer is None:
             return
+        if layer.ndim == 3:
+            self.tiled.setChecked(model.suggest_tiled([model.layer_volume(layer)]))
         if layer.ndim in (3, 4):  # the region's defaults follow the scans' size
             self.region.set_volume(
                 layer.data.shape[-3:], model.layer_volume(layer, 0 if layer.ndim == 4 else None)
@@ -328,6 +379,9 @@ class CorrelateWidget(EngineWidget):
         mask = self.region.mask(volumes[0].shape, volumes[0], (voxel_size, offset))
         kept = None if mask is None else regions_model.check_kept(mask, params)
         voxel_size, offset = model.layer_placement(reference)
+        points, points_layer = self._points(reference, strategy, volumes[0].shape, params)
+        tiled = self.tiled.isChecked()
+        memory = model.check_tiled(strategy, points, self.max_memory.text()) if tiled else None
         return model.CorrelationJob(
             volumes=volumes,
             params=params,
@@ -340,7 +394,20 @@ class CorrelateWidget(EngineWidget):
             device=self.device.currentData(),
             unit=self.unit.currentData() or None,
             kept=kept,
+            points=points,
+            points_layer=points_layer,
+            tiled=tiled,
+            max_memory=memory,
         )
+
+    def _points(self, reference, strategy, shape, params):
+        """The chosen points of interest in reference voxels and their layer's name, or
+        ``(None, "")`` for the grid; ValueError when they cannot be used."""
+        if self.placement.currentData() != "points":
+            return None, ""
+        layer = self.points.layer()
+        points = points_model.job_points(layer, reference, strategy, shape, params)
+        return points, layer.name
 
     # -- sessions -------------------------------------------------------------------------------
     def settings(self) -> dict:
@@ -359,6 +426,10 @@ class CorrelateWidget(EngineWidget):
             "device": self.device.currentData(),
             "unit": self.unit.currentData(),
             "region": self.region.settings(),
+            "placement": self.placement.currentData(),
+            "tiled": self.tiled.isChecked(),
+            "max_memory": self.max_memory.text(),
+            "points": self.points.currentText(),
         }
 
     def restore(self, settings: dict) -> None:
@@ -368,13 +439,17 @@ class CorrelateWidget(EngineWidget):
             (self.strategy, "strategy"),
             (self.order, "order"),
             (self.device, "device"),
+            (self.placement, "placement"),
         ):
             if key in settings and combo.findData(settings[key]) >= 0:
                 combo.setCurrentIndex(combo.findData(settings[key]))
         self.reference.set_layer(settings.get("reference", ""))
         self.deformed.set_layer(settings.get("deformed", ""))
+        self.points.set_layer(settings.get("points", ""))
         self.set_series_layers(settings.get("series", []))
         self.correct_states.setChecked(bool(settings.get("correct_states", False)))
+        self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
+        self.max_memory.setText(str(settings.get("max_memory", "")))
         for box, key in ((self.subvolume, "subvolume"), (self.step, "step")):
             if key in settings:
                 box.setValue(int(settings[key]))
@@ -389,11 +464,29 @@ class CorrelateWidget(EngineWidget):
 
     # -- preview and estimate ------------------------------------------------------------------
     def update_preview(self) -> None:
-        """Redraw the POI grid preview and the estimate (debounced from every change)."""
+        """Redraw the POI grid preview and the estimate (debounced from every change).
+
+        A region's mask is computed in a worker first (a threshold with pores filled takes
+        seconds on a large scan); the preview follows when it is ready."""
+        scans = [x for x in self._scans() if x.ndim in (3, 4)]
+        if scans:  # (the reference, or state 0 of a 4-D series: what job() measures on)
+            volume = model.layer_volume(scans[0], 0 if scans[0].ndim == 4 else None)
+            self.region.set_volume(volume.shape, volume)
+            if self.region.compute_ahead(volume, self.update_preview):
+                self.estimate_label.setText("computing the region's mask…")
+                return
         try:
             job = self.job()
         except ValueError as error:
             self.estimate_label.setText(one_line(error))
+            self._set_preview_visible(False)
+            return
+        if job.points is not None:
+            self.estimate_label.setText(
+                f"{len(job.points):,} points of interest from '{job.points_layer}', each with "
+                f"its {job.params.subvolume}³ subvolume inside the volume; initial guess on a "
+                f"grid of step {job.params.step} around them"
+            )
             self._set_preview_visible(False)
             return
         estimate = model.estimate_run(job.shape, job.params, n_pairs=len(job.volumes) - 1)
@@ -471,6 +564,9 @@ class CorrelateWidget(EngineWidget):
         model.record_timing(time.perf_counter() - started, shape, params, n_pairs)
         self._set_preview_visible(False)
         placement = {"voxel_size": result.voxel_size, "offset": result.offset}
+        if result.fields and result.fields[0][0] == "points":
+            self.show_message(P.show_points(self.viewer, result.fields[0][1], placement))
+            return
         if len(result.fields) == 1:
             source, field = result.fields[0]
             L.show_field(self.viewer, L.field_layers(field, source, **placement))
@@ -483,40 +579,3 @@ class CorrelateWidget(EngineWidget):
             counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
             lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
         self.show_message("Done: " + "; ".join(lines) + ".")
-
-    # -- clicked POI --------------------------------------------------------------------------
-    def _field_layer(self):
-        """The field layer whose values a click shows: the selected one, else the topmost."""
-        active = self.viewer.layers.selection.active
-        if active is not None and L.field_of(active) is not None:
-            return active
-        for layer in reversed(self.viewer.layers):
-            if L.field_of(layer) is not None and layer.visible:
-                return layer
-        return None
-
-    def inspect(self, world_position) -> dict | None:
-        """Show the values of the node nearest to ``world_position`` (z, y, x world units)."""
-        layer = self._field_layer()
-        if layer is None:
-            return None
-        field = L.field_of(layer)
-        entry = L.plugin_metadata(layer)
-        voxel_size = np.asarray(field.metadata.get("voxel_size", (1, 1, 1)), float)
-        offset = np.asarray(field.metadata.get("offset", (0, 0, 0)), float)
-        position = (np.asarray(world_position, float)[-3:] - offset) / voxel_size
-        index = model.nearest_node(field, position)
-        if index is None:
-            return None
-        values = model.describe_poi(field, index)
-        self.poi_label.setText(model.poi_text(values, entry.get("source", "")))
-        return values
-
-    def _on_click(self, viewer, event) -> None:
-        if event.type != "mouse_press" or event.button != 1:
-            return
-        try:
-            self.inspect(event.position)
-        except RuntimeError:  # the dock was closed: stop listening
-            if self._on_click in viewer.mouse_drag_callbacks:
-                viewer.mouse_drag_callbacks.remove(self._on_click)

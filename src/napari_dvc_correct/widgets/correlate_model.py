@@ -13,6 +13,7 @@ import numpy as np
 
 from ..engine.field import DisplacementField, Provenance, Status, grid_for_volume
 from ..engine.params import CorrelationParams
+from ..engine.progress import Progress
 from ..tiled.memory import format_bytes
 
 #: Cost of one IC-GN iteration per subvolume voxel (seconds, one core; see :func:`estimate_run`).
@@ -53,6 +54,16 @@ class CorrelationJob:
         Length unit of ``voxel_size`` (``"µm"``...), None for plain voxels.
     kept : regions_model.Kept or None
         How many POIs the region keeps (None for the whole volume).
+    points : ndarray (N, 3) or None
+        Points of interest in reference voxel indices (z, y, x), fractional allowed
+        (:func:`points_in_voxels`); None for the regular grid. A pair only.
+    points_layer : str
+        Name of the Points layer they come from.
+    tiled : bool
+        Out of core (:func:`..tiled.correlate.correlate_tiled_iter`): the scans are read block
+        by block, never whole (for lazily backed layers, or scans larger than memory). A pair.
+    max_memory : str or None
+        Peak memory of a tiled run (``"4GB"``...); None = about 1 GiB per concurrent batch.
     device : {"auto", "cpu", "cuda"}
         Where IC-GN runs for a pair (:func:`..engine.backend.select_device`); scan series run on
         the CPU.
@@ -69,6 +80,10 @@ class CorrelationJob:
     device: str = "auto"
     unit: str | None = None
     kept: object = None
+    points: np.ndarray | None = None
+    points_layer: str = ""
+    tiled: bool = False
+    max_memory: str | None = None
 
     @property
     def shape(self) -> tuple:
@@ -98,6 +113,14 @@ def _finish(field: DisplacementField, job: CorrelationJob, names) -> Displacemen
 
 
 def run_job(job: CorrelationJob):
+    """Generator run by the panel's worker: the grid run (:func:`run_grid_job`) or, when the
+    job has points, :func:`run_points_job`."""
+    if job.points is not None:
+        return (yield from run_points_job(job))
+    return (yield from run_grid_job(job))
+
+
+def run_grid_job(job: CorrelationJob):
     """Generator run by the panel's worker: yields Progress, returns a :class:`CorrelationResult`.
 
     A pair gives one field, source ``"uncorrected"``; a series gives one field per state after
@@ -107,7 +130,20 @@ def run_job(job: CorrelationJob):
     from ..engine.correlate import correlate_iter
 
     results = []
-    if job.strategy == "pair":
+    if job.strategy == "pair" and job.tiled:
+        from ..tiled.correlate import correlate_tiled_iter
+
+        field = yield from correlate_tiled_iter(
+            job.volumes[0],
+            job.volumes[1],
+            job.params,
+            mask=job.mask,
+            max_memory=job.max_memory,
+            device=job.device,
+        )
+        field = _finish(field, job, job.names)
+        results.append(("uncorrected", field))
+    elif job.strategy == "pair":
         field = yield from correlate_iter(
             job.volumes[0], job.volumes[1], job.params, mask=job.mask, device=job.device
         )
@@ -121,6 +157,80 @@ def run_job(job: CorrelationJob):
             source = f"state {k} ({job.strategy}{suffix})"
             results.append((source, field))
     return CorrelationResult(results, job.voxel_size, job.offset)
+
+
+def run_points_job(job: CorrelationJob):
+    """DVC at the job's points (:func:`..engine.correlate_points.correlate_points`).
+
+    The guide field (the initial guess of every point) is correlated first on a grid of the
+    job's step over the points' bounding box, with progress and cancel; then IC-GN runs at each
+    point. Returns a :class:`CorrelationResult` with one ``("points", ScatteredField)``; the
+    field's metadata says where it belongs (voxel size, offset, layers).
+    """
+    from ..engine.correlate import correlate_iter
+    from ..engine.correlate_points import correlate_points
+    from ..engine.placement import Box, grid_for_region
+
+    params, points = job.params, np.asarray(job.points, dtype=np.float64)
+    reference, deformed = job.volumes[0], job.volumes[1]
+    from .points_model import check_points
+
+    check_points(points, job.shape, params.subvolume, job.points_layer)
+    lo = points.min(axis=0) - params.step  # as correlate_points' own guide
+    hi = points.max(axis=0) + params.step + 1
+    grid = grid_for_region(reference.shape, params.subvolume, params.step, Box(lo, hi))
+    guide = yield from correlate_iter(
+        reference, deformed, params, mask=job.mask, grid=grid, device=job.device
+    )
+    yield Progress("IC-GN at the points", 0, len(points), f"{len(points)} points")
+    result = correlate_points(
+        reference, deformed, points, params, mask=job.mask, guide=guide, device=job.device
+    )
+    result.metadata.update(
+        voxel_size=list(job.voxel_size),
+        offset=list(job.offset),
+        reference_layer=job.names[0],
+        deformed_layer=job.names[1],
+        points_layer=job.points_layer,
+    )
+    if job.unit:
+        result.metadata["unit"] = job.unit
+    return CorrelationResult([("points", result)], job.voxel_size, job.offset)
+
+
+def is_lazy(volume) -> bool:
+    """True for a volume napari shows lazily (a Dask or Zarr array, a memory map): one that the
+    in-memory run would read whole."""
+    return not isinstance(volume, np.ndarray) or isinstance(volume, np.memmap)
+
+
+def suggest_tiled(volumes, memory: int | None = None) -> bool:
+    """Whether a run should be out of core: a lazy scan, or in-memory working copies
+    (:func:`estimate_run`'s 6 float32 per voxel) above half the available ``memory``."""
+    from ..tiled.memory import available_memory
+
+    if any(is_lazy(v) for v in volumes):
+        return True
+    voxels = float(np.prod(volumes[0].shape)) if volumes else 0.0
+    memory = available_memory() if memory is None else memory
+    return voxels * 4 * 6 > 0.5 * memory
+
+
+def check_tiled(job_strategy: str, points, max_memory: str | None) -> str | None:
+    """Refuse what a tiled run does not do; the memory limit checked (None = automatic)."""
+    if job_strategy != "pair":
+        raise ValueError("an out-of-core run correlates a pair: for a series, untick 'out of core'")
+    if points is not None:
+        raise ValueError(
+            "points of interest run in memory: untick 'out of core' or use the regular grid"
+        )
+    text = (max_memory or "").strip()
+    if text in ("", "auto"):
+        return None
+    from ..tiled.memory import parse_memory
+
+    parse_memory(text)  # raises ValueError with the accepted forms
+    return text
 
 
 def run_series(job: CorrelationJob):

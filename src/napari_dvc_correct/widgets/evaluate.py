@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
+    QCheckBox,
     QComboBox,
     QHBoxLayout,
     QLabel,
+    QLineEdit,
     QListWidget,
     QListWidgetItem,
     QPushButton,
@@ -17,10 +19,24 @@ from superqt import QDoubleRangeSlider
 
 from .. import layers as L
 from . import evaluate_model as model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from ._base import (
+    Debouncer,
+    EngineWidget,
+    LatestWorker,
+    LayerCombo,
+    follow_layers,
+    one_line,
+    pair_in_order,
+)
 from ._layer_kinds import is_scan
 from ._plots import CurvesCanvas, HistogramCanvas
-from .correlate_model import layer_placement, layer_volume, named_volume
+from .correlate_model import (
+    check_tiled,
+    layer_placement,
+    layer_volume,
+    named_volume,
+    suggest_tiled,
+)
 
 MODES = {
     "reference": "reference frame: |F(X + u) − G(X)|",
@@ -46,6 +62,21 @@ class EvaluateWidget(EngineWidget):
         for key, text in MODES.items():
             self.mode.addItem(text, key)
         self.form.addRow("Residual", self.mode)
+        self.tiled = QCheckBox("out of core (tiled)")
+        self.tiled.setToolTip(
+            "Reads the scans block by block and writes each residual to a temporary Zarr "
+            "array (shown lazily), for scans larger than memory or opened lazily (then ticked "
+            "by itself). Same numbers as in memory. A pair, not a series."
+        )
+        self.max_memory = QLineEdit()
+        self.max_memory.setPlaceholderText("memory: auto")
+        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB")
+        self.max_memory.setEnabled(False)  # until out of core is ticked
+        self.tiled.toggled.connect(self.max_memory.setEnabled)
+        tiled_row = QHBoxLayout()
+        tiled_row.addWidget(self.tiled)
+        tiled_row.addWidget(self.max_memory)
+        self.form.addRow(tiled_row)
 
         self.n_phases = QSpinBox()
         self.n_phases.setRange(2, 8)
@@ -77,6 +108,7 @@ class EvaluateWidget(EngineWidget):
         # when the panel opens with automatic thresholds
         self.show_phases = False
         self._live = Debouncer(self.update_phases, 150, self)
+        self._phases_worker = LatestWorker(self.phase_label.setText)
         self.slider.valueChanged.connect(self._thresholds_moved)
         self.slider.sliderPressed.connect(self._enable_phases)
         self.n_phases.valueChanged.connect(self.auto_thresholds)
@@ -135,6 +167,7 @@ class EvaluateWidget(EngineWidget):
             return
         self._volume_key = key
         volume = self._volume(self.reference, "reference")
+        self.tiled.setChecked(suggest_tiled([volume]))
         counts, edges = model.gray_histogram(volume)
         self.histogram.set_histogram(counts, edges)
         self.slider.blockSignals(True)
@@ -149,18 +182,22 @@ class EvaluateWidget(EngineWidget):
             "n_phases": self.n_phases.value(),
             "thresholds": self.thresholds(),
             "mode": self.mode.currentData(),
+            "tiled": self.tiled.isChecked(),
+            "max_memory": self.max_memory.text(),
         }
 
     def restore(self, settings: dict) -> None:
         index = self.mode.findData(settings.get("mode"))
         if index >= 0:
             self.mode.setCurrentIndex(index)
+        self.max_memory.setText(str(settings.get("max_memory", "")))
         self.n_phases.blockSignals(True)  # no automatic thresholds over the saved ones
         self.n_phases.setValue(int(settings.get("n_phases", self.n_phases.value())))
         self.n_phases.blockSignals(False)
         self._reference_changed()
         if settings.get("thresholds"):
             self.set_thresholds(settings["thresholds"], show=False)
+        self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
 
     # -- thresholds and live phases -----------------------------------------------------------
     def thresholds(self) -> list[float]:
@@ -193,19 +230,39 @@ class EvaluateWidget(EngineWidget):
         self.histogram.set_thresholds(values)
         self._live.trigger()
 
-    def update_phases(self) -> None:
-        """Recompute the phase labels and per-phase mean gray (debounced from the slider)."""
+    def update_phases(self):
+        """Recompute the phase labels and per-phase mean gray (debounced from the slider).
+
+        The labels of the whole volume are computed in a worker (returned; None when the
+        choice is bad); a newer threshold supersedes it, and the layer follows the latest.
+        """
         try:
             layer = self.reference.layer()
             volume = self._volume(self.reference, "reference")
-            preview = model.phase_preview(volume, self.thresholds())
+            thresholds = self.thresholds()
+            model.check_thresholds(thresholds)
         except ValueError as error:
+            self._phases_worker.cancel()
             self.phase_label.setText(one_line(error))
-            return
+            return None
+        placement = layer_placement(layer)
+        return self._phases_worker.start(
+            _phase_preview,
+            volume,
+            thresholds,
+            on_returned=lambda preview: self._show_phases(preview, placement),
+        )
+
+    @property
+    def phases_busy(self) -> bool:
+        """True while the phase labels of the latest thresholds are computed."""
+        return self._phases_worker.busy
+
+    def _show_phases(self, preview, placement) -> None:
         self.phase_label.setText(preview.text())
         if not self.show_phases:
             return
-        voxel_size, offset = layer_placement(layer)
+        voxel_size, offset = placement
         existing = L.find_layer(self.viewer, "phases")
         if existing is not None:
             existing.data = preview.labels
@@ -229,11 +286,26 @@ class EvaluateWidget(EngineWidget):
             layer_placement(self.reference.layer()) if self.reference.layer() else None
         )
         groups = self._groups(chosen)
+        if len(groups) > 1 and self.tiled.isChecked():
+            raise ValueError(
+                "an out-of-core evaluation takes the fields of one pair: untick 'out of core' "
+                "for the states of a series"
+            )
         if len(groups) > 1:  # a series: each state against its own pair of volumes
             return model.run_groups(groups, self.thresholds(), self.mode.currentData())
         _, reference, deformed, chosen = groups[0]
+        self._outputs, memory = None, None
+        if self.tiled.isChecked():
+            memory = check_tiled("pair", None, self.max_memory.text())
+            self._outputs = model.tiled_outputs(chosen)
         return model.run_evaluation(
-            reference, deformed, chosen, self.thresholds(), self.mode.currentData()
+            reference,
+            deformed,
+            chosen,
+            self.thresholds(),
+            self.mode.currentData(),
+            outputs=self._outputs,
+            max_memory=memory,
         )
 
     def _panel_pair(self):
@@ -279,9 +351,11 @@ class EvaluateWidget(EngineWidget):
         report = model.evaluation_report(evaluation)
         voxel_size, offset = self._placement
         tuples = []
+        outputs = getattr(self, "_outputs", None)
         for item in evaluation.fields:
+            residual = model.open_residual(outputs[item.name]) if outputs else item.residual
             data, kwargs, kind = L.residual_layer(
-                item.residual, item.name, voxel_size=voxel_size, offset=offset
+                residual, item.name, voxel_size=voxel_size, offset=offset
             )
             kwargs["metadata"][L.MARKER]["report"] = report
             tuples.append((data, kwargs, kind))
@@ -289,3 +363,10 @@ class EvaluateWidget(EngineWidget):
         self.summary.setText(model.summary_text(evaluation))
         self.curves.plot(evaluation)
         self.show_message("Evaluation done.")
+
+
+def _phase_preview(volume, thresholds):
+    """Worker: :func:`.evaluate_model.phase_preview` (a generator, so a newer threshold can
+    stop it before it starts). Touches no layer."""
+    yield None
+    return model.phase_preview(volume, thresholds)

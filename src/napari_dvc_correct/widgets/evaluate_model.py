@@ -35,9 +35,16 @@ def gray_histogram(volume: np.ndarray, bins: int = 128) -> tuple[np.ndarray, np.
 
 
 def automatic_thresholds(volume: np.ndarray, n_phases: int) -> np.ndarray:
-    """Multi-Otsu thresholds for ``n_phases`` phases (engine's :func:`auto_thresholds`)."""
-    from ..engine.phases import auto_thresholds
+    """Multi-Otsu thresholds for ``n_phases`` phases (engine's :func:`auto_thresholds`).
 
+    A lazy volume (Dask, Zarr) is read only on the engine's sampling lattice, never whole; the
+    thresholds are the same.
+    """
+    from ..engine.phases import auto_thresholds, otsu_stride
+
+    if not isinstance(volume, np.ndarray):  # a lazy scan: read only the lattice Otsu samples
+        stride = otsu_stride(volume.shape)
+        volume = np.asarray(volume[::stride, ::stride, ::stride])
     return np.asarray(auto_thresholds(volume, int(n_phases)), dtype=np.float64)
 
 
@@ -56,13 +63,19 @@ class PhasePreview:
         )
 
 
+def check_thresholds(thresholds) -> np.ndarray:
+    """The gray thresholds as float64, refused unless one or more and strictly increasing."""
+    values = np.asarray(thresholds, dtype=np.float64)
+    if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
+        raise ValueError(f"thresholds must be strictly increasing, got {list(values)}")
+    return values
+
+
 def phase_preview(volume: np.ndarray, thresholds) -> PhasePreview:
     """Split ``volume`` by increasing ``thresholds``; labels shifted by one for a Labels layer."""
     from ..engine.phases import NO_PHASE, label_phases, phase_table
 
-    values = np.asarray(thresholds, dtype=np.float64)
-    if values.ndim != 1 or values.size < 1 or np.any(np.diff(values) <= 0):
-        raise ValueError(f"thresholds must be strictly increasing, got {list(values)}")
+    values = check_thresholds(thresholds)
     labels = label_phases(volume, values)
     # unassigned (NaN) voxels go to label N, which phase_table leaves out of phases 0..N-1
     table = phase_table(volume, np.where(labels == NO_PHASE, values.size + 1, labels), values)
@@ -88,7 +101,35 @@ def ready_for_evaluation(field: DisplacementField) -> DisplacementField:
     return clean(field, fill_masked=True)
 
 
-def run_evaluation(reference, deformed, fields: dict, thresholds, mode: str = "reference"):
+def tiled_outputs(names, folder=None) -> dict:
+    """Where an out-of-core evaluation writes each field's residual volume (Zarr), by name.
+
+    In a new temporary folder (``dvc-evaluate-*``) unless ``folder`` is given; the residual
+    layers read these files lazily, so they stay until the folder is removed.
+    """
+    import tempfile
+    from pathlib import Path
+
+    folder = Path(folder) if folder is not None else Path(tempfile.mkdtemp(prefix="dvc-evaluate-"))
+    return {name: folder / f"residual_{k}.zarr" for k, name in enumerate(names)}
+
+
+def open_residual(path):
+    """A residual volume an out-of-core evaluation wrote, as a lazy Zarr array (read only)."""
+    import zarr
+
+    return zarr.open_array(str(path), mode="r")
+
+
+def run_evaluation(
+    reference,
+    deformed,
+    fields: dict,
+    thresholds,
+    mode: str = "reference",
+    outputs: dict | None = None,
+    max_memory: str | None = None,
+):
     """Generator for the panel's worker: cleans the fields if needed, then evaluates them all.
 
     Parameters
@@ -99,6 +140,10 @@ def run_evaluation(reference, deformed, fields: dict, thresholds, mode: str = "r
     thresholds : sequence of float
         The ``N - 1`` gray thresholds (used for both states).
     mode : {"reference", "loaded"}
+    outputs : dict of name -> path, optional
+        Out of core (:func:`..tiled.evaluation.evaluate_tiled_iter`): the volumes read block
+        by block and each field's residual written to its Zarr path (:func:`tiled_outputs`)
+        instead of kept in memory; ``max_memory`` (``"4GB"``...) bounds the run.
 
     Returns
     -------
@@ -109,6 +154,21 @@ def run_evaluation(reference, deformed, fields: dict, thresholds, mode: str = "r
     if not fields:
         raise ValueError("no displacement field to evaluate: run Correlate first")
     ready = {name: ready_for_evaluation(field) for name, field in fields.items()}
+    if outputs is not None:
+        from ..tiled.evaluation import evaluate_tiled_iter
+        from ..tiled.memory import parse_memory
+
+        return (
+            yield from evaluate_tiled_iter(
+                reference,
+                deformed,
+                ready,
+                phases=[float(t) for t in thresholds],
+                mode=mode,
+                outputs={("residual", name): str(path) for name, path in outputs.items()},
+                max_memory=parse_memory(max_memory) if max_memory else None,
+            )
+        )
     return (
         yield from evaluate_iter(
             reference,

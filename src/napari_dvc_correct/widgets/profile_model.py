@@ -38,11 +38,18 @@ class Profile:
 
 
 def line_profile(
-    field: DisplacementField, source: str, quantity: str, start, end, n: int = 200
+    field: DisplacementField,
+    source: str,
+    quantity: str,
+    start,
+    end,
+    n: int = 200,
+    values_cache: dict | None = None,
 ) -> Profile:
     """Sample ``quantity`` of ``field`` at ``n`` points from ``start`` to ``end`` (world z, y, x).
 
     The field is placed by its ``metadata["voxel_size"]`` and ``["offset"]``, as its layers are.
+    ``values_cache`` (a dict kept by the caller) keeps the field's quantity values between calls.
     """
     from scipy.ndimage import map_coordinates
 
@@ -50,7 +57,14 @@ def line_profile(
     end = np.asarray(end, float)[-3:]
     if np.allclose(start, end):
         raise ValueError("the line has no length: click two different points")
-    values = L.quantity_values(field, quantity).astype(np.float64)
+    key = (id(field), quantity)
+    cached = values_cache.get(key) if values_cache is not None else None
+    if cached is not None and cached[0] is field:
+        values = cached[1]
+    else:
+        values = L.quantity_values(field, quantity).astype(np.float64)
+        if values_cache is not None:
+            values_cache[key] = (field, values)
     placement = L.grid_placement(
         field, field.metadata.get("voxel_size"), field.metadata.get("offset")
     )
@@ -75,7 +89,9 @@ def strain_quantity(quantity: str) -> str:
     return quantity if "strain" in L.QUANTITIES.get(quantity, ("", ""))[1] else "εeq"
 
 
-def profiles(fields: dict, quantity: str, start, end, n: int = 200) -> list[list[Profile]]:
+def profiles(
+    fields: dict, quantity: str, start, end, n: int = 200, values_cache: dict | None = None
+) -> list[list[Profile]]:
     """``[displacement profiles, strain profiles]``, one profile per field of ``fields``.
 
     The displacement is ``|u|`` (or the chosen component when ``quantity`` is one), the strain
@@ -84,6 +100,6 @@ def profiles(fields: dict, quantity: str, start, end, n: int = 200) -> list[list
     displacement = quantity if quantity in ("uz", "uy", "ux") else "|u|"
     strain = strain_quantity(quantity)
     return [
-        [line_profile(f, s, displacement, start, end, n) for s, f in fields.items()],
-        [line_profile(f, s, strain, start, end, n) for s, f in fields.items()],
+        [line_profile(f, s, displacement, start, end, n, values_cache) for s, f in fields.items()],
+        [line_profile(f, s, strain, start, end, n, values_cache) for s, f in fields.items()],
     ]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 from napari.layers import Labels, Shapes
+from qtpy.QtCore import Signal
 from qtpy.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -21,7 +22,7 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from . import regions_model as model
-from ._base import LayerCombo
+from ._base import LatestWorker, LayerCombo
 
 
 def _is_region_layer(layer) -> bool:
@@ -51,6 +52,9 @@ def _pair(a, b) -> QWidget:
 
 class RegionBox(QGroupBox):
     """Where to measure: the region's kind and its few numbers, in voxels of the volume."""
+
+    #: The one-line message of a mask that could not be computed ahead (:meth:`compute_ahead`).
+    failed = Signal(str)
 
     def __init__(self, viewer, parent=None) -> None:
         super().__init__("Region", parent)
@@ -89,6 +93,7 @@ class RegionBox(QGroupBox):
         self._form = form
         self._shape = None
         self._cache = (None, None)
+        self._worker = LatestWorker(lambda text: self.failed.emit(text))
         self.kind.currentIndexChanged.connect(self._kind_changed)
         self._kind_changed()
 
@@ -152,7 +157,7 @@ class RegionBox(QGroupBox):
         elif kind == "box":
             values += [b.value() for b in (self.y_from, self.y_to, self.x_from, self.x_to)]
         elif kind == "threshold":
-            values += [self.threshold.value(), self.fill_holes.isChecked(), id(volume)]
+            values += [self.threshold.value(), self.fill_holes.isChecked(), _identity(volume)]
         elif kind == "layer":
             layer = self.layer.layer()
             values += [id(layer), id(getattr(layer, "data", None))]
@@ -164,43 +169,99 @@ class RegionBox(QGroupBox):
         """The region's mask for volumes of ``shape`` (None = whole volume); ValueError if bad.
 
         ``volume`` is the reference, for the threshold region; ``placement`` its
-        ``(voxel_size, offset)``, for drawn shapes.
+        ``(voxel_size, offset)``, for drawn shapes. Computed here unless :meth:`pending` ran
+        it in a worker first (the panels' previews do).
         """
         kind = self.current_kind
         if kind == "all":
             return None
         key = self._key(shape, volume)
+        if self._cache[0] != key:
+            if kind == "layer":
+                layer = self.layer.layer()
+                if layer is None:
+                    raise ValueError(
+                        "the region is a layer but no mask is chosen: pick a Labels or Shapes layer"
+                    )
+                voxel_size, offset = placement if placement is not None else (None, None)
+                z_range = (self.z_from.value(), self.z_to.value())
+                mask = model.layer_mask(layer, shape, z_range, voxel_size, offset)
+            else:
+                mask = self._computer(shape, volume)()
+            self._cache = (key, mask)
+        mask = self._cache[1]
+        if not mask.any():
+            raise ValueError("the region is empty: no voxel is selected")
+        return mask
+
+    def pending(self, shape, volume=None):
+        """``(key, compute)`` when :meth:`mask` would have to compute a cylinder, box or
+        threshold mask; None when it is instant (whole volume, already computed) or reads a
+        drawn layer (done on the main thread). ``compute()`` touches no Qt object nor layer: a
+        worker runs it, and :meth:`store` keeps its result. ValueError if the choice is bad.
+        """
+        kind = self.current_kind
+        if kind in ("all", "layer"):
+            return None
+        key = self._key(shape, volume)
         if self._cache[0] == key:
-            return self._cache[1]
+            return None
+        return key, self._computer(shape, volume)
+
+    def store(self, key, mask) -> None:
+        """Keep a mask :meth:`pending`'s ``compute`` made (main thread)."""
+        self._cache = (key, mask)
+
+    def compute_ahead(self, volume, then) -> bool:
+        """Make the mask for ``volume`` (the reference) in a worker when it is not ready.
+
+        Returns True when a worker started: it keeps the mask (and its summed-volume table,
+        for the POI count) and then calls ``then()`` on the main thread; a newer call
+        supersedes it. False when :meth:`mask` is instant or will report a bad choice itself.
+        """
+        try:
+            pending = self.pending(volume.shape, volume)
+        except ValueError:
+            return False
+        if pending is None:
+            return False
+        key, compute = pending
+
+        def ready(mask) -> None:
+            self.store(key, mask)
+            then()
+
+        self._worker.start(_mask_in_worker, compute, on_returned=ready)
+        return True
+
+    @property
+    def busy(self) -> bool:
+        """True while a mask is computed ahead."""
+        return self._worker.busy
+
+    def _computer(self, shape, volume):
+        """A function of no argument that makes the mask of the current choices (read now)."""
+        kind = self.current_kind
         z_range = (self.z_from.value(), self.z_to.value())
         if kind == "cylinder":
-            mask = model.cylinder_mask(
-                shape, (self.centre_y.value(), self.centre_x.value()), self.radius.value(), z_range
-            )
-        elif kind == "box":
-            mask = model.box_mask(
-                shape,
-                z_range,
+            centre, radius = (self.centre_y.value(), self.centre_x.value()), self.radius.value()
+            return lambda: model.cylinder_mask(shape, centre, radius, z_range)
+        if kind == "box":
+            ranges = (
                 (self.y_from.value(), self.y_to.value()),
                 (self.x_from.value(), self.x_to.value()),
             )
-        elif kind == "threshold":
-            if volume is None:
-                raise ValueError("choose the reference volume first")
-            mask = model.threshold_mask(volume, self.threshold.value(), self.fill_holes.isChecked())
+            return lambda: model.box_mask(shape, z_range, *ranges)
+        if volume is None:
+            raise ValueError("choose the reference volume first")
+        threshold, fill = self.threshold.value(), self.fill_holes.isChecked()
+
+        def threshold_region():
+            mask = model.threshold_mask(volume, threshold, fill)
             mask &= model.box_mask(shape, z_range)
-        else:
-            layer = self.layer.layer()
-            if layer is None:
-                raise ValueError(
-                    "the region is a layer but no mask is chosen: pick a Labels or Shapes layer"
-                )
-            voxel_size, offset = placement if placement is not None else (None, None)
-            mask = model.layer_mask(layer, shape, z_range, voxel_size, offset)
-        if not mask.any():
-            raise ValueError("the region is empty: no voxel is selected")
-        self._cache = (key, mask)
-        return mask
+            return mask
+
+        return threshold_region
 
     # -- sessions -------------------------------------------------------------------------
     def _boxes(self) -> dict:
@@ -224,3 +285,23 @@ class RegionBox(QGroupBox):
         for name, box in self._boxes().items():
             if name in settings:
                 box.setValue(settings[name])
+
+
+def _identity(volume):
+    """What identifies a volume for the mask cache: a numpy view by its memory, not its id (a
+    state of a 4-D layer is a new view at every access)."""
+    if isinstance(volume, np.ndarray):
+        return (
+            id(volume if volume.base is None else volume.base),
+            volume.__array_interface__["data"][0],
+            volume.shape,
+        )
+    return id(volume)
+
+
+def _mask_in_worker(compute):
+    """Worker: the mask, and its summed-volume table for the POI count (no Qt, no layer)."""
+    yield None
+    mask = compute()
+    model.summed_volume(mask)
+    return mask

@@ -144,9 +144,22 @@ class Kept:
         return f"the region keeps {self.kept:,} of {self.total:,} POIs ({share:.0f} %)"
 
 
-def _summed_volume(mask: np.ndarray) -> np.ndarray:
+_last_table: list = [None, None]  # (mask, its summed-volume table): the last one asked for
+
+
+def summed_volume(mask: np.ndarray) -> np.ndarray:
+    """Summed-volume table of ``mask`` (``(nz+1, ny+1, nx+1)`` int64), kept for the last mask.
+
+    The table costs three passes over the volume; the preview asks for it after every change of
+    the step or the subvolume, so the last mask's table is kept (compared by identity: a mask is
+    never changed in place here). A worker may compute it ahead (:meth:`.regions.RegionBox`).
+    """
+    cached_mask, cached_table = _last_table
+    if cached_mask is mask:
+        return cached_table
     table = np.zeros(tuple(n + 1 for n in mask.shape), np.int64)
     table[1:, 1:, 1:] = np.asarray(mask, bool).cumsum(0).cumsum(1).cumsum(2)
+    _last_table[:] = [mask, table]
     return table
 
 
@@ -157,7 +170,7 @@ def _needed(params: CorrelationParams) -> float:
 
 def kept_at(mask: np.ndarray, params: CorrelationParams, points: np.ndarray) -> np.ndarray:
     """For POI centres ``points`` (N, 3) voxels: is each one measured inside ``mask``?"""
-    table = _summed_volume(mask)
+    table = summed_volume(mask)
     centres = np.rint(np.asarray(points, float)).astype(int)
     z0, y0, x0 = (centres - params.half).T
     z1, y1, x1 = (centres + params.half + 1).T

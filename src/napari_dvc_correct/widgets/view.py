@@ -4,6 +4,12 @@ Every field shows as one quantity layer and its arrows (:func:`..layers.field_la
 picks the quantity for all of them at once (the same colour range for the fields compared), which
 field is on view (the others are hidden, not stacked), whether the colorbar and arrows show, and
 an oblique 3-D view that shows a band across the specimen rather than looking down z.
+
+The quantities (strain tensors, principal strains, percentiles) and the line profile are computed
+in thread workers (:class:`._base.LatestWorker`), so the viewer stays responsive on large grids:
+the layers keep showing the previous quantity until the new one is ready, a quick second choice
+supersedes the first (only the latest is shown), and every result is kept per field, so switching
+back to a quantity seen before is instant.
 """
 
 from __future__ import annotations
@@ -13,8 +19,9 @@ from qtpy.QtCore import Qt
 from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButton, QWidget
 
 from .. import layers as L
+from .. import point_layers as P
 from . import profile_model
-from ._base import follow_layers
+from ._base import LatestWorker, follow_layers
 from ._plots import ProfileCanvas
 
 #: Camera of the 3-D view (napari's Euler angles, degrees): tilted 20–30° off the y axis, so a
@@ -77,6 +84,11 @@ class ViewWidget(QWidget):
         self.view_3d.clicked.connect(lambda checked=False: self.oblique_3d())
         self.view_2d.clicked.connect(lambda checked=False: setattr(self.viewer.dims, "ndisplay", 2))
         self._watched: set = set()
+        self._quantity_worker = LatestWorker(self._quantity_failed)
+        self._profile_worker = LatestWorker(self.message.setText)
+        self._pending: dict | None = None
+        self.profile_groups: list | None = None
+        self._profile_values: dict = {}
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
 
@@ -99,7 +111,11 @@ class ViewWidget(QWidget):
         return layer
 
     def update_profile(self):
-        """Plot the profiles along the last line drawn; returns them (or None)."""
+        """Plot the profiles along the last line drawn, computed in a worker.
+
+        Returns the worker (None without a line or a field); the plot and
+        :attr:`profile_groups` follow when it returns.
+        """
         layer = L.find_layer(self.viewer, PROFILE_LINE)
         if layer is None or len(layer.data) == 0:
             return None
@@ -112,14 +128,20 @@ class ViewWidget(QWidget):
         if not fields:
             self.message.setText("No field yet: run Correlate.")
             return None
-        try:
-            groups = profile_model.profiles(fields, self.quantity.currentData(), start, end)
-        except ValueError as error:
-            self.message.setText(str(error))
-            return None
+        alive = {id(f) for f in fields.values()}  # values of replaced fields are dropped
+        for key in [k for k in list(self._profile_values) if k[0] not in alive]:
+            del self._profile_values[key]
+        args = (fields, self.quantity.currentData(), start, end, self._profile_values)
+        return self._profile_worker.start(_profiles, *args, on_returned=self._plot_profile)
+
+    def _plot_profile(self, groups) -> None:
+        self.profile_groups = groups
         self.profile.plot(groups)
         self.profile.setVisible(True)
-        return groups
+
+    def _quantity_failed(self, text: str) -> None:
+        self._pending = None
+        self.message.setText(text)
 
     # -- state --------------------------------------------------------------------------------
     def sources(self) -> list[str]:
@@ -137,7 +159,9 @@ class ViewWidget(QWidget):
         for layer in L.quantity_layers(self.viewer):
             if id(layer) not in self._watched:  # visibility set elsewhere (a new result...)
                 layer.events.visible.connect(self._visibility_changed)
+                layer.events.name.connect(self._visibility_changed)  # its quantity changed
                 self._watched.add(id(layer))
+                L.remember_quantity(layer)  # switching back to it is instant
         sources = self.sources()
         self.shown.blockSignals(True)
         self.shown.clear()
@@ -153,28 +177,83 @@ class ViewWidget(QWidget):
                 self.quantity.blockSignals(False)
         self._decorate()
 
-    def set_quantity(self, quantity: str | None = None) -> None:
-        """Show ``quantity`` (a key of :data:`..layers.QUANTITIES`) in every field layer."""
+    @property
+    def busy(self) -> bool:
+        """True while a quantity or a profile is being computed."""
+        return self._quantity_worker.busy or self._profile_worker.busy
+
+    def set_quantity(self, quantity: str | None = None):
+        """Show ``quantity`` (a key of :data:`..layers.QUANTITIES`) in every field layer.
+
+        Values seen before come from the fields' caches at once; the others are computed in a
+        worker, which is returned (None when nothing needed computing). The layers change
+        together when all are ready, with one colour range.
+        """
         if quantity is not None:
             self.quantity.setCurrentIndex(self.quantity.findData(quantity))
-            return  # the combo's signal comes back here
+            return self._quantity_worker.worker  # the combo's signal came back here
         quantity = self.quantity.currentData()
-        problems = []
-        shown = []
+        for layer in P.points_result_layers(self.viewer):  # a colour per point: at once
+            P.color_points(layer, quantity)
+        ready, problems, todo = {}, [], []
         for layer in L.quantity_layers(self.viewer):
-            source = L.plugin_metadata(layer)["source"]
-            residual = self._layer(source, "residual")
-            try:
-                L.show_quantity(
-                    layer, quantity, residual=None if residual is None else residual.data
+            entry = L.plugin_metadata(layer)
+            residual = self._layer(entry["source"], "residual")
+            residual = None if residual is None else residual.data
+            if quantity == "residual" and residual is None:
+                problems.append(
+                    f"no gray residual for the '{entry['source']}' field yet: run Evaluate first"
                 )
+                continue
+            key = (quantity, id(residual) if quantity == "residual" else None)
+            shown = entry.setdefault("shown", {})
+            if key in shown:
+                ready[entry["name"]] = shown[key]
+            else:
+                todo.append((entry["name"], entry, key, quantity, residual))
+        self._pending = {"quantity": quantity, "ready": ready, "problems": problems}
+        if not todo:
+            self._quantity_worker.cancel()
+            self._apply_pending()
+            return None
+        what = QUANTITY_WHAT.get(quantity, quantity)
+        self.message.setText(f"computing {what} for {len(todo)} field(s)…")
+        return self._quantity_worker.start(
+            _quantity_updates,
+            todo,
+            on_yielded=self._quantity_computed,
+            on_returned=lambda result: self._apply_pending(),
+        )
+
+    def _quantity_computed(self, value, current: bool) -> None:
+        """One field's values (main thread): kept in its cache, and shown if still wanted."""
+        name, entry, key, result, problem = value
+        if result is not None:
+            shown = entry.setdefault("shown", {})
+            if key[0] == "residual":  # one residual kept: an older one is a whole volume
+                for old in [k for k in shown if k[0] == "residual"]:
+                    del shown[old]
+            shown[key] = result
+        if current and self._pending is not None:
+            if result is not None:
+                self._pending["ready"][name] = result
+            else:
+                self._pending["problems"].append(problem)
+
+    def _apply_pending(self) -> None:
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        shown = []
+        for name, (data, kwargs) in pending["ready"].items():
+            layer = L.find_layer(self.viewer, name)
+            if layer is not None:  # (a field replaced meanwhile keeps its new layer)
+                L.apply_quantity(layer, data, kwargs)
                 shown.append(layer)
-            except ValueError as error:
-                problems.append(str(error))
-        limits = L.shared_limits(shown, quantity)
+        limits = L.shared_limits(shown, pending["quantity"])
         for layer in shown if limits is not None else []:
             layer.contrast_limits = limits
-        self.message.setText("; ".join(problems))
+        self.message.setText("; ".join(pending["problems"]))
         self._decorate()
         self.update_profile()
 
@@ -224,9 +303,18 @@ class ViewWidget(QWidget):
         layers = L.quantity_layers(self.viewer)
         visible = [x for x in layers if x.visible]
         top = visible[-1] if visible else None
+        shown = L.plugin_metadata(top).get("quantity") if top is not None else None
+        if shown is not None and shown != self.quantity.currentData() and not self.busy:
+            # what is on view, however it got there (a new result shows the last quantity)
+            self.quantity.blockSignals(True)
+            self.quantity.setCurrentIndex(self.quantity.findData(shown))
+            self.quantity.blockSignals(False)
         for layer in layers:
             layer.colorbar.visible = bool(layer is top and self.colorbar.isChecked())
         text = L.caption(top) if top is not None else "No field yet: run Correlate."
+        points = [x for x in P.points_result_layers(self.viewer) if x.visible]
+        if top is None and points:  # only points of interest: their colours are the caption
+            top, text = points[-1], P.points_caption(points[-1])
         self.caption.setText(text)
         L.text_overlay(self.viewer).text = text if top is not None else ""
         L.text_overlay(self.viewer).visible = top is not None
@@ -251,3 +339,25 @@ class ViewWidget(QWidget):
                         low, high = np.percentile(finite, [50.0, 99.5])
                         if high > low:
                             layer.contrast_limits = [float(low), float(high)]
+
+
+QUANTITY_WHAT = {key: what for key, (what, _) in L.QUANTITIES.items()}
+
+
+def _quantity_updates(todo):
+    """Worker: the new values of each field layer, one yield per field (so a newer choice can
+    stop it between two fields). Touches no layer."""
+    for name, entry, key, quantity, residual in todo:
+        try:
+            result = L.quantity_update(entry, quantity, residual=residual)
+        except ValueError as error:
+            yield name, entry, key, None, str(error)
+            continue
+        yield name, entry, key, result, None
+
+
+def _profiles(fields, quantity, start, end, values_cache):
+    """Worker: the line profiles (:func:`.profile_model.profiles`); a generator, so a newer
+    line or quantity can stop it before it starts."""
+    yield None
+    return profile_model.profiles(fields, quantity, start, end, values_cache=values_cache)

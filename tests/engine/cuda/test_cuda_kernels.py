@@ -117,6 +117,16 @@ def _build_cases():
         noisy_ref, noisy_def, [[12, 12, 12], [9, 14, 11], [14, 9, 13]], affine, 1
     )
     cases["noisy"]["noise_fraction"] = np.array(0.1)
+    # a deformed scan unrelated to the reference: the steps wander without shrinking and the
+    # stall rule stops them as DIVERGED (measured on the CPU: after 11, 9 and 9 iterations)
+    unrelated = 4000.0 * synthetic.textured_volume(SHAPE, 1.5, seed=11) + 20000.0
+    cases["unrelated"] = _icgn_case(
+        4000.0 * texture + 20000.0,
+        unrelated,
+        [[10, 14, 14], [14, 12, 10], [14, 14, 10]],
+        synthetic.translation((0.0, 0.0, 0.0)),
+        1,
+    )
     mask = np.zeros(SHAPE, bool)
     mask[:13] = True  # POI at z = 11 keeps 5 of its 7 planes, the one at z = 17 none
     cases["masked"] = _icgn_case(reference, deformed, [[11, 12, 12], [17, 12, 12]], affine, 1, mask)
@@ -236,6 +246,16 @@ def test_noise_stop_matches_the_cpu(results):
     assert matched.all()
     without = dict(case, noise_fraction=np.array(0.0))
     assert cpu["iterations"].sum() < _cpu(without)["iterations"].sum()
+
+
+def test_stall_rule_matches_the_cpu(results):
+    cases, gpu = results
+    case, result = cases["unrelated"], _gpu(gpu, "unrelated")
+    cpu = _cpu(case)
+    assert np.all(cpu["status"] == Status.DIVERGED)
+    assert np.all(cpu["iterations"] < int(case["max_iterations"]))
+    np.testing.assert_array_equal(result["status"], cpu["status"])
+    assert np.all(np.abs(result["iterations"] - cpu["iterations"]) <= 1)
 
 
 def test_mask_is_honoured(results):

@@ -95,6 +95,8 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
     NPAR2 = NPAR * NPAR
     NW = 2 * nb * nb
     MAXZ = cpu_icgn.NOISE_STOP_MAX_ZNCC
+    STALL_FACTOR = cpu_icgn.STALL_FACTOR
+    STALL_ITERATIONS = float64(cpu_icgn.STALL_ITERATIONS)
     options = {}
     if max_registers and not simulator_enabled():
         options["max_registers"] = int(max_registers)
@@ -140,8 +142,9 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
         isum = cuda.shared.array(KIT, float64)
         low = cuda.shared.array(NPAR2, float64)
         p_sh = cuda.shared.array(NPAR, float64)
-        # count, Σg→ḡ, δg, zncc, start z/y/x, -, (H⁻¹) at z/y/x translations, last noise step
-        scal = cuda.shared.array(12, float64)
+        # count, Σg→ḡ, δg, zncc, start z/y/x, -, (H⁻¹) at z/y/x translations, last noise step,
+        # shortest step, iterations since it
+        scal = cuda.shared.array(14, float64)
         flag = cuda.shared.array(2, int32)  # finished, a warped voxel left the volume
         rhs = cuda.shared.array(NPAR, float64)
         dp = cuda.shared.array(NPAR, float64)
@@ -301,6 +304,8 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
                         scal[8 + k] = dp[k * NB]
             scal[3] = math.nan
             scal[11] = math.inf
+            scal[12] = math.inf  # shortest step so far, and iterations since (icgn.STALL_*)
+            scal[13] = 0.0
         cuda.syncthreads()
         if flag[0] != 0:
             return
@@ -479,25 +484,48 @@ def build_kernel(nb: int, threads: int, max_registers: int | None = None):
                                 iterations,
                                 flag,
                             )
-                        elif noise_fraction > 0.0:  # as icgn._noise_converged
-                            residual = 2.0 * delta_g * delta_g * max(1.0 - value, 0.0)
-                            residual /= max(count - NPAR - 2, 1.0)
-                            d = 0.0
-                            scaled = value < MAXZ
-                            for k in range(3):
-                                scale = math.sqrt(residual * scal[8 + k])
-                                if not (scale > 0.0):
-                                    scaled = False
-                                else:
-                                    d = max(d, abs(dp[k * NB]) / scale)
-                            previous = scal[11]
-                            scal[11] = d if scaled else math.inf
-                            if scaled and d < 1.0 and not math.isinf(previous):
-                                rho = min(d / previous, 1.0) if previous > 0.0 else 0.0
-                                if d * rho < noise_fraction:
+                        else:
+                            stop = False
+                            if noise_fraction > 0.0:  # as icgn._noise_converged
+                                residual = 2.0 * delta_g * delta_g * max(1.0 - value, 0.0)
+                                residual /= max(count - NPAR - 2, 1.0)
+                                d = 0.0
+                                scaled = value < MAXZ
+                                for k in range(3):
+                                    scale = math.sqrt(residual * scal[8 + k])
+                                    if not (scale > 0.0):
+                                        scaled = False
+                                    else:
+                                        d = max(d, abs(dp[k * NB]) / scale)
+                                previous = scal[11]
+                                scal[11] = d if scaled else math.inf
+                                if scaled and d < 1.0 and not math.isinf(previous):
+                                    rho = min(d / previous, 1.0) if previous > 0.0 else 0.0
+                                    stop = d * rho < noise_fraction
+                            motion = math.sqrt(largest)
+                            if stop:
+                                finish(
+                                    poi,
+                                    _CONVERGED,
+                                    value,
+                                    it,
+                                    p_sh,
+                                    NPAR,
+                                    params,
+                                    zncc,
+                                    status,
+                                    iterations,
+                                    flag,
+                                )
+                            elif motion < STALL_FACTOR * scal[12]:  # as icgn.match_one
+                                scal[12] = motion
+                                scal[13] = 0.0
+                            elif not (scal[11] < 1.0):
+                                scal[13] += 1.0
+                                if scal[13] >= STALL_ITERATIONS:
                                     finish(
                                         poi,
-                                        _CONVERGED,
+                                        _DIVERGED,
                                         value,
                                         it,
                                         p_sh,

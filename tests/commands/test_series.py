@@ -1,0 +1,112 @@
+"""``series`` with ``correlate``'s placement and format options (commands/series.py)."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.cli import main
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.placement import Box, grid_for_region
+from napari_dvc_correct.io.formats import read_points
+from napari_dvc_correct.io.npz import load_field
+
+SHAPE = (36, 36, 36)
+SHIFT = np.array([1.4, -0.6, 2.2])  # per state
+DVC = ["--subvolume", "15", "--step", "6", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def volumes(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("states")
+    big = synthetic.textured_volume(tuple(n + 16 for n in SHAPE), 2.0, seed=21)
+    crop = tuple(slice(8, 8 + n) for n in SHAPE)
+    paths = []
+    for k in range(3):
+        moved = synthetic.deform_volume(big, synthetic.translation(k * SHIFT))
+        path = folder / f"state{k}.npy"
+        np.save(path, np.ascontiguousarray(moved[crop]))
+        paths.append(str(path))
+    return paths
+
+
+def test_series_in_a_roi_written_as_spam(volumes, tmp_path):
+    out_dir = tmp_path / "series"
+    roi = "8:30,:,10:34"
+    code = main(
+        ["series", *volumes, "--out-dir", str(out_dir), "--roi", roi, "--out-format", "spam",
+         *DVC]
+    )  # fmt: skip
+    assert code == 0
+    names = sorted(p.name for p in out_dir.iterdir() if not p.name.startswith("."))
+    assert names == [
+        "increment_00_01.tsv", "increment_01_02.tsv", "state_01.tsv", "state_02.tsv",
+        "summary.csv",
+    ]  # fmt: skip
+    origin, step, shape = grid_for_region(SHAPE, 15, 6, Box((8, 0, 10), (30, 36, 34)))
+    axes = [o + s * np.arange(n) for o, s, n in zip(origin, step, shape)]
+    expected = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    assert 8 < len(expected) < 8 * 8 * 8  # fewer nodes than on the whole volume
+    for k in (1, 2):
+        field = read_points(out_dir / f"state_{k:02d}.tsv", "spam")
+        # the nodes of the grid in the box, as correlate --roi places them
+        np.testing.assert_allclose(np.sort(field.points, axis=0), np.sort(expected, axis=0))
+        assert np.all((field.points >= (8, 0, 10)) & (field.points < (30, 36, 34)))
+        good = field.valid
+        assert good.all()
+        assert np.abs(field.u[good] - k * SHIFT).max() < 0.1
+    with open(out_dir / "summary.csv") as stream:
+        rows = list(csv.DictReader(stream))
+    assert rows[2]["field_file"] == "state_02.tsv"
+
+
+def test_series_at_points_follows_them_incrementally(volumes, tmp_path):
+    points = np.array([[18.0, 18.0, 18.0], [14.5, 20.25, 16.0], [21.0, 12.0, 19.5]])
+    points_file = tmp_path / "points.csv"
+    np.savetxt(points_file, points, delimiter=",", header="z,y,x", comments="")
+    out_dir = tmp_path / "series"
+    code = main(["series", *volumes, "--out-dir", str(out_dir), "--points", str(points_file), *DVC])
+    assert code == 0
+    for k in (1, 2):
+        field = read_points(out_dir / f"state_{k:02d}.csv", "table")
+        np.testing.assert_allclose(field.points, points, atol=1e-9)  # the first state's points
+        assert np.abs(field.u - k * SHIFT).max() < 0.05
+    # the second increment was measured where the points are in state 1
+    increment = read_points(out_dir / "increment_01_02.csv", "table")
+    np.testing.assert_allclose(increment.points, points + SHIFT, atol=0.05)
+    assert np.abs(increment.u - SHIFT).max() < 0.05
+
+
+def test_series_grid_on_a_cylinder_keeps_the_npz_default(volumes, tmp_path):
+    out_dir = tmp_path / "series"
+    code = main(
+        ["series", *volumes[:2], "--out-dir", str(out_dir), "--cylinder", "18,18,8",
+         "--strategy", "total", *DVC]
+    )  # fmt: skip
+    assert code == 0
+    field = load_field(out_dir / "state_01.npz")
+    assert field.metadata["region"]["kind"] == "cylinder"
+    y, x = np.meshgrid(*field.axis_coordinates()[1:], indexing="ij")
+    outside = np.hypot(y - 18, x - 18) > 8
+    assert outside.any() and not field.valid[:, outside].any()
+    assert field.valid[:, ~outside].mean() > 0.9
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--roi", "40:50,:,:"], "no node fits along axis z"),
+        (["--points", "{points}", "--self-correct"], "--self-correct"),
+        (["--points", "{points}", "--out-format", "npz"], "npz holds grids"),
+        (["--points", "{points}", "--roi", "0:30,:,:"], "not both"),
+        (["--points", "{missing}"], "points file not found"),
+    ],
+)
+def test_series_refuses_bad_placement_and_writes_nothing(volumes, tmp_path, capsys, extra, message):
+    points_file = tmp_path / "points.csv"
+    np.savetxt(points_file, [[18.0, 18.0, 18.0]], delimiter=",", header="z,y,x", comments="")
+    extra = [e.format(points=points_file, missing=tmp_path / "none.csv") for e in extra]
+    out_dir = tmp_path / "series"
+    assert main(["series", *volumes, "--out-dir", str(out_dir), *extra, *DVC]) == 2
+    assert message in capsys.readouterr().err
+    assert not out_dir.exists()

@@ -1,0 +1,138 @@
+"""The Correlate dock with points of interest from a napari Points layer, and their result layers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct import layers as L
+from napari_dvc_correct import point_layers as P
+from napari_dvc_correct.engine.synthetic import sample_displacement, shear_band
+from napari_dvc_correct.widgets import CorrelateWidget, ViewWidget
+
+#: Points of interest in voxels (z, y, x) of the small pair, fractional ones included.
+VOXELS = np.array([[12.0, 14.0, 20.0], [24.0, 24.0, 24.0], [30.4, 20.0, 33.6], [20.0, 33.0, 14.0]])
+
+
+def _world(small, voxels):
+    return voxels * np.asarray(small.voxel_size) + np.asarray(small.offset)
+
+
+@pytest.fixture
+def points_panel(viewer_pair, small):
+    widget = CorrelateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(widget)
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(small.step)
+    viewer_pair.add_points(_world(small, VOXELS), name="my points")  # world coordinates
+    widget.placement.setCurrentIndex(widget.placement.findData("points"))
+    return widget
+
+
+def test_points_layer_run_gives_readable_point_layers(points_panel, run_panel, small, pair48):
+    from napari_dvc_correct.engine.correlate_points import correlate_points
+    from napari_dvc_correct.engine.params import CorrelationParams
+
+    widget, viewer = points_panel, points_panel.viewer
+    assert widget.points.currentText() == "my points"  # the new Points layer is chosen
+    assert widget.points.isEnabled()
+    widget._update.flush()
+    assert "4 points of interest from 'my points'" in widget.estimate_label.text()
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    layer = viewer.layers["|u| (points)"]
+    arrows = viewer.layers["displacement (points)"]
+    # placed like the scans: the points sit where the user put them
+    np.testing.assert_allclose(layer.scale, small.voxel_size)
+    np.testing.assert_allclose(layer.translate, small.offset)
+    np.testing.assert_allclose(layer.data, VOXELS)
+    np.testing.assert_allclose(
+        np.asarray(layer.data_to_world(layer.data[2])), _world(small, VOXELS)[2]
+    )
+    field = L.plugin_metadata(layer)["points_field"]
+    reference, deformed, truth = pair48
+    direct = correlate_points(
+        reference, deformed, VOXELS, CorrelationParams(subvolume=small.subvolume, step=small.step)
+    )
+    np.testing.assert_allclose(field.u, direct.u, atol=1e-9)  # what the engine gives
+    expected = sample_displacement(shear_band(**truth), VOXELS)
+    assert np.median(np.abs(field.u - expected)) < 0.15  # and the known shear band
+    # every quantity is a feature (in world units); the colours follow |u|
+    features = layer.features
+    vs = np.asarray(small.voxel_size)
+    np.testing.assert_allclose(features["|u|"], np.linalg.norm(field.u * vs, axis=1))
+    np.testing.assert_allclose(features["ux"], field.u[:, 2] * vs[2])
+    for key in ("εeq", "εzx", "ZNCC", "status"):
+        assert key in features.columns
+    low, high = layer.face_contrast_limits
+    assert low == 0.0 and high > 0.0 and layer.face_colormap.name == "viridis"
+    # arrows from each point along its displacement (true length in world units, or scaled)
+    np.testing.assert_allclose(arrows.data[:, 0], VOXELS[field.valid])
+    np.testing.assert_allclose(arrows.data[:, 1], field.u[field.valid])
+    np.testing.assert_allclose(arrows.scale, small.voxel_size)
+    text = widget.message.text()
+    assert "Done: 4 points" in text and "|u| [vx]" not in text and "scale units" in text
+    assert "at the points" in L.text_overlay(viewer).text
+    assert "viridis 0 to" in L.text_overlay(viewer).text
+    # the View panel recolours the points with the chosen quantity
+    view = ViewWidget(viewer)
+    viewer.window.add_dock_widget(view)
+    view.set_quantity("ZNCC")
+    assert layer.name == "ZNCC (points)"
+    assert layer.face_colormap.name == "magma"
+    assert "ZNCC" in view.caption.text() and "at the points" in view.caption.text()
+    view.set_quantity("εzx")
+    low, high = layer.face_contrast_limits
+    assert low == -high  # signed: centred on zero
+
+
+def test_points_outside_or_near_the_border_are_refused(points_panel, small):
+    widget, viewer = points_panel, points_panel.viewer
+    bad = np.array([[24.0, 24.0, 24.0], [24.0, 24.0, 60.0], [3.0, 24.0, 24.0]])
+    viewer.layers["my points"].data = _world(small, bad)
+    assert widget.run() is None
+    text = widget.message.text()
+    assert "1 outside the volume (48, 48, 48)" in text
+    assert "1 closer than 7 voxels to its border" in text
+    assert "smaller subvolume" in text
+    widget.update_preview()  # the estimate line says it too, before a run
+    assert "outside the volume" in widget.estimate_label.text()
+    assert "|u| (points)" not in viewer.layers
+
+
+def test_points_need_a_pair_and_a_points_layer(points_panel):
+    widget, viewer = points_panel, points_panel.viewer
+    widget.mode.setCurrentIndex(widget.mode.findData("series4d"))
+    widget.reference.set_layer("reference")
+    assert widget.run() is None
+    assert "4-D" in widget.message.text() or "pair" in widget.message.text()
+    widget.mode.setCurrentIndex(widget.mode.findData("pair"))
+    widget.reference.set_layer("reference")
+    widget.deformed.set_layer("deformed")
+    viewer.layers.remove("my points")
+    assert widget.run() is None
+    assert "choose the Points layer" in widget.message.text()
+    # the settings travel with a session
+    assert widget.settings()["placement"] == "points"
+
+
+def test_point_layers_without_napari_viewer():
+    """The builders: hollow points without a value, the status in its own colours."""
+    from napari_dvc_correct.engine.field import Status
+    from napari_dvc_correct.engine.scattered import ScatteredField
+
+    field = ScatteredField(
+        points=np.array([[10.0, 10.0, 10.0], [20.0, 20.0, 20.5]]),
+        u=np.array([[0.5, 0.0, 0.0], [np.nan] * 3]),
+        status=np.array([int(Status.CONVERGED), int(Status.DIVERGED)], np.uint8),
+        gradient=np.zeros((2, 3, 3)),
+        params={"subvolume": 15},
+    )
+    (points, kwargs, kind), (vectors, vkwargs, vkind) = P.points_layers(field, quantity="status")
+    assert (kind, vkind) == ("points", "vectors")
+    assert kwargs["face_color"] == ["white", "red"]
+    assert kwargs["border_color"] == ["#202020", "red"]  # a red rim: no value here
+    assert len(vectors) == 1  # no arrow where there is no displacement
+    spacing = np.linalg.norm([10.0, 10.0, 10.5])  # the points' typical spacing
+    assert vkwargs["length"] == pytest.approx(spacing / 0.5)  # exaggerated: it says how much
+    assert np.isnan(kwargs["features"]["εeq"][1]) and kwargs["features"]["εeq"][0] == 0.0
