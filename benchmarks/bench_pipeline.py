@@ -129,6 +129,11 @@ def run_case(name: str, size: int, repeat: int) -> dict:
                 "engine_stages_s": {k: v for k, v in timings.items() if k.endswith("_s")},
                 "correction_s": correction.get("seconds"),
                 "passes": correction.get("passes_applied"),
+                "correction_stages_s": correction.get("stages", {}),
+                "stop_reason": correction.get("stop_reason"),
+                "matched_per_pass": [
+                    p.get("matched_nodes") for p in field.metadata.get("correction_passes", [])[1:]
+                ],
             }
     result["correction_cost"] = result["self-corrected"]["warm_s"] / result["plain"]["warm_s"]
     return result
@@ -154,6 +159,13 @@ def main() -> None:
             flush=True,
         )
         print(f"    plain stages: {plain['engine_stages_s']}", flush=True)
+        stages = {k: round(v, 2) for k, v in corrected["correction_stages_s"].items()}
+        print(f"    correction {corrected['correction_s']:.2f} s: {stages}", flush=True)
+        print(
+            f"    matched per pass {corrected['matched_per_pass']}; stop: "
+            f"{corrected['stop_reason']}",
+            flush=True,
+        )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

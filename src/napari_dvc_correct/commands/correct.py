@@ -147,15 +147,19 @@ def pass_table(field) -> str:
 
     lines = [
         "pass  mean gray residual  applied  nodes changed  mean change  max change"
-        "  accepted  refused  noise floor"
+        "  accepted  refused  noise floor  matched"
     ]
-    for entry in correction_table(field):
+    table = correction_table(field)
+    for entry in table:
         lines.append(
             f"{entry.number:>4}  {entry.mean_gray_residual:>18.4f}  "
             f"{'yes' if entry.accepted else 'no':>7}  {entry.fraction_changed:>13.3f}  "
             f"{entry.mean_change:>11.3f}  {entry.max_change:>10.3f}"
             f"  {entry.accepted_nodes:>8}  {entry.rejected_nodes:>7}  {entry.noise_floor:>11.4f}"
+            f"  {entry.matched_nodes:>7}"
         )
+    if table and table[-1].stop:
+        lines.append(f"stopped: {table[-1].stop}")
     return "\n".join(lines)
 
 

@@ -29,7 +29,13 @@ Beyond the paper (issue 10):
   ``r0`` of eq. 1, or the lower quartile of the local residuals where eq. 1 is spoilt), else it
   keeps its previous value. A pass cannot make a node measurably worse;
 * passes repeat (``max_passes``) while some region (a node's subvolume) improves by more than
-  the noise allows, not while the global mean falls (under noise it barely moves);
+  the noise allows, not while the global mean falls (under noise it barely moves), and only
+  while enough nodes moved by enough to improve in another pass (:mod:`.pass_reach`; a pass
+  that could only confirm is not run); the reason the loop stopped is recorded;
+* after the first pass, a pass matches again only near the nodes the previous one changed
+  (the subvolume's half-width plus the spline's reach) and judges only the nodes whose update
+  can differ; the other matches are the previous pass's, less what it applied, and the other
+  nodes keep their value (``selective=False`` matches and judges every node);
 * the correcting matches use the second-order shape function when the field bends inside a
   subvolume (:func:`pass_order`, chosen from the data, no user parameter);
 * nodes whose local residual only an error of more than a voxel explains are flagged
@@ -50,112 +56,37 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Generator
-from dataclasses import dataclass
 
 import numpy as np
 
 from .cleaning import clean, masked_nodes
 from .compose import compose
+from .correction_record import CHANGE_THRESHOLD, CorrectionPass, correction_table
 from .correction_volumes import CorrectionVolumes, InMemoryVolumes
 from .field import DisplacementField, Provenance, Status
-from .local_acceptance import Judge, accept_locally, flag_and_refill, unsupported_updates
+from .local_acceptance import (
+    Judge,
+    accept_locally,
+    flag_and_refill,
+    mix_fields,
+    unsupported_updates,
+)
 from .options import CorrectionOptions
 from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
 from .pass_params import correction_grid, correction_params
+from .pass_reach import applied_change, changed_nodes, reuse, select
 from .progress import Progress, run_to_completion
 
-#: A node counts as "changed" by a pass when its displacement moves by more than this (voxels).
-CHANGE_THRESHOLD = 0.1
+__all__ = ["CorrectionPass", "correct", "correct_iter", "correct_volumes_iter", "correction_table"]
 
 #: Another pass runs only while at least this fraction of the nodes improved above the noise.
 MIN_IMPROVED_FRACTION = 0.01
 
-
-@dataclass(frozen=True)
-class CorrectionPass:
-    """The record of one correction pass (pass 0 = the cleaned input field).
-
-    Attributes
-    ----------
-    number : int
-        Pass number, 0 for the cleaned input.
-    mean_gray_residual : float
-        Mean gray residual of the field after the pass, in the pass's frame (gray levels).
-    noise_floor : float
-        The imaging-noise floor the pass is judged against (gray levels): eq. 1's background
-        residual ``r0`` or the lower quartile of the nodes' cell residuals, whichever is smaller,
-        the smallest seen so far (:class:`.local_acceptance.Judge`).
-    residual_before : float
-        Mean gray residual before the pass (gray levels; pass 0: same as after).
-    local_residual_before, local_residual_after : float
-        Mean over the nodes of the local residual (reference frame, over each node's cell)
-        before and after the pass (gray levels).
-    accepted : bool
-        Whether the pass changed the field at all (some node accepted).
-    accepted_nodes, rejected_nodes : int
-        Nodes whose correction was kept / refused (local residual rose by more than the noise
-        allows; they keep their previous value).
-    improved_nodes : int
-        Accepted nodes whose residual over their subvolume fell by more than the noise allows
-        (and more than a 0.01-voxel change explains): the regions that "improve above the
-        floor", which decide whether another pass runs.
-    fraction_changed : float
-        Fraction of the (unmasked) nodes moved by more than :data:`CHANGE_THRESHOLD` voxels.
-    mean_change, max_change : float
-        Node displacement change of the pass (voxels).
-    converged_fraction : float
-        Fraction of good matches of the pass's DVC.
-    seconds : float
-        Wall time of the pass.
-    unsupported_nodes : int
-        Of the refused nodes, those refused because their update would read ``ΔD`` more than a
-        step beyond the good correcting matches (:func:`.local_acceptance.unsupported_updates`).
-    """
-
-    number: int
-    mean_gray_residual: float
-    noise_floor: float
-    residual_before: float
-    local_residual_before: float
-    local_residual_after: float
-    accepted: bool
-    accepted_nodes: int
-    rejected_nodes: int
-    improved_nodes: int
-    fraction_changed: float
-    mean_change: float
-    max_change: float
-    converged_fraction: float
-    seconds: float
-    unsupported_nodes: int = 0
-
-    def to_dict(self) -> dict:
-        """Plain dict for the field's JSON metadata (``number`` stored as ``"pass"``, the key
-        older files and readers use)."""
-        values = dataclasses.asdict(self)
-        return {"pass": values.pop("number"), **values}
-
-    @classmethod
-    def from_dict(cls, values: dict) -> CorrectionPass:
-        """Read a record back from metadata (also the string-keyed records of older files)."""
-        values = dict(values)
-        if "pass" in values and "number" not in values:
-            values["number"] = values.pop("pass")
-        nan = float("nan")
-        defaults = {
-            "noise_floor": nan,
-            "residual_before": values.get("mean_gray_residual", nan),
-            "local_residual_before": nan,
-            "local_residual_after": nan,
-            "accepted_nodes": 0,
-            "rejected_nodes": 0,
-            "improved_nodes": 0,
-            "unsupported_nodes": 0,
-        }
-        names = {f.name for f in dataclasses.fields(cls)}
-        merged = {**defaults, **{k: v for k, v in values.items() if k in names}}
-        return cls(**merged)
+#: ... and while at least this fraction moved by enough to improve in another pass
+#: (:func:`.pass_reach.changed_nodes`): the same share, predicted before the pass instead of
+#: found after it.
+MIN_CHANGED_FRACTION = MIN_IMPROVED_FRACTION
 
 
 def _relabel(progress: Progress, prefix: str) -> Progress:
@@ -241,6 +172,7 @@ def correct_iter(
     min_improvement: float = CorrectionOptions.min_improvement,
     mask: np.ndarray | None = None,
     clean_options: dict | None = None,
+    selective: bool = True,
 ) -> Generator[Progress, None, DisplacementField]:
     """Self-correct a DVC displacement field, yielding progress; returns the corrected field.
 
@@ -271,6 +203,11 @@ def correct_iter(
     clean_options : dict, optional
         Keyword arguments for :func:`.cleaning.clean` (threshold, radius, epsilon, smoothing...),
         used on ``D`` and on every ``ΔD``.
+    selective : bool
+        After the first pass, match again only near the nodes the previous pass changed and
+        judge only the nodes that can change (:mod:`.pass_reach`; default). False: every pass
+        matches and judges every node (the reference the selective passes are tested against).
+        Either way a pass runs only if some node's change can still matter.
 
     Yields
     ------
@@ -289,8 +226,10 @@ def correct_iter(
         :class:`CorrectionPass` per pass as a dict (pass 0 = the cleaned input; read them with
         :func:`correction_table`).
         ``metadata["correction"]`` holds the options, the residual before and after, the noise
-        floor, the order, subvolume and grid shape (of the last pass) of the correcting matches
-        and the flagged node counts.
+        floor, the order, subvolume and grid shape (of the last pass) of the correcting matches,
+        the flagged node counts, ``stop_reason`` (why the loop stopped, also the last record's
+        ``stop``) and ``stages`` (wall seconds of the set-up, warps, correcting DVC with its
+        IC-GN and statistics, and local acceptance).
     """
     check_options(frame, update, max_passes, min_improvement)
     reference = np.asanyarray(reference)
@@ -306,7 +245,7 @@ def correct_iter(
     options = dict(update=update, max_passes=max_passes, min_improvement=min_improvement)
     return (
         yield from correct_volumes_iter(
-            volumes, field, params, **options, clean_options=clean_options
+            volumes, field, params, **options, clean_options=clean_options, selective=selective
         )
     )
 
@@ -334,6 +273,7 @@ def correct_volumes_iter(
     max_passes: int = CorrectionOptions.max_passes,
     min_improvement: float = CorrectionOptions.min_improvement,
     clean_options: dict | None = None,
+    selective: bool = True,
 ) -> Generator[Progress, None, DisplacementField]:
     """The correction loop of :func:`correct_iter` on any volume back-end (issue 13).
 
@@ -348,7 +288,7 @@ def correct_volumes_iter(
         return (
             yield from _correction_loop(
                 volumes, field, params_of(field, params), update, max_passes, min_improvement,
-                clean_options,
+                clean_options, selective,
             )
         )  # fmt: skip
     finally:
@@ -356,7 +296,7 @@ def correct_volumes_iter(
 
 
 def _correction_loop(
-    volumes, field, params, update, max_passes, min_improvement, clean_options
+    volumes, field, params, update, max_passes, min_improvement, clean_options, selective
 ):  # fmt: skip
     frame = volumes.frame
     clean_options = dict(clean_options or {})
@@ -403,25 +343,52 @@ def _correction_loop(
     pass_params = correction_params(current, params)
     residual_before = residual
     unmasked = max(1, int(np.count_nonzero(~masked)))
+    stop = f"max_passes ({int(max_passes)}) reached"
+    previous_raw, next_pass = None, None
+    stages = {"setup_s": passes[0].seconds}
     for number in range(1, int(max_passes) + 1):
         pass_started = time.perf_counter()
-        pair = yield from volumes.matching_pair(moved, current)
         read_points = _read_points(current, frame, update)
         pass_grid = (
             grid
             if update == "sum"
             else correction_grid(current, volumes.shape, pass_params, read_points)
         )
+        selection = None
+        if next_pass is not None and selective:
+            changed, last_change, tolerance, change_vectors = next_pass
+            selection = select(
+                changed, last_change, read_points, read_points, pass_grid,
+                (previous_raw.origin, previous_raw.step, previous_raw.shape),
+                pass_params.half, tolerance,
+            )  # fmt: skip
+            selection = selection if not selection.matched.all() else None
+        active = None if selection is None else selection.matched
+        t0 = time.perf_counter()
+        pair = yield from volumes.matching_pair(moved, current)
+        t1 = time.perf_counter()
         delta = yield from forward_progress(
-            volumes.correlate(pass_params, pair, grid=pass_grid, initial=_zeros(pass_grid)),
+            volumes.correlate(
+                pass_params, pair, grid=pass_grid, initial=_zeros(pass_grid), active=active
+            ),
             f"correction pass {number}",
         )
         volumes.release(pair[2])
+        _add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
+        t0 = time.perf_counter()
+        if selection is not None:
+            reused = delta.points.reshape(*delta.shape, 3)[~selection.matched]
+            loaded = frame == "loaded" and update == "exact"
+            taken = applied_change(current, change_vectors, reused, loaded)
+            delta = reuse(delta, previous_raw, selection.matched, taken)
+        previous_raw = delta
+        judged = np.ones(current.shape, bool) if selection is None else selection.judged
         converged = float(np.mean(delta.valid))
         try:
             delta = clean(delta, **clean_options)
         except ValueError:
             passes.append(_failed_pass(number, converged, pass_started, passes[-1]))
+            stop = "the correcting field could not be cleaned"
             break
         candidate = _finish_pass(
             _update(current, delta, frame, update), delta, field, masked, read_points
@@ -429,15 +396,20 @@ def _correction_loop(
         yield Progress("residual", 0, 1, f"local acceptance of pass {number}")
         floor_before = judge.floor
         refuse = unsupported_updates(delta, read_points)
+        if selection is not None:  # the other nodes keep their value, unjudged
+            candidate = mix_fields(current, candidate, judged)
         mixed, local_mixed, accept, improved = accept_locally(
-            judge, current, local_current, candidate, refuse=refuse
+            judge, current, local_current, candidate, refuse=refuse | ~judged.reshape(-1)
         )
         accept[masked] = False
         improved[masked] = False
         n_accepted = int(np.count_nonzero(accept))
         applied = n_accepted > 0
+        t1 = time.perf_counter()
+        _add_stages(stages, None, acceptance_s=t1 - t0)
         if applied:
             mixed_moved, mixed_residual = yield from volumes.align(mixed)
+            _add_stages(stages, None, warp_s=time.perf_counter() - t1)
         else:
             mixed, mixed_moved, mixed_residual, local_mixed = (
                 current,
@@ -445,7 +417,10 @@ def _correction_loop(
                 residual,
                 local_current,
             )
-        change = np.linalg.norm(mixed.u - current.u, axis=-1)[~masked]
+        change_vectors = np.nan_to_num(mixed.u - current.u, nan=0.0)
+        change_vectors[masked] = 0.0
+        node_change = np.linalg.norm(change_vectors, axis=-1)
+        change = node_change[~masked]
         record = CorrectionPass(
             number=number,
             mean_gray_residual=mixed_residual,
@@ -455,14 +430,18 @@ def _correction_loop(
             local_residual_after=_mean(local_mixed),
             accepted=applied,
             accepted_nodes=n_accepted,
-            rejected_nodes=int(np.count_nonzero(~accept & ~masked)),
+            rejected_nodes=int(np.count_nonzero(judged & ~accept & ~masked)),
             improved_nodes=int(np.count_nonzero(improved)),
             fraction_changed=float(np.mean(change > CHANGE_THRESHOLD)) if change.size else 0.0,
             mean_change=float(np.mean(change)) if change.size else 0.0,
             max_change=float(np.max(change)) if change.size else 0.0,
             converged_fraction=converged,
             seconds=time.perf_counter() - pass_started,
-            unsupported_nodes=int(np.count_nonzero(refuse.reshape(accept.shape) & ~masked)),
+            unsupported_nodes=int(
+                np.count_nonzero(refuse.reshape(accept.shape) & judged & ~masked)
+            ),
+            matched_nodes=int(np.prod(pass_grid[2]) if active is None else active.sum()),
+            judged_nodes=int(np.count_nonzero(judged & ~masked)),
         )
         passes.append(record)
         yield Progress(
@@ -474,15 +453,37 @@ def _correction_loop(
             f"mean gray residual {residual:.4g} -> {mixed_residual:.4g}",
         )
         if not applied:
+            stop = f"pass {number} kept no node"
             break
         excess = record.local_residual_before - min(floor_before, judge.floor)
         removed = record.local_residual_before - record.local_residual_after
         volumes.release(moved)
         current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
+        # a further pass can change only what this one moved by enough (pass_reach)
+        changed, tolerance = changed_nodes(
+            node_change, judge.useful(current), judge.region_tolerance
+        )
+        changed &= ~masked
+        if number < max_passes and changed.sum() < MIN_CHANGED_FRACTION * unmasked:
+            stop = (
+                f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
+                f"above the noise floor in another pass (about {tolerance:.3g} voxel): it could "
+                "only confirm"
+            )
+            break
         if record.improved_nodes < MIN_IMPROVED_FRACTION * unmasked:
+            stop = (
+                f"pass {number} improved {record.improved_nodes} nodes above the noise floor "
+                f"(fewer than {MIN_IMPROVED_FRACTION:.0%})"
+            )
             break  # no region improves above the noise floor any more
         if excess > 0 and removed <= min_improvement * excess:
+            stop = (
+                f"pass {number} removed {removed / excess:.1%} of the residual above the floor "
+                f"(at most min_improvement {min_improvement:.0%})"
+            )
             break
+        next_pass = (changed, node_change, tolerance, change_vectors)
 
     # after the passes, unexplained nodes are flagged but keep their value: refilling them from
     # neighbours that the same fault may have spoiled does not make them any more right
@@ -490,6 +491,7 @@ def _correction_loop(
     current = current.copy()
     current.status[unexplained] = Status.OUTLIER_REPLACED
     flagged_after = int(unexplained.sum())
+    passes[-1] = dataclasses.replace(passes[-1], stop=stop)
     result = current.copy()
     result.u[masked] = field.u[masked]
     if result.gradient is not None and field.gradient is not None:
@@ -509,10 +511,25 @@ def _correction_loop(
         "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
+        "stop_reason": stop,
+        "selective": bool(selective),
+        "stages": stages,
         "seconds": time.perf_counter() - started,
     }
     yield Progress("done", 1, 1, f"mean gray residual {residual_before:.4g} -> {residual:.4g}")
     return result
+
+
+def _add_stages(stages: dict, delta, **seconds) -> None:
+    """Add wall times to ``stages`` (with the correcting DVC's IC-GN and statistics)."""
+    for key, value in seconds.items():
+        stages[key] = stages.get(key, 0.0) + float(value)
+    timings = {} if delta is None else delta.metadata.get("timings", {})
+    timings = timings.get("task_s", timings)  # a tiled run sums its batches' stages there
+    for key, name in (("icgn_s", "correcting_icgn_s"), ("noise_s", "correcting_statistics_s")):
+        stages[name] = stages.get(name, 0.0) + float(timings.get(key, 0.0))
+    if "uncertainty_s" in timings:
+        stages["correcting_statistics_s"] += float(timings["uncertainty_s"])
 
 
 def _mean(values: np.ndarray) -> float:
@@ -551,11 +568,3 @@ def correct(
 ) -> DisplacementField:
     """Blocking form of :func:`correct_iter` (same parameters, no progress)."""
     return run_to_completion(correct_iter(reference, deformed, field, params, **options))
-
-
-def correction_table(field: DisplacementField) -> list[CorrectionPass]:
-    """The per-pass records of a corrected field (``metadata["correction_passes"]``), or []."""
-    return [
-        entry if isinstance(entry, CorrectionPass) else CorrectionPass.from_dict(entry)
-        for entry in field.metadata.get("correction_passes", [])
-    ]

@@ -59,9 +59,12 @@ class CorrectionVolumes:
         *,
         grid=None,
         initial: DisplacementField | None = None,
+        active=None,
     ) -> Generator[Progress, None, DisplacementField]:
         """A DVC run: of ``(G, F)`` with the input mask when ``pair`` is None (step a), else of
-        ``pair = (g, f, mask)`` from :meth:`matching_pair`, on ``grid`` from ``initial``."""
+        ``pair = (g, f, mask)`` from :meth:`matching_pair`, on ``grid`` from ``initial``; only
+        the POIs of ``active`` (bool, the grid's shape) when given, the others
+        ``Status.NOT_COMPUTED`` (:func:`.correlate.correlate_iter`)."""
         raise NotImplementedError
 
     def align(self, field: DisplacementField) -> Generator[Progress, None, tuple[object, float]]:
@@ -130,12 +133,12 @@ class InMemoryVolumes(CorrectionVolumes):
                 None if self.mask is None else prefilter(self.mask.astype(np.float32))
             )
 
-    def correlate(self, params, pair=None, *, grid=None, initial=None):
+    def correlate(self, params, pair=None, *, grid=None, initial=None, active=None):
         if pair is None:
             reference, deformed, mask = self._inputs
             return correlate_iter(reference, deformed, params, mask=mask)
         g, f, mask = pair
-        return correlate_iter(g, f, params, mask=mask, grid=grid, initial=initial)
+        return correlate_iter(g, f, params, mask=mask, grid=grid, initial=initial, active=active)
 
     def align(self, field):
         spline = FieldSpline.from_field(field)

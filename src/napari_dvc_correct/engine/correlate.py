@@ -291,6 +291,7 @@ def match_iter(
     texture_std=None,
     grid_anchor=None,
     seeds=None,
+    active=None,
 ) -> Generator[Progress, None, tuple[MatchedGrid, PyramidLevel]]:
     """The first half of :func:`correlate_iter` (same parameters): the POIs matched, not judged.
 
@@ -417,6 +418,10 @@ def match_iter(
     status = np.full(n_points, int(Status.OUT_OF_BOUNDS), np.int64)
     iterations = np.zeros(n_points, np.int64)
     todo = np.flatnonzero(inside)
+    if active is not None:
+        chosen = np.asarray(active, bool).reshape(-1)
+        todo = todo[chosen[todo]]
+        status[~chosen] = int(Status.NOT_COMPUTED)
     batch = params.batch_size
     for start in range(0, len(todo), batch):
         index = todo[start : start + batch]
@@ -476,6 +481,7 @@ def correlate_iter(
     texture_std=None,
     grid_anchor=None,
     seeds=None,
+    active=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -511,6 +517,10 @@ def correlate_iter(
         The seeds of the initial guess, matched and judged on the whole grid (:mod:`.tiled`'s
         seed pass): every POI starts from its nearest good seed of the whole grid, as in memory,
         and the pyramid has the whole volume's ``seeds.levels``. Default: seeds searched here.
+    active : ndarray of bool, shape of the grid, optional
+        Match only these POIs (the self-correction's selective passes, :mod:`.correction`); the
+        others get ``Status.NOT_COMPUTED`` and NaN, and take no part in the noise estimate, the
+        thresholds or the repair. Default: every POI.
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.
@@ -539,6 +549,7 @@ def correlate_iter(
         texture_std=texture_std,
         grid_anchor=grid_anchor,
         seeds=seeds,
+        active=active,
     )
     field, _ = yield from judge_iter(matched, fine, params)
     return field

@@ -44,6 +44,7 @@ class BatchJob:
     device: str = "cpu"
     grid_anchor: tuple | None = None  # (whole-grid index of the sub-grid's first POI, grid shape)
     seeds: GivenSeeds | None = None  # the seed pass's seeds for this sub-grid
+    active: np.ndarray | None = None  # (*sub_shape,) bool: the POIs to match (None: all)
 
     @property
     def region_voxels(self) -> int:
@@ -122,6 +123,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchMatch:
             device=job.device,
             grid_anchor=job.grid_anchor,
             seeds=job.seeds,
+            active=job.active,
         )
     )
     core = np.arange(int(np.prod(job.sub_shape))).reshape(job.sub_shape)[job.core].ravel()

@@ -290,7 +290,7 @@ class TiledVolumes(CorrectionVolumes):
         return self._statistics
 
     # -- the interface
-    def correlate(self, params, pair=None, *, grid=None, initial=None):
+    def correlate(self, params, pair=None, *, grid=None, initial=None, active=None):
         run = dict(
             batch_shape=self.batch_shape,
             max_memory=self.max_memory,
@@ -303,7 +303,9 @@ class TiledVolumes(CorrectionVolumes):
                 self.reference, self.deformed, params, mask=self.mask, **run
             )
         g, f, mask = pair
-        return correlate_tiled_iter(g, f, params, mask=mask, grid=grid, initial=initial, **run)
+        return correlate_tiled_iter(
+            g, f, params, mask=mask, grid=grid, initial=initial, active=active, **run
+        )
 
     def align(self, field):
         stats = yield from self.statistics()
@@ -437,6 +439,7 @@ def correct_tiled_iter(
     block_shape=CORRECTION_BLOCK,
     node_block: int = NODE_BLOCK,
     temp_dir=None,
+    selective: bool = True,
 ) -> Generator[Progress, None, DisplacementField]:
     """Self-correct a field of two lazily read volumes, batch by batch; yields progress.
 
@@ -444,7 +447,7 @@ def correct_tiled_iter(
     ----------
     reference, deformed : LazyVolume, path or array, shape (nz, ny, nx)
         ``G`` and ``F`` (:func:`..io.lazy.as_lazy`: TIFF, Zarr, OME-Zarr, .npy, slices...).
-    field, params, frame, update, max_passes, min_improvement, clean_options
+    field, params, frame, update, max_passes, min_improvement, clean_options, selective
         As :func:`..engine.correction.correct_iter` (``field`` None: a tiled DVC runs first).
     mask : LazyVolume, path or array, optional
         Reference-space material mask (non-zero = inside).
@@ -515,6 +518,7 @@ def correct_tiled_iter(
             max_passes=max_passes,
             min_improvement=min_improvement,
             clean_options=clean_options,
+            selective=selective,
         )
     finally:
         volumes.close()  # the temporary arrays, also on error or cancel (idempotent)

@@ -55,6 +55,7 @@ that would exceed the machine (or ``max_memory``) is refused with :class:`Memory
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Generator
@@ -154,6 +155,18 @@ def _make_jobs(batches, params, shape, grid, levels, whole, margin, initial, opt
     return jobs
 
 
+def _active_jobs(jobs, active):
+    """The jobs whose own POIs include some of ``active`` (grid-shaped bool), each with its
+    sub-grid's part of ``active`` (the margins included, as in memory)."""
+    kept = []
+    for job in jobs:
+        if not active.reshape(-1)[job.core_index].any():
+            continue
+        window = tuple(slice(a, a + n) for a, n in zip(job.grid_anchor[0], job.sub_shape))
+        kept.append(dataclasses.replace(job, active=np.ascontiguousarray(active[window])))
+    return kept
+
+
 def correlate_tiled_iter(
     reference,
     deformed,
@@ -170,6 +183,7 @@ def correlate_tiled_iter(
     margin: int = 1,
     device="cpu",
     seed_pass: bool = True,
+    active=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F) batch by batch; yields progress, returns the field.
 
@@ -215,6 +229,10 @@ def correlate_tiled_iter(
         module's docstring). False: each batch searches the whole grid's seeds in its box
         (``grid_anchor``), which differs from memory at the batch faces unless ``margin``
         reaches each POI's nearest good seed.
+    active : ndarray of bool, shape of the grid, optional
+        Match only these POIs (as :func:`..engine.correlate.correlate_iter`'s ``active``); a
+        batch with none of its own POIs active is not run. The others get
+        ``Status.NOT_COMPUTED``.
 
     Yields
     ------
@@ -346,11 +364,13 @@ def correlate_tiled_iter(
             initial,
             dict(threads=threads_per_task, use_mask=masked, device=device),
         )
-        largest = max(jobs, key=lambda job: job.region_voxels)
+        if active is not None:  # only the batches with POIs to match, each told which
+            jobs = _active_jobs(jobs, np.asarray(active, bool).reshape(grid_shape))
+        largest = max(jobs, key=lambda job: job.region_voxels, default=None)
         itemsize = np.dtype(dtype).itemsize
-        points = int(np.prod(largest.sub_shape))
+        points = 0 if largest is None else int(np.prod(largest.sub_shape))
         actual = fixed + concurrency * _batch_bytes(
-            largest.region_voxels, points, itemsize, masked, levels
+            0 if largest is None else largest.region_voxels, points, itemsize, masked, levels
         )
         _refuse_if_over(actual, budget, max_memory, batch_shape, concurrency, where)
 
@@ -398,7 +418,7 @@ def correlate_tiled_iter(
                 matches[i] = result
                 yield Progress("IC-GN", done, len(jobs), f"batch {done} of {len(jobs)} matched")
         # the whole run's noise: the median over every batch's own POIs, as in memory
-        estimates = np.concatenate([m.estimates for m in matches])
+        estimates = np.concatenate([np.empty(0)] + [m.estimates for m in matches])
         noise_variance = float(np.median(estimates)) if estimates.size else 0.0
         del estimates
         u = np.full((n_points, 3), np.nan)
@@ -488,7 +508,7 @@ def correlate_tiled_iter(
                 "threads_per_task": threads_per_task,
                 "scheduler": "local threads" if client is None else str(scheduler),
                 "estimated_peak_bytes": int(actual),
-                "largest_region_voxels": int(largest.region_voxels),
+                "largest_region_voxels": 0 if largest is None else int(largest.region_voxels),
                 "seed_pass": good_seeds is not None,
                 "good_seeds": good_seeds,
             },
