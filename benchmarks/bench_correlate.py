@@ -1,8 +1,8 @@
 """Speed and memory of the CPU engine on standard workloads (issue 2).
 
 Workload A (engine): a 160³ textured float32 pair with a small homogeneous strain, subvolume 31³,
-step 8. Prints POIs/s, the IC-GN stage's voxel-iterations per second, the time of each stage and
-peak memory (as a multiple of the two volumes' float32 size), for 1 thread and all threads.
+step 8. Prints POIs/s, the IC-GN stage's voxel-iterations per second (per-POI set-up included),
+the load average at the end of the run, the time of each stage and peak memory (as a multiple of the two volumes' float32 size), for 1 thread and all threads.
 
 Workload B (command line): ``napari-dvc-correct correlate`` on a 100³ pair, subvolume 21³, step 8,
 displacements up to 8 voxels, timed as a whole process (start-up included) with numba's cache warm.
@@ -90,6 +90,7 @@ def run_engine(size: int, threads: int | None) -> dict:
     good = field.valid
     return {
         "threads": numba.get_num_threads(),
+        "load_average_1min": os.getloadavg()[0],  # other processes share the cores
         "pois": field.n_points,
         "wall_s": wall,
         "pois_per_s": field.n_points / wall,

@@ -6,12 +6,16 @@ in the same process on the same volume and field:
 * ``exact``: Newton at every voxel (``warp_forward_block(..., accuracy=None)``, i.e.
   ``FieldSpline.invert`` warm-started from the x neighbour);
 * ``lattice``: Newton on a coarse lattice, interpolation checked cell by cell, Newton where the
-  check fails (``FieldSpline.invert_lattice``, the default).
+  check fails (``LatticeInverter.solve``, positions slab by slab, then sampled: what the tiled
+  warps do with their lazy volumes);
+* ``fused``: the same inverse with ``G`` sampled as the positions are made
+  (``LatticeInverter.warp``, what ``warp_forward`` does in memory): no positions array.
 
 Workload: a 256³ textured float32 volume, a POI grid of subvolume 21 and step 8, two fields: a
 smooth large displacement (translation, 3° rotation, 2 % waves) and a narrow shear band (width 8
 voxels = the node step, slip 4 voxels: 25 % peak shear). Prints Mvoxel/s of the whole warp and of
-its two stages (inversion, sampling ``G``) at 1 and 2 numba threads, wall and CPU time (the
+its two stages (inversion, sampling ``G``; for ``fused``: the coarse stage and the rest) at 1 and
+2 numba threads, wall and CPU time (the
 machine is shared: CPU time of one thread is the cleaner figure), the lattice inverse's max and
 mean error against the exact one, and the share of voxels solved by Newton.
 
@@ -98,13 +102,23 @@ def run(coefficients, spline, accuracy):
     return positions, times, newton / len(positions)
 
 
-def report(name, t, voxels):
+def run_fused(coefficients, spline, accuracy):
+    """The fused warp: coarse stage (Newton at the nodes, checks), then fill and sampling."""
+    from napari_dvc_correct.engine.inverse_lattice import LatticeInverter
+
+    box = tuple(slice(0, n) for n in coefficients.shape)
+    inverter, wall, cpu = timed(lambda: LatticeInverter(spline, box, accuracy=accuracy))
+    (values, _), fill_wall, fill_cpu = timed(lambda: inverter.warp(coefficients))
+    return values, np.array([wall, cpu, fill_wall, fill_cpu])
+
+
+def report(name, t, voxels, stages=("inversion", "sampling")):
     whole_wall, whole_cpu = t[0] + t[2], t[1] + t[3]
     print(
         f"  {name} warp {voxels / whole_wall / 1e6:6.2f} Mvox/s wall, "
-        f"{voxels / whole_cpu / 1e6:6.2f} per CPU-s | inversion "
+        f"{voxels / whole_cpu / 1e6:6.2f} per CPU-s | {stages[0]} "
         f"{voxels / t[0] / 1e6:6.2f} wall, {voxels / t[1] / 1e6:6.2f} CPU | "
-        f"sampling {voxels / t[2] / 1e6:6.2f} wall, {voxels / t[3] / 1e6:6.2f} CPU"
+        f"{stages[1]} {voxels / t[2] / 1e6:6.2f} wall, {voxels / t[3] / 1e6:6.2f} CPU"
     )
 
 
@@ -121,7 +135,7 @@ def main() -> None:
 
     from napari_dvc_correct.engine import synthetic
     from napari_dvc_correct.engine.field_spline import inside_hull
-    from napari_dvc_correct.engine.interpolation import prefilter
+    from napari_dvc_correct.engine.interpolation import prefilter, sample
 
     accuracy = None if args.exact_only else 1e-3  # warp.INVERSE_ACCURACY
 
@@ -138,6 +152,7 @@ def main() -> None:
         run(small, spline, None)  # compile or load every kernel
         if accuracy is not None:
             run(small, spline, accuracy)
+            run_fused(small, spline, accuracy)
         for threads in args.threads:
             numba.set_num_threads(threads)
             exact, exact_times, _ = run(coefficients, spline, None)
@@ -147,6 +162,14 @@ def main() -> None:
                 continue
             fast, fast_times, fallback = run(coefficients, spline, accuracy)
             report("lattice", fast_times, voxels)
+            fused, fused_times = run_fused(coefficients, spline, accuracy)
+            report("fused  ", fused_times, voxels, ("coarse stage", "fill + sampling"))
+            two_pass = sample(coefficients, fast, cval=np.nan).reshape(fused.shape)
+            same_nan = np.array_equal(np.isnan(fused), np.isnan(two_pass))
+            print(
+                f"  fused vs lattice + sample: max |difference| "
+                f"{np.nanmax(np.abs(fused - two_pass)):.1e} gray levels, same NaNs: {same_nan}"
+            )
             error = np.abs(fast - exact).max(axis=1)
             hull = inside_hull(spline, exact)
             print(

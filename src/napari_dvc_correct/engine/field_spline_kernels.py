@@ -13,6 +13,7 @@ from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
 from .interpolation import _mirror, bspline_derivative_weights, bspline_weights
+from .simd import field_taps, field_taps_with_gradient
 
 #: Hull tolerance in grid units: a position within this of the outermost node is inside.
 HULL_TOLERANCE = 1e-6
@@ -32,18 +33,24 @@ def _clamp(value, low, high):
 
 
 def extend_coefficients(coefficients: np.ndarray) -> np.ndarray:
-    """The padded coefficients with their mirror images added: 1 plane below, 2 above, per axis.
+    """The padded coefficients ``(nz, ny, nx, C)`` with their mirror images added (1 plane below,
+    2 above, per axis), component-major: ``(C, nz + 3, ny + 3, nx + 3)``, float64.
 
     A position's taps then index the array directly (no mirroring in the hot loop): the padded
     grid coordinate is clamped to ``[0, n - 1]`` and its taps run from ``floor - 1`` to
-    ``floor + 2``, i.e. from -1 to ``n + 1``, stored at ``index + 1``.
+    ``floor + 2``, i.e. from -1 to ``n + 1``, stored at ``index + 1``; the 4 taps along x are
+    contiguous (one vector load, :mod:`.simd`).
+
+    The kernels of :mod:`.inverse_lattice` and :mod:`.inverse_fill` compile these point kernels
+    into their own, and numba's cache checks only the content of a kernel's own file: after a
+    change of this layout, clear the ``__pycache__`` numba files of those modules too.
     """
     out = coefficients
     for axis in range(3):
         n = out.shape[axis]
         index = [_mirror_host(i, n) for i in range(-1, n + 2)]
         out = np.take(out, index, axis=axis)
-    return np.ascontiguousarray(out)
+    return np.ascontiguousarray(np.moveaxis(out, -1, 0), dtype=np.float64)
 
 
 def _mirror_host(index: int, n: int) -> int:
@@ -52,6 +59,25 @@ def _mirror_host(index: int, n: int) -> int:
     period = 2 * (n - 1)
     index = abs(index) % period
     return period - index if index > n - 1 else index
+
+
+#: 1/6, a product instead of a division (numba keeps divisions as written; 15 of them per
+#: evaluation cost more than its 192 multiply-adds).
+SIXTH = 1.0 / 6.0
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _weights(t):
+    """:func:`.interpolation.bspline_weights` with products by :data:`SIXTH` (equal to rounding)."""
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    return (
+        s * s * s * SIXTH,
+        (3.0 * t3 - 6.0 * t2 + 4.0) * SIXTH,
+        (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) * SIXTH,
+        t3 * SIXTH,
+    )
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
@@ -69,42 +95,33 @@ def _tap_origin(position, origin, step, pad, size):
     return t, int(f), q - f, clamped
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(inline="always", **KERNEL_OPTIONS)
+def _first_tap(extended, iz, iy, ix):
+    """Flat index of the first tap and the strides (y, z, component) of ``extended``."""
+    _, pz, py, px = extended.shape
+    row = np.uint64(px)
+    plane = np.uint64(py * px)
+    first = np.uint64((iz * py + iy) * px + ix)
+    return first, row, plane, np.uint64(pz) * plane
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
 def _eval_one(extended, pad, origin, step, trend_offset, trend_matrix, z, y, x, out):
     """Spline value (3 components) at ``(z, y, x)`` (voxels) into ``out`` (3,); extrapolates.
 
-    ``extended`` is :func:`extend_coefficients` of a 3-component spline's coefficients.
+    ``extended`` is :func:`extend_coefficients` of a 3-component spline's coefficients; the taps
+    are summed four-wide (:func:`.simd.field_taps`).
     """
-    tz, iz, fz, _ = _tap_origin(z, origin[0], step[0], pad, extended.shape[0] - 3)
-    ty, iy, fy, _ = _tap_origin(y, origin[1], step[1], pad, extended.shape[1] - 3)
-    tx, ix, fx, _ = _tap_origin(x, origin[2], step[2], pad, extended.shape[2] - 3)
-    wz = bspline_weights(fz)
-    wy = bspline_weights(fy)
-    wx0, wx1, wx2, wx3 = bspline_weights(fx)
-    e = extended
-    v0 = 0.0
-    v1 = 0.0
-    v2 = 0.0
-    for a in range(4):
-        p0 = 0.0
-        p1 = 0.0
-        p2 = 0.0
-        za = iz + a
-        for b in range(4):
-            yb = iy + b
-            # explicit taps, no row views (a view costs as much as the 12 multiply-adds)
-            r0 = wx0 * e[za, yb, ix, 0] + wx1 * e[za, yb, ix + 1, 0]
-            r0 += wx2 * e[za, yb, ix + 2, 0] + wx3 * e[za, yb, ix + 3, 0]
-            r1 = wx0 * e[za, yb, ix, 1] + wx1 * e[za, yb, ix + 1, 1]
-            r1 += wx2 * e[za, yb, ix + 2, 1] + wx3 * e[za, yb, ix + 3, 1]
-            r2 = wx0 * e[za, yb, ix, 2] + wx1 * e[za, yb, ix + 1, 2]
-            r2 += wx2 * e[za, yb, ix + 2, 2] + wx3 * e[za, yb, ix + 3, 2]
-            p0 += wy[b] * r0
-            p1 += wy[b] * r1
-            p2 += wy[b] * r2
-        v0 += wz[a] * p0
-        v1 += wz[a] * p1
-        v2 += wz[a] * p2
+    tz, iz, fz, _ = _tap_origin(z, origin[0], step[0], pad, extended.shape[1] - 3)
+    ty, iy, fy, _ = _tap_origin(y, origin[1], step[1], pad, extended.shape[2] - 3)
+    tx, ix, fx, _ = _tap_origin(x, origin[2], step[2], pad, extended.shape[3] - 3)
+    v0, v1, v2 = field_taps(
+        extended,
+        *_first_tap(extended, iz, iy, ix),
+        _weights(fz),
+        _weights(fy),
+        _weights(fx),
+    )
     out[0] = (
         v0
         + trend_offset[0]
@@ -207,67 +224,53 @@ def _eval_points(
 @njit(inline="always", **KERNEL_OPTIONS)
 def _weights_and_derivatives(position, origin, step, pad, size):
     t, i, f, clamped = _tap_origin(position, origin, step, pad, size)
-    w = bspline_weights(f)
+    w = _weights(f)
+    inverse = 1.0 / step
     if clamped:
         d = (0.0, 0.0, 0.0, 0.0)
     else:
         d0, d1, d2, d3 = bspline_derivative_weights(f)
-        d = (d0 / step, d1 / step, d2 / step, d3 / step)
-    return t, i, w, d
+        d = (d0 * inverse, d1 * inverse, d2 * inverse, d3 * inverse)
+    return t, i, w, d, inverse
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(inline="always", **KERNEL_OPTIONS)
 def _eval_one_with_jacobian(
     extended, pad, origin, step, trend_offset, trend_matrix, z, y, x, out, jacobian
 ):
     """Value (3,) and Jacobian ``d out_c / d X_a`` (3, 3) of a displacement spline at ``(z, y, x)``.
 
-    ``extended`` is :func:`extend_coefficients` of the spline's coefficients. Sums run row by row
-    (x taps first), so the 64 taps cost about 600 multiply-adds for the value and 3 derivatives.
+    ``extended`` is :func:`extend_coefficients` of the spline's coefficients. The 64 taps of
+    each component are summed four-wide, value and 3 derivatives at once
+    (:func:`.simd.field_taps_with_gradient`).
     """
-    tz, iz, wz, dz = _weights_and_derivatives(z, origin[0], step[0], pad, extended.shape[0] - 3)
-    ty, iy, wy, dy = _weights_and_derivatives(y, origin[1], step[1], pad, extended.shape[1] - 3)
-    tx, ix, wx, dx = _weights_and_derivatives(x, origin[2], step[2], pad, extended.shape[2] - 3)
-    for c in range(3):
-        out[c] = trend_offset[c] + trend_matrix[c, 0] * tz + trend_matrix[c, 1] * ty
-        out[c] += trend_matrix[c, 2] * tx
-        for a in range(3):
-            jacobian[c, a] = trend_matrix[c, a] / step[a]
-    wx0, wx1, wx2, wx3 = wx
-    dx0, dx1, dx2, dx3 = dx
-    e = extended
-    for c in range(3):
-        value = 0.0
-        grad_z = 0.0
-        grad_y = 0.0
-        grad_x = 0.0
-        for a in range(4):
-            plane_v = 0.0
-            plane_y = 0.0
-            plane_x = 0.0
-            za = iz + a
-            for b in range(4):
-                yb = iy + b
-                t0 = e[za, yb, ix, c]
-                t1 = e[za, yb, ix + 1, c]
-                t2 = e[za, yb, ix + 2, c]
-                t3 = e[za, yb, ix + 3, c]
-                rv = wx0 * t0 + wx1 * t1 + wx2 * t2 + wx3 * t3
-                rd = dx0 * t0 + dx1 * t1 + dx2 * t2 + dx3 * t3
-                plane_v += wy[b] * rv
-                plane_y += dy[b] * rv
-                plane_x += wy[b] * rd
-            value += wz[a] * plane_v
-            grad_z += dz[a] * plane_v
-            grad_y += wz[a] * plane_y
-            grad_x += wz[a] * plane_x
-        out[c] += value
-        jacobian[c, 0] += grad_z
-        jacobian[c, 1] += grad_y
-        jacobian[c, 2] += grad_x
+    tz, iz, wz, dz, sz = _weights_and_derivatives(z, origin[0], step[0], pad, extended.shape[1] - 3)
+    ty, iy, wy, dy, sy = _weights_and_derivatives(y, origin[1], step[1], pad, extended.shape[2] - 3)
+    tx, ix, wx, dx, sx = _weights_and_derivatives(x, origin[2], step[2], pad, extended.shape[3] - 3)
+    sums = field_taps_with_gradient(
+        extended, *_first_tap(extended, iz, iy, ix), wz, wy, wx, dz, dy, dx
+    )
+    v0, v1, v2, gz0, gz1, gz2, gy0, gy1, gy2, gx0, gx1, gx2 = sums
+    t = (tz, ty, tx)
+    inverse = (sz, sy, sx)
+    _trend_row(trend_offset, trend_matrix, inverse, t, 0, v0, gz0, gy0, gx0, out, jacobian)
+    _trend_row(trend_offset, trend_matrix, inverse, t, 1, v1, gz1, gy1, gx1, out, jacobian)
+    _trend_row(trend_offset, trend_matrix, inverse, t, 2, v2, gz2, gy2, gx2, out, jacobian)
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(inline="always", **KERNEL_OPTIONS)
+def _trend_row(trend_offset, trend_matrix, inverse, t, c, v, gz, gy, gx, out, jacobian):
+    """Component ``c``: the trend added to the spline sums (value and derivatives);
+    ``inverse`` holds ``1 / step`` and ``t`` the grid coordinates, per axis."""
+    value = trend_offset[c] + trend_matrix[c, 0] * t[0] + trend_matrix[c, 1] * t[1]
+    value += trend_matrix[c, 2] * t[2]
+    out[c] = value + v
+    jacobian[c, 0] = trend_matrix[c, 0] * inverse[0] + gz
+    jacobian[c, 1] = trend_matrix[c, 1] * inverse[1] + gy
+    jacobian[c, 2] = trend_matrix[c, 2] * inverse[2] + gx
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
 def newton_inverse(
     extended,
     pad,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ._numba_setup import KERNEL_OPTIONS
+from ._numba_setup import FAST_KERNEL_OPTIONS, KERNEL_OPTIONS
 from .interpolation import gradient_at_voxel
 from .shape_function import PRODUCT_TABLE, cholesky_solve, cholesky_solve_setup, monomials
 
@@ -59,60 +59,89 @@ def fold_row(moments, row0, row1, row2, z, y, n):
         row2[q] = 0.0
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(**FAST_KERNEL_OPTIONS)
 def affine_terms(g, grad, xi, count, mean_g):
     """First order in one pass: ``Σ(g − ḡ)²``, ``H = Σ JᵀJ``, ``Σ J`` and ``Σ J (g − ḡ)``.
 
     ``H[(k, j), (k', j')] = Σ g_k g_k' b_j b_j'`` and ``b_j b_j'`` is one of the 10 monomials of
-    degree ≤ 2, so 6 × 10 moments suffice. Voxels come in (z, y, x) row order: sums along each x-row
-    of ``g_k g_k' · (1, x, x²)`` are folded into the moments once per row. Inputs may be float32
-    (the gathered subvolume); every product and sum is float64.
+    degree ≤ 2, so 6 × 10 moments suffice. Voxels come in (z, y, x) row order: along each x-row
+    the sums of ``g_k g_k' · (1, x, x²)``, ``g_k · (1, x)`` and ``g_k (g − ḡ) · (1, x)`` are
+    kept in registers and folded into the moments once per row. Inputs may be float32 (the
+    gathered subvolume); every product and sum is float64.
     """
     moments = np.zeros((6, 10))
-    row0 = np.zeros(6)
-    row1 = np.zeros(6)
-    row2 = np.zeros(6)
+    row0 = np.empty(6)
+    row1 = np.empty(6)
+    row2 = np.empty(6)
     sum_j = np.zeros(12)
     sum_jg = np.zeros(12)
     ss_g = 0.0
-    current_z = np.float64(xi[0, 0]) if count else 0.0
-    current_y = np.float64(xi[0, 1]) if count else 0.0
-    for i in range(count + 1):
-        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
-            z = current_z
-            y = current_y
-            fold_row(moments, row0, row1, row2, z, y, 6)
-            if i == count:
-                break
-            current_z = np.float64(xi[i, 0])
-            current_y = np.float64(xi[i, 1])
-        gz = np.float64(grad[i, 0])
-        gy = np.float64(grad[i, 1])
-        gx = np.float64(grad[i, 2])
-        x = np.float64(xi[i, 2])
-        products = (gz * gz, gy * gy, gx * gx, gz * gy, gy * gx, gz * gx)
-        for q in range(6):
-            value = products[q]
-            row0[q] += value
-            row1[q] += value * x
-            row2[q] += value * x * x
-        dg = g[i] - mean_g
-        ss_g += dg * dg
-        z = current_z
-        y = current_y
-        for k in range(3):
-            gk = gz if k == 0 else (gy if k == 1 else gx)
-            gkz = gk * z
-            gky = gk * y
-            gkx = gk * x
-            sum_j[4 * k] += gk
-            sum_j[4 * k + 1] += gkz
-            sum_j[4 * k + 2] += gky
-            sum_j[4 * k + 3] += gkx
-            sum_jg[4 * k] += gk * dg
-            sum_jg[4 * k + 1] += gkz * dg
-            sum_jg[4 * k + 2] += gky * dg
-            sum_jg[4 * k + 3] += gkx * dg
+    start = 0
+    while start < count:
+        end = start + 1
+        while end < count and xi[end, 0] == xi[start, 0] and xi[end, 1] == xi[start, 1]:
+            end += 1
+        q0 = q1 = q2 = q3 = q4 = q5 = 0.0  # Σ g_k g_k'
+        x0 = x1 = x2 = x3 = x4 = x5 = 0.0  # Σ g_k g_k' x
+        w0 = w1 = w2 = w3 = w4 = w5 = 0.0  # Σ g_k g_k' x²
+        j0 = j1 = j2 = jx0 = jx1 = jx2 = 0.0  # Σ g_k, Σ g_k x
+        h0 = h1 = h2 = hx0 = hx1 = hx2 = 0.0  # Σ g_k dg, Σ g_k x dg
+        ss = 0.0
+        for i in range(start, end):
+            gz = np.float64(grad[i, 0])
+            gy = np.float64(grad[i, 1])
+            gx = np.float64(grad[i, 2])
+            x = np.float64(xi[i, 2])
+            xx = x * x
+            p0 = gz * gz
+            p1 = gy * gy
+            p2 = gx * gx
+            p3 = gz * gy
+            p4 = gy * gx
+            p5 = gz * gx
+            q0 += p0
+            q1 += p1
+            q2 += p2
+            q3 += p3
+            q4 += p4
+            q5 += p5
+            x0 += p0 * x
+            x1 += p1 * x
+            x2 += p2 * x
+            x3 += p3 * x
+            x4 += p4 * x
+            x5 += p5 * x
+            w0 += p0 * xx
+            w1 += p1 * xx
+            w2 += p2 * xx
+            w3 += p3 * xx
+            w4 += p4 * xx
+            w5 += p5 * xx
+            dg = g[i] - mean_g
+            ss += dg * dg
+            j0 += gz
+            j1 += gy
+            j2 += gx
+            jx0 += gz * x
+            jx1 += gy * x
+            jx2 += gx * x
+            h0 += gz * dg
+            h1 += gy * dg
+            h2 += gx * dg
+            hx0 += gz * x * dg
+            hx1 += gy * x * dg
+            hx2 += gx * x * dg
+        ss_g += ss
+        z = np.float64(xi[start, 0])
+        y = np.float64(xi[start, 1])
+        row0[0], row0[1], row0[2], row0[3], row0[4], row0[5] = q0, q1, q2, q3, q4, q5
+        row1[0], row1[1], row1[2], row1[3], row1[4], row1[5] = x0, x1, x2, x3, x4, x5
+        row2[0], row2[1], row2[2], row2[3], row2[4], row2[5] = w0, w1, w2, w3, w4, w5
+        fold_row(moments, row0, row1, row2, z, y, 6)
+        _fold_gradient(sum_j, sum_jg, 0, j0, jx0, h0, hx0, z, y)
+        _fold_gradient(sum_j, sum_jg, 1, j1, jx1, h1, hx1, z, y)
+        _fold_gradient(sum_j, sum_jg, 2, j2, jx2, h2, hx2, z, y)
+        start = end
     hessian = np.empty((12, 12))
     for k in range(3):
         for j in range(4):
@@ -120,6 +149,19 @@ def affine_terms(g, grad, xi, count, mean_g):
                 for j2 in range(4):
                     hessian[k * 4 + j, k2 * 4 + j2] = moments[_PAIR[k, k2], PRODUCT_TABLE[j, j2]]
     return ss_g, hessian, sum_j, sum_jg
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _fold_gradient(sum_j, sum_jg, k, s, sx, t, tx, z, y):
+    """Add one row's ``Σ g_k (1, x)`` and ``Σ g_k dg (1, x)`` to ``Σ J`` and ``Σ J dg``."""
+    sum_j[4 * k] += s
+    sum_j[4 * k + 1] += z * s
+    sum_j[4 * k + 2] += y * s
+    sum_j[4 * k + 3] += sx
+    sum_jg[4 * k] += t
+    sum_jg[4 * k + 1] += z * t
+    sum_jg[4 * k + 2] += y * t
+    sum_jg[4 * k + 3] += tx
 
 
 @njit(**KERNEL_OPTIONS)

@@ -5,11 +5,12 @@ The forward warp needs, at every loaded-state voxel ``x``, the reference positio
 tricubic evaluations of the field with its Jacobian per voxel. The inverse displacement
 ``v(x) = x - X(x)`` is nearly as smooth as the field, so :class:`LatticeInverter`
 
-1. solves the inverse exactly (Newton) on a coarse lattice of voxels whose indices are multiples
-   of ``stride`` along each axis (:func:`auto_stride`: half the node step, at most 4). The
-   indices are the whole volume's, not the box's, and each node's Newton start is fixed by them
-   (warm-start chains along x restart cold every :data:`CHAIN` nodes): a box's answer does not
-   depend on how a volume is cut into boxes (tiled and in-memory warps agree bit for bit);
+1. solves the inverse (Newton, to a step of :func:`polish_step`) on a coarse lattice of voxels
+   whose indices are multiples of ``stride`` along each axis (:func:`auto_stride`: half the node
+   step, at most 4). The indices are the whole volume's, not the box's, and each node's Newton
+   start is fixed by them (warm-start chains along x, extrapolated from the two nodes below,
+   restart cold every :data:`CHAIN` nodes): a box's answer does not depend on how a volume is
+   cut into boxes (tiled and in-memory warps agree bit for bit);
 2. checks every coarse cell (the ``stride³`` voxels between 8 coarse nodes) at 7 points, its low
    corner moved by half a cell along 1, 2 or 3 axes (edge midpoints, face centres, centre: where
    the interpolation errors of each axis peak; a point on a shared face or edge counts for every
@@ -18,8 +19,9 @@ tricubic evaluations of the field with its Jacobian per voxel. The inverse displ
    fails when one of its 6³ interpolation nodes did not converge or is nearly singular
    (:data:`MAX_GAIN`: folds, extreme compression);
 3. interpolates ``v`` to every voxel (6-point Lagrange along each axis, separably: about 20
-   multiply-adds per voxel) in the cells that pass, and runs Newton per voxel, from the
-   interpolated guess, in the cells that fail (narrow shear bands, folds, the kinks of the
+   multiply-adds per voxel; the kernels are in :mod:`.inverse_fill`, which can also sample the
+   reference volume there at once, :meth:`LatticeInverter.warp`) in the cells that pass, and
+   runs Newton per voxel, from the interpolated guess, in the cells that fail (narrow shear bands, folds, the kinks of the
    extrapolated field beyond the grid's hull, points that do not converge): those voxels get
    Newton's answer (to a step of :func:`polish_step`) and its convergence flag.
 
@@ -40,14 +42,21 @@ import numpy as np
 from numba import njit, prange
 
 from ._numba_setup import KERNEL_OPTIONS
-from .field_spline_kernels import _eval_one, hull_bounds, newton_inverse
+from .field_spline_kernels import hull_bounds
+from .inverse_fill import (
+    BELOW,
+    TAPS,
+    axis_weights,
+    evaluate,
+    interpolate_planes,
+    lagrange_weights,
+    phase_table,
+    solve,
+    warp_planes,
+)
 
 #: A cell passes when its centre's interpolation error is below ``accuracy / CHECK_SAFETY``.
 CHECK_SAFETY = 2.0
-
-#: Interpolation nodes per axis (quintic Lagrange), and how many lie below a cell's first node.
-TAPS = 6
-BELOW = 2
 
 #: A cell fails when the inverse gain ``||(I + du/dX)^-1||`` exceeds this at one of its nodes
 #: (the map is nearly singular there: folds, extreme compression).
@@ -107,64 +116,6 @@ def auto_stride(step) -> int:
     return int(max(1, min(MAX_STRIDE, np.floor(float(np.min(step)) / 2.0))))
 
 
-@njit(inline="always", **KERNEL_OPTIONS)
-def _lagrange_weights(t):
-    """6-point Lagrange (quintic) weights of the nodes at -2 .. 3 for a position ``t`` in [0, 1).
-
-    Exact (0, 0, 1, 0, 0, 0) at ``t = 0``.
-    """
-    a = t + 2.0
-    b = t + 1.0
-    c = t
-    d = t - 1.0
-    e = t - 2.0
-    f = t - 3.0
-    return (
-        b * c * d * e * f / -120.0,
-        a * c * d * e * f / 24.0,
-        a * b * d * e * f / -12.0,
-        a * b * c * e * f / 12.0,
-        a * b * c * d * f / -24.0,
-        a * b * c * d * e / 120.0,
-    )
-
-
-@njit(**KERNEL_OPTIONS)
-def _axis_weights(start, count, stride):
-    """Per voxel of one box axis: first of its 4 coarse nodes (box-local) and their weights."""
-    first_cell = start // stride
-    node = np.empty(count, np.int64)
-    weight = np.empty((count, TAPS))
-    for i in range(count):
-        cell = (start + i) // stride
-        t = (start + i - cell * stride) / stride
-        node[i] = cell - first_cell
-        w = _lagrange_weights(t)
-        for k in range(TAPS):
-            weight[i, k] = w[k]
-    return node, weight
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def _solve(spline, z, y, x, max_iterations, tolerance, position, value, jacobian):
-    return newton_inverse(
-        spline[0],
-        spline[1],
-        spline[2],
-        spline[3],
-        spline[4],
-        spline[5],
-        z,
-        y,
-        x,
-        max_iterations,
-        tolerance,
-        position,
-        value,
-        jacobian,
-    )
-
-
 @njit(**KERNEL_OPTIONS)
 def _inverse_gain(jacobian):
     """``||(I + J)^-1||_inf`` (the factor from a residual to a position error), inf if singular."""
@@ -201,41 +152,68 @@ def _inverse_gain(jacobian):
 def _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok, gain):
     """Exact inverse displacement ``v = x - X`` (nz, ny, nx, 3) at coarse nodes ``first_node + i``.
 
-    Along x each node starts from its converged lower neighbour's answer, shifted by the stride
-    (2 Newton steps instead of 3 or 4 from ``X = x - u(x)``); the chains restart cold at the
-    whole-volume coarse indices that are multiples of :data:`CHAIN`, so a node's answer does not
-    depend on where a box begins. ``gain`` gets :func:`_inverse_gain` at the last Newton iterate
-    (NaN where Newton did not converge).
+    Along x each node starts from its converged lower neighbours' answers: extrapolated linearly
+    from the two below it (one Newton step to ``tolerance`` where the field is smooth), or the
+    one below shifted by the stride. The chains restart cold (``X = x - u(x)``) at whole-volume
+    coarse indices ``CHAIN k - BELOW`` (a whole volume's first node), so a node's answer does
+    not depend on where a box begins. ``gain`` gets :func:`_inverse_gain` at the last Newton
+    iterate (NaN where Newton did not converge).
     """
     nz, ny, nx = ok.shape
-    chain_start = (first_node[2] // CHAIN) * CHAIN  # whole-volume coarse x index
+    # whole-volume coarse x index of the chain holding the box's first node
+    chain_start = ((first_node[2] + BELOW) // CHAIN) * CHAIN - BELOW
     for a in prange(nz):
         value = np.empty(3)
         jacobian = np.empty((3, 3))
         position = np.empty(3)
+        below = np.empty(3)
         z = float((first_node[0] + a) * stride)
         for b in range(ny):
             y = float((first_node[1] + b) * stride)
-            previous_ok = False
+            solved = 0  # converged nodes in a row below this one, in this chain
             for node in range(chain_start, first_node[2] + nx):
                 x = float(node * stride)
-                if node % CHAIN != 0 and previous_ok:
+                if (node + BELOW) % CHAIN == 0:
+                    solved = 0
+                if solved >= 2:
+                    for c in range(3):
+                        last = position[c]
+                        position[c] = 2.0 * last - below[c]
+                        below[c] = last
+                elif solved == 1:
+                    for c in range(3):
+                        below[c] = position[c]
                     position[2] += stride
                 else:
-                    _eval_one(*spline, z, y, x, value)
+                    evaluate(spline, z, y, x, value)
                     position[0] = z - value[0]
                     position[1] = y - value[1]
                     position[2] = x - value[2]
-                previous_ok = _solve(
+                converged = solve(
                     spline, z, y, x, max_iterations, tolerance, position, value, jacobian
                 )
+                solved = solved + 1 if converged else 0
                 d = node - first_node[2]
                 if d >= 0:
-                    ok[a, b, d] = previous_ok
+                    ok[a, b, d] = converged
                     v[a, b, d, 0] = z - position[0]
                     v[a, b, d, 1] = y - position[1]
                     v[a, b, d, 2] = x - position[2]
-                    gain[a, b, d] = _inverse_gain(jacobian) if previous_ok else np.nan
+                    gain[a, b, d] = _inverse_gain(jacobian) if converged else np.nan
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _halves_x(source, count, centre, out):
+    """``source`` (n, m, 3) at x node ``d + BELOW`` (``out[0]``) and half a cell above it
+    (``out[1]``), for ``d < count``: ``out`` (2, n, count, 3)."""
+    for j in range(source.shape[0]):
+        for d in range(count):
+            for c in range(3):
+                out[0, j, d, c] = source[j, d + BELOW, c]
+                total = 0.0
+                for k in range(TAPS):
+                    total += centre[k] * source[j, d + k, c]
+                out[1, j, d, c] = total
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -248,16 +226,39 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
     nodes (an estimate of the position error, see :func:`_inverse_gain`) reaches ``limit`` voxels;
     bit ``4 oz + 2 oy + ox`` of ``bad`` is set for the point at offsets ``o / 2``. Cells whose 8
     corners all map at least a voxel outside the grid's hull use ``outside_limit``.
+
+    The interpolated inverse at the points is made plane of cells by plane of cells, separably
+    (along z, then x, then y: each node row's half-cell values once, not once per cell).
     """
     origin = spline[2]
     step = spline[3]
-    centre = _lagrange_weights(0.5)
+    centre = lagrange_weights(0.5)
     nz, ny, nx = bad.shape
+    rows, columns = v.shape[1], v.shape[2]
     for a in prange(nz):
         value = np.empty(3)
-        along_x = np.empty((2, TAPS, TAPS, 3))  # (ox, z node, y node, component)
-        along_y = np.empty((2, 2, TAPS, 3))  # (oy, ox, z node, component)
-        guess = np.empty((2, 2, 2, 3))  # (oz, oy, ox, component)
+        along_z = np.empty((2, rows, columns, 3))  # (oz, y node, x node, component)
+        along_x = np.empty((2, rows, nx, 3))  # (ox, y node, cell, component)
+        guess = np.empty((2, 2, 2, ny, nx, 3))  # (oz, oy, ox, cell y, cell x, component)
+        along_z[0] = v[a + BELOW]
+        along_z[1] = 0.0
+        for i in range(TAPS):
+            w = centre[i]
+            for j in range(rows):
+                for k in range(columns):
+                    for c in range(3):
+                        along_z[1, j, k, c] += w * v[a + i, j, k, c]
+        for oz in range(2):
+            _halves_x(along_z[oz], nx, centre, along_x)
+            for ox in range(2):
+                for b in range(ny):
+                    for d in range(nx):
+                        for c in range(3):
+                            guess[oz, 0, ox, b, d, c] = along_x[ox, b + BELOW, d, c]
+                            total = 0.0
+                            for j in range(TAPS):
+                                total += centre[j] * along_x[ox, b + j, d, c]
+                            guess[oz, 1, ox, b, d, c] = total
         for b in range(ny):
             for d in range(nx):
                 g = 0.0
@@ -277,31 +278,6 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
                                 far = max(far, low, high)
                             outside = min(outside, far)
                 cell_limit = outside_limit if outside >= 1.0 else limit
-                # the interpolated inverse displacement at the 8 points, separably
-                for i in range(TAPS):
-                    for j in range(TAPS):
-                        for c in range(3):
-                            along_x[0, i, j, c] = v[a + i, b + j, d + BELOW, c]
-                            total = 0.0
-                            for k in range(TAPS):
-                                total += centre[k] * v[a + i, b + j, d + k, c]
-                            along_x[1, i, j, c] = total
-                for ox in range(2):
-                    for i in range(TAPS):
-                        for c in range(3):
-                            along_y[0, ox, i, c] = along_x[ox, i, BELOW, c]
-                            total = 0.0
-                            for j in range(TAPS):
-                                total += centre[j] * along_x[ox, i, j, c]
-                            along_y[1, ox, i, c] = total
-                for oy in range(2):
-                    for ox in range(2):
-                        for c in range(3):
-                            guess[0, oy, ox, c] = along_y[oy, ox, BELOW, c]
-                            total = 0.0
-                            for i in range(TAPS):
-                                total += centre[i] * along_y[oy, ox, i, c]
-                            guess[1, oy, ox, c] = total
                 mask = 0
                 for bit in range(1, 8):
                     oz = (bit >> 2) & 1
@@ -310,10 +286,10 @@ def _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, 
                     z = (first_node[0] + a + BELOW + 0.5 * oz) * stride
                     y = (first_node[1] + b + BELOW + 0.5 * oy) * stride
                     x = (first_node[2] + d + BELOW + 0.5 * ox) * stride
-                    g0 = guess[oz, oy, ox, 0]
-                    g1 = guess[oz, oy, ox, 1]
-                    g2 = guess[oz, oy, ox, 2]
-                    _eval_one(*spline, z - g0, y - g1, x - g2, value)
+                    g0 = guess[oz, oy, ox, b, d, 0]
+                    g1 = guess[oz, oy, ox, b, d, 1]
+                    g2 = guess[oz, oy, ox, b, d, 2]
+                    evaluate(spline, z - g0, y - g1, x - g2, value)
                     residual = max(abs(value[0] - g0), abs(value[1] - g1), abs(value[2] - g2))
                     if not residual * g < cell_limit:  # also catches NaN gains
                         mask |= 1 << bit
@@ -346,112 +322,6 @@ def _combine(ok, gain, bad, fail):
                         if (mask >> bit) & 1 and (bit & delta) == 0:
                             failed = True
                 fail[a, b, d] = failed
-
-
-@njit(parallel=True, **KERNEL_OPTIONS)
-def _interpolate(
-    spline,
-    hull_low,
-    hull_high,
-    box_start,
-    z_node,
-    z_weight,
-    y_node,
-    y_weight,
-    x_node,
-    x_weight,
-    max_iterations,
-    polish,
-    v,
-    node_ok,
-    fail,
-    positions,
-    converged,
-    in_hull,
-    exact,
-):
-    """Interpolate ``v`` to every voxel of the box (C order), Newton in the failed cells."""
-    nz = z_node.shape[0]
-    ny = y_node.shape[0]
-    nx = x_node.shape[0]
-    cy, cx = v.shape[1], v.shape[2]
-    for a in prange(nz):
-        value = np.empty(3)
-        jacobian = np.empty((3, 3))
-        position = np.empty(3)
-        plane = np.zeros((cy, cx, 3))
-        row = np.empty((cx, 3))
-        za = z_node[a]
-        for i in range(TAPS):
-            w = z_weight[a, i]
-            if w != 0.0:
-                source = v[za + i]
-                for j in range(cy):
-                    for k in range(cx):
-                        for c in range(3):
-                            plane[j, k, c] += w * source[j, k, c]
-        z = float(box_start[0] + a)
-        z_node_voxel = z_weight[a, BELOW] == 1.0
-        for b in range(ny):
-            yb = y_node[b]
-            row[:] = 0.0
-            for j in range(TAPS):
-                w = y_weight[b, j]
-                if w != 0.0:
-                    for k in range(cx):
-                        for c in range(3):
-                            row[k, c] += w * plane[yb + j, k, c]
-            y = float(box_start[1] + b)
-            zy_node_voxel = z_node_voxel and y_weight[b, BELOW] == 1.0
-            index = (a * ny + b) * nx
-            for d in range(nx):
-                xd = x_node[d]
-                w0 = x_weight[d, 0]
-                w1 = x_weight[d, 1]
-                w2 = x_weight[d, 2]
-                w3 = x_weight[d, 3]
-                w4 = x_weight[d, 4]
-                w5 = x_weight[d, 5]
-                x = float(box_start[2] + d)
-                p0 = z - _taps6(row, xd, 0, w0, w1, w2, w3, w4, w5)
-                p1 = y - _taps6(row, xd, 1, w0, w1, w2, w3, w4, w5)
-                p2 = x - _taps6(row, xd, 2, w0, w1, w2, w3, w4, w5)
-                solved = zy_node_voxel and w2 == 1.0  # a coarse node: v is exact there
-                ok = True
-                if solved:
-                    ok = node_ok[za + BELOW, yb + BELOW, xd + BELOW]
-                elif fail[za, yb, xd]:
-                    solved = True
-                    position[0] = p0
-                    position[1] = p1
-                    position[2] = p2
-                    ok = _solve(spline, z, y, x, max_iterations, polish, position, value, jacobian)
-                    p0 = position[0]
-                    p1 = position[1]
-                    p2 = position[2]
-                i = index + d
-                positions[i, 0] = p0
-                positions[i, 1] = p1
-                positions[i, 2] = p2
-                converged[i] = ok
-                exact[i] = solved
-                in_hull[i] = (
-                    hull_low[0] <= p0 <= hull_high[0]
-                    and hull_low[1] <= p1 <= hull_high[1]
-                    and hull_low[2] <= p2 <= hull_high[2]
-                )
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
-def _taps6(row, first, c, w0, w1, w2, w3, w4, w5):
-    return (
-        w0 * row[first, c]
-        + w1 * row[first + 1, c]
-        + w2 * row[first + 2, c]
-        + w3 * row[first + 3, c]
-        + w4 * row[first + 4, c]
-        + w5 * row[first + 5, c]
-    )
 
 
 class LatticeInverter:
@@ -514,7 +384,9 @@ class LatticeInverter:
         self.v = np.empty((*nodes, 3))
         self.node_ok = np.empty(nodes, np.bool_)
         gain = np.empty(nodes)
-        iterations = (self.max_iterations, float(tolerance))
+        # the nodes to a step of polish_step, like the voxels of failed cells: errors below
+        # accuracy / 10, and the check sees them (they enter the interpolated guesses)
+        iterations = (self.max_iterations, self.polish)
         _coarse_inverse(self.args, first_node, stride, *iterations, self.v, self.node_ok, gain)
         self.fail = np.zeros(tuple(int(n) for n in cells), np.bool_)
         if stride > 1:
@@ -524,26 +396,22 @@ class LatticeInverter:
                 self.args, spline.grid_shape, first_node, stride, *limits, self.v, gain, bad
             )
             _combine(self.node_ok, gain, bad, self.fail)
+        # the fill kernels read v component by component (their loops vectorise)
+        self.v_planes = np.ascontiguousarray(np.moveaxis(self.v, -1, 0))
+        x_start, x_count = int(self.starts[2]), int(self.counts[2])
         self.axes = [
-            _axis_weights(int(self.starts[a]), int(self.counts[a]), stride) for a in (1, 2)
+            axis_weights(int(self.starts[1]), int(self.counts[1]), stride),
+            (axis_weights(x_start, x_count, stride)[0], *phase_table(x_start, x_count, stride)),
         ]
 
-    def solve(self, planes: slice | None = None) -> LatticeInverse:
-        """Positions for the box's z planes ``planes`` (indices within the box; all by default)."""
-        start, stop, _ = (planes or slice(None)).indices(int(self.counts[0]))
-        stop = max(start, stop)
-        n = (stop - start) * int(self.counts[1] * self.counts[2])
-        result = LatticeInverse(
-            np.empty((n, 3)), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_)
-        )
-        if n == 0:
-            return result
+    def _plane_args(self, start: int, stop: int):
+        """The fill kernels' arguments for the box's z planes ``start .. stop`` (box indices)."""
         z0 = int(self.starts[0])
-        z_node, z_weight = _axis_weights(z0 + start, stop - start, self.stride)
+        z_node, z_weight = axis_weights(z0 + start, stop - start, self.stride)
         z_node += (z0 + start) // self.stride - z0 // self.stride
         starts = self.starts.copy()
         starts[0] = z0 + start
-        _interpolate(
+        return (
             self.args,
             *self.hull,
             starts,
@@ -553,12 +421,55 @@ class LatticeInverter:
             *self.axes[1],
             self.max_iterations,
             self.polish,
-            self.v,
+            self.v_planes,
             self.node_ok,
             self.fail,
-            *result,
         )
+
+    def _planes(self, planes: slice | None) -> tuple[int, int]:
+        start, stop, _ = (planes or slice(None)).indices(int(self.counts[0]))
+        return start, max(start, stop)
+
+    def solve(self, planes: slice | None = None) -> LatticeInverse:
+        """Positions for the box's z planes ``planes`` (indices within the box; all by default)."""
+        start, stop = self._planes(planes)
+        n = (stop - start) * int(self.counts[1] * self.counts[2])
+        result = LatticeInverse(
+            np.empty((n, 3)), np.empty(n, np.bool_), np.empty(n, np.bool_), np.empty(n, np.bool_)
+        )
+        if n > 0:
+            interpolate_planes(*self._plane_args(start, stop), *result)
         return result
+
+    def warp(
+        self, coefficients: np.ndarray, planes: slice | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The forward warp of the box's z planes ``planes``: ``G(X)`` sampled as ``X`` is made.
+
+        Parameters
+        ----------
+        coefficients : ndarray, shape (nz, ny, nx), float32
+            ``interpolation.prefilter(G)`` of the whole reference volume (whole-volume indices).
+        planes : slice, optional
+            z planes within the box (all by default).
+
+        Returns
+        -------
+        values : ndarray, shape (planes, box ny, box nx), float32
+            ``G(X)`` at the positions :meth:`solve` gives (the same bit for bit); NaN where
+            Newton did not converge or ``X`` is outside ``G``. Equal to
+            ``interpolation.sample(coefficients, X)`` to float32 rounding.
+        in_hull : ndarray of bool, same shape
+            Where ``X`` lies in the grid's hull.
+        """
+        start, stop = self._planes(planes)
+        shape = (stop - start, int(self.counts[1]), int(self.counts[2]))
+        values = np.empty(shape, np.float32)
+        in_hull = np.empty(shape, np.bool_)
+        if values.size > 0:
+            coefficients = np.ascontiguousarray(coefficients, dtype=np.float32)
+            warp_planes(*self._plane_args(start, stop), coefficients, values, in_hull)
+        return values, in_hull
 
 
 def invert_lattice(

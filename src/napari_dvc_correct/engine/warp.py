@@ -100,7 +100,9 @@ def warp_forward_block(
     Newton's answer in the grid's hull and 10 times that beyond it, and the same whichever boxes
     a volume is cut into), or with ``accuracy=None`` from Newton at every voxel
     (:meth:`.field_spline.FieldSpline.invert`, several times slower). Positions are computed and
-    sampled ``chunk_voxels`` at a time (whole z planes); the coarse stage runs once per box.
+    sampled ``chunk_voxels`` at a time (whole z planes); the coarse stage runs once per box. With
+    a :class:`SplineSampler` and ``accuracy`` set, the whole box is sampled as its positions are
+    made (:meth:`.inverse_lattice.LatticeInverter.warp`; the same values to float32 rounding).
 
     Returns
     -------
@@ -114,6 +116,8 @@ def warp_forward_block(
     in_hull = np.empty(shape, np.bool_)
     if accuracy is not None:
         inverter = LatticeInverter(spline, box, max_iterations, tolerance, accuracy)
+        if isinstance(sample_reference, SplineSampler):
+            return inverter.warp(sample_reference.coefficients)
     for planes in iter_slabs(shape, chunk_voxels):
         if accuracy is None:
             sub = (
@@ -148,9 +152,23 @@ def coefficients_of(volume, coefficients, name: str) -> np.ndarray:
     return prefilter(volume)
 
 
-def spline_sampler(coefficients: np.ndarray) -> Sampler:
+class SplineSampler:
+    """Sampler of an in-memory volume from its B-spline coefficients (NaN outside).
+
+    :func:`warp_forward_block` recognises it and samples while it inverts the field
+    (:meth:`.inverse_lattice.LatticeInverter.warp`), without a positions array.
+    """
+
+    def __init__(self, coefficients: np.ndarray) -> None:
+        self.coefficients = np.ascontiguousarray(coefficients, dtype=np.float32)
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        return sample(self.coefficients, points, cval=np.nan)
+
+
+def spline_sampler(coefficients: np.ndarray) -> SplineSampler:
     """Sampler of an in-memory volume from its B-spline coefficients (NaN outside)."""
-    return lambda points: sample(coefficients, points, cval=np.nan)
+    return SplineSampler(coefficients)
 
 
 def slab_boxes(shape, chunk_voxels: int = DEFAULT_CHUNK_VOXELS):
