@@ -67,10 +67,35 @@ def test_subvolume_moments_equal_the_full_statistics(order):
     )
     assert np.all(np.isnan(variance[3:])) and np.all(np.isnan(full[0][3:]))
     assert np.all(np.isnan(power[3:]))
-    np.testing.assert_array_equal(variance[:3], full[0][:3])  # the same sums in the same order
+    # the same sums up to float64 rounding (first order: summed by rows there)
+    np.testing.assert_allclose(variance[:3], full[0][:3], rtol=1e-12)
     np.testing.assert_allclose(power[:3], full[1][:3], rtol=1e-12)  # there: diag of L Lᵀ
     window = reference[
         5 - half : 5 + half + 1, 14 - half : 14 + half + 1, 12 - half : 12 + half + 1
     ]
     inside = mask[5 - half : 5 + half + 1, 14 - half : 14 + half + 1, 12 - half : 12 + half + 1]
     np.testing.assert_allclose(variance[1], np.var(window[inside].astype(np.float64)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("center", [(12, 12, 12), (4, 5, 19)])  # inside; taps past the border
+def test_second_order_sensitivity_sums_equal_the_general_ones(center):
+    rng = np.random.default_rng(3)
+    coef = prefilter(rng.standard_normal((24, 24, 24)).astype(np.float32))
+    half = 4
+    axes = np.arange(-half, half + 1)
+    xi = np.stack(np.meshgrid(axes, axes, axes, indexing="ij"), -1).reshape(-1, 3)
+    xi = xi[rng.random(len(xi)) > 0.1].astype(np.float32)  # masked voxels: ragged rows
+    g = rng.standard_normal(len(xi)).astype(np.float32)
+    grad = rng.standard_normal((len(xi), 3)).astype(np.float32)
+    p = 0.005 * rng.standard_normal(30)
+    p[[0, 10, 20]] = (0.37, -0.81, 1.26)
+    cz, cy, cx = center
+    fast = icgn_uncertainty._quadratic_sensitivity_sums(
+        coef, g, grad, xi, len(g), float(g.mean()), cz, cy, cx, p
+    )
+    general = icgn_uncertainty._sensitivity_sums(
+        coef, g, grad, xi, len(g), float(g.mean()), cz, cy, cx, p, 10
+    )
+    assert fast[3] == general[3] and fast[3] > 0  # voxels used
+    for a, b in zip(fast[:3] + fast[4:], general[:3] + general[4:]):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(b)))

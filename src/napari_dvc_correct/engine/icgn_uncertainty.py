@@ -131,6 +131,111 @@ def _affine_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
     return cross, sum_jf, sum_jfg, used, sum_f, sum_ff
 
 
+def _quartic_tables():
+    """Exponents ``(a, b, c)`` of the 35 monomials ``z^a y^b x^c`` of degree ≤ 4, and for the
+    second-order shape function's monomials ``b_j`` (:func:`.shape_function.monomials`) the
+    index of ``b_j`` and of ``b_j b_j'`` among them."""
+    powers = [(a, b, c) for a in range(5) for b in range(5 - a) for c in range(5 - a - b)]
+    index = {e: i for i, e in enumerate(powers)}
+    basis = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2)]
+    basis += [(1, 1, 0), (0, 1, 1), (1, 0, 1)]
+    single = np.array([index[e] for e in basis], np.int64)
+    product = np.array(
+        [[index[tuple(u + v for u, v in zip(e, f))] for f in basis] for e in basis], np.int64
+    )
+    return np.array(powers, np.int64), single, product
+
+
+_QUARTIC_POWERS, _QUADRATIC_INDEX, _QUADRATIC_PRODUCT = _quartic_tables()
+
+
+@njit(**KERNEL_OPTIONS)
+def _quadratic_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
+    """Second order: :func:`_sensitivity_sums` with the 15 per-voxel quantities (``g_k f_l``,
+    ``f_l``, ``f_l (g − ḡ)``) summed along each x-row times ``1 … x⁴`` and folded into the 35
+    moments ``z^a y^b x^c`` (degree ≤ 4) once per row, as :func:`_affine_sensitivity_sums`."""
+    nb = 10
+    m_par = 30
+    nz, ny, nx = coef.shape
+    n_mom = _QUARTIC_POWERS.shape[0]
+    moments = np.zeros((15, n_mom))
+    rows = np.zeros((5, 15))
+    values = np.empty(15)
+    b = np.empty(10)
+    used = 0
+    sum_f = 0.0
+    sum_ff = 0.0
+    zp = np.empty(5)
+    yp = np.empty(5)
+    current_z = np.float64(xi[0, 0]) if count else 0.0
+    current_y = np.float64(xi[0, 1]) if count else 0.0
+    for i in range(count + 1):
+        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
+            zp[0] = 1.0
+            yp[0] = 1.0
+            for e in range(1, 5):
+                zp[e] = zp[e - 1] * current_z
+                yp[e] = yp[e - 1] * current_y
+            for m in range(n_mom):
+                factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
+                c = _QUARTIC_POWERS[m, 2]
+                for q in range(15):
+                    moments[q, m] += factor * rows[c, q]
+            rows[:] = 0.0
+            if i == count:
+                break
+            current_z = np.float64(xi[i, 0])
+            current_y = np.float64(xi[i, 1])
+        z = current_z
+        y = current_y
+        x = np.float64(xi[i, 2])
+        monomials(z, y, x, nb, b)
+        wz = cz + z
+        wy = cy + y
+        wx = cx + x
+        for j in range(nb):
+            wz += p[j] * b[j]
+            wy += p[nb + j] * b[j]
+            wx += p[2 * nb + j] * b[j]
+        if not (0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1):
+            continue
+        f, fz, fy, fx = _value_and_gradient(coef, wz, wy, wx)
+        used += 1
+        sum_f += f
+        sum_ff += f * f
+        dg = g[i] - mean_g
+        for k in range(3):
+            gk = np.float64(grad[i, k])
+            values[3 * k] = gk * fz
+            values[3 * k + 1] = gk * fy
+            values[3 * k + 2] = gk * fx
+        values[9] = fz
+        values[10] = fy
+        values[11] = fx
+        values[12] = fz * dg
+        values[13] = fy * dg
+        values[14] = fx * dg
+        xc = 1.0
+        for c in range(5):
+            for q in range(15):
+                rows[c, q] += values[q] * xc
+            xc *= x
+    cross = np.empty((m_par, m_par))
+    for k in range(3):
+        for l in range(3):
+            q = 3 * k + l
+            for j in range(nb):
+                for j2 in range(nb):
+                    cross[k * nb + j, l * nb + j2] = moments[q, _QUADRATIC_PRODUCT[j, j2]]
+    sum_jf = np.empty(m_par)
+    sum_jfg = np.empty(m_par)
+    for l in range(3):
+        for j in range(nb):
+            sum_jf[l * nb + j] = moments[9 + l, _QUADRATIC_INDEX[j]]
+            sum_jfg[l * nb + j] = moments[12 + l, _QUADRATIC_INDEX[j]]
+    return cross, sum_jf, sum_jfg, used, sum_f, sum_ff
+
+
 @njit(**KERNEL_OPTIONS)
 def _sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p, nb):
     """:func:`_affine_sensitivity_sums` for any order (``Σ g_k f_l b_j b_j'`` per pair)."""
@@ -366,6 +471,10 @@ def subvolume_statistics(
         # A from the deformed volume's gradient at the warped voxels
         if nb == 4:
             cross, sum_jf, sum_jfg, used, sum_f, sum_ff = _affine_sensitivity_sums(
+                coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, params[n]
+            )
+        elif nb == 10:
+            cross, sum_jf, sum_jfg, used, sum_f, sum_ff = _quadratic_sensitivity_sums(
                 coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, params[n]
             )
         else:
