@@ -149,6 +149,87 @@ def _quartic_tables():
 _QUARTIC_POWERS, _QUADRATIC_INDEX, _QUADRATIC_PRODUCT = _quartic_tables()
 
 
+_PAIR = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]], np.int64)  # (k, k') -> g_k g_k' below
+
+
+@njit(**KERNEL_OPTIONS)
+def _quadratic_reference_terms(g, grad, xi, count):
+    """Second order: :func:`.icgn_reference.reference_terms` (same returns) with ``H``, ``Σ J``
+    and ``Σ J (g − ḡ)`` from the 12 per-voxel quantities ``g_k g_k'``, ``g_k``, ``g_k (g − ḡ)``
+    summed along each x-row times ``1 … x⁴`` and folded into the 35 quartic moments per row."""
+    nb = 10
+    m_par = 30
+    n_mom = _QUARTIC_POWERS.shape[0]
+    mean_g = 0.0
+    for i in range(count):
+        mean_g += g[i]
+    mean_g /= max(count, 1)
+    ss_g = 0.0
+    for i in range(count):
+        d = g[i] - mean_g
+        ss_g += d * d
+    moments = np.zeros((12, n_mom))
+    rows = np.zeros((5, 12))
+    values = np.empty(12)
+    zp = np.empty(5)
+    yp = np.empty(5)
+    current_z = np.float64(xi[0, 0]) if count else 0.0
+    current_y = np.float64(xi[0, 1]) if count else 0.0
+    for i in range(count + 1):
+        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
+            zp[0] = 1.0
+            yp[0] = 1.0
+            for e in range(1, 5):
+                zp[e] = zp[e - 1] * current_z
+                yp[e] = yp[e - 1] * current_y
+            for m in range(n_mom):
+                factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
+                c = _QUARTIC_POWERS[m, 2]
+                for q in range(12):
+                    moments[q, m] += factor * rows[c, q]
+            rows[:] = 0.0
+            if i == count:
+                break
+            current_z = np.float64(xi[i, 0])
+            current_y = np.float64(xi[i, 1])
+        x = np.float64(xi[i, 2])
+        gz = np.float64(grad[i, 0])
+        gy = np.float64(grad[i, 1])
+        gx = np.float64(grad[i, 2])
+        dg = g[i] - mean_g
+        values[0] = gz * gz
+        values[1] = gy * gy
+        values[2] = gx * gx
+        values[3] = gz * gy
+        values[4] = gy * gx
+        values[5] = gz * gx
+        values[6] = gz
+        values[7] = gy
+        values[8] = gx
+        values[9] = gz * dg
+        values[10] = gy * dg
+        values[11] = gx * dg
+        xc = 1.0
+        for c in range(5):
+            for q in range(12):
+                rows[c, q] += values[q] * xc
+            xc *= x
+    hessian = np.empty((m_par, m_par))
+    sum_j = np.empty(m_par)
+    sum_jg = np.empty(m_par)
+    for k in range(3):
+        for j in range(nb):
+            sum_j[k * nb + j] = moments[6 + k, _QUADRATIC_INDEX[j]]
+            sum_jg[k * nb + j] = moments[9 + k, _QUADRATIC_INDEX[j]]
+            for k2 in range(3):
+                for j2 in range(nb):
+                    value = moments[_PAIR[k, k2], _QUADRATIC_PRODUCT[j, j2]]
+                    hessian[k * nb + j, k2 * nb + j2] = value
+    delta_g = np.sqrt(ss_g)
+    ok, low = cholesky_solve_setup(hessian, m_par)
+    return mean_g, delta_g, ok, low, sum_j, sum_jg
+
+
 @njit(**KERNEL_OPTIONS)
 def _quadratic_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
     """Second order: :func:`_sensitivity_sums` with the 15 per-voxel quantities (``g_k f_l``,
@@ -439,7 +520,10 @@ def subvolume_statistics(
         gradient_power[n] = np.nan
         if count < m_par + 3:
             continue
-        mean_g, delta_g, ok, low, sum_j, sum_jg = reference_terms(g, grad, xi, count, nb)
+        if nb == 10:
+            mean_g, delta_g, ok, low, sum_j, sum_jg = _quadratic_reference_terms(g, grad, xi, count)
+        else:
+            mean_g, delta_g, ok, low, sum_j, sum_jg = reference_terms(g, grad, xi, count, nb)
         variance[n] = delta_g * delta_g / count
         power = 0.0
         for k in range(3):
