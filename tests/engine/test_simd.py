@@ -8,7 +8,7 @@ from napari_dvc_correct.engine.field import DisplacementField
 from napari_dvc_correct.engine.field_spline import FieldSpline
 from napari_dvc_correct.engine.field_spline_kernels import _eval_one_any, _eval_one_with_jacobian
 from napari_dvc_correct.engine.interpolation import sample_interior
-from napari_dvc_correct.engine.inverse_fill import sample_taps_by_rows
+from napari_dvc_correct.engine.simd_taps import sample_interior_vector
 
 
 @njit
@@ -18,7 +18,7 @@ def _both_samplers(coefficients, points):
     out = np.empty((points.shape[0], 2), np.float32)
     for i in range(points.shape[0]):
         z, y, x = points[i, 0], points[i, 1], points[i, 2]
-        out[i, 0] = sample_taps_by_rows(flat, ny, nx, z, y, x)
+        out[i, 0] = sample_interior_vector(flat, ny * nx, nx, z, y, x)
         out[i, 1] = sample_interior(coefficients, z, y, x)
     return out
 

@@ -13,8 +13,8 @@ fill a box's voxels from that, plane by plane (in parallel over z planes) and ro
 Both make a row's positions with the same code (:func:`_fill_row`), so their positions agree bit
 for bit. The interpolation is 6-point Lagrange along z (per plane), y (per row) and x, each pass
 a loop over contiguous values that LLVM vectorises (``v`` is held component-major; along x one
-pass per phase of the coarse stride, :func:`_fill_cells`), and :func:`sample_taps_by_rows` samples ``G`` with 16
-four-wide row sums (SIMD over the 4 contiguous x taps, :mod:`.simd`).
+pass per phase of the coarse stride, :func:`_fill_cells`), and :func:`.simd_taps.sample_interior_vector` samples ``G``
+with 16 four-wide row sums (SIMD over the 4 contiguous x taps), as IC-GN does.
 
 Positions are ``(z, y, x)`` voxels.
 """
@@ -27,7 +27,7 @@ from numba import njit, prange
 from ._numba_setup import KERNEL_OPTIONS
 from .field_spline_kernels import _eval_one, newton_inverse
 from .interpolation import in_interior, sample_mirrored
-from .simd import bspline_value
+from .simd_taps import sample_interior_vector
 
 #: Interpolation nodes per axis (quintic Lagrange), and how many lie below a cell's first node.
 TAPS = 6
@@ -312,22 +312,6 @@ def interpolate_planes(
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def sample_taps_by_rows(flat, ny, nx, z, y, x):
-    """Tricubic B-spline value at ``(z, y, x)`` of coefficients ``(nz, ny, nx)`` given flat (C
-    order) as ``flat``; requires :func:`.interpolation.in_interior`.
-
-    Four-wide sums over the 16 rows of 4 contiguous x taps (:func:`.simd.bspline_value`).
-    Equals :func:`.interpolation.sample_interior` to float32 rounding (another summation order).
-    """
-    iz = int(z)
-    iy = int(y)
-    ix = int(x)
-    first = np.uint64(((iz - 1) * ny + iy - 1) * nx + ix - 1)
-    fractions = (np.float32(z - iz), np.float32(y - iy), np.float32(x - ix))
-    return bspline_value(flat, first, np.uint64(nx), np.uint64(ny * nx), *fractions)
-
-
-@njit(inline="always", **KERNEL_OPTIONS)
 def sample_or_nan(coefficients, flat, z, y, x):
     """Value at ``(z, y, x)``, NaN outside ``[0, n - 1]`` along any axis (or not finite);
     ``flat`` is ``coefficients`` (C contiguous) as one axis."""
@@ -335,7 +319,7 @@ def sample_or_nan(coefficients, flat, z, y, x):
     if not (0.0 <= z <= nz - 1 and 0.0 <= y <= ny - 1 and 0.0 <= x <= nx - 1):
         return np.float32(np.nan)
     if in_interior(coefficients, z, y, x):
-        return sample_taps_by_rows(flat, ny, nx, z, y, x)
+        return sample_interior_vector(flat, ny * nx, nx, z, y, x)
     return np.float32(sample_mirrored(coefficients, z, y, x))
 
 
