@@ -59,7 +59,12 @@ class MatchedGrid:
     variance, power : ndarray, shape (N,)
         Gray variance (gray levels²) and gradient power of each reference subvolume.
     sigma : ndarray, shape (N, 3)
-        Uncertainty (voxels): NaN until :func:`judge_iter` measures it.
+        Uncertainty (voxels): NaN until measured (:func:`judge_iter`, or
+        :func:`measure_plain_sigma` while the volumes are at hand).
+    sigma_plain : ndarray of bool, shape (N,), optional
+        POIs whose ``sigma`` already holds the noise-free-``H`` estimate (``σ_r² (H⊥⁻¹)_kk``) at
+        their current match; :func:`judge_iter` keeps it where that estimate is the one it
+        would make (the POI is not noisy at the run's noise and was not repaired).
     metadata : dict
         The field's metadata so far (volume shape, global shift, pyramid levels, timings...).
     started : float
@@ -78,6 +83,7 @@ class MatchedGrid:
     sigma: np.ndarray
     metadata: dict = field(default_factory=dict)
     started: float = 0.0
+    sigma_plain: np.ndarray | None = None
 
     def noise_estimates(self, index=None) -> np.ndarray:
         """:func:`.noise.noise_estimates` of the POIs at ``index`` (default all)."""
@@ -90,6 +96,27 @@ def match_statistics(fine, matched: MatchedGrid, order) -> None:
     ingredients). The uncertainty is measured once, by :func:`judge_iter`."""
     todo = matched.todo
     fine.moments(matched.centers[todo], order, (matched.variance, matched.power), todo)
+
+
+def measure_plain_sigma(fine, matched: MatchedGrid, order) -> None:
+    """Measure ``sigma`` from ``H⊥`` alone (no sensitivity pass) for the POIs good so far.
+
+    For a tiled batch's first task, which holds its volumes: the judge (second task) then needs
+    the volumes again only for POIs that are noisy at the whole run's noise or are repaired.
+    """
+    good = np.flatnonzero(np.isin(matched.status, _GOOD))
+    fine.statistics(
+        matched.centers[good],
+        matched.params[good],
+        matched.zncc[good],
+        order,
+        np.zeros(len(good), bool),
+        (None, None, matched.sigma),
+        good,
+    )
+    plain = np.zeros(len(matched.status), bool)
+    plain[good] = True
+    matched.sigma_plain = plain
 
 
 def judge_iter(
@@ -142,9 +169,11 @@ def judge_iter(
 
     t0 = time.perf_counter()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
+    before = params_out.copy()
     repair(
         fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
     )
+    repaired = np.any(params_out != before, axis=1)
     timings["repair_s"] = time.perf_counter() - t0
 
     low = np.isin(status, _GOOD) & ~(zncc >= thresholds)
@@ -153,7 +182,11 @@ def judge_iter(
     # once per measured POI, at its final match: where the reference's noise is a sizeable part
     # of H, with the sensitivity A measured from the deformed scan, elsewhere from H⊥ alone
     noisy = 3.0 * NOISE_GRADIENT_GAIN * noise_variance > SENSITIVITY_FRACTION * power
-    measured = np.flatnonzero(np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]]))
+    measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
+    if matched.sigma_plain is not None:  # already measured as this judge would: keep it
+        sigma[matched.sigma_plain & ~measured] = np.nan  # e.g. found textureless since
+        measured &= ~(matched.sigma_plain & ~noisy & ~repaired)
+    measured = np.flatnonzero(measured)
     stats = (None, None, sigma)  # variance and power: match_statistics'
     fine.statistics(
         centers[measured],

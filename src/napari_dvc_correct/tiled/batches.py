@@ -17,7 +17,7 @@ from ..engine.backend import select_device
 from ..engine.correlate import PyramidLevel, match_iter, validate_pair
 from ..engine.field import DisplacementField, Provenance, Status
 from ..engine.guided_repair import GivenSeeds
-from ..engine.judge import MatchedGrid, judge_iter
+from ..engine.judge import MatchedGrid, judge_iter, measure_plain_sigma
 from ..engine.params import CorrelationParams
 from ..engine.progress import run_to_completion
 
@@ -110,7 +110,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchMatch:
         initial = DisplacementField(
             local_origin, step, job.initial_u, gradient=job.initial_gradient
         )
-    matched, _ = run_to_completion(
+    matched, fine = run_to_completion(
         match_iter(
             g,
             f,
@@ -126,6 +126,9 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchMatch:
             active=job.active,
         )
     )
+    # the noise-free uncertainty while the volumes are here: a clean batch's judge reads nothing
+    measure_plain_sigma(fine, matched, job.params.order)
+    del fine
     core = np.arange(int(np.prod(job.sub_shape))).reshape(job.sub_shape)[job.core].ravel()
     timings = {"read_s": read_s, "match_task_s": time.perf_counter() - started}
     return BatchMatch(matched, matched.noise_estimates(core), timings)
