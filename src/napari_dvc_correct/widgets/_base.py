@@ -22,6 +22,7 @@ from qtpy.QtCore import Qt, QTimer
 from qtpy.QtWidgets import (
     QAbstractButton,
     QAbstractSpinBox,
+    QCheckBox,
     QComboBox,
     QFormLayout,
     QHBoxLayout,
@@ -247,6 +248,21 @@ class EngineWidget(QWidget):
             prefer_this_reader()  # field files then open with our reader, without a dialog
             follow_layers(self.viewer, self, self._label_axes)
             self._label_axes()
+
+    def add_out_of_core_row(self, tooltip: str) -> None:
+        """The "out of core (tiled)" check box and its memory limit, as ``self.tiled`` and
+        ``self.max_memory`` (the limit is editable only while the box is ticked)."""
+        self.tiled = QCheckBox("out of core (tiled)")
+        self.tiled.setToolTip(tooltip)
+        self.max_memory = QLineEdit()
+        self.max_memory.setPlaceholderText("memory: auto")
+        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB or 800MB")
+        self.max_memory.setEnabled(False)
+        self.tiled.toggled.connect(self.max_memory.setEnabled)
+        row = QHBoxLayout()
+        row.addWidget(self.tiled)
+        row.addWidget(self.max_memory)
+        self.form.addRow(row)
 
     def _label_axes(self, event=None) -> None:
         from ..layers import label_axes

@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 from qtpy.QtWidgets import (
-    QCheckBox,
     QComboBox,
-    QHBoxLayout,
-    QLineEdit,
     QSpinBox,
     QTableWidget,
     QTableWidgetItem,
@@ -51,20 +48,10 @@ class CorrectWidget(EngineWidget):
         self.form.addRow("Frame", self.frame)
         self.form.addRow("Update", self.update_rule)
         self.form.addRow("Passes (at most)", self.max_passes)
-        self.tiled = QCheckBox("out of core (tiled)")
-        self.tiled.setToolTip(
+        self.add_out_of_core_row(
             "Warps and correlates block by block through temporary Zarr arrays, for scans "
             "larger than memory or opened lazily (Dask/Zarr; then ticked by itself). A pair."
         )
-        self.max_memory = QLineEdit()
-        self.max_memory.setPlaceholderText("memory: auto")
-        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB")
-        self.max_memory.setEnabled(False)  # until out of core is ticked
-        self.tiled.toggled.connect(self.max_memory.setEnabled)
-        tiled_row = QHBoxLayout()
-        tiled_row.addWidget(self.tiled)
-        tiled_row.addWidget(self.max_memory)
-        self.form.addRow(tiled_row)
         self.region = RegionBox(self.viewer)  # masked nodes keep their input values
         self.controls.addWidget(self.region)
         self.reference.currentIndexChanged.connect(self._reference_changed)

@@ -12,7 +12,6 @@ from qtpy.QtWidgets import (
     QDoubleSpinBox,
     QHBoxLayout,
     QLabel,
-    QLineEdit,
     QListWidget,
     QListWidgetItem,
     QSpinBox,
@@ -125,21 +124,11 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         voxel_row.addWidget(self.voxel_size)
         voxel_row.addWidget(self.unit)
         self.form.addRow("Voxel size", voxel_row)
-        self.tiled = QCheckBox("out of core (tiled)")
-        self.tiled.setToolTip(
+        self.add_out_of_core_row(
             "For scans larger than memory or opened lazily (Dask/Zarr): the field is the "
             "in-memory one (to ~1e-7 voxel), measured in batches that fit the memory limit; "
             "ticked by itself for such scans. A pair, on the grid."
         )
-        self.max_memory = QLineEdit()
-        self.max_memory.setPlaceholderText("memory: auto")
-        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB or 800MB")
-        self.max_memory.setEnabled(False)  # until out of core is ticked
-        self.tiled.toggled.connect(self.max_memory.setEnabled)
-        tiled_row = QHBoxLayout()
-        tiled_row.addWidget(self.tiled)
-        tiled_row.addWidget(self.max_memory)
-        self.form.addRow(tiled_row)
         self.preview = QCheckBox("preview the POI grid and one subvolume")
         self.preview.setChecked(True)
         self.form.addRow(self.preview)

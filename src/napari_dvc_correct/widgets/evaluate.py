@@ -5,11 +5,9 @@ from __future__ import annotations
 import numpy as np
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
-    QCheckBox,
     QComboBox,
     QHBoxLayout,
     QLabel,
-    QLineEdit,
     QListWidget,
     QListWidgetItem,
     QPushButton,
@@ -62,21 +60,11 @@ class EvaluateWidget(EngineWidget):
         for key, text in MODES.items():
             self.mode.addItem(text, key)
         self.form.addRow("Residual", self.mode)
-        self.tiled = QCheckBox("out of core (tiled)")
-        self.tiled.setToolTip(
+        self.add_out_of_core_row(
             "Reads the scans block by block and writes each residual to a temporary Zarr "
             "array (shown lazily), for scans larger than memory or opened lazily (then ticked "
             "by itself). Same numbers as in memory. A pair, not a series."
         )
-        self.max_memory = QLineEdit()
-        self.max_memory.setPlaceholderText("memory: auto")
-        self.max_memory.setToolTip("Peak memory of the tiled run, e.g. 4GB")
-        self.max_memory.setEnabled(False)  # until out of core is ticked
-        self.tiled.toggled.connect(self.max_memory.setEnabled)
-        tiled_row = QHBoxLayout()
-        tiled_row.addWidget(self.tiled)
-        tiled_row.addWidget(self.max_memory)
-        self.form.addRow(tiled_row)
 
         self.n_phases = QSpinBox()
         self.n_phases.setRange(2, 8)
