@@ -14,7 +14,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
+from ._numba_setup import KERNEL_OPTIONS
 from .field import DisplacementField
 from .slabs import iter_slabs
 
@@ -88,6 +90,65 @@ def node_voxels(field: DisplacementField, volume_shape) -> tuple[np.ndarray, ...
     )
 
 
+@njit(parallel=True, **KERNEL_OPTIONS)
+def _box_sums(residual, z_low, z_high, y_low, y_high, x_low, x_high, sums, counts):
+    """Sums (float64) and counts of the finite voxels of ``residual`` in the boxes
+    ``z_low[i]:z_high[i], y_low[j]:y_high[j], x_low[k]:x_high[k]`` into ``sums[i, j, k]``.
+
+    Separable running sums (integral lines): along each x row every node's x range is one
+    difference, then the same along y over those row sums and along z over the plane sums; one
+    pass over the voxels whatever the boxes' size and overlap.
+    """
+    nz, ny, nx = residual.shape
+    gz, gy, gx = z_low.shape[0], y_low.shape[0], x_low.shape[0]
+    rows = np.empty((nz, ny, gx))
+    row_counts = np.empty((nz, ny, gx), np.int64)
+    for z in prange(nz):
+        running = np.empty(nx + 1)
+        running_count = np.empty(nx + 1, np.int64)
+        for y in range(ny):
+            total = 0.0
+            count = 0
+            running[0] = 0.0
+            running_count[0] = 0
+            for x in range(nx):
+                value = residual[z, y, x]
+                if np.isfinite(value):
+                    total += value
+                    count += 1
+                running[x + 1] = total
+                running_count[x + 1] = count
+            for k in range(gx):
+                rows[z, y, k] = running[x_high[k]] - running[x_low[k]]
+                row_counts[z, y, k] = running_count[x_high[k]] - running_count[x_low[k]]
+    planes = np.empty((nz, gy, gx))
+    plane_counts = np.empty((nz, gy, gx), np.int64)
+    for z in prange(nz):
+        running = np.empty(ny + 1)
+        running_count = np.empty(ny + 1, np.int64)
+        for k in range(gx):
+            running[0] = 0.0
+            running_count[0] = 0
+            for y in range(ny):
+                running[y + 1] = running[y] + rows[z, y, k]
+                running_count[y + 1] = running_count[y] + row_counts[z, y, k]
+            for j in range(gy):
+                planes[z, j, k] = running[y_high[j]] - running[y_low[j]]
+                plane_counts[z, j, k] = running_count[y_high[j]] - running_count[y_low[j]]
+    for j in prange(gy):
+        running = np.empty(nz + 1)
+        running_count = np.empty(nz + 1, np.int64)
+        for k in range(gx):
+            running[0] = 0.0
+            running_count[0] = 0
+            for z in range(nz):
+                running[z + 1] = running[z] + planes[z, j, k]
+                running_count[z + 1] = running_count[z] + plane_counts[z, j, k]
+            for i in range(gz):
+                sums[i, j, k] = running[z_high[i]] - running[z_low[i]]
+                counts[i, j, k] = running_count[z_high[i]] - running_count[z_low[i]]
+
+
 def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
     """Sums and counts of the finite residual voxels of ``box`` in every node's ``(2M+1)^3`` box.
 
@@ -110,7 +171,6 @@ def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
         volume's borders).
     """
     half = int(half)
-    finite = np.isfinite(residual)
     ranges, local = [], []
     for s, c in zip(box, centers):
         meets = np.flatnonzero((c + half >= s.start) & (c - half < s.stop))
@@ -120,24 +180,17 @@ def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
         low = np.clip(c[meets] - half - s.start, 0, s.stop - s.start)
         high = np.clip(c[meets] + half + 1 - s.start, 0, s.stop - s.start)
         local.append((low, high))
-    table = np.zeros(tuple(n + 1 for n in residual.shape))
-    table[1:, 1:, 1:] = (
-        np.where(finite, residual, 0.0).cumsum(0, dtype=np.float64).cumsum(1).cumsum(2)
-    )
-    counts = np.zeros(table.shape, np.int64)
-    counts[1:, 1:, 1:] = finite.cumsum(0, dtype=np.int64).cumsum(1).cumsum(2)
-
-    def box_total(values):
-        total = 0
-        for corner in range(8):
-            picks = [local[a][(corner >> (2 - a)) & 1] for a in range(3)]
-            sign = (-1) ** (3 - sum((corner >> (2 - a)) & 1 for a in range(3)))
-            total = total + sign * values[np.ix_(*picks)]
-        return total
-
     lo = tuple(int(r[0]) for r in ranges)
     # the nodes meeting the block form an index range per axis (centres increase with the index)
-    return GridPart(lo, box_total(table), box_total(counts))
+    sums = np.empty(tuple(len(r) for r in ranges))
+    counts = np.empty(sums.shape, np.int64)
+    _box_sums(
+        np.ascontiguousarray(residual, dtype=np.float32),
+        *[np.ascontiguousarray(bound, dtype=np.int64) for pair in local for bound in pair],
+        sums,
+        counts,
+    )
+    return GridPart(lo, sums, counts)
 
 
 def _cell_index(coords: np.ndarray, origin: float, step: float, n: int):

@@ -169,13 +169,8 @@ class FieldSpline:
         Separable evaluation: much faster than :meth:`__call__` on the same positions.
         """
         _check_outside(outside)
-        axes = [np.ascontiguousarray(a, dtype=np.float64).reshape(-1) for a in (z, y, x)]
-        taps = [
-            _axis_taps(a, self.origin[i], self.step[i], self.pad, self.coefficients.shape[i])
-            for i, a in enumerate(axes)
-        ]
-        trends = [(a - self.origin[i]) / self.step[i] for i, a in enumerate(axes)]
-        out = np.empty((*[len(a) for a in axes], self.components), np.float64)
+        taps, trends = self.lattice_taps(z, y, x)
+        out = np.empty((*[len(t) for t in trends], self.components), np.float64)
         _eval_lattice(
             self.coefficients,
             *taps[0],
@@ -187,10 +182,27 @@ class FieldSpline:
             out,
         )
         if outside == "nan":
-            inside = [self._inside_axis(t, i) for i, t in enumerate(trends)]
+            inside = self.lattice_inside(trends)
             hull = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
             out[~hull] = np.nan
         return out
+
+    def lattice_taps(self, z: np.ndarray, y: np.ndarray, x: np.ndarray):
+        """Per axis of the lattice ``z × y × x``: the spline's tap indices and weights (n, 4),
+        and the grid coordinate ``(voxel - origin) / step`` of the linear trend (the separable
+        evaluation of :meth:`lattice`, for kernels that use it, e.g. :mod:`.pull_back_fill`)."""
+        axes = [np.ascontiguousarray(a, dtype=np.float64).reshape(-1) for a in (z, y, x)]
+        taps = [
+            _axis_taps(a, self.origin[i], self.step[i], self.pad, self.coefficients.shape[i])
+            for i, a in enumerate(axes)
+        ]
+        trends = [(a - self.origin[i]) / self.step[i] for i, a in enumerate(axes)]
+        return taps, trends
+
+    def lattice_inside(self, trends) -> list[np.ndarray]:
+        """Per axis, whether the lattice coordinates (``trends`` of :meth:`lattice_taps`) lie in
+        the grid's hull."""
+        return [self._inside_axis(t, i) for i, t in enumerate(trends)]
 
     def _inside_axis(self, t: np.ndarray, axis: int) -> np.ndarray:
         return (t >= -HULL_TOLERANCE) & (t <= self.grid_shape[axis] - 1 + HULL_TOLERANCE)

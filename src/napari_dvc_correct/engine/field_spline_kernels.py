@@ -435,6 +435,42 @@ def _axis_taps(coordinates, origin, step, pad, n_padded):
     return index, weight
 
 
+@njit(inline="always", **KERNEL_OPTIONS)
+def lattice_plane(coefficients, z_index, z_weight, a, plane):
+    """The spline's coefficients summed along z for lattice plane ``a``: ``plane`` (py, px, C)."""
+    py, px, nc = coefficients.shape[1], coefficients.shape[2], coefficients.shape[3]
+    plane[:] = 0.0
+    for t in range(4):
+        w = z_weight[a, t]
+        source = coefficients[z_index[a, t]]
+        for j in range(py):
+            for k in range(px):
+                for c in range(nc):
+                    plane[j, k, c] += w * source[j, k, c]
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def lattice_row(plane, y_index, y_weight, b, row):
+    """``plane`` summed along y for lattice row ``b``: ``row`` (px, C)."""
+    px, nc = row.shape
+    row[:] = 0.0
+    for t in range(4):
+        w = y_weight[b, t]
+        source_row = plane[y_index[b, t]]
+        for k in range(px):
+            for c in range(nc):
+                row[k, c] += w * source_row[k, c]
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def lattice_value(row, x_index, x_weight, d, c, trend):
+    """Component ``c`` at lattice voxel ``d`` of a row: ``trend`` plus the x taps of ``row``."""
+    value = trend
+    for t in range(4):
+        value += x_weight[d, t] * row[x_index[d, t], c]
+    return value
+
+
 @njit(parallel=True, **KERNEL_OPTIONS)
 def _eval_lattice(
     coefficients,
@@ -456,31 +492,17 @@ def _eval_lattice(
     ny = y_index.shape[0]
     nx = x_index.shape[0]
     for a in prange(z_index.shape[0]):
-        plane = np.zeros((py, px, nc))
-        for t in range(4):
-            w = z_weight[a, t]
-            source = coefficients[z_index[a, t]]
-            for j in range(py):
-                for k in range(px):
-                    for c in range(nc):
-                        plane[j, k, c] += w * source[j, k, c]
+        plane = np.empty((py, px, nc))
         row = np.empty((px, nc))
+        lattice_plane(coefficients, z_index, z_weight, a, plane)
         for b in range(ny):
-            row[:] = 0.0
-            for t in range(4):
-                w = y_weight[b, t]
-                source_row = plane[y_index[b, t]]
-                for k in range(px):
-                    for c in range(nc):
-                        row[k, c] += w * source_row[k, c]
+            lattice_row(plane, y_index, y_weight, b, row)
             for d in range(nx):
                 for c in range(nc):
-                    value = (
+                    trend = (
                         trend_offset[c]
                         + trend_matrix[c, 0] * z_trend[a]
                         + trend_matrix[c, 1] * y_trend[b]
                         + trend_matrix[c, 2] * x_trend[d]
                     )
-                    for t in range(4):
-                        value += x_weight[d, t] * row[x_index[d, t], c]
-                    out[a, b, d, c] = value
+                    out[a, b, d, c] = lattice_value(row, x_index, x_weight, d, c, trend)

@@ -35,6 +35,7 @@ from .field_spline import (
 )
 from .interpolation import prefilter, sample
 from .inverse_lattice import LatticeInverter
+from .pull_back_fill import pull_back_box
 from .slabs import iter_slabs
 
 #: A sampler of a volume: positions ``(N, 3)`` ``(z, y, x)`` in voxels -> float32 values ``(N,)``,
@@ -80,6 +81,8 @@ def pull_back_block(
     NaN where ``X + u(X)`` falls outside ``F`` or, with ``outside="nan"``, where ``X`` is outside
     the grid's hull.
     """
+    if isinstance(sample_deformed, SplineSampler):  # in memory: one pass, no positions array
+        return pull_back_box(sample_deformed.coefficients, spline, box, outside)
     dense = spline.lattice(*box_axes(box), outside=outside)
     points = box_lattice(box) + dense.reshape(-1, 3)
     return np.asarray(sample_deformed(points), np.float32).reshape(dense.shape[:3])
