@@ -237,9 +237,7 @@ def test_scan_series(mode, series48, make_napari_viewer, run_panel, small):
     layer = viewer.layers[f"|u| (series ({strategy}))"]
     assert layer.data.shape[0] == 3 and layer.visible
     assert f"displacement (series ({strategy}))" in viewer.layers
-    np.testing.assert_allclose(
-        layer.scale[1:], np.asarray(field_of(layer).step) * small.voxel_size
-    )
+    np.testing.assert_allclose(layer.scale[1:], np.asarray(field_of(layer).step) * small.voxel_size)
     fields = fields_in(viewer.layers)
     assert list(fields) == [f"state 1 ({strategy})", f"state 2 ({strategy})"]
     for k in (1, 2):
