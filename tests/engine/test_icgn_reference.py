@@ -1,6 +1,7 @@
-"""The reference side of IC-GN: the fused first-order pass against the definitions."""
+"""The reference side of IC-GN: the fused first- and second-order passes against the definitions."""
 
 import numpy as np
+import pytest
 
 from napari_dvc_correct.engine import icgn_reference
 
@@ -17,27 +18,36 @@ def _subvolume(half=3, seed=0, drop=0):
     return g, grad, xi.astype(np.float32)
 
 
-def _definition(g, grad, xi):
+def _definition(g, grad, xi, order=1):
+    """Mean, norm, ``H = JᵀJ``, ``Σ J`` and ``Σ J (g − ḡ)`` with ``J = ∇G ⊗ b(ξ)`` written out."""
     g = g.astype(np.float64)
-    b = np.column_stack([np.ones(len(xi)), xi.astype(np.float64)])  # (1, z, y, x)
-    jac = (grad.astype(np.float64)[:, :, None] * b[:, None, :]).reshape(len(g), 12)
+    z, y, x = xi.astype(np.float64).T
+    columns = [np.ones(len(xi)), z, y, x]
+    if order == 2:  # the monomials' order of shape_function.monomials
+        columns += [z * z, y * y, x * x, z * y, y * x, z * x]
+    b = np.column_stack(columns)
+    jac = (grad.astype(np.float64)[:, :, None] * b[:, None, :]).reshape(len(g), 3 * b.shape[1])
     dg = g - g.mean()
     return g.mean(), np.sqrt(dg @ dg), jac.T @ jac, jac.sum(0), jac.T @ dg
 
 
-def test_first_order_terms_equal_their_definitions_with_and_without_masked_voxels():
-    for drop in (0, 40):
-        g, grad, xi = _subvolume(drop=drop)
-        mean_g, delta_g, ok, low, sum_j, sum_jg = icgn_reference.reference_terms(
-            g, grad, xi, len(g), 4
-        )
-        mean_e, delta_e, hessian_e, sum_j_e, sum_jg_e = _definition(g, grad, xi)
-        assert ok
-        np.testing.assert_allclose(mean_g, mean_e, rtol=1e-12)
-        np.testing.assert_allclose(delta_g, delta_e, rtol=1e-10)
-        np.testing.assert_allclose(low @ low.T, hessian_e, rtol=1e-9, atol=1e-9 * hessian_e.max())
-        np.testing.assert_allclose(sum_j, sum_j_e, rtol=1e-10, atol=1e-9)
-        np.testing.assert_allclose(sum_jg, sum_jg_e, rtol=1e-10, atol=1e-6)
+@pytest.mark.parametrize("order", [1, 2])
+@pytest.mark.parametrize("half, drop", [(3, 0), (3, 40), (7, 300)])
+def test_reference_terms_equal_their_definitions_with_and_without_masked_voxels(order, half, drop):
+    # second order sums x-rows times 1 ... x⁴ and folds them into the 35 quartic moments: the
+    # larger subvolume checks that the moments keep float64 accuracy at |x|⁴ = 2401
+    g, grad, xi = _subvolume(half=half, drop=drop)
+    mean_g, delta_g, ok, low, sum_j, sum_jg = icgn_reference.reference_terms(
+        g, grad, xi, len(g), 4 if order == 1 else 10
+    )
+    mean_e, delta_e, hessian_e, sum_j_e, sum_jg_e = _definition(g, grad, xi, order)
+    assert ok
+    np.testing.assert_allclose(mean_g, mean_e, rtol=1e-12)
+    np.testing.assert_allclose(delta_g, delta_e, rtol=1e-10)
+    np.testing.assert_allclose(low @ low.T, hessian_e, rtol=1e-9, atol=1e-9 * hessian_e.max())
+    scale = np.abs(sum_j_e).max()
+    np.testing.assert_allclose(sum_j, sum_j_e, rtol=1e-10, atol=1e-10 * scale)
+    np.testing.assert_allclose(sum_jg, sum_jg_e, rtol=1e-10, atol=1e-10 * np.abs(sum_jg_e).max())
 
 
 def test_float32_and_float64_copies_give_the_same_terms():

@@ -12,7 +12,7 @@ from numba import njit, prange
 
 from ._numba_setup import FAST_KERNEL_OPTIONS, KERNEL_OPTIONS
 from .interpolation import gradient_at_voxel
-from .shape_function import PRODUCT_TABLE, cholesky_solve, cholesky_solve_setup, monomials
+from .shape_function import PRODUCT_TABLE, cholesky_solve, cholesky_solve_setup
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -164,47 +164,117 @@ def _fold_gradient(sum_j, sum_jg, k, s, sx, t, tx, z, y):
     sum_jg[4 * k + 3] += tx
 
 
+def _quartic_tables():
+    """Exponents ``(a, b, c)`` of the 35 monomials ``z^a y^b x^c`` of degree ≤ 4, and for the
+    second-order shape function's monomials ``b_j`` (:func:`.shape_function.monomials`) the
+    index of ``b_j`` and of ``b_j b_j'`` among them."""
+    powers = [(a, b, c) for a in range(5) for b in range(5 - a) for c in range(5 - a - b)]
+    index = {e: i for i, e in enumerate(powers)}
+    basis = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2)]
+    basis += [(1, 1, 0), (0, 1, 1), (1, 0, 1)]
+    single = np.array([index[e] for e in basis], np.int64)
+    product = np.array(
+        [[index[tuple(u + v for u, v in zip(e, f))] for f in basis] for e in basis], np.int64
+    )
+    return np.array(powers, np.int64), single, product
+
+
+_QUARTIC_POWERS, _QUADRATIC_INDEX, _QUADRATIC_PRODUCT = _quartic_tables()
+
+
+@njit(**KERNEL_OPTIONS)
+def quadratic_reference_terms(g, grad, xi, count):
+    """Second order: :func:`.icgn_reference.reference_terms` (same returns) with ``H``, ``Σ J``
+    and ``Σ J (g − ḡ)`` from the 12 per-voxel quantities ``g_k g_k'``, ``g_k``, ``g_k (g − ḡ)``
+    summed along each x-row times ``1 … x⁴`` and folded into the 35 quartic moments per row."""
+    nb = 10
+    m_par = 30
+    n_mom = _QUARTIC_POWERS.shape[0]
+    mean_g = 0.0
+    for i in range(count):
+        mean_g += g[i]
+    mean_g /= max(count, 1)
+    ss_g = 0.0
+    for i in range(count):
+        d = g[i] - mean_g
+        ss_g += d * d
+    moments = np.zeros((12, n_mom))
+    rows = np.zeros((5, 12))
+    values = np.empty(12)
+    zp = np.empty(5)
+    yp = np.empty(5)
+    current_z = np.float64(xi[0, 0]) if count else 0.0
+    current_y = np.float64(xi[0, 1]) if count else 0.0
+    for i in range(count + 1):
+        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
+            zp[0] = 1.0
+            yp[0] = 1.0
+            for e in range(1, 5):
+                zp[e] = zp[e - 1] * current_z
+                yp[e] = yp[e - 1] * current_y
+            for m in range(n_mom):
+                factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
+                c = _QUARTIC_POWERS[m, 2]
+                for q in range(12):
+                    moments[q, m] += factor * rows[c, q]
+            rows[:] = 0.0
+            if i == count:
+                break
+            current_z = np.float64(xi[i, 0])
+            current_y = np.float64(xi[i, 1])
+        x = np.float64(xi[i, 2])
+        gz = np.float64(grad[i, 0])
+        gy = np.float64(grad[i, 1])
+        gx = np.float64(grad[i, 2])
+        dg = g[i] - mean_g
+        values[0] = gz * gz
+        values[1] = gy * gy
+        values[2] = gx * gx
+        values[3] = gz * gy
+        values[4] = gy * gx
+        values[5] = gz * gx
+        values[6] = gz
+        values[7] = gy
+        values[8] = gx
+        values[9] = gz * dg
+        values[10] = gy * dg
+        values[11] = gx * dg
+        xc = 1.0
+        for c in range(5):
+            for q in range(12):
+                rows[c, q] += values[q] * xc
+            xc *= x
+    hessian = np.empty((m_par, m_par))
+    sum_j = np.empty(m_par)
+    sum_jg = np.empty(m_par)
+    for k in range(3):
+        for j in range(nb):
+            sum_j[k * nb + j] = moments[6 + k, _QUADRATIC_INDEX[j]]
+            sum_jg[k * nb + j] = moments[9 + k, _QUADRATIC_INDEX[j]]
+            for k2 in range(3):
+                for j2 in range(nb):
+                    value = moments[_PAIR[k, k2], _QUADRATIC_PRODUCT[j, j2]]
+                    hessian[k * nb + j, k2 * nb + j2] = value
+    delta_g = np.sqrt(ss_g)
+    ok, low = cholesky_solve_setup(hessian, m_par)
+    return mean_g, delta_g, ok, low, sum_j, sum_jg
+
+
 @njit(**KERNEL_OPTIONS)
 def reference_terms(g, grad, xi, count, nb):
     """Mean and norm of the reference subvolume, Cholesky factor of H = Σ JᵀJ, Σ J, Σ J (g − ḡ).
 
     ``g`` (count,), ``grad`` and ``xi`` (count, 3) may be float32; the sums are float64.
     """
-    m_par = 3 * nb
+    if nb != 4:
+        return quadratic_reference_terms(g, grad, xi, count)
     mean_g = 0.0
     for i in range(count):
         mean_g += g[i]
     mean_g /= max(count, 1)
-    if nb == 4:
-        ss_g, hessian, sum_j, sum_jg = affine_terms(g, grad, xi, count, mean_g)
-    else:
-        ss_g = 0.0
-        for i in range(count):
-            d = g[i] - mean_g
-            ss_g += d * d
-        sum_j = np.zeros(m_par)
-        sum_jg = np.zeros(m_par)
-        b = np.empty(10)
-        hessian = np.zeros((m_par, m_par))
-        jac = np.empty(m_par)
-        for i in range(count):
-            monomials(np.float64(xi[i, 0]), np.float64(xi[i, 1]), np.float64(xi[i, 2]), nb, b)
-            for k in range(3):
-                gk = np.float64(grad[i, k])
-                for j in range(nb):
-                    jac[k * nb + j] = gk * b[j]
-            dg = g[i] - mean_g
-            for r in range(m_par):
-                jr = jac[r]
-                sum_j[r] += jr
-                sum_jg[r] += jr * dg
-                for c in range(r + 1):
-                    hessian[r, c] += jr * jac[c]
-        for r in range(m_par):
-            for c in range(r):
-                hessian[c, r] = hessian[r, c]
+    ss_g, hessian, sum_j, sum_jg = affine_terms(g, grad, xi, count, mean_g)
     delta_g = np.sqrt(ss_g)
-    ok, low = cholesky_solve_setup(hessian, m_par)
+    ok, low = cholesky_solve_setup(hessian, 12)
     return mean_g, delta_g, ok, low, sum_j, sum_jg
 
 

@@ -17,7 +17,6 @@ from .icgn_reference import reference_terms, translation_h_inverse
 from .shape_function import cholesky_solve_setup, compose_inverse
 from .uncertainty_sums import (
     affine_sensitivity_sums,
-    quadratic_reference_terms,
     quadratic_sensitivity_sums,
     sensitivity_sums,
 )
@@ -168,10 +167,7 @@ def subvolume_statistics(
         gradient_power[n] = np.nan
         if count < m_par + 3:
             continue
-        if nb == 10:
-            mean_g, delta_g, ok, low, sum_j, sum_jg = quadratic_reference_terms(g, grad, xi, count)
-        else:
-            mean_g, delta_g, ok, low, sum_j, sum_jg = reference_terms(g, grad, xi, count, nb)
+        mean_g, delta_g, ok, low, sum_j, sum_jg = reference_terms(g, grad, xi, count, nb)
         variance[n] = delta_g * delta_g / count
         power = 0.0
         for k in range(3):

@@ -2,8 +2,8 @@
 
 One pass over a subvolume each: the sensitivity ``A``'s sums over the deformed volume at the warped
 voxels (:func:`affine_sensitivity_sums` for first order, :func:`quadratic_sensitivity_sums` for
-second, :func:`sensitivity_sums` for any) and, for second order, the reference's ``H``, ``Σ J`` and
-``Σ J (g − ḡ)`` (:func:`quadratic_reference_terms`). The fast ones sum each x-row times powers of
+second, :func:`sensitivity_sums` for any); the reference's ``H``, ``Σ J`` and ``Σ J (g − ḡ)`` come
+from :func:`.icgn_reference.reference_terms`, as in IC-GN. The fast ones sum each x-row times powers of
 ``x`` and fold the rows into moments of the local coordinates (voxels, axis order (z, y, x)).
 """
 
@@ -13,13 +13,18 @@ import numpy as np
 from numba import njit
 
 from ._numba_setup import KERNEL_OPTIONS
-from .icgn_reference import fold_row
+from .icgn_reference import (
+    _QUADRATIC_INDEX,
+    _QUADRATIC_PRODUCT,
+    _QUARTIC_POWERS,
+    fold_row,
+)
 from .interpolation import (
     bspline_derivative_weights,
     bspline_weights,
     sample_with_gradient_point,
 )
-from .shape_function import PRODUCT_TABLE, cholesky_solve_setup, monomials
+from .shape_function import PRODUCT_TABLE, monomials
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
@@ -131,105 +136,6 @@ def affine_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
                 for j2 in range(4):
                     cross[k * 4 + j, l * 4 + j2] = moments[q, PRODUCT_TABLE[j, j2]]
     return cross, sum_jf, sum_jfg, used, sum_f, sum_ff
-
-
-def _quartic_tables():
-    """Exponents ``(a, b, c)`` of the 35 monomials ``z^a y^b x^c`` of degree ≤ 4, and for the
-    second-order shape function's monomials ``b_j`` (:func:`.shape_function.monomials`) the
-    index of ``b_j`` and of ``b_j b_j'`` among them."""
-    powers = [(a, b, c) for a in range(5) for b in range(5 - a) for c in range(5 - a - b)]
-    index = {e: i for i, e in enumerate(powers)}
-    basis = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2)]
-    basis += [(1, 1, 0), (0, 1, 1), (1, 0, 1)]
-    single = np.array([index[e] for e in basis], np.int64)
-    product = np.array(
-        [[index[tuple(u + v for u, v in zip(e, f))] for f in basis] for e in basis], np.int64
-    )
-    return np.array(powers, np.int64), single, product
-
-
-_QUARTIC_POWERS, _QUADRATIC_INDEX, _QUADRATIC_PRODUCT = _quartic_tables()
-
-
-_PAIR = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]], np.int64)  # (k, k') -> g_k g_k' below
-
-
-@njit(**KERNEL_OPTIONS)
-def quadratic_reference_terms(g, grad, xi, count):
-    """Second order: :func:`.icgn_reference.reference_terms` (same returns) with ``H``, ``Σ J``
-    and ``Σ J (g − ḡ)`` from the 12 per-voxel quantities ``g_k g_k'``, ``g_k``, ``g_k (g − ḡ)``
-    summed along each x-row times ``1 … x⁴`` and folded into the 35 quartic moments per row."""
-    nb = 10
-    m_par = 30
-    n_mom = _QUARTIC_POWERS.shape[0]
-    mean_g = 0.0
-    for i in range(count):
-        mean_g += g[i]
-    mean_g /= max(count, 1)
-    ss_g = 0.0
-    for i in range(count):
-        d = g[i] - mean_g
-        ss_g += d * d
-    moments = np.zeros((12, n_mom))
-    rows = np.zeros((5, 12))
-    values = np.empty(12)
-    zp = np.empty(5)
-    yp = np.empty(5)
-    current_z = np.float64(xi[0, 0]) if count else 0.0
-    current_y = np.float64(xi[0, 1]) if count else 0.0
-    for i in range(count + 1):
-        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
-            zp[0] = 1.0
-            yp[0] = 1.0
-            for e in range(1, 5):
-                zp[e] = zp[e - 1] * current_z
-                yp[e] = yp[e - 1] * current_y
-            for m in range(n_mom):
-                factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
-                c = _QUARTIC_POWERS[m, 2]
-                for q in range(12):
-                    moments[q, m] += factor * rows[c, q]
-            rows[:] = 0.0
-            if i == count:
-                break
-            current_z = np.float64(xi[i, 0])
-            current_y = np.float64(xi[i, 1])
-        x = np.float64(xi[i, 2])
-        gz = np.float64(grad[i, 0])
-        gy = np.float64(grad[i, 1])
-        gx = np.float64(grad[i, 2])
-        dg = g[i] - mean_g
-        values[0] = gz * gz
-        values[1] = gy * gy
-        values[2] = gx * gx
-        values[3] = gz * gy
-        values[4] = gy * gx
-        values[5] = gz * gx
-        values[6] = gz
-        values[7] = gy
-        values[8] = gx
-        values[9] = gz * dg
-        values[10] = gy * dg
-        values[11] = gx * dg
-        xc = 1.0
-        for c in range(5):
-            for q in range(12):
-                rows[c, q] += values[q] * xc
-            xc *= x
-    hessian = np.empty((m_par, m_par))
-    sum_j = np.empty(m_par)
-    sum_jg = np.empty(m_par)
-    for k in range(3):
-        for j in range(nb):
-            sum_j[k * nb + j] = moments[6 + k, _QUADRATIC_INDEX[j]]
-            sum_jg[k * nb + j] = moments[9 + k, _QUADRATIC_INDEX[j]]
-            for k2 in range(3):
-                for j2 in range(nb):
-                    value = moments[_PAIR[k, k2], _QUADRATIC_PRODUCT[j, j2]]
-                    hessian[k * nb + j, k2 * nb + j2] = value
-    delta_g = np.sqrt(ss_g)
-    ok, low = cholesky_solve_setup(hessian, m_par)
-    return mean_g, delta_g, ok, low, sum_j, sum_jg
 
 
 @njit(**KERNEL_OPTIONS)
