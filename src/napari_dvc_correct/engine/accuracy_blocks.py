@@ -29,7 +29,8 @@ from .binning import GridPart, cell_sums_block, node_box_sums
 from .field import DisplacementField
 from .field_spline import FieldSpline
 from .inverse_lattice import LatticeInverter
-from .phases import NO_PHASE, label_phases
+from .phase_sums import residual_phase_sums
+from .phases import NO_PHASE
 from .slabs import iter_slabs
 from .warp import (
     INVERSE_ACCURACY,
@@ -188,7 +189,6 @@ def field_block(
     """
     if mode == "reference":
         moved = pull_back_block(sample_other, spline, box, "nan")
-        residual = np.abs(moved - np.asarray(own_block, np.float32))
         positions = None
     else:
         # the forward warp's inverse (coarse Newton, checked interpolation), anchored on
@@ -201,25 +201,19 @@ def field_block(
         moved[~inverse.converged] = np.nan
         moved[~inverse.in_hull] = np.nan
         moved = moved.reshape(box_shape(box))
-        residual = np.abs(np.asarray(own_block, np.float32) - moved)
         positions = source
-    mapped = label_phases(moved, thresholds_other)
-    finite = np.isfinite(residual)
-    r = residual.astype(np.float64)
-    defined = own_labels < NO_PHASE
-    keep = (own_labels == mapped) & defined & finite
-    same_sums = np.bincount(own_labels[keep], weights=r[keep], minlength=NO_PHASE)[:NO_PHASE]
-    same_counts = np.bincount(own_labels[keep], minlength=NO_PHASE)[:NO_PHASE].astype(np.int64)
+    sums = residual_phase_sums(own_block, moved, own_labels, thresholds_other)
+    residual = sums.residual
     totals = BlockTotals(
-        residual_sum=float(np.sum(residual[finite], dtype=np.float64)),
-        residual_count=int(finite.sum()),
-        same_sums=same_sums,
-        same_counts=same_counts,
-        max_label=int(own_labels[defined].max()) if defined.any() else -1,
+        residual_sum=sums.residual_sum,
+        residual_count=sums.residual_count,
+        same_sums=sums.same_sums,
+        same_counts=sums.same_counts,
+        max_label=sums.max_label,
         cells=cell_sums_block(residual, box, bin_field, positions),
         nodes=node_box_sums(residual, box, centers, half),
     )
-    return totals, moved, residual, mapped
+    return totals, moved, residual, sums.mapped
 
 
 class FieldAccumulator:

@@ -20,11 +20,11 @@ import numpy as np
 from scipy import ndimage
 
 from . import warp
-from .accuracy import background_residual
 from .cleaning import clean
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from .field_spline import FieldSpline
 from .local_accuracy import local_mean_residual
+from .phase_sums import residual_phase_sums
 from .phases import label_phases, phase_thresholds
 
 #: One-sided z-score of the local acceptance test: a node's local residual must rise by more than
@@ -88,16 +88,14 @@ class ReferenceResiduals:
         """Per-node box means of the residual of ``field`` for each half-size, and eq. 1's r0."""
         spline = FieldSpline.from_field(field)
         moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
-        residual = np.abs(moved - self.reference)
+        if self.labels_g is None:
+            residual = np.abs(moved - self.reference)
+            floor = float("inf")
+        else:  # eq. 1 (inf where no voxel holds the same phase in both states)
+            sums = residual_phase_sums(self.reference, moved, self.labels_g, self.thresholds_f)
+            residual, floor = sums.residual, sums.same_phase_mean
+            floor = floor if np.isfinite(floor) else float("inf")
         means = [local_mean_residual(residual, field, half) for half in halves]
-        floor = float("inf")
-        if self.labels_g is not None:
-            try:
-                floor = background_residual(
-                    residual, self.labels_g, label_phases(moved, self.thresholds_f)
-                ).mean
-            except ValueError:
-                pass
         return means, floor
 
     def gradient_means(self, field: DisplacementField, half: int) -> np.ndarray:
