@@ -58,3 +58,53 @@ def test_float32_and_float64_copies_give_the_same_terms():
     )
     for a, b in zip(single, double):
         np.testing.assert_array_equal(a, b)
+
+
+def _stencil_gradient(coefficients):
+    """The 3×3×3 stencil written out: value weights (1, 4, 1) / 6, derivative (-1, 0, 1) / 2."""
+    padded = np.pad(coefficients.astype(np.float64), 1, mode="reflect")  # scipy's "mirror"
+    value = np.array([1.0, 4.0, 1.0]) / 6.0
+    deriv = np.array([-0.5, 0.0, 0.5])
+    nz, ny, nx = coefficients.shape
+    out = np.zeros((3, nz, ny, nx))
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                taps = padded[a : a + nz, b : b + ny, c : c + nx]
+                out[0] += deriv[a] * value[b] * value[c] * taps
+                out[1] += value[a] * deriv[b] * value[c] * taps
+                out[2] += value[a] * value[b] * deriv[c] * taps
+    return out
+
+
+@pytest.mark.parametrize("shape", [(19, 6, 7), (3, 2, 9), (1, 5, 4), (17, 17, 17)])
+def test_gradient_volume_is_the_stencil_and_the_interpolants_derivative(shape):
+    from scipy import ndimage
+
+    from napari_dvc_correct.engine.interpolation import prefilter
+
+    rng = np.random.default_rng(1)
+    volume = ndimage.gaussian_filter(rng.normal(100.0, 20.0, shape), 1.0).astype(np.float32)
+    coefficients = prefilter(volume)
+    gradient = icgn_reference.gradient_volume(coefficients)
+    assert gradient.dtype == np.float32 and gradient.shape == (3, *shape)
+    expected = _stencil_gradient(coefficients)
+    np.testing.assert_allclose(gradient, expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
+    # against the known answer: central differences of scipy's cubic spline (mirror) at interior
+    # voxels of the larger volumes
+    if min(shape) >= 5:
+        h = 1e-3
+        points = np.stack(np.meshgrid(*[np.arange(1, n - 1) for n in shape], indexing="ij"))
+        points = points.reshape(3, -1).astype(np.float64)
+        for axis in range(3):
+            step = np.zeros((3, 1))
+            step[axis] = h
+            up, down = (
+                ndimage.map_coordinates(
+                    volume.astype(np.float64), points + sign * step, order=3, mode="mirror"
+                )  # fmt: skip
+                for sign in (1.0, -1.0)
+            )
+            numeric = (up - down) / (2 * h)
+            inner = gradient[axis][tuple(slice(1, n - 1) for n in shape)].reshape(-1)
+            np.testing.assert_allclose(inner, numeric, atol=1e-3 * np.abs(numeric).max())

@@ -11,22 +11,102 @@ import numpy as np
 from numba import njit, prange
 
 from ._numba_setup import FAST_KERNEL_OPTIONS, KERNEL_OPTIONS
-from .interpolation import gradient_at_voxel
+from .interpolation import _mirror
 from .shape_function import PRODUCT_TABLE, cholesky_solve, cholesky_solve_setup
+
+#: z-planes of :func:`gradient_volume` per parallel task (each task re-reads two planes around).
+GRADIENT_PLANES_PER_TASK = 8
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _mirrored_neighbours(n):
+    """Indices of voxel ``i - 1`` and ``i + 1`` along an axis of ``n`` voxels, mirrored."""
+    below = np.empty(n, np.int64)
+    above = np.empty(n, np.int64)
+    for i in range(n):
+        below[i] = _mirror(i - 1, n)
+        above[i] = _mirror(i + 1, n)
+    return below, above
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def _plane_terms(coefficients, plane, y_below, y_above, x_below, x_above, value_x, deriv_x,
+                 value_yx, deriv_y, deriv_x_value_y):  # fmt: skip
+    """One coefficient plane's x- then y-passes: ``s_y s_x c``, ``d_y s_x c`` and ``s_y d_x c``.
+
+    ``s = (1, 4, 1) / 6`` and ``d = (-1, 0, 1) / 2`` are the cubic B-spline's value and
+    derivative weights at integer positions (taps ``i - 1, i, i + 1``).
+    """
+    ny, nx = value_x.shape
+    for iy in range(ny):
+        row = coefficients[plane, iy]
+        for ix in range(nx):
+            left = np.float64(row[x_below[ix]])
+            right = np.float64(row[x_above[ix]])
+            value_x[iy, ix] = (left + 4.0 * np.float64(row[ix]) + right) / 6.0
+            deriv_x[iy, ix] = 0.5 * (right - left)
+    for iy in range(ny):
+        below = y_below[iy]
+        above = y_above[iy]
+        for ix in range(nx):
+            value_yx[iy, ix] = (
+                value_x[below, ix] + 4.0 * value_x[iy, ix] + value_x[above, ix]
+            ) / 6.0
+            deriv_y[iy, ix] = 0.5 * (value_x[above, ix] - value_x[below, ix])
+            deriv_x_value_y[iy, ix] = (
+                deriv_x[below, ix] + 4.0 * deriv_x[iy, ix] + deriv_x[above, ix]
+            ) / 6.0
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
 def gradient_volume(coefficients):
-    """Gradient of the B-spline interpolant at every voxel, shape (3, nz, ny, nx), float32."""
+    """Gradient of the B-spline interpolant at every voxel, shape (3, nz, ny, nx), float32.
+
+    At integer positions the cubic B-spline weights are ``(1, 4, 1) / 6`` and the derivative
+    weights ``(-1, 0, 1) / 2``, so the gradient is a 3×3×3 stencil on the coefficients (mirrored
+    taps), applied here separably: per coefficient plane an x- and a y-pass, then the
+    z-pass over three consecutive planes (a ring of three planes per task of
+    :data:`GRADIENT_PLANES_PER_TASK` output planes). Sums in float64.
+    """
     nz, ny, nx = coefficients.shape
     out = np.empty((3, nz, ny, nx), np.float32)
-    for iz in prange(nz):
-        for iy in range(ny):
-            for ix in range(nx):
-                gz, gy, gx = gradient_at_voxel(coefficients, iz, iy, ix)
-                out[0, iz, iy, ix] = gz
-                out[1, iz, iy, ix] = gy
-                out[2, iz, iy, ix] = gx
+    z_below, z_above = _mirrored_neighbours(nz)
+    y_below, y_above = _mirrored_neighbours(ny)
+    x_below, x_above = _mirrored_neighbours(nx)
+    per_task = GRADIENT_PLANES_PER_TASK
+    n_tasks = (nz + per_task - 1) // per_task
+    for task in prange(n_tasks):
+        z0 = task * per_task
+        z1 = min(nz, z0 + per_task)
+        value_x = np.empty((ny, nx))
+        deriv_x = np.empty((ny, nx))
+        # ring of three planes: slot (plane index + 1) % 3 holds plane z_below / z / z_above terms
+        value = np.empty((3, ny, nx))
+        deriv_y = np.empty((3, ny, nx))
+        deriv_x_value_y = np.empty((3, ny, nx))
+        for virtual in range(z0 - 1, z0 + 1):
+            plane = z_below[z0] if virtual < z0 else virtual
+            slot = (virtual + 3) % 3
+            _plane_terms(coefficients, plane, y_below, y_above, x_below, x_above, value_x,
+                         deriv_x, value[slot], deriv_y[slot], deriv_x_value_y[slot])  # fmt: skip
+        for iz in range(z0, z1):
+            slot = (iz + 1 + 3) % 3
+            _plane_terms(coefficients, z_above[iz], y_below, y_above, x_below, x_above, value_x,
+                         deriv_x, value[slot], deriv_y[slot], deriv_x_value_y[slot])  # fmt: skip
+            low = (iz - 1 + 3) % 3
+            mid = iz % 3
+            high = (iz + 1) % 3
+            for iy in range(ny):
+                for ix in range(nx):
+                    out[0, iz, iy, ix] = 0.5 * (value[high, iy, ix] - value[low, iy, ix])
+                    out[1, iz, iy, ix] = (
+                        deriv_y[low, iy, ix] + 4.0 * deriv_y[mid, iy, ix] + deriv_y[high, iy, ix]
+                    ) / 6.0
+                    out[2, iz, iy, ix] = (
+                        deriv_x_value_y[low, iy, ix]
+                        + 4.0 * deriv_x_value_y[mid, iy, ix]
+                        + deriv_x_value_y[high, iy, ix]
+                    ) / 6.0
     return out
 
 

@@ -155,31 +155,6 @@ def sample_point(coefficients, z, y, x, cval):
     return sample_mirrored(coefficients, z, y, x)
 
 
-@njit(**KERNEL_OPTIONS)
-def gradient_at_voxel(coefficients, iz, iy, ix):
-    """Gradient ``(d/dz, d/dy, d/dx)`` of the interpolant at an integer voxel (mirrored taps).
-
-    At integer positions the cubic B-spline weights are ``(1/6, 4/6, 1/6)`` and the derivative
-    weights ``(-1/2, 0, 1/2)``, so the gradient is a 3×3×3 stencil on the coefficients.
-    """
-    nz, ny, nx = coefficients.shape
-    value_w = (1.0 / 6.0, 4.0 / 6.0, 1.0 / 6.0)
-    deriv_w = (-0.5, 0.0, 0.5)
-    gz = 0.0
-    gy = 0.0
-    gx = 0.0
-    for a in range(3):
-        za = _mirror(iz - 1 + a, nz)
-        for b in range(3):
-            yb = _mirror(iy - 1 + b, ny)
-            for c in range(3):
-                coef = coefficients[za, yb, _mirror(ix - 1 + c, nx)]
-                gz += deriv_w[a] * value_w[b] * value_w[c] * coef
-                gy += value_w[a] * deriv_w[b] * value_w[c] * coef
-                gx += value_w[a] * value_w[b] * deriv_w[c] * coef
-    return gz, gy, gx
-
-
 @njit(parallel=True, **KERNEL_OPTIONS)
 def _sample_many(coefficients, points, cval, out):
     for i in prange(points.shape[0]):
