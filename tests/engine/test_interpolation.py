@@ -32,6 +32,29 @@ def test_sample_reproduces_voxel_values_at_integer_positions(volume):
     assert np.max(np.abs(sample(coefficients, points) - volume.reshape(-1))) < 1e-5
 
 
+@pytest.mark.parametrize(
+    "shape, dtype",
+    [((1, 5, 7), np.float32), ((2, 3, 40), np.uint16), ((31, 17, 9), np.float64),
+     ((40, 90, 3), np.uint8), ((3, 2, 200), np.int16)],
+)  # fmt: skip
+def test_prefilter_equals_scipys_spline_filter_on_any_shape_and_dtype(shape, dtype):
+    rng = np.random.default_rng(5)
+    volume = (rng.random(shape) * 200).astype(dtype)
+    coefficients = prefilter(volume)
+    assert coefficients.dtype == np.float32 and coefficients.flags.c_contiguous
+    expected = ndimage.spline_filter(volume.astype(np.float64), order=3, mode="mirror")
+    np.testing.assert_allclose(coefficients, expected, rtol=0, atol=3e-7 * np.abs(expected).max())
+
+
+def test_prefilter_of_a_boolean_mask_and_a_bad_shape():
+    mask = np.zeros((6, 7, 8), bool)
+    mask[2:4, 3:6, 1:7] = True
+    expected = ndimage.spline_filter(mask.astype(np.float64), order=3, mode="mirror")
+    np.testing.assert_allclose(prefilter(mask), expected, atol=1e-6)
+    with pytest.raises(ValueError, match="3-D"):
+        prefilter(np.zeros((4, 4)))
+
+
 def test_points_outside_get_cval(volume):
     coefficients = prefilter(volume)
     points = np.array([[-0.01, 5, 5], [5, 5, volume.shape[2] - 1 + 1e-3], [5, 5, 5]])
