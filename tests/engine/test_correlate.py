@@ -111,6 +111,32 @@ def test_generator_yields_progress_and_matches_blocking(speckle):
     assert np.allclose(field.u, correlate(speckle, deformed, params).u, equal_nan=True)
 
 
+def test_given_prefilter_gives_the_same_field_and_must_fit(speckle):
+    from napari_dvc_correct.engine.correlate import Prefiltered
+    from napari_dvc_correct.engine.icgn_reference import gradient_volume
+    from napari_dvc_correct.engine.interpolation import prefilter
+    from napari_dvc_correct.engine.progress import run_to_completion
+
+    deformed = synthetic.deform_volume(speckle, synthetic.translation((0.6, -1.2, 0.3)))
+    params = CorrelationParams(subvolume=15, step=12)
+    plain = correlate(speckle, deformed, params)
+    given = Prefiltered(
+        gradient=gradient_volume(prefilter(speckle)), coef_deformed=prefilter(deformed)
+    )
+    field = run_to_completion(correlate_iter(speckle, deformed, params, prefiltered=given))
+    np.testing.assert_array_equal(field.u, plain.u)
+    np.testing.assert_array_equal(field.status, plain.status)
+    with pytest.raises(ValueError, match="do not fit"):
+        run_to_completion(
+            correlate_iter(
+                speckle,
+                deformed,
+                params,
+                prefiltered=Prefiltered(coef_deformed=prefilter(speckle[:-1])),
+            )
+        )
+
+
 def test_mask_skips_pois_outside_material(speckle):
     deformed = synthetic.deform_volume(speckle, synthetic.translation((0.3, 0.0, 0.0)))
     mask = np.zeros(speckle.shape, bool)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from collections.abc import Generator
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -93,6 +94,32 @@ def _read_only(volume: np.ndarray) -> np.ndarray:
     return view
 
 
+class Prefiltered(NamedTuple):
+    """Full-resolution arrays a caller already holds for the pair it correlates.
+
+    The self-correction matches every pass against one unchanged volume: ``F`` in the loaded
+    frame (its coefficients), ``G`` in the reference frame (its gradient), so it computes them
+    once. ``None`` entries are computed from the volumes as usual.
+
+    Attributes
+    ----------
+    gradient : ndarray (3, nz, ny, nx) float32, optional
+        ``∇G`` of the reference's B-spline interpolant (:func:`.icgn_reference.gradient_volume`).
+    coef_deformed : ndarray (nz, ny, nx) float32, optional
+        ``F``'s B-spline coefficients (:func:`.interpolation.prefilter`).
+    """
+
+    gradient: np.ndarray | None = None
+    coef_deformed: np.ndarray | None = None
+
+    def check(self, shape) -> None:
+        shape = tuple(shape)
+        if self.gradient is not None and tuple(self.gradient.shape) != (3, *shape):
+            raise ValueError(f"gradient {self.gradient.shape} does not fit volumes {shape}")
+        if self.coef_deformed is not None and tuple(self.coef_deformed.shape) != shape:
+            raise ValueError(f"coefficients {self.coef_deformed.shape} do not fit volumes {shape}")
+
+
 @dataclass
 class PyramidLevel:
     """Everything IC-GN needs at one pyramid level."""
@@ -109,13 +136,26 @@ class PyramidLevel:
     device: str = "cpu"  # "cuda": IC-GN runs on the GPU (engine.cuda)
 
     @classmethod
-    def build(cls, factor, reference, deformed, mask, half, min_texture, device="cpu", std=None):
+    def build(
+        cls, factor, reference, deformed, mask, half, min_texture, device="cpu", std=None,
+        prefiltered=None,
+    ):  # fmt: skip
+        """The level of binning ``factor``; ``prefiltered`` (:class:`Prefiltered`, factor 1 only)
+        gives ``∇G`` and ``F``'s coefficients already computed for these volumes."""
         if factor > 1:
             reference = bin_volume(reference, factor)
             deformed = bin_volume(deformed, factor)
             if mask is not None:
                 mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
-        gradient = icgn_reference.gradient_volume(prefilter(reference))
+            prefiltered = None
+        prefiltered = Prefiltered() if prefiltered is None else prefiltered
+        prefiltered.check(reference.shape)
+        gradient = prefiltered.gradient
+        if gradient is None:
+            gradient = icgn_reference.gradient_volume(prefilter(reference))
+        coef_deformed = prefiltered.coef_deformed
+        if coef_deformed is None:
+            coef_deformed = prefilter(deformed)
         if std is None:  # else: the whole volume's, when these are a region of it (tiled)
             std = float(np.std(reference[mask] if mask is not None else reference))
         return cls(
@@ -123,7 +163,7 @@ class PyramidLevel:
             reference=_read_only(reference),
             deformed=deformed,
             gradient=gradient,
-            coef_deformed=prefilter(deformed),
+            coef_deformed=coef_deformed,
             mask=mask if mask is not None else np.zeros((1, 1, 1), np.bool_),
             use_mask=mask is not None,
             half=half,
@@ -312,6 +352,7 @@ def match_iter(
     grid_anchor=None,
     seeds=None,
     active=None,
+    prefiltered=None,
 ) -> Generator[Progress, None, tuple[MatchedGrid, PyramidLevel]]:
     """The first half of :func:`correlate_iter` (same parameters): the POIs matched, not judged.
 
@@ -357,6 +398,7 @@ def match_iter(
         params.min_texture,
         device.kind,
         std=None if texture_std is None else texture_std[1],
+        prefiltered=prefiltered,
     )
     timings["prefilter_s"] = time.perf_counter() - t0
     yield Progress("prefilter", 1, 1, "volumes prefiltered")
@@ -502,6 +544,7 @@ def correlate_iter(
     grid_anchor=None,
     seeds=None,
     active=None,
+    prefiltered=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -541,6 +584,9 @@ def correlate_iter(
         Match only these POIs (the self-correction's selective passes, :mod:`.correction`); the
         others get ``Status.NOT_COMPUTED`` and NaN, and take no part in the noise estimate, the
         thresholds or the repair. Default: every POI.
+    prefiltered : Prefiltered, optional
+        ``∇G`` and/or ``F``'s coefficients already computed for exactly these volumes (the
+        self-correction's unchanged volume, computed once for all passes). Default: computed.
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.
@@ -570,6 +616,7 @@ def correlate_iter(
         grid_anchor=grid_anchor,
         seeds=seeds,
         active=active,
+        prefiltered=prefiltered,
     )
     field, _ = yield from judge_iter(matched, fine, params)
     return field
