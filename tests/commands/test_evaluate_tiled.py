@@ -62,8 +62,11 @@ def test_tiled_evaluate_writes_the_report_of_the_in_memory_run(scans, capsys):
                 except ValueError:
                     assert a[key] == b[key], (table, key)
                     continue
-                # 6 significant digits in the tables; residuals agree to ~1e-7 of the gray range
-                assert y == pytest.approx(x, rel=2e-6, abs=1e-5, nan_ok=True), (table, key)
+                # 6 significant digits in the tables (a value on a rounding boundary may differ
+                # by one unit of the last digit); residuals agree to ~1e-7 of the gray range
+                last_digit = 10.0 ** (np.floor(np.log10(abs(x))) - 5) if x and np.isfinite(x) else 0
+                tolerance = max(1e-5, 1.01 * last_digit)
+                assert y == pytest.approx(x, rel=2e-6, abs=tolerance, nan_ok=True), (table, key)
     for name in ("residual_exact.tif", "labels_mapped_rigid.tif", "labels_reference.tif",
                  "labels_deformed.tif", "equivalent_strain_exact.tif"):  # fmt: skip
         a, b = tifffile.imread(memory / name), tifffile.imread(tiled / name)
