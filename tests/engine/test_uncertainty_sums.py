@@ -28,8 +28,10 @@ def test_first_order_sensitivity_sums_equal_the_general_ones(center):
         coef, g, grad, xi, len(g), float(g.mean()), cz, cy, cx, p, 4
     )
     assert fast[3] == general[3] and fast[3] > 0  # voxels used
+    # the fast paths sum interior taps four-wide in float32 (as IC-GN samples), the general one
+    # in float64: agreement to float32 rounding
     for a, b in zip(fast[:3] + fast[4:], general[:3] + general[4:]):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(b)))
+        np.testing.assert_allclose(a, b, rtol=2e-6, atol=2e-6 * np.max(np.abs(b)))
 
 
 @pytest.mark.parametrize("center", [(12, 12, 12), (4, 5, 19)])  # inside; taps past the border
@@ -52,5 +54,7 @@ def test_second_order_sensitivity_sums_equal_the_general_ones(center):
         coef, g, grad, xi, len(g), float(g.mean()), cz, cy, cx, p, 10
     )
     assert fast[3] == general[3] and fast[3] > 0  # voxels used
+    # the fast paths sum interior taps four-wide in float32 (as IC-GN samples), the general one
+    # in float64: agreement to float32 rounding
     for a, b in zip(fast[:3] + fast[4:], general[:3] + general[4:]):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(b)))
+        np.testing.assert_allclose(a, b, rtol=2e-6, atol=2e-6 * np.max(np.abs(b)))

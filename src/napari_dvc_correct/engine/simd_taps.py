@@ -98,18 +98,107 @@ def taps64(typingctx, flat, offset, row_stride, plane_stride, tz, ty, tx):
                 if total is None
                 else _fma(builder, weight, plane, total)
             )
-        lanes = builder.fmul(total, wx)
-        mask = ir.Constant(ir.VectorType(_I32, 4), [2, 3, 2, 3])
-        lanes = builder.fadd(
-            lanes, builder.shuffle_vector(lanes, ir.Constant(_V4, ir.Undefined), mask)
-        )
-        mask = ir.Constant(ir.VectorType(_I32, 4), [1, 1, 1, 1])
-        lanes = builder.fadd(
-            lanes, builder.shuffle_vector(lanes, ir.Constant(_V4, ir.Undefined), mask)
-        )
-        return builder.extract_element(lanes, ir.Constant(_I32, 0))
+        return _sum4(builder, builder.fmul(total, wx))
 
     return sig, codegen
+
+
+def _derivative_weights4(builder, t):
+    """The four taps' weight derivatives ``B + t (2C + t 3D)`` (lane = tap)."""
+    vector = builder.insert_element(ir.Constant(_V4, ir.Undefined), t, ir.Constant(_I32, 0))
+    vector = _splat(builder, vector, 0)
+    w = _fma(builder, vector, _const4([3.0 * d for d in _D]), _const4([2.0 * c for c in _C]))
+    return _fma(builder, vector, w, _const4(_B))
+
+
+def _sum4(builder, vector):
+    """The sum of a vector's four lanes, as a float32 scalar."""
+    mask = ir.Constant(ir.VectorType(_I32, 4), [2, 3, 2, 3])
+    vector = builder.fadd(
+        vector, builder.shuffle_vector(vector, ir.Constant(_V4, ir.Undefined), mask)
+    )
+    mask = ir.Constant(ir.VectorType(_I32, 4), [1, 1, 1, 1])
+    vector = builder.fadd(
+        vector, builder.shuffle_vector(vector, ir.Constant(_V4, ir.Undefined), mask)
+    )
+    return builder.extract_element(vector, ir.Constant(_I32, 0))
+
+
+@intrinsic
+def taps64_with_gradient(typingctx, flat, offset, row_stride, plane_stride, tz, ty, tx):
+    """:func:`taps64` and the interpolant's gradient from the same 16 row loads.
+
+    Returns the float32 tuple ``(value, d/dz, d/dy, d/dx)``: per plane the y-weighted rows and
+    their y-derivative, per volume the z-weighted planes, their z-derivative and the
+    y-derivative's z-weighted sum, then one x-dot each (the x-derivative from the value's).
+    """
+    sig = types.UniTuple(types.float32, 4)(flat, offset, row_stride, plane_stride, tz, ty, tx)
+
+    def codegen(context, builder, signature, args):
+        array, start, sy, sz, tz_, ty_, tx_ = args
+        data = context.make_array(signature.args[0])(context, builder, array).data
+        wz = _weights4(builder, tz_)
+        wy = _weights4(builder, ty_)
+        wx = _weights4(builder, tx_)
+        dz = _derivative_weights4(builder, tz_)
+        dy = _derivative_weights4(builder, ty_)
+        dx = _derivative_weights4(builder, tx_)
+        pointer = _V4.as_pointer()
+        total = total_dz = total_dy = None
+        for a in range(4):
+            plane_start = builder.add(start, builder.mul(sz, ir.Constant(_I64, a)))
+            plane = plane_dy = None
+            for b in range(4):
+                row_start = builder.add(plane_start, builder.mul(sy, ir.Constant(_I64, b)))
+                address = builder.bitcast(builder.gep(data, [row_start], inbounds=True), pointer)
+                row = builder.load(address, align=4)
+                weight = _splat(builder, wy, b)
+                slope = _splat(builder, dy, b)
+                if plane is None:
+                    plane = builder.fmul(weight, row)
+                    plane_dy = builder.fmul(slope, row)
+                else:
+                    plane = _fma(builder, weight, row, plane)
+                    plane_dy = _fma(builder, slope, row, plane_dy)
+            weight = _splat(builder, wz, a)
+            slope = _splat(builder, dz, a)
+            if total is None:
+                total = builder.fmul(weight, plane)
+                total_dz = builder.fmul(slope, plane)
+                total_dy = builder.fmul(weight, plane_dy)
+            else:
+                total = _fma(builder, weight, plane, total)
+                total_dz = _fma(builder, slope, plane, total_dz)
+                total_dy = _fma(builder, weight, plane_dy, total_dy)
+        values = [
+            _sum4(builder, builder.fmul(total, wx)),
+            _sum4(builder, builder.fmul(total_dz, wx)),
+            _sum4(builder, builder.fmul(total_dy, wx)),
+            _sum4(builder, builder.fmul(total, dx)),
+        ]
+        return context.make_tuple(builder, signature.return_type, values)
+
+    return sig, codegen
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def sample_with_gradient_interior_vector(flat, plane_stride, row_stride, z, y, x):
+    """Value and gradient ``(v, dz, dy, dx)`` at ``(z, y, x)`` by :func:`taps64_with_gradient`
+    (float32); requires :func:`.interpolation.in_interior`. Equals
+    :func:`.interpolation.sample_with_gradient_point` to float32 rounding."""
+    iz = int(z)
+    iy = int(y)
+    ix = int(x)
+    start = (iz - 1) * plane_stride + (iy - 1) * row_stride + ix - 1
+    return taps64_with_gradient(
+        flat,
+        start,
+        row_stride,
+        plane_stride,
+        np.float32(z - iz),
+        np.float32(y - iy),
+        np.float32(x - ix),
+    )
 
 
 @njit(inline="always", **KERNEL_OPTIONS)

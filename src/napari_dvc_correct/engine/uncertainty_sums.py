@@ -19,53 +19,24 @@ from .icgn_reference import (
     _QUARTIC_POWERS,
     fold_row,
 )
-from .interpolation import (
-    bspline_derivative_weights,
-    bspline_weights,
-    sample_with_gradient_point,
-)
+from .interpolation import sample_with_gradient_point
 from .shape_function import PRODUCT_TABLE, monomials
+from .simd_taps import sample_with_gradient_interior_vector
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def value_and_gradient(coefficients, z, y, x):
-    """:func:`.sample_with_gradient_point` with direct indexing where all 64 taps are inside."""
+def value_and_gradient(coefficients, flat, z, y, x):
+    """:func:`.sample_with_gradient_point`, four-wide where all 64 taps are inside.
+
+    ``flat`` is ``coefficients`` (C-contiguous) as 1-D. Interior positions go through
+    :func:`.simd_taps.taps64_with_gradient` (float32 tap sums, as IC-GN's sampling), the others
+    through the mirrored scalar path; returns float64 values.
+    """
     nz, ny, nx = coefficients.shape
     if not (1.0 <= z < nz - 2.0 and 1.0 <= y < ny - 2.0 and 1.0 <= x < nx - 2.0):
         return sample_with_gradient_point(coefficients, z, y, x)
-    iz = int(z)
-    iy = int(y)
-    ix = int(x)
-    wz = bspline_weights(z - iz)
-    wy = bspline_weights(y - iy)
-    wx = bspline_weights(x - ix)
-    dz = bspline_derivative_weights(z - iz)
-    dy = bspline_derivative_weights(y - iy)
-    dx = bspline_derivative_weights(x - ix)
-    v = 0.0
-    gz = 0.0
-    gy = 0.0
-    gx = 0.0
-    for a in range(4):
-        plane_v = 0.0
-        plane_dy = 0.0
-        plane_dx = 0.0
-        for b in range(4):
-            row = coefficients[iz - 1 + a, iy - 1 + b]
-            c0 = row[ix - 1]
-            c1 = row[ix]
-            c2 = row[ix + 1]
-            c3 = row[ix + 2]
-            row_v = wx[0] * c0 + wx[1] * c1 + wx[2] * c2 + wx[3] * c3
-            row_d = dx[0] * c0 + dx[1] * c1 + dx[2] * c2 + dx[3] * c3
-            plane_v += wy[b] * row_v
-            plane_dy += dy[b] * row_v
-            plane_dx += wy[b] * row_d
-        v += wz[a] * plane_v
-        gz += dz[a] * plane_v
-        gy += wz[a] * plane_dy
-        gx += wz[a] * plane_dx
-    return v, gz, gy, gx
+    v, gz, gy, gx = sample_with_gradient_interior_vector(flat, ny * nx, nx, z, y, x)
+    return np.float64(v), np.float64(gz), np.float64(gy), np.float64(gx)
 
 
 @njit(**KERNEL_OPTIONS)
@@ -74,6 +45,7 @@ def affine_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
     ``Σf²`` and the voxels used, in one pass with x-row sums folded into the moments (as in
     :func:`.icgn_reference.affine_terms`)."""
     nz, ny, nx = coef.shape
+    flat = coef.reshape(coef.size)
     moments = np.zeros((9, 10))
     row0 = np.zeros(9)
     row1 = np.zeros(9)
@@ -103,7 +75,7 @@ def affine_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
         wx = cx + p[8] + p[9] * z + p[10] * y + (1.0 + p[11]) * x
         if not (0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1):
             continue
-        f, fz, fy, fx = value_and_gradient(coef, wz, wy, wx)
+        f, fz, fy, fx = value_and_gradient(coef, flat, wz, wy, wx)
         used += 1
         sum_f += f
         sum_ff += f * f
@@ -146,6 +118,7 @@ def quadratic_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
     nb = 10
     m_par = 30
     nz, ny, nx = coef.shape
+    flat = coef.reshape(coef.size)
     n_mom = _QUARTIC_POWERS.shape[0]
     moments = np.zeros((15, n_mom))
     rows = np.zeros((5, 15))
@@ -188,7 +161,7 @@ def quadratic_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
             wx += p[2 * nb + j] * b[j]
         if not (0.0 <= wz <= nz - 1 and 0.0 <= wy <= ny - 1 and 0.0 <= wx <= nx - 1):
             continue
-        f, fz, fy, fx = value_and_gradient(coef, wz, wy, wx)
+        f, fz, fy, fx = value_and_gradient(coef, flat, wz, wy, wx)
         used += 1
         sum_f += f
         sum_ff += f * f
