@@ -293,6 +293,34 @@ def test_refuses_a_run_over_max_memory(pair):
         correlate_tiled(reference, deformed, PARAMS, max_memory="1MB")
 
 
+def test_a_batch_chosen_by_max_memory_is_not_refused_after_the_whole_volume_pass(pair):
+    # regression: the check after the whole-volume pass counted the POIs held between a batch's
+    # two tasks as if batches were one POI (27 times each POI, margins included), so a batch that
+    # --max-memory had chosen was then refused (seen on the 512³ benchmark)
+    from napari_dvc_correct.tiled.memory import choose_batch_shape, estimate_peak_memory
+
+    reference, deformed, _ = pair
+    params = PARAMS.replace(tolerance=1e-3)
+    sizes = dict(workers=1, margin=1)
+    budget = estimate_peak_memory(reference.shape, np.float32, params, (3, 3, 3), **sizes)
+    budget += 64 * 1024  # just above a 3³ batch; a 4³ batch needs more
+    assert choose_batch_shape(reference.shape, np.float32, params, budget, **sizes) == (3, 3, 3)
+    one = estimate_peak_memory(reference.shape, np.float32, params, (1, 1, 1), workers=0, margin=1)
+    three = estimate_peak_memory(
+        reference.shape, np.float32, params, (3, 3, 3), workers=0, margin=1
+    )
+    assert one - three > 64 * 1024  # the old check would have refused this run
+    messages = []
+    generator = correlate_tiled_iter(reference, deformed, params, max_memory=budget, workers=1)
+    try:
+        while True:
+            messages.append(next(generator).message)
+    except StopIteration as stop:
+        field = stop.value
+    assert "of up to 3x3x3 POIs" in messages[0]
+    assert np.mean(field.valid) > 0.9
+
+
 def test_refuses_a_run_larger_than_the_machine(monkeypatch, pair):
     reference, deformed, _ = pair
     monkeypatch.setattr(tiled, "available_memory", lambda: 50 * 2**20)

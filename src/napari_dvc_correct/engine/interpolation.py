@@ -46,6 +46,8 @@ def prefilter(volume: np.ndarray) -> np.ndarray:
         raise ValueError(f"prefilter needs a 3-D volume, got shape {volume.shape}")
     if volume.dtype.kind not in "uif" or volume.dtype == np.float16:
         volume = volume.astype(np.float32)
+    volume = volume.view(np.ndarray)
+    volume.flags.writeable = False  # one numba signature per dtype, read-only or not
     coefficients = np.empty(volume.shape, np.float32)
     _prefilter_x(volume, coefficients, CUBIC_POLE, CUBIC_GAIN)
     _prefilter_y(coefficients, CUBIC_POLE, CUBIC_GAIN)

@@ -310,7 +310,10 @@ def correlate_tiled_iter(
         if max_memory is not None:
             budget = min(budget, max_memory)
         sizes = dict(margin=margin, masked=masked, grid=grid)
-        fixed = estimate_peak_memory(shape, dtype, params, (1, 1, 1), workers=0, **sizes)
+        # the part that no batch holds: the field, the seeds and the matched POIs held between a
+        # batch's two tasks (these count each batch's margin, so they depend on the batch shape;
+        # the whole grid as one batch gives the least)
+        fixed = estimate_peak_memory(shape, dtype, params, grid_shape, workers=0, **sizes)
         if batch_shape is None:
             target = budget if max_memory is not None else fixed + concurrency * DEFAULT_BATCH_BYTES
             batch_shape = choose_batch_shape(
@@ -323,6 +326,7 @@ def correlate_tiled_iter(
             shape, dtype, params, batch_shape, workers=concurrency, **sizes
         )
         _refuse_if_over(estimate, budget, max_memory, batch_shape, concurrency, where)
+        fixed = estimate_peak_memory(shape, dtype, params, batch_shape, workers=0, **sizes)
         batches = _batch_ranges(grid_shape, batch_shape)
         if client is None:
             workers = concurrency = max(1, min(workers, len(batches)))
