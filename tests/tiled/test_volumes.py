@@ -63,6 +63,39 @@ def test_sample_lazy_equals_whole_volume_sampling(case):
     assert np.max(np.abs(got[both] - expected[both])) < 1e-6
 
 
+@pytest.mark.parametrize("outside", ["nan", "extrapolate"])
+@pytest.mark.parametrize(
+    "box",
+    [(slice(0, 36), slice(0, 40), slice(0, 44)), (slice(10, 26), slice(3, 19), slice(20, 44))],
+)
+def test_lazy_pull_back_reads_one_region_and_equals_the_whole_volume(
+    case, box, outside, monkeypatch
+):
+    from napari_dvc_correct.tiled import volumes
+
+    reference, deformed, field = case
+    spline = field_spline.FieldSpline.from_field(field)
+    expected = warp.pull_back_block(warp.spline_sampler(prefilter(deformed)), spline, box, outside)
+    reads = []
+    lazy = ArrayVolume(deformed)
+    original = lazy.read_region
+    monkeypatch.setattr(
+        lazy, "read_region", lambda region: reads.append(region) or original(region)
+    )
+    got = warp.pull_back_block(volumes.LazySampler(lazy), spline, box, outside)
+    assert len(reads) == 1  # one region, no second read for missed voxels
+    assert np.array_equal(np.isnan(got), np.isnan(expected)) and np.isfinite(expected).sum() > 1000
+    assert np.nanmax(np.abs(got - expected)) < 1e-5 * np.abs(deformed).max()
+    # a reach too short: the voxels whose positions leave the region are sampled otherwise
+    monkeypatch.setattr(volumes, "displacement_reach", lambda spline, box: np.zeros(3, np.int64))
+    reads.clear()
+    short = warp.pull_back_block(volumes.LazySampler(lazy), spline, box, outside)
+    whole = all(s.start == 0 and s.stop == n for s, n in zip(box, SHAPE))
+    assert len(reads) == (1 if whole else 2)  # the whole volume leaves no voxel out
+    assert np.array_equal(np.isnan(short), np.isnan(expected))
+    assert np.nanmax(np.abs(short - expected)) < 1e-5 * np.abs(deformed).max()
+
+
 @pytest.mark.parametrize("suffix", [".zarr", ".tif"])
 def test_pull_back_and_warp_forward(tmp_path, case, suffix):
     reference, deformed, field = case

@@ -79,10 +79,15 @@ def pull_back_block(
     """``F(X + u(X))`` at every voxel ``X`` of ``box``, shape ``box_shape(box)``, float32.
 
     NaN where ``X + u(X)`` falls outside ``F`` or, with ``outside="nan"``, where ``X`` is outside
-    the grid's hull.
+    the grid's hull. A :class:`SplineSampler` is sampled in one pass (:func:`.pull_back_box`); a
+    sampler with a ``pull_back(spline, box, outside)`` method (``tiled.volumes.LazySampler``)
+    does it itself; any other callable gets the positions of every voxel.
     """
     if isinstance(sample_deformed, SplineSampler):  # in memory: one pass, no positions array
         return pull_back_box(sample_deformed.coefficients, spline, box, outside)
+    own = getattr(sample_deformed, "pull_back", None)  # a sampler that knows better (out of core)
+    if own is not None:
+        return own(spline, box, outside)
     dense = spline.lattice(*box_axes(box), outside=outside)
     points = box_lattice(box) + dense.reshape(-1, 3)
     return np.asarray(sample_deformed(points), np.float32).reshape(dense.shape[:3])

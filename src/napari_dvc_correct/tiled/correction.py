@@ -66,7 +66,7 @@ from .memory import (
     parse_memory,
 )
 from .node_residuals import TiledResiduals, node_bytes
-from .volumes import _forward_values, sample_lazy, write_iter
+from .volumes import LazySampler, _forward_values, sample_lazy, write_iter
 
 #: Voxels per block of the warps (z, y, x); also the temporary Zarr arrays' chunks.
 CORRECTION_BLOCK = (32, 128, 128)
@@ -116,7 +116,7 @@ def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, h
         defined = np.isfinite(values)
         difference = np.abs(deformed.read_region(block) - values)[defined & in_hull]
     else:
-        values = pull_back_block(lambda p: sample_lazy(deformed, p), spline, block)
+        values = pull_back_block(LazySampler(deformed), spline, block)
         inner = tuple(
             slice(max(b.start, h.start), min(b.stop, h.stop)) for b, h in zip(block, hull)
         )

@@ -65,7 +65,7 @@ from .memory import (
     available_memory,
     format_bytes,
 )
-from .volumes import _block_slices, sample_lazy
+from .volumes import LazySampler, _block_slices
 
 #: Default voxels per block (z, y, x).
 DEFAULT_EVALUATION_BLOCK = (128, 128, 128)
@@ -188,8 +188,7 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs):
     else:
         own, other, own_labels, other_thresholds = f, reference, labels[1], thresholds[0]
 
-    def sampler(points):
-        return sample_lazy(other, points)
+    sampler = LazySampler(other)  # a callable, and a one-pass pull-back (reference mode)
 
     totals = []
     for index, ((name, _), spline) in enumerate(zip(plan.named, splines)):

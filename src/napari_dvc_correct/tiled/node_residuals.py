@@ -21,7 +21,7 @@ from ..engine.local_accuracy import local_mean_residual
 from ..engine.phases import NO_PHASE, label_phases
 from ..engine.progress import run_to_completion
 from ..engine.warp import pull_back_block
-from .volumes import sample_lazy
+from .volumes import LazySampler
 
 #: Reach of the Gaussian gradient of :class:`..engine.local_acceptance.ReferenceResiduals`
 #: (sigma 1 voxel, truncated at 4 sigma).
@@ -37,7 +37,7 @@ def _node_residual_block(reference, deformed, spline, job):
     """Box means of the reference-frame residual at one block's nodes, and eq. 1's sums over the
     block's own voxels."""
     g = reference.read_region(job.region)
-    moved = pull_back_block(lambda p: sample_lazy(deformed, p), spline, job.region)
+    moved = pull_back_block(LazySampler(deformed), spline, job.region)
     residual = np.abs(moved - g)
     means = [local_mean_residual(residual, job.nodes, half) for half in job.halves]
     total, count = 0.0, 0

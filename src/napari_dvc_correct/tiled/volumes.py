@@ -27,6 +27,7 @@ from ..engine.field import DisplacementField
 from ..engine.field_spline import FieldSpline, as_field_spline
 from ..engine.interpolation import prefilter, sample
 from ..engine.progress import Progress
+from ..engine.pull_back_fill import pull_back_box
 from ..engine.strain import equivalent_strain_field
 from ..engine.warp import (
     INVERT_MAX_ITERATIONS,
@@ -80,6 +81,61 @@ def sample_lazy(volume, points: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Lattice stride (voxels) of the coarse evaluation that bounds a field's displacement over a box.
+REACH_STRIDE = 4
+
+
+def displacement_reach(spline, box) -> np.ndarray:
+    """Per axis, a bound (voxels, rounded up, plus one) on ``|u|`` over ``box`` from the field
+    evaluated every :data:`REACH_STRIDE` voxels and at the box's last voxels."""
+    axes = []
+    for s in box:
+        axis = np.arange(s.start, s.stop, REACH_STRIDE, dtype=np.float64)
+        axes.append(np.unique(np.append(axis, s.stop - 1)))
+    values = spline.lattice(*axes).reshape(-1, 3)
+    values = values[np.all(np.isfinite(values), axis=1)]
+    largest = np.abs(values).max(axis=0) if len(values) else np.zeros(3)
+    return np.ceil(largest).astype(np.int64) + 1
+
+
+class LazySampler:
+    """Tricubic B-spline sampler of a lazy volume (:func:`sample_lazy` when called on points).
+
+    :meth:`pull_back` gives ``F(X + u(X))`` over a box from one region read around it (the box
+    widened by the field's reach, the spline's support and the prefilter margin), prefiltered
+    and sampled in one pass (:func:`..engine.pull_back_fill.pull_back_box`): no positions array.
+    Voxels whose position leaves that region (the coarse reach missed an overshoot) are sampled
+    by :func:`sample_lazy`, so the values are those of ``sample_lazy`` at every voxel, to float32
+    rounding.
+    """
+
+    def __init__(self, volume) -> None:
+        self.volume = volume
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        return sample_lazy(self.volume, points)
+
+    def pull_back(self, spline, box, outside: str = "extrapolate") -> np.ndarray:
+        shape = np.asarray(self.volume.shape, np.int64)
+        start = np.array([s.start for s in box], np.int64)
+        stop = np.array([s.stop for s in box], np.int64)
+        margin = SPLINE_SUPPORT + PREFILTER_MARGIN
+        reach = displacement_reach(spline, box)
+        low = np.clip(start - reach - margin, 0, shape - 1)
+        high = np.clip(stop + reach + margin, low + 1, shape)
+        region = self.volume.read_region(tuple(slice(int(a), int(b)) for a, b in zip(low, high)))
+        values = pull_back_box(
+            prefilter(region), spline, box, outside,
+            region_start=low, whole_shape=shape, margin=margin,
+        )  # fmt: skip
+        missed = np.isposinf(values)
+        if missed.any():
+            voxels = np.argwhere(missed) + start
+            points = voxels + spline(voxels.astype(np.float64))
+            values[missed] = sample_lazy(self.volume, points)
+        return values
+
+
 def _finite_sum(values) -> tuple[float, int]:
     finite = np.isfinite(values)
     return float(np.sum(values[finite], dtype=np.float64)), int(finite.sum())
@@ -95,7 +151,7 @@ def _dense_block(out, spline, block, outside):
 
 
 def _pull_back_values(deformed, spline, block, outside):
-    return pull_back_block(lambda points: sample_lazy(deformed, points), spline, block, outside)
+    return pull_back_block(LazySampler(deformed), spline, block, outside)
 
 
 def _forward_values(reference, spline, block, outside, max_iterations, tolerance):
