@@ -45,6 +45,8 @@ def test_self_correct_adds_corrected_layers_and_reports_passes(
     applied = [p["mean_gray_residual"] for p in passes if p["accepted"]]
     assert applied == sorted(applied, reverse=True)
     assert "→" in widget.message.text()
+    reason = corrected.metadata["correction"]["stop_reason"]
+    assert reason and f"Stopped: {reason}." in widget.message.text()  # why the loop ended
     # against the known shear band, the correction does not make the field worse
     truth = true_field(pair48[2], corrected.origin, corrected.step, corrected.shape)
     before = np.linalg.norm(uncorrected.u - truth.u, axis=-1)[uncorrected.valid].mean()

@@ -8,7 +8,9 @@ known, with the four-wide tap sum of IC-GN (:func:`.inverse_fill.sample_or_nan`)
 positions or displacements is made. Planes run in parallel.
 
 Positions are ``(z, y, x)`` voxels; values float32, NaN where ``X + u(X)`` falls outside ``F``
-or (``outside="nan"``) ``X`` lies outside the grid's hull.
+or (``outside="nan"``) ``X`` lies outside the grid's hull. ``F`` may be a region of a larger
+volume (``tiled.volumes.LazySampler``): positions that leave the part of the region whose
+coefficients are the whole volume's come back ``+inf`` for the caller to sample otherwise.
 """
 
 from __future__ import annotations

@@ -9,7 +9,9 @@ block is a ``dask.delayed`` task (dask's local threaded scheduler by default, or
 2. reads only the region of the input volume those positions reach, plus
    :data:`.memory.SPLINE_SUPPORT` + :data:`.memory.PREFILTER_MARGIN` voxels, from a lazy volume
    (:mod:`..io.lazy`), prefilters it and samples it (:func:`.interpolation.sample`) — equal to
-   sampling the prefiltered whole volume to float32 rounding;
+   sampling the prefiltered whole volume to float32 rounding; a pull-back reads the region its
+   box reaches (the field's displacement bounded on a coarse lattice) and samples it while the
+   field is evaluated (:class:`LazySampler`);
 3. writes the block into the output (:mod:`..io.lazy_outputs`), which is renamed onto its path only
    when every block is written.
 

@@ -216,9 +216,4 @@ class CorrectWidget(EngineWidget):
         self._fill_table(
             ["pass", "mean residual", "applied", "nodes moved"], model.pass_rows(result.field)
         )
-        info = result.field.metadata.get("correction", {})
-        self.show_message(
-            f"Mean gray residual {info.get('mean_gray_residual_before', float('nan')):.3f} → "
-            f"{info.get('mean_gray_residual_after', float('nan')):.3f} "
-            f"({info.get('passes_applied', 0)} pass(es) applied)."
-        )
+        self.show_message(model.summary_message(result.field))

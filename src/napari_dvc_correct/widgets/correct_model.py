@@ -81,6 +81,22 @@ def pass_rows(field: DisplacementField) -> list[tuple[str, str, str, str]]:
     return rows
 
 
+def summary_message(field: DisplacementField) -> str:
+    """The panel's line after a correction: the mean gray residual before → after, the passes
+    applied, and why the loop stopped (``metadata["correction"]["stop_reason"]``)."""
+    info = field.metadata.get("correction", {})
+    before = float(info.get("mean_gray_residual_before", float("nan")))
+    after = float(info.get("mean_gray_residual_after", float("nan")))
+    text = (
+        f"Mean gray residual {before:.3f} → {after:.3f} "
+        f"({int(info.get('passes_applied', 0))} pass(es) applied)."
+    )
+    reason = info.get("stop_reason")
+    if reason:
+        text += f" Stopped: {reason}."
+    return text
+
+
 def run_series_correction(pairs, fields, **options):
     """Self-correct every state of a series: ``pairs[k]`` = (G, F_k) for ``fields[k]``.
 
