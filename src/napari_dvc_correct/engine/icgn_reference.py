@@ -262,6 +262,28 @@ def _quartic_tables():
 _QUARTIC_POWERS, _QUADRATIC_INDEX, _QUADRATIC_PRODUCT = _quartic_tables()
 
 
+@njit(inline="always", **KERNEL_OPTIONS)
+def fold_quartic_row(moments, rows, z, y, zp, yp):
+    """Add one (z, y) row's sums to the 35 quartic moments and clear them.
+
+    ``rows[c, q]`` holds the row's sum of quantity ``q`` times ``x^c`` (c = 0 … 4);
+    ``moments[q, m]`` gathers quantity ``q`` times the monomial ``z^a y^b x^c`` of
+    :data:`_QUARTIC_POWERS` row ``m``. ``zp`` and ``yp`` (5,) are scratch for the powers.
+    """
+    zp[0] = 1.0
+    yp[0] = 1.0
+    for e in range(1, 5):
+        zp[e] = zp[e - 1] * z
+        yp[e] = yp[e - 1] * y
+    n = rows.shape[1]
+    for m in range(_QUARTIC_POWERS.shape[0]):
+        factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
+        c = _QUARTIC_POWERS[m, 2]
+        for q in range(n):
+            moments[q, m] += factor * rows[c, q]
+    rows[:] = 0.0
+
+
 @njit(**KERNEL_OPTIONS)
 def quadratic_reference_terms(g, grad, xi, count):
     """Second order: :func:`.icgn_reference.reference_terms` (same returns) with ``H``, ``Σ J``
@@ -287,17 +309,7 @@ def quadratic_reference_terms(g, grad, xi, count):
     current_y = np.float64(xi[0, 1]) if count else 0.0
     for i in range(count + 1):
         if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
-            zp[0] = 1.0
-            yp[0] = 1.0
-            for e in range(1, 5):
-                zp[e] = zp[e - 1] * current_z
-                yp[e] = yp[e - 1] * current_y
-            for m in range(n_mom):
-                factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
-                c = _QUARTIC_POWERS[m, 2]
-                for q in range(12):
-                    moments[q, m] += factor * rows[c, q]
-            rows[:] = 0.0
+            fold_quartic_row(moments, rows, current_z, current_y, zp, yp)
             if i == count:
                 break
             current_z = np.float64(xi[i, 0])

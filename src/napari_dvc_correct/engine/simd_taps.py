@@ -182,23 +182,23 @@ def taps64_with_gradient(typingctx, flat, offset, row_stride, plane_stride, tz, 
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def sample_with_gradient_interior_vector(flat, plane_stride, row_stride, z, y, x):
-    """Value and gradient ``(v, dz, dy, dx)`` at ``(z, y, x)`` by :func:`taps64_with_gradient`
-    (float32); requires :func:`.interpolation.in_interior`. Equals
-    :func:`.interpolation.sample_with_gradient_point` to float32 rounding."""
+def _first_tap(plane_stride, row_stride, z, y, x):
+    """Flat index of the tap ``(-1, -1, -1)`` of an interior position and its fractions
+    (float32)."""
     iz = int(z)
     iy = int(y)
     ix = int(x)
     start = (iz - 1) * plane_stride + (iy - 1) * row_stride + ix - 1
-    return taps64_with_gradient(
-        flat,
-        start,
-        row_stride,
-        plane_stride,
-        np.float32(z - iz),
-        np.float32(y - iy),
-        np.float32(x - ix),
-    )
+    return start, np.float32(z - iz), np.float32(y - iy), np.float32(x - ix)
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def sample_with_gradient_interior_vector(flat, plane_stride, row_stride, z, y, x):
+    """Value and gradient ``(v, dz, dy, dx)`` at ``(z, y, x)`` by :func:`taps64_with_gradient`
+    (float32); requires :func:`.interpolation.in_interior`. Equals
+    :func:`.interpolation.sample_with_gradient_point` to float32 rounding."""
+    start, tz, ty, tx = _first_tap(plane_stride, row_stride, z, y, x)
+    return taps64_with_gradient(flat, start, row_stride, plane_stride, tz, ty, tx)
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
@@ -209,16 +209,5 @@ def sample_interior_vector(flat, plane_stride, row_stride, z, y, x):
     ``plane_stride = ny·nx`` and ``row_stride = nx``. Equals
     :func:`.interpolation.sample_interior` to float32 rounding.
     """
-    iz = int(z)
-    iy = int(y)
-    ix = int(x)
-    start = (iz - 1) * plane_stride + (iy - 1) * row_stride + ix - 1
-    return taps64(
-        flat,
-        start,
-        row_stride,
-        plane_stride,
-        np.float32(z - iz),
-        np.float32(y - iy),
-        np.float32(x - ix),
-    )
+    start, tz, ty, tx = _first_tap(plane_stride, row_stride, z, y, x)
+    return taps64(flat, start, row_stride, plane_stride, tz, ty, tx)

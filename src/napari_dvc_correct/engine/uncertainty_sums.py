@@ -17,6 +17,7 @@ from .icgn_reference import (
     _QUADRATIC_INDEX,
     _QUADRATIC_PRODUCT,
     _QUARTIC_POWERS,
+    fold_quartic_row,
     fold_row,
 )
 from .interpolation import sample_with_gradient_point
@@ -133,17 +134,7 @@ def quadratic_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
     current_y = np.float64(xi[0, 1]) if count else 0.0
     for i in range(count + 1):
         if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
-            zp[0] = 1.0
-            yp[0] = 1.0
-            for e in range(1, 5):
-                zp[e] = zp[e - 1] * current_z
-                yp[e] = yp[e - 1] * current_y
-            for m in range(n_mom):
-                factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
-                c = _QUARTIC_POWERS[m, 2]
-                for q in range(15):
-                    moments[q, m] += factor * rows[c, q]
-            rows[:] = 0.0
+            fold_quartic_row(moments, rows, current_z, current_y, zp, yp)
             if i == count:
                 break
             current_z = np.float64(xi[i, 0])
