@@ -52,3 +52,20 @@ def test_report_of_a_real_evaluation():
     assert item["mean gray residual"] == pytest.approx(0.0, abs=1e-3)  # identical volumes
     assert item["accuracy index p"] == pytest.approx(1.0, abs=1e-3)
     assert "zero: mean residual" in model.summary_text(evaluation)
+
+
+def test_temporary_folders_go_when_nothing_reads_them():
+    from napari_dvc_correct.widgets.evaluate_model import TemporaryFolders
+
+    folders = TemporaryFolders()
+    first = folders.new(["uncorrected", "corrected"])
+    second = folders.new(["corrected"])
+    one, two = first["corrected"].parent, second["corrected"].parent
+    assert one != two and one.is_dir() and two.is_dir() and one.name.startswith("dvc-evaluate-")
+    (one / "residual_1.zarr").mkdir()  # as a run writes it
+    folders.release([str(two)])  # a layer still reads the second
+    assert not one.exists() and two.is_dir() and folders.folders == [two]
+    folders.release([None, str(two)])
+    assert two.is_dir()
+    folders.remove_all()
+    assert not two.exists() and folders.folders == []

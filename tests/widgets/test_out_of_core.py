@@ -3,6 +3,8 @@ the tiled Correlate and Self-correct runs give the in-memory results."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from napari_dvc_correct import layers as L
@@ -118,3 +120,18 @@ def test_a_lazy_pair_evaluates_out_of_core(make_napari_viewer, pair48, run_panel
     assert abs(tiled_item.accuracy - memory_item.accuracy) < 1e-9
     assert abs(tiled_item.mean_residual - memory_item.mean_residual) < 1e-6
     np.testing.assert_allclose(np.asarray(layer.data), memory_item.residual, atol=1e-4)
+    # the residual's temporary folder stays while its layer reads it, and no longer
+    from napari_dvc_correct.widgets.evaluate import TEMPORARY_KEY
+
+    def folder_of(name):
+        return Path(viewer.layers[name].metadata[L.MARKER][TEMPORARY_KEY])
+
+    first = folder_of("residual volume (uncorrected)")
+    assert first.is_dir() and first.name.startswith("dvc-evaluate-")
+    run_panel(evaluate)  # again: the new layers replace the old, whose folder goes
+    assert evaluate.last_error is None, evaluate.last_error
+    second = folder_of("residual volume (uncorrected)")
+    assert second != first and second.is_dir() and not first.exists()
+    assert np.isfinite(np.asarray(viewer.layers["residual volume (uncorrected)"].data)).any()
+    viewer.layers.remove("residual volume (uncorrected)")
+    assert not second.exists()

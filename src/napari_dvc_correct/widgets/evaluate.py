@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import atexit
+
 import numpy as np
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
@@ -36,6 +38,9 @@ from .correlate_model import (
     suggest_tiled,
 )
 
+#: Key of a residual layer's plugin metadata: the temporary folder it reads lazily.
+TEMPORARY_KEY = "temporary_folder"
+
 MODES = {
     "reference": "reference frame: |F(X + u) − G(X)|",
     "loaded": "loaded state: |F − G'| (paper)",
@@ -49,6 +54,11 @@ class EvaluateWidget(EngineWidget):
 
     def __init__(self, napari_viewer, parent=None) -> None:
         super().__init__(napari_viewer, parent)
+        # out-of-core residuals: removed when no layer reads them any more, the rest at exit
+        self._temporary = model.TemporaryFolders()
+        self._writing = None  # the folder of the run in progress
+        atexit.register(self._temporary.remove_all)
+        self.viewer.layers.events.removed.connect(self._release_temporary)
         self.reference = LayerCombo(self.viewer, is_scan)
         self.deformed = LayerCombo(self.viewer, is_scan)
         self.form.addRow("Reference (G)", self.reference)
@@ -282,10 +292,12 @@ class EvaluateWidget(EngineWidget):
         if len(groups) > 1:  # a series: each state against its own pair of volumes
             return model.run_groups(groups, self.thresholds(), self.mode.currentData())
         _, reference, deformed, chosen = groups[0]
-        self._outputs, memory = None, None
+        self._outputs, memory, self._writing = None, None, None
+        self._release_temporary()  # folders of earlier runs no layer reads any more
         if self.tiled.isChecked():
             memory = check_tiled("pair", None, self.max_memory.text())
-            self._outputs = model.tiled_outputs(chosen)
+            self._outputs = self._temporary.new(chosen)
+            self._writing = str(next(iter(self._outputs.values())).parent)
         return model.run_evaluation(
             reference,
             deformed,
@@ -326,6 +338,16 @@ class EvaluateWidget(EngineWidget):
             entry[3][name] = field
         return [tuple(entry) for entry in groups.values()]
 
+    def _release_temporary(self, event=None) -> None:
+        """Remove the out-of-core residual folders that no layer of the viewer reads (nor the
+        run that is writing one, until its layers are shown)."""
+        in_use = [self._writing]
+        for layer in self.viewer.layers:
+            entry = layer.metadata.get(L.MARKER)
+            if isinstance(entry, dict) and entry.get(TEMPORARY_KEY):
+                in_use.append(entry[TEMPORARY_KEY])
+        self._temporary.release(in_use)
+
     def on_result(self, evaluation) -> None:
         if isinstance(evaluation, list):  # a series: one evaluation per state
             self.evaluations = evaluation
@@ -346,8 +368,12 @@ class EvaluateWidget(EngineWidget):
                 residual, item.name, voxel_size=voxel_size, offset=offset
             )
             kwargs["metadata"][L.MARKER]["report"] = report
+            if outputs:  # the folder this layer reads lazily (see _release_temporary)
+                kwargs["metadata"][L.MARKER][TEMPORARY_KEY] = str(outputs[item.name].parent)
             tuples.append((data, kwargs, kind))
-        L.show_layers(self.viewer, tuples)
+        L.show_layers(self.viewer, tuples)  # replacing layers: their folder is still _writing
+        self._writing = None
+        self._release_temporary()
         self.summary.setText(model.summary_text(evaluation))
         self.curves.plot(evaluation)
         self.show_message("Evaluation done.")

@@ -114,6 +114,45 @@ def tiled_outputs(names, folder=None) -> dict:
     return {name: folder / f"residual_{k}.zarr" for k, name in enumerate(names)}
 
 
+class TemporaryFolders:
+    """The folders out-of-core evaluations write their residual volumes to (``dvc-evaluate-*``).
+
+    The residual layers read those Zarr files lazily, so a folder must stay while a layer reads
+    it and should go once none does: :meth:`new` makes one for a run (:func:`tiled_outputs`),
+    :meth:`release` removes every folder that none of the given paths in use lies in (a replaced
+    or removed layer, a failed or cancelled run), :meth:`remove_all` the rest (at exit).
+    """
+
+    def __init__(self) -> None:
+        self.folders: list = []
+
+    def new(self, names) -> dict:
+        outputs = tiled_outputs(names)
+        folder = next(iter(outputs.values())).parent if outputs else None
+        if folder is not None:
+            self.folders.append(folder)
+        return outputs
+
+    def release(self, in_use) -> None:
+        from pathlib import Path
+
+        used = {Path(p).resolve() for p in in_use if p}
+        for folder in list(self.folders):
+            if folder.resolve() not in used:
+                self._remove(folder)
+
+    def remove_all(self) -> None:
+        for folder in list(self.folders):
+            self._remove(folder)
+
+    def _remove(self, folder) -> None:
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
+        if not folder.exists():
+            self.folders.remove(folder)
+
+
 def open_residual(path):
     """A residual volume an out-of-core evaluation wrote, as a lazy Zarr array (read only)."""
     import zarr
