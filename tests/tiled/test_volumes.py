@@ -96,6 +96,36 @@ def test_lazy_pull_back_reads_one_region_and_equals_the_whole_volume(
     assert np.nanmax(np.abs(short - expected)) < 1e-5 * np.abs(deformed).max()
 
 
+@pytest.mark.parametrize(
+    "box", [(slice(0, 36), slice(0, 40), slice(0, 44)), (slice(20, 36), slice(20, 40), slice(4, 30))]
+)
+def test_lazy_forward_warp_reads_one_region_and_equals_the_whole_volume(case, box, monkeypatch):
+    from napari_dvc_correct.tiled import volumes
+
+    reference, _, field = case
+    spline = field_spline.FieldSpline.from_field(field)
+    expected, hull = warp.warp_forward_block(warp.spline_sampler(prefilter(reference)), spline, box)
+    reads = []
+    lazy = ArrayVolume(reference)
+    original = lazy.read_region
+    monkeypatch.setattr(
+        lazy, "read_region", lambda region: reads.append(region) or original(region)
+    )
+    got, got_hull = warp.warp_forward_block(volumes.LazySampler(lazy), spline, box)
+    assert len(reads) == 1
+    np.testing.assert_array_equal(got_hull, hull)
+    assert np.array_equal(np.isnan(got), np.isnan(expected)) and np.isfinite(expected).sum() > 1000
+    assert np.nanmax(np.abs(got - expected)) < 1e-5 * np.abs(reference).max()
+    # a reach too short: the positions that leave the region are sampled from the volume
+    monkeypatch.setattr(volumes, "displacement_reach", lambda spline, box: np.zeros(3, np.int64))
+    reads.clear()
+    short, _ = warp.warp_forward_block(volumes.LazySampler(lazy), spline, box)
+    whole = all(s.start == 0 and s.stop == n for s, n in zip(box, SHAPE))
+    assert len(reads) == (1 if whole else 2)
+    assert np.array_equal(np.isnan(short), np.isnan(expected))
+    assert np.nanmax(np.abs(short - expected)) < 1e-5 * np.abs(reference).max()
+
+
 @pytest.mark.parametrize("suffix", [".zarr", ".tif"])
 def test_pull_back_and_warp_forward(tmp_path, case, suffix):
     reference, deformed, field = case

@@ -323,6 +323,44 @@ def sample_or_nan(coefficients, flat, z, y, x):
     return np.float32(sample_mirrored(coefficients, z, y, x))
 
 
+@njit(inline="always", **KERNEL_OPTIONS)
+def sample_region_or_flag(coefficients, flat, z, y, x, region):
+    """:func:`sample_or_nan` of a volume of which ``coefficients`` hold a region.
+
+    ``region`` (4, 3) float64 rows: the region's first voxel in the volume, the volume's last
+    voxel, and the lowest and highest region-relative positions whose coefficients are the
+    volume's. NaN outside the volume (or not finite), ``+inf`` inside it but outside that part
+    of the region (for the caller to sample otherwise).
+    """
+    if not (0.0 <= z <= region[1, 0] and 0.0 <= y <= region[1, 1] and 0.0 <= x <= region[1, 2]):
+        return np.float32(np.nan)
+    rz = z - region[0, 0]
+    ry = y - region[0, 1]
+    rx = x - region[0, 2]
+    if not (
+        region[2, 0] <= rz <= region[3, 0]
+        and region[2, 1] <= ry <= region[3, 1]
+        and region[2, 2] <= rx <= region[3, 2]
+    ):
+        return np.float32(np.inf)
+    return sample_or_nan(coefficients, flat, rz, ry, rx)
+
+
+def region_bounds(coefficients_shape, region_start=(0, 0, 0), whole_shape=None, margin=0):
+    """The ``region`` argument of :func:`sample_region_or_flag` (see there).
+
+    ``coefficients_shape`` is the region's, starting at voxel ``region_start`` of a volume of
+    ``whole_shape`` (default: the region is the whole volume); its coefficients equal the
+    volume's ``margin`` voxels inside every face that is not the volume's own.
+    """
+    start = np.asarray(region_start, np.int64).reshape(3)
+    shape = np.asarray(coefficients_shape, np.int64).reshape(3)
+    whole = start + shape if whole_shape is None else np.asarray(whole_shape, np.int64).reshape(3)
+    low = np.where(start > 0, margin, 0)
+    high = shape - 1 - np.where(start + shape < whole, margin, 0)
+    return np.array([start, whole - 1, low, high], np.float64)
+
+
 @njit(parallel=True, **KERNEL_OPTIONS)
 def warp_planes(
     spline,
@@ -342,12 +380,14 @@ def warp_planes(
     node_ok,
     fail,
     coefficients,
+    region,
     values,
     in_hull,
 ):
     """``G(X)`` (``values``, (nz, ny, nx) float32, NaN where Newton did not converge or ``X`` is
     outside ``G``) and the hull flags of every voxel of the box's planes; positions stay in a row
-    buffer."""
+    buffer. ``coefficients`` hold the region of ``G`` that ``region`` describes
+    (:func:`region_bounds`); ``+inf`` where ``X`` leaves its valid part."""
     nz = z_node.shape[0]
     ny = y_node.shape[0]
     nx = x_node.shape[0]
@@ -401,6 +441,6 @@ def warp_planes(
                 p2 = row[d, 2]
                 in_hull[a, b, d] = _in_hull(hull_low, hull_high, p0, p1, p2)
                 if row_ok[d]:
-                    values[a, b, d] = sample_or_nan(coefficients, flat, p0, p1, p2)
+                    values[a, b, d] = sample_region_or_flag(coefficients, flat, p0, p1, p2, region)
                 else:
                     values[a, b, d] = np.nan

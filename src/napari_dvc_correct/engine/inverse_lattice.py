@@ -51,6 +51,7 @@ from .inverse_fill import (
     interpolate_planes,
     lagrange_weights,
     phase_table,
+    region_bounds,
     solve,
     warp_planes,
 )
@@ -442,7 +443,7 @@ class LatticeInverter:
         return result
 
     def warp(
-        self, coefficients: np.ndarray, planes: slice | None = None
+        self, coefficients: np.ndarray, planes: slice | None = None, *, region=None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The forward warp of the box's z planes ``planes``: ``G(X)`` sampled as ``X`` is made.
 
@@ -452,6 +453,10 @@ class LatticeInverter:
             ``interpolation.prefilter(G)`` of the whole reference volume (whole-volume indices).
         planes : slice, optional
             z planes within the box (all by default).
+        region : ndarray (4, 3), optional
+            When ``coefficients`` are a region of ``G`` (out of core):
+            :func:`.inverse_fill.region_bounds` of it; voxels whose ``X`` leaves its valid part
+            come back ``+inf``. Default: the coefficients are the whole ``G``.
 
         Returns
         -------
@@ -468,7 +473,9 @@ class LatticeInverter:
         in_hull = np.empty(shape, np.bool_)
         if values.size > 0:
             coefficients = np.ascontiguousarray(coefficients, dtype=np.float32)
-            warp_planes(*self._plane_args(start, stop), coefficients, values, in_hull)
+            if region is None:
+                region = region_bounds(coefficients.shape)
+            warp_planes(*self._plane_args(start, stop), coefficients, region, values, in_hull)
         return values, in_hull
 
 

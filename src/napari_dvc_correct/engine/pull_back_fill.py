@@ -21,7 +21,7 @@ from numba import njit, prange
 from ._numba_setup import KERNEL_OPTIONS
 from .field_spline import FieldSpline
 from .field_spline_kernels import lattice_plane, lattice_row, lattice_value
-from .inverse_fill import sample_or_nan
+from .inverse_fill import region_bounds, sample_region_or_flag
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -43,19 +43,15 @@ def pull_back_planes(
     x_inside,
     box_start,
     coefficients,
-    region_start,
-    whole_last,
-    valid_low,
-    valid_high,
+    region,
     values,
 ):
     """``values[a, b, d] = F(X + u(X))`` at voxel ``X = box_start + (a, b, d)`` (NaN outside
     ``F`` or where an axis's ``*_inside`` flag is False).
 
-    ``coefficients`` are those of ``F``'s region starting at voxel ``region_start``; ``F`` spans
-    ``[0, whole_last]`` per axis, and the region's coefficients are ``F``'s where a position,
-    relative to ``region_start``, lies in ``[valid_low, valid_high]``. A position inside ``F``
-    but outside that part gets ``+inf``: the caller samples it otherwise."""
+    ``coefficients`` hold the region of ``F`` that ``region`` describes
+    (:func:`.inverse_fill.region_bounds`); a position inside ``F`` but outside the region's valid
+    part gets ``+inf``: the caller samples it otherwise."""
     py, px, nc = field_coefficients.shape[1:]
     nz, ny, nx = values.shape
     flat = coefficients.reshape(-1)
@@ -89,27 +85,9 @@ def pull_back_planes(
                 uy = lattice_value(row, x_index, x_weight, d, 1, ty)
                 ux = lattice_value(row, x_index, x_weight, d, 2, tx)
                 x = float(box_start[2] + d)
-                pz = z + uz
-                py_ = y + uy
-                px_ = x + ux
-                if not (
-                    0.0 <= pz <= whole_last[0]
-                    and 0.0 <= py_ <= whole_last[1]
-                    and 0.0 <= px_ <= whole_last[2]
-                ):
-                    values[a, b, d] = np.nan
-                    continue
-                rz = pz - region_start[0]
-                ry = py_ - region_start[1]
-                rx = px_ - region_start[2]
-                if (
-                    valid_low[0] <= rz <= valid_high[0]
-                    and valid_low[1] <= ry <= valid_high[1]
-                    and valid_low[2] <= rx <= valid_high[2]
-                ):
-                    values[a, b, d] = sample_or_nan(coefficients, flat, rz, ry, rx)
-                else:
-                    values[a, b, d] = np.inf
+                values[a, b, d] = sample_region_or_flag(
+                    coefficients, flat, z + uz, y + uy, x + ux, region
+                )
 
 
 def pull_back_box(
@@ -137,12 +115,7 @@ def pull_back_box(
     if spline.components != 3:
         raise ValueError("the pull-back needs a displacement spline (3 components)")
     coefficients = np.ascontiguousarray(coefficients, dtype=np.float32)
-    region_start = np.asarray(region_start, np.int64).reshape(3)
-    region_shape = np.asarray(coefficients.shape, np.int64)
-    whole = region_start + region_shape if whole_shape is None else np.asarray(whole_shape)
-    whole = np.asarray(whole, np.int64).reshape(3)
-    valid_low = np.where(region_start > 0, margin, 0).astype(np.float64)
-    valid_high = region_shape - 1 - np.where(region_start + region_shape < whole, margin, 0)
+    region = region_bounds(coefficients.shape, region_start, whole_shape, margin)
     axes = [np.arange(s.start, s.stop, dtype=np.float64) for s in box]
     taps, trends = spline.lattice_taps(*axes)
     inside = (
@@ -162,10 +135,7 @@ def pull_back_box(
         *inside,
         np.array([s.start for s in box], np.int64),
         coefficients,
-        region_start,
-        (whole - 1).astype(np.float64),
-        valid_low,
-        valid_high.astype(np.float64),
+        region,
         values,
     )
     return values

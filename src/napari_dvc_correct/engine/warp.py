@@ -110,7 +110,9 @@ def warp_forward_block(
     (:meth:`.field_spline.FieldSpline.invert`, several times slower). Positions are computed and
     sampled ``chunk_voxels`` at a time (whole z planes); the coarse stage runs once per box. With
     a :class:`SplineSampler` and ``accuracy`` set, the whole box is sampled as its positions are
-    made (:meth:`.inverse_lattice.LatticeInverter.warp`; the same values to float32 rounding).
+    made (:meth:`.inverse_lattice.LatticeInverter.warp`; the same values to float32 rounding); a
+    sampler with a ``warp_forward(inverter)`` method (``tiled.volumes.LazySampler``) does it
+    itself.
 
     Returns
     -------
@@ -126,6 +128,9 @@ def warp_forward_block(
         inverter = LatticeInverter(spline, box, max_iterations, tolerance, accuracy)
         if isinstance(sample_reference, SplineSampler):
             return inverter.warp(sample_reference.coefficients)
+        own = getattr(sample_reference, "warp_forward", None)  # e.g. tiled.volumes.LazySampler
+        if own is not None:
+            return own(inverter)
     for planes in iter_slabs(shape, chunk_voxels):
         if accuracy is None:
             sub = (

@@ -66,7 +66,7 @@ from .memory import (
     parse_memory,
 )
 from .node_residuals import TiledResiduals, node_bytes
-from .volumes import LazySampler, _forward_values, sample_lazy, write_iter
+from .volumes import LazySampler, _forward_values, write_iter
 
 #: Voxels per block of the warps (z, y, x); also the temporary Zarr arrays' chunks.
 CORRECTION_BLOCK = (32, 128, 128)
@@ -107,7 +107,7 @@ def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, h
     """The moved volume of one block (written) and the sum and count of its gray residual."""
     if frame == "loaded":
         values, in_hull = warp_forward_block(
-            lambda p: sample_lazy(reference, p),
+            LazySampler(reference),
             spline,
             block,
             INVERT_MAX_ITERATIONS,

@@ -28,6 +28,7 @@ import numpy as np
 from ..engine.field import DisplacementField
 from ..engine.field_spline import FieldSpline, as_field_spline
 from ..engine.interpolation import prefilter, sample
+from ..engine.inverse_fill import region_bounds
 from ..engine.progress import Progress
 from ..engine.pull_back_fill import pull_back_box
 from ..engine.strain import equivalent_strain_field
@@ -117,7 +118,9 @@ class LazySampler:
     def __call__(self, points: np.ndarray) -> np.ndarray:
         return sample_lazy(self.volume, points)
 
-    def pull_back(self, spline, box, outside: str = "extrapolate") -> np.ndarray:
+    def _region(self, spline, box):
+        """The coefficients of the region a box's positions reach, its first voxel and the
+        volume's shape."""
         shape = np.asarray(self.volume.shape, np.int64)
         start = np.array([s.start for s in box], np.int64)
         stop = np.array([s.stop for s in box], np.int64)
@@ -126,16 +129,34 @@ class LazySampler:
         low = np.clip(start - reach - margin, 0, shape - 1)
         high = np.clip(stop + reach + margin, low + 1, shape)
         region = self.volume.read_region(tuple(slice(int(a), int(b)) for a, b in zip(low, high)))
+        return prefilter(region), low, shape
+
+    def pull_back(self, spline, box, outside: str = "extrapolate") -> np.ndarray:
+        coefficients, low, shape = self._region(spline, box)
+        margin = SPLINE_SUPPORT + PREFILTER_MARGIN
         values = pull_back_box(
-            prefilter(region), spline, box, outside,
-            region_start=low, whole_shape=shape, margin=margin,
-        )  # fmt: skip
+            coefficients, spline, box, outside, region_start=low, whole_shape=shape, margin=margin
+        )
         missed = np.isposinf(values)
         if missed.any():
-            voxels = np.argwhere(missed) + start
+            voxels = np.argwhere(missed) + np.array([s.start for s in box])
             points = voxels + spline(voxels.astype(np.float64))
             values[missed] = sample_lazy(self.volume, points)
         return values
+
+    def warp_forward(self, inverter) -> tuple[np.ndarray, np.ndarray]:
+        """``G(X)`` with ``X + u(X) = x`` over ``inverter``'s box (an
+        :class:`..engine.inverse_lattice.LatticeInverter`): one region read, sampled as the
+        positions are made (its ``warp``); the same positions as its ``solve``."""
+        coefficients, low, shape = self._region(inverter.spline, inverter.box)
+        margin = SPLINE_SUPPORT + PREFILTER_MARGIN
+        bounds = region_bounds(coefficients.shape, low, shape, margin)
+        values, in_hull = inverter.warp(coefficients, region=bounds)
+        missed = np.isposinf(values)
+        if missed.any():
+            positions = inverter.solve().positions
+            values[missed] = sample_lazy(self.volume, positions[missed.reshape(-1)])
+        return values, in_hull
 
 
 def _finite_sum(values) -> tuple[float, int]:
@@ -158,7 +179,7 @@ def _pull_back_values(deformed, spline, block, outside):
 
 def _forward_values(reference, spline, block, outside, max_iterations, tolerance):
     values, in_hull = warp_forward_block(
-        lambda points: sample_lazy(reference, points), spline, block, max_iterations, tolerance
+        LazySampler(reference), spline, block, max_iterations, tolerance
     )
     if outside == "nan":
         values[~in_hull] = np.nan
