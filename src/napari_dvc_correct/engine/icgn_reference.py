@@ -284,6 +284,17 @@ def fold_quartic_row(moments, rows, z, y, zp, yp):
     rows[:] = 0.0
 
 
+@njit(inline="always", **KERNEL_OPTIONS)
+def add_to_rows(rows, values, x):
+    """Add one voxel's quantities times ``1, x, … x⁴`` to its row's sums ``rows[c, q]`` (see
+    :func:`fold_quartic_row`)."""
+    xc = 1.0
+    for c in range(rows.shape[0]):
+        for q in range(values.shape[0]):
+            rows[c, q] += values[q] * xc
+        xc *= x
+
+
 @njit(**KERNEL_OPTIONS)
 def quadratic_reference_terms(g, grad, xi, count):
     """Second order: :func:`.icgn_reference.reference_terms` (same returns) with ``H``, ``Σ J``
@@ -331,11 +342,7 @@ def quadratic_reference_terms(g, grad, xi, count):
         values[9] = gz * dg
         values[10] = gy * dg
         values[11] = gx * dg
-        xc = 1.0
-        for c in range(5):
-            for q in range(12):
-                rows[c, q] += values[q] * xc
-            xc *= x
+        add_to_rows(rows, values, x)
     hessian = np.empty((m_par, m_par))
     sum_j = np.empty(m_par)
     sum_jg = np.empty(m_par)

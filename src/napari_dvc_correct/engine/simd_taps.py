@@ -61,6 +61,22 @@ def _weights4(builder, t):
     return _fma(builder, vector, w, _const4(_A))
 
 
+def _tap_arguments(context, builder, signature, args):
+    """The intrinsics' arguments: the data pointer, first tap, strides and the three axes'
+    fractional positions."""
+    array, start, row_stride, plane_stride, tz, ty, tx = args
+    data = context.make_array(signature.args[0])(context, builder, array).data
+    return data, start, row_stride, plane_stride, (tz, ty, tx)
+
+
+def _load_row(builder, data, start, row_stride, plane_stride, a, b):
+    """The four x taps of tap row ``(a, b)`` as one ``<4 x float>`` load."""
+    plane_start = builder.add(start, builder.mul(plane_stride, ir.Constant(_I64, a)))
+    row_start = builder.add(plane_start, builder.mul(row_stride, ir.Constant(_I64, b)))
+    address = builder.bitcast(builder.gep(data, [row_start], inbounds=True), _V4.as_pointer())
+    return builder.load(address, align=4)
+
+
 @intrinsic
 def taps64(typingctx, flat, offset, row_stride, plane_stride, tz, ty, tx):
     """Tricubic sum over the 4×4×4 taps starting at ``flat[offset]`` (the tap ``(-1, -1, -1)``).
@@ -72,20 +88,15 @@ def taps64(typingctx, flat, offset, row_stride, plane_stride, tz, ty, tx):
     sig = types.float32(flat, offset, row_stride, plane_stride, tz, ty, tx)
 
     def codegen(context, builder, signature, args):
-        array, start, sy, sz, tz_, ty_, tx_ = args
-        data = context.make_array(signature.args[0])(context, builder, array).data
+        data, start, sy, sz, (tz_, ty_, tx_) = _tap_arguments(context, builder, signature, args)
         wz = _weights4(builder, tz_)
         wy = _weights4(builder, ty_)
         wx = _weights4(builder, tx_)
-        pointer = _V4.as_pointer()
         total = None
         for a in range(4):
-            plane_start = builder.add(start, builder.mul(sz, ir.Constant(_I64, a)))
             plane = None
             for b in range(4):
-                row_start = builder.add(plane_start, builder.mul(sy, ir.Constant(_I64, b)))
-                address = builder.bitcast(builder.gep(data, [row_start], inbounds=True), pointer)
-                row = builder.load(address, align=4)
+                row = _load_row(builder, data, start, sy, sz, a, b)
                 weight = _splat(builder, wy, b)
                 plane = (
                     builder.fmul(weight, row)
@@ -135,23 +146,18 @@ def taps64_with_gradient(typingctx, flat, offset, row_stride, plane_stride, tz, 
     sig = types.UniTuple(types.float32, 4)(flat, offset, row_stride, plane_stride, tz, ty, tx)
 
     def codegen(context, builder, signature, args):
-        array, start, sy, sz, tz_, ty_, tx_ = args
-        data = context.make_array(signature.args[0])(context, builder, array).data
+        data, start, sy, sz, (tz_, ty_, tx_) = _tap_arguments(context, builder, signature, args)
         wz = _weights4(builder, tz_)
         wy = _weights4(builder, ty_)
         wx = _weights4(builder, tx_)
         dz = _derivative_weights4(builder, tz_)
         dy = _derivative_weights4(builder, ty_)
         dx = _derivative_weights4(builder, tx_)
-        pointer = _V4.as_pointer()
         total = total_dz = total_dy = None
         for a in range(4):
-            plane_start = builder.add(start, builder.mul(sz, ir.Constant(_I64, a)))
             plane = plane_dy = None
             for b in range(4):
-                row_start = builder.add(plane_start, builder.mul(sy, ir.Constant(_I64, b)))
-                address = builder.bitcast(builder.gep(data, [row_start], inbounds=True), pointer)
-                row = builder.load(address, align=4)
+                row = _load_row(builder, data, start, sy, sz, a, b)
                 weight = _splat(builder, wy, b)
                 slope = _splat(builder, dy, b)
                 if plane is None:

@@ -17,6 +17,7 @@ from .icgn_reference import (
     _QUADRATIC_INDEX,
     _QUADRATIC_PRODUCT,
     _QUARTIC_POWERS,
+    add_to_rows,
     fold_quartic_row,
     fold_row,
 )
@@ -168,11 +169,7 @@ def quadratic_sensitivity_sums(coef, g, grad, xi, count, mean_g, cz, cy, cx, p):
         values[12] = fz * dg
         values[13] = fy * dg
         values[14] = fx * dg
-        xc = 1.0
-        for c in range(5):
-            for q in range(15):
-                rows[c, q] += values[q] * xc
-            xc *= x
+        add_to_rows(rows, values, x)
     cross = np.empty((m_par, m_par))
     for k in range(3):
         for l in range(3):
