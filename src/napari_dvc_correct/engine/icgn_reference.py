@@ -263,6 +263,26 @@ _QUARTIC_POWERS, _QUADRATIC_INDEX, _QUADRATIC_PRODUCT = _quartic_tables()
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
+def _fold_moments(moments, rows, powers, z, y, zp, yp):
+    """Add one (z, y) row's sums ``rows[c, q]`` (quantity ``q`` times ``x^c``) to
+    ``moments[q, m]``, quantity ``q`` times the monomial ``z^a y^b x^c`` of ``powers`` row ``m``.
+    ``zp`` and ``yp`` (5,) are scratch for the powers."""
+    zp[0] = 1.0
+    yp[0] = 1.0
+    for e in range(1, 5):
+        zp[e] = zp[e - 1] * z
+        yp[e] = yp[e - 1] * y
+    for m in range(powers.shape[0]):
+        factor = zp[powers[m, 0]] * yp[powers[m, 1]]
+        c = powers[m, 2]
+        for q in range(moments.shape[0]):
+            moments[q, m] += factor * rows[c, q]
+
+
+_QUADRATIC_POWERS = _QUARTIC_POWERS[_QUADRATIC_INDEX]  # the 10 b_j, as z^a y^b x^c
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
 def fold_quartic_row(moments, rows, z, y, zp, yp):
     """Add one (z, y) row's sums to the 35 quartic moments and clear them.
 
@@ -270,17 +290,7 @@ def fold_quartic_row(moments, rows, z, y, zp, yp):
     ``moments[q, m]`` gathers quantity ``q`` times the monomial ``z^a y^b x^c`` of
     :data:`_QUARTIC_POWERS` row ``m``. ``zp`` and ``yp`` (5,) are scratch for the powers.
     """
-    zp[0] = 1.0
-    yp[0] = 1.0
-    for e in range(1, 5):
-        zp[e] = zp[e - 1] * z
-        yp[e] = yp[e - 1] * y
-    n = rows.shape[1]
-    for m in range(_QUARTIC_POWERS.shape[0]):
-        factor = zp[_QUARTIC_POWERS[m, 0]] * yp[_QUARTIC_POWERS[m, 1]]
-        c = _QUARTIC_POWERS[m, 2]
-        for q in range(n):
-            moments[q, m] += factor * rows[c, q]
+    _fold_moments(moments, rows, _QUARTIC_POWERS, z, y, zp, yp)
     rows[:] = 0.0
 
 
@@ -295,14 +305,19 @@ def add_to_rows(rows, values, x):
         xc *= x
 
 
-@njit(**KERNEL_OPTIONS)
+@njit(**FAST_KERNEL_OPTIONS)
 def quadratic_reference_terms(g, grad, xi, count):
-    """Second order: :func:`.icgn_reference.reference_terms` (same returns) with ``H``, ``Σ J``
-    and ``Σ J (g − ḡ)`` from the 12 per-voxel quantities ``g_k g_k'``, ``g_k``, ``g_k (g − ḡ)``
-    summed along each x-row times ``1 … x⁴`` and folded into the 35 quartic moments per row."""
+    """Second order: :func:`.icgn_reference.reference_terms` (same returns) from moments.
+
+    ``H[(k, j), (k', j')] = Σ g_k g_k' b_j b_j'``, ``Σ J = Σ g_k b_j`` and ``Σ J (g − ḡ)``: the
+    6 products ``g_k g_k'`` times the 35 monomials of degree ≤ 4, the 3 ``g_k`` and the 3
+    ``g_k (g − ḡ)`` times the 10 ``b_j`` (degree ≤ 2). Voxels come in (z, y, x) row order: along
+    each x-row the sums of the products times ``1 … x⁴`` (``a{c}{q}``, 30) and of the six others
+    times ``1, x, x²`` (``b{c}{q}``, 18) are kept in registers, then folded into the moments once
+    per row. Inputs may be float32 (the gathered subvolume); every product and sum is float64.
+    """
     nb = 10
     m_par = 30
-    n_mom = _QUARTIC_POWERS.shape[0]
     mean_g = 0.0
     for i in range(count):
         mean_g += g[i]
@@ -311,48 +326,120 @@ def quadratic_reference_terms(g, grad, xi, count):
     for i in range(count):
         d = g[i] - mean_g
         ss_g += d * d
-    moments = np.zeros((12, n_mom))
-    rows = np.zeros((5, 12))
-    values = np.empty(12)
+    products = np.zeros((6, _QUARTIC_POWERS.shape[0]))  # g_k g_k' (QUAD_AXES order) · z^a y^b x^c
+    linear = np.zeros((6, nb))  # g_z, g_y, g_x, g_z dg, g_y dg, g_x dg · b_j
+    rows = np.empty((5, 6))
+    linear_rows = np.empty((3, 6))
     zp = np.empty(5)
     yp = np.empty(5)
-    current_z = np.float64(xi[0, 0]) if count else 0.0
-    current_y = np.float64(xi[0, 1]) if count else 0.0
-    for i in range(count + 1):
-        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
-            fold_quartic_row(moments, rows, current_z, current_y, zp, yp)
-            if i == count:
-                break
-            current_z = np.float64(xi[i, 0])
-            current_y = np.float64(xi[i, 1])
-        x = np.float64(xi[i, 2])
-        gz = np.float64(grad[i, 0])
-        gy = np.float64(grad[i, 1])
-        gx = np.float64(grad[i, 2])
-        dg = g[i] - mean_g
-        values[0] = gz * gz
-        values[1] = gy * gy
-        values[2] = gx * gx
-        values[3] = gz * gy
-        values[4] = gy * gx
-        values[5] = gz * gx
-        values[6] = gz
-        values[7] = gy
-        values[8] = gx
-        values[9] = gz * dg
-        values[10] = gy * dg
-        values[11] = gx * dg
-        add_to_rows(rows, values, x)
+    start = 0
+    while start < count:
+        end = start + 1
+        while end < count and xi[end, 0] == xi[start, 0] and xi[end, 1] == xi[start, 1]:
+            end += 1
+        a00 = a01 = a02 = a03 = a04 = a05 = 0.0
+        a10 = a11 = a12 = a13 = a14 = a15 = 0.0
+        a20 = a21 = a22 = a23 = a24 = a25 = 0.0
+        a30 = a31 = a32 = a33 = a34 = a35 = 0.0
+        a40 = a41 = a42 = a43 = a44 = a45 = 0.0
+        b00 = b01 = b02 = b03 = b04 = b05 = 0.0
+        b10 = b11 = b12 = b13 = b14 = b15 = 0.0
+        b20 = b21 = b22 = b23 = b24 = b25 = 0.0
+        for i in range(start, end):
+            gz = np.float64(grad[i, 0])
+            gy = np.float64(grad[i, 1])
+            gx = np.float64(grad[i, 2])
+            x = np.float64(xi[i, 2])
+            x2 = x * x
+            x3 = x2 * x
+            x4 = x2 * x2
+            p0, p1, p2, p3, p4, p5 = gz * gz, gy * gy, gx * gx, gz * gy, gy * gx, gz * gx
+            a00 += p0
+            a01 += p1
+            a02 += p2
+            a03 += p3
+            a04 += p4
+            a05 += p5
+            a10 += p0 * x
+            a11 += p1 * x
+            a12 += p2 * x
+            a13 += p3 * x
+            a14 += p4 * x
+            a15 += p5 * x
+            a20 += p0 * x2
+            a21 += p1 * x2
+            a22 += p2 * x2
+            a23 += p3 * x2
+            a24 += p4 * x2
+            a25 += p5 * x2
+            a30 += p0 * x3
+            a31 += p1 * x3
+            a32 += p2 * x3
+            a33 += p3 * x3
+            a34 += p4 * x3
+            a35 += p5 * x3
+            a40 += p0 * x4
+            a41 += p1 * x4
+            a42 += p2 * x4
+            a43 += p3 * x4
+            a44 += p4 * x4
+            a45 += p5 * x4
+            dg = g[i] - mean_g
+            hz, hy, hx = gz * dg, gy * dg, gx * dg
+            b00 += gz
+            b01 += gy
+            b02 += gx
+            b03 += hz
+            b04 += hy
+            b05 += hx
+            b10 += gz * x
+            b11 += gy * x
+            b12 += gx * x
+            b13 += hz * x
+            b14 += hy * x
+            b15 += hx * x
+            b20 += gz * x2
+            b21 += gy * x2
+            b22 += gx * x2
+            b23 += hz * x2
+            b24 += hy * x2
+            b25 += hx * x2
+        rows[0, 0], rows[0, 1], rows[0, 2], rows[0, 3], rows[0, 4], rows[0, 5] = (
+            a00, a01, a02, a03, a04, a05
+        )  # fmt: skip
+        rows[1, 0], rows[1, 1], rows[1, 2], rows[1, 3], rows[1, 4], rows[1, 5] = (
+            a10, a11, a12, a13, a14, a15
+        )  # fmt: skip
+        rows[2, 0], rows[2, 1], rows[2, 2], rows[2, 3], rows[2, 4], rows[2, 5] = (
+            a20, a21, a22, a23, a24, a25
+        )  # fmt: skip
+        rows[3, 0], rows[3, 1], rows[3, 2], rows[3, 3], rows[3, 4], rows[3, 5] = (
+            a30, a31, a32, a33, a34, a35
+        )  # fmt: skip
+        rows[4, 0], rows[4, 1], rows[4, 2], rows[4, 3], rows[4, 4], rows[4, 5] = (
+            a40, a41, a42, a43, a44, a45
+        )  # fmt: skip
+        linear_rows[0, 0], linear_rows[0, 1], linear_rows[0, 2] = b00, b01, b02
+        linear_rows[0, 3], linear_rows[0, 4], linear_rows[0, 5] = b03, b04, b05
+        linear_rows[1, 0], linear_rows[1, 1], linear_rows[1, 2] = b10, b11, b12
+        linear_rows[1, 3], linear_rows[1, 4], linear_rows[1, 5] = b13, b14, b15
+        linear_rows[2, 0], linear_rows[2, 1], linear_rows[2, 2] = b20, b21, b22
+        linear_rows[2, 3], linear_rows[2, 4], linear_rows[2, 5] = b23, b24, b25
+        z = np.float64(xi[start, 0])
+        y = np.float64(xi[start, 1])
+        _fold_moments(products, rows, _QUARTIC_POWERS, z, y, zp, yp)
+        _fold_moments(linear, linear_rows, _QUADRATIC_POWERS, z, y, zp, yp)
+        start = end
     hessian = np.empty((m_par, m_par))
     sum_j = np.empty(m_par)
     sum_jg = np.empty(m_par)
     for k in range(3):
         for j in range(nb):
-            sum_j[k * nb + j] = moments[6 + k, _QUADRATIC_INDEX[j]]
-            sum_jg[k * nb + j] = moments[9 + k, _QUADRATIC_INDEX[j]]
+            sum_j[k * nb + j] = linear[k, j]
+            sum_jg[k * nb + j] = linear[3 + k, j]
             for k2 in range(3):
                 for j2 in range(nb):
-                    value = moments[_PAIR[k, k2], _QUADRATIC_PRODUCT[j, j2]]
+                    value = products[_PAIR[k, k2], _QUADRATIC_PRODUCT[j, j2]]
                     hessian[k * nb + j, k2 * nb + j2] = value
     delta_g = np.sqrt(ss_g)
     ok, low = cholesky_solve_setup(hessian, m_par)
