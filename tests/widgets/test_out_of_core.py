@@ -135,3 +135,40 @@ def test_a_lazy_pair_evaluates_out_of_core(make_napari_viewer, pair48, run_panel
     assert np.isfinite(np.asarray(viewer.layers["residual volume (uncorrected)"].data)).any()
     viewer.layers.remove("residual volume (uncorrected)")
     assert not second.exists()
+
+
+def test_a_threshold_region_over_a_lazy_pair_is_read_by_the_tiled_run(
+    make_napari_viewer, pair48, run_panel, small
+):
+    """The region's mask over a Dask-backed scan stays lazy: the tiled run reads it batch by
+    batch and gives the in-memory field with the whole mask."""
+    import dask.array as da
+
+    from napari_dvc_correct.engine.correlate import correlate
+    from napari_dvc_correct.engine.field import Status
+    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.widgets import regions_model
+
+    reference, deformed, _ = pair48
+    viewer = make_napari_viewer()
+    for name, data in (("reference", reference), ("deformed", deformed)):
+        viewer.add_image(da.from_array(data, chunks=24), name=name)
+    widget = CorrelateWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(small.step)
+    widget.region.set_kind("threshold")
+    widget.region.threshold.setValue(float(np.percentile(reference, 30)))
+    widget.region.z_from.setValue(10)
+    assert widget.tiled.isChecked()
+    assert isinstance(widget.job().mask, regions_model.ThresholdRegion)
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    field = L.field_of(viewer.layers["|u| (uncorrected)"])
+    mask = np.asarray(widget.job().mask)
+    params = CorrelationParams(subvolume=small.subvolume, step=small.step)
+    memory = correlate(reference, deformed, params, mask=mask)
+    np.testing.assert_array_equal(field.status, memory.status)
+    assert (memory.status == Status.MASKED).any()
+    good = memory.valid
+    assert np.max(np.abs(field.u[good] - memory.u[good])) < 1e-4

@@ -124,3 +124,127 @@ def test_a_region_that_keeps_no_poi_is_refused(panel, small):
     assert panel.run() is None
     assert "keeps none" in panel.message.text()
     assert len(panel.viewer.layers) == count
+
+
+# -- lazy regions: the mask of a scan larger than memory is never held whole ------------------
+def _volume(seed: int, shape=(30, 33, 35)) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(np.random.default_rng(seed).normal(size=shape), 1.5)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_filling_pores_slice_by_slice_equals_filling_in_3d_first(seed):
+    """The lazy threshold region fills each slice alone: the same mask as a 3-D fill followed
+    by the slice fill (the rule before regions were read block by block)."""
+    from scipy.ndimage import binary_fill_holes
+
+    volume = _volume(seed)
+    threshold = np.percentile(volume, 40)
+    expected = binary_fill_holes(volume > threshold)
+    for z in range(expected.shape[0]):
+        expected[z] = binary_fill_holes(expected[z])
+    mask = model.threshold_mask(volume, threshold)
+    assert 0 < (mask & ~(volume > threshold)).sum()  # some pores were filled
+    np.testing.assert_array_equal(mask, expected)
+
+
+def _regions(volume):
+    shape = volume.shape
+    labels = (volume > np.percentile(volume, 30)).astype(np.uint8)
+    return {
+        "cylinder": model.cylinder_region(shape, (15, 17), 9.5, (5, 24)),
+        "box": model.box_region(shape, (2, 20), (4, 30), (0, 12)),
+        "threshold": model.ThresholdRegion(volume, np.percentile(volume, 40), True, (3, 27)),
+        "labels": model.LabelsRegion(labels, (1, 29)),
+    }
+
+
+@pytest.mark.parametrize("kind", ["cylinder", "box", "threshold", "labels"])
+def test_a_region_reads_any_block_as_its_whole_mask_does(kind):
+    volume = _volume(7)
+    region = _regions(volume)[kind]
+    whole = np.asarray(region)
+    assert whole.dtype == bool and whole.shape == volume.shape and 0 < whole.sum() < whole.size
+    assert not whole[: region.z.start].any() and not whole[region.z.stop :].any()
+    for block in [
+        (slice(0, 4), slice(3, 20), slice(5, 35)),
+        (slice(20, 30), slice(0, 33), slice(9, 10)),
+    ]:
+        np.testing.assert_array_equal(region.read_region(block), whole[block])
+    assert region.any() and model.emptiness(region) is False
+
+
+@pytest.mark.parametrize("kind", ["cylinder", "box", "threshold", "labels"])
+def test_a_lazy_region_keeps_the_pois_its_whole_mask_keeps(kind):
+    """Prisms are counted from their cross-section, other regions with a window of slices
+    moving up the volume: both give the summed-volume table's counts of the whole mask."""
+    volume = _volume(3)
+    region = _regions(volume)[kind]
+    whole = np.asarray(region).copy()
+    for params in (CorrelationParams(subvolume=9, step=4), CorrelationParams(subvolume=7, step=9)):
+        kept = model.kept_pois(region, params)
+        assert kept == model.kept_pois(whole, params)
+        assert 0 < kept.kept < kept.total
+        rng = np.random.default_rng(1)
+        points = rng.uniform(params.half, np.array(volume.shape) - 1 - params.half, (200, 3))
+        np.testing.assert_array_equal(
+            model.kept_at(region, params, points), model.kept_at(whole, params, points)
+        )
+
+
+def test_counting_a_lazy_region_reads_each_slice_at_most_twice():
+    """The POI count of a lazy threshold region holds one window of slices, never the volume."""
+    volume = _volume(5, (40, 20, 20))
+    reads = np.zeros(volume.shape[0], int)
+
+    class Counted:
+        shape, dtype = volume.shape, volume.dtype
+
+        def __getitem__(self, index):
+            reads[index[0]] += 1
+            return volume[index]
+
+    region = model.ThresholdRegion(Counted(), np.percentile(volume, 40), True)
+    params = CorrelationParams(subvolume=9, step=3)
+    assert model.kept_pois(region, params).kept > 0
+    assert reads.max() <= 2 and reads.sum() >= volume.shape[0] - 2 * params.half
+
+
+def test_an_empty_region_is_known_empty_without_reading_only_when_it_is_a_prism():
+    shape = (10, 12, 12)
+    assert model.emptiness(model.cylinder_region(shape, (-50, -50), 3)) is True
+    region = model.ThresholdRegion(np.zeros(shape), 1.0)
+    assert model.emptiness(region) is None  # not read yet
+    assert not region.any() and model.emptiness(region) is True
+    assert model.emptiness(np.zeros(shape, bool)) is True
+
+
+def test_a_region_over_a_lazy_scan_stays_lazy_in_the_panel(
+    make_napari_viewer, pair48, small, qtbot
+):
+    """Over a Dask-backed scan the panel's cylinder and threshold regions are lazy masks: the
+    cylinder's POIs are still counted before the run, the threshold's by the run itself."""
+    import dask.array as da
+
+    reference, deformed, _ = pair48
+    viewer = make_napari_viewer()
+    for name, data in (("reference", reference), ("deformed", deformed)):
+        viewer.add_image(da.from_array(data, chunks=24), name=name)
+    widget = CorrelateWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(small.step)
+    widget.region.set_kind("cylinder")
+    job = widget.job()
+    assert isinstance(job.mask, model.PrismRegion)
+    assert job.kept == model.kept_pois(np.asarray(job.mask), job.params)
+    widget.region.set_kind("threshold")
+    widget.region.threshold.setValue(135.0)
+    widget._update.flush()
+    qtbot.waitUntil(
+        lambda: "marks the POIs outside" in widget.estimate_label.text(), timeout=20_000
+    )
+    job = widget.job()
+    assert isinstance(job.mask, model.ThresholdRegion) and job.kept is None
+    np.testing.assert_array_equal(np.asarray(job.mask), model.threshold_mask(reference, 135.0))

@@ -96,8 +96,12 @@ def _check_dtype(dtype, source) -> np.dtype:
     return dtype
 
 
-class _Volume:
-    """Shared behaviour: ``__getitem__`` with slices, ``nbytes``, ``__array__`` for small volumes."""
+class VolumeBase:
+    """Shared behaviour: ``__getitem__`` with slices, ``nbytes``, ``__array__`` for small volumes.
+
+    A subclass sets ``shape`` and ``dtype`` and defines ``read_region`` (a lazy boolean mask
+    may return ``bool`` blocks: readers of masks take ``!= 0``).
+    """
 
     shape: tuple[int, int, int]
     dtype: np.dtype
@@ -124,7 +128,7 @@ class _Volume:
         return f"{type(self).__name__}(shape={self.shape}, dtype={self.dtype})"
 
 
-class ArrayVolume(_Volume):
+class ArrayVolume(VolumeBase):
     """A lazy view of any array that slices like numpy (ndarray, memmap, h5py, Zarr, Dask).
 
     Parameters
@@ -148,7 +152,7 @@ class ArrayVolume(_Volume):
         return _as_float32(block)
 
 
-class _FileVolume(_Volume):
+class _FileVolume(VolumeBase):
     """A volume backed by a file: the open handle is dropped when pickled and reopened lazily."""
 
     path: Path

@@ -366,7 +366,9 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         voxel_size, offset = model.layer_placement(reference)
         self.region.set_volume(volumes[0].shape, volumes[0])
         mask = self.region.mask(volumes[0].shape, volumes[0], (voxel_size, offset))
-        kept = None if mask is None else regions_model.check_kept(mask, params)
+        # a lazy threshold or Labels region is counted by the run, not by reading it here
+        quick = mask is not None and regions_model.counts_quickly(mask)
+        kept = regions_model.check_kept(mask, params) if quick else None
         voxel_size, offset = model.layer_placement(reference)
         points, points_layer = self._points(reference, strategy, volumes[0].shape, params)
         tiled = self.tiled.isChecked()
@@ -480,12 +482,14 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             return
         estimate = model.estimate_run(job.shape, job.params, n_pairs=len(job.volumes) - 1)
         region = f"; {job.kept.text()}" if job.kept is not None else ""
+        if job.mask is not None and job.kept is None:
+            region = "; the run marks the POIs outside the region (read as it runs)"
         self.estimate_label.setText(estimate.text() + region)
         if not self.preview.isChecked():
             self._set_preview_visible(False)
             return
         points, box, _ = model.grid_preview(job.shape, job.params)
-        if job.mask is not None:  # the POIs the region keeps, so the region shows
+        if job.kept is not None:  # the POIs the region keeps, so the region shows
             points = points[regions_model.kept_at(job.mask, job.params, points)]
         placement = L.dense_placement(job.voxel_size, job.offset)
         points_style = {

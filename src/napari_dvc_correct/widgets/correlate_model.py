@@ -42,7 +42,9 @@ class CorrelationJob:
     volumes : list of ndarray (nz, ny, nx)
         Two volumes (reference, deformed) for a pair; more for a scan series, in order.
     params : CorrelationParams
-    mask : ndarray of bool (nz, ny, nx) or None
+    mask : ndarray of bool (nz, ny, nx), regions_model.Region or None
+        The region; a :class:`.regions_model.Region` is a lazy mask (read block by block by an
+        out-of-core run, whole by an in-memory one).
     strategy : {"pair", "total", "incremental"}
     correct_states : bool
         For a series: self-correct every state's total displacement (engine/series.py).
@@ -53,7 +55,8 @@ class CorrelationJob:
     unit : str or None
         Length unit of ``voxel_size`` (``"µm"``...), None for plain voxels.
     kept : regions_model.Kept or None
-        How many POIs the region keeps (None for the whole volume).
+        How many POIs the region keeps (None for the whole volume, and for a lazy threshold or
+        Labels region, which the run itself reads).
     points : ndarray (N, 3) or None
         Points of interest in reference voxel indices (z, y, x), fractional allowed
         (:func:`points_in_voxels`); None for the regular grid. A pair only.

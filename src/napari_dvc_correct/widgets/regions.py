@@ -23,6 +23,7 @@ from qtpy.QtWidgets import (
 from .. import layers as L
 from . import regions_model as model
 from ._base import LatestWorker, LayerCombo
+from .correlate_model import is_lazy
 
 
 def _is_region_layer(layer) -> bool:
@@ -165,12 +166,14 @@ class RegionBox(QGroupBox):
                 values += [len(layer.data)] + [float(np.sum(v)) for v in layer.data]
         return (kind, tuple(shape), tuple(values))
 
-    def mask(self, shape, volume=None, placement=None) -> np.ndarray | None:
+    def mask(self, shape, volume=None, placement=None):
         """The region's mask for volumes of ``shape`` (None = whole volume); ValueError if bad.
 
-        ``volume`` is the reference, for the threshold region; ``placement`` its
-        ``(voxel_size, offset)``, for drawn shapes. Computed here unless :meth:`pending` ran
-        it in a worker first (the panels' previews do).
+        A boolean array, or a lazy :class:`.regions_model.Region` (cylinders, boxes and drawn
+        outlines always; a threshold or a Labels layer over a lazily backed scan), which an
+        out-of-core run reads block by block. ``volume`` is the reference, for the threshold
+        region; ``placement`` its ``(voxel_size, offset)``, for drawn shapes. Computed here
+        unless :meth:`pending` ran it in a worker first (the panels' previews do).
         """
         kind = self.current_kind
         if kind == "all":
@@ -185,12 +188,14 @@ class RegionBox(QGroupBox):
                     )
                 voxel_size, offset = placement if placement is not None else (None, None)
                 z_range = (self.z_from.value(), self.z_to.value())
-                mask = model.layer_mask(layer, shape, z_range, voxel_size, offset)
+                mask = model.layer_region(layer, shape, z_range, voxel_size, offset)
+                if not is_lazy(getattr(layer, "data", None)) and not model.counts_quickly(mask):
+                    mask = np.asarray(mask)  # Labels in memory: one array, counted by its table
             else:
                 mask = self._computer(shape, volume)()
             self._cache = (key, mask)
         mask = self._cache[1]
-        if not mask.any():
+        if model.emptiness(mask):  # unknown for a lazy region not read yet: the run says
             raise ValueError("the region is empty: no voxel is selected")
         return mask
 
@@ -245,23 +250,20 @@ class RegionBox(QGroupBox):
         z_range = (self.z_from.value(), self.z_to.value())
         if kind == "cylinder":
             centre, radius = (self.centre_y.value(), self.centre_x.value()), self.radius.value()
-            return lambda: model.cylinder_mask(shape, centre, radius, z_range)
+            return lambda: model.cylinder_region(shape, centre, radius, z_range)
         if kind == "box":
             ranges = (
                 (self.y_from.value(), self.y_to.value()),
                 (self.x_from.value(), self.x_to.value()),
             )
-            return lambda: model.box_mask(shape, z_range, *ranges)
+            return lambda: model.box_region(shape, z_range, *ranges)
         if volume is None:
             raise ValueError("choose the reference volume first")
         threshold, fill = self.threshold.value(), self.fill_holes.isChecked()
-
-        def threshold_region():
-            mask = model.threshold_mask(volume, threshold, fill)
-            mask &= model.box_mask(shape, z_range)
-            return mask
-
-        return threshold_region
+        region = model.ThresholdRegion(volume, threshold, fill, z_range)
+        if is_lazy(volume):  # read slab by slab when a run (or the emptiness check) needs it
+            return lambda: region
+        return lambda: np.asarray(region)
 
     # -- sessions -------------------------------------------------------------------------
     def _boxes(self) -> dict:
@@ -300,8 +302,12 @@ def _identity(volume):
 
 
 def _mask_in_worker(compute):
-    """Worker: the mask, and its summed-volume table for the POI count (no Qt, no layer)."""
+    """Worker: the mask, and what the panel's checks need of it (no Qt, no layer): an array's
+    summed-volume table for the POI count, whether a lazy region selects any voxel."""
     yield None
     mask = compute()
-    model.summed_volume(mask)
+    if isinstance(mask, np.ndarray):
+        model.summed_volume(mask)
+    else:
+        mask.any()
     return mask
