@@ -97,7 +97,8 @@ def test_lazy_pull_back_reads_one_region_and_equals_the_whole_volume(
 
 
 @pytest.mark.parametrize(
-    "box", [(slice(0, 36), slice(0, 40), slice(0, 44)), (slice(20, 36), slice(20, 40), slice(4, 30))]
+    "box",
+    [(slice(0, 36), slice(0, 40), slice(0, 44)), (slice(20, 36), slice(20, 40), slice(4, 30))],
 )
 def test_lazy_forward_warp_reads_one_region_and_equals_the_whole_volume(case, box, monkeypatch):
     from napari_dvc_correct.tiled import volumes

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..engine.field import DisplacementField
+from .regions_model import whole
 
 FRAMES = {  # the first entry is the panel's default: the engine's measured best (docs/method.md)
     "loaded": "warp G to the loaded state (paper, default)",
@@ -55,6 +56,7 @@ def run_correction(
     else:
         from ..engine.correction import correct_iter
 
+        options["mask"] = whole(mask)  # the region as one array, made here in the worker
         corrected = yield from correct_iter(reference, deformed, field, **options)
     for key in ("voxel_size", "offset", "reference_layer", "deformed_layer"):
         if key in field.metadata:
@@ -106,6 +108,8 @@ def run_series_correction(pairs, fields, **options):
     from ..engine.progress import Progress
 
     results = []
+    if not options.get("tiled"):  # the region as one array, once for every state
+        options["mask"] = whole(options.get("mask"))
     for k, ((reference, deformed), field) in enumerate(zip(pairs, fields), start=1):
         yield Progress(f"state {k}/{len(fields)}", 0, 1, "self-correcting")
         result = yield from run_correction(reference, deformed, field, **options)

@@ -15,6 +15,7 @@ from ..engine.field import DisplacementField, Provenance, Status, grid_for_volum
 from ..engine.params import CorrelationParams
 from ..engine.progress import Progress
 from ..tiled.memory import format_bytes
+from .regions_model import whole
 
 #: Cost of one IC-GN iteration per subvolume voxel (seconds, one core; see :func:`estimate_run`).
 #: Measured on the sample data (96³, subvolume 31, 2 cores: ~18 s); :func:`record_timing` replaces
@@ -148,7 +149,7 @@ def run_grid_job(job: CorrelationJob):
         results.append(("uncorrected", field))
     elif job.strategy == "pair":
         field = yield from correlate_iter(
-            job.volumes[0], job.volumes[1], job.params, mask=job.mask, device=job.device
+            job.volumes[0], job.volumes[1], job.params, mask=whole(job.mask), device=job.device
         )
         field = _finish(field, job, job.names)
         results.append(("uncorrected", field))
@@ -175,7 +176,7 @@ def run_points_job(job: CorrelationJob):
     from ..engine.placement import Box, grid_for_region
 
     params, points = job.params, np.asarray(job.points, dtype=np.float64)
-    reference, deformed = job.volumes[0], job.volumes[1]
+    reference, deformed, mask = job.volumes[0], job.volumes[1], whole(job.mask)
     from .points_model import check_points
 
     check_points(points, job.shape, params.subvolume, job.points_layer)
@@ -183,11 +184,11 @@ def run_points_job(job: CorrelationJob):
     hi = points.max(axis=0) + params.step + 1
     grid = grid_for_region(reference.shape, params.subvolume, params.step, Box(lo, hi))
     guide = yield from correlate_iter(
-        reference, deformed, params, mask=job.mask, grid=grid, device=job.device
+        reference, deformed, params, mask=mask, grid=grid, device=job.device
     )
     yield Progress("IC-GN at the points", 0, len(points), f"{len(points)} points")
     result = correlate_points(
-        reference, deformed, points, params, mask=job.mask, guide=guide, device=job.device
+        reference, deformed, points, params, mask=mask, guide=guide, device=job.device
     )
     result.metadata.update(
         voxel_size=list(job.voxel_size),
@@ -245,7 +246,7 @@ def run_series(job: CorrelationJob):
         job.params,
         strategy=job.strategy,
         correct_total=job.correct_states,
-        mask=job.mask,
+        mask=whole(job.mask),
     )
     return result.totals
 

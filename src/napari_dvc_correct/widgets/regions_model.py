@@ -154,6 +154,12 @@ def _slabs(region: Region, z_range=None, voxels: int = 1 << 24):
         yield slice(z0, min(stop, z0 + depth))
 
 
+def whole(mask):
+    """A region's mask as one boolean array for an in-memory run (None stays None); call it in
+    the run's worker, not on the main thread: a threshold region reads the scan."""
+    return None if mask is None else np.asarray(mask, bool)
+
+
 def box_region(shape, z_range=None, y_range=None, x_range=None) -> PrismRegion:
     """Voxels with ``z_range[0] <= z < z_range[1]`` (same for y, x); a range None = all."""
     shape = tuple(int(n) for n in shape)
