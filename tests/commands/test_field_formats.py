@@ -47,6 +47,30 @@ def test_points_give_results_at_exactly_those_points(volumes, tmp_path):
     np.testing.assert_allclose(read_points(out2).points, points, atol=1e-6)
 
 
+def test_points_out_of_core_give_the_in_memory_points(volumes, tmp_path, capsys):
+    """``--points`` with ``--tiled``: the volumes read region by region, the same result."""
+    rng = np.random.default_rng(4)
+    points = rng.uniform(10.0, 29.0, size=(12, 3))
+    npy = tmp_path / "pois.npy"
+    np.save(npy, points)
+    outs = [tmp_path / "memory.csv", tmp_path / "tiled.csv"]
+    assert main(["correlate", *volumes, "--points", str(npy), "--out", str(outs[0]), *DVC]) == 0
+    tiled = ["--tiled", "--max-memory", "2GB"]
+    assert (
+        main(["correlate", *volumes, "--points", str(npy), "--out", str(outs[1]), *DVC, *tiled])
+        == 0
+    )
+    memory, out_of_core = read_points(outs[0]), read_points(outs[1])
+    np.testing.assert_array_equal(out_of_core.status, memory.status)
+    np.testing.assert_allclose(out_of_core.u, memory.u, atol=1e-3)
+    assert out_of_core.valid.all()
+    # with --self-correct, --points is refused before anything is written
+    bad = tmp_path / "bad.csv"
+    command = ["correlate", *volumes, "--points", str(npy), "--out", str(bad), *DVC, "--tiled"]
+    assert main([*command, "--self-correct"]) == 2
+    assert "--self-correct" in capsys.readouterr().err and not bad.exists()
+
+
 def test_roi_limits_the_grid_to_the_region(volumes, tmp_path):
     out = tmp_path / "roi.npz"
     roi = "12:30,10:26,:"

@@ -270,22 +270,32 @@ def prepare_correction_field(args, volume_shape):
 
 
 def run_points(args, params, out, started, tiled: bool = False) -> int:
-    """``--points FILE``: DVC at exactly those points, written in the output format."""
+    """``--points FILE``: DVC at exactly those points, written in the output format.
+
+    With ``tiled`` the volumes are read lazily, only the regions the points need
+    (:func:`..tiled.points.correlate_points_tiled_iter`), with the large-volume options.
+    """
     import time
 
-    from ..engine.correlate_points import correlate_points
-    from ..io.volumes import read_volume
     from ._grid_options import load_points
 
-    if tiled or getattr(args, "self_correct", False):
-        raise ValueError("--points does not combine with tiled runs or --self-correct")
+    if getattr(args, "self_correct", False):
+        raise ValueError("--points does not combine with --self-correct")
     points = load_points(args.points)
-    reference = read_volume(args.reference)
-    deformed = read_volume(args.deformed)
-    mask = read_volume(args.mask) if args.mask else None
-    result = correlate_points(
-        reference, deformed, points, params, mask=mask, device=getattr(args, "device", "auto")
-    )
+    if tiled:
+        from ._tiled_options import run_tiled_points
+
+        result = run_tiled_points(args, params, points)
+    else:
+        from ..engine.correlate_points import correlate_points
+        from ..io.volumes import read_volume
+
+        reference = read_volume(args.reference)
+        deformed = read_volume(args.deformed)
+        mask = read_volume(args.mask) if args.mask else None
+        result = correlate_points(
+            reference, deformed, points, params, mask=mask, device=getattr(args, "device", "auto")
+        )
     result.metadata["reference"] = str(args.reference)
     result.metadata["deformed"] = str(args.deformed)
     result.metadata["points_file"] = str(args.points)

@@ -23,6 +23,7 @@ region), else (a given guide without a noise estimate) the fixed ``min_zncc``;
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -59,14 +60,20 @@ def _guide_noise(guide: DisplacementField):
     return float(sigma) ** 2, count
 
 
-def _thresholds(level, centers, trial, zncc, status, order, params, guide):
-    """Each point's ZNCC threshold, the LOW_TEXTURE points and ``metadata["noise"]``."""
+def matched_variance(level, centers, trial, zncc, status, order) -> np.ndarray:
+    """Gray variance of each point's reference subvolume (gray levels², NaN where not matched):
+    the noise estimate's ingredient, measured while ``level`` (its volumes) is at hand."""
     n = len(centers)
     stats = (np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan))
     matched = np.flatnonzero(np.isin(status, GOOD_CODES))
     cheap = np.zeros(len(matched), bool)
     level.statistics(centers[matched], trial[matched], zncc[matched], order, cheap, stats, matched)
-    variance = stats[0]
+    return stats[0]
+
+
+def _thresholds(variance, zncc, status, order, params, guide):
+    """Each point's ZNCC threshold, the LOW_TEXTURE points and ``metadata["noise"]``."""
+    n = len(status)
     own = len(noise_estimates(variance, zncc, status))
     given, source, count = None, "points", own
     if own < MIN_NOISE_POINTS:
@@ -92,11 +99,46 @@ def _thresholds(level, centers, trial, zncc, status, order, params, guide):
     return thresholds, textureless, metadata
 
 
-def _guide(reference, deformed, points, params, mask, device) -> DisplacementField:
+def guide_grid(volume_shape, points: np.ndarray, params: CorrelationParams) -> tuple:
+    """The guide field's grid: a step beyond the points' bounding box on every side."""
     lo = points.min(axis=0) - params.step
     hi = points.max(axis=0) + params.step + 1
-    grid = grid_for_region(reference.shape, params.subvolume, params.step, Box(lo, hi))
-    return correlate(reference, deformed, params, mask=mask, grid=grid, device=device)
+    return grid_for_region(volume_shape, params.subvolume, params.step, Box(lo, hi))
+
+
+def check_points(points, volume_shape, params: CorrelationParams):
+    """``(points, centres, inside)``: the points as float64 (N, 3), their nearest voxels and
+    which of them keep their subvolume inside the volume. ValueError when none can be used."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"points must have shape (N, 3) with N >= 1, got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("point positions must be finite")
+    half = params.half
+    centers = np.rint(points).astype(np.int64)
+    inside = np.all((centers >= half) & (centers <= np.array(volume_shape) - 1 - half), axis=1)
+    if not inside.any():
+        raise ValueError(
+            f"no point keeps its subvolume ({params.subvolume} voxels) inside the volume "
+            f"{tuple(volume_shape)}: move the points at least {half} voxels from the border"
+        )
+    return points, centers, inside
+
+
+def starting_warps(guide: DisplacementField, centers: np.ndarray, order: int) -> np.ndarray:
+    """Shape-function parameters (n, 3·nb) at voxels ``centers`` from the guide's warp there
+    (nodes without a value filled from the nearest good one)."""
+    at = centers.astype(np.float64)
+    guess = sample_field(guide, at)
+    good = np.all(np.isfinite(guess.u), axis=1)
+    if not good.any():
+        raise ValueError("the guide field has no usable node near the points")
+    u0 = _fill_from_nearest(guess.u, good, at)
+    g0 = None
+    if guess.gradient is not None:
+        g0 = _fill_from_nearest(guess.gradient.reshape(-1, 9), good, at).reshape(-1, 3, 3)
+        g0 = np.nan_to_num(g0)
+    return np.ascontiguousarray(shape_function.displacement_to_params(u0, g0, order))
 
 
 def _fill_from_nearest(values: np.ndarray, good: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -148,46 +190,55 @@ def correlate_points(
     """
     params = CorrelationParams() if params is None else params
     started = time.perf_counter()
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise ValueError(f"points must have shape (N, 3) with N >= 1, got {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("point positions must be finite")
     device = select_device(device)
     reference, deformed, mask = validate_pair(reference, deformed, params, mask)
-    half = params.half
-    centers = np.rint(points).astype(np.int64)
-    inside = np.all((centers >= half) & (centers <= np.array(reference.shape) - 1 - half), axis=1)
-    if not inside.any():
-        raise ValueError(
-            f"no point keeps its subvolume ({params.subvolume} voxels) inside the volume "
-            f"{reference.shape}: move the points at least {half} voxels from the border"
-        )
+    points, centers, inside = check_points(points, reference.shape, params)
     if guide is None:
-        guide = _guide(reference, deformed, points[inside], params, mask, device)
-    guess = sample_field(guide, centers[inside].astype(np.float64))
-    good = np.all(np.isfinite(guess.u), axis=1)
-    if not good.any():
-        raise ValueError("the guide field has no usable node near the points")
-    u0 = _fill_from_nearest(guess.u, good, centers[inside].astype(np.float64))
-    g0 = None
-    if guess.gradient is not None:
-        g0 = _fill_from_nearest(
-            guess.gradient.reshape(-1, 9), good, centers[inside].astype(np.float64)
-        ).reshape(-1, 3, 3)
-        g0 = np.nan_to_num(g0)
+        grid = guide_grid(reference.shape, points[inside], params)
+        guide = correlate(reference, deformed, params, mask=mask, grid=grid, device=device)
     order = params.order
-    trial = np.ascontiguousarray(shape_function.displacement_to_params(u0, g0, order))
-    level = PyramidLevel.build(1, reference, deformed, mask, half, params.min_texture, device.kind)
+    trial = starting_warps(guide, centers[inside], order)
+    level = PyramidLevel.build(
+        1, reference, deformed, mask, params.half, params.min_texture, device.kind
+    )
     zncc_i, status_i, iterations_i = level.match(centers[inside], trial, order, params)
+    variance = matched_variance(level, centers[inside], trial, zncc_i, status_i, order)
+    matches = PointMatches(trial, zncc_i, status_i, iterations_i, variance)
+    result = points_field(points, centers, inside, matches, params, guide)
+    result.metadata.update(volume_shape=list(reference.shape), device=device.description)
+    result.metadata["timings"] = {"total_s": time.perf_counter() - started}
+    return result
 
+
+@dataclass
+class PointMatches:
+    """IC-GN results at the points that keep their subvolume inside the volume (``n`` of them,
+    in input order): shape-function parameters ``trial`` (n, 3·nb), ``zncc``, ``status``,
+    ``iterations`` and the reference subvolumes' gray ``variance`` (gray levels²)."""
+
+    trial: np.ndarray
+    zncc: np.ndarray
+    status: np.ndarray
+    iterations: np.ndarray
+    variance: np.ndarray
+
+
+def points_field(points, centers, inside, matches: PointMatches, params, guide) -> ScatteredField:
+    """The :class:`ScatteredField` of matched points, judged at the points' noise (or the
+    guide's): thresholds, ``LOW_TEXTURE``/``LOW_ZNCC``, the warp carried to each exact point.
+
+    ``matches`` may come from one run or from several regions (:mod:`..tiled`): the noise
+    estimate is the median over all the points either way.
+    """
+    order = params.order
+    zncc_i, status_i, iterations_i = matches.zncc, matches.status, matches.iterations
     n = len(points)
     zncc = np.full(n, np.nan)
     status = np.full(n, int(Status.OUT_OF_BOUNDS), np.int64)
     iterations = np.zeros(n, np.int64)
     zncc[inside], status[inside], iterations[inside] = zncc_i, status_i, iterations_i
     thresholds, textureless, noise = _thresholds(
-        level, centers[inside], trial, zncc_i, status_i, order, params, guide
+        matches.variance, zncc_i, status_i, order, params, guide
     )
     status[np.flatnonzero(inside)[textureless]] = int(Status.LOW_TEXTURE)
     low = np.isin(status, GOOD_CODES)
@@ -195,7 +246,7 @@ def correlate_points(
     status[low] = int(Status.LOW_ZNCC)
     displacement = np.full((n, 3), np.nan)
     gradient = np.full((n, 3, 3), np.nan)
-    d_i, g_i = shape_function.params_to_displacement(trial, order)
+    d_i, g_i = shape_function.params_to_displacement(matches.trial, order)
     offset = points[inside] - centers[inside]
     displacement[inside] = d_i + np.einsum("nij,nj->ni", g_i, offset)
     gradient[inside] = g_i
@@ -214,14 +265,11 @@ def correlate_points(
         gradient=gradient,
         params=params.to_dict(),
         metadata={
-            "volume_shape": list(reference.shape),
             "guide_grid": {
                 "origin": list(guide.origin),
                 "step": list(guide.step),
                 "shape": list(guide.shape),
             },
-            "device": device.description,
             "noise": noise,
-            "timings": {"total_s": time.perf_counter() - started},
         },
     )

@@ -515,6 +515,9 @@ def correlate_tiled_iter(
                 "largest_region_voxels": 0 if largest is None else int(largest.region_voxels),
                 "seed_pass": good_seeds is not None,
                 "good_seeds": good_seeds,
+                # the whole (masked) reference's gray std, for the texture test of later runs
+                # on regions of these volumes (tiled.points)
+                "reference_gray_std": float(whole.texture_std[1]),
             },
         },
     )
