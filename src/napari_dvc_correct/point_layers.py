@@ -197,7 +197,8 @@ def points_caption(layer) -> str:
 def show_points(viewer, points_field, placement: dict) -> str:
     """Show a points result (replacing the last one): the points coloured by the quantity on
     view (default ``|u|``) and their arrows, the caption on the canvas. Returns the panel's
-    message: the counts by status and what the colours show."""
+    message: the counts by status. It does not name the quantity: the View panel recolours the
+    points later, and the canvas caption (kept by the View panel) says what is shown."""
     from .layers import canvas_overlay, quantity_layers, show_layers, text_overlay
 
     current = next((x for x in quantity_layers(viewer) if x.visible), None)
@@ -211,4 +212,7 @@ def show_points(viewer, points_field, placement: dict) -> str:
     text_overlay(viewer).visible = True
     canvas_overlay(viewer, "scale_bar").visible = True
     counts = ", ".join(f"{n} {k}" for k, n in points_field.status_counts().items())
-    return f"Done: {points_field.n_points} points: {counts}. Colours: {caption}."
+    return (
+        f"Done: {points_field.n_points} points: {counts}; the canvas caption says what the "
+        "colours show."
+    )

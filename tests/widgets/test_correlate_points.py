@@ -59,10 +59,10 @@ def test_points_layer_run_gives_readable_point_layers(
     np.testing.assert_allclose(arrows.data[:, 0], voxels[field.valid])
     np.testing.assert_allclose(arrows.data[:, 1], field.u[field.valid])
     np.testing.assert_allclose(arrows.scale, small.voxel_size)
-    text = widget.message.text()
-    assert "Done: 4 points" in text and "|u| [vx]" not in text and "scale units" in text
-    assert "at the points" in L.text_overlay(viewer).text
-    assert "viridis 0 to" in L.text_overlay(viewer).text
+    assert "Done: 4 points" in widget.message.text()
+    caption = L.text_overlay(viewer).text
+    assert caption.startswith("|u| [scale units] at the points")  # not [vx]: a voxel size
+    assert "viridis 0 to" in caption
     # the View panel recolours the points with the chosen quantity
     view = ViewWidget(viewer)
     viewer.window.add_dock_widget(view)
@@ -70,6 +70,10 @@ def test_points_layer_run_gives_readable_point_layers(
     assert layer.name == "ZNCC (points)"
     assert layer.face_colormap.name == "magma"
     assert "ZNCC" in view.caption.text() and "at the points" in view.caption.text()
+    assert L.text_overlay(viewer).text.startswith("ZNCC [–] at the points")  # what is shown
+    # the Correlate panel's line does not name the quantity the points were first coloured by
+    assert "|u|" not in widget.message.text() and "ZNCC" not in widget.message.text()
+    assert "canvas caption" in widget.message.text()
     view.set_quantity("εzx")
     low, high = layer.face_contrast_limits
     assert low == -high  # signed: centred on zero
