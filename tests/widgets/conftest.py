@@ -93,6 +93,25 @@ def points_panel(viewer_pair, point_voxels):
     return widget
 
 
+@pytest.fixture
+def strain_calls(monkeypatch):
+    """A list that gets, for each strain tensor computed (``quantities.physical_strain``), True
+    when it was computed on the main thread."""
+    import threading
+
+    from napari_dvc_correct import quantities
+
+    calls = []
+    original = quantities.physical_strain
+
+    def recording(field):
+        calls.append(threading.current_thread() is threading.main_thread())
+        return original(field)
+
+    monkeypatch.setattr(quantities, "physical_strain", recording)
+    return calls
+
+
 def expected_placement(field):
     """``(scale, translate)`` a grid layer of ``field`` must have over the small pair."""
     vs, off = np.asarray(SMALL.voxel_size), np.asarray(SMALL.offset)

@@ -272,13 +272,11 @@ def test_new_layers_do_not_bring_the_preview_back(correlated):
 
 
 def test_a_new_series_shows_its_strain_computed_in_the_worker(
-    series48, make_napari_viewer, run_panel, qtbot, small
+    series48, make_napari_viewer, run_panel, qtbot, small, strain_calls
 ):
     """A series' state 0 (no displacement) is made with the result in the worker, and its
     strain computed there too: showing the 4-D field on the main thread computes no strain
     tensor (the worker computes the states' strain; before, the slot computed state 0's)."""
-    import threading
-
     from napari_dvc_correct import layers as L
     from napari_dvc_correct import quantities
     from napari_dvc_correct.widgets import ViewWidget
@@ -297,21 +295,12 @@ def test_a_new_series_shows_its_strain_computed_in_the_worker(
     widget.reference.set_layer("scan")
     widget.subvolume.setValue(small.subvolume)
     widget.step.setValue(small.step)
-    calls = []
-    original = quantities.physical_strain
-
-    def recording(field):
-        calls.append(threading.current_thread() is threading.main_thread())
-        return original(field)
-
-    quantities.physical_strain = recording
-    try:
-        run_panel(widget)
-    finally:
-        quantities.physical_strain = original
+    strain_calls.clear()
+    run_panel(widget)
     assert widget.last_error is None, widget.last_error
     layer = viewer.layers["εeq (series (total))"]
     assert layer.visible and layer.data.shape[0] == 3
+    calls = list(strain_calls)
     assert len(calls) == 3 and not any(calls), calls  # states 0, 1, 2, none on the main thread
     states = L.series_of(layer)
     assert not states[0].u.any()  # state 0: no displacement

@@ -73,7 +73,8 @@ def _shown_ahead(generator: Generator, quantity: str | None) -> Generator:
 
 def _result_fields(result) -> list:
     """The grid fields in a panel's result (a correlation, a correction, a list of them), each
-    once; a series' ``series`` (the fields as its 4-D layers show them) brings its state 0."""
+    once; a series' ``series`` (the fields as its 4-D layers show them: a correlated or a
+    self-corrected series) brings its state 0."""
     from ..engine.field import DisplacementField
 
     items = result if isinstance(result, list) else [result]
