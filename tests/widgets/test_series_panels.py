@@ -21,9 +21,8 @@ def _dock(viewer, cls):
     return widget
 
 
-def test_series_through_correct_and_evaluate(series40, make_napari_viewer, run_panel):
-    volumes, truths = series40
-    viewer = make_napari_viewer()
+def _correlate(viewer, volumes, run_panel):
+    """The series as a 4-D layer "scan", correlated (total strategy) by a docked panel."""
     viewer.add_image(volumes, name="scan")
     correlate = _dock(viewer, CorrelateWidget)
     correlate.mode.setCurrentIndex(correlate.mode.findData("series4d"))
@@ -31,6 +30,13 @@ def test_series_through_correct_and_evaluate(series40, make_napari_viewer, run_p
     correlate.subvolume.setValue(11)
     correlate.step.setValue(8)
     run_panel(correlate)
+    return correlate
+
+
+def test_series_through_correct_and_evaluate(series40, make_napari_viewer, run_panel):
+    volumes, truths = series40
+    viewer = make_napari_viewer()
+    correlate = _correlate(viewer, volumes, run_panel)
     assert correlate.last_error is None, correlate.last_error
     assert viewer.dims.axis_labels == ("state", "z", "y", "x")
 
@@ -79,13 +85,8 @@ def test_a_corrected_series_shows_its_strain_computed_in_the_worker(
 
     volumes, _ = series40
     viewer = make_napari_viewer()
-    viewer.add_image(volumes, name="scan")
-    correlate = _dock(viewer, CorrelateWidget)
-    correlate.mode.setCurrentIndex(correlate.mode.findData("series4d"))
-    correlate.reference.set_layer("scan")
-    correlate.subvolume.setValue(11)
-    correlate.step.setValue(8)
-    run_panel(correlate)
+    correlate = _correlate(viewer, volumes, run_panel)
+    assert correlate.last_error is None, correlate.last_error
     view = _dock(viewer, ViewWidget)
     view.set_quantity("εvol")
     qtbot.waitUntil(lambda: not view.busy, timeout=30_000)
