@@ -35,17 +35,21 @@ def point_spacing(points: np.ndarray, default: float = 1.0) -> float:
     return spacing if spacing > 0 else float(default)
 
 
-def status_counts(points_field) -> dict[str, int]:
-    """Number of points of each status, by readable name (only the statuses present)."""
-    from .engine.field import Status
-
-    codes, counts = np.unique(points_field.status, return_counts=True)
-    return {Status(int(c)).label: int(n) for c, n in zip(codes, counts)}
-
-
 def points_result_layers(viewer) -> list:
     """The plugin's points-of-interest result layers (kind ``"points"``), in layer order."""
     return [x for x in viewer.layers if (plugin_metadata(x) or {}).get("kind") == "points"]
+
+
+def points_in(layers) -> dict:
+    """Fields at points of interest carried by ``layers``, by source name, in layer order (first
+    layer of each wins): the :class:`.engine.scattered.ScatteredField` of every points result
+    (the companion of :func:`.layers.fields_in`, which holds the grid fields)."""
+    found = {}
+    for layer in layers:
+        entry = plugin_metadata(layer) or {}
+        if entry.get("kind") == "points" and entry.get("points_field") is not None:
+            found.setdefault(entry["source"], entry["points_field"])
+    return found
 
 
 #: Napari colormaps of the quantity kinds (as :func:`quantity_style` for the grid layers).
@@ -193,7 +197,8 @@ def points_caption(layer) -> str:
 def show_points(viewer, points_field, placement: dict) -> str:
     """Show a points result (replacing the last one): the points coloured by the quantity on
     view (default ``|u|``) and their arrows, the caption on the canvas. Returns the panel's
-    message: the counts by status and what the colours show."""
+    message: the counts by status. It does not name the quantity: the View panel recolours the
+    points later, and the canvas caption (kept by the View panel) says what is shown."""
     from .layers import canvas_overlay, quantity_layers, show_layers, text_overlay
 
     current = next((x for x in quantity_layers(viewer) if x.visible), None)
@@ -206,5 +211,8 @@ def show_points(viewer, points_field, placement: dict) -> str:
     text_overlay(viewer).text = caption
     text_overlay(viewer).visible = True
     canvas_overlay(viewer, "scale_bar").visible = True
-    counts = ", ".join(f"{n} {k}" for k, n in status_counts(points_field).items())
-    return f"Done: {points_field.n_points} points: {counts}. Colours: {caption}."
+    counts = ", ".join(f"{n} {k}" for k, n in points_field.status_counts().items())
+    return (
+        f"Done: {points_field.n_points} points: {counts}; the canvas caption says what the "
+        "colours show."
+    )

@@ -69,6 +69,49 @@ def correlated(viewer_pair, run_panel):
     return widget
 
 
+@pytest.fixture
+def point_voxels():
+    """Points of interest in voxels (z, y, x) of the small pair, fractional ones included."""
+    return np.array(
+        [[12.0, 14.0, 20.0], [24.0, 24.0, 24.0], [30.4, 20.0, 33.6], [20.0, 33.0, 14.0]]
+    )
+
+
+@pytest.fixture
+def points_panel(viewer_pair, point_voxels):
+    """A docked Correlate panel set to correlate at the points of the Points layer "my points"
+    (added in world coordinates over the small pair)."""
+    from napari_dvc_correct.widgets import CorrelateWidget
+
+    widget = CorrelateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(widget)
+    widget.subvolume.setValue(SMALL.subvolume)
+    widget.step.setValue(SMALL.step)
+    world = point_voxels * np.asarray(SMALL.voxel_size) + np.asarray(SMALL.offset)
+    viewer_pair.add_points(world, name="my points")
+    widget.placement.setCurrentIndex(widget.placement.findData("points"))
+    return widget
+
+
+@pytest.fixture
+def strain_calls(monkeypatch):
+    """A list that gets, for each strain tensor computed (``quantities.physical_strain``), True
+    when it was computed on the main thread."""
+    import threading
+
+    from napari_dvc_correct import quantities
+
+    calls = []
+    original = quantities.physical_strain
+
+    def recording(field):
+        calls.append(threading.current_thread() is threading.main_thread())
+        return original(field)
+
+    monkeypatch.setattr(quantities, "physical_strain", recording)
+    return calls
+
+
 def expected_placement(field):
     """``(scale, translate)`` a grid layer of ``field`` must have over the small pair."""
     vs, off = np.asarray(SMALL.voxel_size), np.asarray(SMALL.offset)

@@ -240,3 +240,30 @@ def test_automatic_thresholds_of_a_lazy_volume_read_only_the_lattice():
     volume = two_phase_volume((40, 40, 40), seed=2)
     lazy = da.from_array(volume, chunks=20)
     np.testing.assert_array_equal(automatic_thresholds(lazy, 3), automatic_thresholds(volume, 3))
+
+
+def test_a_series_result_carries_its_fields_as_shown_with_state_0():
+    """The worker makes the series as its 4-D layers show it (state 0 without displacement
+    first), so the panel's slot has nothing to compute; a pair has no series."""
+    from napari_dvc_correct._sample_data import scan_series
+    from napari_dvc_correct.engine.progress import run_to_completion
+    from napari_dvc_correct.widgets._base import _result_fields
+
+    volumes, _ = scan_series((40, 40, 40), slips=(0.0, 1.0, 2.0))
+    job = model.CorrelationJob(
+        volumes=list(volumes),
+        params=CorrelationParams(subvolume=11, step=8),
+        strategy="total",
+        names=["s0", "s1", "s2"],
+    )
+    result = run_to_completion(model.run_job(job))
+    states = [field for _, field in result.fields]
+    assert len(result.series) == 3
+    assert all(a is b for a, b in zip(result.series[1:], states))  # the same fields
+    zero = result.series[0]
+    assert zero.same_grid(states[0]) and not zero.u.any()
+    assert (zero.status == 0).all() and zero.metadata["voxel_size"] == [1.0, 1.0, 1.0]
+    ahead = _result_fields(result)  # what the worker computes the quantity on view of
+    assert len(ahead) == 3 and all(a is b for a, b in zip(ahead, [*states, zero]))
+    pair = model.CorrelationJob(volumes=list(volumes[:2]), params=job.params, names=["a", "b"])
+    assert run_to_completion(model.run_job(pair)).series is None

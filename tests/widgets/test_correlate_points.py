@@ -8,31 +8,20 @@ import pytest
 from napari_dvc_correct import layers as L
 from napari_dvc_correct import point_layers as P
 from napari_dvc_correct.engine.synthetic import sample_displacement, shear_band
-from napari_dvc_correct.widgets import CorrelateWidget, ViewWidget
-
-#: Points of interest in voxels (z, y, x) of the small pair, fractional ones included.
-VOXELS = np.array([[12.0, 14.0, 20.0], [24.0, 24.0, 24.0], [30.4, 20.0, 33.6], [20.0, 33.0, 14.0]])
+from napari_dvc_correct.widgets import ViewWidget
 
 
 def _world(small, voxels):
     return voxels * np.asarray(small.voxel_size) + np.asarray(small.offset)
 
 
-@pytest.fixture
-def points_panel(viewer_pair, small):
-    widget = CorrelateWidget(viewer_pair)
-    viewer_pair.window.add_dock_widget(widget)
-    widget.subvolume.setValue(small.subvolume)
-    widget.step.setValue(small.step)
-    viewer_pair.add_points(_world(small, VOXELS), name="my points")  # world coordinates
-    widget.placement.setCurrentIndex(widget.placement.findData("points"))
-    return widget
-
-
-def test_points_layer_run_gives_readable_point_layers(points_panel, run_panel, small, pair48):
+def test_points_layer_run_gives_readable_point_layers(
+    points_panel, run_panel, small, pair48, point_voxels
+):
     from napari_dvc_correct.engine.correlate_points import correlate_points
     from napari_dvc_correct.engine.params import CorrelationParams
 
+    voxels = point_voxels
     widget, viewer = points_panel, points_panel.viewer
     assert widget.points.currentText() == "my points"  # the new Points layer is chosen
     assert widget.points.isEnabled()
@@ -45,17 +34,17 @@ def test_points_layer_run_gives_readable_point_layers(points_panel, run_panel, s
     # placed like the scans: the points sit where the user put them
     np.testing.assert_allclose(layer.scale, small.voxel_size)
     np.testing.assert_allclose(layer.translate, small.offset)
-    np.testing.assert_allclose(layer.data, VOXELS)
+    np.testing.assert_allclose(layer.data, voxels)
     np.testing.assert_allclose(
-        np.asarray(layer.data_to_world(layer.data[2])), _world(small, VOXELS)[2]
+        np.asarray(layer.data_to_world(layer.data[2])), _world(small, voxels)[2]
     )
     field = L.plugin_metadata(layer)["points_field"]
     reference, deformed, truth = pair48
     direct = correlate_points(
-        reference, deformed, VOXELS, CorrelationParams(subvolume=small.subvolume, step=small.step)
+        reference, deformed, voxels, CorrelationParams(subvolume=small.subvolume, step=small.step)
     )
     np.testing.assert_allclose(field.u, direct.u, atol=1e-9)  # what the engine gives
-    expected = sample_displacement(shear_band(**truth), VOXELS)
+    expected = sample_displacement(shear_band(**truth), voxels)
     assert np.median(np.abs(field.u - expected)) < 0.15  # and the known shear band
     # every quantity is a feature (in world units); the colours follow |u|
     features = layer.features
@@ -67,13 +56,13 @@ def test_points_layer_run_gives_readable_point_layers(points_panel, run_panel, s
     low, high = layer.face_contrast_limits
     assert low == 0.0 and high > 0.0 and layer.face_colormap.name == "viridis"
     # arrows from each point along its displacement (true length in world units, or scaled)
-    np.testing.assert_allclose(arrows.data[:, 0], VOXELS[field.valid])
+    np.testing.assert_allclose(arrows.data[:, 0], voxels[field.valid])
     np.testing.assert_allclose(arrows.data[:, 1], field.u[field.valid])
     np.testing.assert_allclose(arrows.scale, small.voxel_size)
-    text = widget.message.text()
-    assert "Done: 4 points" in text and "|u| [vx]" not in text and "scale units" in text
-    assert "at the points" in L.text_overlay(viewer).text
-    assert "viridis 0 to" in L.text_overlay(viewer).text
+    assert "Done: 4 points" in widget.message.text()
+    caption = L.text_overlay(viewer).text
+    assert caption.startswith("|u| [scale units] at the points")  # not [vx]: a voxel size
+    assert "viridis 0 to" in caption
     # the View panel recolours the points with the chosen quantity
     view = ViewWidget(viewer)
     viewer.window.add_dock_widget(view)
@@ -81,6 +70,10 @@ def test_points_layer_run_gives_readable_point_layers(points_panel, run_panel, s
     assert layer.name == "ZNCC (points)"
     assert layer.face_colormap.name == "magma"
     assert "ZNCC" in view.caption.text() and "at the points" in view.caption.text()
+    assert L.text_overlay(viewer).text.startswith("ZNCC [–] at the points")  # what is shown
+    # the Correlate panel's line does not name the quantity the points were first coloured by
+    assert "|u|" not in widget.message.text() and "ZNCC" not in widget.message.text()
+    assert "canvas caption" in widget.message.text()
     view.set_quantity("εzx")
     low, high = layer.face_contrast_limits
     assert low == -high  # signed: centred on zero

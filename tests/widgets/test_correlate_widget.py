@@ -269,3 +269,45 @@ def test_new_layers_do_not_bring_the_preview_back(correlated):
     assert not correlated._update.timer.isActive()
     assert correlated.reference.currentText() == "reference"
     assert correlated.deformed.currentText() == "deformed"
+
+
+def test_a_new_series_shows_its_strain_computed_in_the_worker(
+    series48, make_napari_viewer, run_panel, qtbot, small, strain_calls
+):
+    """A series' state 0 (no displacement) is made with the result in the worker, and its
+    strain computed there too: showing the 4-D field on the main thread computes no strain
+    tensor (the worker computes the states' strain; before, the slot computed state 0's)."""
+    from napari_dvc_correct import layers as L
+    from napari_dvc_correct import quantities
+    from napari_dvc_correct.widgets import ViewWidget
+
+    volumes, _ = series48
+    viewer = make_napari_viewer()
+    viewer.add_image(volumes, name="scan")
+    view = ViewWidget(viewer)
+    viewer.window.add_dock_widget(view)
+    L.show_field(viewer, L.field_layers(_zero_field(small), "earlier"))
+    view.set_quantity("εeq")
+    qtbot.waitUntil(lambda: not view.busy, timeout=30_000)
+    widget = CorrelateWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    widget.mode.setCurrentIndex(widget.mode.findData("series4d"))
+    widget.reference.set_layer("scan")
+    widget.subvolume.setValue(small.subvolume)
+    widget.step.setValue(small.step)
+    strain_calls.clear()
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    layer = viewer.layers["εeq (series (total))"]
+    assert layer.visible and layer.data.shape[0] == 3
+    calls = list(strain_calls)
+    assert len(calls) == 3 and not any(calls), calls  # states 0, 1, 2, none on the main thread
+    states = L.series_of(layer)
+    assert not states[0].u.any()  # state 0: no displacement
+    expected = np.stack([quantities.quantity_values(f.copy(), "εeq") for f in states])
+    np.testing.assert_array_equal(layer.data, expected)  # as the slot used to compute it
+
+
+def _zero_field(small):
+    origin, step, shape = grid_for_volume(small.shape, small.subvolume, small.step)
+    return DisplacementField(origin=origin, step=step, u=np.zeros((*shape, 3)))

@@ -102,3 +102,75 @@ def test_bad_choices_show_a_message(problem, request, tmp_path):
     }[problem]
     assert expected in widget.message.text()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_points_result_in_every_point_format(points_panel, run_panel, tmp_path):
+    """A Correlate run at the points of a Points layer is listed and written at those points:
+    CSV (one row per point), the NPZ and .vtu of ``correlate --points``; grid formats refused."""
+    import csv
+
+    from napari_dvc_correct.engine.field import Status
+    from napari_dvc_correct.io.formats import read_points
+    from napari_dvc_correct.layers import plugin_metadata
+    from napari_dvc_correct.quantities import point_quantities
+
+    viewer = points_panel.viewer
+    run_panel(points_panel)
+    result = plugin_metadata(viewer.layers["|u| (points)"])["points_field"]
+    widget = _dock(viewer)
+    assert widget.field.currentText() == "points"
+    assert "4 points of interest of 'my points'" in widget.writes.text()
+    offered = [widget.format.itemData(i) for i in range(widget.format.count())]
+    assert offered[:3] == [".csv", ".npz", ".vtu"] and ".vti" not in offered
+    assert not widget.strain_tiff.isEnabled() and not widget.report.isEnabled()
+    with pytest.raises(ValueError, match="no grid for .vti"):
+        widget.set_format(".vti")
+    assert sorted(offered) == sorted((".csv", ".npz", ".vtu", ".tsv", ".disp", ".mat"))
+    for suffix in offered:
+        widget.set_format(suffix)
+        widget.path.setText(str(tmp_path / "pois"))
+        run_panel(widget)
+        assert widget.last_error is None, widget.last_error
+        assert (tmp_path / f"pois{suffix}").is_file(), suffix
+    rows = list(csv.DictReader(open(tmp_path / "pois.csv", newline="")))
+    assert len(rows) == result.n_points
+    column = lambda *names: np.array([[float(r[n]) for n in names] for r in rows])  # noqa: E731
+    np.testing.assert_allclose(column("z", "y", "x"), result.points, rtol=1e-8)
+    np.testing.assert_allclose(column("uz", "uy", "ux"), result.u, rtol=1e-8)
+    np.testing.assert_allclose(column("zncc")[:, 0], result.zncc, rtol=1e-6)
+    assert [r["status_name"] for r in rows] == [Status(int(c)).label for c in result.status]
+    strain = point_quantities(result)["εeq"]  # the strain the View panel shows at the points
+    np.testing.assert_allclose(column("equivalent_strain")[:, 0], strain, rtol=1e-8)
+    np.testing.assert_allclose(column("ux_phys")[:, 0], result.u[:, 2] * 1.5, rtol=1e-8)
+    for suffix in (".npz", ".tsv", ".disp", ".mat"):  # read back as the command line's files
+        back = read_points(tmp_path / f"pois{suffix}")
+        np.testing.assert_allclose(back.points, result.points, atol=1e-6)
+        np.testing.assert_allclose(back.u, result.u, atol=1e-6)
+        if suffix in (".npz", ".tsv"):  # (these two keep our exact status codes)
+            np.testing.assert_array_equal(back.status, result.status)
+    side = json.loads((tmp_path / "pois_provenance.json").read_text())
+    assert side["source"] == "points" and side["status_counts"] == result.status_counts()
+    vtk = pytest.importorskip("vtk")
+    reader = vtk.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(str(tmp_path / "pois.vtu"))
+    reader.Update()
+    assert reader.GetOutput().GetNumberOfPoints() == result.n_points
+
+
+def test_points_refuse_what_needs_a_grid(tmp_path):
+    """The model refuses grid formats and grid extras for a result at points, writing nothing."""
+    from napari_dvc_correct.engine.scattered import ScatteredField
+    from napari_dvc_correct.widgets import export_model as model
+
+    points = ScatteredField(points=np.array([[10.0, 11.0, 12.5]]), u=np.array([[0.1, 0.2, 0.3]]))
+    cases = {
+        "x.vti": ({}, "no grid for .vti"),
+        "x.h5": ({}, "no grid for .h5"),
+        "x.csv": ({"strain_tiff": True}, "needs a grid field"),
+        "y.csv": ({"report": {"title": "r"}}, "come from Evaluate"),
+    }
+    for name, (options, message) in cases.items():
+        request = model.ExportRequest(field=points, path=tmp_path / name, **options)
+        with pytest.raises(ValueError, match=message):
+            list(model.run_export(request))
+    assert list(tmp_path.iterdir()) == []

@@ -21,9 +21,8 @@ def _dock(viewer, cls):
     return widget
 
 
-def test_series_through_correct_and_evaluate(series40, make_napari_viewer, run_panel):
-    volumes, truths = series40
-    viewer = make_napari_viewer()
+def _correlate(viewer, volumes, run_panel):
+    """The series as a 4-D layer "scan", correlated (total strategy) by a docked panel."""
     viewer.add_image(volumes, name="scan")
     correlate = _dock(viewer, CorrelateWidget)
     correlate.mode.setCurrentIndex(correlate.mode.findData("series4d"))
@@ -31,6 +30,13 @@ def test_series_through_correct_and_evaluate(series40, make_napari_viewer, run_p
     correlate.subvolume.setValue(11)
     correlate.step.setValue(8)
     run_panel(correlate)
+    return correlate
+
+
+def test_series_through_correct_and_evaluate(series40, make_napari_viewer, run_panel):
+    volumes, truths = series40
+    viewer = make_napari_viewer()
+    correlate = _correlate(viewer, volumes, run_panel)
     assert correlate.last_error is None, correlate.last_error
     assert viewer.dims.axis_labels == ("state", "z", "y", "x")
 
@@ -66,3 +72,34 @@ def test_series_through_correct_and_evaluate(series40, make_napari_viewer, run_p
         assert len(evaluation.fields) == 2  # uncorrected and corrected of that state
         for item in evaluation.fields:
             assert 0.5 < item.accuracy <= 1.0 + 1e-9
+
+
+def test_a_corrected_series_shows_its_strain_computed_in_the_worker(
+    series40, make_napari_viewer, run_panel, qtbot, strain_calls
+):
+    """Self-correcting a series makes its 4-D fields (state 0 first) in the worker, where the
+    strain on view is computed for every state: the slot computes no strain tensor."""
+    from napari_dvc_correct import layers as L
+    from napari_dvc_correct.quantities import quantity_values
+    from napari_dvc_correct.widgets import ViewWidget
+
+    volumes, _ = series40
+    viewer = make_napari_viewer()
+    correlate = _correlate(viewer, volumes, run_panel)
+    assert correlate.last_error is None, correlate.last_error
+    view = _dock(viewer, ViewWidget)
+    view.set_quantity("εvol")
+    qtbot.waitUntil(lambda: not view.busy, timeout=30_000)
+    correct = _dock(viewer, CorrectWidget)
+    correct.max_passes.setValue(1)
+    strain_calls.clear()
+    run_panel(correct)
+    assert correct.last_error is None, correct.last_error
+    calls = list(strain_calls)
+    assert len(calls) == 3 and not any(calls), calls  # states 0, 1, 2, none on the main thread
+    layer = viewer.layers["εvol (series (total, corrected))"]
+    states = L.series_of(layer)
+    assert layer.visible and len(states) == 3 and not states[0].u.any()
+    expected = np.stack([quantity_values(f.copy(), "εvol") for f in states])
+    np.testing.assert_array_equal(layer.data, expected)
+    assert correct.table.rowCount() == 2

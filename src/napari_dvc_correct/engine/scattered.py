@@ -102,6 +102,11 @@ class ScatteredField:
         """Points holding a usable displacement (same rule as :attr:`DisplacementField.valid`)."""
         return usable_nodes(self.status, self.provenance, self.u)
 
+    def status_counts(self) -> dict[str, int]:
+        """Number of points of each status, by readable name (only the statuses present)."""
+        codes, counts = np.unique(self.status, return_counts=True)
+        return {Status(int(c)).label: int(n) for c, n in zip(codes, counts)}
+
     def copy(self) -> ScatteredField:
         """Deep copy (arrays and dictionaries)."""
         return copy.deepcopy(self)

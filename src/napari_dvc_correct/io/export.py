@@ -8,6 +8,11 @@ pyevtk does not write) by a small writer here.
 Grid quantities beyond the field itself (equivalent strain, ...) are passed as ``extra``: a dict of
 arrays of the grid shape ``(nz, ny, nx)``, written next to the field's own arrays.
 
+A field at scattered points (:class:`..engine.scattered.ScatteredField`, e.g. a Correlate run on a
+Points layer) goes through :func:`export_points`: CSV here, ``.vtu`` points, and the other tools'
+formats of :mod:`.formats` (the writers the command line's ``correlate --points`` uses); formats
+that need a regular grid are refused.
+
 Axis order: numpy arrays are ``(z, y, x)`` as everywhere in the package. VTK wants points with x
 varying fastest (which is numpy's C order of a ``(z, y, x)`` array), dimensions/spacing/origin as
 ``(x, y, z)`` and vectors as ``(ux, uy, uz)``: the VTK writers reorder these, nothing else does.
@@ -23,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.field import DisplacementField, Provenance, Status
+from ..engine.scattered import ScatteredField
 from .atomic import atomic_path
 from .npz import _json_default, save_field
 
@@ -38,19 +44,37 @@ FIELD_FORMATS = {
     ".tiff": "TIFF stacks, one file per component",
 }
 
+#: File suffixes :func:`export_points` understands (a field at scattered points), and what they
+#: write; the command line's ``correlate --points`` writes the same files (``.npz`` with
+#: ``--out-format aldvc``).
+POINT_FORMATS = {
+    ".csv": "CSV, one row per point",
+    ".npz": "pyALDVC .npz at the points (coordinates, U_1, zncc_1, status_1)",
+    ".vtu": "VTK XML points (ParaView)",
+    ".tsv": "spam TSV",
+    ".disp": "iDVC .disp",
+    ".mat": "ALDVC MATLAB .mat",
+}
+
+#: Writer of :mod:`.formats` for each suffix of :data:`POINT_FORMATS` it writes.
+_POINT_WRITERS = {".npz": "aldvc", ".tsv": "spam", ".disp": "idvc", ".mat": "aldvc"}
+
 
 def _json(value) -> str:
     return json.dumps(value, default=_json_default)
 
 
-def _check_extra(field: DisplacementField, extra: dict | None) -> dict[str, np.ndarray]:
+def _check_extra(
+    field: DisplacementField | ScatteredField, extra: dict | None
+) -> dict[str, np.ndarray]:
     checked = {}
+    scattered = isinstance(field, ScatteredField)
+    shape = (field.n_points,) if scattered else field.shape
     for name, values in (extra or {}).items():
         array = np.asarray(values)
-        if array.shape != field.shape:
-            raise ValueError(
-                f"extra array {name!r} must have the grid shape {field.shape}, got {array.shape}"
-            )
+        if array.shape != shape:
+            where = "one value per point" if scattered else "the grid shape"
+            raise ValueError(f"extra array {name!r} must have {where} {shape}, got {array.shape}")
         checked[str(name)] = array
     return checked
 
@@ -373,22 +397,30 @@ def export_tiff(
 
 # -- CSV ---------------------------------------------------------------------------------------
 def export_csv(
-    field: DisplacementField,
+    field: DisplacementField | ScatteredField,
     path: str | os.PathLike,
     *,
     extra: dict | None = None,
     voxel_size=None,
 ) -> Path:
-    """Write one row per POI: position, displacement, quality and any ``extra`` grid arrays.
+    """Write one row per POI: position, displacement, quality and any ``extra`` arrays.
 
     Columns: ``z, y, x`` (voxels), ``uz, uy, ux, magnitude`` (voxels), ``zncc``, ``status``
     (code), ``status_name``, ``provenance``, ``provenance_name``, ``iterations``, then the
     ``extra`` names; with a ``voxel_size`` also the physical position and displacement
-    (``z_phys``..., ``uz_phys``...). Rows follow the grid's C order.
+    (``z_phys``..., ``uz_phys``...). A grid field's rows follow the grid's C order and its
+    ``extra`` arrays have the grid shape ``(nz, ny, nx)``; a field at scattered points
+    (:class:`..engine.scattered.ScatteredField`) has one row per point in its order and
+    ``extra`` arrays of shape ``(N,)``.
     """
-    extra = _with_uncertainty(field, _check_extra(field, extra))
+    extra = _check_extra(field, extra)
+    if isinstance(field, ScatteredField):
+        u = field.u
+    else:
+        extra = _with_uncertainty(field, extra)
+        u = field.displacement
     vs = None if voxel_size is None else _voxel_size(voxel_size)
-    points, u = field.points, field.displacement
+    points = field.points
     columns = ["z", "y", "x", "uz", "uy", "ux", "magnitude", "zncc", "status", "status_name"]
     columns += ["provenance", "provenance_name", "iterations", *extra]
     if vs is not None:
@@ -397,7 +429,7 @@ def export_csv(
     provenance_names = {int(p): p.label for p in Provenance}
     status, provenance = field.status.ravel(), field.provenance.ravel()
     zncc, iterations = field.zncc.ravel(), field.iterations.ravel()
-    magnitude = field.magnitude.ravel()
+    magnitude = np.sqrt(np.sum(u**2, axis=-1))
     flat_extra = [np.asarray(v).ravel() for v in extra.values()]
     path = Path(path)
     with atomic_path(path) as temp:
@@ -464,13 +496,14 @@ def _markdown(report: dict, level: int = 1) -> str:
 
 # -- dispatch ----------------------------------------------------------------------------------
 def export_field(
-    field: DisplacementField,
+    field: DisplacementField | ScatteredField,
     path: str | os.PathLike,
     *,
     extra: dict | None = None,
     voxel_size=None,
 ) -> list[Path]:
-    """Export ``field`` in the format named by the suffix of ``path`` (see :data:`FIELD_FORMATS`).
+    """Export ``field`` in the format named by the suffix of ``path`` (see :data:`FIELD_FORMATS`;
+    a field at scattered points: :func:`export_points`).
 
     Returns
     -------
@@ -479,6 +512,8 @@ def export_field(
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    if isinstance(field, ScatteredField):
+        return export_points(field, path, extra=extra, voxel_size=voxel_size)
     if suffix == ".npz":
         save_field(field, path)  # the native format holds the field only (no extra arrays)
         return [path]
@@ -492,3 +527,61 @@ def export_field(
         return export_tiff(field, path, extra=extra, voxel_size=voxel_size)
     known = ", ".join(sorted(FIELD_FORMATS))
     raise ValueError(f"{path}: unknown export format {suffix!r}; use one of {known}")
+
+
+def export_points(
+    field: ScatteredField,
+    path: str | os.PathLike,
+    *,
+    extra: dict | None = None,
+    voxel_size=None,
+) -> list[Path]:
+    """Export a field at scattered points in the format named by the suffix of ``path``.
+
+    Parameters
+    ----------
+    field : ScatteredField
+        Positions and displacements ``(z, y, x)`` in reference voxels, one entry per point.
+    path : path
+        ``.csv`` (:func:`export_csv`), ``.vtu`` (:func:`export_vtk_points`), or ``.npz``
+        (pyALDVC layout), ``.tsv`` (spam), ``.disp`` (iDVC), ``.mat`` (ALDVC): the writers of
+        :mod:`.formats` that ``correlate --points`` uses; see :data:`POINT_FORMATS`.
+    extra : dict of ndarray (N,), optional
+        Per-point arrays written as more columns; CSV only.
+    voxel_size : 3 floats (z, y, x), optional
+        Physical size of a voxel: physical columns in the CSV, physical coordinates in the
+        ``.vtu``; the other formats stay in voxels.
+
+    Returns
+    -------
+    list of Path
+        The file written.
+
+    Raises
+    ------
+    ValueError
+        For a format that needs a regular grid (``.vti``, ``.vtk``, ``.h5``, ``.tif``), an
+        unknown suffix, or ``extra`` arrays with a format other than CSV.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in POINT_FORMATS:
+        known = ", ".join(POINT_FORMATS)
+        if suffix in FIELD_FORMATS:
+            raise ValueError(
+                f"{path.name}: {FIELD_FORMATS[suffix]} needs a field on a regular grid; a "
+                f"field at scattered points is written as {known}"
+            )
+        raise ValueError(f"{path}: unknown export format {suffix!r} for points; use one of {known}")
+    if suffix == ".csv":
+        return [export_csv(field, path, extra=extra, voxel_size=voxel_size)]
+    if extra:
+        raise ValueError(
+            f"{path.name}: {POINT_FORMATS[suffix]} holds the field only; extra arrays "
+            f"({', '.join(extra)}) are written to .csv"
+        )
+    if suffix == ".vtu":
+        return [export_vtk_points(field, path, voxel_size=voxel_size)]
+    from .formats import write_field
+
+    return [write_field(field, path, _POINT_WRITERS[suffix])]

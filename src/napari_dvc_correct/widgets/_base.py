@@ -72,15 +72,18 @@ def _shown_ahead(generator: Generator, quantity: str | None) -> Generator:
 
 
 def _result_fields(result) -> list:
-    """The grid fields in a panel's result (a correlation, a correction, a list of them)."""
+    """The grid fields in a panel's result (a correlation, a correction, a list of them), each
+    once; a series' ``series`` (the fields as its 4-D layers show them: a correlated or a
+    self-corrected series) brings its state 0."""
     from ..engine.field import DisplacementField
 
     items = result if isinstance(result, list) else [result]
     found = []
     for item in items:
-        for entry in [getattr(item, "field", None), *(getattr(item, "fields", None) or [])]:
+        entries = [getattr(item, "field", None), *(getattr(item, "fields", None) or [])]
+        for entry in entries + list(getattr(item, "series", None) or []):
             field = entry[1] if isinstance(entry, tuple) and len(entry) == 2 else entry
-            if isinstance(field, DisplacementField):
+            if isinstance(field, DisplacementField) and not any(f is field for f in found):
                 found.append(field)
     return found
 

@@ -191,20 +191,20 @@ class CorrectWidget(EngineWidget):
                 self.table.setItem(r, c, QTableWidgetItem(text))
         self.table.resizeColumnsToContents()
 
-    def _series_result(self, results) -> None:
+    def _series_result(self, result: model.SeriesCorrection) -> None:
         source = self._series_source
         corrected = source[:-1] + ", corrected)" if source.endswith(")") else source + " corrected"
-        fields = L.series_fields([r.field for r in results])
-        placement = {"voxel_size": results[0].voxel_size, "offset": results[0].offset}
-        L.show_field(self.viewer, L.field_layers(fields, corrected, **placement))
-        rows = model.series_rows(results)
+        first = result.results[0]
+        placement = {"voxel_size": first.voxel_size, "offset": first.offset}
+        L.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
+        rows = model.series_rows(result.results)
         self._fill_table(["state", "mean residual", "passes", "nodes moved"], rows)
         self.show_message(
             "Self-corrected every state: " + "; ".join(f"{r[0]} {r[1]}" for r in rows) + "."
         )
 
     def on_result(self, result) -> None:
-        if isinstance(result, list):
+        if isinstance(result, model.SeriesCorrection):
             self._series_result(result)
             return
         L.show_field(

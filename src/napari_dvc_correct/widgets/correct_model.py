@@ -99,13 +99,24 @@ def summary_message(field: DisplacementField) -> str:
     return text
 
 
+@dataclass
+class SeriesCorrection:
+    """A self-corrected series: one :class:`CorrectionResult` per state after the first, in
+    order, and ``series``, the corrected fields as the 4-D layers show them (state 0 without
+    displacement first, :func:`..layers.series_fields`), made in the worker so the quantity on
+    view is computed there for every state, state 0 included."""
+
+    results: list
+    series: list
+
+
 def run_series_correction(pairs, fields, **options):
     """Self-correct every state of a series: ``pairs[k]`` = (G, F_k) for ``fields[k]``.
 
-    Returns the list of :class:`CorrectionResult`, one per state, in order. ``options`` are
-    those of :func:`run_correction`.
+    Returns a :class:`SeriesCorrection`. ``options`` are those of :func:`run_correction`.
     """
     from ..engine.progress import Progress
+    from ..layers import series_fields
 
     results = []
     if not options.get("tiled"):  # the region as one array, once for every state
@@ -114,7 +125,7 @@ def run_series_correction(pairs, fields, **options):
         yield Progress(f"state {k}/{len(fields)}", 0, 1, "self-correcting")
         result = yield from run_correction(reference, deformed, field, **options)
         results.append(result)
-    return results
+    return SeriesCorrection(results, series_fields([r.field for r in results]))
 
 
 def series_rows(results) -> list[tuple[str, str, str, str]]:

@@ -563,10 +563,9 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         if len(result.fields) == 1:
             source, field = result.fields[0]
             L.show_field(self.viewer, L.field_layers(field, source, **placement))
-        else:  # a series: one 4-D field, state 0 (no displacement) first
+        else:  # a series: one 4-D field, state 0 (no displacement) first, made in the worker
             source = "series " + result.fields[0][0].split(" ", 2)[2]
-            fields = L.series_fields([item[1] for item in result.fields])
-            L.show_field(self.viewer, L.field_layers(fields, source, **placement))
+            L.show_field(self.viewer, L.field_layers(result.series, source, **placement))
         lines = []
         for source, field in result.fields:
             counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())

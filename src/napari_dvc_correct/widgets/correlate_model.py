@@ -96,11 +96,23 @@ class CorrelationJob:
 
 @dataclass
 class CorrelationResult:
-    """What a run returns to the panel: one ``(source, field)`` per field."""
+    """What a run returns to the panel: one ``(source, field)`` per field.
+
+    Attributes
+    ----------
+    fields : list of (str, DisplacementField or ScatteredField)
+    voxel_size, offset : tuple of 3 floats
+        ``scale`` and ``translate`` (z, y, x) of the reference layer.
+    series : list of DisplacementField or None
+        A series' fields as its 4-D layers show them, state 0 (no displacement) first
+        (:func:`..layers.series_fields`), made in the worker so the quantity on view is
+        computed there for every state, state 0 included; None for a pair.
+    """
 
     fields: list
     voxel_size: tuple = (1.0, 1.0, 1.0)
     offset: tuple = (0.0, 0.0, 0.0)
+    series: list | None = None
 
 
 def _finish(field: DisplacementField, job: CorrelationJob, names) -> DisplacementField:
@@ -129,9 +141,11 @@ def run_grid_job(job: CorrelationJob):
 
     A pair gives one field, source ``"uncorrected"``; a series gives one field per state after
     the first, source ``"state k (total)"`` (or ``incremental``, ``+ corrected`` when each state
-    was self-corrected), each the total displacement from state 0.
+    was self-corrected), each the total displacement from state 0, and the result's ``series``
+    (state 0 first, as the 4-D layers show it).
     """
     from ..engine.correlate import correlate_iter
+    from ..layers import series_fields
 
     results = []
     if job.strategy == "pair" and job.tiled:
@@ -160,6 +174,8 @@ def run_grid_job(job: CorrelationJob):
             field = _finish(field, job, [job.names[0], job.names[k]])
             source = f"state {k} ({job.strategy}{suffix})"
             results.append((source, field))
+        series = series_fields([item[1] for item in results])
+        return CorrelationResult(results, job.voxel_size, job.offset, series=series)
     return CorrelationResult(results, job.voxel_size, job.offset)
 
 

@@ -1,4 +1,5 @@
-"""The Export dock: a field to NPZ/HDF5/VTK/TIFF/CSV, strain and residual to TIFF, the report."""
+"""The Export dock: a field to NPZ/HDF5/VTK/TIFF/CSV, strain and residual to TIFF, the report;
+a result at points of interest to CSV/NPZ/VTU and the other tools' point formats."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from qtpy.QtWidgets import (
 )
 
 from .. import layers as L
+from .. import point_layers as P
 from . import export_model as model
 from ._base import EngineWidget, follow_layers
 
@@ -37,7 +39,9 @@ class ExportWidget(EngineWidget):
 
     The Field choice follows each new result; the line under it says which field the export
     writes (corrected or not, passes, residuals) and the file name follows the field until the
-    user edits it.
+    user edits it. Results at points of interest are listed too; for them the Format choice
+    offers the point formats only (:data:`.export_model.POINT_FORMATS`) and the extras that need
+    a grid are off.
     """
 
     run_text = "Export"
@@ -50,7 +54,8 @@ class ExportWidget(EngineWidget):
         self.writes.setWordWrap(True)
         self.form.addRow("Writes", self.writes)
         self.format = QComboBox()
-        for label, suffix in model.FORMATS.items():
+        self._formats = model.FORMATS
+        for label, suffix in self._formats.items():
             self.format.addItem(label, suffix)
         self.form.addRow("Format", self.format)
         self.path = QLineEdit("")
@@ -86,10 +91,17 @@ class ExportWidget(EngineWidget):
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
 
+    def fields(self) -> dict:
+        """What the panel can export, by name: the grid fields, then the results at points."""
+        fields = L.fields_in(self.viewer.layers)
+        for source, points in P.points_in(self.viewer.layers).items():
+            fields.setdefault(source, points)
+        return fields
+
     def _layers_changed(self, event=None) -> None:
         """Keep the list of fields; a new field (the latest result) becomes the choice."""
         current = self.field.currentText()
-        fields = L.fields_in(self.viewer.layers)
+        fields = self.fields()
         names = list(fields)
         inserted = getattr(event, "value", None) if event is not None else None
         latest = None
@@ -97,6 +109,8 @@ class ExportWidget(EngineWidget):
             source = L.plugin_metadata(inserted)["source"]
             series = L.series_of(inserted)
             latest = L.state_source(source, len(series) - 1) if series else source
+        elif inserted is not None and (L.plugin_metadata(inserted) or {}).get("kind") == "points":
+            latest = L.plugin_metadata(inserted)["source"]
         elif current not in names:
             corrected = [n for n in names if "corrected" in n and "uncorrected" not in n]
             latest = corrected[-1] if corrected else (names[-1] if names else None)
@@ -109,14 +123,34 @@ class ExportWidget(EngineWidget):
 
     def _field_changed(self, *args) -> None:
         source = self.field.currentText()
-        field = L.fields_in(self.viewer.layers).get(source)
+        field = self.fields().get(source)
         self.writes.setText(model.describe(field, source) if field is not None else "no field yet")
+        self._offer_formats(model.formats_for(field))
+        grid = not model.is_points(field)
+        for box in (self.strain_tiff, self.residual_tiff, self.report):
+            box.setEnabled(grid)  # a result at points has no grid, residual or report
         # the file name follows the field until the user types their own
         text = self.path.text().strip()
         if field is not None and (not text or text == self._proposed):
             folder = Path(text).parent if text else default_folder(self.viewer)
             self._proposed = str(folder / model.default_name(source, self.format.currentData()))
             self.path.setText(self._proposed)
+
+    def _offer_formats(self, formats: dict) -> None:
+        """Offer ``formats`` (label -> suffix) in the Format choice, keeping the chosen suffix
+        when it is among them (else the first: CSV for points, NPZ for grids)."""
+        if formats is self._formats:
+            return
+        suffix = self.format.currentData()
+        self._formats = formats
+        self.format.blockSignals(True)
+        self.format.clear()
+        for label, value in formats.items():
+            self.format.addItem(label, value)
+        self.format.setCurrentIndex(max(0, self.format.findData(suffix)))
+        self.format.blockSignals(False)
+        if self.format.currentData() != suffix:
+            self._format_changed()
 
     def _format_changed(self, *args) -> None:
         text = self.path.text().strip()
@@ -128,10 +162,8 @@ class ExportWidget(EngineWidget):
 
     def set_format(self, suffix: str) -> None:
         """Choose the format by file suffix (``".vti"``, ``".csv"``...)."""
-        index = self.format.findData(suffix)
-        if index < 0:
-            raise ValueError(f"unknown export format {suffix!r}")
-        self.format.setCurrentIndex(index)
+        model.check_format(self.fields().get(self.field.currentText()), suffix)
+        self.format.setCurrentIndex(self.format.findData(suffix))
 
     def browse(self, checked: bool = False) -> None:
         path, _ = QFileDialog.getSaveFileName(
@@ -197,11 +229,22 @@ class ExportWidget(EngineWidget):
 
     def prepare(self):
         source = self.field.currentText()
-        fields = L.fields_in(self.viewer.layers)
+        fields = self.fields()
         if source not in fields:
             raise ValueError("no field to export: run Correlate first (or open a field file)")
         field = fields[source]
         path = model.check_path(self.path.text(), self.format.currentData())
+        if model.is_points(field):  # (no grid: the grid's extras are off in the panel)
+            return model.run_export(
+                model.ExportRequest(
+                    field=field,
+                    path=path,
+                    source=source,
+                    strain_with_field=self.with_strain.isChecked(),
+                    voxel_size=tuple(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
+                    offset=tuple(field.metadata.get("offset", (0.0, 0.0, 0.0))),
+                )
+            )
         strain = None
         if self.with_strain.isChecked() or self.strain_tiff.isChecked():
             from ..engine.strain import equivalent_strain_field

@@ -4,6 +4,12 @@ Every export carries the field's provenance (:func:`provenance`: which field, co
 passes, gray residuals, DVC parameters, voxel size): inside the file for NPZ and HDF5 (the
 field's ``metadata["provenance"]``), in a ``STEM_provenance.json`` next to it for VTK, TIFF and
 CSV, which have no place for it.
+
+A result at points of interest (a :class:`..engine.scattered.ScatteredField`, from a Correlate
+run on a Points layer) is written in the formats of :data:`POINT_FORMATS` (those of the command
+line's ``correlate --points``), always with the provenance side file; the formats and extras
+that need a grid (VTK image data, TIFF stacks, HDF5, the strain TIFF, residual and report) are
+refused for it (:func:`check_request`).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import numpy as np
 
 from ..engine.field import DisplacementField
 from ..engine.progress import Progress
+from ..engine.scattered import ScatteredField
 
 #: Formats offered in the panel: label -> file suffix.
 FORMATS = {
@@ -26,6 +33,17 @@ FORMATS = {
     "CSV (one row per POI)": ".csv",
 }
 
+#: Formats offered for a result at points of interest: label -> file suffix (the files of
+#: :func:`..io.export.export_points`, as the command line's ``correlate --points`` writes them).
+POINT_FORMATS = {
+    "CSV (one row per point)": ".csv",
+    "NPZ at the points (pyALDVC layout, as correlate --points --out-format aldvc)": ".npz",
+    "VTK points (.vtu, ParaView)": ".vtu",
+    "spam TSV (.tsv)": ".tsv",
+    "iDVC (.disp)": ".disp",
+    "ALDVC MATLAB (.mat)": ".mat",
+}
+
 
 @dataclass
 class ExportRequest:
@@ -33,7 +51,9 @@ class ExportRequest:
 
     Attributes
     ----------
-    field : DisplacementField
+    field : DisplacementField or ScatteredField
+        A grid field, or a result at points of interest (positions and displacements
+        ``(z, y, x)`` in reference voxels).
     source : str
         The panel's name of the field (recorded in its provenance).
     path : Path
@@ -42,7 +62,8 @@ class ExportRequest:
         Equivalent strain on the field's grid.
     strain_with_field : bool
         Write the strain into the field file as an extra grid array (all formats but NPZ,
-        which holds the field only).
+        which holds the field only); for points, an ``equivalent_strain`` column of the CSV
+        (each point's strain from its matched gradient, as the View panel shows it).
     strain_tiff : bool
         Also write the strain on the grid as ``STEM_equivalent_strain.tif``.
     residual : ndarray (NZ, NY, NX) or None
@@ -51,7 +72,7 @@ class ExportRequest:
         Evaluation report written as ``STEM_report.md`` and ``STEM_report.json``.
     """
 
-    field: DisplacementField
+    field: DisplacementField | ScatteredField
     path: Path
     source: str = "field"
     equivalent_strain: np.ndarray | None = None
@@ -68,7 +89,56 @@ class ExportRequest:
 WITH_METADATA = (".npz", ".h5", ".hdf5")
 
 
-def provenance(field: DisplacementField, source: str) -> dict:
+def is_points(field) -> bool:
+    """True for a result at points of interest (no grid)."""
+    return isinstance(field, ScatteredField)
+
+
+def formats_for(field) -> dict:
+    """The formats the panel offers for ``field``: label -> suffix."""
+    return POINT_FORMATS if is_points(field) else FORMATS
+
+
+def check_format(field, suffix: str) -> None:
+    """Refuse a format ``suffix`` not offered for ``field`` (ValueError that says which are)."""
+    formats = formats_for(field)
+    if suffix in formats.values():
+        return
+    if is_points(field):
+        raise ValueError(
+            f"a result at points of interest has no grid for {suffix or 'this format'}: export "
+            f"it as {', '.join(POINT_FORMATS.values())}"
+        )
+    raise ValueError(f"unknown export format {suffix!r}; use one of {', '.join(formats.values())}")
+
+
+def check_request(request: ExportRequest) -> None:
+    """Refuse what a result at points of interest cannot be written as (ValueError that says
+    what to choose instead); grid fields pass."""
+    if not is_points(request.field):
+        return
+    check_format(request.field, request.path.suffix.lower())
+    if request.strain_tiff or request.equivalent_strain is not None:
+        raise ValueError(
+            "the equivalent strain as a TIFF stack needs a grid field: a result at points has "
+            "its strain per point (the CSV's equivalent_strain column)"
+        )
+    if request.residual is not None or request.report is not None:
+        raise ValueError(
+            "the gray residual and the report come from Evaluate on a grid field, not from a "
+            "result at points of interest"
+        )
+
+
+def point_strain(field: ScatteredField) -> np.ndarray | None:
+    """Equivalent strain (N,) at each point, from its matched displacement gradient (physical
+    axes, as the View panel shows it); None without gradients."""
+    from ..quantities import point_quantities
+
+    return point_quantities(field).get("εeq")
+
+
+def provenance(field: DisplacementField | ScatteredField, source: str) -> dict:
     """Where an exported field comes from, JSON-friendly.
 
     Keys: ``source`` (the panel's name of the field), ``corrected`` (bool), ``passes_applied``,
@@ -94,9 +164,14 @@ def provenance(field: DisplacementField, source: str) -> dict:
     }
 
 
-def describe(field: DisplacementField, source: str) -> str:
+def describe(field: DisplacementField | ScatteredField, source: str) -> str:
     """One line for the panel: which field the export writes."""
     info = provenance(field, source)
+    if is_points(field):
+        layer = field.metadata.get("points_layer")
+        text = f"the '{source}' result at {field.n_points:,} points of interest"
+        text += f" of '{layer}'" if layer else ""
+        return text + " (no grid: no VTK image, TIFF, HDF5, residual or report)"
     text = f"the '{source}' field, {field.n_points:,} POIs, "
     if not info["corrected"]:
         return text + "not self-corrected"
@@ -133,12 +208,18 @@ def run_export(request: ExportRequest):
     """Write everything the request asks for; yields Progress per file, returns the paths."""
     from ..io import export
 
+    check_request(request)
+    points = is_points(request.field)
     origin = provenance(request.field, request.source)
     field = request.field.copy()
     field.metadata["provenance"] = origin
     extra = None
-    if request.strain_with_field and request.equivalent_strain is not None:
-        if request.path.suffix.lower() != ".npz":
+    suffix = request.path.suffix.lower()
+    if request.strain_with_field and points and suffix == ".csv":
+        strain = point_strain(field)
+        extra = None if strain is None else {"equivalent_strain": strain}
+    elif request.strain_with_field and request.equivalent_strain is not None:
+        if suffix != ".npz":
             extra = {"equivalent_strain": request.equivalent_strain}
     stem = request.path.with_suffix("")
 
@@ -146,7 +227,7 @@ def run_export(request: ExportRequest):
         return export.export_field(field, request.path, extra=extra, voxel_size=request.voxel_size)
 
     jobs = [("field", write_field)]
-    if request.path.suffix.lower() not in WITH_METADATA:
+    if points or suffix not in WITH_METADATA:  # (the points' .npz has no room for it either)
         side = stem.parent / f"{stem.name}_provenance.json"
         report = {"title": "DVC field provenance", **origin, "metadata": field.metadata}
         jobs.append(("provenance", lambda: [export.export_report(report, side)]))
