@@ -79,6 +79,27 @@ def test_points_layer_run_gives_readable_point_layers(
     assert low == -high  # signed: centred on zero
 
 
+def test_points_run_out_of_core_as_in_memory(points_panel, run_panel, small, pair48, point_voxels):
+    """'Out of core' with points of interest: the guide in batches and the points in groups,
+    each reading its region of the scans; the points get the in-memory result."""
+    from napari_dvc_correct.engine.correlate_points import correlate_points
+    from napari_dvc_correct.engine.params import CorrelationParams
+
+    widget = points_panel
+    widget.tiled.setChecked(True)
+    widget.max_memory.setText("2GB")
+    assert widget.job().tiled
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    field = L.plugin_metadata(widget.viewer.layers["|u| (points)"])["points_field"]
+    assert field.metadata["tiled"]["groups"] >= 1
+    reference, deformed, _ = pair48
+    params = CorrelationParams(subvolume=small.subvolume, step=small.step)
+    direct = correlate_points(reference, deformed, point_voxels, params)
+    np.testing.assert_array_equal(field.status, direct.status)
+    np.testing.assert_allclose(field.u, direct.u, atol=1e-3)
+
+
 def test_points_outside_or_near_the_border_are_refused(points_panel, small):
     widget, viewer = points_panel, points_panel.viewer
     bad = np.array([[24.0, 24.0, 24.0], [24.0, 24.0, 60.0], [3.0, 24.0, 24.0]])

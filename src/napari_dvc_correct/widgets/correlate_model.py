@@ -184,28 +184,41 @@ def run_points_job(job: CorrelationJob):
 
     The guide field (the initial guess of every point) is correlated first on a grid of the
     job's step over the points' bounding box, with progress and cancel; then IC-GN runs at each
-    point. Returns a :class:`CorrelationResult` with one ``("points", ScatteredField)``; the
-    field's metadata says where it belongs (voxel size, offset, layers).
+    point. Out of core (``job.tiled``) the guide runs in batches and the points in groups, each
+    reading only its region (:func:`..tiled.points.correlate_points_tiled_iter`). Returns a
+    :class:`CorrelationResult` with one ``("points", ScatteredField)``; the field's metadata
+    says where it belongs (voxel size, offset, layers).
     """
-    from ..engine.correlate import correlate_iter
-    from ..engine.correlate_points import correlate_points
-    from ..engine.placement import Box, grid_for_region
-
-    params, points = job.params, np.asarray(job.points, dtype=np.float64)
-    reference, deformed, mask = job.volumes[0], job.volumes[1], whole(job.mask)
     from .points_model import check_points
 
+    params, points = job.params, np.asarray(job.points, dtype=np.float64)
+    reference, deformed = job.volumes[0], job.volumes[1]
     check_points(points, job.shape, params.subvolume, job.points_layer)
-    lo = points.min(axis=0) - params.step  # as correlate_points' own guide
-    hi = points.max(axis=0) + params.step + 1
-    grid = grid_for_region(reference.shape, params.subvolume, params.step, Box(lo, hi))
-    guide = yield from correlate_iter(
-        reference, deformed, params, mask=mask, grid=grid, device=job.device
-    )
-    yield Progress("IC-GN at the points", 0, len(points), f"{len(points)} points")
-    result = correlate_points(
-        reference, deformed, points, params, mask=mask, guide=guide, device=job.device
-    )
+    if job.tiled:
+        from ..tiled.points import correlate_points_tiled_iter
+
+        result = yield from correlate_points_tiled_iter(
+            reference,
+            deformed,
+            points,
+            params,
+            mask=job.mask,
+            max_memory=job.max_memory,
+            device=job.device,
+        )
+    else:
+        from ..engine.correlate import correlate_iter
+        from ..engine.correlate_points import correlate_points, guide_grid
+
+        mask = whole(job.mask)
+        grid = guide_grid(reference.shape, points, params)  # as correlate_points' own guide
+        guide = yield from correlate_iter(
+            reference, deformed, params, mask=mask, grid=grid, device=job.device
+        )
+        yield Progress("IC-GN at the points", 0, len(points), f"{len(points)} points")
+        result = correlate_points(
+            reference, deformed, points, params, mask=mask, guide=guide, device=job.device
+        )
     result.metadata.update(
         voxel_size=list(job.voxel_size),
         offset=list(job.offset),
@@ -237,13 +250,12 @@ def suggest_tiled(volumes, memory: int | None = None) -> bool:
 
 
 def check_tiled(job_strategy: str, points, max_memory: str | None) -> str | None:
-    """Refuse what a tiled run does not do; the memory limit checked (None = automatic)."""
+    """Refuse what a tiled run does not do; the memory limit checked (None = automatic).
+
+    A pair runs out of core on a grid or at points of interest (``points`` is accepted for
+    that reason; a series is refused)."""
     if job_strategy != "pair":
         raise ValueError("an out-of-core run correlates a pair: for a series, untick 'out of core'")
-    if points is not None:
-        raise ValueError(
-            "points of interest run in memory: untick 'out of core' or use the regular grid"
-        )
     text = (max_memory or "").strip()
     if text in ("", "auto"):
         return None
