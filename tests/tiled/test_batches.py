@@ -12,13 +12,13 @@ PARAMS = CorrelationParams(subvolume=15, step=8, tolerance=1e-5)
 
 def _counted_reads(monkeypatch):
     reads = []
-    real = batches._read
+    real = batches.read_regions
 
     def counted(job, *volumes):
         reads.append(tuple(job.core_index[:1]))
         return real(job, *volumes)
 
-    monkeypatch.setattr(batches, "_read", counted)
+    monkeypatch.setattr(batches, "read_regions", counted)
     return reads
 
 

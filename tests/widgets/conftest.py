@@ -42,6 +42,30 @@ def viewer_pair(make_napari_viewer, pair48):
 
 
 @pytest.fixture
+def lazy_viewer(make_napari_viewer, pair48):
+    """A viewer holding the pair as Dask arrays ("reference", "deformed"): lazily backed scans."""
+    import dask.array as da
+
+    reference, deformed, _ = pair48
+    viewer = make_napari_viewer()
+    for name, data in (("reference", reference), ("deformed", deformed)):
+        viewer.add_image(da.from_array(data, chunks=24), name=name)
+    return viewer
+
+
+@pytest.fixture
+def lazy_panel(lazy_viewer):
+    """A docked Correlate panel over :func:`lazy_viewer`'s scans, with the small subvolume/step."""
+    from napari_dvc_correct.widgets import CorrelateWidget
+
+    widget = CorrelateWidget(lazy_viewer)
+    lazy_viewer.window.add_dock_widget(widget)
+    widget.subvolume.setValue(SMALL.subvolume)
+    widget.step.setValue(SMALL.step)
+    return widget
+
+
+@pytest.fixture
 def run_panel(qtbot):
     """``run_panel(widget)``: run a panel and wait for its worker (no sleeping); the worker."""
 

@@ -45,23 +45,15 @@ def test_a_lazy_pair_runs_out_of_core_and_gives_the_in_memory_field(
     assert widget.settings()["tiled"] is True
 
 
-def test_a_lazy_pair_self_corrects_out_of_core(make_napari_viewer, pair48, run_panel, small):
+def test_a_lazy_pair_self_corrects_out_of_core(lazy_panel, pair48, run_panel, small):
     """The Self-correct panel ticks 'out of core' for Dask-backed scans; the tiled correction
     gives the in-memory correction of the same field."""
-    import dask.array as da
-
     from napari_dvc_correct.engine.correction import correct_iter
     from napari_dvc_correct.engine.progress import run_to_completion
     from napari_dvc_correct.widgets import CorrectWidget
 
     reference, deformed, _ = pair48
-    viewer = make_napari_viewer()
-    for name, data in (("reference", reference), ("deformed", deformed)):
-        viewer.add_image(da.from_array(data, chunks=24), name=name)
-    correlate = CorrelateWidget(viewer)
-    viewer.window.add_dock_widget(correlate)
-    correlate.subvolume.setValue(small.subvolume)
-    correlate.step.setValue(small.step)
+    correlate, viewer = lazy_panel, lazy_panel.viewer
     run_panel(correlate)
     field = L.field_of(viewer.layers["|u| (uncorrected)"])
     correct = CorrectWidget(viewer)
@@ -79,24 +71,16 @@ def test_a_lazy_pair_self_corrects_out_of_core(make_napari_viewer, pair48, run_p
     assert np.max(np.abs(tiled.u[good] - memory.u[good])) < 1e-4
 
 
-def test_a_lazy_pair_evaluates_out_of_core(make_napari_viewer, pair48, run_panel, small):
+def test_a_lazy_pair_evaluates_out_of_core(lazy_panel, pair48, run_panel, small):
     """The Evaluate panel ticks 'out of core' for Dask-backed scans; the residual comes back as
     a lazy Zarr layer and the accuracy is the in-memory one."""
-    import dask.array as da
-
     from napari_dvc_correct.engine.accuracy import evaluate_iter
     from napari_dvc_correct.engine.progress import run_to_completion
     from napari_dvc_correct.widgets import EvaluateWidget
     from napari_dvc_correct.widgets.evaluate_model import ready_for_evaluation
 
     reference, deformed, _ = pair48
-    viewer = make_napari_viewer()
-    for name, data in (("reference", reference), ("deformed", deformed)):
-        viewer.add_image(da.from_array(data, chunks=24), name=name)
-    correlate = CorrelateWidget(viewer)
-    viewer.window.add_dock_widget(correlate)
-    correlate.subvolume.setValue(small.subvolume)
-    correlate.step.setValue(small.step)
+    correlate, viewer = lazy_panel, lazy_panel.viewer
     run_panel(correlate)
     field = L.field_of(viewer.layers["|u| (uncorrected)"])
     evaluate = EvaluateWidget(viewer)
@@ -138,25 +122,17 @@ def test_a_lazy_pair_evaluates_out_of_core(make_napari_viewer, pair48, run_panel
 
 
 def test_a_threshold_region_over_a_lazy_pair_is_read_by_the_tiled_run(
-    make_napari_viewer, pair48, run_panel, small
+    lazy_panel, pair48, run_panel, small
 ):
     """The region's mask over a Dask-backed scan stays lazy: the tiled run reads it batch by
     batch and gives the in-memory field with the whole mask."""
-    import dask.array as da
-
     from napari_dvc_correct.engine.correlate import correlate
     from napari_dvc_correct.engine.field import Status
     from napari_dvc_correct.engine.params import CorrelationParams
     from napari_dvc_correct.widgets import regions_model
 
     reference, deformed, _ = pair48
-    viewer = make_napari_viewer()
-    for name, data in (("reference", reference), ("deformed", deformed)):
-        viewer.add_image(da.from_array(data, chunks=24), name=name)
-    widget = CorrelateWidget(viewer)
-    viewer.window.add_dock_widget(widget)
-    widget.subvolume.setValue(small.subvolume)
-    widget.step.setValue(small.step)
+    widget, viewer = lazy_panel, lazy_panel.viewer
     widget.region.set_kind("threshold")
     widget.region.threshold.setValue(float(np.percentile(reference, 30)))
     widget.region.z_from.setValue(10)

@@ -75,7 +75,9 @@ class BatchMatch:
     timings: dict = field(default_factory=dict)
 
 
-def _read(job: BatchJob, reference, deformed, mask):
+def read_regions(job, reference, deformed, mask):
+    """``(G, F, mask)`` over ``job``'s region (``region_low``/``region_high``; the mask only
+    with ``use_mask``), with the task's numba threads set from ``job.threads``."""
     if job.threads:
         import numba
 
@@ -100,7 +102,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchMatch:
     batches is the whole run's noise (:func:`judge_batch`).
     """
     started = time.perf_counter()
-    g, f, m = _read(job, reference, deformed, mask)
+    g, f, m = read_regions(job, reference, deformed, mask)
     read_s = time.perf_counter() - started
     if m is not None and not m.any():  # nothing of the material here: every POI is masked
         return BatchMatch(None, np.empty(0), {"read_s": read_s})
@@ -148,7 +150,7 @@ class _RegionLevel:
         if self._level is None:
             started = time.perf_counter()
             job = self._args[0]
-            g, f, m = _read(*self._args)
+            g, f, m = read_regions(*self._args)
             g, f, m = validate_pair(g, f, job.params, m)
             self._level = PyramidLevel.build(
                 1,

@@ -89,6 +89,29 @@ DEFAULT_BATCH_BYTES = 1 << 30
 
 
 # --- the driver --------------------------------------------------------------------------------
+def lazy_pair(reference, deformed, mask, params: CorrelationParams):
+    """The volumes (and mask) as lazy volumes, checked: one shape, room for a subvolume."""
+    reference = as_lazy(reference)
+    deformed = as_lazy(deformed)
+    mask = None if mask is None else as_lazy(mask)
+    shape = tuple(int(n) for n in reference.shape)
+    if tuple(deformed.shape) != shape:
+        raise ValueError(
+            f"reference {shape} and deformed {tuple(deformed.shape)} volumes must have the "
+            "same shape"
+        )
+    if mask is not None and tuple(mask.shape) != shape:
+        raise ValueError(f"mask shape {tuple(mask.shape)} differs from the volume {shape}")
+    if params.subvolume > min(shape):
+        from ..engine.pair_checks import largest_subvolume_advice
+
+        raise ValueError(
+            f"subvolume {params.subvolume} is larger than the volume {shape}: "
+            + largest_subvolume_advice(shape)
+        )
+    return reference, deformed, mask
+
+
 def _check_grid(grid):
     origin, step, grid_shape = grid
     origin = np.asarray(origin, np.float64).reshape(3)
@@ -255,24 +278,8 @@ def correlate_tiled_iter(
 
     started = time.perf_counter()
     params = CorrelationParams() if params is None else params
-    reference = as_lazy(reference)
-    deformed = as_lazy(deformed)
-    mask = None if mask is None else as_lazy(mask)
+    reference, deformed, mask = lazy_pair(reference, deformed, mask, params)
     shape = tuple(int(n) for n in reference.shape)
-    if tuple(deformed.shape) != shape:
-        raise ValueError(
-            f"reference {shape} and deformed {tuple(deformed.shape)} volumes must have the "
-            "same shape"
-        )
-    if mask is not None and tuple(mask.shape) != shape:
-        raise ValueError(f"mask shape {tuple(mask.shape)} differs from the volume {shape}")
-    if params.subvolume > min(shape):
-        from ..engine.pair_checks import largest_subvolume_advice
-
-        raise ValueError(
-            f"subvolume {params.subvolume} is larger than the volume {shape}: "
-            + largest_subvolume_advice(shape)
-        )
     if not isinstance(margin, (int, np.integer)) or margin < 0:
         raise ValueError(f"margin must be an integer >= 0, got {margin!r}")
     if grid is None:

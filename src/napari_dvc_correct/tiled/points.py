@@ -41,9 +41,9 @@ from ..engine.params import CorrelationParams
 from ..engine.progress import Progress, run_to_completion
 from ..engine.scattered import ScatteredField
 from ..engine.shape_function import params_to_displacement
-from ..io.lazy import as_lazy
 from . import scheduling
-from .correlate import correlate_tiled_iter
+from .batches import read_regions
+from .correlate import correlate_tiled_iter, lazy_pair
 from .memory import (
     BYTES_PER_BATCH_POINT,
     BYTES_PER_REGION_VOXEL,
@@ -89,14 +89,7 @@ def match_group(group: PointGroup, reference, deformed, mask=None):
 
     Returns ``(index, trial, zncc, status, iterations, variance)`` for the group's points.
     """
-    if group.threads:
-        import numba
-
-        numba.set_num_threads(max(1, min(int(group.threads), numba.config.NUMBA_NUM_THREADS)))
-    region = tuple(slice(int(a), int(b)) for a, b in zip(group.region_low, group.region_high))
-    g = reference.read_region(region)
-    f = deformed.read_region(region)
-    m = mask.read_region(region) != 0 if group.use_mask and mask is not None else None
+    g, f, m = read_regions(group, reference, deformed, mask)
     n = len(group.index)
     trial = group.trial.copy()
     if m is not None and not m.any():  # no material here: every point is masked, as in memory
@@ -200,16 +193,8 @@ def correlate_points_tiled_iter(
     """
     started = time.perf_counter()
     params = CorrelationParams() if params is None else params
-    reference, deformed = as_lazy(reference), as_lazy(deformed)
-    mask = None if mask is None else as_lazy(mask)
+    reference, deformed, mask = lazy_pair(reference, deformed, mask, params)
     shape = tuple(int(n) for n in reference.shape)
-    if tuple(deformed.shape) != shape:
-        raise ValueError(
-            f"reference {shape} and deformed {tuple(deformed.shape)} volumes must have the "
-            "same shape"
-        )
-    if params.subvolume > min(shape):
-        raise ValueError(f"subvolume {params.subvolume} is larger than the volume {shape}")
     points, centers, inside = check_points(points, shape, params)
     max_memory = None if max_memory is None else parse_memory(max_memory)
     budget = available_memory() if max_memory is None else min(available_memory(), max_memory)
