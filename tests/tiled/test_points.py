@@ -97,10 +97,18 @@ def test_bad_points_get_the_in_memory_messages(pair):
 
 
 def test_closing_the_run_stops_it(pair):
+    """Closing the generator after the first group stops the other groups (cancel)."""
     reference, deformed, _, points = pair
     lazy_g = CountingVolume(reference)
-    run = correlate_points_tiled_iter(lazy_g, deformed, points, PARAMS, group_voxels=32)
-    next(run)  # the guide's plan
+    run = correlate_points_tiled_iter(
+        lazy_g, deformed, points, PARAMS, group_voxels=16, workers=1, batch_shape=4
+    )
+    for report in run:
+        if report.stage == "plan" and "groups of points" in report.message:
+            groups = int(report.message.split()[0])
+            before = len(lazy_g.regions)
+        if report.stage == "IC-GN" and report.message.startswith("group 1 of"):
+            break
     run.close()
-    read = len(lazy_g.regions)
-    assert read < 5  # stopped before the groups
+    assert groups > 4
+    assert len(lazy_g.regions) - before <= 2  # the first group (and one already started)
