@@ -71,6 +71,20 @@ def test_points_out_of_core_give_the_in_memory_points(volumes, tmp_path, capsys)
     assert "--self-correct" in capsys.readouterr().err and not bad.exists()
 
 
+def test_points_to_a_grid_format_are_refused_before_any_work(
+    volumes, tmp_path, capsys, monkeypatch
+):
+    from napari_dvc_correct.engine import correlate_points as module
+
+    monkeypatch.setattr(module, "correlate_points", lambda *a, **k: pytest.fail("correlated"))
+    npy = tmp_path / "pois.npy"
+    np.save(npy, np.full((3, 3), 20.0))
+    for suffix in (".npz", ".vti"):
+        out = tmp_path / f"at_points{suffix}"
+        assert main(["correlate", *volumes, "--points", str(npy), "--out", str(out), *DVC]) == 2
+        assert "list of points" in capsys.readouterr().err and not out.exists()
+
+
 def test_roi_limits_the_grid_to_the_region(volumes, tmp_path):
     out = tmp_path / "roi.npz"
     roi = "12:30,10:26,:"

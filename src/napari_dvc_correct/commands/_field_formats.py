@@ -156,6 +156,17 @@ def output_format(args, out: str) -> str:
     return fmt
 
 
+def check_points_output(fmt: str) -> None:
+    """Refuse an output format that needs a grid for a field at a list of points."""
+    if fmt == "vti":
+        raise ValueError("a field at a list of points is written as .vtu, not .vti")
+    if fmt == "npz":
+        raise ValueError(
+            "a field at a list of points cannot be written as our grid .npz: "
+            "name --out .csv, .tsv, .disp, .mat or .vtu"
+        )
+
+
 def _writer_options(args, fmt: str) -> dict:
     if fmt == "table":
         return {"xyz": getattr(args, "xyz", False)}
@@ -177,19 +188,15 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
     if fmt in ("vti", "vtu"):
         from ..io.export import export_vtk, export_vtk_points
 
+        if isinstance(field, ScatteredField):
+            check_points_output(fmt)
         if fmt == "vtu":
             export_vtk_points(field if points is None else sample_field(field, points.points), out)
-        elif isinstance(field, ScatteredField):
-            raise ValueError("a field at a list of points is written as .vtu, not .vti")
         else:
             export_vtk(field, out)
         return [out]
     if isinstance(field, ScatteredField):
-        if fmt == "npz":
-            raise ValueError(
-                "a field at a list of points cannot be written as our grid .npz: "
-                "name --out .csv, .tsv, .disp or .mat"
-            )
+        check_points_output(fmt)
         write_field(field, out, fmt, **_writer_options(args, fmt))
         return [out]
     if points is None:
@@ -281,6 +288,7 @@ def run_points(args, params, out, started, tiled: bool = False) -> int:
 
     if getattr(args, "self_correct", False):
         raise ValueError("--points does not combine with --self-correct")
+    check_points_output(output_format(args, out))  # before any work
     points = load_points(args.points)
     if tiled:
         from ._tiled_options import run_tiled_points
