@@ -1,8 +1,8 @@
 """Tiled scan series: the in-memory series, from lazy files, batch by batch.
 
-Three 48³ states of a noisy two-phase volume under a growing shear band on a growing rigid shift
+Three 48x48x96 states of a noisy two-phase volume under a growing shear band on a growing rigid shift
 (slip 0 → 3 → 6 voxels), the first state from a TIFF stack, the second from a Zarr array, the
-third from an .npy file. The tiled runs correlate in batches of 2x2x2 POIs, warp and sum the gray
+third from an .npy file. The tiled runs correlate in 5 batches of 4x4x2 POIs, warp and sum the gray
 residuals in 12 blocks and judge the correction in node blocks of 3.
 
 Tolerance (as tests/tiled/test_correlate.py and test_correction.py): at IC-GN tolerance 1e-5 the
@@ -11,10 +11,13 @@ the in-memory run does; the regions' prefilters equal the whole volume's to floa
 the tiled correction likewise; the series composes and corrects those fields, so the test asks
 for the same statuses and provenance and the displacements within 1e-4 voxel, ten times below
 the IC-GN tolerance; the summary's mean gray residuals (block sums of float32 residuals against
-slab sums in memory) within 1e-4 relative.
+slab sums in memory) within 1e-4 relative. Measured: the uncorrected series equal to the bit,
+the corrected ones within 4.5e-7 voxel (one pass per state applied), the mean gray residuals
+within 6e-9 relative.
 """
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -29,15 +32,15 @@ from napari_dvc_correct.tiled import correlate as tiled_correlate
 from napari_dvc_correct.tiled.memory import MemoryBudgetError
 from napari_dvc_correct.tiled.series import series_tiled, series_tiled_iter
 
-SIZE = 48
+SHAPE = (48, 48, 96)  # long along x, so that a batch's region is a part of the volume
 PARAMS = CorrelationParams(subvolume=15, step=8, tolerance=1e-5)
-RUN = dict(batch_shape=(2, 2, 2), block_shape=(16, 32, 32), node_block=3, workers=2)
+RUN = dict(batch_shape=(4, 4, 2), block_shape=(16, 32, 48), node_block=3, workers=2)
 CORRECTION = {"max_passes": 1}
 
 
 def _band(k):
     return synthetic.shear_band(
-        (SIZE / 2,) * 3, width=8.0, slip=3.0 * k, shift=(1.0 * k, -0.8 * k, 1.4 * k)
+        np.array(SHAPE) / 2, width=8.0, slip=3.0 * k, shift=(1.0 * k, -0.8 * k, 1.4 * k)
     )
 
 
@@ -47,14 +50,14 @@ def states(tmp_path_factory):
     volumes = []
     for k in range(3):
         reference, deformed = synthetic.make_pair(
-            lambda s: synthetic.two_phase_volume(s, seed=4), (SIZE,) * 3, _band(k), margin=16
+            lambda s: synthetic.two_phase_volume(s, seed=4), SHAPE, _band(k), margin=16
         )
         volumes.append(synthetic.add_noise(deformed, 3.0, seed=10 + k).astype(np.float32))
     tifffile.imwrite(folder / "v0.tif", volumes[0])
     zarr.create_array(str(folder / "v1.zarr"), data=volumes[1], chunks=(16, 16, 16))
     np.save(folder / "v2.npy", volumes[2])
     paths = [folder / "v0.tif", str(folder / "v1.zarr"), folder / "v2.npy"]
-    mask = np.ones((SIZE,) * 3, np.uint8)
+    mask = np.ones(SHAPE, np.uint8)
     mask[:, :, :12] = 0  # the first column of POIs is mostly outside
     np.save(folder / "mask.npy", mask)
     return folder, volumes, paths, mask
@@ -84,7 +87,8 @@ def test_equals_the_in_memory_series(states, case, tmp_path):
     assert not any(tmp_path.iterdir())  # the temporary arrays are gone
     assert len(b.totals) == 2 and len(b.increments) == len(a.increments)
     for x, y in zip(a.totals + a.increments, b.totals + b.increments):
-        assert y.metadata["tiled"]["batches"] > 1
+        tiles = y.metadata["tiled"]
+        assert tiles["batches"] > 1 and tiles["largest_region_voxels"] < np.prod(SHAPE)
         np.testing.assert_array_equal(y.status, x.status)
         np.testing.assert_array_equal(y.provenance, x.provenance)
         np.testing.assert_allclose(y.u, x.u, rtol=0, atol=1e-4)  # NaN where both are NaN
@@ -146,7 +150,7 @@ def test_cancel_stops_the_work_and_removes_the_temporary_arrays(states, tmp_path
     monkeypatch.setattr(tiled_correlate, "match_batch", counted)
     generator = series_tiled_iter(
         paths, PARAMS, strategy="incremental", mask=folder / "mask.npy", temp_dir=tmp_path,
-        batch_shape=(1, 1, 1), workers=1, block_shape=(16, 32, 32),
+        batch_shape=(4, 4, 2), workers=1, block_shape=(16, 32, 48),
     )  # fmt: skip
     stages = []
     for report in generator:
@@ -156,10 +160,9 @@ def test_cancel_stops_the_work_and_removes_the_temporary_arrays(states, tmp_path
     generator.close()
     assert "state 2/2: mask: warp mask" in stages  # the mask was carried to state 1
     seen = len(batches)
+    assert 5 + 2 <= seen < 5 + 5  # state 1's 5 batches, and not all of state 2's
     assert not [t for t in threading.enumerate() if t.name == "dvc-dask-local"]
     assert not any(tmp_path.iterdir())  # the carried mask is gone
-    import time
-
     time.sleep(0.3)
     assert len(batches) == seen  # nothing runs after the close
 
