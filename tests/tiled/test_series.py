@@ -175,3 +175,27 @@ def test_refuses_bad_input(states):
         series_tiled(paths, PARAMS, strategy="sideways")
     with pytest.raises(ValueError, match="whole voxels"):
         series_tiled(paths, PARAMS, grid=((10.5, 10, 10), (8, 8, 8), (2, 2, 2)))
+
+
+def test_a_distributed_cluster_gives_the_local_series(states):
+    import distributed
+
+    _, _, paths, _ = states
+    paths = paths[:2]  # one pair: its correlation, correction and residual on the cluster
+    options = dict(strategy="total", correct_total=True, correction_options=CORRECTION)
+    local = series_tiled(paths, PARAMS, **options, **RUN)
+    with distributed.LocalCluster(
+        n_workers=1, processes=False, threads_per_worker=2, dashboard_address=None
+    ) as cluster:
+        with distributed.Client(cluster) as client:
+            remote = series_tiled(
+                paths, PARAMS, scheduler=client, **options,
+                **{k: v for k, v in RUN.items() if k != "workers"},
+            )  # fmt: skip
+    for x, y in zip(local.totals + local.increments, remote.totals + remote.increments):
+        assert y.metadata["tiled"]["scheduler"] != "local threads"
+        np.testing.assert_array_equal(y.status, x.status)
+        np.testing.assert_allclose(y.u, x.u, rtol=0, atol=1e-9)
+    assert [r["mean_gray_residual"] for r in remote.summary()] == pytest.approx(
+        [r["mean_gray_residual"] for r in local.summary()], rel=1e-9, nan_ok=True
+    )
