@@ -100,6 +100,8 @@ def test_series_grid_on_a_cylinder_keeps_the_npz_default(volumes, tmp_path):
         (["--points", "{points}", "--out-format", "npz"], "npz holds grids"),
         (["--points", "{points}", "--roi", "0:30,:,:"], "not both"),
         (["--points", "{missing}"], "points file not found"),
+        (["--points", "{points}", "--tiled"], "runs in memory only"),
+        (["--points", "{points}", "--max-memory", "4GB"], "runs in memory only"),
     ],
 )
 def test_series_refuses_bad_placement_and_writes_nothing(volumes, tmp_path, capsys, extra, message):
@@ -109,4 +111,57 @@ def test_series_refuses_bad_placement_and_writes_nothing(volumes, tmp_path, caps
     out_dir = tmp_path / "series"
     assert main(["series", *volumes, "--out-dir", str(out_dir), *extra, *DVC]) == 2
     assert message in capsys.readouterr().err
+    assert not out_dir.exists()
+
+
+def _same_summaries(a_path, b_path):
+    """The two summary tables: the same rows and columns, numbers to 1e-4 relative (they are
+    printed to 6 digits; see tests/tiled/test_series.py for why the runs agree)."""
+    with open(a_path) as a_stream, open(b_path) as b_stream:
+        a_rows, b_rows = list(csv.DictReader(a_stream)), list(csv.DictReader(b_stream))
+    assert len(a_rows) == len(b_rows) and a_rows[0].keys() == b_rows[0].keys()
+    for a, b in zip(a_rows, b_rows):
+        for key in a:
+            try:
+                assert float(b[key]) == pytest.approx(float(a[key]), rel=1e-4, nan_ok=True), key
+            except ValueError:  # not a number: file names, the strategy
+                assert b[key] == a[key]
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["--strategy", "total", "--roi", "6:30,:,:"],
+        ["--strategy", "incremental", "--self-correct", "--correct", "both", "--max-passes", "1"],
+    ],
+)
+def test_series_tiled_writes_the_files_of_the_in_memory_series(volumes, tmp_path, capsys, extra):
+    # IC-GN tolerance 1e-5, as in tests/tiled/: the converged fields do not depend on the start
+    common = ["series", *volumes, "--tolerance", "1e-5", *extra, *DVC[:-1]]
+    assert main([*common, "--out-dir", str(tmp_path / "a"), "--quiet"]) == 0
+    capsys.readouterr()
+    temporary = tmp_path / "temporary"
+    temporary.mkdir()
+    tiled = ["--tiled", "--batch", "2", "--workers", "2", "--temp-dir", str(temporary)]
+    assert main([*common, "--out-dir", str(tmp_path / "b"), *tiled]) == 0  # not quiet: the plan
+    assert "tiled series: correlation: estimated peak memory" in capsys.readouterr().err
+    assert not any(temporary.iterdir())  # the warped volumes and masks are gone
+    names = sorted(p.name for p in (tmp_path / "a").iterdir() if not p.name.startswith("."))
+    assert names == sorted(p.name for p in (tmp_path / "b").iterdir() if not p.name.startswith("."))
+    for name in names:
+        if name.endswith(".npz"):
+            a, b = load_field(tmp_path / "a" / name), load_field(tmp_path / "b" / name)
+            assert b.metadata["tiled"]["batches"] > 1  # correlated in batches
+            np.testing.assert_array_equal(b.status, a.status)
+            np.testing.assert_array_equal(b.provenance, a.provenance)
+            np.testing.assert_allclose(b.u, a.u, rtol=0, atol=1e-4)  # NaN where both are NaN
+            assert b.metadata.get("series", {}).keys() == a.metadata.get("series", {}).keys()
+    _same_summaries(tmp_path / "a" / "summary.csv", tmp_path / "b" / "summary.csv")
+
+
+def test_series_tiled_refuses_a_run_over_max_memory_and_writes_nothing(volumes, tmp_path, capsys):
+    out_dir = tmp_path / "series"
+    code = main(["series", *volumes, "--out-dir", str(out_dir), "--max-memory", "1MB", *DVC])
+    assert code == 2
+    assert "--max-memory" in capsys.readouterr().err
     assert not out_dir.exists()

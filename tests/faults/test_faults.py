@@ -123,6 +123,8 @@ BAD_INPUT = [
     (["evaluate", "v0.npy", "v1.npy", "--field", "field.npz", "--quiet", "--out-dir", "sub"],
      "files this tool did not write"),
     (["series", "v0.npy", "v1.npy", *DVC, "--out-dir", "."], "holds the input"),
+    (["series", "v0.npy", "v1.npy", "v2.npy", *DVC, "--out-dir", "s", "--max-memory", "1MB"],
+     "--max-memory"),
 ]  # fmt: skip
 # (more refusals run in-process in tests/commands/test_command_checks.py: cheaper than a process)
 
@@ -165,6 +167,17 @@ def test_correlate_stopped_by_a_signal_keeps_the_earlier_field(work, moment, sig
     assert f"interrupted ({name}), nothing written, earlier outputs unchanged" in err
     assert "Traceback" not in err
     assert tree(work) == before and leftovers(work) == []
+
+
+def test_tiled_series_stopped_by_a_signal_leaves_no_temporary_array(work):
+    (work / "temporary").mkdir()
+    before = tree(work)
+    code, err = signalled("compute", signal.SIGINT, "series", "v0.npy", "v1.npy", "v2.npy", *DVC,
+                          "--tiled", "--temp-dir", "temporary", "--out-dir", "out", cwd=work)  # fmt: skip
+    assert code == 130 and "nothing written, earlier outputs unchanged" in err, err
+    assert "Traceback" not in err
+    assert tree(work) == before and leftovers(work) == []
+    assert not any((work / "temporary").iterdir()) and not (work / "out").exists()
 
 
 @pytest.mark.parametrize(

@@ -8,9 +8,11 @@ import zarr
 from napari_dvc_correct.engine import field_spline, residual, synthetic, warp
 from napari_dvc_correct.engine.field import DisplacementField
 from napari_dvc_correct.engine.interpolation import prefilter, sample
+from napari_dvc_correct.engine.progress import run_to_completion
 from napari_dvc_correct.engine.strain import equivalent_strain_field
 from napari_dvc_correct.io.lazy import ArrayVolume
 from napari_dvc_correct.tiled.volumes import (
+    mean_gray_residual_iter,
     sample_lazy,
     write_dense_field,
     write_equivalent_strain,
@@ -155,6 +157,40 @@ def test_gray_residual_and_its_mean(tmp_path, case, mode):
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
     assert info["mean"] == pytest.approx(np.nanmean(expected), rel=1e-5, abs=1e-6)
     assert info["mean"] < 0.02  # the field explains the pair
+
+
+@pytest.mark.parametrize("mode, region", [("reference", "hull"), ("loaded", "volume")])
+def test_mean_gray_residual_block_by_block_writes_nothing(tmp_path, case, mode, region):
+    reference, deformed, field = case
+    deformed = deformed + 0.01 * synthetic.textured_volume(SHAPE, 2.0, seed=9)  # a residual
+    expected = residual.mean_gray_residual(reference, deformed, field, mode=mode, region=region)
+    generator = mean_gray_residual_iter(
+        reference, deformed, field, mode=mode, region=region, block_shape=BLOCK, workers=2
+    )
+    reports = []
+    while True:
+        try:
+            reports.append(next(generator))
+        except StopIteration as stop:
+            got = stop.value
+            break
+    assert [r.done for r in reports] == list(range(1, 28)) and reports[-1].total == 27
+    # float32 rounding of the regions' prefilters, the sums in another order
+    assert got == pytest.approx(expected, rel=1e-5) and got > 1e-3
+    assert not any(tmp_path.iterdir())
+
+
+def test_mean_gray_residual_of_a_cancelled_run_stops_the_blocks(case):
+    import threading
+
+    reference, deformed, field = case
+    generator = mean_gray_residual_iter(reference, deformed, field, block_shape=BLOCK, workers=1)
+    assert next(generator).done == 1
+    generator.close()
+    assert not [t for t in threading.enumerate() if t.name == "dvc-dask-local"]
+    assert run_to_completion(
+        mean_gray_residual_iter(reference, deformed, field, workers=1)
+    ) == pytest.approx(residual.mean_gray_residual(reference, deformed, field), rel=1e-5)
 
 
 def test_dense_field_and_equivalent_strain(tmp_path, case):

@@ -1,6 +1,6 @@
-"""Command-line options for correlating volumes too large for memory (``--tiled`` and friends).
+"""Command-line options for volumes too large for memory (``--tiled`` and friends).
 
-The correlate command wires these in::
+The correlate, correct and series commands wire these in (correlate here)::
 
     from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
 
@@ -93,9 +93,9 @@ def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--temp-dir",
         metavar="FOLDER",
-        help="where a tiled self-correction writes its temporary warped volumes (default: the "
-        "system's temporary folder; on a cluster of several machines, a folder every worker "
-        "sees at the same path). They are removed at the end",
+        help="where a tiled self-correction (or series) writes its temporary warped volumes "
+        "(default: the system's temporary folder; on a cluster of several machines, a folder "
+        "every worker sees at the same path). They are removed at the end",
     )
 
 
@@ -111,20 +111,12 @@ def wants_tiled(args: argparse.Namespace) -> bool:
     )
 
 
-def _lazy_inputs_and_reporter(args: argparse.Namespace, progress, label: str):
-    """``(reference, deformed, reporter, common)`` of a tiled command (``common`` holds the mask).
-
-    The volumes (and ``args.mask``) opened lazily; a reporter that prints the plan's memory
-    estimate to stderr (``label: ...``, unless ``args.quiet``) and forwards every report to
-    ``progress`` (default: the command's progress bar); the keyword arguments every tiled run
-    takes from the options of :func:`add_tiled_arguments`.
-    """
-    from ..io.lazy import open_volume
+def _plan_reporter(args: argparse.Namespace, progress, label: str):
+    """A reporter that prints the plan's memory estimate to stderr (``label: ...``, unless
+    ``args.quiet``) and forwards every report to ``progress`` (default: the command's progress
+    bar)."""
     from ._common import ProgressBar
 
-    reference = open_volume(args.reference)
-    deformed = open_volume(args.deformed)
-    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
     quiet = bool(getattr(args, "quiet", False))
     if progress is None:
         progress = ProgressBar(quiet).update
@@ -136,15 +128,33 @@ def _lazy_inputs_and_reporter(args: argparse.Namespace, progress, label: str):
                 print(f"{label}: {report.message}", file=sys.stderr, flush=True)
             progress(report)
 
-    common = dict(
-        mask=mask,
+    return _Reporter()
+
+
+def _run_options(args: argparse.Namespace) -> dict:
+    """The keyword arguments every tiled run takes from the options of :func:`add_tiled_arguments`."""
+    return dict(
         batch_shape=getattr(args, "batch", None),
         max_memory=getattr(args, "max_memory", None),
         workers=getattr(args, "workers", None),
         scheduler=getattr(args, "scheduler", None) or None,
         device=getattr(args, "device", "cpu"),  # chosen by each batch's worker ("auto": its GPU)
     )
-    return reference, deformed, _Reporter(), common
+
+
+def _lazy_inputs_and_reporter(args: argparse.Namespace, progress, label: str):
+    """``(reference, deformed, reporter, common)`` of a tiled command (``common`` holds the mask).
+
+    The volumes (and ``args.mask``) opened lazily; the reporter of :func:`_plan_reporter`; the
+    keyword arguments every tiled run takes from the options of :func:`add_tiled_arguments`.
+    """
+    from ..io.lazy import open_volume
+
+    reference = open_volume(args.reference)
+    deformed = open_volume(args.deformed)
+    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
+    common = dict(mask=mask, **_run_options(args))
+    return reference, deformed, _plan_reporter(args, progress, label), common
 
 
 def run_tiled(args: argparse.Namespace, params, progress=None):
@@ -226,6 +236,44 @@ def run_tiled_correction(args: argparse.Namespace, field, params=None, options=N
         **(options or {}),
     )
     return drive(generator, reporter)
+
+
+def run_tiled_series(args: argparse.Namespace, params, progress=None, **options):
+    """A scan series of ``args.volumes`` on a grid out of core; return its ``SeriesResult``.
+
+    The states (and ``args.mask``) are read lazily; every pair is correlated batch by batch and
+    every correction and gray residual runs block by block
+    (:func:`napari_dvc_correct.tiled.series.series_tiled_iter`) with ``--scheduler``,
+    ``--max-memory``, ``--batch``, ``--workers`` and ``--temp-dir``. The plan (the estimated peak
+    memory of each kind of run) is printed to stderr first (unless ``args.quiet``); a series over
+    the limit is refused before any work (:class:`MemoryBudgetError`, a ``ValueError``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed options, with those of :func:`add_tiled_arguments`.
+    params : CorrelationParams
+    progress : callable, optional
+        Called with every :class:`Progress` (default: the command's progress bar).
+    **options
+        ``strategy``, ``correct_increments``, ``correct_total``, ``correction_options``,
+        ``grid`` of :func:`~napari_dvc_correct.tiled.series.series_tiled_iter`.
+    """
+    from ..io.lazy import open_volume
+    from ..tiled.series import series_tiled_iter
+    from ._common import drive
+
+    volumes = [open_volume(path) for path in args.volumes]
+    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
+    generator = series_tiled_iter(
+        volumes,
+        params,
+        mask=mask,
+        temp_dir=getattr(args, "temp_dir", None),
+        **_run_options(args),
+        **options,
+    )
+    return drive(generator, _plan_reporter(args, progress, "tiled series"))
 
 
 def _block(text: str) -> tuple[int, int, int]:

@@ -9,6 +9,11 @@ The POIs are placed as for ``correlate`` (``--roi``, ``--cylinder``, ``--origin`
 :mod:`._grid_options`) and the fields written in any of its formats (``--out-format``, ``--xyz``;
 :mod:`._field_formats`): the files take that format's suffix (``state_01.tsv`` for spam...);
 the default is our ``.npz`` on a grid and a ``.csv`` table at ``--points``.
+
+``--tiled`` (or any option of :func:`._tiled_options.add_tiled_arguments`) runs a series on a grid
+out of core (:func:`napari_dvc_correct.tiled.series.series_tiled_iter`): the states are read
+lazily, batch by batch and block by block; the same files and summary. A series at ``--points``
+runs in memory only.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ SUMMARY_COLUMNS = (
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     from . import _field_formats, _grid_options
+    from ._tiled_options import add_tiled_arguments
     from .correct import add_self_correct_argument
     from .correlate import add_correlation_arguments
 
@@ -43,7 +49,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="displacement fields of a scan series (total or incremental strategy)",
         description="Correlate a series of states V0 V1 V2 ... either each against the first "
         "(total) or adjacent states merged by composition (incremental); optionally "
-        "self-correct. Writes one field per state and a summary table into --out-dir.",
+        "self-correct. Writes one field per state and a summary table into --out-dir. With "
+        "--tiled (or --max-memory, --scheduler...) a series on a grid runs out of core: the "
+        "states are read batch by batch, never whole.",
     )
     parser.add_argument("volumes", nargs="+", help="volumes of the states, in loading order")
     parser.add_argument(
@@ -66,6 +74,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="with --self-correct, what to correct in the incremental strategy: the merged "
         "totals (default), the increments, or both",
     )
+    add_tiled_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -113,6 +122,7 @@ def run(args) -> int:
     from ..io.volumes import read_volume
     from . import _field_formats, _grid_options
     from ._common import ProgressBar, check_output_dir, drive, output_set
+    from ._tiled_options import run_tiled_series, wants_tiled
     from .correct import correction_options_from_args
     from .correlate import params_from_args
 
@@ -126,36 +136,44 @@ def run(args) -> int:
     options = correction_options_from_args(args)
     at_points = bool(getattr(args, "points", None))
     suffix = field_suffix(args, at_points)
+    tiled = wants_tiled(args)
     points = None
     if at_points:
         if args.self_correct:
             raise ValueError("--points does not combine with --self-correct")
         if any(getattr(args, name, None) for name in ("roi", "cylinder", "origin")):
             raise ValueError("give --points or --roi/--cylinder/--origin, not both")
+        if tiled:
+            raise ValueError(
+                "a series at --points runs in memory only: leave out --tiled (and --max-memory, "
+                "--batch, --workers, --scheduler, --temp-dir), or use a grid (--roi, --cylinder)"
+            )
         points = _grid_options.load_points(args.points)
-    volumes = [read_volume(path) for path in args.volumes]
-    mask = read_volume(args.mask) if args.mask else None
-    for k in range(1, len(volumes)):
-        check_pair(volumes[0], volumes[k], mask, check_finite=False)  # read_volume did
-    shape = volumes[0].shape
-    grid = None if at_points else _grid_options.grid_from_args(args, shape, params)
     correct_increments = args.self_correct and args.correct in ("increments", "both")
     correct_total = args.self_correct and args.correct in ("total", "both")
-    bar = ProgressBar(args.quiet)
-    result = drive(
-        series_iter(
-            volumes,
-            params,
-            strategy=args.strategy,
-            correct_increments=correct_increments,
-            correct_total=correct_total,
-            correction_options=options,
-            mask=mask,
-            grid=grid,
-            points=points,
-        ),
-        bar,
+    strategy = dict(
+        strategy=args.strategy,
+        correct_increments=correct_increments,
+        correct_total=correct_total,
+        correction_options=options,
     )
+    if tiled:  # out of core: the states are read lazily, batch by batch (docs/scaling.md)
+        from ..io.lazy import open_volume
+
+        shape = tuple(open_volume(args.volumes[0]).shape)
+        grid = _grid_options.grid_from_args(args, shape, params)
+        result = run_tiled_series(
+            args, params, ProgressBar(args.quiet).update, grid=grid, **strategy
+        )
+    else:
+        volumes = [read_volume(path) for path in args.volumes]
+        mask = read_volume(args.mask) if args.mask else None
+        for k in range(1, len(volumes)):
+            check_pair(volumes[0], volumes[k], mask, check_finite=False)  # read_volume did
+        shape = volumes[0].shape
+        grid = None if at_points else _grid_options.grid_from_args(args, shape, params)
+        series = series_iter(volumes, params, mask=mask, grid=grid, points=points, **strategy)
+        result = drive(series, ProgressBar(args.quiet))
 
     def placed(field):
         return field if at_points else _grid_options.finish_grid_field(args, field, shape)

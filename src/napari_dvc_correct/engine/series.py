@@ -17,6 +17,11 @@ The POIs are a grid (``grid``, default the whole volume's) or a list of points (
 At points the incremental strategy follows each point: the increment ``k−1→k`` is measured at
 ``X + U_0→k−1(X)`` and added, ``U_0→k(X) = U_0→k−1(X) + u_k−1→k(X + U_0→k−1(X))``, with no
 interpolation; a point lost in one state stays lost in the later ones.
+
+On a grid, one loop (:func:`series_volumes_iter`) runs every strategy and option; what it does to
+the volumes (correlate a pair, correct a field of a pair, move the mask, the mean gray residual)
+goes through a :class:`.series_volumes.SeriesVolumes`: in memory for :func:`series_iter`, batch
+by batch from lazily read volumes for ``napari_dvc_correct.tiled.series.series_tiled_iter``.
 """
 
 from __future__ import annotations
@@ -27,17 +32,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import warp
 from .cleaning import clean
 from .compose import compose
-from .correction import correct_iter, forward_progress
-from .correlate import correlate_iter
+from .correction import forward_progress
 from .correlate_points import correlate_points
 from .field import DisplacementField, Provenance, Status, grid_for_volume
 from .params import CorrelationParams
 from .progress import Progress, run_to_completion
-from .residual import mean_gray_residual
 from .scattered import ScatteredField
+from .series_volumes import InMemorySeries, SeriesVolumes
 
 STRATEGIES = ("total", "incremental")
 
@@ -173,17 +176,49 @@ def series_iter(
         return result
     if grid is None:
         grid = grid_for_volume(np.shape(volumes[0]), params.subvolume, params.step)
+    backend = InMemorySeries(volumes, params, grid, mask, options)
+    return (
+        yield from series_volumes_iter(
+            backend,
+            strategy=strategy,
+            correct_increments=correct_increments,
+            correct_total=correct_total,
+        )
+    )
+
+
+def series_volumes_iter(
+    volumes: SeriesVolumes,
+    *,
+    strategy: str = "incremental",
+    correct_increments: bool = False,
+    correct_total: bool = False,
+) -> Generator[Progress, None, SeriesResult]:
+    """The series loop of :func:`series_iter` on a grid, on any volume back-end.
+
+    ``volumes`` does every volume operation (:class:`.series_volumes.SeriesVolumes`: in memory,
+    or batch by batch from lazy volumes in ``napari_dvc_correct.tiled.series``); the fields stay
+    in memory. Options and result as :func:`series_iter` (the POI grid, the mask and the
+    correction options are the back-end's); the inputs are checked by the caller. ``volumes`` is
+    closed at the end, also on error or when the generator is closed (cancelled).
+    """
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
+    try:
+        return (yield from _series_loop(volumes, strategy, correct_increments, correct_total))
+    finally:
+        volumes.close()
+
+
+def _series_loop(volumes, strategy, correct_increments, correct_total):
     result = SeriesResult(strategy=strategy)
-    n = len(volumes)
-    first = volumes[0]
+    n = volumes.n_states
     started = time.perf_counter()
     for k in range(1, n):
         label = f"state {k}/{n - 1}"
         state_started = time.perf_counter()
         if strategy == "total" or k == 1:
-            total = yield from forward_progress(
-                correlate_iter(first, volumes[k], params, mask=mask, grid=grid), label
-            )
+            total = yield from forward_progress(volumes.correlate(0, k, volumes.mask), label)
             if strategy == "incremental":
                 result.increments.append(total.copy())
             corrected_here = correct_increments or correct_total
@@ -191,20 +226,21 @@ def series_iter(
             previous = result.totals[-1]
             filled = clean(previous, fill_masked=True)
             state_mask = None
-            if mask is not None:
-                moved = warp.warp_forward(np.asarray(mask, np.float32), filled, cval=0.0)
-                state_mask = moved > 0.5 if (moved > 0.5).any() else None
-            increment = yield from forward_progress(
-                correlate_iter(volumes[k - 1], volumes[k], params, mask=state_mask, grid=grid),
-                f"{label}: increment",
-            )
-            if correct_increments:
-                increment = yield from forward_progress(
-                    correct_iter(
-                        volumes[k - 1], volumes[k], increment, params, mask=state_mask, **options
-                    ),
-                    f"{label}: increment correction",
+            if volumes.mask is not None:
+                state_mask = yield from forward_progress(
+                    volumes.carry_mask(filled), f"{label}: mask"
                 )
+            try:
+                increment = yield from forward_progress(
+                    volumes.correlate(k - 1, k, state_mask), f"{label}: increment"
+                )
+                if correct_increments:
+                    increment = yield from forward_progress(
+                        volumes.correct(k - 1, k, increment, state_mask),
+                        f"{label}: increment correction",
+                    )
+            finally:
+                volumes.release(state_mask)
             result.increments.append(increment)
             increment_filled = clean(increment, fill_masked=True)
             total = compose(previous, increment_filled)
@@ -213,16 +249,15 @@ def series_iter(
         passes = 0
         if corrected_here:
             total = yield from forward_progress(
-                correct_iter(first, volumes[k], total, params, mask=mask, **options),
-                f"{label}: correction",
+                volumes.correct(0, k, total, volumes.mask), f"{label}: correction"
             )
             passes = _passes_applied(total)
             if strategy == "incremental" and k == 1:
                 result.increments[0] = total.copy()
         yield Progress(label, 0, 1, "gray residual")
-        residual = _residual(first, volumes[k], total)
+        residual = yield from _residual(volumes, k, total, label)
         residual_uncorrected = (
-            _residual(first, volumes[k], uncorrected) if corrected_here else residual
+            (yield from _residual(volumes, k, uncorrected, label)) if corrected_here else residual
         )
         total.metadata["series"] = {
             "state": k,
@@ -312,12 +347,16 @@ def _at_all_points(step: ScatteredField, positions, here) -> ScatteredField:
     )
 
 
-def _residual(reference, deformed, total: DisplacementField) -> float:
+def _residual(volumes: SeriesVolumes, k: int, total: DisplacementField, label: str):
+    """The summary's mean gray residual of ``total`` (``U_0→k``), cleaned and filled; NaN where
+    the field cannot be cleaned (no valid node)."""
     try:
         filled = clean(total, fill_masked=True)
     except ValueError:
         return float("nan")
-    return mean_gray_residual(reference, deformed, filled)
+    return (
+        yield from forward_progress(volumes.mean_residual(k, filled), f"{label}: gray residual")
+    )
 
 
 def series(volumes: Sequence[np.ndarray], params: CorrelationParams | None = None, **options):

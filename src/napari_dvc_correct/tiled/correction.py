@@ -57,13 +57,13 @@ from .correlate import correlate_tiled_iter
 from .memory import (
     PREFILTER_MARGIN,
     SPLINE_SUPPORT,
-    MemoryBudgetError,
     _refuse_if_over,
-    available_memory,
     choose_batch_shape,
     estimate_peak_memory,
     format_bytes,
+    memory_budget,
     parse_memory,
+    refuse_blocks_over,
 )
 from .node_residuals import TiledResiduals, node_bytes
 from .volumes import LazySampler, _forward_values, write_iter
@@ -138,6 +138,45 @@ def _warp_mask_block(out, mask, spline, block):
     inside = np.isfinite(values) & (values > 0.5)
     out.write(block, inside.astype(np.float32))
     return float(inside.sum()), int(inside.size)
+
+
+def warp_mask_iter(mask, field: DisplacementField, path, *, run) -> Generator[Progress, None, Path]:
+    """A material mask moved by ``field`` to the loaded state, block by block into ``path``.
+
+    Inside (1) where the forward warp of the 0/1 mask (non-zero = material) exceeds 0.5, as
+    ``warp.warp_forward(mask != 0, field, cval=0) > 0.5`` in memory; a float32 Zarr array.
+
+    Parameters
+    ----------
+    mask : LazyVolume, shape (nz, ny, nx)
+        The mask in the reference state's voxels.
+    field : DisplacementField
+        Lagrangian displacement (voxels) with finite nodes (cleaned).
+    path : str or PathLike
+        Where the ``.zarr`` array goes.
+    run : (block_shape, scheduler, workers)
+        As :func:`.volumes.write_iter`.
+
+    Returns
+    -------
+    Path or None
+        The written array's path; None (and nothing left at ``path``) when no voxel is inside.
+    """
+    summary = yield from write_iter(
+        path,
+        tuple(int(n) for n in mask.shape),
+        1,
+        _warp_mask_block,
+        [_NonZero(mask), FieldSpline.from_field(field)],
+        [],
+        run=run,
+        metadata={"quantity": "the mask warped to the loaded state"},
+        stage="warp mask",
+    )
+    if not summary["mean"] > 0:
+        shutil.rmtree(summary["path"], ignore_errors=True)
+        return None
+    return Path(summary["path"])
 
 
 # --- the back-end --------------------------------------------------------------------------------
@@ -332,22 +371,13 @@ class TiledVolumes(CorrectionVolumes):
             return self.reference, moved, self.mask
         mask = None
         if self.mask is not None:
-            path = self._temporary("mask")
-            summary = yield from write_iter(
-                path,
-                self.shape,
-                1,
-                _warp_mask_block,
-                [_NonZero(self.mask), FieldSpline.from_field(field)],
-                [],
+            path = yield from warp_mask_iter(
+                self.mask,
+                field,
+                self._temporary("mask"),
                 run=(self.block_shape, self._where, self.workers),
-                metadata={"quantity": "correction: the mask warped to the loaded state"},
-                stage="warp mask",
             )
-            mask = self._keep(Path(summary["path"]))
-            if not summary["mean"] > 0:
-                self.release(mask)
-                mask = None
+            mask = None if path is None else self._keep(path)
         return moved, self.deformed, mask
 
     def residuals(self):
@@ -375,13 +405,7 @@ def plan_memory(volumes: TiledVolumes, params: CorrelationParams, field=None) ->
     shape = volumes.shape
     dtype = np.result_type(volumes.reference.dtype, volumes.deformed.dtype)
     masked = volumes.mask is not None
-    if volumes.client is not None:
-        threads, concurrency, limit = scheduling.cluster_resources(volumes.client)
-        budget, where = (limit or available_memory()), "each worker of the cluster"
-    else:
-        concurrency, budget, where = volumes.workers, available_memory(), "this machine"
-    if volumes.max_memory is not None:
-        budget = min(budget, volumes.max_memory)
+    budget, concurrency, where = memory_budget(volumes.client, volumes.workers, volumes.max_memory)
     grid = None if field is None else (field.origin, field.step, field.shape)
     subvolume = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
     subvolume = min(params.subvolume, max(MIN_PASS_SUBVOLUME, subvolume))
@@ -405,17 +429,8 @@ def plan_memory(volumes: TiledVolumes, params: CorrelationParams, field=None) ->
         node_bytes(np.broadcast_to(step, (3,)), volumes.node_block, params.half, reach),
     )
     estimate = int(max(max(estimates), blocks))
-    if blocks > budget:
-        limit = (
-            f"the limit of {format_bytes(volumes.max_memory)} (--max-memory)"
-            if volumes.max_memory is not None and budget == volumes.max_memory
-            else f"the {format_bytes(budget)} available on {where}"
-        )
-        raise MemoryBudgetError(
-            f"the correction's warp and residual blocks need an estimated "
-            f"{format_bytes(blocks)} ({concurrency} at once), more than {limit}: use fewer "
-            "workers or smaller blocks, or allow more memory (--max-memory)"
-        )
+    what = "the correction's warp and residual blocks"
+    refuse_blocks_over(blocks, budget, volumes.max_memory, concurrency, where, what)
     return estimate, int(budget)
 
 

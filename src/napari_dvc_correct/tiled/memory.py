@@ -5,6 +5,8 @@
   B-spline support and prefilter margin);
 - :func:`estimate_peak_memory` and :func:`choose_batch_shape`: the peak memory of a run, and the
   largest batch that fits a budget (calibrated on measured resident memory);
+- :func:`memory_budget` and :func:`refuse_blocks_over`: what a run may use, and the refusal of
+  block-by-block work (warps, residuals) over it;
 - :func:`available_memory`, :func:`parse_memory`, :func:`format_bytes`, :class:`MemoryBudgetError`.
 """
 
@@ -307,4 +309,40 @@ def _refuse_if_over(estimate, budget, max_memory, batch_shape, workers, where):
         f"batch(es) of {batch_shape[0]}x{batch_shape[1]}x{batch_shape[2]} POIs), more than "
         f"{what}: use smaller batches or fewer workers, let --max-memory choose the batch size, "
         "or run on a machine (or cluster workers) with more memory"
+    )
+
+
+def memory_budget(client, workers: int, max_memory: int | None) -> tuple[int, int, str]:
+    """``(budget, concurrency, where)`` of block-by-block work.
+
+    ``budget``: the bytes a run may use (the smallest worker memory limit of a
+    ``distributed.Client``'s cluster, else this machine's :func:`available_memory`; at most
+    ``max_memory``); ``concurrency``: the tasks one of them holds at once (the most threads of one
+    worker, or ``workers`` locally); ``where``: the place, for messages.
+    """
+    from . import scheduling
+
+    if client is not None:
+        _, concurrency, limit = scheduling.cluster_resources(client)
+        budget, where = (limit or available_memory()), "each worker of the cluster"
+    else:
+        concurrency, budget, where = int(workers), available_memory(), "this machine"
+    if max_memory is not None:
+        budget = min(budget, int(max_memory))
+    return int(budget), int(concurrency), where
+
+
+def refuse_blocks_over(need, budget, max_memory, concurrency, where, what: str) -> None:
+    """Raise :class:`MemoryBudgetError` when ``need`` bytes of ``what`` (e.g. "the correction's
+    warp and residual blocks"), ``concurrency`` at once, exceed ``budget``."""
+    if need <= budget:
+        return
+    limit = (
+        f"the limit of {format_bytes(max_memory)} (--max-memory)"
+        if max_memory is not None and budget == max_memory
+        else f"the {format_bytes(budget)} available on {where}"
+    )
+    raise MemoryBudgetError(
+        f"{what} need an estimated {format_bytes(need)} ({concurrency} at once), more than "
+        f"{limit}: use fewer workers or smaller blocks, or allow more memory (--max-memory)"
     )

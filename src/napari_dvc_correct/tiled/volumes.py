@@ -202,17 +202,24 @@ def _forward_block(out, reference, spline, block, outside, cval, max_iterations,
     return summary
 
 
-def _residual_block(out, reference, deformed, spline, block, mode, outside):
+def _residual_values(reference, deformed, spline, block, mode, outside):
     if mode == "reference":
         moved = _pull_back_values(deformed, spline, block, outside)
-        residual = np.abs(moved - reference.read_region(block))
-    else:
-        warped = _forward_values(
-            reference, spline, block, outside, INVERT_MAX_ITERATIONS, INVERT_TOLERANCE
-        )
-        residual = np.abs(deformed.read_region(block) - warped)
+        return np.abs(moved - reference.read_region(block))
+    warped = _forward_values(
+        reference, spline, block, outside, INVERT_MAX_ITERATIONS, INVERT_TOLERANCE
+    )
+    return np.abs(deformed.read_region(block) - warped)
+
+
+def _residual_block(out, reference, deformed, spline, block, mode, outside):
+    residual = _residual_values(reference, deformed, spline, block, mode, outside)
     out.write(block, residual)
     return _finite_sum(residual)
+
+
+def _residual_sum_block(reference, deformed, spline, block, mode, outside):
+    return _finite_sum(_residual_values(reference, deformed, spline, block, mode, outside))
 
 
 # --- the driver ----------------------------------------------------------------------------------
@@ -234,6 +241,45 @@ def _write(path, shape, components, function, shared, extra, *, run, metadata, s
             progress(report)
 
 
+def _summed_blocks(function, leading, shared, blocks, extra, scheduler, workers, stage):
+    """Run ``function(*leading, *shared, block, *extra)`` on every block as ``dask.delayed``
+    tasks (``shared`` handed over once, ``leading`` as it is); yield a :class:`Progress` per
+    block, return the total ``(sum, count)`` of their results. Closing it early stops the blocks
+    not yet started (:func:`.scheduling.running`)."""
+    import dask
+
+    client, owned = (None, False)
+    if not scheduling.is_local(scheduler):
+        client, owned = scheduling.connect(scheduler)
+    try:
+        delayed_shared = [dask.delayed(item) for item in shared]
+        task = dask.delayed(function, pure=False)
+        tasks = [task(*leading, *delayed_shared, block, *extra) for block in blocks]
+        total, count = 0.0, 0
+        with scheduling.running(tasks, scheduler, workers, client) as finished:
+            for done, (_, (block_sum, block_count)) in enumerate(finished, start=1):
+                total += block_sum
+                count += block_count
+                yield Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}")
+    finally:
+        if owned:
+            client.close()
+    return total, count
+
+
+def _residual_inputs(reference, deformed, mode, region):
+    """``(reference, deformed, shape, outside)`` of a gray residual: the lazy volumes, the shape
+    of the residual's frame and how the field goes beyond the grid's hull."""
+    if mode not in ("reference", "loaded"):
+        raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
+    if region not in ("hull", "volume"):
+        raise ValueError(f"region must be 'hull' or 'volume', got {region!r}")
+    reference = as_lazy(reference)
+    deformed = as_lazy(deformed)
+    shape = _check(reference.shape if mode == "reference" else deformed.shape, "shape")
+    return reference, deformed, shape, "nan" if region == "hull" else "extrapolate"
+
+
 def write_iter(
     path, shape, components, function, shared, extra, *, run, metadata, stage
 ) -> Generator[Progress, None, dict]:
@@ -244,7 +290,6 @@ def write_iter(
     and removes the unfinished output. ``function`` returns ``(sum, count)`` of what it wrote
     (the summary's ``mean``). ``run`` is ``(block_shape, scheduler, workers)``.
     """
-    import dask
 
     block_shape, scheduler, workers = run
 
@@ -253,26 +298,14 @@ def write_iter(
     block_shape = tuple(min(int(b), n) for b, n in zip(block_shape, shape))
     chunks = block_shape if components == 1 else (*block_shape, components)
     out = create_output(path, out_shape, np.float32, chunks=chunks, metadata=metadata)
-    client, owned = (None, False)
     try:
         blocks = list(_block_slices(shape, output_chunks(out, block_shape)))
-        if not scheduling.is_local(scheduler):
-            client, owned = scheduling.connect(scheduler)
-        delayed_shared = [dask.delayed(item) for item in shared]
-        task = dask.delayed(function, pure=False)
-        tasks = [task(out, *delayed_shared, block, *extra) for block in blocks]
-        total, count = 0.0, 0
-        with scheduling.running(tasks, scheduler, workers, client) as finished:
-            for done, (_, (block_sum, block_count)) in enumerate(finished, start=1):
-                total += block_sum
-                count += block_count
-                yield Progress(stage, done, len(tasks), f"block {done} of {len(tasks)}")
+        total, count = yield from _summed_blocks(
+            function, (out,), shared, blocks, extra, scheduler, workers, stage
+        )
     except BaseException:
         out.discard()
         raise
-    finally:
-        if owned:
-            client.close()
     final = out.commit()
     return {
         "path": str(final),
@@ -436,25 +469,72 @@ def write_gray_residual(
         :func:`..engine.residual.mean_gray_residual`).
     """
 
-    if mode not in ("reference", "loaded"):
-        raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
-    if region not in ("hull", "volume"):
-        raise ValueError(f"region must be 'hull' or 'volume', got {region!r}")
-    reference = as_lazy(reference)
-    deformed = as_lazy(deformed)
-    shape = reference.shape if mode == "reference" else deformed.shape
+    reference, deformed, shape, outside = _residual_inputs(reference, deformed, mode, region)
     return _write(
         path,
-        _check(shape, "shape"),
+        shape,
         1,
         _residual_block,
         [reference, deformed, as_field_spline(field)],
-        [mode, "nan" if region == "hull" else "extrapolate"],
+        [mode, outside],
         run=(block_shape, scheduler, workers),
         metadata={"quantity": f"gray residual ({mode} frame, {region})"},
         stage="residual",
         progress=progress,
     )
+
+
+def mean_gray_residual_iter(
+    reference,
+    deformed,
+    field: DisplacementField | FieldSpline,
+    *,
+    mode: str = "reference",
+    region: str = "hull",
+    block_shape=DEFAULT_BLOCK,
+    scheduler=None,
+    workers: int = 2,
+) -> Generator[Progress, None, float]:
+    """Mean of the gray residual block by block, nothing written; yields progress per block.
+
+    The mean of :func:`..engine.residual.mean_gray_residual` (same ``mode`` and ``region``) from
+    lazily read volumes: every block (a ``dask.delayed`` task) reads its part of one volume and
+    the region of the other its positions reach, and returns the sum and count of its defined
+    residuals. Equal to the in-memory mean to float32 rounding of the regions' prefilters.
+
+    Parameters
+    ----------
+    reference, deformed : LazyVolume, path or array, shape (nz, ny, nx)
+        ``G`` and ``F`` (:func:`..io.lazy.as_lazy`).
+    field : DisplacementField or FieldSpline
+        Lagrangian displacement ``u(X)`` in voxels on a grid, nodes finite (clean it first).
+    mode : {"reference", "loaded"}
+        ``|F(X + u(X)) - G(X)|`` at the reference voxels, or ``|F(x) - G'(x)|`` at the loaded ones.
+    region : {"hull", "volume"}
+        Over the grid's hull only (default), or everywhere with the field extrapolated.
+    block_shape : tuple of 3 ints
+        Voxels per task.
+    scheduler, workers
+        See :mod:`.scheduling` (a ``distributed.Client`` is used as it is).
+
+    Returns
+    -------
+    float
+        The mean residual (gray levels); NaN where it is defined nowhere.
+    """
+    reference, deformed, shape, outside = _residual_inputs(reference, deformed, mode, region)
+    block_shape = tuple(min(int(b), n) for b, n in zip(block_shape, shape))
+    total, count = yield from _summed_blocks(
+        _residual_sum_block,
+        (),
+        [reference, deformed, as_field_spline(field)],
+        list(_block_slices(shape, block_shape)),
+        [mode, outside],
+        scheduler,
+        workers,
+        "residual",
+    )
+    return total / count if count else float("nan")
 
 
 def write_equivalent_strain(
