@@ -127,7 +127,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         self.add_out_of_core_row(
             "For scans larger than memory or opened lazily (Dask/Zarr): the field is the "
             "in-memory one (to ~1e-7 voxel), measured in batches that fit the memory limit; "
-            "ticked by itself for such scans. A pair, on the grid or at points."
+            "ticked by itself for such scans. A pair or a series on the grid; a pair at points."
         )
         self.preview = QCheckBox("preview the POI grid and one subvolume")
         self.preview.setChecked(True)

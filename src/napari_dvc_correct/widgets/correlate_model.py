@@ -64,8 +64,9 @@ class CorrelationJob:
     points_layer : str
         Name of the Points layer they come from.
     tiled : bool
-        Out of core (:func:`..tiled.correlate.correlate_tiled_iter`): the scans are read block
-        by block, never whole (for lazily backed layers, or scans larger than memory). A pair.
+        Out of core (:mod:`..tiled`: a pair on the grid or at points, a series on the grid): the
+        scans are read block by block, never whole (for lazily backed layers, or scans larger
+        than memory).
     max_memory : str or None
         Peak memory of a tiled run (``"4GB"``...); None = about 1 GiB per concurrent batch.
     device : {"auto", "cpu", "cuda"}
@@ -252,10 +253,11 @@ def suggest_tiled(volumes, memory: int | None = None) -> bool:
 def check_tiled(job_strategy: str, points, max_memory: str | None) -> str | None:
     """Refuse what a tiled run does not do; the memory limit checked (None = automatic).
 
-    A pair runs out of core on a grid or at points of interest (``points`` is accepted for
-    that reason; a series is refused)."""
-    if job_strategy != "pair":
-        raise ValueError("an out-of-core run correlates a pair: for a series, untick 'out of core'")
+    A pair runs out of core on a grid or at points of interest, a series on a grid."""
+    if job_strategy != "pair" and points is not None:
+        raise ValueError(
+            "a series at points of interest runs in memory: untick 'out of core' or use the grid"
+        )
     text = (max_memory or "").strip()
     if text in ("", "auto"):
         return None
@@ -266,7 +268,21 @@ def check_tiled(job_strategy: str, points, max_memory: str | None) -> str | None
 
 
 def run_series(job: CorrelationJob):
-    """Total displacements ``U_0→k`` of a scan series (:func:`..engine.series.series_iter`)."""
+    """Total displacements ``U_0→k`` of a scan series (:func:`..engine.series.series_iter`;
+    out of core, :func:`..tiled.series.series_tiled_iter`: every state read batch by batch)."""
+    if job.tiled:
+        from ..tiled.series import series_tiled_iter
+
+        result = yield from series_tiled_iter(
+            job.volumes,
+            job.params,
+            strategy=job.strategy,
+            correct_total=job.correct_states,
+            mask=job.mask,
+            max_memory=job.max_memory,
+            device=job.device,
+        )
+        return result.totals
     from ..engine.series import series_iter
 
     result = yield from series_iter(
