@@ -68,6 +68,8 @@ def main(argv=None) -> int:
             )
             seconds = time.perf_counter() - started
         info = tiled.metadata["tiled"]
+        timings = tiled.metadata["timings"]
+        print(f"guide field {timings['guide_s']:.1f} s, points {timings['points_s']:.1f} s")
         print(
             f"{info['groups']} groups of up to {info['group_voxels']}³ voxels, largest region "
             f"{info['largest_region_voxels']:,} voxels, estimated peak "

@@ -225,6 +225,7 @@ def correlate_points_tiled_iter(
         device=device,
         **guide_options,
     )
+    guide_seconds = time.perf_counter() - started
     std = float(guide.metadata["tiled"]["reference_gray_std"])
     order = params.order
     matched_centers = centers[inside]
@@ -290,7 +291,11 @@ def correlate_points_tiled_iter(
     result.metadata.update(
         volume_shape=list(shape),
         device=select_device(device).description,
-        timings={"total_s": time.perf_counter() - started, "points_s": time.perf_counter() - t0},
+        timings={
+            "total_s": time.perf_counter() - started,
+            "guide_s": guide_seconds,
+            "points_s": time.perf_counter() - t0,
+        },
         tiled={
             "groups": len(groups),
             "group_voxels": edge,
