@@ -303,11 +303,14 @@ def _summed_area(plane: np.ndarray) -> np.ndarray:
 def _prism_counts(region: PrismRegion, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Mask voxels of ``region`` in the boxes ``[lo, hi)`` (N, 3): slices inside its z range
     times the cross-section's voxels in the (y, x) box."""
-    slices = np.clip(
-        np.minimum(hi[:, 0], region.z.stop) - np.maximum(lo[:, 0], region.z.start), 0, None
-    )
     table = _summed_area(region.cross_section)
+    slices = _slices_inside(region, lo[:, 0], hi[:, 0])
     return slices * _box_sums_2d(table, lo[:, 1], hi[:, 1], lo[:, 2], hi[:, 2])
+
+
+def _slices_inside(region: PrismRegion, z0, z1) -> np.ndarray:
+    """Slices of ``[z0, z1)`` inside the region's z range (elementwise)."""
+    return np.clip(np.minimum(z1, region.z.stop) - np.maximum(z0, region.z.start), 0, None)
 
 
 def _sliding_counts(region: Region, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -393,6 +396,15 @@ def kept_pois(mask, params: CorrelationParams) -> Kept:
     mask = mask if isinstance(mask, Region) else np.asarray(mask, bool)
     origin, step, shape = grid_for_volume(mask.shape, params.subvolume, params.step)
     axes = [np.asarray(origin[a]) + step[a] * np.arange(shape[a]) for a in range(3)]
+    if isinstance(mask, PrismRegion):  # separable: slices per grid plane × the (y, x) boxes
+        centres = [np.rint(values).astype(np.int64) for values in axes]
+        lo = [np.clip(c - params.half, 0, n) for c, n in zip(centres, mask.shape)]
+        hi = [np.clip(c + params.half + 1, 0, n) for c, n in zip(centres, mask.shape)]
+        y0, x0 = np.meshgrid(lo[1], lo[2], indexing="ij")
+        y1, x1 = np.meshgrid(hi[1], hi[2], indexing="ij")
+        section = _box_sums_2d(_summed_area(mask.cross_section), y0, y1, x0, x1)
+        counts = np.multiply.outer(_slices_inside(mask, lo[0], hi[0]), section)
+        return Kept(int(np.count_nonzero(counts >= _needed(params))), int(np.prod(shape)))
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     return Kept(int(np.count_nonzero(kept_at(mask, params, points))), int(np.prod(shape)))
 
