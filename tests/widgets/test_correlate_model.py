@@ -225,8 +225,9 @@ def test_suggest_and_check_tiled():
     assert model.check_tiled("pair", None, "2GB") == "2GB"
     with pytest.raises(ValueError):
         model.check_tiled("pair", None, "lots")
-    with pytest.raises(ValueError, match="correlates a pair"):
-        model.check_tiled("total", None, "")
+    assert model.check_tiled("total", None, "") is None  # a series on the grid: out of core
+    with pytest.raises(ValueError, match="series at points of interest runs in memory"):
+        model.check_tiled("incremental", np.zeros((1, 3)), "")
     assert model.check_tiled("pair", np.zeros((1, 3)), "1GB") == "1GB"  # points out of core
 
 
