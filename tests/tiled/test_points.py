@@ -112,3 +112,26 @@ def test_closing_the_run_stops_it(pair):
     run.close()
     assert groups > 4
     assert len(lazy_g.regions) - before <= 2  # the first group (and one already started)
+
+
+def test_a_distributed_cluster_gives_the_local_points(pair):
+    """The groups travel to worker processes (pickled) and come back with the local answer."""
+    import distributed
+
+    reference, deformed, _, points = pair
+    subset = points[:20]
+    local = correlate_points_tiled(reference, deformed, subset, PARAMS, group_voxels=32)
+    with distributed.LocalCluster(
+        n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None
+    ) as cluster:
+        remote = correlate_points_tiled(
+            ArrayVolume(reference),
+            ArrayVolume(deformed),
+            subset,
+            PARAMS,
+            group_voxels=32,
+            scheduler=cluster.scheduler_address,
+        )
+    assert remote.metadata["tiled"]["scheduler"] == cluster.scheduler_address
+    np.testing.assert_array_equal(remote.status, local.status)
+    np.testing.assert_allclose(remote.u, local.u, rtol=0, atol=1e-9)
