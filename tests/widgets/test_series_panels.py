@@ -134,3 +134,21 @@ def test_a_lazy_series_runs_out_of_core_as_in_memory(series40, make_napari_viewe
         np.testing.assert_array_equal(field.status, total.status)
         good = total.valid
         assert np.max(np.abs(field.u[good] - total.u[good])) < 1e-4
+    # the Self-correct panel corrects every state out of core too (ticked by itself)
+    from napari_dvc_correct.engine.correction import correct
+
+    correct_panel = _dock(viewer, CorrectWidget)
+    assert correct_panel.field.currentText() == f"series ({job.strategy})"
+    assert correct_panel.tiled.isChecked()
+    correct_panel.max_passes.setValue(1)
+    run_panel(correct_panel)
+    assert correct_panel.last_error is None, correct_panel.last_error
+    fields = fields_in(viewer.layers)
+    for k in (1, 2):
+        source = fields[f"state {k} ({job.strategy})"]
+        expected = correct(volumes[0], volumes[k], source, max_passes=1)
+        corrected = fields[f"state {k} ({job.strategy}, corrected)"]
+        assert corrected.metadata["tiled"]
+        np.testing.assert_array_equal(corrected.status, expected.status)
+        good = expected.valid
+        assert np.max(np.abs(corrected.u[good] - expected.u[good])) < 1e-4

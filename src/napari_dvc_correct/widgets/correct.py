@@ -50,7 +50,8 @@ class CorrectWidget(EngineWidget):
         self.form.addRow("Passes (at most)", self.max_passes)
         self.add_out_of_core_row(
             "Warps and correlates block by block through temporary Zarr arrays, for scans "
-            "larger than memory or opened lazily (Dask/Zarr; then ticked by itself). A pair."
+            "larger than memory or opened lazily (Dask/Zarr; then ticked by itself). A pair or each "
+            "state of a series."
         )
         self.region = RegionBox(self.viewer)  # masked nodes keep their input values
         self.controls.addWidget(self.region)
@@ -99,6 +100,12 @@ class CorrectWidget(EngineWidget):
         if chosen is not None and not series:
             self.reference.set_layer(chosen.metadata.get("reference_layer", ""))
             self.deformed.set_layer(chosen.metadata.get("deformed_layer", ""))
+        elif series:  # a lazily backed or very large series: out of core
+            try:
+                first = named_volume(self.viewer.layers, chosen[0].metadata["reference_layer"])
+            except (KeyError, ValueError):
+                return
+            self.tiled.setChecked(suggest_tiled([first]))
 
     def _reference_changed(self, *args) -> None:
         """The region's defaults follow the reference scan (set once per volume size)."""
@@ -137,10 +144,17 @@ class CorrectWidget(EngineWidget):
                 )
                 for f in chosen
             ]
+            tiled = self.tiled.isChecked()
+            memory = check_tiled("pair", None, self.max_memory.text()) if tiled else None
             self.table.setRowCount(0)
             self._series_source = source
             return model.run_series_correction(
-                pairs, chosen, mask=self._mask(pairs[0][0]), **self._options()
+                pairs,
+                chosen,
+                mask=self._mask(pairs[0][0]),
+                tiled=tiled,
+                max_memory=memory,
+                **self._options(),
             )
         reference, deformed = self.reference.layer(), self.deformed.layer()
         if reference is None or deformed is None:
