@@ -152,3 +152,21 @@ def test_a_lazy_series_runs_out_of_core_as_in_memory(series40, make_napari_viewe
         np.testing.assert_array_equal(corrected.status, expected.status)
         good = expected.valid
         assert np.max(np.abs(corrected.u[good] - expected.u[good])) < 1e-4
+    # and the Evaluate panel evaluates every state out of core: the in-memory numbers
+    evaluate = _dock(viewer, EvaluateWidget)
+    results = {}
+    for tiled in (False, True):
+        evaluate.tiled.setChecked(tiled)
+        run_panel(evaluate)
+        assert evaluate.last_error is None, evaluate.last_error
+        results[tiled] = {
+            (label, item.name): (item.accuracy, item.mean_residual)
+            for label, evaluation in evaluate.evaluations
+            for item in evaluation.fields
+        }
+        kept = [item.residual is not None for _, e in evaluate.evaluations for item in e.fields]
+        assert not any(kept) if tiled else all(kept)  # out of core: the numbers only
+    assert len(results[True]) == 4 and results[True].keys() == results[False].keys()
+    for key, (accuracy, residual) in results[True].items():
+        assert accuracy == pytest.approx(results[False][key][0], abs=1e-5)
+        assert residual == pytest.approx(results[False][key][1], rel=1e-5)

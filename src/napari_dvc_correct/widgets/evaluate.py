@@ -73,7 +73,8 @@ class EvaluateWidget(EngineWidget):
         self.add_out_of_core_row(
             "Reads the scans block by block and writes each residual to a temporary Zarr "
             "array (shown lazily), for scans larger than memory or opened lazily (then ticked "
-            "by itself). Same numbers as in memory. A pair, not a series."
+            "by itself). Same numbers as in memory. A pair (its residual kept on disk) or every "
+            "state of a series (the numbers only)."
         )
 
         self.n_phases = QSpinBox()
@@ -284,13 +285,12 @@ class EvaluateWidget(EngineWidget):
             layer_placement(self.reference.layer()) if self.reference.layer() else None
         )
         groups = self._groups(chosen)
-        if len(groups) > 1 and self.tiled.isChecked():
-            raise ValueError(
-                "an out-of-core evaluation takes the fields of one pair: untick 'out of core' "
-                "for the states of a series"
-            )
         if len(groups) > 1:  # a series: each state against its own pair of volumes
-            return model.run_groups(groups, self.thresholds(), self.mode.currentData())
+            tiled = self.tiled.isChecked()
+            memory = check_tiled("pair", None, self.max_memory.text()) if tiled else None
+            return model.run_groups(
+                groups, self.thresholds(), self.mode.currentData(), memory, tiled
+            )
         _, reference, deformed, chosen = groups[0]
         self._outputs, memory, self._writing = None, None, None
         self._release_temporary()  # folders of earlier runs no layer reads any more

@@ -168,6 +168,7 @@ def run_evaluation(
     mode: str = "reference",
     outputs: dict | None = None,
     max_memory: str | None = None,
+    tiled: bool | None = None,
 ):
     """Generator for the panel's worker: cleans the fields if needed, then evaluates them all.
 
@@ -183,6 +184,9 @@ def run_evaluation(
         Out of core (:func:`..tiled.evaluation.evaluate_tiled_iter`): the volumes read block
         by block and each field's residual written to its Zarr path (:func:`tiled_outputs`)
         instead of kept in memory; ``max_memory`` (``"4GB"``...) bounds the run.
+    tiled : bool, optional
+        Out of core even without ``outputs`` (then no residual volume is kept: the numbers
+        only, as a series needs). Default: out of core when ``outputs`` are given.
 
     Returns
     -------
@@ -193,7 +197,7 @@ def run_evaluation(
     if not fields:
         raise ValueError("no displacement field to evaluate: run Correlate first")
     ready = {name: ready_for_evaluation(field) for name, field in fields.items()}
-    if outputs is not None:
+    if outputs is not None or tiled:
         from ..tiled.evaluation import evaluate_tiled_iter
         from ..tiled.memory import parse_memory
 
@@ -204,7 +208,7 @@ def run_evaluation(
                 ready,
                 phases=[float(t) for t in thresholds],
                 mode=mode,
-                outputs={("residual", name): str(path) for name, path in outputs.items()},
+                outputs={("residual", name): str(path) for name, path in (outputs or {}).items()},
                 max_memory=parse_memory(max_memory) if max_memory else None,
             )
         )
@@ -273,13 +277,16 @@ def summary_text(evaluation) -> str:
     return "\n".join(lines)
 
 
-def run_groups(groups, thresholds, mode: str = "reference"):
+def run_groups(groups, thresholds, mode: str = "reference", max_memory=None, tiled=False):
     """Evaluate fields measured on different pairs (the states of a series), pair by pair.
 
     Parameters
     ----------
     groups : list of (label, reference, deformed, fields)
         One entry per pair of volumes, e.g. ``("state 2", G0, F2, {"state 2 (total)": d})``.
+    max_memory, tiled
+        Out of core (``tiled``): each pair read block by block within ``max_memory``; only the
+        numbers are kept (the panel shows no residual layer for a series).
 
     Returns
     -------
@@ -290,7 +297,9 @@ def run_groups(groups, thresholds, mode: str = "reference"):
     results = []
     for index, (label, reference, deformed, fields) in enumerate(groups):
         yield Progress(f"{label} ({index + 1}/{len(groups)})", 0, 1, "evaluating")
-        evaluation = yield from run_evaluation(reference, deformed, fields, thresholds, mode)
+        evaluation = yield from run_evaluation(
+            reference, deformed, fields, thresholds, mode, max_memory=max_memory, tiled=tiled
+        )
         results.append((label, evaluation))
     return results
 
