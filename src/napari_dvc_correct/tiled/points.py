@@ -62,6 +62,12 @@ DEFAULT_GROUP_VOXELS = 128
 #: Smallest group edge :func:`correlate_points_tiled_iter` shrinks to under ``max_memory``.
 MIN_GROUP_VOXELS = 8
 
+#: Layers of neighbouring POIs matched around each batch of the guide field
+#: (:func:`.correlate.correlate_tiled_iter`'s ``margin``). The margin makes a tiled field equal
+#: the in-memory one at the batches' faces, to the IC-GN tolerance's trace; a guide only starts
+#: the points' own IC-GN, so none is needed (4.4× less guide work with 3³-POI batches).
+GUIDE_MARGIN = 0
+
 
 @dataclass
 class PointGroup:
@@ -213,6 +219,9 @@ def correlate_points_tiled_iter(
             "fewer workers or a smaller subvolume"
         )
 
+    # the guide only starts the points' IC-GN, which converges to the same match from any
+    # start near it: its batches need no margin of neighbouring POIs (GUIDE_MARGIN)
+    guide_options = {"margin": GUIDE_MARGIN, **guide_options}
     guide = yield from correlate_tiled_iter(
         reference,
         deformed,
