@@ -90,23 +90,16 @@ class PointGroup:
         return int(np.prod(self.region_high - self.region_low))
 
 
-def match_group(group: PointGroup, reference, deformed, mask=None):
-    """One task: read the group's region, match its points as in memory.
-
-    Returns ``(index, trial, zncc, status, iterations, variance)`` for the group's points.
-    """
+def match_group(group: PointGroup, reference, deformed, mask=None) -> PointMatches:
+    """One task: read the group's region, match its points as in memory (their
+    :class:`..engine.correlate_points.PointMatches`, in the order of ``group.index``)."""
     g, f, m = read_regions(group, reference, deformed, mask)
     n = len(group.index)
     trial = group.trial.copy()
     if m is not None and not m.any():  # no material here: every point is masked, as in memory
         status = np.full(n, int(Status.MASKED), np.int64)
-        return (
-            group.index,
-            trial,
-            np.full(n, np.nan),
-            status,
-            np.zeros(n, np.int64),
-            np.full(n, np.nan),
+        return PointMatches(
+            trial, np.full(n, np.nan), status, np.zeros(n, np.int64), np.full(n, np.nan)
         )
     params = group.params
     g, f, m = validate_pair(g, f, params, m)
@@ -116,7 +109,7 @@ def match_group(group: PointGroup, reference, deformed, mask=None):
     centers = group.centers - group.region_low
     zncc, status, iterations = level.match(centers, trial, params.order, params)
     variance = matched_variance(level, centers, trial, zncc, status, params.order)
-    return group.index, trial, zncc, status, iterations, variance
+    return PointMatches(trial, zncc, status, iterations, variance)
 
 
 def _groups(centers, trial, shifts, params, shape, edge, std, options) -> list[PointGroup]:
@@ -124,7 +117,7 @@ def _groups(centers, trial, shifts, params, shape, edge, std, options) -> list[P
     reaches = halo(params, 0)
     cells = centers // int(edge)
     order = np.lexsort(cells.T[::-1])
-    keys, starts = np.unique(cells[order], axis=0, return_index=True)
+    _, starts = np.unique(cells[order], axis=0, return_index=True)
     groups = []
     for k, start in enumerate(starts):
         stop = starts[k + 1] if k + 1 < len(starts) else len(order)
@@ -269,10 +262,13 @@ def correlate_points_tiled_iter(
     import dask
 
     n = len(matched_centers)
-    zncc = np.full(n, np.nan)
-    status = np.full(n, int(Status.NOT_COMPUTED), np.int64)
-    iterations = np.zeros(n, np.int64)
-    variance = np.full(n, np.nan)
+    matches = PointMatches(
+        trial,
+        np.full(n, np.nan),
+        np.full(n, int(Status.NOT_COMPUTED), np.int64),
+        np.zeros(n, np.int64),
+        np.full(n, np.nan),
+    )
     volumes = [None if v is None else dask.delayed(v) for v in (reference, deformed, mask)]
     task = dask.delayed(match_group, pure=False)
     client, owns_client = (None, False)
@@ -282,20 +278,14 @@ def correlate_points_tiled_iter(
     try:
         tasks = [task(group, *volumes) for group in groups]
         with scheduling.running(tasks, scheduler, workers, client) as finished:
-            for done, (_, result) in enumerate(finished, start=1):
-                (
-                    index,
-                    trial[index],
-                    zncc[index],
-                    status[index],
-                    iterations[index],
-                    variance[index],
-                ) = result
+            for done, (i, group_matches) in enumerate(finished, start=1):
+                index = groups[i].index
+                for name in ("trial", "zncc", "status", "iterations", "variance"):
+                    getattr(matches, name)[index] = getattr(group_matches, name)
                 yield Progress("IC-GN", done, len(groups), f"group {done} of {len(groups)}")
     finally:
         if owns_client:
             client.close()
-    matches = PointMatches(trial, zncc, status, iterations, variance)
     result = points_field(points, centers, inside, matches, params, guide)
     result.metadata.update(
         volume_shape=list(shape),
