@@ -74,6 +74,10 @@ class Region(VolumeBase):
             self._any = self._compute_any()
         return self._any
 
+    def known_empty(self) -> bool | None:
+        """Whether the region is empty, if known without reading a volume (else None)."""
+        return None if self._any is None else not self._any
+
     def _compute_any(self) -> bool:
         every_row, every_column = slice(0, self.shape[1]), slice(0, self.shape[2])
         return any(self._slab(zs, every_row, every_column).any() for zs in _slabs(self))
@@ -101,6 +105,9 @@ class PrismRegion(Region):
 
     def _compute_any(self) -> bool:
         return bool(self.cross_section.any())
+
+    def known_empty(self) -> bool:
+        return not self.any()  # one slice's cross-section: always cheap
 
 
 class ThresholdRegion(Region):
@@ -351,9 +358,7 @@ def counts_quickly(mask) -> bool:
 
 def emptiness(mask) -> bool | None:
     """True or False when it is known without reading a lazy volume, else None."""
-    if isinstance(mask, Region) and not isinstance(mask, PrismRegion):
-        return None if mask._any is None else not mask._any
-    return not mask.any()
+    return mask.known_empty() if isinstance(mask, Region) else not mask.any()
 
 
 def kept_at(mask, params: CorrelationParams, points: np.ndarray) -> np.ndarray:
