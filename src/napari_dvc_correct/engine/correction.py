@@ -74,7 +74,7 @@ from .local_acceptance import (
 from .options import CorrectionOptions
 from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
-from .pass_params import correction_grid, correction_params
+from .pass_params import correction_grid, pass_method
 from .pass_reach import applied_change, changed_nodes, reuse, select
 from .progress import Progress, run_to_completion
 
@@ -340,7 +340,7 @@ def _correction_loop(
         )
     ]
     grid = (current.origin, current.step, current.shape)
-    pass_params = correction_params(current, params)
+    pass_params, method = pass_method(current, params)
     residual_before = residual
     unmasked = max(1, int(np.count_nonzero(~masked)))
     stop = f"max_passes ({int(max_passes)}) reached"
@@ -442,6 +442,9 @@ def _correction_loop(
             ),
             matched_nodes=int(np.prod(pass_grid[2]) if active is None else active.sum()),
             judged_nodes=int(np.count_nonzero(judged & ~masked)),
+            order=int(pass_params.order),
+            subvolume=int(pass_params.subvolume),
+            method=method,
         )
         passes.append(record)
         yield Progress(
@@ -508,6 +511,7 @@ def _correction_loop(
         "noise_floor": judge.floor,
         "pass_order": int(pass_params.order),
         "pass_subvolume": int(pass_params.subvolume),
+        "pass_method": method,
         "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),

@@ -57,6 +57,12 @@ class CorrectionPass:
         Nodes whose update was proposed and judged (the others kept their value unjudged).
     stop : str
         Why the loop stopped after this pass ("" where another pass ran).
+    order, subvolume : int
+        Shape-function order and subvolume edge (voxels) of the pass's correcting matches
+        (0 for pass 0 and for records of older files).
+    method : str
+        Why the correcting matches used that order and subvolume, in words (the user chose
+        the first run's parameters; the correction may change them, and says so here).
     """
 
     number: int
@@ -78,6 +84,9 @@ class CorrectionPass:
     matched_nodes: int = 0
     judged_nodes: int = 0
     stop: str = ""
+    order: int = 0
+    subvolume: int = 0
+    method: str = ""
 
     def to_dict(self) -> dict:
         """Plain dict for the field's JSON metadata (``number`` stored as ``"pass"``, the key

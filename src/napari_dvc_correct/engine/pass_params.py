@@ -87,11 +87,32 @@ def correction_params(field: DisplacementField, params: CorrelationParams) -> Co
     first-order one can (measured in docs/method.md). Elsewhere the first run's parameters are
     reused unchanged, as in the paper.
     """
-    if pass_order(field, params) == 1:
-        return params
+    return pass_method(field, params)[0]
+
+
+def pass_method(
+    field: DisplacementField, params: CorrelationParams
+) -> tuple[CorrelationParams, str]:
+    """:func:`correction_params` and, in words, why they differ from the first run's (or not).
+
+    The reason is shown to the user (panel, command line, report): the paper promises "the same
+    DVC parameters", so any change must be said.
+    """
+    if params.order == 2:
+        return params, f"the first run's parameters (second order, {params.subvolume}³)"
+    bend = field_curvature(field, params.half)
+    if bend <= CURVATURE_VOXELS:
+        return params, (
+            f"the first run's parameters (first order, {params.subvolume}³): the field bends a "
+            f"subvolume by {bend:.2g} voxel, at most {CURVATURE_VOXELS:g}"
+        )
     subvolume = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
     subvolume = min(params.subvolume, max(MIN_PASS_SUBVOLUME, subvolume))
-    return params.replace(order=2, subvolume=subvolume)
+    return params.replace(order=2, subvolume=subvolume), (
+        f"second order on {subvolume}³ instead of first order on {params.subvolume}³: the field "
+        f"bends a {params.subvolume}³ subvolume by {bend:.2g} voxel (> {CURVATURE_VOXELS:g}), more "
+        "than an affine shape function can follow"
+    )
 
 
 def correction_grid(
