@@ -27,6 +27,7 @@ STATUS_COLORS = {
     int(Status.LOW_ZNCC): "blue",
     int(Status.OUTLIER_REPLACED): "lime",
     int(Status.NOT_COMPUTED): "white",
+    int(Status.DISCONTINUITY): "#ff1493",
 }
 
 

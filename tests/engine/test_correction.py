@@ -392,9 +392,11 @@ def test_selective_passes_match_fewer_nodes_and_agree_with_matching_all(bump_cas
 
     assert rmse(full) < 0.6 * rmse(measured)
     assert abs(rmse(selective) - rmse(full)) < 1e-3
-    # the same decisions within a few nodes (measured: 5 of 1728)
+    # the same decisions within a few nodes (measured: 5 of 1728 before the support shrink;
+    # 29 since: a reused match carries its own pass's uncertainty into shrink_to_support, and
+    # nodes whose correction the noise explains are refused, not kept; the fields agree above)
     for a, b in zip(every[1:], some[1:]):
-        assert abs(a.accepted_nodes - b.accepted_nodes) <= 10, (a, b)
+        assert abs(a.accepted_nodes - b.accepted_nodes) <= 0.02 * n, (a, b)
         assert abs(a.improved_nodes - b.improved_nodes) <= 5, (a, b)
     assert some[-1].stop == every[-1].stop == "max_passes (3) reached"
 

@@ -69,6 +69,7 @@ from .local_acceptance import (
     accept_locally,
     flag_and_refill,
     mix_fields,
+    shrink_to_support,
     unsupported_updates,
 )
 from .options import CorrectionOptions
@@ -129,6 +130,24 @@ def _read_points(current: DisplacementField, frame: str, update: str) -> np.ndar
     return current.points
 
 
+def _nearest(delta: DisplacementField, read_points: np.ndarray, shape) -> tuple:
+    """Index into ``delta``'s grid of the node nearest to each read point (``shape``: the
+    corrected field's grid)."""
+    index = np.rint((read_points - np.asarray(delta.origin)) / np.asarray(delta.step))
+    index = np.nan_to_num(index, nan=0.0)
+    return tuple(
+        np.clip(index[:, a], 0, delta.shape[a] - 1).astype(np.intp).reshape(shape) for a in range(3)
+    )
+
+
+def _correction_sigma(delta: DisplacementField, read_points: np.ndarray, shape) -> np.ndarray:
+    """Uncertainty (voxels, norm over the 3 components) of each node's correcting match; NaN
+    where unknown (an interpolated match, or a field without uncertainties)."""
+    if delta.uncertainty is None:
+        return np.full(shape, np.nan)
+    return np.linalg.norm(delta.uncertainty[_nearest(delta, read_points, shape)], axis=-1)
+
+
 def _finish_pass(
     candidate: DisplacementField,
     delta: DisplacementField,
@@ -143,12 +162,7 @@ def _finish_pass(
     that match failed or was masked (its value interpolated from the neighbours' by the
     cleaning) are ``REPLACED``, the others ``CORRECTED``.
     """
-    index = np.rint((read_points - np.asarray(delta.origin)) / np.asarray(delta.step))
-    index = np.nan_to_num(index, nan=0.0)
-    nearest = tuple(
-        np.clip(index[:, a], 0, delta.shape[a] - 1).astype(np.intp).reshape(candidate.shape)
-        for a in range(3)
-    )
+    nearest = _nearest(delta, read_points, candidate.shape)
     candidate.zncc = delta.zncc[nearest].copy()
     candidate.status = delta.status[nearest].copy()
     candidate.iterations = delta.iterations[nearest].copy()
@@ -310,6 +324,9 @@ def _correction_loop(
     current = clean(field, **clean_options)
     yield Progress("clean", 1, 1, f"{current.metadata['cleaning']['rejected']} nodes replaced")
 
+    yield Progress("gray levels", 0, 1, "fitting the gray-level change between the scans")
+    gray_levels = yield from volumes.fit_gray_levels(current)
+    yield Progress("gray levels", 1, 1, gray_levels.describe())
     residuals = yield from volumes.residuals()
     judge = Judge(None, None, None, current.step, params.half, residuals=residuals)
     yield Progress("residual", 0, 1, "gray residual of the input field")
@@ -395,7 +412,12 @@ def _correction_loop(
         )
         yield Progress("residual", 0, 1, f"local acceptance of pass {number}")
         floor_before = judge.floor
-        refuse = unsupported_updates(delta, read_points)
+        # a correction is applied in proportion to its support above the correcting match's
+        # own noise; one the noise alone explains is not applied (the node keeps its value)
+        candidate, unsupported_by_noise = shrink_to_support(
+            current, candidate, _correction_sigma(delta, read_points, current.shape)
+        )
+        refuse = unsupported_updates(delta, read_points) | unsupported_by_noise.reshape(-1)
         if selection is not None:  # the other nodes keep their value, unjudged
             candidate = mix_fields(current, candidate, judged)
         mixed, local_mixed, accept, improved = accept_locally(
@@ -490,9 +512,13 @@ def _correction_loop(
 
     # after the passes, unexplained nodes are flagged but keep their value: refilling them from
     # neighbours that the same fault may have spoiled does not make them any more right
+    # flagged nodes whose residual is one-signed straddle a discontinuity (a crack): their own
+    # status, so that a user sees the crack rather than "outliers"
     unexplained = judge.unexplained(current, local_current) & ~masked
+    cracked = unexplained & judge.discontinuous(current, local_current)
     current = current.copy()
     current.status[unexplained] = Status.OUTLIER_REPLACED
+    current.status[cracked] = Status.DISCONTINUITY
     flagged_after = int(unexplained.sum())
     passes[-1] = dataclasses.replace(passes[-1], stop=stop)
     result = current.copy()
@@ -500,6 +526,7 @@ def _correction_loop(
     if result.gradient is not None and field.gradient is not None:
         result.gradient[masked] = field.gradient[masked]
     result.metadata["correction_passes"] = [p.to_dict() for p in passes]
+    result.metadata["gray_levels"] = gray_levels.to_dict()
     result.metadata["correction"] = {
         "frame": frame,
         "update": update,
@@ -515,6 +542,7 @@ def _correction_loop(
         "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
+        "discontinuity_nodes": int(cracked.sum()),
         "stop_reason": stop,
         "selective": bool(selective),
         "stages": stages,

@@ -32,6 +32,7 @@ from . import warp
 from .correlate import Prefiltered, correlate_iter
 from .field import DisplacementField
 from .field_spline import FieldSpline
+from .gray_levels import GrayLevelMap, fit_gray_levels
 from .interpolation import prefilter
 from .local_acceptance import ReferenceResiduals
 from .params import CorrelationParams
@@ -51,6 +52,7 @@ class CorrectionVolumes:
 
     frame: str
     shape: tuple
+    gray_levels: GrayLevelMap | None = None
 
     def correlate(
         self,
@@ -68,18 +70,25 @@ class CorrectionVolumes:
         raise NotImplementedError
 
     def align(self, field: DisplacementField) -> Generator[Progress, None, tuple[object, float]]:
-        """The moved volume for the next DVC and the mean gray residual of ``field`` (gray
-        levels, in the frame's sense: ``|F - G'|`` over the loaded voxels whose reference
-        position lies in the grid's hull, or ``|F~ - G|`` over the hull)."""
+        """The moved volume for the next DVC and the mean gray residual of ``field`` (reference
+        gray levels, in the frame's sense: ``|map(F) - G'|`` over the loaded voxels whose
+        reference position lies in the grid's hull, or ``|map(F~) - G|`` over the hull, with the
+        gray-level map :attr:`gray_levels`, the identity until it is fitted)."""
         raise NotImplementedError
 
     def matching_pair(self, moved, field: DisplacementField) -> Generator[Progress, None, tuple]:
         """``(reference, deformed, mask)`` for the correcting DVC of step e."""
         raise NotImplementedError
 
+    def fit_gray_levels(self, field: DisplacementField) -> Generator[Progress, None, GrayLevelMap]:
+        """Fit the pair's gray-level map with ``field`` (:mod:`.gray_levels`), keep it as
+        :attr:`gray_levels` for :meth:`align` and :meth:`residuals`, and return it."""
+        raise NotImplementedError
+
     def residuals(self) -> Generator[Progress, None, object]:
         """The reference-frame residual access of the local acceptance (see
-        :class:`.local_acceptance.ReferenceResiduals` for the methods)."""
+        :class:`.local_acceptance.ReferenceResiduals` for the methods), with
+        :attr:`gray_levels`."""
         raise NotImplementedError
 
     def release(self, moved) -> None:
@@ -160,19 +169,31 @@ class InMemoryVolumes(CorrectionVolumes):
             self._coef_deformed = prefilter(self.deformed)
         return self._coef_deformed
 
+    def fit_gray_levels(self, field):
+        spline = FieldSpline.from_field(field)
+        moved = warp.pull_back(
+            self.deformed, spline, coefficients=self._deformed_coefficients(), cval=np.nan
+        )
+        self.gray_levels = fit_gray_levels(self.reference, moved)
+        return self.gray_levels
+        yield
+
     def align(self, field):
         spline = FieldSpline.from_field(field)
+        gray = self.gray_levels
         if self.frame == "reference":
             moved = warp.pull_back(
                 self.deformed, spline, coefficients=self.coefficients, cval=np.nan
             )
+            mapped = moved if gray is None else gray.apply(moved)
             residual = _hull_mean(
-                np.abs(moved - self.reference), spline.hull_slices(self.reference.shape)
+                np.abs(mapped - self.reference), spline.hull_slices(self.reference.shape)
             )
         else:
             moved, residual = warp.warp_forward_with_residual(
-                self.reference, self.deformed, spline, coefficients=self.coefficients
-            )
+                self.reference, self.deformed, spline, coefficients=self.coefficients,
+                gray_levels=gray,
+            )  # fmt: skip
         return _finite_or_fill(moved, self.fill), residual
         yield  # a generator without progress: the arrays are at hand
 
@@ -191,5 +212,7 @@ class InMemoryVolumes(CorrectionVolumes):
         yield
 
     def residuals(self):
-        return ReferenceResiduals(self.reference, self.deformed, self._deformed_coefficients())
+        return ReferenceResiduals(
+            self.reference, self.deformed, self._deformed_coefficients(), self.gray_levels
+        )
         yield

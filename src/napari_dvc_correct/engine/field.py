@@ -39,6 +39,10 @@ class Status(IntEnum):
     LOW_ZNCC = 7
     OUTLIER_REPLACED = 8
     NOT_COMPUTED = 9
+    #: The node's subvolume straddles a discontinuity of the material (a crack that opened or
+    #: closed): its residual shows material that changed phase, which no continuous shape
+    #: function explains (:func:`.local_acceptance.Judge.discontinuous`).
+    DISCONTINUITY = 10
 
     @property
     def label(self) -> str:

@@ -23,6 +23,7 @@ from . import warp
 from .cleaning import clean
 from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from .field_spline import FieldSpline
+from .gray_levels import GrayLevelMap
 from .local_accuracy import local_mean_residual
 from .phase_sums import residual_phase_sums
 from .phases import label_phases, phase_thresholds
@@ -54,6 +55,18 @@ MIN_USEFUL_CHANGE = 0.01
 #: explains (from the local gray gradient) are flagged ``OUTLIER_REPLACED`` and refilled.
 FLAG_ERROR = 1.0
 
+#: A flagged node is a :attr:`~.field.Status.DISCONTINUITY` when the signed residual
+#: ``G - map(F~)`` over its cell carries at least this fraction of its excess over the noise floor:
+#: material appeared or vanished there (a crack opened or closed, a void collapsed), where a wrong
+#: displacement of intact texture leaves a residual of both signs that averages out. On the
+#: fractured rock of ``../shared/data/real-rock`` the flagged nodes along the crack carry 0.9-1.5
+#: of their excess in the sign of the opening (docs/method.md).
+DISCONTINUITY_SIGN = 0.5
+
+#: A correction is applied in full only where it stands this many uncertainties of its
+#: correcting match above zero (:func:`shrink_to_support`).
+SUPPORT_Z = 0.5
+
 #: How far (grid steps of the correcting field) beyond its outermost good measured nodes a node's
 #: update may read it. Further out the spline extrapolates the correcting field linearly: on the
 #: shear band of docs/method.md (17-voxel displacements, step 5) updates read 0-6 voxels beyond the
@@ -72,31 +85,46 @@ class ReferenceResiduals:
     numbers block by block from lazily read volumes.
     """
 
-    def __init__(self, reference, deformed, deformed_coefficients):
+    def __init__(self, reference, deformed, deformed_coefficients, gray_levels=None):
         self.reference = reference
         self.deformed = deformed
         self.coefficients = deformed_coefficients
+        self.gray_levels = (
+            GrayLevelMap.identity(reference.shape) if gray_levels is None else (gray_levels)
+        )
         try:
             self.thresholds_g = phase_thresholds(self.reference, "auto", 2, "reference volume")
-            self.thresholds_f = phase_thresholds(self.deformed, "auto", 2, "deformed volume")
             self.labels_g = label_phases(self.reference, self.thresholds_g)
         except ValueError:  # a volume with a single gray value: no phases, no eq. 1
             self.labels_g = None
         self._gradient = None
 
-    def local_means(self, field: DisplacementField, halves) -> tuple[list, float]:
-        """Per-node box means of the residual of ``field`` for each half-size, and eq. 1's r0."""
+    def moved(self, field: DisplacementField) -> np.ndarray:
+        """``F(X + u(X))`` in the reference's gray levels (the gray-level map applied), NaN where
+        undefined."""
         spline = FieldSpline.from_field(field)
         moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
+        return self.gray_levels.apply(moved)
+
+    def local_means(self, field: DisplacementField, halves) -> tuple[list, float]:
+        """Per-node box means of the gray-level-corrected residual ``|map(F~) - G|`` of
+        ``field`` for each half-size, and eq. 1's r0 of that residual."""
+        moved = self.moved(field)
         if self.labels_g is None:
             residual = np.abs(moved - self.reference)
             floor = float("inf")
-        else:  # eq. 1 (inf where no voxel holds the same phase in both states)
-            sums = residual_phase_sums(self.reference, moved, self.labels_g, self.thresholds_f)
+        else:  # eq. 1 (inf where no voxel holds the same phase in both states); the moved
+            # volume is in the reference's gray levels, so the reference's thresholds phase it
+            sums = residual_phase_sums(self.reference, moved, self.labels_g, self.thresholds_g)
             residual, floor = sums.residual, sums.same_phase_mean
             floor = floor if np.isfinite(floor) else float("inf")
         means = [local_mean_residual(residual, field, half) for half in halves]
         return means, floor
+
+    def signed_means(self, field: DisplacementField, half: int) -> np.ndarray:
+        """Per-node mean of the signed residual ``G - map(F~)`` over the node's box (reference
+        gray levels; NaN where the box holds no defined voxel)."""
+        return local_mean_residual(self.reference - self.moved(field), field, half)
 
     def gradient_means(self, field: DisplacementField, half: int) -> np.ndarray:
         """Per-node mean gray gradient magnitude of ``G`` over the node's box."""
@@ -195,6 +223,16 @@ class Judge:
         excess = local - self.floor
         return np.isfinite(excess) & (excess > 0.5 * FLAG_ERROR * gradient)
 
+    def discontinuous(self, field: DisplacementField, local: np.ndarray) -> np.ndarray:
+        """Nodes whose residual excess is one-signed (:data:`DISCONTINUITY_SIGN`): material
+        that appeared or vanished inside the cell, not texture misplaced by a wrong value.
+
+        Meant for the nodes :meth:`unexplained` flags; ``local`` is their cell residual.
+        """
+        signed = self.residuals.signed_means(field, self.half)
+        excess = local - self.floor
+        return np.isfinite(signed) & (excess > 0) & (np.abs(signed) > DISCONTINUITY_SIGN * excess)
+
 
 def flag_and_refill(judge, field, local, masked, clean_options):
     """Give unexplained nodes ``OUTLIER_REPLACED`` and refill them from their neighbours."""
@@ -225,6 +263,46 @@ def mix_fields(current: DisplacementField, candidate: DisplacementField, accept:
         else:
             mixed.gradient = None
     return mixed
+
+
+def shrink_to_support(current: DisplacementField, candidate: DisplacementField, sigma):
+    """Apply each node's correction in proportion to how far it stands above its noise.
+
+    A correction ``c = candidate - current`` measured with uncertainty ``σ`` (the correcting
+    match's, voxels, norm of the three components) is applied as ``s · c`` with
+    ``s = max(0, 1 - (SUPPORT_Z σ / |c|)²)``: in full where it is many times its uncertainty
+    (clean scans: nothing changes), shrunk where it is comparable, and not at all where the
+    noise alone explains it (heavy noise on weak texture, where applying it in full moved nodes
+    by their matching noise and made the field worse). Nodes of unknown ``σ`` (interpolated
+    matches) keep their correction whole.
+
+    Parameters
+    ----------
+    current, candidate : DisplacementField
+        The field before the pass and its proposed update (same grid).
+    sigma : ndarray, shape ``current.shape``
+        Uncertainty of each node's correcting match (voxels; NaN: unknown).
+
+    Returns
+    -------
+    shrunk : DisplacementField
+        ``candidate`` with the shrunk values (quality arrays unchanged).
+    unsupported : ndarray of bool, ``current.shape``
+        Nodes whose correction the noise explains (``s = 0``): to be refused.
+    """
+    change = candidate.u - current.u
+    size = np.linalg.norm(change, axis=-1)
+    sigma = np.asarray(sigma, dtype=np.float64).reshape(size.shape)
+    known = np.isfinite(sigma) & np.isfinite(size) & (size > 0)
+    factor = np.ones(size.shape)
+    factor[known] = np.clip(1.0 - (SUPPORT_Z * sigma[known] / size[known]) ** 2, 0.0, 1.0)
+    shrunk = candidate.copy()
+    shrunk.u = current.u + factor[..., None] * change
+    if shrunk.gradient is not None and current.gradient is not None:
+        shrunk.gradient = current.gradient + factor[..., None, None] * (
+            candidate.gradient - current.gradient
+        )
+    return shrunk, known & (factor <= 0.0)
 
 
 def unsupported_updates(delta: DisplacementField, read_points: np.ndarray) -> np.ndarray:

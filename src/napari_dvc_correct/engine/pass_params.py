@@ -22,6 +22,15 @@ CURVATURE_VOXELS = 0.1
 #: Subvolume of the second-order correcting matches, as a fraction of the first run's.
 PASS_SUBVOLUME_FRACTION = 2.0 / 3.0
 
+#: Scatter of a second-order match over a first-order one on the same subvolume (the
+#: translation terms share the subvolume's information with 27 other parameters instead of 9).
+SECOND_ORDER_NOISE_GAIN = 1.5
+
+#: Second order on a smaller subvolume is chosen only if its predicted scatter
+#: (:func:`predicted_scatter`) is under this share of the bend it removes: on noisy, weak
+#: texture the smaller quadratic subvolume matched only 2 nodes in 3 and made the field worse.
+NOISE_SHARE = 0.5
+
 #: Smallest subvolume edge of a correcting match (voxels).
 MIN_PASS_SUBVOLUME = 11
 
@@ -60,6 +69,24 @@ def field_curvature(field: DisplacementField, half: int) -> float:
     values = np.concatenate(terms)
     values = values[np.isfinite(values)]
     return float(0.5 * np.percentile(values, 90.0) * half**2) if values.size else 0.0
+
+
+def predicted_scatter(field: DisplacementField, subvolume: int, pass_subvolume: int) -> float:
+    """Predicted random error (voxels, norm) of second-order matches on ``pass_subvolume``³.
+
+    From the first run's measured uncertainties (median of the nodes' norms; 0 where the field
+    carries none): the scatter grows as the number of voxels falls, ``(S / s)^(3/2)``, and a
+    second-order shape function spends its subvolume's information on 30 parameters instead of
+    12 (:data:`SECOND_ORDER_NOISE_GAIN`).
+    """
+    if field.uncertainty is None:
+        return 0.0
+    sigma = np.linalg.norm(field.uncertainty, axis=-1)
+    sigma = sigma[np.isfinite(sigma)]
+    if not sigma.size:
+        return 0.0
+    ratio = (float(subvolume) / float(pass_subvolume)) ** 1.5
+    return float(np.median(sigma)) * ratio * SECOND_ORDER_NOISE_GAIN
 
 
 def pass_order(field: DisplacementField, params: CorrelationParams) -> int:
@@ -108,6 +135,13 @@ def pass_method(
         )
     subvolume = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
     subvolume = min(params.subvolume, max(MIN_PASS_SUBVOLUME, subvolume))
+    scatter = predicted_scatter(field, params.subvolume, subvolume)
+    if scatter > NOISE_SHARE * bend:
+        return params, (
+            f"the first run's parameters (first order, {params.subvolume}³): the field bends a "
+            f"subvolume by {bend:.2g} voxel, but second order on {subvolume}³ would scatter by "
+            f"about {scatter:.2g} voxel on these scans' noise, more than it would remove"
+        )
     return params.replace(order=2, subvolume=subvolume), (
         f"second order on {subvolume}³ instead of first order on {params.subvolume}³: the field "
         f"bends a {params.subvolume}³ subvolume by {bend:.2g} voxel (> {CURVATURE_VOXELS:g}), more "

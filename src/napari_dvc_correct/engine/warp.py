@@ -312,12 +312,14 @@ def warp_forward_with_residual(
     tolerance: float = INVERT_TOLERANCE,
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
     accuracy: float | None = INVERSE_ACCURACY,
+    gray_levels=None,
 ) -> tuple[np.ndarray, float]:
     """:func:`warp_forward` (field extrapolated) and the loaded-state mean gray residual at once.
 
     One inversion serves both: ``G'`` everywhere (``cval`` where undefined) and the mean of
     ``|F - G'|`` where the reference position lies in the grid's hull, i.e.
-    ``residual.mean_gray_residual(reference, deformed, field, "loaded")``.
+    ``residual.mean_gray_residual(reference, deformed, field, "loaded")``; with ``gray_levels``
+    (a :class:`.gray_levels.GrayLevelMap`) the mean of ``|map(F) - G'|`` (reference gray levels).
 
     Returns
     -------
@@ -337,7 +339,10 @@ def warp_forward_with_residual(
     for z in iter_slabs(shape, chunk_voxels):
         values = result[z]
         defined = np.isfinite(values)
-        difference = np.abs(deformed[z].astype(np.float32) - values)[defined & in_hull[z]]
+        own = deformed[z].astype(np.float32)
+        if gray_levels is not None:
+            own = gray_levels.apply(own, (z, slice(0, shape[1]), slice(0, shape[2])))
+        difference = np.abs(own - values)[defined & in_hull[z]]
         total += float(np.sum(difference, dtype=np.float64))
         count += int(difference.size)
         values[~defined] = cval

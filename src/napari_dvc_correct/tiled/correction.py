@@ -28,6 +28,7 @@ reliability-guided repair works per batch; the noise-aware thresholds are the wh
 
 from __future__ import annotations
 
+import itertools
 import os
 import shutil
 import tempfile
@@ -41,6 +42,14 @@ from ..engine.correction import check_options, correct_volumes_iter, params_of
 from ..engine.correction_volumes import CorrectionVolumes
 from ..engine.field import DisplacementField
 from ..engine.field_spline import FieldSpline
+from ..engine.gray_levels import (
+    DEFAULT_CELL,
+    CellSums,
+    GrayLevelMap,
+    block_sums,
+    cells_shape,
+    map_from_sums,
+)
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.params import CorrelationParams
 from ..engine.phases import lattice_sample, otsu_stride, otsu_thresholds
@@ -103,8 +112,16 @@ def _statistics_block(volume, stride, region):
     return lattice_sample(block, region, stride), total, int(finite.sum()), int((~finite).sum())
 
 
-def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, hull):
-    """The moved volume of one block (written) and the sum and count of its gray residual."""
+def _gray_sums_block(reference, deformed, spline, gray_cell, previous, block):
+    """The gray-level map's cell sums of one block (:func:`..engine.gray_levels.block_sums`)."""
+    moved = pull_back_block(LazySampler(deformed), spline, block)
+    g = reference.read_region(block)
+    return block_sums(g, moved, block, reference.shape, gray_cell, previous)
+
+
+def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, hull, gray):
+    """The moved volume of one block (written) and the sum and count of its gray residual
+    (with the gray-level map ``gray``: ``|map(F) - G'|`` or ``|map(F~) - G|``)."""
     if frame == "loaded":
         values, in_hull = warp_forward_block(
             LazySampler(reference),
@@ -114,7 +131,8 @@ def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, h
             INVERT_TOLERANCE,
         )
         defined = np.isfinite(values)
-        difference = np.abs(deformed.read_region(block) - values)[defined & in_hull]
+        own = gray.apply(deformed.read_region(block), block)
+        difference = np.abs(own - values)[defined & in_hull]
     else:
         values = pull_back_block(LazySampler(deformed), spline, block)
         inner = tuple(
@@ -123,7 +141,7 @@ def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, h
         difference = np.zeros(0, np.float32)
         if all(s.stop > s.start for s in inner):
             local = tuple(slice(i.start - b.start, i.stop - b.start) for i, b in zip(inner, block))
-            difference = np.abs(values[local] - reference.read_region(inner))
+            difference = np.abs(gray.apply(values[local], inner) - reference.read_region(inner))
             difference = difference[np.isfinite(difference)]
         defined = np.isfinite(values)
     values[~defined] = fill
@@ -359,7 +377,7 @@ class TiledVolumes(CorrectionVolumes):
             1,
             _warp_residual_block,
             [self.reference, self.deformed, spline],
-            [self.frame, float(fill), hull],
+            [self.frame, float(fill), hull, self._gray()],
             run=(self.block_shape, self._where, self.workers),
             metadata={"quantity": f"correction: the pair aligned by the field ({self.frame})"},
             stage="warp",
@@ -380,9 +398,39 @@ class TiledVolumes(CorrectionVolumes):
             mask = None if path is None else self._keep(path)
         return moved, self.deformed, mask
 
+    def _gray(self) -> GrayLevelMap:
+        return self.gray_levels if self.gray_levels is not None else GrayLevelMap.identity()
+
+    def fit_gray_levels(self, field):
+        spline = FieldSpline.from_field(field)
+        blocks = [
+            tuple(slice(a, min(a + b, n)) for a, b, n in zip(start, self.block_shape, self.shape))
+            for start in itertools.product(
+                *(range(0, n, b) for n, b in zip(self.shape, self.block_shape))
+            )
+        ]
+        previous = None
+        for _ in range(2):  # as engine.gray_levels.fit_gray_levels: fit, then trimmed
+            parts = yield from self._tasks(
+                _gray_sums_block,
+                [self.reference, self.deformed, spline, DEFAULT_CELL, previous],
+                blocks,
+                "gray levels",
+            )
+            sums = CellSums.zeros(cells_shape(self.shape, DEFAULT_CELL))
+            for part in parts:
+                sums.add(part)
+            fitted = map_from_sums(sums, self.shape, DEFAULT_CELL)
+            if fitted.fitted_voxels < 2 or not np.isfinite(fitted.rms):
+                fitted = fitted if previous is None else previous
+                break
+            previous = fitted
+        self.gray_levels = fitted
+        return fitted
+
     def residuals(self):
         stats = yield from self.statistics()
-        return TiledResiduals(self, stats.thresholds)
+        return TiledResiduals(self, stats.thresholds, self._gray())
 
 
 # --- memory and the driver -----------------------------------------------------------------------

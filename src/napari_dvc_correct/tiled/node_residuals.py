@@ -37,17 +37,28 @@ def _node_residual_block(reference, deformed, spline, job):
     """Box means of the reference-frame residual at one block's nodes, and eq. 1's sums over the
     block's own voxels."""
     g = reference.read_region(job.region)
-    moved = pull_back_block(LazySampler(deformed), spline, job.region)
+    moved = job.gray_levels.apply(
+        pull_back_block(LazySampler(deformed), spline, job.region), job.region
+    )
     residual = np.abs(moved - g)
     means = [local_mean_residual(residual, job.nodes, half) for half in job.halves]
     total, count = 0.0, 0
     if job.thresholds is not None:
         own_g, own_moved, own = g[job.owned], moved[job.owned], residual[job.owned]
         labels = label_phases(own_g, job.thresholds[0])
-        keep = (labels == label_phases(own_moved, job.thresholds[1])) & (labels < NO_PHASE)
+        # the moved volume is in the reference's gray levels: the reference's thresholds
+        keep = (labels == label_phases(own_moved, job.thresholds[0])) & (labels < NO_PHASE)
         keep &= np.isfinite(own)
         total, count = float(np.sum(own[keep], dtype=np.float64)), int(keep.sum())
     return job.index, means, total, count
+
+
+def _node_signed_block(reference, deformed, spline, job):
+    """Box means of the signed residual ``G - map(F~)`` at one block's nodes."""
+    g = reference.read_region(job.region)
+    moved = pull_back_block(LazySampler(deformed), spline, job.region)
+    signed = g - job.gray_levels.apply(moved, job.region)
+    return job.index, local_mean_residual(signed, job.nodes, job.halves[0])
 
 
 def _node_gradient_block(reference, job):
@@ -60,9 +71,10 @@ def _node_gradient_block(reference, job):
 class TiledResiduals:
     """:class:`..engine.local_acceptance.ReferenceResiduals`' numbers, node block by node block."""
 
-    def __init__(self, volumes, thresholds):
+    def __init__(self, volumes, thresholds, gray_levels):
         self.volumes = volumes
         self.thresholds = thresholds
+        self.gray_levels = gray_levels
         self._gradients: dict = {}
 
     def _jobs(self, field, halves, reach_extra=0, owned=False):
@@ -116,6 +128,7 @@ class TiledResiduals:
                                 for a, c, r in zip(own_lo, own_hi, read_lo)
                             ),
                             thresholds=self.thresholds,
+                            gray_levels=self.gray_levels,
                         )
                     )
         return jobs
@@ -140,6 +153,23 @@ class TiledResiduals:
             total, count = total + block_total, count + block_count
         floor = total / count if self.thresholds is not None and count else float("inf")
         return [m.reshape(field.shape) for m in means], floor
+
+    def signed_means(self, field: DisplacementField, half: int):
+        volumes = self.volumes
+        jobs = self._jobs(field, (half,))
+        spline = FieldSpline.from_field(field)
+        results = run_to_completion(
+            volumes._tasks(
+                _node_signed_block,
+                [volumes.reference, volumes.deformed, spline],
+                jobs,
+                "signed residual",
+            )
+        )
+        means = np.full(field.n_points, np.nan)
+        for index, values in results:
+            means[index] = values.reshape(-1)
+        return means.reshape(field.shape)
 
     def gradient_means(self, field: DisplacementField, half: int):
         key = (tuple(field.origin), tuple(field.step), field.shape, int(half))
