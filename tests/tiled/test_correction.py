@@ -24,10 +24,10 @@ import zarr
 from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.cleaning import clean
 from napari_dvc_correct.engine.correction import correct, correction_table
+from napari_dvc_correct.engine.correction_volumes import InMemoryVolumes
 from napari_dvc_correct.engine.correlate import correlate
 from napari_dvc_correct.engine.field import Status
 from napari_dvc_correct.engine.interpolation import prefilter
-from napari_dvc_correct.engine.correction_volumes import InMemoryVolumes
 from napari_dvc_correct.engine.local_acceptance import ReferenceResiduals
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.engine.progress import run_to_completion
