@@ -23,6 +23,7 @@ from napari_dvc_correct.engine.field import (
     GOOD_STATUSES,
     DisplacementField,
     Provenance,
+    Status,
     grid_for_volume,
 )
 from napari_dvc_correct.engine.params import CorrelationParams
@@ -412,3 +413,74 @@ def test_a_pass_that_could_only_confirm_does_not_run(smooth_case, frame):
     assert "could only confirm" in passes[1].stop
     assert corrected.metadata["correction"]["stop_reason"] == passes[1].stop
     assert passes[0].stop == ""
+
+
+# --- real scans' conditions: gray levels that change, a crack that opens (issue 25) -----------
+def _ct_texture(size, seed):
+    """A textured scan with a CT's statistics: mean 100, standard deviation 30 gray levels."""
+    volume = synthetic.textured_volume((size,) * 3, 2.0, seed=seed)
+    return (100.0 + 30.0 * (volume - volume.mean()) / volume.std()).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def cracked_pair():
+    """A crack opens by 4 voxels across z = 24: the upper part moves by 4 voxels along z, the
+    gap is dark, and the loaded scan is darker and flatter (F = 0.5 F + 20) with mild noise."""
+    reference = _ct_texture(48, seed=7)
+    deformed = np.empty_like(reference)
+    deformed[:24] = reference[:24]
+    deformed[28:] = reference[24:44]
+    deformed[24:28] = 10.0
+    deformed = synthetic.add_noise(0.5 * deformed + 20.0, 1.0, seed=3)
+    params = CorrelationParams(subvolume=15, step=6)
+    measured = correlate(reference, deformed, params)
+    return measured, correct(reference, deformed, measured, params), params
+
+
+def test_a_crack_gets_its_own_status_and_spoils_no_other_node(cracked_pair):
+    measured, corrected, params = cracked_pair
+    z = corrected.points[:, 0]  # node layers at z = 11, 17, 23, 29, 35
+    status = corrected.status.reshape(-1)
+    good = np.isin(status, [int(s) for s in GOOD_STATUSES])
+    crack = status == int(Status.DISCONTINUITY)
+    # the nodes whose subvolume straddles the crack plane (z = 23.5 in the reference) are
+    # the only DISCONTINUITY nodes, and the layer whose cells hold it is all DISCONTINUITY
+    straddles = (z + params.half >= 24) & (z - params.half < 24)
+    assert crack.any() and np.all(straddles[crack])
+    assert np.all(crack[z == 23.0])
+    # the nodes whose subvolume lies on one side keep their plain values to the bit (measured
+    # 0.008 voxel off): the crack's smeared warp spoils none of them
+    clear = ~straddles
+    assert np.all(good[clear])
+    np.testing.assert_array_equal(corrected.displacement[clear], measured.displacement[clear])
+    truth = np.where(z < 24, 0.0, 4.0)
+    error = np.abs(corrected.displacement[:, 0] - truth)
+    assert np.max(error[clear]) < 0.02
+    # a straddling node that stays good is as close as one continuous shape function can be
+    # (measured: at most 0.25 voxel)
+    assert np.max(error[good & straddles]) < 0.35
+    # the gray-level change was found (G = 2 F - 40; least squares attenuates the contrast
+    # where the field is wrong around the crack: measured 1.65) and is recorded
+    gray = corrected.metadata["gray_levels"]
+    assert gray["contrast"] == pytest.approx(2.0, rel=0.2)
+    info = corrected.metadata["correction"]
+    assert info["discontinuity_nodes"] == int(crack.sum()) and info["shielded_nodes"] > 0
+
+
+def test_a_gray_level_change_neither_flags_nor_moves_a_right_field():
+    # the loaded scan is 0.4 x as contrasted and offset: the raw residual is the brightness
+    # change (about 60 gray levels), the gray-level-corrected one the resampling noise
+    reference = _ct_texture(40, seed=11)
+    shift = (1.3, -0.7, 0.6)
+    deformed = synthetic.deform_volume(reference, synthetic.translation(shift))
+    deformed = 0.4 * deformed + 10.0
+    params = CorrelationParams(subvolume=13, step=5)
+    measured = correlate(reference, deformed, params)
+    corrected = correct(reference, deformed, measured, params)
+    good = np.isin(corrected.status, [int(s) for s in GOOD_STATUSES])
+    assert good.mean() >= 0.98
+    error = np.linalg.norm(corrected.displacement - np.asarray(shift), axis=1)
+    assert np.nanmax(error[good.reshape(-1)]) < 0.05
+    info = corrected.metadata["correction"]
+    assert info["mean_gray_residual_before"] < 5.0  # not the 60 of the brightness change
+    assert corrected.metadata["gray_levels"]["contrast"] == pytest.approx(2.5, rel=0.02)

@@ -39,3 +39,21 @@ def test_the_reach_counts_from_the_good_measured_nodes_only():
     assert unsupported_updates(delta, np.array([[np.nan, 15.0, 15.0]])).tolist() == [True]
     delta.status[:] = Status.DIVERGED
     assert unsupported_updates(delta, points).all()
+
+
+def test_a_correction_is_applied_in_proportion_to_its_support_above_the_noise():
+    from napari_dvc_correct.engine.local_acceptance import SUPPORT_Z, shrink_to_support
+
+    current = _delta(shape=(1, 1, 4))
+    candidate = current.copy()
+    candidate.u[0, 0, :, 0] = 0.3  # every node corrected by 0.3 voxel along z
+    # its match's uncertainty: none known, tiny, comparable, larger than the correction
+    sigma = np.array([[[np.nan, 0.003, 0.3 / SUPPORT_Z / 2.0, 0.3 / SUPPORT_Z * 1.5]]])
+    shrunk, unsupported = shrink_to_support(current, candidate, sigma)
+    applied = shrunk.u[0, 0, :, 0]
+    assert applied[0] == 0.3  # unknown uncertainty: the correction whole
+    assert applied[1] == np.float64(0.3) * (1 - (SUPPORT_Z * 0.003 / 0.3) ** 2)
+    assert np.isclose(applied[2], 0.3 * 0.75)  # half its size: three quarters of it
+    assert applied[3] == 0.0  # the noise explains it: not applied, and refused
+    assert unsupported.reshape(-1).tolist() == [False, False, False, True]
+    assert np.all(shrunk.u[..., 1:] == 0.0)

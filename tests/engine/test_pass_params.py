@@ -64,3 +64,25 @@ def test_the_correcting_grid_follows_the_displaced_nodes_as_far_as_a_subvolume_f
     # never smaller than the field's grid, whatever the read points
     inward = correction_grid(field, (64,) * 3, params, field.points[:1] * 0 + 30.0)
     assert inward == (field.origin, field.step, field.shape)
+
+
+def test_noise_keeps_the_first_runs_subvolume_where_a_smaller_one_would_scatter_more():
+    from napari_dvc_correct.engine.pass_params import pass_method, predicted_scatter
+
+    params = CorrelationParams(subvolume=21, step=6)
+    origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
+    field = DisplacementField.zeros(origin, step, shape)
+    points = field.points.reshape(*shape, 3)
+    field.u[..., 0] += 0.002 * (points[..., 2] - 32.0) ** 2  # bends a subvolume by 0.2 voxel
+    # clean scans: the first run scattered by a thousandth of a voxel
+    field.uncertainty = np.full((*shape, 3), 0.001)
+    chosen, why = pass_method(field, params)
+    assert chosen.order == 2 and chosen.subvolume < 21 and "second order" in why
+    # noisy, weak texture: 0.05 voxel per component at 21³ -> about 0.2 at 15³ second order
+    field.uncertainty = np.full((*shape, 3), 0.05)
+    scatter = predicted_scatter(field, 21, chosen.subvolume)
+    assert scatter == pytest.approx(
+        np.sqrt(3) * 0.05 * (21 / chosen.subvolume) ** 1.5 * 1.5, rel=1e-9
+    )
+    chosen, why = pass_method(field, params)
+    assert chosen == params and "scatter" in why

@@ -63,10 +63,11 @@ from .cleaning import clean, masked_nodes
 from .compose import compose
 from .correction_record import CHANGE_THRESHOLD, CorrectionPass, correction_table
 from .correction_volumes import CorrectionVolumes, InMemoryVolumes
-from .field import DisplacementField, Provenance, Status
+from .field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from .local_acceptance import (
     Judge,
     accept_locally,
+    crack_shield,
     flag_and_refill,
     mix_fields,
     shrink_to_support,
@@ -128,6 +129,10 @@ def _read_points(current: DisplacementField, frame: str, update: str) -> np.ndar
     if frame == "loaded" and update == "exact":
         return current.points + current.u.reshape(-1, 3)
     return current.points
+
+
+def _good(field: DisplacementField) -> np.ndarray:
+    return np.isin(field.status, [int(s) for s in GOOD_STATUSES])
 
 
 def _nearest(delta: DisplacementField, read_points: np.ndarray, shape) -> tuple:
@@ -331,6 +336,12 @@ def _correction_loop(
     judge = Judge(None, None, None, current.step, params.half, residuals=residuals)
     yield Progress("residual", 0, 1, "gray residual of the input field")
     local_current = judge.local(current)
+    # a discontinuity (a crack) breaks the continuous warp the passes rest on: its nodes are
+    # not corrected, and the good measured nodes around it keep their values (the splines
+    # through the crack's refilled nodes would otherwise pull them across it)
+    crack = judge.unexplained(current, local_current) & ~masked
+    crack &= judge.discontinuous(current, local_current)
+    shielded = crack_shield(current, crack)
     current, local_current, flagged = flag_and_refill(
         judge, current, local_current, masked, clean_options
     )
@@ -417,7 +428,15 @@ def _correction_loop(
         candidate, unsupported_by_noise = shrink_to_support(
             current, candidate, _correction_sigma(delta, read_points, current.shape)
         )
-        refuse = unsupported_updates(delta, read_points) | unsupported_by_noise.reshape(-1)
+        # a good node whose correcting match failed keeps its value and its status: a failed
+        # (or smaller, noisier) correcting match says nothing about the node's own error
+        failed_match = _good(current) & ~_good(candidate)
+        refuse = (
+            unsupported_updates(delta, read_points)
+            | unsupported_by_noise.reshape(-1)
+            | failed_match.reshape(-1)
+            | shielded.reshape(-1)
+        )
         if selection is not None:  # the other nodes keep their value, unjudged
             candidate = mix_fields(current, candidate, judged)
         mixed, local_mixed, accept, improved = accept_locally(
@@ -464,6 +483,8 @@ def _correction_loop(
             ),
             matched_nodes=int(np.prod(pass_grid[2]) if active is None else active.sum()),
             judged_nodes=int(np.count_nonzero(judged & ~masked)),
+            failed_match_nodes=int(np.count_nonzero(failed_match & judged & ~masked)),
+            noise_refused_nodes=int(np.count_nonzero(unsupported_by_noise & judged & ~masked)),
             order=int(pass_params.order),
             subvolume=int(pass_params.subvolume),
             method=method,
@@ -515,7 +536,7 @@ def _correction_loop(
     # flagged nodes whose residual is one-signed straddle a discontinuity (a crack): their own
     # status, so that a user sees the crack rather than "outliers"
     unexplained = judge.unexplained(current, local_current) & ~masked
-    cracked = unexplained & judge.discontinuous(current, local_current)
+    cracked = (unexplained & judge.discontinuous(current, local_current)) | (crack & unexplained)
     current = current.copy()
     current.status[unexplained] = Status.OUTLIER_REPLACED
     current.status[cracked] = Status.DISCONTINUITY
@@ -543,6 +564,7 @@ def _correction_loop(
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
         "discontinuity_nodes": int(cracked.sum()),
+        "shielded_nodes": int(shielded.sum()),
         "stop_reason": stop,
         "selective": bool(selective),
         "stages": stages,

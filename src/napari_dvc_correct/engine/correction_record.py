@@ -57,6 +57,12 @@ class CorrectionPass:
         Nodes whose update was proposed and judged (the others kept their value unjudged).
     stop : str
         Why the loop stopped after this pass ("" where another pass ran).
+    failed_match_nodes : int
+        Of the refused nodes, good nodes whose correcting match failed (they keep their value
+        and status).
+    noise_refused_nodes : int
+        Of the refused nodes, those whose correction the correcting match's own noise explains
+        (:func:`.local_acceptance.shrink_to_support`).
     order, subvolume : int
         Shape-function order and subvolume edge (voxels) of the pass's correcting matches
         (0 for pass 0 and for records of older files).
@@ -84,6 +90,8 @@ class CorrectionPass:
     matched_nodes: int = 0
     judged_nodes: int = 0
     stop: str = ""
+    failed_match_nodes: int = 0
+    noise_refused_nodes: int = 0
     order: int = 0
     subvolume: int = 0
     method: str = ""

@@ -1,0 +1,148 @@
+"""Plain against self-corrected DVC on a real loaded CT pair (issue 25): ``../shared/data/real-rock``.
+
+Two 200³ crops of an x-ray CT pair of a notched rock cylinder, intact and fractured (the README
+there): ``upper`` far from the fracture, ``lower`` crossed by the open crack, with air outside the
+cylinder. No true field exists, so a field is judged the way the paper judges one, by how well it
+explains the images, with a judge that is not ours:
+
+* **residual**: ``F(X + u(X))`` pulled back with the cleaned field, a least-squares gray-level
+  line ``G ≈ a F~ + b`` fitted over the whole crop (global, unlike the correction's local map),
+  the mean ``|G - a F~ - b|`` over the voxels where the field is defined, as a fraction of the
+  zero field's;
+* **ZNCC**: the median ZNCC of the nodes with a good status;
+* **flagged**: nodes without a good status (all nodes, and the nodes inside the specimen: air
+  nodes are ``LOW_TEXTURE`` by design), and ``DISCONTINUITY`` nodes;
+* **where the flags are**: the crack is taken as the 2 % of the specimen's voxels the plain
+  field explains worst (after the gray-level line); a flagged node is "at the crack" when such a
+  voxel lies within its subvolume's half-width;
+* **seconds** per stage (the plain run's and the correction's own timings).
+
+Run: ``python benchmarks/bench_real.py [--subvolume 21] [--step 8] [upper] [lower]``. The machine
+is shared (2 cores): compare seconds within one run only, and say the load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from napari_dvc_correct.engine.cleaning import clean
+from napari_dvc_correct.engine.correction import correct
+from napari_dvc_correct.engine.correlate import correlate
+from napari_dvc_correct.engine.field import GOOD_STATUSES, DisplacementField, Status
+from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.residual import moved_and_residual
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-rock"
+
+
+def judge_residual(reference, deformed, field: DisplacementField):
+    """Independent residual: pull-back with the cleaned field, global least-squares gray line."""
+    moved, _ = moved_and_residual(reference, deformed, clean(field))
+    ok = np.isfinite(moved)
+    design = np.column_stack([moved[ok], np.ones(int(ok.sum()))])
+    line, *_ = np.linalg.lstsq(design, reference[ok], rcond=None)
+    residual = np.full(reference.shape, np.nan, np.float32)
+    residual[ok] = np.abs(reference[ok] - design @ line)
+    return float(np.nanmean(residual)), residual
+
+
+def specimen_of(reference: np.ndarray) -> np.ndarray:
+    """The specimen (not the air around it): above the mid-gray between air and material."""
+    smooth = ndimage.gaussian_filter(reference, 2.0)
+    low, high = np.percentile(smooth, [2, 98])
+    return smooth > 0.5 * (low + high)
+
+
+def good(field: DisplacementField) -> np.ndarray:
+    return np.isin(field.status, [int(s) for s in GOOD_STATUSES])
+
+
+def run(name: str, params: CorrelationParams) -> None:
+    path = DATA / f"rock_{name}.npz"
+    if not path.exists():
+        print(f"{path} is absent (a user's clone without ../shared): skipped")
+        return
+    data = np.load(path)
+    reference = data["reference"].astype(np.float32)
+    deformed = data["deformed"].astype(np.float32)
+    started = time.perf_counter()
+    plain = correlate(reference, deformed, params)
+    plain_seconds = time.perf_counter() - started
+    started = time.perf_counter()
+    corrected = correct(reference, deformed, plain, params)
+    correction_seconds = time.perf_counter() - started
+
+    zero = plain.copy()
+    zero.u[:] = 0.0
+    zero.status[:] = int(Status.CONVERGED)
+    zero_residual, _ = judge_residual(reference, deformed, zero)
+    plain_residual, plain_map = judge_residual(reference, deformed, plain)
+    corrected_residual, _ = judge_residual(reference, deformed, corrected)
+
+    specimen = specimen_of(reference)
+    crack = np.zeros(reference.shape, bool)
+    inside = specimen & np.isfinite(plain_map)
+    crack[inside] = plain_map[inside] > np.percentile(plain_map[inside], 98.0)
+    # a node is "at the crack" when a crack voxel lies within its subvolume's half-width
+    near_crack = ndimage.maximum_filter(crack, size=2 * params.half + 1)
+    nodes = np.clip(np.rint(plain.points).astype(int), 0, np.asarray(reference.shape) - 1)
+    node_in_specimen = specimen[tuple(nodes.T)].reshape(plain.shape)
+    node_at_crack = near_crack[tuple(nodes.T)].reshape(plain.shape)
+
+    print(f"\n## {name} ({plain.n_points} nodes, subvolume {params.subvolume}, step {params.step})")
+    gray = corrected.metadata.get("gray_levels", {}).get("description", "")
+    print(f"gray-level map of the correction: {gray}")
+    print(f"correction: {corrected.metadata['correction']['stop_reason']}")
+    for record in corrected.metadata["correction_passes"][1:]:
+        print(
+            f"  pass {record['pass']}: order {record['order']}, {record['subvolume']}³, "
+            f"{record['accepted_nodes']} kept, {record['rejected_nodes']} refused "
+            f"({record['failed_match_nodes']} failed matches, {record['noise_refused_nodes']} "
+            f"within the noise), {record['improved_nodes']} improved above the floor"
+        )
+    print(
+        "| field | residual / zero field's | median ZNCC (good) | flagged (all) | "
+        "flagged (specimen) | of the flagged: at the crack | DISCONTINUITY | seconds |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for label, field, residual, seconds in (
+        ("plain", plain, plain_residual, plain_seconds),
+        ("corrected", corrected, corrected_residual, plain_seconds + correction_seconds),
+    ):
+        flagged = ~good(field)
+        in_specimen = flagged & node_in_specimen
+        at_crack = float(np.mean(node_at_crack[flagged])) if flagged.any() else float("nan")
+        zncc = float(np.median(field.zncc[good(field)])) if good(field).any() else float("nan")
+        print(
+            f"| {label} | {residual / zero_residual:.4f} ({residual:.3f} gray levels) | "
+            f"{zncc:.4f} | {flagged.mean():.1%} | "
+            f"{in_specimen.sum() / max(1, node_in_specimen.sum()):.1%} | {at_crack:.0%} | "
+            f"{int(np.sum(field.status == int(Status.DISCONTINUITY)))} | {seconds:.1f} |"
+        )
+    timings = plain.metadata.get("timings", {})
+    stages = corrected.metadata["correction"]["stages"]
+    print(
+        "plain stages (s): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in timings.items() if isinstance(v, float))
+    )
+    print("correction stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("crops", nargs="*", default=["upper", "lower"])
+    parser.add_argument("--subvolume", type=int, default=21)
+    parser.add_argument("--step", type=int, default=8)
+    args = parser.parse_args()
+    params = CorrelationParams(subvolume=args.subvolume, step=args.step)
+    for name in args.crops:
+        run(name, params)
+
+
+if __name__ == "__main__":
+    main()
