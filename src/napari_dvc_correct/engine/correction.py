@@ -339,8 +339,8 @@ def _correction_loop(
     # a discontinuity (a crack) breaks the continuous warp the passes rest on: its nodes are
     # not corrected, and the good measured nodes around it keep their values (the splines
     # through the crack's refilled nodes would otherwise pull them across it)
-    crack = judge.unexplained(current, local_current) & ~masked
-    crack &= judge.discontinuous(current, local_current)
+    flagged_input = judge.unexplained(current, local_current) & ~masked
+    crack = judge.discontinuous(current, local_current, flagged_input)
     shielded = crack_shield(current, crack)
     current, local_current, flagged = flag_and_refill(
         judge, current, local_current, masked, clean_options
@@ -536,7 +536,7 @@ def _correction_loop(
     # flagged nodes whose residual is one-signed straddle a discontinuity (a crack): their own
     # status, so that a user sees the crack rather than "outliers"
     unexplained = judge.unexplained(current, local_current) & ~masked
-    cracked = (unexplained & judge.discontinuous(current, local_current)) | (crack & unexplained)
+    cracked = judge.discontinuous(current, local_current, unexplained) | (crack & unexplained)
     current = current.copy()
     current.status[unexplained] = Status.OUTLIER_REPLACED
     current.status[cracked] = Status.DISCONTINUITY

@@ -63,6 +63,9 @@ FLAG_ERROR = 1.0
 #: of their excess in the sign of the opening (docs/method.md).
 DISCONTINUITY_SIGN = 0.5
 
+#: Fewest touching nodes of a discontinuity (:func:`surfaces`): a 3 x 3 patch of a surface.
+MIN_DISCONTINUITY_NODES = 9
+
 #: Good measured nodes within this many grid steps of a discontinuity keep their values
 #: (:func:`crack_shield`).
 CRACK_SHIELD_NODES = 2
@@ -227,15 +230,34 @@ class Judge:
         excess = local - self.floor
         return np.isfinite(excess) & (excess > 0.5 * FLAG_ERROR * gradient)
 
-    def discontinuous(self, field: DisplacementField, local: np.ndarray) -> np.ndarray:
-        """Nodes whose residual excess is one-signed (:data:`DISCONTINUITY_SIGN`): material
-        that appeared or vanished inside the cell, not texture misplaced by a wrong value.
-
-        Meant for the nodes :meth:`unexplained` flags; ``local`` is their cell residual.
+    def discontinuous(
+        self, field: DisplacementField, local: np.ndarray, flagged: np.ndarray
+    ) -> np.ndarray:
+        """Of the ``flagged`` nodes (:meth:`unexplained`), those whose residual excess is
+        one-signed (:data:`DISCONTINUITY_SIGN`) and that form a surface (:func:`surfaces`):
+        material that appeared or vanished, not texture misplaced by a wrong value. ``local``
+        is the nodes' cell residual.
         """
         signed = self.residuals.signed_means(field, self.half)
         excess = local - self.floor
-        return np.isfinite(signed) & (excess > 0) & (np.abs(signed) > DISCONTINUITY_SIGN * excess)
+        one_signed = np.isfinite(signed) & (excess > 0)
+        one_signed &= np.abs(signed) > DISCONTINUITY_SIGN * excess
+        return surfaces(one_signed & np.asarray(flagged, bool))
+
+
+def surfaces(nodes: np.ndarray) -> np.ndarray:
+    """The nodes of ``nodes`` (bool, the grid's shape) in groups of at least
+    :data:`MIN_DISCONTINUITY_NODES` touching nodes (26-connectivity): a crack is a surface
+    that crosses many nodes; a lone node with a one-signed residual is an outlier (a coarse
+    two-phase texture misplaced inside one small cell can read one-signed)."""
+    nodes = np.asarray(nodes, bool)
+    if not nodes.any():
+        return nodes
+    labels, count = ndimage.label(nodes, structure=np.ones((3, 3, 3), bool))
+    sizes = np.bincount(labels.reshape(-1), minlength=count + 1)
+    large = sizes >= MIN_DISCONTINUITY_NODES
+    large[0] = False
+    return large[labels]
 
 
 def crack_shield(field: DisplacementField, crack: np.ndarray) -> np.ndarray:
