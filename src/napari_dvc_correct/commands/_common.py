@@ -107,6 +107,38 @@ def check_output_path(
     return out
 
 
+#: Options (argparse ``dest``) that name files a command reads: every output is checked against
+#: all of them (a points list and a mask are inputs as much as the volumes).
+INPUT_OPTIONS = ("reference", "deformed", "volumes", "field", "compare", "mask", "points")
+
+
+def command_inputs(args) -> list[str]:
+    """Every input path named in ``args`` (volumes, fields, masks, points), in option order."""
+    paths = []
+    for name in INPUT_OPTIONS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        paths.extend(str(v) for v in (value if isinstance(value, (list, tuple)) else [value]))
+    return paths
+
+
+def check_side_file(side: Path, inputs: Iterable[str | None], out: Path) -> Path:
+    """Refuse before any work a side file of ``out`` (``OUT_points.csv``, ``OUT_grid.npz``) that
+    is a folder or one of ``inputs``: it is written next to ``out`` when the field is on points."""
+    if side.is_dir():
+        raise ValueError(
+            f"--out {out} would write its side file {side}, which is a folder: choose another --out"
+        )
+    for item in inputs:
+        if item and _same_file(side, Path(item)):
+            raise ValueError(
+                f"--out {out} would write its side file {side}, which is the input {item}: "
+                "choose another --out"
+            )
+    return side
+
+
 def check_output_dir(
     path: str, inputs: Iterable[str | None] = (), patterns: Iterable[str] = (), option="--out-dir"
 ) -> Path:

@@ -167,6 +167,13 @@ def check_points_output(fmt: str) -> None:
         )
 
 
+def side_path(out: str | Path, fmt: str) -> Path:
+    """The side file written next to ``out`` for a field on points: ``<stem>_points.csv`` (the
+    points) beside our ``.npz`` grid, ``<stem>_grid.npz`` (the grid) beside another format."""
+    out = Path(out)
+    return out.with_name(out.stem + ("_points.csv" if fmt == "npz" else "_grid.npz"))
+
+
 def _writer_options(args, fmt: str) -> dict:
     if fmt == "table":
         return {"xyz": getattr(args, "xyz", False)}
@@ -205,7 +212,7 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
     from ..io.atomic import atomic_files
 
     at_points = sample_field(field, points.points)
-    side = out.with_name(out.stem + ("_points.csv" if fmt == "npz" else "_grid.npz"))
+    side = side_path(out, fmt)
     with atomic_files(out, side) as (temp_out, temp_side):  # both files new, or neither
         if fmt == "npz":
             write_field(field, temp_out, "npz")

@@ -11,7 +11,14 @@ import math
 import time
 
 from . import _field_formats, _grid_options
-from ._common import ProgressBar, check_output_path, correction_defaults, drive
+from ._common import (
+    ProgressBar,
+    check_output_path,
+    check_side_file,
+    command_inputs,
+    correction_defaults,
+    drive,
+)
 from ._tiled_options import add_tiled_arguments, run_tiled_correction, wants_tiled
 
 
@@ -191,9 +198,11 @@ def run(args) -> int:
     from ..io.volumes import read_volume
 
     started = time.perf_counter()
-    inputs = (args.reference, args.deformed, args.field, args.mask)
+    inputs = command_inputs(args)
     out = check_output_path(args.out, suffixes=None, inputs=inputs)
-    _field_formats.output_format(args, out)  # refuses a bad --out before any work
+    fmt = _field_formats.output_format(args, out)  # refuses a bad --out before any work
+    if fmt not in ("vti", "vtu"):  # a field on points also writes a side file next to --out
+        check_side_file(_field_formats.side_path(out, fmt), inputs, out)
     options = correction_options_from_args(args)
     if wants_tiled(args):  # out of core: the volumes are read lazily, block by block
         from ..io.lazy import open_volume

@@ -8,7 +8,13 @@ import time
 import numpy as np
 
 from . import _field_formats, _grid_options
-from ._common import ProgressBar, check_output_path, correlation_defaults, drive
+from ._common import (
+    ProgressBar,
+    check_output_path,
+    command_inputs,
+    correlation_defaults,
+    drive,
+)
 from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
 from .correct import add_self_correct_argument
 
@@ -107,9 +113,7 @@ def run(args) -> int:
 
     started = time.perf_counter()
     params = params_from_args(args)
-    out = check_output_path(
-        args.out, suffixes=None, inputs=(args.reference, args.deformed, args.mask)
-    )
+    out = check_output_path(args.out, suffixes=None, inputs=command_inputs(args))
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
     if getattr(args, "points", None):
         return _field_formats.run_points(args, params, out, started, wants_tiled(args))

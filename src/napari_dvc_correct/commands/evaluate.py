@@ -165,16 +165,14 @@ def run(args) -> int:
     from ..engine.pair_checks import check_pair_and_fields
     from ..io.volumes import read_volume
     from ..report import write_report
-    from ._common import ProgressBar, check_output_dir, drive, output_set
+    from ._common import ProgressBar, check_output_dir, command_inputs, drive, output_set
 
     phases = parse_thresholds(args.phases, "--phases")
     phases_deformed = parse_thresholds(args.phases_deformed, "--phases-deformed")
     pair = _phase_pair(args.phase_pair)
     names = _names(args)
     paths = [args.field, *args.compare]
-    out_dir = check_output_dir(
-        args.out_dir, inputs=(args.reference, args.deformed, *paths), patterns=REPORT_PATTERNS
-    )
+    out_dir = check_output_dir(args.out_dir, inputs=command_inputs(args), patterns=REPORT_PATTERNS)
     loaded = {  # --format is --field's; the --compare fields' formats are sniffed
         name: read_input_field(args, path, sniff=k > 0).field
         for k, (name, path) in enumerate(zip(names, paths))

@@ -121,7 +121,7 @@ def run(args) -> int:
     from ..engine.series import series_iter
     from ..io.volumes import read_volume
     from . import _field_formats, _grid_options
-    from ._common import ProgressBar, check_output_dir, drive, output_set
+    from ._common import ProgressBar, check_output_dir, command_inputs, drive, output_set
     from ._tiled_options import run_tiled_series, wants_tiled
     from .correct import correction_options_from_args
     from .correlate import params_from_args
@@ -129,9 +129,7 @@ def run(args) -> int:
     started = time.perf_counter()
     if len(args.volumes) < 2:
         raise ValueError(f"a series needs at least 2 volumes, got {len(args.volumes)}")
-    out_dir = check_output_dir(
-        args.out_dir, inputs=(*args.volumes, args.mask), patterns=SERIES_PATTERNS
-    )
+    out_dir = check_output_dir(args.out_dir, inputs=command_inputs(args), patterns=SERIES_PATTERNS)
     params = params_from_args(args)
     options = correction_options_from_args(args)
     at_points = bool(getattr(args, "points", None))

@@ -136,9 +136,19 @@ def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
     """:func:`atomic_path` for several files that belong together (a field and its side file).
 
     Yields one temporary path per target; on success all are renamed into place with SIGINT and
-    SIGTERM held back, so either every target is new or none is.
+    SIGTERM held back, so either every target is new or none is: a target that is a folder is
+    refused before the body runs, and if a rename fails the targets already renamed get their
+    earlier content back (kept as a hard link, or a copy, until all renames are done).
+
+    Raises
+    ------
+    ValueError
+        If a target is an existing folder (nothing is written then).
     """
     targets = [Path(p) for p in paths]
+    for target in targets:
+        if target.is_dir():
+            raise ValueError(f"{target} is a folder: give a file name")
     for folder in {_folder(p) for p in targets}:
         remove_stale(folder)
     modes = [output_mode(p) for p in targets]
@@ -148,8 +158,7 @@ def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
         for temp, mode in zip(temps, modes):
             os.chmod(temp, mode)
         with _signals_blocked():
-            for temp, target in zip(temps, targets):
-                os.replace(temp, target)
+            _replace_all(temps, targets)
     except BaseException:
         for temp in temps:
             with contextlib.suppress(FileNotFoundError):
@@ -157,20 +166,73 @@ def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
         raise
 
 
+def _keep_copy(target: Path) -> Path | None:
+    """A hard link (or a copy) of an existing ``target`` under a temporary name; None if absent."""
+    if not target.is_file():
+        return None
+    backup = temp_name(target)
+    try:
+        os.link(target, backup)
+    except OSError:
+        shutil.copy2(target, backup)
+    return backup
+
+
+def _replace_all(temps: list[Path], targets: list[Path]) -> None:
+    """Rename every temporary file onto its target; on a failure undo the renames already made."""
+    done: list[tuple[Path, Path | None]] = []
+    try:
+        for temp, target in zip(temps, targets):
+            done.append((target, _keep_copy(target)))
+            os.replace(temp, target)
+    except BaseException:
+        for target, backup in reversed(done):
+            with contextlib.suppress(OSError):
+                if backup is not None:
+                    os.replace(backup, target)
+                elif target.is_file():
+                    target.unlink()
+        raise
+    finally:
+        for _, backup in done:
+            if backup is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    backup.unlink()
+
+
 def is_output_set(folder: str | os.PathLike, patterns: Iterable[str] = ()) -> bool:
     """True if ``folder`` may be replaced as a whole by a new output set.
 
-    That is: it is empty, it holds :data:`SET_MARKER` (written by :func:`atomic_dir`), or every
-    entry in it is a file matching one of ``patterns`` (globs of the command's own outputs,
-    for sets written before the marker existed).
+    That is: it is empty, it holds :data:`SET_MARKER` (written by :func:`atomic_dir`) and nothing
+    that its manifest does not list, or every entry in it is a file matching one of ``patterns``
+    (globs of the command's own outputs, for sets written before the marker existed).
+    """
+    return not foreign_entries(folder, patterns)
+
+
+def foreign_entries(folder: str | os.PathLike, patterns: Iterable[str] = ()) -> list[str]:
+    """The names in ``folder`` that a new output set may not delete (empty: it may replace it).
+
+    With :data:`SET_MARKER`: every entry its manifest's ``files`` does not list (a user's file
+    added to an output folder after the run). Without it: every entry unless all are files
+    matching ``patterns``.
     """
     folder = Path(folder)
-    entries = list(folder.iterdir())
-    if not entries or (folder / SET_MARKER).is_file():
-        return True
-    return bool(patterns) and all(
-        entry.is_file() and any(entry.match(p) for p in patterns) for entry in entries
-    )
+    entries = sorted(folder.iterdir())
+    names = [entry.name for entry in entries]
+    marker = folder / SET_MARKER
+    if marker.is_file():
+        try:
+            listed = json.loads(marker.read_text(encoding="utf-8")).get("files", [])
+            listed = {str(name) for name in listed}
+        except (OSError, ValueError, AttributeError):
+            return [name for name in names if name != SET_MARKER]  # unreadable: trust nothing
+        return [name for name in names if name != SET_MARKER and name not in listed]
+    patterns = tuple(patterns)
+    if patterns and all(entry.is_file() and any(entry.match(p) for p in patterns)
+                        for entry in entries):  # fmt: skip
+        return []
+    return names
 
 
 @contextlib.contextmanager
@@ -247,8 +309,12 @@ def check_set_target(path: str | os.PathLike, patterns: Iterable[str] = ()) -> N
     path = Path(path)
     if path.is_symlink() or (path.exists() and not path.is_dir()):
         raise ValueError(f"{path} exists and is not a folder")
-    if path.is_dir() and not is_output_set(path, tuple(patterns)):
+    foreign = foreign_entries(path, tuple(patterns)) if path.is_dir() else []
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (
+            f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        )
         raise ValueError(
-            f"{path} is a folder with files this tool did not write: choose a new or empty "
-            "folder (its whole content is replaced)"
+            f"{path} is a folder with files this tool did not write ({shown}): choose a new or "
+            "empty folder (its whole content is replaced)"
         )
