@@ -46,6 +46,13 @@ class ProgressBar:
         self.last_stage = progress.stage
 
 
+def warn(args, note: str | None) -> None:
+    """Print ``note`` as one warning line on stderr (``napari-dvc-correct CMD: warning: ...``)."""
+    if note:
+        command = getattr(args, "command", None) or "napari-dvc-correct"
+        print(f"napari-dvc-correct {command}: warning: {note}", file=sys.stderr, flush=True)
+
+
 def drive(generator, bar: ProgressBar):
     """Run an engine generator, feeding its progress to ``bar``; return its result."""
     while True:

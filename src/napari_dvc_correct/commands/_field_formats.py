@@ -105,6 +105,8 @@ class InputField:
     field: object  # DisplacementField
     points: object | None  # ScatteredField when the file was not a regular grid
     format: str
+    #: What was done to absurd nodes (:func:`..engine.pair_checks.flag_absurd_nodes`), or None.
+    note: str | None = None
 
     def describe(self) -> str:
         scattered = self.field.metadata.get("scattered", {})
@@ -118,9 +120,18 @@ class InputField:
         )
 
 
-def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputField:
+def read_input_field(
+    args, path: str, grid=None, sniff: bool = False, volume_shape=None
+) -> InputField:
     """Read ``path`` (``--field``) in ``args.format`` (or its sniffed format when ``sniff``); a
-    grid field when it is not one already."""
+    grid field when it is not one already.
+
+    With ``volume_shape`` (z, y, x voxels), a few nodes displaced by more than the volume (a
+    tool's diverged matches) are marked failed before the field is put on a grid, so they are
+    cleaned instead of spread by the interpolation; a field mostly made of them is refused
+    (:func:`..engine.pair_checks.flag_absurd_nodes`). ``InputField.note`` then says so.
+    """
+    from ..engine.pair_checks import flag_absurd_nodes
     from ..engine.scattered import to_grid
     from ..io.formats import read_points, sniff_format
 
@@ -129,6 +140,9 @@ def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputFi
     fmt = "auto" if sniff else getattr(args, "format", "auto")
     fmt = sniff_format(path) if fmt in (None, "auto") else fmt
     points = read_points(path, fmt, **_reader_options(args, fmt))
+    note = None
+    if volume_shape is not None:
+        points, note = flag_absurd_nodes(points, volume_shape, f"field {Path(path).name}")
     field = to_grid(points, grid=grid)
     scattered = field.metadata.get("scattered", {})
     regular = (
@@ -136,7 +150,7 @@ def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputFi
         and scattered.get("interpolated", 0) == 0
         and (scattered.get("outside_hull", 0) == 0)
     )
-    return InputField(field=field, points=None if regular else points, format=fmt)
+    return InputField(field=field, points=None if regular else points, format=fmt, note=note)
 
 
 def output_format(args, out: str) -> str:
@@ -253,7 +267,7 @@ def prepare_correction_field(args, volume_shape):
     from ..engine.scattered import from_grid, to_grid
     from . import _grid_options
 
-    imported = read_input_field(args, args.field)
+    imported = read_input_field(args, args.field, volume_shape=volume_shape)
     field = imported.field
     params = None
     subvolume = getattr(args, "subvolume", None)
@@ -280,7 +294,7 @@ def prepare_correction_field(args, volume_shape):
     if region is not None:
         regridded = restrict_to_region(regridded, region)
     regridded.params = dict(field.params)
-    return InputField(regridded, imported.points, imported.format), params
+    return InputField(regridded, imported.points, imported.format, imported.note), params
 
 
 def run_points(args, params, out, started, tiled: bool = False) -> int:

@@ -18,6 +18,7 @@ from ._common import (
     command_inputs,
     correction_defaults,
     drive,
+    warn,
 )
 from ._tiled_options import add_tiled_arguments, run_tiled_correction, wants_tiled
 
@@ -210,12 +211,14 @@ def run(args) -> int:
         shape = open_volume(args.reference).shape
         imported, params = _field_formats.prepare_correction_field(args, shape)
         print(f"field: {imported.describe()}")
+        warn(args, imported.note)
         corrected = run_tiled_correction(args, imported.field, params, options)
     else:
         reference = read_volume(args.reference)
         imported, params = _field_formats.prepare_correction_field(args, reference.shape)
         field = imported.field
         print(f"field: {imported.describe()}")
+        warn(args, imported.note)
         deformed = read_volume(args.deformed)
         mask = read_volume(args.mask) if args.mask else None
         # one check for both frames: the loaded frame would otherwise drop an empty mask silently

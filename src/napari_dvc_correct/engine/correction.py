@@ -72,7 +72,7 @@ from .local_acceptance import (
     unsupported_updates,
 )
 from .options import CorrectionOptions
-from .pair_checks import check_pair_and_fields
+from .pair_checks import check_pair_and_fields, flag_absurd_nodes
 from .params import CorrelationParams
 from .pass_params import correction_grid, pass_method
 from .pass_reach import applied_change, changed_nodes, reuse, select
@@ -241,6 +241,8 @@ def correct_iter(
         )
     # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
     check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
+    if field is not None:  # a few |u| > the volume: failed matches, cleaned (issue 27 item 14)
+        field, _ = flag_absurd_nodes(field, reference.shape)
     volumes = InMemoryVolumes(reference, deformed, frame, mask)
     options = dict(update=update, max_passes=max_passes, min_improvement=min_improvement)
     return (

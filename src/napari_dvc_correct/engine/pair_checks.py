@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .field import Provenance, Status, usable_nodes
 from .validation import validate_volume
 
 #: The smallest subvolume edge the correlation accepts (:class:`~.params.CorrelationParams`).
@@ -66,6 +67,43 @@ def check_pair(reference, deformed, mask=None, check_finite: bool = True) -> Non
             raise ValueError("the mask is empty: no voxel is selected")
 
 
+def absurd_nodes(field, volume_shape) -> np.ndarray:
+    """The usable nodes (or points) whose displacement no match in this volume can give.
+
+    Parameters
+    ----------
+    field : DisplacementField or ScatteredField
+        Its ``u`` is ``(..., 3)`` in voxels, ``(uz, uy, ux)``; its ``status`` and
+        ``provenance`` say which values are usable (:func:`~.field.usable_nodes`).
+    volume_shape : tuple of 3 int
+        Shape ``(nz, ny, nx)`` of the reference volume, voxels.
+
+    Returns
+    -------
+    ndarray of bool, the shape of ``field.status``
+        True where a usable node's displacement along an axis is larger than the volume along
+        that axis (it maps outside the volume): a diverged match written as converged (spam's
+        ``ldic`` leaves a few such nodes at 10^3-10^6 voxels), or a field of another pair.
+    """
+    u = np.asarray(field.u, dtype=np.float64)
+    usable = usable_nodes(np.asarray(field.status), np.asarray(field.provenance), u)
+    limit = np.asarray([int(n) for n in volume_shape], dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        beyond = np.any(np.abs(u) > limit, axis=-1)
+    return usable & beyond
+
+
+def _absurd_message(name: str, field, absurd: np.ndarray, volume_shape) -> str:
+    usable = usable_nodes(np.asarray(field.status), np.asarray(field.provenance), field.u)
+    largest = np.abs(np.asarray(field.u)[absurd]).max(axis=0)
+    axis = int(np.argmax(largest / np.asarray(volume_shape, dtype=np.float64)))
+    return (
+        f"{name} has displacements up to {largest[axis]:.3g} voxels along {'zyx'[axis]}, larger "
+        f"than the volume ({int(volume_shape[axis])} voxels), at {int(absurd.sum())} of "
+        f"{int(usable.sum())} usable nodes"
+    )
+
+
 def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
     """The field belongs to volumes of ``volume_shape``: recorded shape, grid inside, plausible |u|.
 
@@ -81,9 +119,10 @@ def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
     ------
     ValueError
         If ``field.metadata["volume_shape"]`` is recorded and differs; if a node lies outside
-        the volume (more than half a voxel); or if a usable node's displacement component is
-        larger than the volume along its axis (such a node maps outside the volume: the field is not from
-        this pair, or is in other units).
+        the volume (more than half a voxel); or if most usable nodes (more than half) are
+        displaced by more than the volume along an axis (:func:`absurd_nodes`: the field is not
+        from this pair, or is in other units). A few such nodes are not refused: they are failed
+        matches, which :func:`flag_absurd_nodes` marks as failed for cleaning to replace.
     """
     volume_shape = tuple(int(n) for n in volume_shape)
     recorded = field.metadata.get("volume_shape")
@@ -99,17 +138,79 @@ def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
                 f"{coords[0]:g}..{coords[-1]:g} voxels but the volume has {n} voxels "
                 f"(0..{n - 1}); was the field computed on another volume?"
             )
-    u = np.asarray(field.u)
-    usable = field.valid  # failed matches may hold anything; cleaning replaces them
-    if usable.any():
-        largest = np.abs(u[usable]).max(axis=0)
-        for axis, (value, n) in enumerate(zip(largest, volume_shape)):
-            if value > n:
-                raise ValueError(
-                    f"{name} has displacements up to {value:.3g} voxels along {'zyx'[axis]}, "
-                    f"larger than the volume ({n} voxels): it is not a field of this pair "
-                    "(or not in voxels)"
-                )
+    check_mostly_plausible(field, volume_shape, name)
+
+
+def check_mostly_plausible(field, volume_shape, name: str = "the field") -> None:
+    """Refuse a field (grid or points) whose usable nodes are mostly :func:`absurd_nodes`.
+
+    Raises
+    ------
+    ValueError
+        If more than half of the usable nodes are displaced by more than the volume along an
+        axis: it is not a field of this pair (or not in voxels).
+    """
+    volume_shape = tuple(int(n) for n in volume_shape)
+    absurd = absurd_nodes(field, volume_shape)
+    usable = int(
+        usable_nodes(np.asarray(field.status), np.asarray(field.provenance), field.u).sum()
+    )
+    if absurd.any() and 2 * int(absurd.sum()) > usable:
+        raise ValueError(
+            _absurd_message(name, field, absurd, volume_shape)
+            + ": it is not a field of this pair (or not in voxels)"
+        )
+
+
+def flag_absurd_nodes(field, volume_shape, name: str = "the field"):
+    """Mark a minority of absurd nodes as failed matches, so cleaning replaces them.
+
+    Parameters
+    ----------
+    field : DisplacementField or ScatteredField
+        A field in voxels, ``u`` in ``(uz, uy, ux)`` order.
+    volume_shape : tuple of 3 int
+        Shape ``(nz, ny, nx)`` of the reference volume, voxels.
+    name : str
+        How messages name the field.
+
+    Returns
+    -------
+    field : DisplacementField or ScatteredField
+        ``field`` itself when no node is absurd; else a copy in which every
+        :func:`absurd_nodes` node has ``Status.DIVERGED``, ``Provenance.MEASURED`` and NaN
+        displacement, gradient and uncertainty, with ``metadata["absurd_nodes"]`` = the count.
+    note : str or None
+        One line saying what was done (None when nothing was).
+
+    Raises
+    ------
+    ValueError
+        If most usable nodes are absurd (:func:`check_mostly_plausible`).
+    """
+    check_mostly_plausible(field, volume_shape, name)
+    absurd = absurd_nodes(field, volume_shape)
+    if not absurd.any():
+        return field, None
+    note = (
+        _absurd_message(name, field, absurd, volume_shape)
+        + ": treated as failed matches (cleaned, then corrected)"
+    )
+    flagged = field.copy()
+    flagged.u = np.array(flagged.u, dtype=np.float64)
+    flagged.u[absurd] = np.nan
+    flagged.status = np.array(flagged.status)
+    flagged.status[absurd] = int(Status.DIVERGED)
+    flagged.provenance = np.array(flagged.provenance)
+    flagged.provenance[absurd] = int(Provenance.MEASURED)
+    for attribute in ("gradient", "uncertainty"):
+        value = getattr(flagged, attribute, None)
+        if value is not None:
+            value = np.array(value, dtype=np.float64)
+            value[absurd] = np.nan
+            setattr(flagged, attribute, value)
+    flagged.metadata["absurd_nodes"] = int(absurd.sum())
+    return flagged, note
 
 
 def check_pair_and_fields(

@@ -41,7 +41,7 @@ from ..engine.correction import check_options, correct_volumes_iter, params_of
 from ..engine.correction_volumes import CorrectionVolumes
 from ..engine.field import DisplacementField
 from ..engine.field_spline import FieldSpline
-from ..engine.pair_checks import check_field_on_volume
+from ..engine.pair_checks import check_field_on_volume, flag_absurd_nodes
 from ..engine.params import CorrelationParams
 from ..engine.phases import lattice_sample, otsu_stride, otsu_thresholds
 from ..engine.progress import Progress, run_to_completion
@@ -507,6 +507,7 @@ def correct_tiled_iter(
     try:
         if field is not None:
             check_field_on_volume(field, volumes.shape)
+            field, _ = flag_absurd_nodes(field, volumes.shape)  # a few: failed matches
             nodes = np.concatenate([np.asarray(field.origin), np.asarray(field.step)])
             if np.max(np.abs(nodes - np.rint(nodes))) > 1e-6:
                 raise ValueError(
