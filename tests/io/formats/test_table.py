@@ -87,3 +87,30 @@ def test_scattered_round_trip(known, tmp_path, scattered_points):
     back = read_points(tmp_path / "s.csv")
     np.testing.assert_allclose(back.points, scattered_points, atol=1e-6)
     np.testing.assert_allclose(back.u, field.u, atol=1e-6)
+
+
+def test_header_only_and_ragged_files_are_refused_with_their_name(tmp_path):
+    """Issue 27 item 6: a header and no rows, or a short row, is a ValueError naming the file."""
+    cases = {
+        "h.tsv": "NodeNumber\tZpos\tYpos\tXpos\tZdisp\tYdisp\tXdisp\treturnStatus\n",
+        "h.disp": "n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw\n",
+        "h.csv": "z,y,x,uz,uy,ux\n",
+        "short.csv": "z,y,x,uz,uy,ux\n1,2,3,0,0,0\n1,2,3,0\n",
+    }
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+            read_points(tmp_path / name)
+
+
+def test_empty_cells_are_nan_and_valid_zero_is_not_usable(tmp_path):
+    """pyALDVC's CSV writes non-finite values as empty cells and a ``valid`` flag."""
+    path = tmp_path / "frame.csv"
+    path.write_text(
+        "x,y,z,valid,disp_u,disp_v,disp_w,exx\n1.0,2.0,3.0,1,0.5,0.25,0.125,\n"
+        "4.0,5.0,6.0,0,0.5,0.25,0.125,0.1\n"
+    )
+    points = read_points(path)
+    assert np.allclose(points.points[0], [3.0, 2.0, 1.0])
+    assert np.allclose(points.u[0], [0.125, 0.25, 0.5])
+    assert points.valid.tolist() == [True, False]

@@ -99,7 +99,10 @@ def read_points(path: str | os.PathLike, format: str | None = None, **options) -
         scattered = from_grid(load_field(path))
         scattered.metadata.setdefault("source", {"format": "npz", "path": str(path)})
         return scattered
-    return module.read(path, **options)
+    points = module.read(path, **options)
+    if points.n_points == 0:
+        raise ValueError(f"{path}: the file holds no points (a header and no rows)")
+    return points
 
 
 def read_field(

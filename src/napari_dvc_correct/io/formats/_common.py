@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 
@@ -39,6 +40,43 @@ def first_line(path: str | os.PathLike) -> str:
     return ""
 
 
+def _number(text: str) -> float:
+    text = text.strip()
+    return float(text) if text else np.nan  # an empty cell: pyALDVC writes NaN so
+
+
+def load_numbers(
+    path: str | os.PathLike, delimiter: str | None, skiprows: int = 0, columns: int | None = None
+) -> np.ndarray:
+    """The rows ``(N, C)`` of a delimited text table of numbers (``#`` lines are comments).
+
+    Empty cells are NaN. ``columns`` is the number of columns the header names: a file with a
+    header and no rows gives ``(0, columns)``.
+
+    Raises
+    ------
+    ValueError
+        With the file's name: a cell that is not a number, or rows of different lengths.
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+            rows = np.loadtxt(
+                path,
+                delimiter=delimiter,
+                comments="#",
+                skiprows=skiprows,
+                ndmin=2,
+                dtype=np.float64,
+                converters=_number if delimiter is not None else None,
+            )
+    except ValueError as error:
+        raise ValueError(f"{path}: not a table of numbers ({error})") from None
+    if rows.size == 0:
+        return np.zeros((0, columns or 0))
+    return rows
+
+
 def read_named_table(
     path: str | os.PathLike, delimiter: str | None
 ) -> tuple[list[str], np.ndarray]:
@@ -49,11 +87,7 @@ def read_named_table(
     if delimiter is None:
         delimiter = "\t" if "\t" in header else ("," if "," in header else None)
     names = [n.strip() for n in (header.split(delimiter) if delimiter else header.split())]
-    rows = np.loadtxt(
-        path, delimiter=delimiter, comments="#", skiprows=_header_row(path) + 1, ndmin=2
-    )
-    if rows.size == 0:
-        rows = np.zeros((0, len(names)))
+    rows = load_numbers(path, delimiter, _header_row(path) + 1, len(names))
     if rows.shape[1] != len(names):
         raise ValueError(
             f"{path}: the header names {len(names)} columns but the rows have {rows.shape[1]}"
