@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.absurd_nodes import flag_absurd_nodes
 from napari_dvc_correct.engine.accuracy import evaluate_fields
 from napari_dvc_correct.engine.correlate import validate_pair
 from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
@@ -13,7 +14,6 @@ from napari_dvc_correct.engine.pair_checks import (
     check_field_on_volume,
     check_pair,
     check_pair_and_fields,
-    flag_absurd_nodes,
     largest_subvolume_advice,
 )
 from napari_dvc_correct.engine.params import CorrelationParams

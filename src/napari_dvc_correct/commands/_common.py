@@ -178,6 +178,18 @@ def output_set(out_dir: Path, patterns: Iterable[str] = (), manifest: dict | Non
         yield temp
 
 
+def check_search(params, volume_shape) -> None:
+    """Refuse before any work a ``--search`` radius larger than the volume or than the memory
+    (:func:`..engine.pair_checks.check_search_radius`)."""
+    from ..engine.pair_checks import check_search_radius
+    from ..io.sizes import available_memory
+
+    try:
+        check_search_radius(params, volume_shape, available_memory())
+    except ValueError as error:
+        raise ValueError(f"--search {params.effective_search_radius}: {error}") from None
+
+
 # --- defaults read from the engine's records (never retyped in the CLI) ------------------------
 def correlation_defaults() -> dict:
     """Field name -> default of :class:`~napari_dvc_correct.engine.params.CorrelationParams`."""

@@ -131,7 +131,7 @@ def read_input_field(
     cleaned instead of spread by the interpolation; a field mostly made of them is refused
     (:func:`..engine.pair_checks.flag_absurd_nodes`). ``InputField.note`` then says so.
     """
-    from ..engine.pair_checks import flag_absurd_nodes
+    from ..engine.absurd_nodes import flag_absurd_nodes
     from ..engine.scattered import to_grid
     from ..io.formats import read_points, sniff_format
 
@@ -310,7 +310,11 @@ def run_points(args, params, out, started, tiled: bool = False) -> int:
     if getattr(args, "self_correct", False):
         raise ValueError("--points does not combine with --self-correct")
     check_points_output(output_format(args, out))  # before any work
+    from ..io.lazy import open_volume
+    from ._common import check_search
+
     points = load_points(args.points)
+    check_search(params, open_volume(args.reference).shape)
     if tiled:
         from ._tiled_options import run_tiled_points
 

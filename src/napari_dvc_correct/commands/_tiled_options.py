@@ -37,12 +37,14 @@ def _memory(text: str) -> int:
 
     try:
         value = parse_bytes(text)
-    except (ValueError, KeyError) as error:
+    except (ValueError, KeyError, OverflowError) as error:  # 1e400GB: inf
         raise argparse.ArgumentTypeError(
             f"{text!r} is not a memory size: use e.g. 2GB, 1.5GiB or 512MB"
         ) from error
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"--max-memory must be > 0, got {text!r}")
+    if not 0 < value < 2**62:  # 1e400GB parses as inf
+        raise argparse.ArgumentTypeError(
+            f"--max-memory must be > 0 and a size a machine can have, got {text!r}"
+        )
     return int(value)
 
 

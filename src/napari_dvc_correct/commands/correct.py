@@ -138,8 +138,14 @@ def add_self_correct_argument(parser: argparse.ArgumentParser) -> None:
 
 def correction_options_from_args(args) -> dict:
     """Keyword arguments for :func:`napari_dvc_correct.engine.correction.correct_iter`."""
+    from ..engine.options import CleaningOptions
+
     if args.max_passes < 1:
         raise ValueError(f"--max-passes must be >= 1, got {args.max_passes}")
+    try:  # checked before any work, not after the correlation
+        CleaningOptions(threshold=args.outlier_threshold, smoothing=args.smoothing)
+    except ValueError as error:
+        raise ValueError(f"--smoothing / --outlier-threshold: {error}") from None
     return {
         "frame": args.frame,
         "update": args.update,

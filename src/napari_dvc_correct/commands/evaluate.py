@@ -161,8 +161,9 @@ def ready_for_evaluation(field, name: str):
 
 
 def run(args) -> int:
+    from ..engine.absurd_nodes import flag_absurd_nodes
     from ..engine.accuracy import evaluate_iter
-    from ..engine.pair_checks import check_pair_and_fields, flag_absurd_nodes
+    from ..engine.pair_checks import check_pair_and_fields
     from ..io.volumes import read_volume
     from ..report import write_report
     from ._common import (

@@ -59,6 +59,7 @@ from collections.abc import Generator
 
 import numpy as np
 
+from .absurd_nodes import flag_absurd_nodes
 from .cleaning import clean, masked_nodes
 from .compose import compose
 from .correction_record import CHANGE_THRESHOLD, CorrectionPass, correction_table
@@ -72,7 +73,7 @@ from .local_acceptance import (
     unsupported_updates,
 )
 from .options import CorrectionOptions
-from .pair_checks import check_pair_and_fields, flag_absurd_nodes
+from .pair_checks import check_pair_and_fields
 from .params import CorrelationParams
 from .pass_params import correction_grid, pass_method
 from .pass_reach import applied_change, changed_nodes, reuse, select

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .field import Provenance, Status, usable_nodes
 from .validation import validate_volume
 
 #: The smallest subvolume edge the correlation accepts (:class:`~.params.CorrelationParams`).
@@ -74,7 +73,7 @@ def absurd_nodes(field, volume_shape) -> np.ndarray:
     ----------
     field : DisplacementField or ScatteredField
         Its ``u`` is ``(..., 3)`` in voxels, ``(uz, uy, ux)``; its ``status`` and
-        ``provenance`` say which values are usable (:func:`~.field.usable_nodes`).
+        ``valid`` says which values are usable (:func:`~.field.usable_nodes`).
     volume_shape : tuple of 3 int
         Shape ``(nz, ny, nx)`` of the reference volume, voxels.
 
@@ -86,15 +85,16 @@ def absurd_nodes(field, volume_shape) -> np.ndarray:
         ``ldic`` leaves a few such nodes at 10^3-10^6 voxels), or a field of another pair.
     """
     u = np.asarray(field.u, dtype=np.float64)
-    usable = usable_nodes(np.asarray(field.status), np.asarray(field.provenance), u)
+    usable = np.asarray(field.valid)
     limit = np.asarray([int(n) for n in volume_shape], dtype=np.float64)
     with np.errstate(invalid="ignore"):
         beyond = np.any(np.abs(u) > limit, axis=-1)
     return usable & beyond
 
 
-def _absurd_message(name: str, field, absurd: np.ndarray, volume_shape) -> str:
-    usable = usable_nodes(np.asarray(field.status), np.asarray(field.provenance), field.u)
+def absurd_message(name: str, field, absurd: np.ndarray, volume_shape) -> str:
+    """One line: the largest absurd displacement, its axis, and how many nodes are absurd."""
+    usable = np.asarray(field.valid)
     largest = np.abs(np.asarray(field.u)[absurd]).max(axis=0)
     axis = int(np.argmax(largest / np.asarray(volume_shape, dtype=np.float64)))
     return (
@@ -102,6 +102,42 @@ def _absurd_message(name: str, field, absurd: np.ndarray, volume_shape) -> str:
         f"than the volume ({int(volume_shape[axis])} voxels), at {int(absurd.sum())} of "
         f"{int(usable.sum())} usable nodes"
     )
+
+
+def check_search_radius(params, volume_shape, available_bytes: int | None = None) -> None:
+    """A search radius that fits the volume and the memory, checked before any work.
+
+    Parameters
+    ----------
+    params : CorrelationParams
+        Its ``effective_search_radius`` (voxels) and ``subvolume`` (voxels).
+    volume_shape : tuple of 3 int
+        Shape ``(nz, ny, nx)`` of the volumes, voxels.
+    available_bytes : int, optional
+        Memory the search may use; None skips that check.
+
+    Raises
+    ------
+    ValueError
+        If the radius is larger than the volume's largest edge (no displacement in this pair is
+        that large), or one POI's search window needs more than ``available_bytes``.
+    """
+    from .initial_guess import search_window_bytes
+
+    radius = int(params.effective_search_radius)
+    largest = max(int(n) for n in volume_shape)
+    if radius > largest:
+        raise ValueError(
+            f"search radius {radius} voxels is larger than the volume {tuple(volume_shape)}: no "
+            f"displacement of this pair is that large; use a search radius of at most {largest}"
+        )
+    need = search_window_bytes(radius, int(params.subvolume), volume_shape)
+    if available_bytes is not None and need > available_bytes:
+        raise ValueError(
+            f"search radius {radius} voxels needs about {need / 2**30:.1f} GiB for one "
+            f"subvolume's search window, {available_bytes / 2**30:.1f} GiB are available: use a "
+            "smaller search radius (or a subvolume of 19 or more, searched coarse to fine)"
+        )
 
 
 def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
@@ -122,7 +158,7 @@ def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
         the volume (more than half a voxel); or if most usable nodes (more than half) are
         displaced by more than the volume along an axis (:func:`absurd_nodes`: the field is not
         from this pair, or is in other units). A few such nodes are not refused: they are failed
-        matches, which :func:`flag_absurd_nodes` marks as failed for cleaning to replace.
+        matches, which :func:`.absurd_nodes.flag_absurd_nodes` marks as failed for cleaning to replace.
     """
     volume_shape = tuple(int(n) for n in volume_shape)
     recorded = field.metadata.get("volume_shape")
@@ -152,65 +188,12 @@ def check_mostly_plausible(field, volume_shape, name: str = "the field") -> None
     """
     volume_shape = tuple(int(n) for n in volume_shape)
     absurd = absurd_nodes(field, volume_shape)
-    usable = int(
-        usable_nodes(np.asarray(field.status), np.asarray(field.provenance), field.u).sum()
-    )
+    usable = int(np.asarray(field.valid).sum())
     if absurd.any() and 2 * int(absurd.sum()) > usable:
         raise ValueError(
-            _absurd_message(name, field, absurd, volume_shape)
+            absurd_message(name, field, absurd, volume_shape)
             + ": it is not a field of this pair (or not in voxels)"
         )
-
-
-def flag_absurd_nodes(field, volume_shape, name: str = "the field"):
-    """Mark a minority of absurd nodes as failed matches, so cleaning replaces them.
-
-    Parameters
-    ----------
-    field : DisplacementField or ScatteredField
-        A field in voxels, ``u`` in ``(uz, uy, ux)`` order.
-    volume_shape : tuple of 3 int
-        Shape ``(nz, ny, nx)`` of the reference volume, voxels.
-    name : str
-        How messages name the field.
-
-    Returns
-    -------
-    field : DisplacementField or ScatteredField
-        ``field`` itself when no node is absurd; else a copy in which every
-        :func:`absurd_nodes` node has ``Status.DIVERGED``, ``Provenance.MEASURED`` and NaN
-        displacement, gradient and uncertainty, with ``metadata["absurd_nodes"]`` = the count.
-    note : str or None
-        One line saying what was done (None when nothing was).
-
-    Raises
-    ------
-    ValueError
-        If most usable nodes are absurd (:func:`check_mostly_plausible`).
-    """
-    check_mostly_plausible(field, volume_shape, name)
-    absurd = absurd_nodes(field, volume_shape)
-    if not absurd.any():
-        return field, None
-    note = (
-        _absurd_message(name, field, absurd, volume_shape)
-        + ": treated as failed matches (cleaned, then corrected)"
-    )
-    flagged = field.copy()
-    flagged.u = np.array(flagged.u, dtype=np.float64)
-    flagged.u[absurd] = np.nan
-    flagged.status = np.array(flagged.status)
-    flagged.status[absurd] = int(Status.DIVERGED)
-    flagged.provenance = np.array(flagged.provenance)
-    flagged.provenance[absurd] = int(Provenance.MEASURED)
-    for attribute in ("gradient", "uncertainty"):
-        value = getattr(flagged, attribute, None)
-        if value is not None:
-            value = np.array(value, dtype=np.float64)
-            value[absurd] = np.nan
-            setattr(flagged, attribute, value)
-    flagged.metadata["absurd_nodes"] = int(absurd.sum())
-    return flagged, note
 
 
 def check_pair_and_fields(

@@ -37,11 +37,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from ..engine.absurd_nodes import flag_absurd_nodes
 from ..engine.correction import check_options, correct_volumes_iter, params_of
 from ..engine.correction_volumes import CorrectionVolumes
 from ..engine.field import DisplacementField
 from ..engine.field_spline import FieldSpline
-from ..engine.pair_checks import check_field_on_volume, flag_absurd_nodes
+from ..engine.pair_checks import check_field_on_volume
 from ..engine.params import CorrelationParams
 from ..engine.phases import lattice_sample, otsu_stride, otsu_thresholds
 from ..engine.progress import Progress, run_to_completion

@@ -99,7 +99,14 @@ def read_points(path: str | os.PathLike, format: str | None = None, **options) -
         scattered = from_grid(load_field(path))
         scattered.metadata.setdefault("source", {"format": "npz", "path": str(path)})
         return scattered
-    points = module.read(path, **options)
+    try:
+        points = module.read(path, **options)
+    except (ValueError, OSError, MemoryError):
+        raise
+    except Exception as error:  # a library's own error (scipy's MatReadError, KeyError...)
+        raise ValueError(
+            f"{path}: not a readable {fmt} field file ({type(error).__name__}: {error})"
+        ) from None
     if points.n_points == 0:
         raise ValueError(f"{path}: the file holds no points (a header and no rows)")
     return points

@@ -87,7 +87,7 @@ def read_named_table(
     if delimiter is None:
         delimiter = "\t" if "\t" in header else ("," if "," in header else None)
     names = [n.strip() for n in (header.split(delimiter) if delimiter else header.split())]
-    rows = load_numbers(path, delimiter, _header_row(path) + 1, len(names))
+    rows = load_numbers(path, delimiter, header_row(path) + 1, len(names))
     if rows.shape[1] != len(names):
         raise ValueError(
             f"{path}: the header names {len(names)} columns but the rows have {rows.shape[1]}"
@@ -95,7 +95,7 @@ def read_named_table(
     return names, rows
 
 
-def _header_row(path) -> int:
+def header_row(path) -> int:
     with open(path, encoding="utf-8", errors="replace") as handle:
         for number, line in enumerate(handle):
             stripped = line.strip()
