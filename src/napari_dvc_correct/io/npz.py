@@ -69,7 +69,7 @@ FIELD_KEYS = (
 )  # fmt: skip
 
 
-def _check_member_shapes(path, members) -> None:
+def check_member_shapes(path, members) -> None:
     """Refuse, from the headers alone, arrays whose shapes do not fit one grid of ``u``."""
     u = members.get("u")
     if u is None:
@@ -109,7 +109,7 @@ def load_field(path: str | os.PathLike) -> DisplacementField:
     marker = members.get("format")
     if marker is None or marker.shape != () or marker.nbytes > 1024:
         raise ValueError(f"{path} is not a napari-dvc-correct field file (no format marker)")
-    _check_member_shapes(path, members)
+    check_member_shapes(path, members)
     try:
         with np.load(path, allow_pickle=False) as data:
             if str(data["format"]) != FORMAT_NAME:
