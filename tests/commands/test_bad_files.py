@@ -67,3 +67,22 @@ def test_a_memory_size_no_machine_has_is_an_option_error(files, capsys, monkeypa
     for size in ("1e400GB", float("inf"), 2**70):
         with pytest.raises(ValueError, match="memory size"):
             parse_memory(size)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["correct", "--field", "f.npz", "--grid-step", "0"], "--grid-step: must be >= 1"),
+        (["correlate", "--tiled", "--temp-dir", "missing/x"], "is not an existing folder"),
+    ],
+)
+def test_option_values_refused_by_the_parser(files, capsys, monkeypatch, arguments, message):
+    """Issue 27 item 13: --grid-step 0 is not 'no regridding'; --temp-dir is never created
+    (with its missing parents) and left behind."""
+    monkeypatch.chdir(files)
+    before = sorted(p.name for p in files.iterdir())
+    command, *options = arguments
+    with pytest.raises(SystemExit) as stop:
+        cli.main([command, "ref.npy", "def.npy", *options, "--out", "o.npz"])
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert sorted(p.name for p in files.iterdir()) == before

@@ -6,7 +6,8 @@ stderr and sleeps (at most 60 s), so the test's SIGINT/SIGTERM/SIGKILL lands exa
 - ``compute``: after the first progress report of the engine (the work has started);
 - ``write``: inside the atomic write of a field file, after part of it is on disk;
 - ``set``: inside an output set, after its first file is written (series: ``state_01.npz``;
-  evaluate: the tables and plots, before ``report.md``).
+  evaluate: the tables and plots, before ``report.md``);
+- ``scratch``: right after a tiled self-correction made its folder of temporary arrays.
 
 Nothing else is changed: the same ``cli.main``, signal handlers and writers run.
 """
@@ -62,6 +63,17 @@ def install(moment: str) -> None:
 
         npz.save_field = paused_save
         report.write_markdown = paused_markdown
+    elif moment == "scratch":
+        from napari_dvc_correct.tiled import correction
+
+        scratch_dir = correction.scratch_dir
+
+        def paused_scratch(prefix, parent=None):
+            path = scratch_dir(prefix, parent)
+            pause("scratch")
+            return path
+
+        correction.scratch_dir = paused_scratch
     elif moment:
         raise SystemExit(f"unknown NDC_PAUSE_AT {moment!r}")
 

@@ -313,3 +313,18 @@ def test_no_output_overwrites_an_input_points_or_side_files_included(work):
         assert done.returncode == 2, (arguments, done.stderr)
         assert message in done.stderr and done.stderr.count("\n") == 1, (arguments, done.stderr)
         assert tree(work) == before and leftovers(work) == [], arguments
+
+
+def test_a_killed_tiled_correction_leaves_a_folder_the_next_run_removes(work):
+    """Issue 27 item 9: SIGKILL cannot be handled, but its temporary folder is recognisable
+    (``.dvc-correct.ndc-tmp-PID-HOST-…``) and the next run into the same --temp-dir removes it."""
+    (work / "temporary").mkdir()
+    arguments = ["correct", "v0.npy", "v1.npy", "--field", "field.npz", "--max-passes", "1",
+                 "--tiled", "--temp-dir", "temporary", "--quiet", "--out", "c.npz"]  # fmt: skip
+    code, err = signalled("scratch", signal.SIGKILL, *arguments, cwd=work)
+    assert code == -signal.SIGKILL, err
+    left = [p.name for p in (work / "temporary").iterdir()]
+    assert len(left) == 1 and left[0].startswith(".dvc-correct" + TEMP_MARK), left
+    done = cli(*arguments, cwd=work)
+    assert done.returncode == 0, done.stderr
+    assert not any((work / "temporary").iterdir())  # the dead run's folder and its own: gone

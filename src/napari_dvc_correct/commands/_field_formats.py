@@ -237,6 +237,17 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
     return [out, side]
 
 
+def _grid_step(text: str) -> int:
+    """``--grid-step``: a whole number of voxels >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of voxels") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1 voxel, got {text!r}")
+    return value
+
+
 def add_correction_field_arguments(parser: argparse.ArgumentParser) -> None:
     """``correct``'s options for imported fields: the subvolume and, if wanted, a new grid."""
     group = parser.add_argument_group("imported fields")
@@ -249,7 +260,7 @@ def add_correction_field_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--grid-step",
-        type=int,
+        type=_grid_step,
         default=None,
         help="put the field on a new grid with this spacing (voxels) before correcting; "
         "default: keep the field's own grid (or, with --roi/--cylinder/--origin, its step)",

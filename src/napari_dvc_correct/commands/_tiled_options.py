@@ -15,6 +15,7 @@ This module imports no engine code at import time (the CLI stays quick to start)
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -46,6 +47,15 @@ def _memory(text: str) -> int:
             f"--max-memory must be > 0 and a size a machine can have, got {text!r}"
         )
     return int(value)
+
+
+def _existing_folder(text: str) -> str:
+    """``--temp-dir``: an existing folder (a missing one is not made, with its parents)."""
+    if not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not an existing folder: create it first (nothing is made for you)"
+        )
+    return text
 
 
 def _positive(text: str) -> int:
@@ -95,9 +105,11 @@ def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--temp-dir",
         metavar="FOLDER",
+        type=_existing_folder,
         help="where a tiled self-correction (or series) writes its temporary warped volumes "
         "(default: the system's temporary folder; on a cluster of several machines, a folder "
-        "every worker sees at the same path). They are removed at the end",
+        "every worker sees at the same path; it must exist). They are removed at the end, and "
+        "those of runs that were killed by the next run",
     )
 
 

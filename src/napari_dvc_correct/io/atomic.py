@@ -96,6 +96,23 @@ def remove_stale(folder: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def scratch_dir(prefix: str, parent: str | os.PathLike | None = None) -> Path:
+    """A new private folder for a run's temporary arrays, named like every temporary of ours.
+
+    The name is :func:`temp_name` of ``parent / prefix`` (``.PREFIX.ndc-tmp-PID-HOST-RANDOM``),
+    so a run killed with SIGKILL leaves a folder the next run in ``parent`` recognises as dead
+    and removes (:func:`remove_stale`, called here first). ``parent`` defaults to the system's
+    temporary folder (``TMPDIR``). The caller removes the folder when done.
+    """
+    import tempfile
+
+    parent = Path(tempfile.gettempdir() if parent is None else parent)
+    remove_stale(parent)
+    path = temp_name(parent / prefix)
+    path.mkdir(mode=0o700)
+    return path
+
+
 def _folder(path: Path) -> Path:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.exists():

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 from collections.abc import Generator
 from pathlib import Path
 from types import SimpleNamespace
@@ -52,6 +51,7 @@ from ..engine.warp import (
     pull_back_block,
     warp_forward_block,
 )
+from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, iter_blocks, open_volume
 from . import scheduling
 from .correlate import correlate_tiled_iter
@@ -247,7 +247,7 @@ class TiledVolumes(CorrectionVolumes):
             self.client, self._owns_client = scheduling.connect(scheduler)
         if temp_dir is not None:
             Path(temp_dir).mkdir(parents=True, exist_ok=True)  # a folder named by the user
-        self._temp_dir = Path(tempfile.mkdtemp(prefix="dvc-correct-", dir=temp_dir))
+        self._temp_dir = scratch_dir("dvc-correct", temp_dir)  # a dead run's: removed
         self._temps: dict[int, Path] = {}
         self._count = 0
         self._statistics = None
