@@ -328,3 +328,27 @@ def test_a_killed_tiled_correction_leaves_a_folder_the_next_run_removes(work):
     done = cli(*arguments, cwd=work)
     assert done.returncode == 0, done.stderr
     assert not any((work / "temporary").iterdir())  # the dead run's folder and its own: gone
+
+
+def test_signals_after_the_final_rename_and_swallowed_ones_are_reported_honestly(work):
+    """Issue 27 item 10: a signal during a set's swap lands when it is done (the earlier set
+    is never left as a hidden folder) and the message says the outputs are complete; so does
+    one right after a field is written; one swallowed by a library still stops the run."""
+    arguments = ["series", "v0.npy", "v1.npy", *DVC, "--out-dir", "out"]
+    assert cli(*arguments, cwd=work).returncode == 0
+    code, err = signalled("swap", signal.SIGINT, *arguments, cwd=work)
+    assert code == 130 and "after writing out: those outputs are complete" in err, err
+    assert "Traceback" not in err and leftovers(work) == []
+    assert (work / "out" / "state_01.npz").exists()
+
+    before = (work / "field.npz").read_bytes()
+    code, err = signalled("written", signal.SIGINT, "correlate", "v0.npy", "v2.npy", *DVC,
+                          "--out", "field.npz", cwd=work)  # fmt: skip
+    assert code == 130 and "after writing field.npz: those outputs are complete" in err, err
+    assert (work / "field.npz").read_bytes() != before and leftovers(work) == []
+
+    before = tree(work)
+    code, err = signalled("swallowed", signal.SIGINT, "correlate", "v0.npy", "v1.npy", *DVC,
+                          "--out", "field.npz", cwd=work)  # fmt: skip
+    assert code == 130 and "nothing written, earlier outputs unchanged" in err, err
+    assert tree(work) == before and leftovers(work) == []

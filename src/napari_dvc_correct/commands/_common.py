@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import signal
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -20,6 +21,31 @@ from pathlib import Path
 
 class UserError(Exception):
     """Bad input: the CLI prints the message on one line and exits with status 2."""
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM, so a run unwinds (and cleans up) as on Ctrl-C."""
+
+
+#: The signal received during the run (set by the handlers), so one swallowed by a library
+#: (e.g. while numba loads its cache) still stops the run at the next step.
+_received: list[int] = []
+
+
+def _terminate(signum, frame):
+    _received.append(signum)
+    raise Terminated()
+
+
+def _interrupt(signum, frame):
+    _received.append(signum)
+    raise KeyboardInterrupt()
+
+
+def check_signals() -> None:
+    """Raise again a signal that arrived and was swallowed (called at every progress step)."""
+    if _received:
+        raise Terminated() if _received[-1] == signal.SIGTERM else KeyboardInterrupt()
 
 
 class ProgressBar:
@@ -56,6 +82,7 @@ def warn(args, note: str | None) -> None:
 def drive(generator, bar: ProgressBar):
     """Run an engine generator, feeding its progress to ``bar``; return its result."""
     while True:
+        check_signals()  # a signal a library swallowed (numba loading its cache) stops here
         try:
             bar.update(next(generator))
         except StopIteration as stop:

@@ -36,6 +36,25 @@ HOST_TAG = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
 _umask_lock = threading.Lock()
 
 
+#: Targets renamed into place since :func:`reset_committed` (the command line says so when a
+#: signal lands after them: the new outputs are complete).
+_committed: list[Path] = []
+
+
+def committed() -> list[Path]:
+    """The outputs this process completed (renamed into place) since :func:`reset_committed`."""
+    return list(_committed)
+
+
+def reset_committed() -> None:
+    _committed.clear()
+
+
+def _commit(paths) -> None:
+    """Record outputs now complete (not the files of a set still in its temporary folder)."""
+    _committed.extend(p for p in map(Path, paths) if TEMP_MARK not in str(p.parent))
+
+
 def _umask() -> int:
     with _umask_lock:
         mask = os.umask(0o022)
@@ -142,6 +161,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield temp
         os.chmod(temp, mode)
         os.replace(temp, path)
+        _commit([path])
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()
@@ -176,6 +196,7 @@ def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
             os.chmod(temp, mode)
         with _signals_blocked():
             _replace_all(temps, targets)
+            _commit(targets)
     except BaseException:
         for temp in temps:
             with contextlib.suppress(FileNotFoundError):
@@ -254,15 +275,34 @@ def foreign_entries(folder: str | os.PathLike, patterns: Iterable[str] = ()) -> 
 
 @contextlib.contextmanager
 def _signals_blocked() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back until the block is done, then act on the first one.
+
+    Python runs signal handlers in the main thread, whichever thread the operating system
+    delivered the signal to (numba and dask keep threads of their own, which a
+    ``pthread_sigmask`` of the main thread does not cover): the handlers are swapped for one
+    that only records the signal, and the recorded signal is passed to the previous handler
+    once the block is over.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    blocked = {signal.SIGINT, signal.SIGTERM}
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    pending: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {number: signal.signal(number, lambda n, frame: pending.append(n))
+                for number in held}  # fmt: skip
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, set(held))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    if pending:
+        handler = previous[pending[0]]
+        if callable(handler):
+            handler(pending[0], None)
+        elif handler == signal.SIG_DFL:
+            os.kill(os.getpid(), pending[0])
 
 
 @contextlib.contextmanager
@@ -314,8 +354,9 @@ def atomic_dir(
             except FileNotFoundError:
                 old = None
             os.rename(temp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+            _commit([path])
+            if old is not None:  # still held back: the earlier set never stays behind
+                shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(temp, ignore_errors=True)
         raise
