@@ -114,3 +114,19 @@ def test_empty_cells_are_nan_and_valid_zero_is_not_usable(tmp_path):
     assert np.allclose(points.points[0], [3.0, 2.0, 1.0])
     assert np.allclose(points.u[0], [0.125, 0.25, 0.5])
     assert points.valid.tolist() == [True, False]
+
+
+def test_a_point_given_twice_with_two_displacements_is_refused(tmp_path):
+    """Issue 27 item 11: which of two displacements holds cannot be guessed; the grid is not
+    made silently from one of them. Identical repeated rows are harmless."""
+    rows = ["z,y,x,uz,uy,ux"] + [f"{z},{y},{x},0.1,0.2,0.3" for z in (4, 8) for y in (4, 8)
+                                 for x in (4, 8)]  # fmt: skip
+    path = tmp_path / "twice.csv"
+    path.write_text("\n".join([*rows, "8,4,8,0.1,0.2,0.3"]) + "\n")
+    assert read_points(path).n_points == 9
+    path.write_text("\n".join([*rows, "8,4,8,0.1,2.5,0.3"]) + "\n")
+    with pytest.raises(ValueError, match=r"twice.csv: 1 point\(s\) appear more than once .*8\.0, "
+                                         r"4\.0, 8\.0\) in rows 6, 9"):  # fmt: skip
+        read_points(path)
+    with pytest.raises(ValueError, match="appear more than once"):
+        read_field(path)
