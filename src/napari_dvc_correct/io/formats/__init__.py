@@ -26,7 +26,7 @@ import numpy as np
 from ...engine.field import DisplacementField
 from ...engine.scattered import ScatteredField, from_grid, to_grid
 from . import aldvc, idvc, spam, table
-from ._common import first_line
+from ._common import first_line, unusable_as_nan
 
 FORMATS = ("spam", "aldvc", "idvc", "table", "npz")
 
@@ -200,7 +200,7 @@ def write_field(
             field = to_grid(field)
         save_field(field, path)
         return path
-    module.write(field, path, **options)
+    module.write(unusable_as_nan(field), path, **options)  # a failed node: NaN and its status
     return path
 
 

@@ -20,6 +20,32 @@ def as_scattered(field: DisplacementField | ScatteredField) -> ScatteredField:
     raise TypeError(f"expected a DisplacementField or ScatteredField, got {type(field).__name__}")
 
 
+def unusable_as_nan(field):
+    """``field`` with NaN displacement (and gradient) where it holds no usable value.
+
+    A node (or point) without a usable value is a failed match not filled in by cleaning
+    (``field.valid`` is False: diverged, low ZNCC, masked...). Every export writes this
+    displacement next to the node's status code, so a node's state reads the same way in every
+    format; filled-in nodes keep their value, marked by their status and provenance. The field
+    itself is not changed (a copy is returned when a node is set to NaN).
+
+    Parameters
+    ----------
+    field : DisplacementField or ScatteredField
+        ``u`` is ``(..., 3)`` in voxels, (z, y, x).
+    """
+    bad = ~np.asarray(field.valid, dtype=bool)
+    if not bad.any():
+        return field
+    out = field.copy()
+    out.u = np.array(out.u, dtype=np.float64)
+    out.u[bad] = np.nan
+    if getattr(out, "gradient", None) is not None:
+        out.gradient = np.array(out.gradient, dtype=np.float64)
+        out.gradient[bad] = np.nan
+    return out
+
+
 def flip_vectors(values: np.ndarray) -> np.ndarray:
     """``(..., 3)`` between (z, y, x) and (x, y, z) order (its own inverse)."""
     return np.ascontiguousarray(np.asarray(values, dtype=np.float64)[..., ::-1])
