@@ -83,3 +83,14 @@ def test_a_field_mostly_absurd_is_refused_in_one_line(tmp_path, capsys):
     assert code == 2 and err.count("\n") == 1, err
     assert "at 99 of 125 usable nodes: it is not a field of this pair" in err
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_evaluate_treats_a_few_blowups_as_failed_matches(tmp_path, capsys):
+    blown = with_blowups(tmp_path / "ldic-blown.tsv")
+    code = main(["evaluate", str(FORMATS / "ref.tif"), str(FORMATS / "def.tif"), "--field",
+                 str(blown), "--format", "spam", "--no-volumes", "--quiet", "--out-dir",
+                 str(tmp_path / "report")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "warning" in err and "at 4 of 125 usable nodes" in err
+    assert (tmp_path / "report").is_dir()
