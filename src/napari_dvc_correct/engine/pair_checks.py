@@ -119,14 +119,15 @@ def check_search_radius(params, volume_shape, available_bytes: int | None = None
     Raises
     ------
     ValueError
-        If the radius is larger than the volume's largest edge (no displacement in this pair is
-        that large), or one POI's search window needs more than ``available_bytes``.
+        If a radius given (``search_radius``) is larger than the volume's largest edge (no
+        displacement in this pair is that large), or one POI's search window needs more than
+        ``available_bytes``.
     """
     from .initial_guess import search_window_bytes
 
     radius = int(params.effective_search_radius)
     largest = max(int(n) for n in volume_shape)
-    if radius > largest:
+    if params.search_radius is not None and radius > largest:  # the default adapts
         raise ValueError(
             f"search radius {radius} voxels is larger than the volume {tuple(volume_shape)}: no "
             f"displacement of this pair is that large; use a search radius of at most {largest}"
