@@ -137,3 +137,39 @@ def test_unreadable_tiff_is_not_claimed(tmp_path, content):
     else:
         path.write_bytes(content)
     assert napari_get_reader(str(path)) is None
+
+
+@pytest.mark.parametrize(
+    "case", ["empty.mat", "header.tsv", "header.disp", "truncated.tif", "lying.npz", "bomb.npz"]
+)
+def test_files_the_reader_cannot_read_are_declined(tmp_path, case):
+    """Issue 27 item 7: an empty .mat, a header-only table, a TIFF truncated after an intact
+    header, a field .npz whose headers promise arrays it does not hold: None, never a raise."""
+    import io
+    import os
+    import zipfile
+
+    path = tmp_path / case
+    if case == "empty.mat":
+        path.write_bytes(b"")
+    elif case == "header.tsv":
+        path.write_text("NodeNumber\tZpos\tYpos\tXpos\tZdisp\tYdisp\tXdisp\treturnStatus\n")
+    elif case == "header.disp":
+        path.write_text("n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw\n")
+    elif case == "truncated.tif":
+        tifffile.imwrite(path, np.zeros((40, 64, 64), np.uint16), photometric="minisblack")
+        os.truncate(path, path.stat().st_size // 2)  # the first page's header is intact
+    else:
+        save_field(DisplacementField.zeros((4.0,) * 3, (4.0,) * 3, (2, 2, 2)), path)
+        with zipfile.ZipFile(path) as archive:
+            kept = {n: archive.read(n) for n in archive.namelist() if n != "u.npy"}
+        header = io.BytesIO()
+        shape = (2, 2, 2, 3) if case == "bomb.npz" else (10**5, 10**5, 10**5, 3)
+        np.lib.format.write_array_header_2_0(
+            header, {"descr": "<f8", "fortran_order": False, "shape": shape}
+        )
+        with zipfile.ZipFile(path, "w") as archive:
+            for name, data in kept.items():
+                archive.writestr(name, data)
+            archive.writestr("u.npy", header.getvalue() + (b"" if case == "bomb.npz" else b"0"))
+    assert napari_get_reader(str(path)) is None

@@ -60,15 +60,34 @@ def _tiff_files(folder: Path) -> list[Path]:
 
 def is_field_file(path: str | os.PathLike) -> bool:
     """True if ``path`` is a readable ``.npz`` field file (see :mod:`napari_dvc_correct.io.npz`)."""
+    from .io.npz import FIELD_KEYS, FORMAT_NAME, check_member_shapes
+    from .io.sizes import check_npz_sizes
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            if "format.npy" not in archive.namelist():
+                return False
+        members = check_npz_sizes(path, FIELD_KEYS)  # headers: sizes and shapes, nothing inflated
+        check_member_shapes(path, members)
+        with np.load(path, allow_pickle=False) as data:
+            return str(data["format"]) == FORMAT_NAME
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return False
+
+
+def _has_format_marker(path) -> bool:
+    """Whether an ``.npz`` says it is our field file (its small ``format`` array, read alone)."""
     from .io.npz import FORMAT_NAME
 
     try:
         with zipfile.ZipFile(path) as archive:
             if "format.npy" not in archive.namelist():
                 return False
-        with np.load(path, allow_pickle=False) as data:
-            return str(data["format"]) == FORMAT_NAME
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            if archive.getinfo("format.npy").file_size > 4096:  # a marker is a short string
+                return False
+            with archive.open("format.npy") as stream:
+                return str(np.lib.format.read_array(stream, allow_pickle=False)) == FORMAT_NAME
+    except (OSError, zipfile.BadZipFile, ValueError, EOFError):
         return False
 
 
@@ -93,6 +112,8 @@ def napari_get_reader(path):
     suffix = path.suffix.lower()
     if suffix == ".npz" and is_field_file(path):
         return read_field_file
+    if suffix == ".npz" and _has_format_marker(path):
+        return None  # our field file, broken: nothing can read it (napari's reader would raise)
     if suffix in (*FOREIGN_SUFFIXES, ".npz") and foreign_field_format(path):
         return read_foreign_field
     if suffix == ".npz":  # not a field: napari's own reader, as if ours were not there
@@ -103,12 +124,13 @@ def napari_get_reader(path):
 
 
 def is_readable_tiff(path: str | os.PathLike) -> bool:
-    """True if tifffile can open ``path`` and it holds at least one page (header check only)."""
-    import tifffile
+    """True if tifffile can open ``path``, it holds at least one page, and (uncompressed) the
+    file holds all the image data its header promises (header check only)."""
+    from .io.sizes import tiff_size
 
     try:
-        with tifffile.TiffFile(path) as tif:
-            return len(tif.pages) > 0 and bool(tif.series)
+        shape, _ = tiff_size(path)  # refuses a truncated file whose header is intact
+        return len(shape) > 0
     except Exception:  # any failure to parse means: not ours to claim
         return False
 
@@ -178,6 +200,8 @@ def foreign_field_format(path) -> str | None:
 
     try:
         fmt = sniff_format(path)
+        if fmt in ("table", "spam", "idvc") and not _has_data_row(path):
+            return None  # a header and no rows: nothing to show
         if fmt == "table":
             from .io.formats._common import first_line
 
@@ -185,6 +209,13 @@ def foreign_field_format(path) -> str | None:
     except (OSError, ValueError, UnicodeDecodeError):
         return None
     return None if fmt == "npz" else fmt
+
+
+def _has_data_row(path) -> bool:
+    """Whether a text table has a line after its header (comments and blank lines aside)."""
+    with open(path, encoding="utf-8", errors="replace") as handle:
+        lines = (line for line in handle if line.strip() and not line.lstrip().startswith("#"))
+        return next(lines, None) is not None and next(lines, None) is not None
 
 
 def read_foreign_field(path) -> list[tuple]:

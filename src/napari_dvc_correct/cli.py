@@ -15,7 +15,14 @@ import signal
 import sys
 import threading
 
-from .commands._common import UserError  # re-exported: bad input, exit status 2
+from .commands._common import (  # re-exported: bad input (exit 2), SIGTERM as an exception
+    Terminated,
+    UserError,
+    _interrupt,
+    _received,
+    _terminate,
+    check_signals,
+)
 
 #: Subcommand modules under napari_dvc_correct.commands, in the order ``--help`` lists them.
 SUBCOMMANDS = ("correlate", "clean", "evaluate", "correct", "series")
@@ -23,12 +30,19 @@ SUBCOMMANDS = ("correlate", "clean", "evaluate", "correct", "series")
 __all__ = ["SUBCOMMANDS", "Terminated", "UserError", "build_parser", "main"]
 
 
-class Terminated(KeyboardInterrupt):
-    """Raised in the main thread on SIGTERM, so a run unwinds (and cleans up) as on Ctrl-C."""
+def _interrupted(command: str, name: str) -> str:
+    from .io.atomic import committed
 
-
-def _terminate(signum, frame):
-    raise Terminated()
+    written = committed()
+    if written:
+        return (
+            f"napari-dvc-correct {command}: interrupted ({name}) after writing "
+            f"{', '.join(str(p) for p in written)}: those outputs are complete"
+        )
+    return (
+        f"napari-dvc-correct {command}: interrupted ({name}), nothing written, earlier outputs "
+        "unchanged"
+    )
 
 
 def build_parser(commands=SUBCOMMANDS) -> argparse.ArgumentParser:
@@ -49,25 +63,33 @@ def main(argv: list[str] | None = None) -> int:
     # a named subcommand needs only its own parser (and imports): quicker start-up
     parser = build_parser((argv[0],) if argv and argv[0] in SUBCOMMANDS else SUBCOMMANDS)
     args = parser.parse_args(argv)
+    from .io.atomic import reset_committed
+
+    reset_committed()
+    _received.clear()
     main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    previous = (
+        (signal.signal(signal.SIGTERM, _terminate), signal.signal(signal.SIGINT, _interrupt))
+        if main_thread
+        else None
+    )
     try:
-        return int(args.run(args) or 0)
+        status = int(args.run(args) or 0)
+        check_signals()  # one swallowed on the way: the run was interrupted all the same
+        return status
     except (UserError, ValueError, FileNotFoundError, OSError) as error:
         message = " ".join(str(error).split())
         print(f"napari-dvc-correct {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:
-        name = "SIGTERM" if isinstance(stop, Terminated) else "SIGINT"
-        print(
-            f"napari-dvc-correct {args.command}: interrupted ({name}), nothing written, "
-            "earlier outputs unchanged",
-            file=sys.stderr,
-        )
-        return 143 if isinstance(stop, Terminated) else 130
+        terminated = isinstance(stop, Terminated) or _received[-1:] == [signal.SIGTERM]
+        name = "SIGTERM" if terminated else "SIGINT"
+        print(_interrupted(args.command, name), file=sys.stderr, flush=True)
+        return 143 if terminated else 130
     finally:
         if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGTERM, previous[0])
+            signal.signal(signal.SIGINT, previous[1])
 
 
 if __name__ == "__main__":  # pragma: no cover

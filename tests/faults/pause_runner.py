@@ -6,7 +6,11 @@ stderr and sleeps (at most 60 s), so the test's SIGINT/SIGTERM/SIGKILL lands exa
 - ``compute``: after the first progress report of the engine (the work has started);
 - ``write``: inside the atomic write of a field file, after part of it is on disk;
 - ``set``: inside an output set, after its first file is written (series: ``state_01.npz``;
-  evaluate: the tables and plots, before ``report.md``).
+  evaluate: the tables and plots, before ``report.md``);
+- ``scratch``: right after a tiled self-correction made its folder of temporary arrays;
+- ``swap``: an output set's swap, while the earlier set is removed (signals held back, 2 s);
+- ``written``: ``correlate`` after its field file is complete, before its summary line;
+- ``swallowed``: a library that catches every exception (as numba loading its cache did), 3 s.
 
 Nothing else is changed: the same ``cli.main``, signal handlers and writers run.
 """
@@ -18,10 +22,10 @@ import sys
 import time
 
 
-def pause(moment: str) -> None:
+def pause(moment: str, seconds: float = 60) -> None:
     sys.stderr.write(f"PAUSED {moment}\n")
     sys.stderr.flush()
-    time.sleep(60)
+    time.sleep(seconds)
 
 
 def install(moment: str) -> None:
@@ -62,6 +66,51 @@ def install(moment: str) -> None:
 
         npz.save_field = paused_save
         report.write_markdown = paused_markdown
+    elif moment == "scratch":
+        from napari_dvc_correct.tiled import correction
+
+        scratch_dir = correction.scratch_dir
+
+        def paused_scratch(prefix, parent=None):
+            path = scratch_dir(prefix, parent)
+            pause("scratch")
+            return path
+
+        correction.scratch_dir = paused_scratch
+    elif moment == "swap":
+        from napari_dvc_correct.io import atomic
+
+        rmtree = atomic.shutil.rmtree
+
+        def paused_rmtree(path, *args, **kwargs):
+            if atomic.TEMP_MARK in str(path) and os.path.exists(path):
+                pause("swap", 2)  # signals are held back here: it lands when the swap is done
+            return rmtree(path, *args, **kwargs)
+
+        atomic.shutil.rmtree = paused_rmtree
+    elif moment == "written":
+        from napari_dvc_correct.commands import correlate
+
+        summary = correlate.summary
+
+        def paused_summary(*args):
+            pause("written")
+            return summary(*args)
+
+        correlate.summary = paused_summary
+    elif moment == "swallowed":
+        from napari_dvc_correct.engine import backend
+
+        select = backend.select_device
+
+        def swallowing_select(*args, **kwargs):  # as a library that catches every exception
+            try:
+                pause("swallowed", 3)
+            except BaseException:
+                pass
+            return select(*args, **kwargs)
+
+        backend.select_device = swallowing_select
     elif moment:
         raise SystemExit(f"unknown NDC_PAUSE_AT {moment!r}")
 

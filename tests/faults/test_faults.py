@@ -269,3 +269,86 @@ def test_modes_follow_the_umask_and_sigkill_leftovers_are_cleaned(work):
                "--quiet", "--out", "field.npz", cwd=work, umask=0o077)  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert stat.S_IMODE((work / "field.npz").stat().st_mode) == 0o604  # overwriting keeps it
+
+
+# --- inputs are never overwritten (issue 27 items 1-2) -----------------------------------------
+def _points_files(folder: Path) -> None:
+    rows = ["z,y,x"] + [f"{z},{y},{x}" for z in (8, 12, 16) for y in (8, 16) for x in (8, 16)]
+    (folder / "pts.csv").write_text("\n".join(rows) + "\n")
+    (folder / "pts.tsv").write_text("\n".join(r.replace(",", "\t") for r in rows) + "\n")
+    field = ["z,y,x,uz,uy,ux"] + [f"{r},0,0.3,0" for r in rows[1:]]
+    (folder / "r_points.csv").write_text("\n".join(field) + "\n")  # a field at those points
+    (folder / "sp").mkdir()
+    (folder / "sp" / "pts_in.csv").write_text((folder / "pts.csv").read_text())
+
+
+INPUTS_KEPT = [
+    # correct --field r_points.csv --out r.npz would write its side file r_points.csv
+    (["correct", "v0.npy", "v1.npy", "--field", "r_points.csv", "--subvolume", "9", "--quiet",
+      "--out", "r.npz"], "side file r_points.csv, which is the input"),
+    # ... and, with the names the other way, replace the reference volume by a grid
+    (["correct", "r_grid.npz", "v1.npy", "--field", "r_points.csv", "--subvolume", "9",
+      "--quiet", "--out", "r.tsv"], "side file r_grid.npz, which is the input"),
+    # a side path that is a folder: refused before r.npz is replaced
+    (["correct", "v0.npy", "v1.npy", "--field", "r_points.csv", "--subvolume", "9", "--quiet",
+      "--out", "sp.npz"], "which is a folder"),
+    (["correlate", "v0.npy", "v1.npy", *DVC, "--points", "pts.tsv", "--out", "pts.tsv"],
+     "is also an input"),
+    (["series", "v0.npy", "v1.npy", *DVC, "--points", "sp/pts_in.csv", "--out-format", "table",
+      "--out-dir", "sp"], "holds the input sp/pts_in.csv"),
+]  # fmt: skip
+
+
+def test_no_output_overwrites_an_input_points_or_side_files_included(work):
+    _points_files(work)
+    np.savez(work / "r_grid.npz", volume=np.load(work / "v0.npy"))
+    (work / "r.npz").write_bytes((work / "field.npz").read_bytes())
+    (work / "sp.npz").write_bytes((work / "field.npz").read_bytes())
+    (work / "sp_points.csv").mkdir()
+    before = tree(work)
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(lambda arguments: cli(*arguments, cwd=work),
+                                [arguments for arguments, _ in INPUTS_KEPT]))  # fmt: skip
+    for (arguments, message), done in zip(INPUTS_KEPT, results):
+        assert done.returncode == 2, (arguments, done.stderr)
+        assert message in done.stderr and done.stderr.count("\n") == 1, (arguments, done.stderr)
+        assert tree(work) == before and leftovers(work) == [], arguments
+
+
+def test_a_killed_tiled_correction_leaves_a_folder_the_next_run_removes(work):
+    """Issue 27 item 9: SIGKILL cannot be handled, but its temporary folder is recognisable
+    (``.dvc-correct.ndc-tmp-PID-HOST-…``) and the next run into the same --temp-dir removes it."""
+    (work / "temporary").mkdir()
+    arguments = ["correct", "v0.npy", "v1.npy", "--field", "field.npz", "--max-passes", "1",
+                 "--tiled", "--temp-dir", "temporary", "--quiet", "--out", "c.npz"]  # fmt: skip
+    code, err = signalled("scratch", signal.SIGKILL, *arguments, cwd=work)
+    assert code == -signal.SIGKILL, err
+    left = [p.name for p in (work / "temporary").iterdir()]
+    assert len(left) == 1 and left[0].startswith(".dvc-correct" + TEMP_MARK), left
+    done = cli(*arguments, cwd=work)
+    assert done.returncode == 0, done.stderr
+    assert not any((work / "temporary").iterdir())  # the dead run's folder and its own: gone
+
+
+def test_signals_after_the_final_rename_and_swallowed_ones_are_reported_honestly(work):
+    """Issue 27 item 10: a signal during a set's swap lands when it is done (the earlier set
+    is never left as a hidden folder) and the message says the outputs are complete; so does
+    one right after a field is written; one swallowed by a library still stops the run."""
+    arguments = ["series", "v0.npy", "v1.npy", *DVC, "--out-dir", "out"]
+    assert cli(*arguments, cwd=work).returncode == 0
+    code, err = signalled("swap", signal.SIGINT, *arguments, cwd=work)
+    assert code == 130 and "after writing out: those outputs are complete" in err, err
+    assert "Traceback" not in err and leftovers(work) == []
+    assert (work / "out" / "state_01.npz").exists()
+
+    before = (work / "field.npz").read_bytes()
+    code, err = signalled("written", signal.SIGINT, "correlate", "v0.npy", "v2.npy", *DVC,
+                          "--out", "field.npz", cwd=work)  # fmt: skip
+    assert code == 130 and "after writing field.npz: those outputs are complete" in err, err
+    assert (work / "field.npz").read_bytes() != before and leftovers(work) == []
+
+    before = tree(work)
+    code, err = signalled("swallowed", signal.SIGINT, "correlate", "v0.npy", "v1.npy", *DVC,
+                          "--out", "field.npz", cwd=work)  # fmt: skip
+    assert code == 130 and "nothing written, earlier outputs unchanged" in err, err
+    assert tree(work) == before and leftovers(work) == []

@@ -6,6 +6,7 @@ import os
 import stat
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -139,3 +140,56 @@ def test_files_that_belong_together_are_replaced_together(tmp_path):
         b.write_text("new side")
     assert field.read_text() == "new field" and side.read_text() == "new side"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.npz", "f_points.csv"]
+
+
+def test_a_field_and_its_side_file_are_written_both_or_neither(tmp_path, monkeypatch):
+    """Issue 27 item 3: a side path that is a folder, or a failing second rename, leaves the
+    field as it was."""
+    from napari_dvc_correct.io import atomic
+    from napari_dvc_correct.io.atomic import atomic_files
+
+    field, side = tmp_path / "r.npz", tmp_path / "r_points.csv"
+    field.write_text("old field")
+    side.mkdir()
+    with pytest.raises(ValueError, match="is a folder"), atomic_files(field, side) as (a, b):
+        a.write_text("new field")
+        b.write_text("new side")
+    assert field.read_text() == "old field"
+    side.rmdir()
+    side.write_text("old side")
+    real_replace = os.replace
+
+    def failing_replace(source, target):
+        if Path(target) == side:
+            raise OSError(28, "No space left on device")
+        return real_replace(source, target)
+
+    monkeypatch.setattr(atomic.os, "replace", failing_replace)
+    with pytest.raises(OSError, match="No space"), atomic_files(field, side) as (a, b):
+        a.write_text("new field")
+        b.write_text("new side")
+    monkeypatch.setattr(atomic.os, "replace", real_replace)
+    assert field.read_text() == "old field" and side.read_text() == "old side"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.npz", "r_points.csv"]
+    new = tmp_path / "new.npz"
+    monkeypatch.setattr(atomic.os, "replace", failing_replace)
+    with pytest.raises(OSError), atomic_files(new, side) as (a, b):
+        a.write_text("new field")
+        b.write_text("new side")
+    monkeypatch.setattr(atomic.os, "replace", real_replace)
+    assert not new.exists() and side.read_text() == "old side"
+
+
+def test_rewriting_a_set_never_deletes_a_file_its_manifest_does_not_list(tmp_path):
+    """Issue 27 item 4: a user's file added to an output folder after the run stays."""
+    out = tmp_path / "set"
+    with atomic_dir(out) as temp:
+        (temp / "a.csv").write_text("1")
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="notes.txt"), atomic_dir(out) as temp:
+        (temp / "a.csv").write_text("2")
+    assert (out / "notes.txt").read_text() == "mine" and (out / "a.csv").read_text() == "1"
+    (out / "notes.txt").unlink()
+    with atomic_dir(out) as temp:
+        (temp / "b.csv").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == [SET_MARKER, "b.csv"]

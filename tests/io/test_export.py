@@ -213,3 +213,45 @@ def test_the_uncertainty_travels_to_csv_vtk_and_tiff(field, tmp_path):
     vti = (export.export_vtk(with_sigma, tmp_path / "f.vti")).read_bytes()
     assert b"uncertainty_uz" in vti and b"uncertainty_ux" in vti
     assert "uncertainty_uz" not in open(export.export_csv(field, tmp_path / "g.csv")).readline()
+
+
+def test_every_export_marks_a_failed_node_the_same_way(tmp_path):
+    """Issue 27 item 12: a low-ZNCC node (not filled in) is NaN, next to its status, in every
+    export, as in the .npz's flat ``displacement``; a filled-in node keeps its value."""
+    import csv as csv_module
+
+    import h5py
+    import tifffile
+
+    from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status
+    from napari_dvc_correct.io.export import export_field
+    from napari_dvc_correct.io.formats import read_points, write_field
+
+    field = DisplacementField.zeros((4.0, 4.0, 4.0), (4.0, 4.0, 4.0), (2, 2, 2))
+    field.u[...] = (0.1, 0.2, 0.3)
+    field.zncc[...] = 0.99
+    field.status[0, 0, 0], field.zncc[0, 0, 0] = Status.LOW_ZNCC, 0.3
+    field.status[1, 1, 1], field.provenance[1, 1, 1] = Status.OUTLIER_REPLACED, Provenance.REPLACED
+    assert np.isnan(field.measured_displacement[0]).all()
+    export_field(field, tmp_path / "f.h5")
+    with h5py.File(tmp_path / "f.h5") as h5:
+        assert (
+            np.isnan(h5["field/u"][0, 0, 0]).all() and np.isnan(h5["field/displacement"][0]).all()
+        )
+        assert h5["field/status"][0, 0, 0] == Status.LOW_ZNCC
+        assert np.isfinite(h5["field/u"][1, 1, 1]).all()
+    export_field(field, tmp_path / "f.csv")
+    with open(tmp_path / "f.csv", newline="") as stream:
+        rows = list(csv_module.DictReader(stream))
+    assert rows[0]["uz"] == "nan" and rows[0]["status_name"] == "low zncc"
+    assert float(rows[7]["uz"]) == 0.1 and rows[7]["provenance_name"] == "replaced"
+    export_field(field, tmp_path / "f.tif")
+    assert np.isnan(tifffile.imread(tmp_path / "f_uz.tif")[0, 0, 0])
+    assert tifffile.imread(tmp_path / "f_status.tif")[0, 0, 0] == Status.LOW_ZNCC
+    for fmt, suffix in [("spam", ".tsv"), ("table", ".csv"), ("idvc", ".disp"),
+                        ("aldvc", ".mat"), ("aldvc", ".npz")]:  # fmt: skip
+        write_field(field, tmp_path / f"w_{fmt}{suffix}", fmt)
+        back = read_points(tmp_path / f"w_{fmt}{suffix}", fmt)
+        assert np.isnan(back.u[0]).all() and not back.valid[0], fmt
+        assert np.isfinite(back.u[7]).all(), fmt
+    assert np.isfinite(field.u).all()  # the field itself is not changed

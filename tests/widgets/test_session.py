@@ -85,3 +85,26 @@ def test_not_a_session_is_refused(make_napari_viewer, tmp_path, content):
     export = _panels(make_napari_viewer())["Export"]
     assert export.session(path, save=False) is None
     assert "session file" in export.message.text()
+
+
+def test_a_hand_edited_session_is_one_line_in_the_panel(make_napari_viewer, tmp_path):
+    """Issue 27 item 8: settings a panel cannot take, a newer version, a field outside the
+    folder: a message in the Export panel, never an exception on the main thread."""
+    from napari_dvc_correct.widgets.session_model import FORMAT
+
+    tifffile.imwrite(tmp_path / "ref.tif", np.zeros((8, 8, 8), np.float32))
+    scan = {"name": "ref", "path": str(tmp_path / "ref.tif"), "scale": [1.0, 1.0, 1.0],
+            "translate": [0.0, 0.0, 0.0]}  # fmt: skip
+    export = _panels(make_napari_viewer())["Export"]
+    cases = [
+        ({"panels": {"Correlate": {"subvolume": [1, 2]}}}, "int()"),  # a TypeError in restore
+        ({"version": 999}, "newer"),
+        ({"fields": {"a": "../a.npz"}}, "outside the session"),
+    ]
+    for changes, message in cases:
+        content = {"format": FORMAT, "version": 1, "scans": [scan], "panels": {}, "fields": {}}
+        content.update(changes)
+        path = tmp_path / "s.dvc-session.json"
+        path.write_text(__import__("json").dumps(content))
+        assert export.session(path, save=False) is None
+        assert message in export.message.text()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import signal
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -20,6 +21,31 @@ from pathlib import Path
 
 class UserError(Exception):
     """Bad input: the CLI prints the message on one line and exits with status 2."""
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM, so a run unwinds (and cleans up) as on Ctrl-C."""
+
+
+#: The signal received during the run (set by the handlers), so one swallowed by a library
+#: (e.g. while numba loads its cache) still stops the run at the next step.
+_received: list[int] = []
+
+
+def _terminate(signum, frame):
+    _received.append(signum)
+    raise Terminated()
+
+
+def _interrupt(signum, frame):
+    _received.append(signum)
+    raise KeyboardInterrupt()
+
+
+def check_signals() -> None:
+    """Raise again a signal that arrived and was swallowed (called at every progress step)."""
+    if _received:
+        raise Terminated() if _received[-1] == signal.SIGTERM else KeyboardInterrupt()
 
 
 class ProgressBar:
@@ -46,9 +72,17 @@ class ProgressBar:
         self.last_stage = progress.stage
 
 
+def warn(args, note: str | None) -> None:
+    """Print ``note`` as one warning line on stderr (``napari-dvc-correct CMD: warning: ...``)."""
+    if note:
+        command = getattr(args, "command", None) or "napari-dvc-correct"
+        print(f"napari-dvc-correct {command}: warning: {note}", file=sys.stderr, flush=True)
+
+
 def drive(generator, bar: ProgressBar):
     """Run an engine generator, feeding its progress to ``bar``; return its result."""
     while True:
+        check_signals()  # a signal a library swallowed (numba loading its cache) stops here
         try:
             bar.update(next(generator))
         except StopIteration as stop:
@@ -107,6 +141,38 @@ def check_output_path(
     return out
 
 
+#: Options (argparse ``dest``) that name files a command reads: every output is checked against
+#: all of them (a points list and a mask are inputs as much as the volumes).
+INPUT_OPTIONS = ("reference", "deformed", "volumes", "field", "compare", "mask", "points")
+
+
+def command_inputs(args) -> list[str]:
+    """Every input path named in ``args`` (volumes, fields, masks, points), in option order."""
+    paths = []
+    for name in INPUT_OPTIONS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        paths.extend(str(v) for v in (value if isinstance(value, (list, tuple)) else [value]))
+    return paths
+
+
+def check_side_file(side: Path, inputs: Iterable[str | None], out: Path) -> Path:
+    """Refuse before any work a side file of ``out`` (``OUT_points.csv``, ``OUT_grid.npz``) that
+    is a folder or one of ``inputs``: it is written next to ``out`` when the field is on points."""
+    if side.is_dir():
+        raise ValueError(
+            f"--out {out} would write its side file {side}, which is a folder: choose another --out"
+        )
+    for item in inputs:
+        if item and _same_file(side, Path(item)):
+            raise ValueError(
+                f"--out {out} would write its side file {side}, which is the input {item}: "
+                "choose another --out"
+            )
+    return side
+
+
 def check_output_dir(
     path: str, inputs: Iterable[str | None] = (), patterns: Iterable[str] = (), option="--out-dir"
 ) -> Path:
@@ -137,6 +203,18 @@ def output_set(out_dir: Path, patterns: Iterable[str] = (), manifest: dict | Non
 
     with atomic_dir(out_dir, patterns=patterns, manifest=manifest) as temp:
         yield temp
+
+
+def check_search(params, volume_shape) -> None:
+    """Refuse before any work a ``--search`` radius larger than the volume or than the memory
+    (:func:`..engine.pair_checks.check_search_radius`)."""
+    from ..engine.pair_checks import check_search_radius
+    from ..io.sizes import available_memory
+
+    try:
+        check_search_radius(params, volume_shape, available_memory())
+    except ValueError as error:
+        raise ValueError(f"--search {params.effective_search_radius}: {error}") from None
 
 
 # --- defaults read from the engine's records (never retyped in the CLI) ------------------------

@@ -105,6 +105,8 @@ class InputField:
     field: object  # DisplacementField
     points: object | None  # ScatteredField when the file was not a regular grid
     format: str
+    #: What was done to absurd nodes (:func:`..engine.pair_checks.flag_absurd_nodes`), or None.
+    note: str | None = None
 
     def describe(self) -> str:
         scattered = self.field.metadata.get("scattered", {})
@@ -118,9 +120,18 @@ class InputField:
         )
 
 
-def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputField:
+def read_input_field(
+    args, path: str, grid=None, sniff: bool = False, volume_shape=None
+) -> InputField:
     """Read ``path`` (``--field``) in ``args.format`` (or its sniffed format when ``sniff``); a
-    grid field when it is not one already."""
+    grid field when it is not one already.
+
+    With ``volume_shape`` (z, y, x voxels), a few nodes displaced by more than the volume (a
+    tool's diverged matches) are marked failed before the field is put on a grid, so they are
+    cleaned instead of spread by the interpolation; a field mostly made of them is refused
+    (:func:`..engine.pair_checks.flag_absurd_nodes`). ``InputField.note`` then says so.
+    """
+    from ..engine.absurd_nodes import flag_absurd_nodes
     from ..engine.scattered import to_grid
     from ..io.formats import read_points, sniff_format
 
@@ -129,6 +140,9 @@ def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputFi
     fmt = "auto" if sniff else getattr(args, "format", "auto")
     fmt = sniff_format(path) if fmt in (None, "auto") else fmt
     points = read_points(path, fmt, **_reader_options(args, fmt))
+    note = None
+    if volume_shape is not None:
+        points, note = flag_absurd_nodes(points, volume_shape, f"field {Path(path).name}")
     field = to_grid(points, grid=grid)
     scattered = field.metadata.get("scattered", {})
     regular = (
@@ -136,7 +150,7 @@ def read_input_field(args, path: str, grid=None, sniff: bool = False) -> InputFi
         and scattered.get("interpolated", 0) == 0
         and (scattered.get("outside_hull", 0) == 0)
     )
-    return InputField(field=field, points=None if regular else points, format=fmt)
+    return InputField(field=field, points=None if regular else points, format=fmt, note=note)
 
 
 def output_format(args, out: str) -> str:
@@ -165,6 +179,13 @@ def check_points_output(fmt: str) -> None:
             "a field at a list of points cannot be written as our grid .npz: "
             "name --out .csv, .tsv, .disp, .mat or .vtu"
         )
+
+
+def side_path(out: str | Path, fmt: str) -> Path:
+    """The side file written next to ``out`` for a field on points: ``<stem>_points.csv`` (the
+    points) beside our ``.npz`` grid, ``<stem>_grid.npz`` (the grid) beside another format."""
+    out = Path(out)
+    return out.with_name(out.stem + ("_points.csv" if fmt == "npz" else "_grid.npz"))
 
 
 def _writer_options(args, fmt: str) -> dict:
@@ -205,7 +226,7 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
     from ..io.atomic import atomic_files
 
     at_points = sample_field(field, points.points)
-    side = out.with_name(out.stem + ("_points.csv" if fmt == "npz" else "_grid.npz"))
+    side = side_path(out, fmt)
     with atomic_files(out, side) as (temp_out, temp_side):  # both files new, or neither
         if fmt == "npz":
             write_field(field, temp_out, "npz")
@@ -214,6 +235,17 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
             write_field(at_points, temp_out, fmt, **_writer_options(args, fmt))
             write_field(field, temp_side, "npz")
     return [out, side]
+
+
+def _grid_step(text: str) -> int:
+    """``--grid-step``: a whole number of voxels >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of voxels") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1 voxel, got {text!r}")
+    return value
 
 
 def add_correction_field_arguments(parser: argparse.ArgumentParser) -> None:
@@ -228,7 +260,7 @@ def add_correction_field_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--grid-step",
-        type=int,
+        type=_grid_step,
         default=None,
         help="put the field on a new grid with this spacing (voxels) before correcting; "
         "default: keep the field's own grid (or, with --roi/--cylinder/--origin, its step)",
@@ -246,7 +278,7 @@ def prepare_correction_field(args, volume_shape):
     from ..engine.scattered import from_grid, to_grid
     from . import _grid_options
 
-    imported = read_input_field(args, args.field)
+    imported = read_input_field(args, args.field, volume_shape=volume_shape)
     field = imported.field
     params = None
     subvolume = getattr(args, "subvolume", None)
@@ -273,7 +305,7 @@ def prepare_correction_field(args, volume_shape):
     if region is not None:
         regridded = restrict_to_region(regridded, region)
     regridded.params = dict(field.params)
-    return InputField(regridded, imported.points, imported.format), params
+    return InputField(regridded, imported.points, imported.format, imported.note), params
 
 
 def run_points(args, params, out, started, tiled: bool = False) -> int:
@@ -289,7 +321,11 @@ def run_points(args, params, out, started, tiled: bool = False) -> int:
     if getattr(args, "self_correct", False):
         raise ValueError("--points does not combine with --self-correct")
     check_points_output(output_format(args, out))  # before any work
+    from ..io.lazy import open_volume
+    from ._common import check_search
+
     points = load_points(args.points)
+    check_search(params, open_volume(args.reference).shape)
     if tiled:
         from ._tiled_options import run_tiled_points
 

@@ -112,22 +112,38 @@ def load_points(path: str) -> np.ndarray:
     if not file.is_file():
         raise FileNotFoundError(f"points file not found: {file}")
     if file.suffix.lower() == ".npy":
-        points = np.load(file, allow_pickle=False)
-        if points.ndim != 2 or points.shape[1] != 3:
+        try:
+            points = np.load(file, allow_pickle=False, mmap_mode="r")
+        except (ValueError, OSError, EOFError) as error:
+            raise ValueError(f"{file}: not a readable .npy of points ({error})") from None
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
             raise ValueError(
-                f"{file}: an .npy of points must have shape (N, 3), got {points.shape}"
+                f"{file}: an .npy of points must have shape (N, 3), N >= 1, got {points.shape}"
             )
-        return np.asarray(points, np.float64)
+        if points.dtype.kind not in "uif":
+            raise ValueError(f"{file}: points must be numbers, got dtype {points.dtype}")
+        points = np.asarray(points, np.float64)
+        if not np.all(np.isfinite(points)):
+            raise ValueError(f"{file}: a point has a non-finite coordinate")
+        return points
     with open(file, encoding="utf-8") as handle:
         header = next((line for line in handle if line.strip() and not line.startswith("#")), "")
     delimiter = "\t" if "\t" in header else ("," if "," in header else None)
     names = [n.strip().lower() for n in (header.split(delimiter) if delimiter else header.split())]
     if not all(a in names for a in "zyx"):
         raise ValueError(f"{file}: the header must name the columns z, y, x (found {names})")
-    rows = np.loadtxt(file, delimiter=delimiter, comments="#", skiprows=1, ndmin=2)
+    from ..io.formats._common import header_row, load_numbers
+
+    rows = load_numbers(file, delimiter, header_row(file) + 1, len(names))
+    if len(rows) == 0:
+        raise ValueError(f"{file}: no points (a header and no rows)")
+    if rows.shape[1] != len(names):
+        raise ValueError(
+            f"{file}: the header names {len(names)} columns but the rows have {rows.shape[1]}"
+        )
     points = rows[:, [names.index(a) for a in "zyx"]]
-    if len(points) == 0:
-        raise ValueError(f"{file}: no points")
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{file}: a point has an empty or non-finite coordinate")
     return points
 
 

@@ -15,6 +15,7 @@ This module imports no engine code at import time (the CLI stays quick to start)
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -37,13 +38,24 @@ def _memory(text: str) -> int:
 
     try:
         value = parse_bytes(text)
-    except (ValueError, KeyError) as error:
+    except (ValueError, KeyError, OverflowError) as error:  # 1e400GB: inf
         raise argparse.ArgumentTypeError(
             f"{text!r} is not a memory size: use e.g. 2GB, 1.5GiB or 512MB"
         ) from error
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"--max-memory must be > 0, got {text!r}")
+    if not 0 < value < 2**62:  # 1e400GB parses as inf
+        raise argparse.ArgumentTypeError(
+            f"--max-memory must be > 0 and a size a machine can have, got {text!r}"
+        )
     return int(value)
+
+
+def _existing_folder(text: str) -> str:
+    """``--temp-dir``: an existing folder (a missing one is not made, with its parents)."""
+    if not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not an existing folder: create it first (nothing is made for you)"
+        )
+    return text
 
 
 def _positive(text: str) -> int:
@@ -93,9 +105,11 @@ def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--temp-dir",
         metavar="FOLDER",
+        type=_existing_folder,
         help="where a tiled self-correction (or series) writes its temporary warped volumes "
         "(default: the system's temporary folder; on a cluster of several machines, a folder "
-        "every worker sees at the same path). They are removed at the end",
+        "every worker sees at the same path; it must exist). They are removed at the end, and "
+        "those of runs that were killed by the next run",
     )
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._common import check_output_path
+from ._common import check_output_path, command_inputs
 from .correct import add_cleaning_options
 
 
@@ -48,7 +48,7 @@ def run(args) -> int:
     from ..engine.cleaning import clean
     from ..io.npz import load_field, save_field
 
-    out = check_output_path(args.out, inputs=(args.field,))
+    out = check_output_path(args.out, inputs=command_inputs(args))
     field = load_field(args.field)
     cleaned = clean(
         field,

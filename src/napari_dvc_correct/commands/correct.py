@@ -11,7 +11,15 @@ import math
 import time
 
 from . import _field_formats, _grid_options
-from ._common import ProgressBar, check_output_path, correction_defaults, drive
+from ._common import (
+    ProgressBar,
+    check_output_path,
+    check_side_file,
+    command_inputs,
+    correction_defaults,
+    drive,
+    warn,
+)
 from ._tiled_options import add_tiled_arguments, run_tiled_correction, wants_tiled
 
 
@@ -130,8 +138,14 @@ def add_self_correct_argument(parser: argparse.ArgumentParser) -> None:
 
 def correction_options_from_args(args) -> dict:
     """Keyword arguments for :func:`napari_dvc_correct.engine.correction.correct_iter`."""
+    from ..engine.options import CleaningOptions
+
     if args.max_passes < 1:
         raise ValueError(f"--max-passes must be >= 1, got {args.max_passes}")
+    try:  # checked before any work, not after the correlation
+        CleaningOptions(threshold=args.outlier_threshold, smoothing=args.smoothing)
+    except ValueError as error:
+        raise ValueError(f"--smoothing / --outlier-threshold: {error}") from None
     return {
         "frame": args.frame,
         "update": args.update,
@@ -191,9 +205,11 @@ def run(args) -> int:
     from ..io.volumes import read_volume
 
     started = time.perf_counter()
-    inputs = (args.reference, args.deformed, args.field, args.mask)
+    inputs = command_inputs(args)
     out = check_output_path(args.out, suffixes=None, inputs=inputs)
-    _field_formats.output_format(args, out)  # refuses a bad --out before any work
+    fmt = _field_formats.output_format(args, out)  # refuses a bad --out before any work
+    if fmt not in ("vti", "vtu"):  # a field on points also writes a side file next to --out
+        check_side_file(_field_formats.side_path(out, fmt), inputs, out)
     options = correction_options_from_args(args)
     if wants_tiled(args):  # out of core: the volumes are read lazily, block by block
         from ..io.lazy import open_volume
@@ -201,12 +217,14 @@ def run(args) -> int:
         shape = open_volume(args.reference).shape
         imported, params = _field_formats.prepare_correction_field(args, shape)
         print(f"field: {imported.describe()}")
+        warn(args, imported.note)
         corrected = run_tiled_correction(args, imported.field, params, options)
     else:
         reference = read_volume(args.reference)
         imported, params = _field_formats.prepare_correction_field(args, reference.shape)
         field = imported.field
         print(f"field: {imported.describe()}")
+        warn(args, imported.note)
         deformed = read_volume(args.deformed)
         mask = read_volume(args.mask) if args.mask else None
         # one check for both frames: the loaded frame would otherwise drop an empty mask silently

@@ -8,7 +8,14 @@ import time
 import numpy as np
 
 from . import _field_formats, _grid_options
-from ._common import ProgressBar, check_output_path, correlation_defaults, drive
+from ._common import (
+    ProgressBar,
+    check_output_path,
+    check_search,
+    command_inputs,
+    correlation_defaults,
+    drive,
+)
 from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
 from .correct import add_self_correct_argument
 
@@ -107,16 +114,21 @@ def run(args) -> int:
 
     started = time.perf_counter()
     params = params_from_args(args)
-    out = check_output_path(
-        args.out, suffixes=None, inputs=(args.reference, args.deformed, args.mask)
-    )
+    out = check_output_path(args.out, suffixes=None, inputs=command_inputs(args))
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
+    if getattr(args, "self_correct", False):
+        from .correct import correction_options_from_args
+
+        correction_options_from_args(args)  # refuses bad correction options before any work
     if getattr(args, "points", None):
         return _field_formats.run_points(args, params, out, started, wants_tiled(args))
     if wants_tiled(args):
         if _grid_options.wants_placement(args):
             raise ValueError("--roi, --cylinder and --origin do not apply to tiled runs yet")
         # large volumes: batches read lazily, on dask (CPU); see docs/scaling.md
+        from ..io.lazy import open_volume
+
+        check_search(params, open_volume(args.reference).shape)
         field = run_tiled(args, params, ProgressBar(args.quiet).update)
         reference = deformed = None
     else:
@@ -124,6 +136,7 @@ def run(args) -> int:
         deformed = read_volume(args.deformed)
         mask = read_volume(args.mask) if args.mask else None
         check_pair(reference, deformed, mask, check_finite=False)  # read_volume did
+        check_search(params, reference.shape)
         device = select_device(getattr(args, "device", "auto"))
         print(f"device: {device.description}", flush=True)
         bar = ProgressBar(args.quiet)

@@ -161,20 +161,26 @@ def ready_for_evaluation(field, name: str):
 
 
 def run(args) -> int:
+    from ..engine.absurd_nodes import flag_absurd_nodes
     from ..engine.accuracy import evaluate_iter
     from ..engine.pair_checks import check_pair_and_fields
     from ..io.volumes import read_volume
     from ..report import write_report
-    from ._common import ProgressBar, check_output_dir, drive, output_set
+    from ._common import (
+        ProgressBar,
+        check_output_dir,
+        command_inputs,
+        drive,
+        output_set,
+        warn,
+    )
 
     phases = parse_thresholds(args.phases, "--phases")
     phases_deformed = parse_thresholds(args.phases_deformed, "--phases-deformed")
     pair = _phase_pair(args.phase_pair)
     names = _names(args)
     paths = [args.field, *args.compare]
-    out_dir = check_output_dir(
-        args.out_dir, inputs=(args.reference, args.deformed, *paths), patterns=REPORT_PATTERNS
-    )
+    out_dir = check_output_dir(args.out_dir, inputs=command_inputs(args), patterns=REPORT_PATTERNS)
     loaded = {  # --format is --field's; the --compare fields' formats are sniffed
         name: read_input_field(args, path, sniff=k > 0).field
         for k, (name, path) in enumerate(zip(names, paths))
@@ -187,6 +193,10 @@ def run(args) -> int:
     else:
         reference = read_volume(args.reference)
         deformed = read_volume(args.deformed)
+    for name in loaded:  # a tool's few diverged nodes (|u| > the volume) are failed matches
+        loaded[name], note = flag_absurd_nodes(loaded[name], reference.shape, f"field {name!r}")
+        warn(args, note)
+    if not wants_tiled_evaluation(args):
         check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
     fields = {}
     for name, field in loaded.items():

@@ -121,7 +121,14 @@ def run(args) -> int:
     from ..engine.series import series_iter
     from ..io.volumes import read_volume
     from . import _field_formats, _grid_options
-    from ._common import ProgressBar, check_output_dir, drive, output_set
+    from ._common import (
+        ProgressBar,
+        check_output_dir,
+        check_search,
+        command_inputs,
+        drive,
+        output_set,
+    )
     from ._tiled_options import run_tiled_series, wants_tiled
     from .correct import correction_options_from_args
     from .correlate import params_from_args
@@ -129,9 +136,7 @@ def run(args) -> int:
     started = time.perf_counter()
     if len(args.volumes) < 2:
         raise ValueError(f"a series needs at least 2 volumes, got {len(args.volumes)}")
-    out_dir = check_output_dir(
-        args.out_dir, inputs=(*args.volumes, args.mask), patterns=SERIES_PATTERNS
-    )
+    out_dir = check_output_dir(args.out_dir, inputs=command_inputs(args), patterns=SERIES_PATTERNS)
     params = params_from_args(args)
     options = correction_options_from_args(args)
     at_points = bool(getattr(args, "points", None))
@@ -161,6 +166,7 @@ def run(args) -> int:
         from ..io.lazy import open_volume
 
         shape = tuple(open_volume(args.volumes[0]).shape)
+        check_search(params, shape)
         grid = _grid_options.grid_from_args(args, shape, params)
         result = run_tiled_series(
             args, params, ProgressBar(args.quiet).update, grid=grid, **strategy
@@ -171,6 +177,7 @@ def run(args) -> int:
         for k in range(1, len(volumes)):
             check_pair(volumes[0], volumes[k], mask, check_finite=False)  # read_volume did
         shape = volumes[0].shape
+        check_search(params, shape)
         grid = None if at_points else _grid_options.grid_from_args(args, shape, params)
         series = series_iter(volumes, params, mask=mask, grid=grid, points=points, **strategy)
         result = drive(series, ProgressBar(args.quiet))

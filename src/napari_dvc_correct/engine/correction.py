@@ -59,6 +59,7 @@ from collections.abc import Generator
 
 import numpy as np
 
+from .absurd_nodes import flag_absurd_nodes
 from .cleaning import clean, masked_nodes
 from .compose import compose
 from .correction_record import CHANGE_THRESHOLD, CorrectionPass, correction_table
@@ -260,6 +261,8 @@ def correct_iter(
         )
     # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
     check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
+    if field is not None:  # a few |u| > the volume: failed matches, cleaned (issue 27 item 14)
+        field, _ = flag_absurd_nodes(field, reference.shape)
     volumes = InMemoryVolumes(reference, deformed, frame, mask)
     options = dict(update=update, max_passes=max_passes, min_improvement=min_improvement)
     return (

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 #: Frames the correction can warp into (see :class:`CorrectionOptions`).
 FRAMES = ("reference", "loaded")
 
+#: The largest smoothing sigma, in grid nodes: a wider Gaussian smooths any grid to its mean.
+MAX_SMOOTHING = 1000.0
+
 #: How a correction ``ΔD`` updates the field ``D`` (see :class:`CorrectionOptions`).
 UPDATES = ("exact", "sum")
 
@@ -47,7 +50,8 @@ class CleaningOptions:
         Also fill nodes outside the mask (their provenance stays ``MASKED`` so they are never
         taken for measurements; useful before densifying, which needs every node).
     smoothing : float
-        Gaussian sigma in nodes for an optional smoothing after the replacement (0 = none).
+        Gaussian sigma in nodes for an optional smoothing after the replacement (0 = none, at
+        most :data:`MAX_SMOOTHING`).
     """
 
     threshold: float = 2.0
@@ -67,8 +71,11 @@ class CleaningOptions:
             raise ValueError(f"epsilon must be >= 0 voxel, got {self.epsilon!r}")
         if int(self.passes) < 1:
             raise ValueError(f"passes must be >= 1, got {self.passes!r}")
-        if not (_finite(self.smoothing) and self.smoothing >= 0):
-            raise ValueError(f"smoothing must be a finite sigma >= 0 nodes, got {self.smoothing!r}")
+        if not (_finite(self.smoothing) and 0 <= self.smoothing <= MAX_SMOOTHING):
+            raise ValueError(
+                f"smoothing must be a sigma from 0 to {MAX_SMOOTHING:g} grid nodes, got "
+                f"{self.smoothing!r}"
+            )
 
     def replace(self, **changes) -> CleaningOptions:
         """A copy with ``changes`` (checked like a new one)."""

@@ -36,6 +36,25 @@ HOST_TAG = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
 _umask_lock = threading.Lock()
 
 
+#: Targets renamed into place since :func:`reset_committed` (the command line says so when a
+#: signal lands after them: the new outputs are complete).
+_committed: list[Path] = []
+
+
+def committed() -> list[Path]:
+    """The outputs this process completed (renamed into place) since :func:`reset_committed`."""
+    return list(_committed)
+
+
+def reset_committed() -> None:
+    _committed.clear()
+
+
+def _commit(paths) -> None:
+    """Record outputs now complete (not the files of a set still in its temporary folder)."""
+    _committed.extend(p for p in map(Path, paths) if TEMP_MARK not in str(p.parent))
+
+
 def _umask() -> int:
     with _umask_lock:
         mask = os.umask(0o022)
@@ -96,6 +115,23 @@ def remove_stale(folder: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def scratch_dir(prefix: str, parent: str | os.PathLike | None = None) -> Path:
+    """A new private folder for a run's temporary arrays, named like every temporary of ours.
+
+    The name is :func:`temp_name` of ``parent / prefix`` (``.PREFIX.ndc-tmp-PID-HOST-RANDOM``),
+    so a run killed with SIGKILL leaves a folder the next run in ``parent`` recognises as dead
+    and removes (:func:`remove_stale`, called here first). ``parent`` defaults to the system's
+    temporary folder (``TMPDIR``). The caller removes the folder when done.
+    """
+    import tempfile
+
+    parent = Path(tempfile.gettempdir() if parent is None else parent)
+    remove_stale(parent)
+    path = temp_name(parent / prefix)
+    path.mkdir(mode=0o700)
+    return path
+
+
 def _folder(path: Path) -> Path:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.exists():
@@ -125,6 +161,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield temp
         os.chmod(temp, mode)
         os.replace(temp, path)
+        _commit([path])
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             temp.unlink()
@@ -136,9 +173,19 @@ def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
     """:func:`atomic_path` for several files that belong together (a field and its side file).
 
     Yields one temporary path per target; on success all are renamed into place with SIGINT and
-    SIGTERM held back, so either every target is new or none is.
+    SIGTERM held back, so either every target is new or none is: a target that is a folder is
+    refused before the body runs, and if a rename fails the targets already renamed get their
+    earlier content back (kept as a hard link, or a copy, until all renames are done).
+
+    Raises
+    ------
+    ValueError
+        If a target is an existing folder (nothing is written then).
     """
     targets = [Path(p) for p in paths]
+    for target in targets:
+        if target.is_dir():
+            raise ValueError(f"{target} is a folder: give a file name")
     for folder in {_folder(p) for p in targets}:
         remove_stale(folder)
     modes = [output_mode(p) for p in targets]
@@ -148,8 +195,8 @@ def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
         for temp, mode in zip(temps, modes):
             os.chmod(temp, mode)
         with _signals_blocked():
-            for temp, target in zip(temps, targets):
-                os.replace(temp, target)
+            _replace_all(temps, targets)
+            _commit(targets)
     except BaseException:
         for temp in temps:
             with contextlib.suppress(FileNotFoundError):
@@ -157,33 +204,105 @@ def atomic_files(*paths: str | os.PathLike) -> Iterator[list[Path]]:
         raise
 
 
+def _keep_copy(target: Path) -> Path | None:
+    """A hard link (or a copy) of an existing ``target`` under a temporary name; None if absent."""
+    if not target.is_file():
+        return None
+    backup = temp_name(target)
+    try:
+        os.link(target, backup)
+    except OSError:
+        shutil.copy2(target, backup)
+    return backup
+
+
+def _replace_all(temps: list[Path], targets: list[Path]) -> None:
+    """Rename every temporary file onto its target; on a failure undo the renames already made."""
+    done: list[tuple[Path, Path | None]] = []
+    try:
+        for temp, target in zip(temps, targets):
+            done.append((target, _keep_copy(target)))
+            os.replace(temp, target)
+    except BaseException:
+        for target, backup in reversed(done):
+            with contextlib.suppress(OSError):
+                if backup is not None:
+                    os.replace(backup, target)
+                elif target.is_file():
+                    target.unlink()
+        raise
+    finally:
+        for _, backup in done:
+            if backup is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    backup.unlink()
+
+
 def is_output_set(folder: str | os.PathLike, patterns: Iterable[str] = ()) -> bool:
     """True if ``folder`` may be replaced as a whole by a new output set.
 
-    That is: it is empty, it holds :data:`SET_MARKER` (written by :func:`atomic_dir`), or every
-    entry in it is a file matching one of ``patterns`` (globs of the command's own outputs,
-    for sets written before the marker existed).
+    That is: it is empty, it holds :data:`SET_MARKER` (written by :func:`atomic_dir`) and nothing
+    that its manifest does not list, or every entry in it is a file matching one of ``patterns``
+    (globs of the command's own outputs, for sets written before the marker existed).
+    """
+    return not foreign_entries(folder, patterns)
+
+
+def foreign_entries(folder: str | os.PathLike, patterns: Iterable[str] = ()) -> list[str]:
+    """The names in ``folder`` that a new output set may not delete (empty: it may replace it).
+
+    With :data:`SET_MARKER`: every entry its manifest's ``files`` does not list (a user's file
+    added to an output folder after the run). Without it: every entry unless all are files
+    matching ``patterns``.
     """
     folder = Path(folder)
-    entries = list(folder.iterdir())
-    if not entries or (folder / SET_MARKER).is_file():
-        return True
-    return bool(patterns) and all(
-        entry.is_file() and any(entry.match(p) for p in patterns) for entry in entries
-    )
+    entries = sorted(folder.iterdir())
+    names = [entry.name for entry in entries]
+    marker = folder / SET_MARKER
+    if marker.is_file():
+        try:
+            listed = json.loads(marker.read_text(encoding="utf-8")).get("files", [])
+            listed = {str(name) for name in listed}
+        except (OSError, ValueError, AttributeError):
+            return [name for name in names if name != SET_MARKER]  # unreadable: trust nothing
+        return [name for name in names if name != SET_MARKER and name not in listed]
+    patterns = tuple(patterns)
+    if patterns and all(entry.is_file() and any(entry.match(p) for p in patterns)
+                        for entry in entries):  # fmt: skip
+        return []
+    return names
 
 
 @contextlib.contextmanager
 def _signals_blocked() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back until the block is done, then act on the first one.
+
+    Python runs signal handlers in the main thread, whichever thread the operating system
+    delivered the signal to (numba and dask keep threads of their own, which a
+    ``pthread_sigmask`` of the main thread does not cover): the handlers are swapped for one
+    that only records the signal, and the recorded signal is passed to the previous handler
+    once the block is over.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    blocked = {signal.SIGINT, signal.SIGTERM}
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+    pending: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {number: signal.signal(number, lambda n, frame: pending.append(n))
+                for number in held}  # fmt: skip
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, set(held))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    if pending:
+        handler = previous[pending[0]]
+        if callable(handler):
+            handler(pending[0], None)
+        elif handler == signal.SIG_DFL:
+            os.kill(os.getpid(), pending[0])
 
 
 @contextlib.contextmanager
@@ -235,8 +354,9 @@ def atomic_dir(
             except FileNotFoundError:
                 old = None
             os.rename(temp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+            _commit([path])
+            if old is not None:  # still held back: the earlier set never stays behind
+                shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(temp, ignore_errors=True)
         raise
@@ -247,8 +367,12 @@ def check_set_target(path: str | os.PathLike, patterns: Iterable[str] = ()) -> N
     path = Path(path)
     if path.is_symlink() or (path.exists() and not path.is_dir()):
         raise ValueError(f"{path} exists and is not a folder")
-    if path.is_dir() and not is_output_set(path, tuple(patterns)):
+    foreign = foreign_entries(path, tuple(patterns)) if path.is_dir() else []
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (
+            f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        )
         raise ValueError(
-            f"{path} is a folder with files this tool did not write: choose a new or empty "
-            "folder (its whole content is replaced)"
+            f"{path} is a folder with files this tool did not write ({shown}): choose a new or "
+            "empty folder (its whole content is replaced)"
         )

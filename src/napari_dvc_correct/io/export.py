@@ -30,6 +30,7 @@ import numpy as np
 from ..engine.field import DisplacementField, Provenance, Status
 from ..engine.scattered import ScatteredField
 from .atomic import atomic_path
+from .formats._common import unusable_as_nan
 from .npz import _json_default, save_field
 
 #: File suffixes :func:`export_field` understands, and what they write.
@@ -115,6 +116,7 @@ def export_hdf5(
     """
     import h5py
 
+    field = unusable_as_nan(field)  # a failed node: NaN and its status, as in every export
     extra = _check_extra(field, extra)
     vs = _voxel_size(voxel_size)
     path = Path(path)
@@ -200,6 +202,7 @@ def export_vtk(
     suffix = path.suffix.lower()
     if suffix not in (".vti", ".vtk"):
         raise ValueError(f"{path}: a VTK export must end in .vti (XML) or .vtk (legacy)")
+    field = unusable_as_nan(field)
     extra = _with_uncertainty(field, _check_extra(field, extra))
     vs = _voxel_size(voxel_size)
     arrays = _vtk_arrays(field, extra, vs)
@@ -256,7 +259,7 @@ def export_vtk_points(field, path: str | os.PathLike, *, voxel_size=None) -> Pat
     path = Path(path)
     if path.suffix.lower() != ".vtu":
         raise ValueError(f"{path}: VTK points are written as .vtu (XML unstructured grid)")
-    points = field if isinstance(field, ScatteredField) else from_grid(field)
+    points = unusable_as_nan(field if isinstance(field, ScatteredField) else from_grid(field))
     vs = _voxel_size(voxel_size)
     xyz = (points.points * vs)[:, ::-1]
     u = (points.u * vs)[:, ::-1].astype(np.float32)
@@ -368,6 +371,7 @@ def export_tiff(
         The files written.
     """
     path = Path(path)
+    field = unusable_as_nan(field)
     extra = _with_uncertainty(field, _check_extra(field, extra))
     vs = _voxel_size(voxel_size)
     suffix = path.suffix if path.suffix.lower() in (".tif", ".tiff") else ".tif"
@@ -413,6 +417,7 @@ def export_csv(
     (:class:`..engine.scattered.ScatteredField`) has one row per point in its order and
     ``extra`` arrays of shape ``(N,)``.
     """
+    field = unusable_as_nan(field)
     extra = _check_extra(field, extra)
     if isinstance(field, ScatteredField):
         u = field.u

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..engine.field import DisplacementField, Provenance, Status
 from .atomic import atomic_path
+from .sizes import check_npz_sizes
 
 FORMAT_NAME = "napari-dvc-correct field"
 FORMAT_VERSION = 1
@@ -61,6 +62,34 @@ def save_field(field: DisplacementField, path: str | os.PathLike) -> None:
             np.savez_compressed(stream, **arrays)
 
 
+#: The arrays :func:`load_field` reads (any other member of the file is never inflated).
+FIELD_KEYS = (
+    "format", "format_version", "origin", "step", "u", "zncc", "status", "iterations",
+    "provenance", "gradient", "uncertainty", "params_json", "metadata_json",
+)  # fmt: skip
+
+
+def check_member_shapes(path, members) -> None:
+    """Refuse, from the headers alone, arrays whose shapes do not fit one grid of ``u``."""
+    u = members.get("u")
+    if u is None:
+        raise ValueError(f"{path} is a broken field file: missing u")
+    if len(u.shape) != 4 or u.shape[3] != 3:
+        raise ValueError(
+            f"{path} is a broken field file: u has shape {u.shape}, not (nz, ny, nx, 3)"
+        )
+    grid = u.shape[:3]
+    expected = {"zncc": grid, "status": grid, "iterations": grid, "provenance": grid,
+                "gradient": (*grid, 3, 3), "uncertainty": (*grid, 3), "origin": (3,),
+                "step": (3,), "format_version": (), "params_json": (), "metadata_json": ()}  # fmt: skip
+    for name, shape in expected.items():
+        if name in members and members[name].shape != shape:
+            raise ValueError(
+                f"{path} is a broken field file: {name} has shape {members[name].shape}, "
+                f"not {shape} (the grid of u is {grid})"
+            )
+
+
 def load_field(path: str | os.PathLike) -> DisplacementField:
     """Read a field file written by :func:`save_field`.
 
@@ -73,13 +102,23 @@ def load_field(path: str | os.PathLike) -> DisplacementField:
     """
     if not os.path.exists(path):
         raise FileNotFoundError(f"field file not found: {path}")
+    try:  # headers first: the arrays read are sized before anything is inflated
+        members = check_npz_sizes(path, FIELD_KEYS)
+    except ValueError as error:
+        raise ValueError(f"{path} is not a readable .npz field file ({error})") from error
+    marker = members.get("format")
+    if marker is None or marker.shape != () or marker.nbytes > 1024:
+        raise ValueError(f"{path} is not a napari-dvc-correct field file (no format marker)")
+    check_member_shapes(path, members)
     try:
         with np.load(path, allow_pickle=False) as data:
-            contents = {key: data[key] for key in data.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as error:
+            if str(data["format"]) != FORMAT_NAME:
+                raise ValueError(
+                    f"{path} is not a napari-dvc-correct field file (no format marker)"
+                )
+            contents = {key: data[key] for key in FIELD_KEYS if key in members}
+    except (zipfile.BadZipFile, OSError, EOFError) as error:
         raise ValueError(f"{path} is not a readable .npz field file ({error})") from error
-    if "format" not in contents or str(contents["format"]) != FORMAT_NAME:
-        raise ValueError(f"{path} is not a napari-dvc-correct field file (no format marker)")
     try:
         version = int(contents.get("format_version", -1))
     except (TypeError, ValueError):

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.validation import validate_volume
+from .sizes import check_fits_in_memory, npz_members, tiff_size
 
 VOLUME_SUFFIXES = (".tif", ".tiff", ".npy", ".npz")
 
@@ -61,12 +62,15 @@ def natural_key(path: Path) -> list:
 def _read_tiff(path: Path, mmap: bool) -> np.ndarray:
     import tifffile
 
+    shape, dtype = tiff_size(path)  # the header's claim, checked before anything is allocated
+    nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
     try:
         if mmap:
             try:
                 return tifffile.memmap(path, mode="r")
             except (ValueError, OSError, IndexError):
                 pass  # compressed or tiled (or broken: reading says so): fall back to reading
+        check_fits_in_memory(path, nbytes, f"a volume {shape} {dtype}")
         volume = tifffile.imread(path)
     except (tifffile.TiffFileError, ValueError, OSError, IndexError) as error:
         raise ValueError(f"{path} is not a readable TIFF file ({error})") from error
@@ -94,16 +98,19 @@ def _read_tiff_folder(path: Path) -> np.ndarray:
 def _read_npz(path: Path) -> np.ndarray:
     import zipfile
 
+    members = npz_members(path)  # headers only: sizes checked before anything is inflated
+    names = list(members)
+    if "volume" in names:
+        names = ["volume"]
+    if len(names) != 1:
+        raise ValueError(
+            f"{path} holds {len(names)} arrays ({', '.join(names[:5])}); "
+            "store one array, or name it 'volume'"
+        )
+    member = members[names[0]]
+    check_fits_in_memory(path, member.nbytes, f"a volume {member.shape} {member.dtype}")
     try:
         with np.load(path, allow_pickle=False) as data:
-            names = list(data.files)
-            if "volume" in names:
-                return data["volume"]
-            if len(names) != 1:
-                raise ValueError(
-                    f"{path} holds {len(names)} arrays ({', '.join(names[:5])}); "
-                    "store one array, or name it 'volume'"
-                )
             return data[names[0]]
     except (zipfile.BadZipFile, OSError, EOFError) as error:
         raise ValueError(f"{path} is not a readable .npz file ({error})") from error

@@ -31,13 +31,13 @@ from __future__ import annotations
 import itertools
 import os
 import shutil
-import tempfile
 from collections.abc import Generator
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
+from ..engine.absurd_nodes import flag_absurd_nodes
 from ..engine.correction import check_options, correct_volumes_iter, params_of
 from ..engine.correction_volumes import CorrectionVolumes
 from ..engine.field import DisplacementField
@@ -60,6 +60,7 @@ from ..engine.warp import (
     pull_back_block,
     warp_forward_block,
 )
+from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, iter_blocks, open_volume
 from . import scheduling
 from .correlate import correlate_tiled_iter
@@ -264,7 +265,7 @@ class TiledVolumes(CorrectionVolumes):
             self.client, self._owns_client = scheduling.connect(scheduler)
         if temp_dir is not None:
             Path(temp_dir).mkdir(parents=True, exist_ok=True)  # a folder named by the user
-        self._temp_dir = Path(tempfile.mkdtemp(prefix="dvc-correct-", dir=temp_dir))
+        self._temp_dir = scratch_dir("dvc-correct", temp_dir)  # a dead run's: removed
         self._temps: dict[int, Path] = {}
         self._count = 0
         self._statistics = None
@@ -555,6 +556,7 @@ def correct_tiled_iter(
     try:
         if field is not None:
             check_field_on_volume(field, volumes.shape)
+            field, _ = flag_absurd_nodes(field, volumes.shape)  # a few: failed matches
             nodes = np.concatenate([np.asarray(field.origin), np.asarray(field.step)])
             if np.max(np.abs(nodes - np.rint(nodes))) > 1e-6:
                 raise ValueError(

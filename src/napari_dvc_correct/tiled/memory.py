@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import inspect
 import math
-import os
 
 import numpy as np
 
 from ..engine.field import grid_for_volume
 from ..engine.initial_guess import fft_search, pyramid_levels
 from ..engine.params import CorrelationParams
+from ..io.sizes import available_memory  # noqa: F401  (re-exported: part of this API)
 
 #: Voxels read at a time by the whole-volume pass of :mod:`.tiled`.
 SHIFT_BLOCK_VOXELS = 1 << 23
@@ -76,34 +76,6 @@ class MemoryBudgetError(MemoryError, ValueError):
 
 
 # --- memory ------------------------------------------------------------------------------------
-def available_memory() -> int:
-    """Bytes this process can still allocate: ``MemAvailable`` (Linux), capped by a cgroup limit."""
-    available = None
-    try:
-        with open("/proc/meminfo") as handle:
-            for line in handle:
-                if line.startswith("MemAvailable:"):
-                    available = int(line.split()[1]) * 1024
-                    break
-    except OSError:
-        pass
-    if available is None:
-        try:
-            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (ValueError, OSError, AttributeError):
-            available = 1 << 34
-    try:
-        with open("/sys/fs/cgroup/memory.max") as handle:
-            limit = handle.read().strip()
-        with open("/sys/fs/cgroup/memory.current") as handle:
-            used = int(handle.read().strip())
-        if limit != "max":
-            available = min(available, int(limit) - used)
-    except (OSError, ValueError):
-        pass
-    return int(max(available, 0))
-
-
 def format_bytes(n: float) -> str:
     """Human-readable size, ``1536 -> '1.50 KiB'``."""
     for unit in ("B", "KiB", "MiB", "GiB"):
@@ -119,7 +91,7 @@ def parse_memory(size) -> int:
     Raises
     ------
     ValueError
-        For a string that is not a size, or a size ≤ 0.
+        For a string that is not a size, a size ≤ 0, or one no machine has (≥ 2**62 bytes, inf).
     """
     if isinstance(size, str):
         from dask.utils import parse_bytes
@@ -128,14 +100,14 @@ def parse_memory(size) -> int:
             if not size.strip()[:1].isdigit() and size.strip()[:1] not in ("-", "+", "."):
                 raise ValueError("no number")  # parse_bytes reads "" as 1 B and "GB" as 1 GB
             value = parse_bytes(size.strip())
-        except (ValueError, KeyError) as error:
+        except (ValueError, KeyError, OverflowError) as error:  # 1e400GB: inf
             raise ValueError(
                 f"{size!r} is not a memory size: use e.g. 2GB, 1.5GiB or 512MB"
             ) from error
     else:
-        value = int(size)
-    if value <= 0:
-        raise ValueError(f"a memory size must be > 0, got {size!r}")
+        value = size
+    if not 0 < value < 2**62:  # "1e400GB" parses as inf
+        raise ValueError(f"a memory size must be > 0 and a size a machine can have, got {size!r}")
     return int(value)
 
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 from collections.abc import Generator, Sequence
 from pathlib import Path
 
@@ -46,6 +45,7 @@ from ..engine.params import CorrelationParams
 from ..engine.progress import Progress, run_to_completion
 from ..engine.series import STRATEGIES, SeriesResult, series_volumes_iter
 from ..engine.series_volumes import SeriesVolumes
+from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, open_volume
 from . import scheduling
 from .correction import (
@@ -266,7 +266,7 @@ class TiledSeries(SeriesVolumes):
         if self._temp_dir is None:
             if self._temp_root is not None:
                 Path(self._temp_root).mkdir(parents=True, exist_ok=True)  # named by the user
-            self._temp_dir = Path(tempfile.mkdtemp(prefix="dvc-series-", dir=self._temp_root))
+            self._temp_dir = scratch_dir("dvc-series", self._temp_root)  # a dead run's: removed
         self._count += 1
         path = yield from warp_mask_iter(
             self.mask,

@@ -216,8 +216,9 @@ class ExportWidget(EngineWidget):
                 f"Session opened: {len(content['scans'])} scans, {len(content['fields'])} fields."
             )
             return content
-        except ValueError as error:
-            self.show_message(str(error), error=True)
+        except (ValueError, KeyError, TypeError, AttributeError, OSError) as error:
+            # a hand-edited session's settings may not fit a panel: one line, never a raise
+            self.show_message(str(error) or type(error).__name__, error=True)
             return None
 
     def _layer_of(self, source: str, kind: str):

@@ -102,6 +102,9 @@ def test_grid_round_trip(known, tmp_path, grid_points):
     write_field(field, tmp_path / "out.tsv", "spam")
     back = read_field(tmp_path / "out.tsv")
     assert back.same_grid(field)
+    # a failed node is written as NaN with its status, as in every export (issue 27 item 12)
+    assert np.isnan(back.u[0, 0, 0]).all()  # (spam's F is written finite there)
+    back.u[0, 0, 0], back.gradient[0, 0, 0] = field.u[0, 0, 0], field.gradient[0, 0, 0]
     np.testing.assert_allclose(back.u, field.u, atol=1e-6)
     np.testing.assert_allclose(back.gradient, field.gradient, atol=1e-6)
     np.testing.assert_array_equal(back.status, field.status)

@@ -87,3 +87,46 @@ def test_scattered_round_trip(known, tmp_path, scattered_points):
     back = read_points(tmp_path / "s.csv")
     np.testing.assert_allclose(back.points, scattered_points, atol=1e-6)
     np.testing.assert_allclose(back.u, field.u, atol=1e-6)
+
+
+def test_header_only_and_ragged_files_are_refused_with_their_name(tmp_path):
+    """Issue 27 item 6: a header and no rows, or a short row, is a ValueError naming the file."""
+    cases = {
+        "h.tsv": "NodeNumber\tZpos\tYpos\tXpos\tZdisp\tYdisp\tXdisp\treturnStatus\n",
+        "h.disp": "n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw\n",
+        "h.csv": "z,y,x,uz,uy,ux\n",
+        "short.csv": "z,y,x,uz,uy,ux\n1,2,3,0,0,0\n1,2,3,0\n",
+    }
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError, match=name.replace(".", r"\.")):
+            read_points(tmp_path / name)
+
+
+def test_empty_cells_are_nan_and_valid_zero_is_not_usable(tmp_path):
+    """pyALDVC's CSV writes non-finite values as empty cells and a ``valid`` flag."""
+    path = tmp_path / "frame.csv"
+    path.write_text(
+        "x,y,z,valid,disp_u,disp_v,disp_w,exx\n1.0,2.0,3.0,1,0.5,0.25,0.125,\n"
+        "4.0,5.0,6.0,0,0.5,0.25,0.125,0.1\n"
+    )
+    points = read_points(path)
+    assert np.allclose(points.points[0], [3.0, 2.0, 1.0])
+    assert np.allclose(points.u[0], [0.125, 0.25, 0.5])
+    assert points.valid.tolist() == [True, False]
+
+
+def test_a_point_given_twice_with_two_displacements_is_refused(tmp_path):
+    """Issue 27 item 11: which of two displacements holds cannot be guessed; the grid is not
+    made silently from one of them. Identical repeated rows are harmless."""
+    rows = ["z,y,x,uz,uy,ux"] + [f"{z},{y},{x},0.1,0.2,0.3" for z in (4, 8) for y in (4, 8)
+                                 for x in (4, 8)]  # fmt: skip
+    path = tmp_path / "twice.csv"
+    path.write_text("\n".join([*rows, "8,4,8,0.1,0.2,0.3"]) + "\n")
+    assert read_points(path).n_points == 9
+    path.write_text("\n".join([*rows, "8,4,8,0.1,2.5,0.3"]) + "\n")
+    with pytest.raises(ValueError, match=r"twice.csv: 1 point\(s\) appear more than once .*8\.0, "
+                                         r"4\.0, 8\.0\) in rows 6, 9"):  # fmt: skip
+        read_points(path)
+    with pytest.raises(ValueError, match="appear more than once"):
+        read_field(path)

@@ -21,10 +21,12 @@ import os
 import zipfile
 from pathlib import Path
 
+import numpy as np
+
 from ...engine.field import DisplacementField
 from ...engine.scattered import ScatteredField, from_grid, to_grid
 from . import aldvc, idvc, spam, table
-from ._common import first_line
+from ._common import first_line, unusable_as_nan
 
 FORMATS = ("spam", "aldvc", "idvc", "table", "npz")
 
@@ -99,7 +101,50 @@ def read_points(path: str | os.PathLike, format: str | None = None, **options) -
         scattered = from_grid(load_field(path))
         scattered.metadata.setdefault("source", {"format": "npz", "path": str(path)})
         return scattered
-    return module.read(path, **options)
+    try:
+        points = module.read(path, **options)
+    except (ValueError, OSError, MemoryError):
+        raise
+    except Exception as error:  # a library's own error (scipy's MatReadError, KeyError...)
+        raise ValueError(
+            f"{path}: not a readable {fmt} field file ({type(error).__name__}: {error})"
+        ) from None
+    if points.n_points == 0:
+        raise ValueError(f"{path}: the file holds no points (a header and no rows)")
+    refuse_conflicting_duplicates(path, points)
+    return points
+
+
+def refuse_conflicting_duplicates(path, points: ScatteredField) -> None:
+    """Refuse a point given twice with two displacements: which one holds cannot be guessed
+    (identical repeated rows are harmless and kept).
+
+    Raises
+    ------
+    ValueError
+        Naming the file, how many points conflict and the first of them (z, y, x voxels).
+    """
+    keys = np.round(np.asarray(points.points, np.float64), 6)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    repeated = np.flatnonzero(counts[inverse] > 1)
+    if repeated.size == 0:
+        return
+    u = np.asarray(points.u, np.float64)
+    conflicts = []
+    for group in np.unique(inverse[repeated]):
+        rows = np.flatnonzero(inverse == group)
+        values = u[rows]
+        same = np.all(np.isclose(values, values[0], rtol=0, atol=1e-9, equal_nan=True))
+        if not same:
+            conflicts.append(rows)
+    if conflicts:
+        first = conflicts[0]
+        raise ValueError(
+            f"{path}: {len(conflicts)} point(s) appear more than once with different "
+            f"displacements, e.g. z, y, x = {tuple(float(v) for v in points.points[first[0]])} "
+            f"in rows {', '.join(str(r + 1) for r in first[:4])}: keep one row per point"
+        )
 
 
 def read_field(
@@ -155,7 +200,7 @@ def write_field(
             field = to_grid(field)
         save_field(field, path)
         return path
-    module.write(field, path, **options)
+    module.write(unusable_as_nan(field), path, **options)  # a failed node: NaN and its status
     return path
 
 

@@ -37,6 +37,7 @@ import numpy as np
 from ...engine.field import Provenance, Status
 from ...engine.scattered import ScatteredField, regular_grid_of
 from ..atomic import atomic_path
+from ..sizes import check_npz_sizes
 from ._common import as_scattered, flip_tensors, flip_vectors
 
 _FROM_ALDVC = {
@@ -64,11 +65,12 @@ _TO_ALDVC = {
 def is_result_mat(path) -> bool:
     """Whether a ``.mat`` file holds an ALDVC result (``DVCmesh`` or ``coordinatesFEM``)."""
     from scipy.io import whosmat
+    from scipy.io.matlab import MatReadError
 
     try:
         names = {entry[0] for entry in whosmat(str(path))}
-    except (OSError, ValueError, NotImplementedError, TypeError):
-        return False
+    except (OSError, ValueError, NotImplementedError, TypeError, MatReadError):
+        return False  # an empty or truncated file too
     return "DVCmesh" in names or "coordinatesFEM" in names
 
 
@@ -126,6 +128,7 @@ def read(path: str | os.PathLike, frame: int = 1, accumulated: bool = False) -> 
     path = Path(path)
     if path.suffix.lower() == ".mat":
         return _read_mat(path, frame)
+    check_npz_sizes(path)  # headers first: nothing inflated that does not fit in memory
     with np.load(path, allow_pickle=False) as data:
         if "coordinates" not in data or f"U_{frame}" not in data:
             raise ValueError(

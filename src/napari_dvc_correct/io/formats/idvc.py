@@ -40,7 +40,7 @@ import numpy as np
 from ...engine.field import Provenance, Status
 from ...engine.scattered import ScatteredField
 from ..atomic import atomic_path
-from ._common import as_scattered, column, flip_vectors, read_named_table
+from ._common import as_scattered, column, flip_vectors, load_numbers, read_named_table
 
 COLUMNS = ("n", "x", "y", "z", "status", "objmin", "u", "v", "w")
 OBJECTIVES = ("znssd", "none")
@@ -62,7 +62,7 @@ def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
     names, rows = read_named_table(path, None)
     if not looks_like(" ".join(names)):
         # files without a header: the documented column order
-        rows = np.loadtxt(path, ndmin=2)
+        rows = load_numbers(path, None)
         names = list(COLUMNS) + [f"c{i}" for i in range(len(COLUMNS), rows.shape[1])]
     points_xyz = np.column_stack([column(names, rows, a) for a in "xyz"])
     u_xyz = np.column_stack([column(names, rows, a) for a in "uvw"])

@@ -5,7 +5,9 @@ Our own convention (no other tool's), for fields from any program that can write
 
 * one header line naming the columns (any order, case-insensitive): positions ``z y x`` and
   displacements ``uz uy ux`` (also accepted: ``u_z``, ``dz``, ``zdisp``, ``disp_z``...; and the
-  DIC names ``u v w`` = displacement along **x, y, z**); optional ``zncc``, ``status`` (our
+  DIC names ``u v w`` or pyALDVC's ``disp_u disp_v disp_w`` = displacement along **x, y, z**;
+  with OpenCorr's ``u v w ux uy uz vx vy vz wx wy wz`` the ``ux``... are the gradient du/dx...;
+  empty cells are NaN); optional ``valid`` (pyALDVC: 0 = not usable), ``zncc``, ``status`` (our
   :class:`.engine.field.Status` codes), ``provenance``, ``iterations``;
 * units in brackets or parentheses after a name: ``z [voxel]``, ``ux (mm)``. ``voxel``/``vox``/
   ``px``/``pixel`` (or no unit) are voxels; ``m``, ``mm``, ``um``/``µm``, ``nm`` need the voxel
@@ -28,7 +30,7 @@ import numpy as np
 from ...engine.field import Provenance, Status
 from ...engine.scattered import ScatteredField
 from ..atomic import atomic_path
-from ._common import as_scattered, first_line
+from ._common import as_scattered, first_line, load_numbers
 
 UNITS_MM = {"m": 1000.0, "mm": 1.0, "um": 1e-3, "µm": 1e-3, "micron": 1e-3, "nm": 1e-6}
 VOXEL_UNITS = {"", "voxel", "voxels", "vox", "px", "pixel", "pixels"}
@@ -36,11 +38,12 @@ _ALIASES = {
     "z": ("z", "zpos", "z_pos", "pos_z"),
     "y": ("y", "ypos", "y_pos", "pos_y"),
     "x": ("x", "xpos", "x_pos", "pos_x"),
-    "uz": ("uz", "u_z", "dz", "zdisp", "disp_z", "displacement_z", "w"),
-    "uy": ("uy", "u_y", "dy", "ydisp", "disp_y", "displacement_y", "v"),
-    "ux": ("ux", "u_x", "dx", "xdisp", "disp_x", "displacement_x", "u"),
+    "uz": ("uz", "u_z", "dz", "zdisp", "disp_z", "displacement_z", "w", "disp_w"),
+    "uy": ("uy", "u_y", "dy", "ydisp", "disp_y", "displacement_y", "v", "disp_v"),
+    "ux": ("ux", "u_x", "dx", "xdisp", "disp_x", "displacement_x", "u", "disp_u"),
     "zncc": ("zncc", "cc", "correlation"),
     "status": ("status",),
+    "valid": ("valid",),  # pyALDVC's CSV: 1 = a usable node, 0 = not
     "provenance": ("provenance",),
     "iterations": ("iterations", "iter"),
 }
@@ -110,9 +113,9 @@ def read(
     if _has_header(header):
         raw = [c for c in (header.split(delimiter) if delimiter else header.split())]
         parsed = [_parse_name(c) for c in raw]
-        rows = np.loadtxt(path, delimiter=delimiter, comments="#", skiprows=_skip(path), ndmin=2)
+        rows = load_numbers(path, delimiter, _skip(path), len(parsed))
     else:
-        rows = np.loadtxt(path, delimiter=delimiter, comments="#", ndmin=2)
+        rows = load_numbers(path, delimiter)
         order = ("x", "y", "z", "ux", "uy", "uz") if xyz else ("z", "y", "x", "uz", "uy", "ux")
         if rows.shape[1] < 6:
             raise ValueError(f"{path}: a table without a header needs 6 columns {order}")
@@ -125,7 +128,11 @@ def read(
         )
     names = [p[0] for p in parsed]
     found = {}
+    dic = _dic_gradient_names(names)
     for key, aliases in _ALIASES.items():
+        if dic and key in ("uz", "uy", "ux"):  # ux... are du/dx...: displacements are u v w
+            found[key] = names.index({"uz": "w", "uy": "v", "ux": "u"}[key])
+            continue
         for alias in aliases:
             if alias in names:
                 found[key] = names.index(alias)
@@ -145,6 +152,9 @@ def read(
     points = points - int(index_base) + np.asarray(offset, np.float64)
     n = len(rows)
     finite = np.all(np.isfinite(u), axis=1)
+    if "valid" in found and "status" not in found:
+        finite &= rows[:, found["valid"]] == 1
+        u[~finite] = np.nan
     status = (
         rows[:, found["status"]].astype(np.uint8)
         if "status" in found
@@ -155,15 +165,30 @@ def read(
         if "provenance" in found
         else np.where(finite, Provenance.MEASURED, Provenance.NOT_COMPUTED).astype(np.uint8)
     )
+    gradient = None
+    if dic:  # du_i/dX_j, i and j in (z, y, x): w, v, u along z, y, x
+        gradient = np.stack(
+            [np.column_stack([rows[:, names.index(c + a)] for a in "zyx"]) for c in "wvu"], 1
+        )
+        gradient[~finite] = np.nan
     return ScatteredField(
         points=points,
         u=u,
+        gradient=gradient,
         zncc=rows[:, found["zncc"]] if "zncc" in found else np.full(n, np.nan),
         status=status,
         iterations=rows[:, found["iterations"]].astype(np.int32) if "iterations" in found else None,
         provenance=provenance,
         metadata={"source": {"format": "table", "path": str(path), "columns": names}},
     )
+
+
+def _dic_gradient_names(names: list[str]) -> bool:
+    """Whether the header uses the DIC names of OpenCorr's tables: displacements ``u v w``
+    (along x, y, z) and gradients ``ux uy uz vx vy vz wx wy wz`` (``ux`` = du/dx, not a
+    displacement)."""
+    gradient = {c + a for c in "uvw" for a in "xyz"}
+    return {"u", "v", "w"} <= set(names) and gradient <= set(names)
 
 
 def _skip(path) -> int:

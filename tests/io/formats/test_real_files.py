@@ -1,0 +1,100 @@
+"""Our readers on files really written by spam, pyALDVC, CCPi/Bay ``dvc`` and OpenCorr (issue 27).
+
+The files and the known field of their test pair are in ``../shared/data/formats`` (see its
+README): ``u(X) = t + G (X - c)`` in (z, y, x) voxels, with G neither isotropic nor symmetric, so
+a reader that swaps axes, transposes the gradient or reads F as the displacement gradient fails.
+The tolerances are the errors the README measured for each tool, with a margin.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.io.formats import read_field, read_points, sniff_format
+
+FORMATS = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "formats"
+pytestmark = pytest.mark.skipif(
+    not (FORMATS / "truth.json").is_file(),
+    reason=f"the other tools' real files are not here ({FORMATS}: ../shared is absent)",
+)
+
+
+def truth():
+    known = json.loads((FORMATS / "truth.json").read_text())
+    t, g, c = (np.asarray(known[k], np.float64) for k in ("t_zyx", "G_zyx", "c_zyx"))
+    return (lambda points: t + (np.asarray(points) - c) @ g.T), g
+
+
+# file, format sniffed, points, largest rms error per axis (voxels; the README's rms + margin)
+ON_THE_TEST_PAIR = [
+    ("spam/reg_ldic/ref-def-ldic.tsv", "spam", 125, 0.10),
+    ("spam/pixelsearch_ldic/ref-def-ldic.tsv", "spam", 125, 0.10),
+    ("spam/pixelsearch_ldic/ref-def-pixelSearch.tsv", "spam", 125, 0.40),
+    ("spam/reg_ldic/ref-def-registration.tsv", "spam", 1, 0.03),
+    ("pyaldvc/aldvc.npz", "aldvc", 125, 0.03),
+    ("pyaldvc/aldvc.mat", "aldvc", 125, 0.03),
+    ("pyaldvc/csv/aldvc_frame_01.csv", "table", 125, 0.03),
+    ("ccpi_dvc/snow48/snow48.disp", "idvc", 125, 0.03),
+]
+
+
+@pytest.mark.parametrize(("name", "fmt", "count", "rms"), ON_THE_TEST_PAIR)
+def test_real_files_give_the_known_field_in_z_y_x(name, fmt, count, rms):
+    exact, _ = truth()
+    path = FORMATS / name
+    assert sniff_format(path) == fmt
+    points = read_points(path)
+    assert points.n_points == count and points.valid.all()
+    error = points.u - exact(points.points)
+    assert np.all(np.sqrt(np.mean(error**2, axis=0)) < rms), error
+    # the other axis orders are far worse: an axis swap or 1-based positions would fail
+    swapped = points.u[:, ::-1] - exact(points.points)
+    assert np.sqrt(np.mean(swapped**2)) > np.sqrt(np.mean(error**2)) + 0.1
+
+
+@pytest.mark.parametrize(
+    ("name", "tolerance"),
+    [("spam/reg_ldic/ref-def-registration.tsv", 0.002), ("pyaldvc/aldvc.npz", 0.003)],
+)
+def test_real_gradients_are_du_dX_in_z_y_x(name, tolerance):
+    """spam writes F = I + du/dX (z, y, x rows); pyALDVC writes du/dX in x, y, z."""
+    _, g = truth()
+    gradient = np.median(read_points(FORMATS / name).gradient, axis=0)
+    assert np.abs(gradient - g).max() < tolerance, gradient
+    assert gradient[0, 2] > 0.008 and abs(gradient[2, 0]) < 0.002  # du_z/dX_x, not du_x/dX_z
+
+
+def test_spam_ldic_is_a_regular_grid_one_spacing_from_the_origin():
+    field = read_field(FORMATS / "spam/reg_ldic/ref-def-ldic.tsv")
+    assert field.shape == (5, 5, 5) and field.origin == (8.0, 8.0, 8.0)
+    assert field.step == (8.0, 8.0, 8.0)
+
+
+def test_ccpi_failures_and_rows_out_of_order():
+    """Rows are in processing order; status -1 (Range_Fail) is not a usable node."""
+    edge = read_points(FORMATS / "ccpi_dvc/snow48_edge/snow48_edge.disp")
+    assert edge.n_points == 125 and int((~edge.valid).sum()) == 1
+    exact, _ = truth()
+    error = np.linalg.norm(edge.u - exact(edge.points), axis=1)[edge.valid]
+    assert np.median(error) < 0.05
+    repository = read_points(FORMATS / "ccpi_dvc/repo_dvc_test/completed_central_grid.disp")
+    assert repository.n_points == 5  # 12 columns (with phi the psi), 1-based labels n
+    # x, y, z of the file are numpy axes 2, 1, 0
+    rows = np.loadtxt(FORMATS / "ccpi_dvc/repo_dvc_test/completed_central_grid.disp", skiprows=1)
+    assert np.allclose(repository.points, rows[:, [3, 2, 1]])
+    assert np.allclose(repository.u, rows[:, [8, 7, 6]])
+
+
+@pytest.mark.parametrize("name", ["al_foam4_1_fftcc_icgn1_r30.csv",
+                                  "al_foam4_1_fftcc_icgn1(gpu)_r30.csv"])  # fmt: skip
+def test_opencorr_tables_are_read_by_name(name):
+    """OpenCorr's columns x,y,z,u,v,w (u along x); the GPU file adds a ``feature`` column."""
+    points = read_points(FORMATS / "opencorr" / name)
+    assert points.n_points == 5733
+    assert np.allclose(points.points[0], [60.0, 35.0, 35.0])  # (z, y, x) of the first POI
+    rows = np.genfromtxt(FORMATS / "opencorr" / name, delimiter=",", names=True, max_rows=3)
+    assert np.allclose(points.u[:3], np.column_stack([rows["w"], rows["v"], rows["u"]]))
