@@ -28,6 +28,7 @@ def test_every_format(correlated, run_panel, tmp_path):
     assert widget.field.currentText() == "uncorrected"
     widget.path.setText(str(tmp_path / "run"))
     expected = {
+        ".dvcfield": ["run.dvcfield"],
         ".npz": ["run.npz"],
         ".h5": ["run.h5"],
         ".vti": ["run.vti"],
@@ -43,6 +44,7 @@ def test_every_format(correlated, run_panel, tmp_path):
         for name in names:
             assert (tmp_path / name).is_file(), name
     np.testing.assert_array_equal(load_field(tmp_path / "run.npz").u, field.u)
+    np.testing.assert_array_equal(load_field(tmp_path / "run.dvcfield").u, field.u)
     with h5py.File(tmp_path / "run.h5", "r") as h5:
         np.testing.assert_array_equal(h5["field/u"][()], field.u)
         assert h5["grid/equivalent_strain"].shape == field.shape  # strain went with the field

@@ -46,7 +46,7 @@ def test_save_close_reopen(make_napari_viewer, run_panel, tmp_path):
     written = export.session(tmp_path / "run")
     assert export.last_error is None, export.last_error
     assert written.name == "run.dvc-session.json" and written.is_file()
-    assert (tmp_path / "run_fields" / "uncorrected.npz").is_file()
+    assert (tmp_path / "run_fields" / "uncorrected.dvcfield").is_file()
     viewer.close()
 
     viewer = make_napari_viewer()

@@ -246,9 +246,6 @@ class EngineWidget(QWidget):
         self.cancel_button.clicked.connect(lambda checked=False: self.cancel())
         self.last_error: str | None = None
         if napari_viewer is not None:  # (None: a plain Qt host, no napari around)
-            from .._reader import prefer_this_reader
-
-            prefer_this_reader()  # field files then open with our reader, without a dialog
             follow_layers(self.viewer, self, self._label_axes)
             self._label_axes()
 

@@ -25,7 +25,8 @@ from ..engine.scattered import ScatteredField
 
 #: Formats offered in the panel: label -> file suffix.
 FORMATS = {
-    "NPZ (napari-dvc-correct field)": ".npz",
+    "DVC field (.dvcfield: opens in napari with this plugin)": ".dvcfield",
+    "NPZ (napari-dvc-correct field, the same contents)": ".npz",
     "HDF5": ".h5",
     "VTK image data, XML (.vti, ParaView)": ".vti",
     "VTK legacy structured points (.vtk)": ".vtk",
@@ -86,7 +87,7 @@ class ExportRequest:
 
 
 #: Formats that keep the field's metadata inside the file (the others get a JSON side file).
-WITH_METADATA = (".npz", ".h5", ".hdf5")
+WITH_METADATA = (".dvcfield", ".npz", ".h5", ".hdf5")
 
 
 def is_points(field) -> bool:
@@ -182,8 +183,8 @@ def describe(field: DisplacementField | ScatteredField, source: str) -> str:
     return text + ")"
 
 
-def default_name(source: str, suffix: str = ".npz") -> str:
-    """File name the panel proposes for the field ``source``, e.g. ``dvc_corrected.npz``."""
+def default_name(source: str, suffix: str = ".dvcfield") -> str:
+    """File name the panel proposes for the field ``source``, e.g. ``dvc_corrected.dvcfield``."""
     slug = "".join(c if c.isalnum() else "_" for c in source).strip("_")
     while "__" in slug:
         slug = slug.replace("__", "_")
@@ -219,7 +220,7 @@ def run_export(request: ExportRequest):
         strain = point_strain(field)
         extra = None if strain is None else {"equivalent_strain": strain}
     elif request.strain_with_field and request.equivalent_strain is not None:
-        if suffix != ".npz":
+        if suffix not in (".dvcfield", ".npz"):  # (the native file holds the field only)
             extra = {"equivalent_strain": request.equivalent_strain}
     stem = request.path.with_suffix("")
 

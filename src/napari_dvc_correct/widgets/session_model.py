@@ -1,8 +1,9 @@
 """Sessions without Qt: what a session file holds, written and read back.
 
 A session is a JSON file (``*.dvc-session.json``) with the scans' paths and placement, the
-panels' parameters and thresholds, and the fields, each saved as the plugin's ``.npz`` field file
-in a folder next to it (``STEM_fields/SOURCE.npz``, so a field reopens under its own name).
+panels' parameters and thresholds, and the fields, each saved as the plugin's field file in a
+folder next to it (``STEM_fields/SOURCE.dvcfield``, so a field reopens under its own name; sessions
+written before hold ``SOURCE.npz``, read the same way).
 Reopening opens the scans, restores the panels and opens the fields.
 """
 
@@ -41,10 +42,10 @@ def write_session(path, scans: list, panels: dict, fields: dict[str, Displacemen
     panels : dict
         Panel name -> its settings (JSON-friendly).
     fields : dict of source -> DisplacementField
-        Saved as ``STEM_fields/SOURCE.npz``.
+        Saved as ``STEM_fields/SOURCE.dvcfield``.
     """
     from ..io.atomic import atomic_path
-    from ..io.npz import save_field
+    from ..io.npz import FIELD_SUFFIX, save_field
 
     path = session_path(path)
     if not path.parent.is_dir():
@@ -60,7 +61,7 @@ def write_session(path, scans: list, panels: dict, fields: dict[str, Displacemen
     if fields:
         folder.mkdir(exist_ok=True)
     for source, field in fields.items():
-        target = folder / f"{source}.npz"
+        target = folder / f"{source}{FIELD_SUFFIX}"
         save_field(field, target)
         files[source] = str(target.relative_to(path.parent))
     content = {
