@@ -99,6 +99,26 @@ def test_write_report_writes_readable_files(tmp_path, evaluation):
     assert "`residual_exact.tif`" in text and "**reference**: G.tif" in text
 
 
+def test_report_lists_the_self_correction_passes(tmp_path, evaluation, changed_method_field):
+    """Every pass's order and subvolume, the user's choice and the engine's reason."""
+    import dataclasses
+
+    corrected, method = changed_method_field
+    first = evaluation.fields[0]
+    field = first.field.copy()
+    field.params = corrected.params
+    field.metadata.update(corrected.metadata)
+    fields = [dataclasses.replace(first, name="corrected", field=field), *evaluation.fields[1:]]
+    files = write_report(dataclasses.replace(evaluation, fields=fields), tmp_path, volumes=False)
+    text = files["report"][0].read_text(encoding="utf-8")
+    section = text[text.index("## Self-correction passes") :]
+    assert "### corrected" in section and "### no band" not in section
+    assert "| Pass | Order | Subvolume |" in section
+    assert "| 1 | second | 15³ |" in section and "| 2 | second | 15³ |" in section
+    assert "used first order on 21³ subvolumes" in section
+    assert f"passes 1–2: {method}" in section
+
+
 def test_report_without_volumes(tmp_path, evaluation):
     files = write_report(evaluation, tmp_path / "light", volumes=False)
     assert files["volumes"] == []

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..engine.accuracy import Evaluation
 from ..io.atomic import atomic_path
+from .passes import first_run_parameters, method_lines, order_text, pass_rows, subvolume_text
 from .tables import bin_rows, format_value, phase_rows, summary_rows
 
 
@@ -49,6 +50,44 @@ def _phase_section(evaluation: Evaluation) -> str:
         f"The accuracy index uses phases {pair[0]} and {pair[1]}: gray contrast "
         f"|g1 − g2| = {evaluation.contrast:.4g} (mean of both states)."
     )
+
+
+#: Columns of the self-correction table: row key -> header.
+PASS_COLUMNS = {
+    "pass": "Pass",
+    "order": "Order",
+    "subvolume": "Subvolume",
+    "mean_gray_residual": "Mean gray residual",
+    "applied": "Applied",
+    "nodes_changed": "Nodes changed (fraction)",
+    "accepted_nodes": "Accepted",
+    "refused_nodes": "Refused",
+    "noise_floor": "Noise floor",
+}
+
+
+def _correction_section(evaluation: Evaluation) -> str:
+    """The self-correction passes of every corrected field: the order and subvolume of the
+    correcting matches per pass, against the user's choice, and why ("" if none was corrected)."""
+    parts = []
+    for item in evaluation.fields:
+        rows = pass_rows(item.field)
+        if not rows:
+            continue
+        order, subvolume = first_run_parameters(item.field)
+        chosen = (
+            f"The run that made the field used {order_text(order)} order on "
+            f"{subvolume_text(subvolume)} subvolumes. "
+            if order and subvolume
+            else ""
+        )
+        why = " ".join(f"Correcting matches, {line}." for line in method_lines(item.field))
+        parts.append(
+            f"### {item.name}\n\n{markdown_table(rows, PASS_COLUMNS)}\n\n{chosen}{why}".rstrip()
+        )
+    if not parts:
+        return ""
+    return "## Self-correction passes\n\n" + "\n\n".join(parts)
 
 
 def _list(values) -> str:
@@ -122,6 +161,9 @@ def render_markdown(
         "(see docs/evaluation.md)."
     )
     parts.append(_phase_section(evaluation))
+    corrections = _correction_section(evaluation)
+    if corrections:
+        parts.append(corrections)
 
     plots = {Path(p).name: Path(p) for p in files.get("plots", [])}
     curves = [
