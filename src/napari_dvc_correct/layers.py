@@ -449,6 +449,39 @@ def label_axes(viewer) -> None:
         viewer.dims.axis_labels = names
 
 
+class KeepSliceAndFrame:
+    """Context manager for a change of the layers' placement (a voxel size typed, a session's
+    scans placed): the same slice (by index) stays on view, and the camera frames the layers
+    afterwards, keeping its 3-D angles.
+
+    Without it napari keeps the camera and the world position of the slice: after a voxel size
+    of 0.05 mm the scan is a thumbnail in a corner and the slider jumps to the last slice.
+    """
+
+    def __init__(self, viewer) -> None:
+        self.viewer = viewer
+        self.step = None
+
+    def __enter__(self):
+        self.step = tuple(self.viewer.dims.current_step)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is not None:
+            return
+        frame(self.viewer)
+        dims = self.viewer.dims
+        if len(self.step) == dims.ndim:
+            for axis, (index, steps) in enumerate(zip(self.step, dims.nsteps)):
+                dims.set_current_step(axis, min(int(index), max(0, int(steps) - 1)))
+
+
+def frame(viewer, layers=None) -> None:
+    """Fit the camera to ``layers`` (default: all), keeping its 3-D angles."""
+    if len(viewer.layers):
+        viewer.fit_to_view(layers=layers)
+
+
 def _same_units(viewer, layer) -> None:
     """Give ``layer`` the length unit of the scans (napari ignores units that disagree)."""
     if "units" in dir(layer) and all(str(u) == "pixel" for u in layer.units):

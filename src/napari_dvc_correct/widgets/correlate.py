@@ -263,9 +263,12 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         """
         edited, self._voxel_edited = self._voxel_edited, False
         unit = self.unit.currentData()
-        for layer in self._scans():
-            if edited:  # an anisotropic scale stays until the user types a size
-                layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
+        scans = self._scans()
+        if edited:  # an anisotropic scale stays until the user types a size
+            with L.KeepSliceAndFrame(self.viewer):  # the scan fills the canvas again
+                for layer in scans:
+                    layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
+        for layer in scans:
             if unit:
                 layer.units = (unit,) * layer.ndim
         if unit:

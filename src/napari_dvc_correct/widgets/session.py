@@ -51,16 +51,17 @@ def open_session(viewer, path, panels: dict) -> dict:
     from .._reader import read_field_file
 
     content = model.read_session(path)
-    for scan in content["scans"]:
-        (layer,) = viewer.open(scan["path"], plugin="napari-dvc-correct")
-        if layer.name != scan["name"]:
-            layer.name = scan["name"]
-        layer.scale, layer.translate = scan["scale"], scan["translate"]
-        if scan.get("units"):
-            layer.units = scan["units"]
-    for name, panel in panels.items():
-        if name in content["panels"]:
-            panel.restore(content["panels"][name])
-    for file in content["fields"].values():
-        L.show_field(viewer, read_field_file(file))
+    with L.KeepSliceAndFrame(viewer):  # the scans fill the canvas, whatever was shown before
+        for scan in content["scans"]:
+            (layer,) = viewer.open(scan["path"], plugin="napari-dvc-correct")
+            if layer.name != scan["name"]:
+                layer.name = scan["name"]
+            layer.scale, layer.translate = scan["scale"], scan["translate"]
+            if scan.get("units"):
+                layer.units = scan["units"]
+        for name, panel in panels.items():
+            if name in content["panels"]:
+                panel.restore(content["panels"][name])
+        for file in content["fields"].values():
+            L.show_field(viewer, read_field_file(file))
     return content
