@@ -515,9 +515,12 @@ def show_layers(viewer, layer_tuples) -> list:
         if isinstance(entry, dict):  # napari may rename the layer; we find it by this name
             key = entry.get("key", name)
             kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": key}}
+        old = find_layer(viewer, key)
+        if old is not None and _update_in_place(old, data, kwargs, layer_type):
+            added.append(old)
+            continue
         layer = Layer.create(data, kwargs, layer_type)
         _same_units(viewer, layer)
-        old = find_layer(viewer, key)
         if old is not None:
             index = viewer.layers.index(old)
             viewer.layers.remove(old)
@@ -527,6 +530,42 @@ def show_layers(viewer, layer_tuples) -> list:
         added.append(layer)
     label_axes(viewer)
     return added
+
+
+#: Layer types whose plugin layers a new result updates in place (:func:`_update_in_place`).
+_IN_PLACE = ("image", "vectors")
+#: Keyword arguments set before the others (the data's companions first).
+_FIRST = ("features", "metadata", "scale", "translate")
+
+
+def _update_in_place(layer, data, kwargs: dict, layer_type: str) -> bool:
+    """Give ``layer`` the new ``data`` and ``kwargs`` if it is of the same type and dimension;
+    True if done.
+
+    Replacing a layer (remove, insert) makes napari build a new canvas visual and run a full
+    garbage collection on the main thread (a quarter of a second each); updating keeps the
+    visual and its colorbar. Where a property cannot be set, the layer is replaced instead.
+    """
+    if layer_type not in _IN_PLACE or type(layer).__name__.lower() != layer_type:
+        return False
+    ndim = np.ndim(data) if layer_type == "image" else np.shape(data)[-1]
+    if ndim != layer.ndim or (layer_type == "image" and kwargs.get("rgb")):
+        return False
+    settable = {k: v for k, v in kwargs.items() if k not in ("name", "rgb")}
+    try:
+        if layer_type == "vectors":  # the features follow the new data's length
+            layer.data = data
+        for key in [k for k in _FIRST if k in settable]:
+            setattr(layer, key, settable.pop(key))
+        if layer_type == "image":
+            layer.data = data
+        for key, value in settable.items():
+            setattr(layer, key, value)
+        if layer_type == "image" and "contrast_limits" not in kwargs:
+            layer.reset_contrast_limits()
+    except (AttributeError, TypeError, ValueError):
+        return False
+    return True
 
 
 def series_fields(fields: list[DisplacementField]) -> list[DisplacementField]:

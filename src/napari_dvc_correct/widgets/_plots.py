@@ -27,7 +27,11 @@ class PlotCanvas(FigureCanvasQTAgg):
     """A small figure with ``ncols`` axes side by side."""
 
     def __init__(self, ncols: int = 1, height: float = 2.0, parent=None) -> None:
-        self.figure = Figure(figsize=(4.0, height), dpi=90, facecolor=BACKGROUND)
+        # constrained layout: worked out when the figure draws (draw_idle, a later turn of the
+        # event loop), not in the slot that plots (tight_layout rendered every label there)
+        self.figure = Figure(
+            figsize=(4.0, height), dpi=90, facecolor=BACKGROUND, layout="constrained"
+        )
         super().__init__(self.figure)
         self.setParent(parent)
         self.axes = [self.figure.add_subplot(1, ncols, i + 1) for i in range(ncols)]
@@ -36,7 +40,6 @@ class PlotCanvas(FigureCanvasQTAgg):
         self.setMinimumHeight(int(height * 90))
 
     def redraw(self) -> None:
-        self.figure.tight_layout(pad=0.6)
         self.draw_idle()
 
 

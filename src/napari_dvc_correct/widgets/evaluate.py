@@ -298,7 +298,7 @@ class EvaluateWidget(EngineWidget):
             memory = check_tiled("pair", None, self.max_memory.text())
             self._outputs = self._temporary.new(chosen)
             self._writing = str(next(iter(self._outputs.values())).parent)
-        return model.run_evaluation(
+        run = model.run_evaluation(
             reference,
             deformed,
             chosen,
@@ -307,6 +307,7 @@ class EvaluateWidget(EngineWidget):
             outputs=self._outputs,
             max_memory=memory,
         )
+        return model.with_residual_layers(run, self._placement, self._outputs, TEMPORARY_KEY)
 
     def _panel_pair(self):
         reference = self._volume(self.reference, "reference")
@@ -356,21 +357,13 @@ class EvaluateWidget(EngineWidget):
             self.curves.plot(self.evaluation)
             self.show_message(f"Evaluation done for {len(evaluation)} states.")
             return
+        if isinstance(evaluation, model.ShownEvaluation):  # its layers made in the worker
+            evaluation, tuples = evaluation.evaluation, evaluation.layers
+        else:
+            outputs = getattr(self, "_outputs", None)
+            tuples = model.residual_layers(evaluation, self._placement, outputs, TEMPORARY_KEY)
         self.evaluations = [("", evaluation)]
         self.evaluation = evaluation
-        report = model.evaluation_report(evaluation)
-        voxel_size, offset = self._placement
-        tuples = []
-        outputs = getattr(self, "_outputs", None)
-        for item in evaluation.fields:
-            residual = model.open_residual(outputs[item.name]) if outputs else item.residual
-            data, kwargs, kind = L.residual_layer(
-                residual, item.name, voxel_size=voxel_size, offset=offset
-            )
-            kwargs["metadata"][L.MARKER]["report"] = report
-            if outputs:  # the folder this layer reads lazily (see _release_temporary)
-                kwargs["metadata"][L.MARKER][TEMPORARY_KEY] = str(outputs[item.name].parent)
-            tuples.append((data, kwargs, kind))
         L.show_layers(self.viewer, tuples)  # replacing layers: their folder is still _writing
         self._writing = None
         self._release_temporary()
