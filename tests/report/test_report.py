@@ -65,10 +65,10 @@ def test_write_report_writes_readable_files(tmp_path, evaluation):
     )
     phases = read_csv(out / "phases.csv")
     assert {(r["state"], r["phase"]) for r in phases} == {
-        ("reference", "0"),
-        ("reference", "1"),
-        ("deformed", "0"),
+        ("reference", "1"),  # numbered from 1, as the Evaluate panel numbers them
+        ("reference", "2"),
         ("deformed", "1"),
+        ("deformed", "2"),
     }
     assert len(read_csv(out / "background.csv")) == 2 * 3
 

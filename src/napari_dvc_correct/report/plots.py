@@ -14,6 +14,7 @@ import numpy as np
 
 from ..engine.accuracy import Evaluation
 from ..io.atomic import atomic_path
+from .tables import phase_number
 
 #: Accuracy index the paper uses as the acceptance line (a 15 % error margin).
 PAPER_ACCEPTANCE = 0.85
@@ -73,7 +74,8 @@ def plot_accuracy_vs_strain(evaluation: Evaluation, path: str | os.PathLike) -> 
     axes.axhline(PAPER_ACCEPTANCE, color="0.4", linestyle=":", linewidth=1, label="0.85 (paper)")
     axes.set_xlabel("equivalent strain (eq. 3)")
     axes.set_ylabel("accuracy index p (eq. 2)")
-    axes.set_title(f"Accuracy index, phases {evaluation.phase_pair}, |g1 - g2| = "
+    first, second = (phase_number(p) for p in evaluation.phase_pair)
+    axes.set_title(f"Accuracy index, phases {first} and {second}, |g1 - g2| = "
                    f"{evaluation.contrast:.1f}")  # fmt: skip
     axes.set_xlim(evaluation.edges[0], evaluation.edges[-1])
     axes.legend()

@@ -251,6 +251,7 @@ def residual_layers(evaluation, placement, outputs=None, temporary_key=None) -> 
             residual, item.name, voxel_size=voxel_size, offset=offset
         )
         kwargs["metadata"][MARKER]["report"] = report
+        kwargs["metadata"][MARKER]["evaluation"] = evaluation  # the report Export writes
         if outputs and temporary_key:  # the folder this layer reads lazily
             kwargs["metadata"][MARKER][temporary_key] = str(outputs[item.name].parent)
         tuples.append((data, kwargs, kind))

@@ -69,7 +69,7 @@ class ExportWidget(EngineWidget):
         self.with_strain.setChecked(True)
         self.strain_tiff = QCheckBox("equivalent strain as a TIFF stack")
         self.residual_tiff = QCheckBox("gray residual volume as a TIFF stack")
-        self.report = QCheckBox("evaluation report (.md and .json)")
+        self.report = QCheckBox("evaluation report (folder with report.md, plots, CSV; .json)")
         for box in (self.with_strain, self.strain_tiff, self.residual_tiff, self.report):
             self.form.addRow(box)
         sessions = QHBoxLayout()
@@ -250,7 +250,7 @@ class ExportWidget(EngineWidget):
             from ..engine.strain import equivalent_strain_field
 
             strain = equivalent_strain_field(field)
-        residual = report = None
+        residual = report = evaluation = None
         if self.residual_tiff.isChecked() or self.report.isChecked():
             residual_layer = self._layer_of(source, "residual")
             if residual_layer is None:
@@ -262,6 +262,7 @@ class ExportWidget(EngineWidget):
                 residual = np.asarray(residual_layer.data)
             if self.report.isChecked():
                 report = L.plugin_metadata(residual_layer).get("report")
+                evaluation = L.plugin_metadata(residual_layer).get("evaluation")
         return model.run_export(
             model.ExportRequest(
                 field=field,
@@ -272,6 +273,7 @@ class ExportWidget(EngineWidget):
                 strain_tiff=self.strain_tiff.isChecked(),
                 residual=residual,
                 report=report,
+                evaluation=evaluation,
                 voxel_size=tuple(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
                 offset=tuple(field.metadata.get("offset", (0.0, 0.0, 0.0))),
             )

@@ -70,7 +70,11 @@ class ExportRequest:
     residual : ndarray (NZ, NY, NX) or None
         Dense gray residual written as ``STEM_residual.tif``.
     report : dict or None
-        Evaluation report written as ``STEM_report.md`` and ``STEM_report.json``.
+        Evaluation summary written as ``STEM_report.json``.
+    evaluation : Evaluation or None
+        The evaluation behind ``report``: its report is written into the folder ``STEM_report/``
+        by :func:`..report.write_report`, as ``evaluate --out-dir`` writes it (``report.md`` with
+        the plots, the CSV tables; no volumes).
     """
 
     field: DisplacementField | ScatteredField
@@ -81,6 +85,7 @@ class ExportRequest:
     strain_tiff: bool = False
     residual: np.ndarray | None = None
     report: dict | None = None
+    evaluation: object | None = None
     voxel_size: tuple = (1.0, 1.0, 1.0)
     offset: tuple = (0.0, 0.0, 0.0)
     written: list = field(default_factory=list)
@@ -124,7 +129,7 @@ def check_request(request: ExportRequest) -> None:
             "the equivalent strain as a TIFF stack needs a grid field: a result at points has "
             "its strain per point (the CSV's equivalent_strain column)"
         )
-    if request.residual is not None or request.report is not None:
+    if request.residual is not None or request.report is not None or request.evaluation is not None:
         raise ValueError(
             "the gray residual and the report come from Evaluate on a grid field, not from a "
             "result at points of interest"
@@ -205,6 +210,23 @@ def check_path(path: str, suffix: str) -> Path:
     return target
 
 
+def evaluation_report_files(request: ExportRequest, stem: Path) -> list[Path]:
+    """The evaluation report of the command line (``evaluate --out-dir``), written into
+    ``STEM_report/``: ``report.md``, its plots and CSV tables (no volumes)."""
+    from ..report import write_report
+
+    inputs = {"field": request.source}
+    origin = request.field.metadata.get("provenance") or {}
+    for key in ("reference", "deformed"):
+        name = request.field.metadata.get(key) or origin.get(key)
+        if name:
+            inputs[key] = name
+    files = write_report(
+        request.evaluation, stem.parent / f"{stem.name}_report", inputs=inputs, volumes=False
+    )
+    return [path for paths in files.values() for path in paths]
+
+
 def run_export(request: ExportRequest):
     """Write everything the request asks for; yields Progress per file, returns the paths."""
     from ..io import export
@@ -271,11 +293,12 @@ def run_export(request: ExportRequest):
             (
                 "report",
                 lambda: [
-                    export.export_report(request.report, stem.parent / f"{stem.name}_report.md"),
-                    export.export_report(request.report, stem.parent / f"{stem.name}_report.json"),
+                    export.export_report(request.report, stem.parent / f"{stem.name}_report.json")
                 ],
             )
         )
+    if request.evaluation is not None:
+        jobs.append(("report", lambda: evaluation_report_files(request, stem)))
     written = []
     for index, (name, job) in enumerate(jobs):
         yield Progress("export", index, len(jobs), f"writing the {name}")
