@@ -482,6 +482,12 @@ def frame(viewer, layers=None) -> None:
         viewer.fit_to_view(layers=layers)
 
 
+def match_units(viewer, layer) -> None:
+    """Give ``layer``, if its units are pixels, the length unit the other layers have (napari
+    ignores units that disagree and warns "Inconsistent units across layers" on every draw)."""
+    _same_units(viewer, layer)
+
+
 def _same_units(viewer, layer) -> None:
     """Give ``layer`` the length unit of the scans (napari ignores units that disagree)."""
     if "units" in dir(layer) and all(str(u) == "pixel" for u in layer.units):

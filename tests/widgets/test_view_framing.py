@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import tifffile
+from qtpy.QtWidgets import QApplication
 
 from napari_dvc_correct.widgets import CorrelateWidget
 
@@ -60,6 +61,26 @@ def test_reopening_a_session_frames_its_scans(make_napari_viewer, tmp_path):
     _, export = viewer.window.add_plugin_dock_widget("napari-dvc-correct", "Export")
     _, correlate = viewer.window.add_plugin_dock_widget("napari-dvc-correct", "Correlate")
     viewer.layers.remove("something else")
+    QApplication.processEvents()  # the docks laid out: the canvas has its size
     assert export.session(tmp_path / "run.dvc-session.json", save=False) is not None
     np.testing.assert_allclose(viewer.layers["scan_0"].scale, (0.05, 0.05, 0.05))
     assert_frames_the_scans(viewer)
+
+
+def test_units_agree_after_a_unit_is_chosen_and_in_series_mode(make_napari_viewer):
+    """napari warns "Inconsistent units across layers" on every draw where they disagree: a
+    unit chosen in the pair mode reaches the other scans (a series' states) and later layers."""
+    viewer = make_napari_viewer()
+    for k in range(3):
+        viewer.add_image(_scan(k)[:32, :32, :32], name=f"state{k}")
+    widget = CorrelateWidget(viewer)
+    viewer.window.add_dock_widget(widget)
+    widget.unit.setCurrentIndex(widget.unit.findData("mm"))
+    widget._update.flush()
+    assert viewer.layers.extent.units is not None  # napari's test before its warning
+    widget.mode.setCurrentIndex(widget.mode.findData("series"))
+    widget._update.flush()
+    assert viewer.layers.extent.units is not None
+    viewer.add_image(_scan(4)[:32, :32, :32], name="state3")  # opened later
+    assert viewer.layers.extent.units is not None
+    assert str(viewer.layers["state3"].units[0]) == "millimeter"

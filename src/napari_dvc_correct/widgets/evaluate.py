@@ -16,6 +16,7 @@ from qtpy.QtWidgets import (
     QSpinBox,
 )
 from superqt import QDoubleRangeSlider
+from superqt.utils import GeneratorWorker
 
 from .. import layers as L
 from . import evaluate_model as model
@@ -183,7 +184,26 @@ class EvaluateWidget(EngineWidget):
             "mode": self.mode.currentData(),
             "tiled": self.tiled.isChecked(),
             "max_memory": self.max_memory.text(),
+            "evaluated": self.evaluated_fields(),
         }
+
+    def evaluated_fields(self) -> list[str]:
+        """Names of the fields of the evaluation on show ([] if none)."""
+        evaluation = getattr(self, "evaluation", None)
+        if evaluation is None:
+            return []
+        return [item.name for item in evaluation.fields]
+
+    def evaluate_again(self, names) -> GeneratorWorker | None:
+        """Evaluate the fields ``names`` again (a reopened session: the residual layers and the
+        summary come back), with the panel's thresholds; the worker, or None (message)."""
+        for i in range(self.fields.count()):
+            item = self.fields.item(i)
+            checked = item.text() in names
+            item.setCheckState(Qt.CheckState.Checked if checked else Qt.CheckState.Unchecked)
+        if not self.checked_fields():
+            return None
+        return self.run()
 
     def restore(self, settings: dict) -> None:
         index = self.mode.findData(settings.get("mode"))

@@ -32,7 +32,13 @@ def fields_folder(path) -> Path:
     return path.with_name(path.name.removesuffix(SUFFIX) + "_fields")
 
 
-def write_session(path, scans: list, panels: dict, fields: dict[str, DisplacementField]) -> Path:
+def write_session(
+    path,
+    scans: list,
+    panels: dict,
+    fields: dict[str, DisplacementField],
+    view: dict | None = None,
+) -> Path:
     """Write the session file and its field files; returns the session file's path.
 
     Parameters
@@ -43,6 +49,9 @@ def write_session(path, scans: list, panels: dict, fields: dict[str, Displacemen
         Panel name -> its settings (JSON-friendly).
     fields : dict of source -> DisplacementField
         Saved as ``STEM_fields/SOURCE.dvcfield``.
+    view : dict, optional
+        What the canvas showed (:func:`..session.view_state`): the field and quantity on view,
+        the slice, the camera. JSON-friendly.
     """
     from ..io.atomic import atomic_path
     from ..io.npz import FIELD_SUFFIX, save_field
@@ -70,6 +79,7 @@ def write_session(path, scans: list, panels: dict, fields: dict[str, Displacemen
         "scans": scans,
         "panels": panels,
         "fields": files,
+        "view": view or {},
     }
     with atomic_path(path) as temp:
         temp.write_text(json.dumps(content, indent=2) + "\n", encoding="utf-8")
