@@ -69,7 +69,11 @@ class ExportWidget(EngineWidget):
         self.with_strain.setChecked(True)
         self.strain_tiff = QCheckBox("equivalent strain as a TIFF stack")
         self.residual_tiff = QCheckBox("gray residual volume as a TIFF stack")
-        self.report = QCheckBox("evaluation report (folder with report.md, plots, CSV; .json)")
+        self.report = QCheckBox("evaluation report (folder, .json)")
+        self.report.setToolTip(
+            "NAME_report/: report.md with its plots and CSV tables, as evaluate --out-dir "
+            "writes it; NAME_report.json: the numbers"
+        )
         for box in (self.with_strain, self.strain_tiff, self.residual_tiff, self.report):
             self.form.addRow(box)
         sessions = QHBoxLayout()

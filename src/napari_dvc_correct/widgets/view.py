@@ -21,7 +21,7 @@ from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButto
 from .. import layers as L
 from .. import point_layers as P
 from . import profile_model
-from ._base import LatestWorker, follow_layers
+from ._base import LatestWorker, compact, follow_layers
 from ._plots import ProfileCanvas
 
 #: Camera of the 3-D view (napari's Euler angles, degrees): tilted 20–30° off the y axis, so a
@@ -91,6 +91,7 @@ class ViewWidget(QWidget):
         self._profile_values: dict = {}
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
+        compact(self)
 
     # -- line profile -----------------------------------------------------------------------
     def start_line(self):
