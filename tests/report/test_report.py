@@ -148,3 +148,23 @@ def test_file_stems_and_lazy_matplotlib():
     code = "import sys, napari_dvc_correct.report; print('matplotlib' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.stdout.strip() == "False", result.stderr
+
+
+def test_report_colours_are_the_panel_s(evaluation, tmp_path, monkeypatch):
+    """Each field has one colour in the report and the Evaluate panel (first orange, then
+    blue), not matplotlib's default cycle (which made the report's the reverse)."""
+    from matplotlib.colors import to_hex
+
+    from napari_dvc_correct.report import plots
+
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda figure, path: figures.append(figure) or path)
+    plots.plot_accuracy_vs_strain(evaluation, tmp_path / "a.png")
+    plots.plot_residual_vs_strain(evaluation, tmp_path / "r.png")
+    accuracy, residual = (figure.axes[0] for figure in figures)
+    lines = [
+        to_hex(line.get_color()) for line in accuracy.lines if line.get_label() != "0.85 (paper)"
+    ]
+    assert lines[:2] == ["#f28e2b", "#4e9fde"]
+    bars = [to_hex(c.patches[0].get_facecolor()) for c in residual.containers]
+    assert bars[:2] == ["#f28e2b", "#4e9fde"]

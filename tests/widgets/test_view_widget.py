@@ -103,6 +103,9 @@ def test_line_profile_follows_the_field(view, qtbot):
     np.testing.assert_allclose(strain[1].values[middle], A / 2, rtol=1e-5)
     np.testing.assert_allclose(strain[0].values[middle], 1.1 * A / 2, rtol=1e-5)
     assert len(view.profile.axes[0].lines) == 2
+    # the distance axis says its unit (voxels here: no voxel size)
+    assert corrected.distance_unit == "vx"
+    assert view.profile.axes[0].get_xlabel() == "distance along the line [vx]"
 
 
 def _large(n: int = 64) -> DisplacementField:
