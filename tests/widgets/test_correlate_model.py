@@ -214,13 +214,17 @@ def test_run_points_job_equals_the_engine_and_finds_a_translation():
     assert run_to_completion(model.run_job(job)).fields[0][0] == "points"
 
 
-def test_suggest_and_check_tiled():
+def test_suggest_and_check_tiled(tmp_path):
     import dask.array as da
 
     small = np.zeros((8, 8, 8), np.float32)
     assert not model.suggest_tiled([small], memory=1 << 30)
     assert model.suggest_tiled([da.from_array(small, chunks=4)], memory=1 << 30)  # lazy
     assert model.suggest_tiled([small], memory=8 * 8 * 8 * 4 * 6)  # larger than half of it
+    mapped = np.lib.format.open_memmap(tmp_path / "small.npy", "w+", np.float32, small.shape)
+    assert model.is_lazy(mapped)  # read lazily by napari, yet small: no need to go out of core
+    assert not model.suggest_tiled([mapped], memory=1 << 30)
+    assert model.suggest_tiled([mapped], memory=8 * 8 * 8 * 4 * 6)
     assert model.check_tiled("pair", None, " auto ") is None
     assert model.check_tiled("pair", None, "2GB") == "2GB"
     with pytest.raises(ValueError):

@@ -239,11 +239,14 @@ def is_lazy(volume) -> bool:
 
 
 def suggest_tiled(volumes, memory: int | None = None) -> bool:
-    """Whether a run should be out of core: a lazy scan, or in-memory working copies
-    (:func:`estimate_run`'s 6 float32 per voxel) above half the available ``memory``."""
+    """Whether a run should be out of core: a Dask or Zarr scan, or in-memory working copies
+    (:func:`estimate_run`'s 6 float32 per voxel) above half the available ``memory``.
+
+    A memory-mapped TIFF is judged by its size only: the in-memory run reads a small one whole
+    in no time (a 4 MB scan is not a reason to go out of core)."""
     from ..tiled.memory import available_memory
 
-    if any(is_lazy(v) for v in volumes):
+    if any(is_lazy(v) and not isinstance(v, np.memmap) for v in volumes):
         return True
     voxels = float(np.prod(volumes[0].shape)) if volumes else 0.0
     memory = available_memory() if memory is None else memory
