@@ -11,7 +11,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..engine.field import DisplacementField, Provenance, Status, grid_for_volume
+from ..engine.field import (
+    GOOD_STATUSES,
+    DisplacementField,
+    Provenance,
+    Status,
+    grid_for_volume,
+)
 from ..engine.params import CorrelationParams
 from ..engine.progress import Progress
 from ..tiled.memory import format_bytes
@@ -538,13 +544,17 @@ def describe_poi(field: DisplacementField, index) -> dict:
     u = field.u[i, j, k]
     position = np.asarray(field.origin) + np.asarray(index) * np.asarray(field.step)
     status, provenance = int(field.status[i, j, k]), int(field.provenance[i, j, k])
+    status_text = Status(status).label if status in Status._value2member_map_ else str(status)
+    if provenance == Provenance.CORRECTED and status not in [int(s) for s in GOOD_STATUSES]:
+        # the status is the first match's; the self-correction measured the node since
+        status_text = f"{status_text} in the first match, corrected since"
     return {
         "index": (int(i), int(j), int(k)),
         "position": tuple(float(p) for p in position),
         "u": tuple(float(v) for v in u),
         "magnitude": float(np.linalg.norm(u)),
         "zncc": float(field.zncc[i, j, k]),
-        "status": Status(status).label if status in Status._value2member_map_ else str(status),
+        "status": status_text,
         "provenance": Provenance(provenance).label
         if provenance in Provenance._value2member_map_
         else str(provenance),
