@@ -595,6 +595,14 @@ def caption(layer) -> str:
     return f"{quantity} [{entry.get('unit', '')}]: {what} — {entry.get('source', '')} field"
 
 
+def colorbar_title(layer) -> str:
+    """The short title of a quantity layer's colorbar, shown on the canvas: what, in which
+    units, of which field (``"|u| [mm] · corrected"``); it fits a narrow canvas where the
+    :func:`caption` would be cut off (napari's colorbar has no title of its own)."""
+    entry = plugin_metadata(layer) or {}
+    return f"{entry.get('quantity', '')} [{entry.get('unit', '')}] · {entry.get('source', '')}"
+
+
 def canvas_overlay(viewer, name: str):
     """A canvas overlay (``"text"``, ``"scale_bar"``): ``viewer.canvas.overlays`` in napari 0.9."""
     canvas = getattr(viewer, "canvas", None)
@@ -635,7 +643,7 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
                 pass
         layer.visible = True
         layer.colorbar.visible = True
-        text_overlay(viewer).text = caption(layer)
+        text_overlay(viewer).text = colorbar_title(layer)
         text_overlay(viewer).visible = True
     canvas_overlay(viewer, "scale_bar").visible = True
     return added

@@ -72,7 +72,7 @@ def restore_view(viewer, view: dict) -> None:
                 if entry.get("kind") == "quantity":
                     layer.colorbar.visible = layer.visible
                     if layer.visible:
-                        L.text_overlay(viewer).text = L.caption(layer)
+                        L.text_overlay(viewer).text = L.colorbar_title(layer)
     if view.get("ndisplay") in (2, 3):
         viewer.dims.ndisplay = view["ndisplay"]
     step = view.get("current_step") or []

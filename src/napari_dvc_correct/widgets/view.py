@@ -313,11 +313,13 @@ class ViewWidget(QWidget):
         for layer in layers:
             layer.colorbar.visible = bool(layer is top and self.colorbar.isChecked())
         text = L.caption(top) if top is not None else "No field yet: run Correlate."
+        title = L.colorbar_title(top) if top is not None else ""
         points = [x for x in P.points_result_layers(self.viewer) if x.visible]
         if top is None and points:  # only points of interest: their colours are the caption
             top, text = points[-1], P.points_caption(points[-1])
-        self.caption.setText(text)
-        L.text_overlay(self.viewer).text = text if top is not None else ""
+            title = text
+        self.caption.setText(text)  # the whole caption in the panel, the short title on canvas
+        L.text_overlay(self.viewer).text = title if top is not None else ""
         L.text_overlay(self.viewer).visible = top is not None
 
     def oblique_3d(self) -> None:
