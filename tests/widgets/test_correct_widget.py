@@ -44,7 +44,7 @@ def test_self_correct_adds_corrected_layers_and_reports_passes(
         [widget.table.item(r, c).text() for c in range(columns)]
         for r in range(widget.table.rowCount())
     ]
-    assert rows[0][0] == "0 (cleaned input)" and len(rows) >= 2
+    assert rows[0][0] == "0 (input)" and len(rows) >= 2
     passes = corrected.metadata["correction_passes"]
     # every pass says the order and subvolume its correcting matches used, and the message why
     for row, record in zip(rows[1:], passes[1:]):
@@ -137,7 +137,7 @@ def test_the_panel_says_when_the_correction_changed_the_method(
         for r in range(widget.table.rowCount())
     ]
     assert [row[:3] for row in rows] == [
-        ["0 (cleaned input)", "—", "—"],
+        ["0 (input)", "—", "—"],
         ["1", "second", "15³"],
         ["2", "second", "15³"],
     ]

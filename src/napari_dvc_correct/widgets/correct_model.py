@@ -69,18 +69,19 @@ def run_correction(
 
 
 #: Column headers of :func:`pass_rows`.
-PASS_HEADERS = ["pass", "order", "subvolume", "mean residual", "applied", "nodes moved"]
+PASS_HEADERS = ["pass", "order", "subvolume", "residual", "applied", "moved"]
 
 
 def pass_rows(field: DisplacementField) -> list[tuple[str, ...]]:
-    """One row per pass for the dock's table (:data:`PASS_HEADERS`): pass, the correcting
-    matches' shape-function order and subvolume, mean gray residual, applied, nodes changed."""
+    """One row per pass for the dock's table (:data:`PASS_HEADERS`): pass (0: the cleaned
+    input), the correcting matches' shape-function order and subvolume, mean gray residual,
+    applied, share of the nodes moved by more than 0.1 voxel."""
     from ..report.passes import pass_rows as report_rows
 
     rows = []
     for row in report_rows(field):
         number = row["pass"]
-        label = "0 (cleaned input)" if number == 0 else str(number)
+        label = "0 (input)" if number == 0 else str(number)
         changed = f"{100 * row['nodes_changed']:.0f} %"
         residual = f"{row['mean_gray_residual']:.3f}"
         rows.append((label, row["order"], row["subvolume"], residual, row["applied"], changed))
