@@ -75,6 +75,13 @@ def shot(viewer, name: str) -> None:
     print("wrote", IMAGES / name)
 
 
+def normal_size(viewer) -> None:
+    """The pictures' window size (make_viewer maximises the window to the screen)."""
+    window = viewer.window._qt_window
+    window.showNormal()
+    window.resize(*SIZE)
+
+
 def show_only(viewer, names) -> None:
     for layer in viewer.layers:
         layer.visible = layer.name in names
@@ -83,7 +90,7 @@ def show_only(viewer, names) -> None:
 def main() -> None:
     IMAGES.mkdir(exist_ok=True)
     viewer, panels, docks = make_viewer(show=True)
-    viewer.window._qt_window.resize(*SIZE)
+    normal_size(viewer)
     settle(1.0)
     correlate = panels["Correlate"]
     front(docks["Correlate"])
@@ -178,9 +185,9 @@ def tiff_walkthrough() -> None:
     for name, volume in (("scan_0.tif", reference), ("scan_1.tif", deformed)):
         tifffile.imwrite(folder / name, np.clip(volume * 200, 0, 65535).astype(np.uint16))
     viewer, panels, docks = make_viewer(sample=None, show=True)
-    viewer.window._qt_window.resize(*SIZE)
+    normal_size(viewer)
     for name in ("scan_0.tif", "scan_1.tif"):
-        viewer.open(str(folder / name), plugin=None)  # what File ▸ Open does, no dialog
+        viewer.open(str(folder / name), plugin="napari-dvc-correct")  # the reader chosen
     viewer.layers["scan_1"].visible = False
     correlate = panels["Correlate"]
     front(docks["Correlate"])
@@ -203,7 +210,7 @@ def points_walkthrough() -> None:
     the result shows as points coloured by the displacement along x, with their arrows.
     """
     viewer, panels, docks = make_viewer(show=True)
-    viewer.window._qt_window.resize(*SIZE)
+    normal_size(viewer)
     settle(1.0)
     correlate = panels["Correlate"]
     front(docks["Correlate"])

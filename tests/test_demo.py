@@ -44,3 +44,22 @@ def test_main_runs_napari(monkeypatch, closing):
     assert demo.main(["--series"]) == 0
     assert demo.main(["--no-sample"]) == 0
     assert made == ["scan_series", None]
+
+
+def test_the_window_shows_the_canvas_large_next_to_tabbed_panels(closing, qtbot):
+    """``make run``: the window fills the screen and the canvas takes most of its width."""
+    from qtpy.QtWidgets import QApplication
+
+    viewer, widgets, docks = demo.make_viewer(show=True)
+    closing.append(viewer)
+    window = viewer.window._qt_window
+    QApplication.processEvents()
+    area = window.screen().availableGeometry()
+    assert window.width() >= 0.9 * area.width() and window.height() >= 0.9 * area.height()
+    # the panels take their share, or what their widest needs, not more (the canvas the rest)
+    dock = docks["Correlate"]
+    needed = max(d.widget().minimumSizeHint().width() for d in docks.values())
+    assert dock.width() <= max(demo.PANEL_SHARE * window.width(), needed) + 60
+    assert needed <= 0.4 * window.width()  # compact panels (combo boxes elided)
+    tabbed = window.tabifiedDockWidgets(docks["Correlate"])
+    assert {docks[name] for name in demo.PANELS[1:]} <= set(tabbed)

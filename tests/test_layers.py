@@ -92,8 +92,10 @@ def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(fiel
     second = L.show_layers(viewer, L.field_layers(other, "uncorrected"))
     assert len(viewer.layers) == count
     assert all(layer in viewer.layers for layer in second)
-    assert not any(layer in viewer.layers for layer in first)
+    # updated in place (no new canvas visual, no garbage-collection pause), with the new field
+    assert all(new is old for new, old in zip(second, first))
     assert L.fields_in(viewer.layers)["uncorrected"] is other
+    assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None  # the user's, as it was
 
 
 def test_dense_layers_use_the_voxel_size(field):

@@ -51,8 +51,9 @@ def test_manifest_contributions():
     }
     (reader,) = manifest.contributions.readers
     assert reader.accepts_directories and "*.npz" in reader.filename_patterns
+    assert "*.dvcfield" in reader.filename_patterns  # a name only we claim: no reader dialog
     (writer,) = manifest.contributions.writers
-    assert writer.filename_extensions == [".npz"]
+    assert writer.filename_extensions == [".dvcfield", ".npz"]
     # the package's copy is a link to the top-level file
     packaged = ROOT / "src" / "napari_dvc_correct" / "napari.yaml"
     assert packaged.resolve() == (ROOT / "napari.yaml").resolve()

@@ -107,24 +107,52 @@ def test_napari_opens_a_field_file_through_the_plugin(field, tmp_path, make_napa
 
 
 def test_field_files_open_with_our_reader_without_a_dialog(field, tmp_path, make_napari_viewer):
-    """Once the plugin is in use, File ▸ Open (no reader named) picks ours, and other .npz still
-    open with napari's reader."""
+    """With fresh settings, a ``.dvcfield`` opens as our 3-D field layers through File ▸ Open and
+    ``viewer.open(plugin=None)``, no reader is asked for, and the settings stay as they were;
+    other .npz still open with napari's reader when the user names it."""
     from napari.settings import get_settings
 
-    from napari_dvc_correct._reader import prefer_this_reader
+    from napari_dvc_correct.io.npz import FIELD_SUFFIX
 
-    path = tmp_path / "run3.npz"
+    assert FIELD_SUFFIX == ".dvcfield"
+    path = tmp_path / "run3.dvcfield"
     save_field(field, path)
     other = tmp_path / "plain.npz"
     np.savez(other, volume=np.arange(27.0).reshape(3, 3, 3))
     viewer = make_napari_viewer()
-    get_settings().plugins.extension2reader = {"*.tif": "napari"}  # a choice the user made
-    assert prefer_this_reader() == ["*.npz", "*.tiff"]
-    assert get_settings().plugins.extension2reader["*.tif"] == "napari"
+    settings = get_settings()
+    assert dict(settings.plugins.extension2reader) == {}  # fresh settings
+    before = settings.model_dump_json() if hasattr(settings, "model_dump_json") else settings.json()
     viewer.window._qt_viewer._qt_open([str(path)], stack=False)  # what File > Open does
     assert [layer.name for layer in viewer.layers] == ["|u| (run3)", "displacement (run3)"]
-    viewer.open(str(other), plugin=None)
+    assert viewer.layers["|u| (run3)"].data.ndim == 3
+    viewer.layers.clear()
+    viewer.open(str(path), plugin=None)
+    assert [layer.name for layer in viewer.layers] == ["|u| (run3)", "displacement (run3)"]
+    viewer.open(str(other), plugin="napari")
     assert viewer.layers[-1].data.shape == (3, 3, 3)
+    after = settings.model_dump_json() if hasattr(settings, "model_dump_json") else settings.json()
+    assert after == before
+    assert dict(settings.plugins.extension2reader) == {}
+
+
+def test_opening_every_panel_leaves_the_reader_preferences_alone(make_napari_viewer, tmp_path):
+    """Panels never write the user's persistent reader preferences (``*.tif`` → us would take
+    over every unrelated TIFF)."""
+    from napari.settings import get_settings
+
+    viewer = make_napari_viewer()
+    settings = get_settings()
+    settings.plugins.extension2reader = {"*.png": "napari"}  # a choice the user made
+    for name in ("Correlate", "View", "Self-correct", "Evaluate", "Export"):
+        viewer.window.add_plugin_dock_widget("napari-dvc-correct", name)
+    assert dict(settings.plugins.extension2reader) == {"*.png": "napari"}
+
+
+def test_a_dvcfield_that_is_not_a_field_is_declined(tmp_path):
+    path = tmp_path / "broken.dvcfield"
+    path.write_bytes(b"PK\x03\x04 not a zip")
+    assert napari_get_reader(str(path)) is None
 
 
 @pytest.mark.parametrize("content", [b"", b"not a tiff at all", "truncated"])

@@ -23,7 +23,7 @@ def test_writes_the_field_behind_a_layer_not_the_display_data(tmp_path):
     vectors = next(t for t in field_layers(field) if t[2] == "vectors")
     data, kwargs, layer_type = vectors
     written = write_fields(str(tmp_path / "out"), [(data, kwargs, layer_type)])
-    assert written == [str(tmp_path / "out.npz")]
+    assert written == [str(tmp_path / "out.dvcfield")]  # the kind napari opens with our reader
     loaded = load_field(written[0])
     np.testing.assert_array_equal(loaded.u, field.u)
     assert loaded.shape == (2, 3, 4)

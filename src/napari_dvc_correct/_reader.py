@@ -1,14 +1,17 @@
-"""npe2 reader: TIFF volumes, folders of TIFF slices, the plugin's ``.npz`` field files and other
+"""npe2 reader: TIFF volumes, folders of TIFF slices, the plugin's field files and other
 tools' field files (:mod:`.io.formats`).
 
 A field file opens as the layers of :func:`napari_dvc_correct.layers.field_layers` (one quantity
-layer, ``|u|`` first, and the arrows), named after the file. An ``.npz`` that is neither our
-field file nor another tool's is handed to napari's built-in reader (as if ours were not there),
-so our reader can be the preferred one for ``*.npz``: :func:`prefer_this_reader` records that
-preference (only where the user has none), and File ▸ Open and drag-and-drop then open field
-files without asking which reader to use. ``viewer.open(path)`` in a script uses napari's
-built-in reader unless told otherwise: pass ``plugin="napari-dvc-correct"`` (or ``plugin=None``
-to follow the preference).
+layer, ``|u|`` first, and the arrows), named after the file.
+
+Which reader napari uses is decided by file name alone (npe2 ``filename_patterns``): where two
+plugins claim a name and the user has no preference, File ▸ Open asks. This reader never writes
+the user's reader preferences. Our field files are written as ``*.dvcfield``
+(:data:`.io.npz.FIELD_SUFFIX`), a name only this plugin claims, so File ▸ Open, drag-and-drop and
+``viewer.open(path, plugin=None)`` open them as field layers without a dialog, with fresh
+settings. A field file named ``*.npz`` is still read (its contents are checked), but napari's own
+reader claims every ``*.npz`` too, so napari asks which reader to use; an ``.npz`` that is
+neither our field file nor another tool's is handed to napari's built-in reader.
 """
 
 from __future__ import annotations
@@ -20,27 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .io.npz import FIELD_SUFFIX
+
 TIFF_SUFFIXES = (".tif", ".tiff")
 PLUGIN = "napari-dvc-correct"
-#: Patterns for which this plugin's reader is made the preferred one (see the module docstring).
-PREFERRED_PATTERNS = ("*.npz", "*.tif", "*.tiff")
-
-
-def prefer_this_reader() -> list[str]:
-    """Make this plugin the preferred reader of :data:`PREFERRED_PATTERNS` where none is set.
-
-    A choice the user made (in the reader dialog or the preferences) is kept. Returns the
-    patterns set now.
-    """
-    from napari.settings import get_settings
-
-    plugins = get_settings().plugins
-    preferences = dict(plugins.extension2reader)
-    new = [p for p in PREFERRED_PATTERNS if p not in preferences]
-    if new:
-        preferences.update(dict.fromkeys(new, PLUGIN))
-        plugins.extension2reader = preferences
-    return new
 
 
 def _builtin_reader(path):
@@ -59,7 +45,8 @@ def _tiff_files(folder: Path) -> list[Path]:
 
 
 def is_field_file(path: str | os.PathLike) -> bool:
-    """True if ``path`` is a readable ``.npz`` field file (see :mod:`napari_dvc_correct.io.npz`)."""
+    """True if ``path`` is a readable field file, ``.dvcfield`` or ``.npz`` (see
+    :mod:`napari_dvc_correct.io.npz`)."""
     from .io.npz import FIELD_KEYS, FORMAT_NAME, check_member_shapes
     from .io.sizes import check_npz_sizes
 
@@ -110,6 +97,8 @@ def napari_get_reader(path):
     if path.is_dir():
         return read_tiff_folder if _tiff_files(path) else None
     suffix = path.suffix.lower()
+    if suffix == FIELD_SUFFIX:
+        return read_field_file if is_field_file(path) else None
     if suffix == ".npz" and is_field_file(path):
         return read_field_file
     if suffix == ".npz" and _has_format_marker(path):

@@ -1,10 +1,11 @@
-"""npe2 writer: displacement field files (``.npz``) from the layers the plugin made.
+"""npe2 writer: displacement field files (``.dvcfield``, or ``.npz``) from the layers the plugin made.
 
 Every field layer the plugin makes (vectors, ``|u|``, components, ZNCC, status, εeq) carries its
 :class:`~napari_dvc_correct.engine.field.DisplacementField` in ``metadata["dvc_correct"]["field"]``;
 the writer saves that field, not the displayed (subsampled) layer data. Selecting layers of
 several fields (e.g. uncorrected and corrected) writes one file per field, named
-``STEM_SOURCE.npz``.
+``STEM_SOURCE.dvcfield``. A ``.dvcfield`` file opens in napari with this plugin's reader without
+a dialog (:mod:`._reader`); ``.npz`` holds the same contents.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ def write_fields(path: str, layer_data: list[tuple]) -> list[str]:
     Parameters
     ----------
     path : str
-        Target file; ``.npz`` is appended when missing.
+        Target file; ``.dvcfield`` is appended unless it ends in ``.dvcfield`` or ``.npz``.
     layer_data : list of (data, meta, layer_type)
         The selected layers, as napari passes them to a multi-layer writer.
 
@@ -32,7 +33,7 @@ def write_fields(path: str, layer_data: list[tuple]) -> list[str]:
     ValueError
         If none of the layers was made by the plugin from a field.
     """
-    from .io.npz import save_field
+    from .io.npz import FIELD_SUFFIX, save_field
     from .layers import field_of, plugin_metadata
 
     fields, sources = [], []
@@ -49,14 +50,15 @@ def write_fields(path: str, layer_data: list[tuple]) -> list[str]:
             "plugin; select a displacement, |u|, ZNCC, status or εeq layer"
         )
     target = Path(path)
-    if target.suffix.lower() != ".npz":
-        target = target.with_name(target.name + ".npz")
+    suffix = target.suffix.lower()
+    if suffix not in (FIELD_SUFFIX, ".npz"):
+        target, suffix = target.with_name(target.name + FIELD_SUFFIX), FIELD_SUFFIX
     written = []
     for field, source in zip(fields, sources):
         out = target
         if len(fields) > 1:
             safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in source)
-            out = target.with_name(f"{target.stem}_{safe}.npz")
+            out = target.with_name(f"{target.stem}_{safe}{suffix}")
         save_field(field, out)
         written.append(str(out))
     return written

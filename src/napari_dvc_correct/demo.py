@@ -45,7 +45,33 @@ def make_viewer(sample: str | None = "soil_shear_band", show: bool = True):
     first = docks[PANELS[0]]
     first.raise_()
     QTimer.singleShot(0, first.raise_)
+    fit_window(viewer, docks, show=show)
     return viewer, widgets, docks
+
+
+#: Width of the tabbed panels, as a share of the window (the canvas gets the rest).
+PANEL_SHARE = 0.3
+
+
+def fit_window(viewer, docks: dict, show: bool = True) -> None:
+    """Size the window to the screen (maximised when shown) and the tabbed panels to at most
+    :data:`PANEL_SHARE` of it (their combo boxes compacted), so the canvas shows the scan large
+    next to them."""
+    from qtpy.QtCore import Qt
+
+    from .widgets._base import compact
+
+    window = viewer.window._qt_window
+    screen = window.screen() if hasattr(window, "screen") else None
+    if screen is not None:
+        window.setGeometry(screen.availableGeometry())
+    for dock in docks.values():
+        compact(dock.widget())
+        dock.setMinimumWidth(dock.widget().minimumSizeHint().width())
+    width = int(PANEL_SHARE * window.width())
+    window.resizeDocks(list(docks.values()), [width] * len(docks), Qt.Orientation.Horizontal)
+    if show:
+        window.showMaximized()
 
 
 def main(argv: list[str] | None = None) -> int:

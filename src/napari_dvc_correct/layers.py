@@ -449,6 +449,45 @@ def label_axes(viewer) -> None:
         viewer.dims.axis_labels = names
 
 
+class KeepSliceAndFrame:
+    """Context manager for a change of the layers' placement (a voxel size typed, a session's
+    scans placed): the same slice (by index) stays on view, and the camera frames the layers
+    afterwards, keeping its 3-D angles.
+
+    Without it napari keeps the camera and the world position of the slice: after a voxel size
+    of 0.05 mm the scan is a thumbnail in a corner and the slider jumps to the last slice.
+    """
+
+    def __init__(self, viewer) -> None:
+        self.viewer = viewer
+        self.step = None
+
+    def __enter__(self):
+        self.step = tuple(self.viewer.dims.current_step)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is not None:
+            return
+        frame(self.viewer)
+        dims = self.viewer.dims
+        if len(self.step) == dims.ndim:
+            for axis, (index, steps) in enumerate(zip(self.step, dims.nsteps)):
+                dims.set_current_step(axis, min(int(index), max(0, int(steps) - 1)))
+
+
+def frame(viewer, layers=None) -> None:
+    """Fit the camera to ``layers`` (default: all), keeping its 3-D angles."""
+    if len(viewer.layers):
+        viewer.fit_to_view(layers=layers)
+
+
+def match_units(viewer, layer) -> None:
+    """Give ``layer``, if its units are pixels, the length unit the other layers have (napari
+    ignores units that disagree and warns "Inconsistent units across layers" on every draw)."""
+    _same_units(viewer, layer)
+
+
 def _same_units(viewer, layer) -> None:
     """Give ``layer`` the length unit of the scans (napari ignores units that disagree)."""
     if "units" in dir(layer) and all(str(u) == "pixel" for u in layer.units):
@@ -482,9 +521,12 @@ def show_layers(viewer, layer_tuples) -> list:
         if isinstance(entry, dict):  # napari may rename the layer; we find it by this name
             key = entry.get("key", name)
             kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": key}}
+        old = find_layer(viewer, key)
+        if old is not None and _update_in_place(old, data, kwargs, layer_type):
+            added.append(old)
+            continue
         layer = Layer.create(data, kwargs, layer_type)
         _same_units(viewer, layer)
-        old = find_layer(viewer, key)
         if old is not None:
             index = viewer.layers.index(old)
             viewer.layers.remove(old)
@@ -494,6 +536,42 @@ def show_layers(viewer, layer_tuples) -> list:
         added.append(layer)
     label_axes(viewer)
     return added
+
+
+#: Layer types whose plugin layers a new result updates in place (:func:`_update_in_place`).
+_IN_PLACE = ("image", "vectors")
+#: Keyword arguments set before the others (the data's companions first).
+_FIRST = ("features", "metadata", "scale", "translate")
+
+
+def _update_in_place(layer, data, kwargs: dict, layer_type: str) -> bool:
+    """Give ``layer`` the new ``data`` and ``kwargs`` if it is of the same type and dimension;
+    True if done.
+
+    Replacing a layer (remove, insert) makes napari build a new canvas visual and run a full
+    garbage collection on the main thread (a quarter of a second each); updating keeps the
+    visual and its colorbar. Where a property cannot be set, the layer is replaced instead.
+    """
+    if layer_type not in _IN_PLACE or type(layer).__name__.lower() != layer_type:
+        return False
+    ndim = np.ndim(data) if layer_type == "image" else np.shape(data)[-1]
+    if ndim != layer.ndim or (layer_type == "image" and kwargs.get("rgb")):
+        return False
+    settable = {k: v for k, v in kwargs.items() if k not in ("name", "rgb")}
+    try:
+        if layer_type == "vectors":  # the features follow the new data's length
+            layer.data = data
+        for key in [k for k in _FIRST if k in settable]:
+            setattr(layer, key, settable.pop(key))
+        if layer_type == "image":
+            layer.data = data
+        for key, value in settable.items():
+            setattr(layer, key, value)
+        if layer_type == "image" and "contrast_limits" not in kwargs:
+            layer.reset_contrast_limits()
+    except (AttributeError, TypeError, ValueError):
+        return False
+    return True
 
 
 def series_fields(fields: list[DisplacementField]) -> list[DisplacementField]:
@@ -515,6 +593,14 @@ def caption(layer) -> str:
     quantity = entry.get("quantity", "")
     what = QUANTITIES.get(quantity, ("", ""))[0]
     return f"{quantity} [{entry.get('unit', '')}]: {what} — {entry.get('source', '')} field"
+
+
+def colorbar_title(layer) -> str:
+    """The short title of a quantity layer's colorbar, shown on the canvas: what, in which
+    units, of which field (``"|u| [mm] · corrected"``); it fits a narrow canvas where the
+    :func:`caption` would be cut off (napari's colorbar has no title of its own)."""
+    entry = plugin_metadata(layer) or {}
+    return f"{entry.get('quantity', '')} [{entry.get('unit', '')}] · {entry.get('source', '')}"
 
 
 def canvas_overlay(viewer, name: str):
@@ -557,7 +643,7 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
                 pass
         layer.visible = True
         layer.colorbar.visible = True
-        text_overlay(viewer).text = caption(layer)
+        text_overlay(viewer).text = colorbar_title(layer)
         text_overlay(viewer).visible = True
     canvas_overlay(viewer, "scale_bar").visible = True
     return added

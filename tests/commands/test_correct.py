@@ -43,6 +43,11 @@ def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_pat
     corrected = load_field(out)
     passes = corrected.metadata["correction_passes"]
     assert passes[0]["pass"] == 0 and len(passes) >= 2
+    # the correcting matches' order, subvolume and why, as the panel shows them
+    assert "order" in printed and "subvolume" in printed
+    assert f"{passes[1]['subvolume']}³" in printed
+    assert corrected.metadata["correction"]["pass_method"] in printed
+    assert "you chose: first order, " in printed
     assert corrected.metadata["corrected_from"] == str(field_path)
     error = corrected.displacement[corrected.valid.reshape(-1)] - SHIFT
     assert np.sqrt(np.mean(error**2)) < 0.05
@@ -61,11 +66,13 @@ def test_correct_refuses_bad_input_and_writes_nothing(volumes, tmp_path, capsys)
     assert not out.exists()
 
 
-def test_correlate_self_correct(volumes, tmp_path):
+def test_correlate_self_correct(volumes, tmp_path, capsys):
     out = tmp_path / "field.npz"
     args = ["correlate", volumes[0], volumes[1], "--out", str(out), *DVC]
     assert main([*args, "--self-correct", "--max-passes", "1"]) == 0
+    printed = capsys.readouterr().out
     field = load_field(out)
+    assert f"correcting matches, pass 1: {field.metadata['correction']['pass_method']}" in printed
     assert field.metadata["correction"]["max_passes"] == 1
     assert len(field.metadata["correction_passes"]) == 2
 

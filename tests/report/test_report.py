@@ -65,10 +65,10 @@ def test_write_report_writes_readable_files(tmp_path, evaluation):
     )
     phases = read_csv(out / "phases.csv")
     assert {(r["state"], r["phase"]) for r in phases} == {
-        ("reference", "0"),
-        ("reference", "1"),
-        ("deformed", "0"),
+        ("reference", "1"),  # numbered from 1, as the Evaluate panel numbers them
+        ("reference", "2"),
         ("deformed", "1"),
+        ("deformed", "2"),
     }
     assert len(read_csv(out / "background.csv")) == 2 * 3
 
@@ -97,6 +97,26 @@ def test_write_report_writes_readable_files(tmp_path, evaluation):
     assert "Highest p: **exact**" in text
     assert f"{evaluation.fields[0].accuracy:.6g}" in text
     assert "`residual_exact.tif`" in text and "**reference**: G.tif" in text
+
+
+def test_report_lists_the_self_correction_passes(tmp_path, evaluation, changed_method_field):
+    """Every pass's order and subvolume, the user's choice and the engine's reason."""
+    import dataclasses
+
+    corrected, method = changed_method_field
+    first = evaluation.fields[0]
+    field = first.field.copy()
+    field.params = corrected.params
+    field.metadata.update(corrected.metadata)
+    fields = [dataclasses.replace(first, name="corrected", field=field), *evaluation.fields[1:]]
+    files = write_report(dataclasses.replace(evaluation, fields=fields), tmp_path, volumes=False)
+    text = files["report"][0].read_text(encoding="utf-8")
+    section = text[text.index("## Self-correction passes") :]
+    assert "### corrected" in section and "### no band" not in section
+    assert "| Pass | Order | Subvolume |" in section
+    assert "| 1 | second | 15³ |" in section and "| 2 | second | 15³ |" in section
+    assert "used first order on 21³ subvolumes" in section
+    assert f"passes 1–2: {method}" in section
 
 
 def test_report_without_volumes(tmp_path, evaluation):
@@ -128,3 +148,23 @@ def test_file_stems_and_lazy_matplotlib():
     code = "import sys, napari_dvc_correct.report; print('matplotlib' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.stdout.strip() == "False", result.stderr
+
+
+def test_report_colours_are_the_panel_s(evaluation, tmp_path, monkeypatch):
+    """Each field has one colour in the report and the Evaluate panel (first orange, then
+    blue), not matplotlib's default cycle (which made the report's the reverse)."""
+    from matplotlib.colors import to_hex
+
+    from napari_dvc_correct.report import plots
+
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda figure, path: figures.append(figure) or path)
+    plots.plot_accuracy_vs_strain(evaluation, tmp_path / "a.png")
+    plots.plot_residual_vs_strain(evaluation, tmp_path / "r.png")
+    accuracy, residual = (figure.axes[0] for figure in figures)
+    lines = [
+        to_hex(line.get_color()) for line in accuracy.lines if line.get_label() != "0.85 (paper)"
+    ]
+    assert lines[:2] == ["#f28e2b", "#4e9fde"]
+    bars = [to_hex(c.patches[0].get_facecolor()) for c in residual.containers]
+    assert bars[:2] == ["#f28e2b", "#4e9fde"]

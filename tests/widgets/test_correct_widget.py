@@ -37,11 +37,21 @@ def test_self_correct_adds_corrected_layers_and_reports_passes(
         np.testing.assert_allclose(viewer.layers[name].scale, scale)
         np.testing.assert_allclose(viewer.layers[name].translate, translate)
     # the table lists the cleaned input and at least one pass, residual never rises
+    columns = widget.table.columnCount()
+    headers = [widget.table.horizontalHeaderItem(c).text() for c in range(columns)]
+    assert headers[:3] == ["pass", "order", "subvolume"]
     rows = [
-        [widget.table.item(r, c).text() for c in range(4)] for r in range(widget.table.rowCount())
+        [widget.table.item(r, c).text() for c in range(columns)]
+        for r in range(widget.table.rowCount())
     ]
-    assert rows[0][0] == "0 (cleaned input)" and len(rows) >= 2
+    assert rows[0][0] == "0 (input)" and len(rows) >= 2
     passes = corrected.metadata["correction_passes"]
+    # every pass says the order and subvolume its correcting matches used, and the message why
+    for row, record in zip(rows[1:], passes[1:]):
+        assert row[1] == {1: "first", 2: "second"}[record["order"]]
+        assert row[2] == f"{record['subvolume']}³"
+    assert "Correcting matches" in widget.message.text()
+    assert corrected.metadata["correction"]["pass_method"] in widget.message.text()
     applied = [p["mean_gray_residual"] for p in passes if p["accepted"]]
     assert applied == sorted(applied, reverse=True)
     assert "→" in widget.message.text()
@@ -110,3 +120,27 @@ def test_a_region_limits_the_correction(correlated, run_panel, small):
     inside = x < 25.5 - small.subvolume / 2
     assert np.any(corrected.provenance[:, :, inside] == P.CORRECTED)
     assert not np.any(corrected.provenance[:, :, inside] == P.REPLACED)
+
+
+def test_the_panel_says_when_the_correction_changed_the_method(
+    make_napari_viewer, changed_method_field
+):
+    """The paper promises the same DVC parameters: where the correcting matches used another
+    order or subvolume than the user's, the table shows them and the message says why."""
+    from napari_dvc_correct.widgets.correct_model import CorrectionResult
+
+    field, method = changed_method_field
+    widget = _dock(make_napari_viewer())
+    widget.on_result(CorrectionResult(field, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)))
+    rows = [
+        [widget.table.item(r, c).text() for c in range(widget.table.columnCount())]
+        for r in range(widget.table.rowCount())
+    ]
+    assert [row[:3] for row in rows] == [
+        ["0 (input)", "—", "—"],
+        ["1", "second", "15³"],
+        ["2", "second", "15³"],
+    ]
+    message = widget.message.text()
+    assert "changed from your first order, 21³" in message
+    assert f"passes 1–2: {method}" in message

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.field import DisplacementField, Status, grid_for_volume
+from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status, grid_for_volume
 from napari_dvc_correct.engine.params import CorrelationParams
 from napari_dvc_correct.widgets import correlate_model as model
 from napari_dvc_correct.widgets import points_model
@@ -86,6 +86,12 @@ def test_poi_read_out():
     assert values["magnitude"] == pytest.approx(np.sqrt(0.25 + 0.0625 + 1.0))
     text = model.poi_text(values, "uncorrected")
     assert "+0.500" in text and "max iterations" in text and "uncorrected" in text
+    # a node the self-correction measured again is not shown as plainly "diverged"
+    field.status[0, 0, 0] = Status.DIVERGED
+    field.provenance[0, 0, 0] = Provenance.CORRECTED
+    field.zncc[0, 0, 0] = 0.99998
+    values = model.describe_poi(field, (0, 0, 0))
+    assert values["status"] == "diverged in the first match, corrected since"
 
 
 def test_pair_job_runs_on_the_chosen_device_and_records_it():
@@ -214,13 +220,17 @@ def test_run_points_job_equals_the_engine_and_finds_a_translation():
     assert run_to_completion(model.run_job(job)).fields[0][0] == "points"
 
 
-def test_suggest_and_check_tiled():
+def test_suggest_and_check_tiled(tmp_path):
     import dask.array as da
 
     small = np.zeros((8, 8, 8), np.float32)
     assert not model.suggest_tiled([small], memory=1 << 30)
     assert model.suggest_tiled([da.from_array(small, chunks=4)], memory=1 << 30)  # lazy
     assert model.suggest_tiled([small], memory=8 * 8 * 8 * 4 * 6)  # larger than half of it
+    mapped = np.lib.format.open_memmap(tmp_path / "small.npy", "w+", np.float32, small.shape)
+    assert model.is_lazy(mapped)  # read lazily by napari, yet small: no need to go out of core
+    assert not model.suggest_tiled([mapped], memory=1 << 30)
+    assert model.suggest_tiled([mapped], memory=8 * 8 * 8 * 4 * 6)
     assert model.check_tiled("pair", None, " auto ") is None
     assert model.check_tiled("pair", None, "2GB") == "2GB"
     with pytest.raises(ValueError):

@@ -49,7 +49,7 @@ def test_run_adds_the_field_layers_aligned_with_the_volume(correlated, pair48, p
     assert PREVIEW_POINTS not in viewer.layers or not viewer.layers[PREVIEW_POINTS].visible
 
 
-def test_rerun_replaces_its_layers(correlated, run_panel):
+def test_rerun_replaces_its_layers(correlated, run_panel, small):
     viewer = correlated.viewer
     count = len(viewer.layers)
     old = viewer.layers["|u| (uncorrected)"]
@@ -57,8 +57,12 @@ def test_rerun_replaces_its_layers(correlated, run_panel):
     run_panel(correlated)
     assert len(viewer.layers) == count
     new = viewer.layers["|u| (uncorrected)"]
-    assert new is not old
+    assert new is old  # updated in place: no new canvas visual, no garbage-collection pause
     assert field_of(new).step == (10.0, 10.0, 10.0)
+    np.testing.assert_allclose(new.scale, np.asarray(field_of(new).step) * small.voxel_size)
+    assert new.data.shape == field_of(new).shape
+    arrows = viewer.layers["displacement (uncorrected)"]
+    assert len(arrows.features["magnitude"]) == len(arrows.data)
 
 
 def test_cancel_keeps_the_earlier_layers(correlated, qtbot):

@@ -95,6 +95,25 @@ def test_evaluate_adds_residual_layers_and_plots(correlated, run_panel, small):
     )
 
 
+def test_residual_layers_are_made_in_the_worker(correlated, qtbot):
+    """The result slot only adds layers: the residual's contrast range (a percentile of the
+    whole volume) and the report are computed in the worker (issue 28, item 3)."""
+    from napari_dvc_correct.widgets.evaluate_model import ShownEvaluation
+
+    widget = _dock(correlated.viewer)
+    worker = widget.run(start=False)
+    results = []
+    worker.returned.connect(results.append)
+    with qtbot.waitSignal(worker.finished, timeout=300_000):
+        worker.start()
+    (result,) = results
+    assert isinstance(result, ShownEvaluation)
+    ((data, kwargs, kind),) = result.layers
+    assert kind == "image" and kwargs["contrast_limits"][1] > 0
+    assert "report" in kwargs["metadata"]["dvc_correct"]
+    assert "residual volume (uncorrected)" in correlated.viewer.layers
+
+
 def test_same_layer_twice_a_message(correlated):
     widget = _dock(correlated.viewer)
     widget.deformed.set_layer("reference")

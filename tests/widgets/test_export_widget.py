@@ -28,6 +28,7 @@ def test_every_format(correlated, run_panel, tmp_path):
     assert widget.field.currentText() == "uncorrected"
     widget.path.setText(str(tmp_path / "run"))
     expected = {
+        ".dvcfield": ["run.dvcfield"],
         ".npz": ["run.npz"],
         ".h5": ["run.h5"],
         ".vti": ["run.vti"],
@@ -43,6 +44,7 @@ def test_every_format(correlated, run_panel, tmp_path):
         for name in names:
             assert (tmp_path / name).is_file(), name
     np.testing.assert_array_equal(load_field(tmp_path / "run.npz").u, field.u)
+    np.testing.assert_array_equal(load_field(tmp_path / "run.dvcfield").u, field.u)
     with h5py.File(tmp_path / "run.h5", "r") as h5:
         np.testing.assert_array_equal(h5["field/u"][()], field.u)
         assert h5["grid/equivalent_strain"].shape == field.shape  # strain went with the field
@@ -80,7 +82,28 @@ def test_strain_residual_and_report(correlated, run_panel, tmp_path):
     np.testing.assert_allclose(info["translate"], viewer.layers["|u| (uncorrected)"].translate)
     report = json.loads((tmp_path / "soil_report.json").read_text())
     assert "accuracy index p" in report["field: uncorrected"]
-    assert "accuracy index p" in (tmp_path / "soil_report.md").read_text()
+    # the command line's report (evaluate --out-dir), from the same evaluation: every value
+    # renders (no "|" splitting a cell), phases numbered as in the panel, the CLI's plots
+    folder = tmp_path / "soil_report"
+    text = (folder / "report.md").read_text(encoding="utf-8")
+    evaluation = evaluate.evaluation
+    assert text.startswith("# DVC accuracy evaluation")
+    assert "r(X) = |F(X + u(X)) − G(X)|" in text
+    assert f"|g1 − g2| = {evaluation.contrast:.4g}" in text
+    assert "The accuracy index uses phases 1 and 2" in text and "phases 0" not in text
+    for table_line in (line for line in text.splitlines() if line.startswith("| ")):
+        cells = table_line.replace("\\|", "").strip("|").split("|")
+        assert all(cell.strip() for cell in cells), table_line  # no cell emptied
+    assert "### Background residual per phase (eq. 1)" in text
+    for name in (
+        "residual_histogram.png",
+        "residual_slices.png",
+        "accuracy_vs_strain.png",
+        "background.csv",
+    ):
+        assert (folder / name).is_file(), name
+        assert name in text or name.endswith(".csv")
+    assert f"{evaluation.fields[0].accuracy:.6g}" in text
 
 
 @pytest.mark.parametrize("problem", ["no folder", "no residual yet", "no field"])

@@ -7,7 +7,7 @@ import pytest
 import tifffile
 
 from napari_dvc_correct._sample_data import soil_pair
-from napari_dvc_correct.layers import fields_in
+from napari_dvc_correct.layers import fields_in, plugin_metadata, quantity_layers, show_quantity
 from napari_dvc_correct.widgets import CorrectWidget, CorrelateWidget, EvaluateWidget, ExportWidget
 
 
@@ -18,7 +18,7 @@ def _panels(viewer):
     return panels
 
 
-def test_save_close_reopen(make_napari_viewer, run_panel, tmp_path):
+def test_save_close_reopen(make_napari_viewer, run_panel, tmp_path, qtbot):
     reference, deformed, _ = soil_pair((40, 40, 40), slip=2.0)
     for name, volume in (("scan_0", reference), ("scan_1", deformed)):
         tifffile.imwrite(tmp_path / f"{name}.tif", volume.astype(np.float32))
@@ -40,19 +40,46 @@ def test_save_close_reopen(make_napari_viewer, run_panel, tmp_path):
     assert isinstance(evaluate, EvaluateWidget)
     evaluate.set_thresholds([float(np.median(reference))])
     thresholds = evaluate.thresholds()
+    run_panel(evaluate)
+    assert evaluate.last_error is None, evaluate.last_error
+    summary = evaluate.summary.text()
     field = fields_in(viewer.layers)["uncorrected"]
+    # the view: a quantity other than |u|, a slice, a camera
+    show_quantity(next(x for x in quantity_layers(viewer) if x.visible), "uz")
+    viewer.dims.set_current_step(0, 7)
+    camera = viewer.scene.camera
+    camera.zoom *= 1.7
+    view = (tuple(viewer.dims.current_step), camera.zoom, tuple(camera.center))
     export = panels["Export"]
     assert isinstance(export, ExportWidget)
     written = export.session(tmp_path / "run")
     assert export.last_error is None, export.last_error
     assert written.name == "run.dvc-session.json" and written.is_file()
-    assert (tmp_path / "run_fields" / "uncorrected.npz").is_file()
+    assert (tmp_path / "run_fields" / "uncorrected.dvcfield").is_file()
     viewer.close()
 
     viewer = make_napari_viewer()
     panels = _panels(viewer)
     content = panels["Export"].session(tmp_path / "run.dvc-session.json", save=False)
     assert content is not None, panels["Export"].message.text()
+    # the evaluation comes back (Evaluate runs again in its worker)
+    worker = panels["Evaluate"].worker
+    assert worker is not None
+    with qtbot.waitSignal(worker.finished, timeout=300_000):
+        pass
+    assert panels["Evaluate"].last_error is None, panels["Evaluate"].last_error
+    assert "residual volume (uncorrected)" in viewer.layers
+    assert panels["Evaluate"].summary.text() == summary
+    # the view comes back: the quantity, the slice, the camera; no preview over the fields
+    shown = [x for x in quantity_layers(viewer) if x.visible]
+    assert [plugin_metadata(x)["quantity"] for x in shown] == ["uz"]
+    camera = viewer.scene.camera
+    assert tuple(viewer.dims.current_step) == view[0]
+    np.testing.assert_allclose(camera.zoom, view[1])
+    np.testing.assert_allclose(camera.center, view[2])
+    previews = [x for x in viewer.layers if (plugin_metadata(x) or {}).get("kind") == "preview"]
+    assert not any(x.visible for x in previews)
+    assert viewer.layers.extent.units is not None  # napari's "Inconsistent units" test
     assert [x.name for x in viewer.layers][:2] == ["scan_0", "scan_1"]
     np.testing.assert_allclose(viewer.layers["scan_0"].scale, (2.0, 2.0, 2.0))
     reopened = fields_in(viewer.layers)["uncorrected"]

@@ -63,7 +63,9 @@ def test_chooser_switches_every_field_with_one_range_and_a_colorbar(view, qtbot)
     assert corrected.visible and corrected.colorbar.visible
     assert not uncorrected.visible and not uncorrected.colorbar.visible
     assert "εzx" in view.caption.text() and "strain" in view.caption.text()
-    assert L.text_overlay(viewer).text == view.caption.text()
+    # on the canvas, a short colorbar title that a narrow canvas does not cut off
+    assert L.text_overlay(viewer).text == "εzx [strain, –] · corrected"
+    assert len(L.text_overlay(viewer).text) < 40
     view.set_quantity("|u|")
     settle(qtbot, view)
     assert "[vx]" in view.caption.text()
@@ -103,6 +105,9 @@ def test_line_profile_follows_the_field(view, qtbot):
     np.testing.assert_allclose(strain[1].values[middle], A / 2, rtol=1e-5)
     np.testing.assert_allclose(strain[0].values[middle], 1.1 * A / 2, rtol=1e-5)
     assert len(view.profile.axes[0].lines) == 2
+    # the distance axis says its unit (voxels here: no voxel size)
+    assert corrected.distance_unit == "vx"
+    assert view.profile.axes[0].get_xlabel() == "distance along the line [vx]"
 
 
 def _large(n: int = 64) -> DisplacementField:

@@ -156,22 +156,34 @@ def correction_options_from_args(args) -> dict:
 
 
 def pass_table(field) -> str:
-    """The per-pass report of a corrected field as aligned text lines."""
+    """The per-pass report of a corrected field as aligned text lines: the correcting matches'
+    order and subvolume per pass, and why (:func:`..report.passes.method_lines`)."""
     from ..engine.correction import correction_table
+    from ..report.passes import method_lines, order_text, subvolume_text
 
     lines = [
-        "pass  mean gray residual  applied  nodes changed  mean change  max change"
-        "  accepted  refused  noise floor  matched"
+        "pass  order   subvolume  mean gray residual  applied  nodes changed  mean change"
+        "  max change  accepted  refused  noise floor  matched"
     ]
     table = correction_table(field)
     for entry in table:
+        first = entry.number == 0
+        order = "—" if first else order_text(entry.order)
+        subvolume = "—" if first else subvolume_text(entry.subvolume)
         lines.append(
-            f"{entry.number:>4}  {entry.mean_gray_residual:>18.4f}  "
+            f"{entry.number:>4}  {order:<6}  {subvolume:>9}  {entry.mean_gray_residual:>18.4f}  "
             f"{'yes' if entry.accepted else 'no':>7}  {entry.fraction_changed:>13.3f}  "
             f"{entry.mean_change:>11.3f}  {entry.max_change:>10.3f}"
             f"  {entry.accepted_nodes:>8}  {entry.rejected_nodes:>7}  {entry.noise_floor:>11.4f}"
             f"  {entry.matched_nodes:>7}"
         )
+    params = field.params or {}
+    if table and params.get("order") and params.get("subvolume"):
+        lines.append(
+            f"you chose: {order_text(params['order'])} order, "
+            f"{subvolume_text(params['subvolume'])} subvolume"
+        )
+    lines.extend(f"correcting matches, {line}" for line in method_lines(field))
     if table and table[-1].stop:
         lines.append(f"stopped: {table[-1].stop}")
     return "\n".join(lines)

@@ -31,10 +31,11 @@ from ..engine.field import DisplacementField, Provenance, Status
 from ..engine.scattered import ScatteredField
 from .atomic import atomic_path
 from .formats._common import unusable_as_nan
-from .npz import _json_default, save_field
+from .npz import FIELD_SUFFIX, _json_default, save_field
 
 #: File suffixes :func:`export_field` understands, and what they write.
 FIELD_FORMATS = {
+    FIELD_SUFFIX: "napari-dvc-correct field (numpy .npz contents; napari opens it with this plugin)",
     ".npz": "napari-dvc-correct field (numpy .npz)",
     ".h5": "HDF5",
     ".hdf5": "HDF5",
@@ -519,7 +520,7 @@ def export_field(
     suffix = path.suffix.lower()
     if isinstance(field, ScatteredField):
         return export_points(field, path, extra=extra, voxel_size=voxel_size)
-    if suffix == ".npz":
+    if suffix in (FIELD_SUFFIX, ".npz"):
         save_field(field, path)  # the native format holds the field only (no extra arrays)
         return [path]
     if suffix in (".h5", ".hdf5"):

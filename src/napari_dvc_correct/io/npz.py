@@ -22,6 +22,9 @@ from .sizes import check_npz_sizes
 
 FORMAT_NAME = "napari-dvc-correct field"
 FORMAT_VERSION = 1
+#: Suffix of a field file that only this plugin claims in napari (the same contents as ``.npz``;
+#: napari's own reader claims every ``*.npz``, so a ``.npz`` field file needs a reader choice).
+FIELD_SUFFIX = ".dvcfield"
 
 
 def _json_default(value):
@@ -35,7 +38,7 @@ def _json_default(value):
 
 
 def save_field(field: DisplacementField, path: str | os.PathLike) -> None:
-    """Write ``field`` to ``path`` (``.npz``) atomically: a failed write leaves ``path`` as it was."""
+    """Write ``field`` to ``path`` (``.dvcfield`` or ``.npz``, the same contents) atomically: a failed write leaves ``path`` as it was."""
     arrays = {
         "format": np.array(FORMAT_NAME),
         "format_version": np.array(FORMAT_VERSION),

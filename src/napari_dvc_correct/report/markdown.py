@@ -7,7 +7,15 @@ from pathlib import Path
 
 from ..engine.accuracy import Evaluation
 from ..io.atomic import atomic_path
-from .tables import bin_rows, format_value, phase_rows, summary_rows
+from .passes import first_run_parameters, method_lines, order_text, pass_rows, subvolume_text
+from .tables import (
+    background_rows,
+    bin_rows,
+    format_value,
+    phase_number,
+    phase_rows,
+    summary_rows,
+)
 
 
 def markdown_table(rows: list[dict], columns: dict[str, str]) -> str:
@@ -17,8 +25,13 @@ def markdown_table(rows: list[dict], columns: dict[str, str]) -> str:
         "|" + "|".join("---" for _ in columns) + "|",
     ]
     for row in rows:
-        lines.append("| " + " | ".join(format_value(row[key]) for key in columns) + " |")
+        lines.append("| " + " | ".join(_cell(row[key]) for key in columns) + " |")
     return "\n".join(lines)
+
+
+def _cell(value) -> str:
+    """A table cell's text, its ``|`` escaped (``|g1 − g2|`` would split the cell)."""
+    return format_value(value).replace("|", "\\|")
 
 
 def _phase_section(evaluation: Evaluation) -> str:
@@ -41,14 +54,66 @@ def _phase_section(evaluation: Evaluation) -> str:
             "def_fraction": "Deformed share",
         },
     )
-    pair = evaluation.phase_pair
+    first, second = (phase_number(p) for p in evaluation.phase_pair)
+    background = markdown_table(
+        background_rows(evaluation),
+        {
+            "field": "Field",
+            "phase": "Phase",
+            "mean_residual": "Same-phase residual r0",
+            "voxels": "Voxels",
+        },
+    )
     return (
         "## Phases (paper Table 1)\n\n"
         f"Thresholds: reference {_list(evaluation.thresholds_reference)}, deformed "
-        f"{_list(evaluation.thresholds_deformed)}.\n\n{table}\n\n"
-        f"The accuracy index uses phases {pair[0]} and {pair[1]}: gray contrast "
-        f"|g1 − g2| = {evaluation.contrast:.4g} (mean of both states)."
+        f"{_list(evaluation.thresholds_deformed)}. Phases are numbered from 1, dark to bright, as "
+        "in the Evaluate panel (the `labels_*.tif` volumes store phase k as k − 1)."
+        f"\n\n{table}\n\n"
+        f"The accuracy index uses phases {first} and {second}: gray contrast "
+        f"|g1 − g2| = {evaluation.contrast:.4g} (mean of both states).\n\n"
+        "### Background residual per phase (eq. 1)\n\n"
+        'The residual inside regions of one phase, phase by phase and over all ("all" is r̄0 '
+        f"of eq. 1).\n\n{background}"
     )
+
+
+#: Columns of the self-correction table: row key -> header.
+PASS_COLUMNS = {
+    "pass": "Pass",
+    "order": "Order",
+    "subvolume": "Subvolume",
+    "mean_gray_residual": "Mean gray residual",
+    "applied": "Applied",
+    "nodes_changed": "Nodes changed (fraction)",
+    "accepted_nodes": "Accepted",
+    "refused_nodes": "Refused",
+    "noise_floor": "Noise floor",
+}
+
+
+def _correction_section(evaluation: Evaluation) -> str:
+    """The self-correction passes of every corrected field: the order and subvolume of the
+    correcting matches per pass, against the user's choice, and why ("" if none was corrected)."""
+    parts = []
+    for item in evaluation.fields:
+        rows = pass_rows(item.field)
+        if not rows:
+            continue
+        order, subvolume = first_run_parameters(item.field)
+        chosen = (
+            f"The run that made the field used {order_text(order)} order on "
+            f"{subvolume_text(subvolume)} subvolumes. "
+            if order and subvolume
+            else ""
+        )
+        why = " ".join(f"Correcting matches, {line}." for line in method_lines(item.field))
+        parts.append(
+            f"### {item.name}\n\n{markdown_table(rows, PASS_COLUMNS)}\n\n{chosen}{why}".rstrip()
+        )
+    if not parts:
+        return ""
+    return "## Self-correction passes\n\n" + "\n\n".join(parts)
 
 
 def _list(values) -> str:
@@ -122,6 +187,9 @@ def render_markdown(
         "(see docs/evaluation.md)."
     )
     parts.append(_phase_section(evaluation))
+    corrections = _correction_section(evaluation)
+    if corrections:
+        parts.append(corrections)
 
     plots = {Path(p).name: Path(p) for p in files.get("plots", [])}
     curves = [

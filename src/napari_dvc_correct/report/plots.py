@@ -14,9 +14,18 @@ import numpy as np
 
 from ..engine.accuracy import Evaluation
 from ..io.atomic import atomic_path
+from .tables import phase_number
 
 #: Accuracy index the paper uses as the acceptance line (a 15 % error margin).
 PAPER_ACCEPTANCE = 0.85
+#: One colour per field, in the evaluation's order (the first, usually the uncorrected field,
+#: orange; the next, the corrected one, blue): the Evaluate panel's plots use the same.
+FIELD_COLORS = ("#f28e2b", "#4e9fde", "#59a14f", "#e15759", "#b07aa1", "#edc948")
+
+
+def field_color(index: int) -> str:
+    """The colour of the ``index``-th field of an evaluation (:data:`FIELD_COLORS`)."""
+    return FIELD_COLORS[index % len(FIELD_COLORS)]
 
 
 def _figure(width: float, height: float):
@@ -52,8 +61,10 @@ def plot_residual_vs_strain(evaluation: Evaluation, path: str | os.PathLike) -> 
     edges, widths, n = _bar_layout(evaluation)
     for k, item in enumerate(evaluation.fields):
         offset = edges[:-1] + widths * (k + 0.5) / n
-        bars = axes.bar(offset, item.bins.mean_residual, width=widths / n * 0.9, label=item.name)
-        color = bars.patches[0].get_facecolor() if bars.patches else None
+        color = field_color(k)
+        axes.bar(
+            offset, item.bins.mean_residual, width=widths / n * 0.9, label=item.name, color=color
+        )
         axes.axhline(item.background_used, color=color, linestyle="--", linewidth=1)
     axes.set_xlabel("equivalent strain (eq. 3)")
     axes.set_ylabel("mean gray residual (gray levels)")
@@ -68,12 +79,13 @@ def plot_accuracy_vs_strain(evaluation: Evaluation, path: str | os.PathLike) -> 
     figure = _figure(6.4, 4.0)
     axes = figure.add_subplot()
     centers = 0.5 * (evaluation.edges[:-1] + evaluation.edges[1:])
-    for item in evaluation.fields:
-        axes.plot(centers, item.bin_accuracy, marker="o", label=item.name)
+    for k, item in enumerate(evaluation.fields):
+        axes.plot(centers, item.bin_accuracy, marker="o", label=item.name, color=field_color(k))
     axes.axhline(PAPER_ACCEPTANCE, color="0.4", linestyle=":", linewidth=1, label="0.85 (paper)")
     axes.set_xlabel("equivalent strain (eq. 3)")
     axes.set_ylabel("accuracy index p (eq. 2)")
-    axes.set_title(f"Accuracy index, phases {evaluation.phase_pair}, |g1 - g2| = "
+    first, second = (phase_number(p) for p in evaluation.phase_pair)
+    axes.set_title(f"Accuracy index, phases {first} and {second}, |g1 - g2| = "
                    f"{evaluation.contrast:.1f}")  # fmt: skip
     axes.set_xlim(evaluation.edges[0], evaluation.edges[-1])
     axes.legend()
@@ -138,19 +150,18 @@ def plot_residual_slices(evaluation: Evaluation, path: str | os.PathLike) -> Pat
 
 def plot_residual_histogram(evaluation: Evaluation, path: str | os.PathLike) -> Path | None:
     """Distribution of the residual of each field, with its background ``r0`` (dashed)."""
-    items = [item for item in evaluation.fields if item.residual is not None]
-    if not items:
+    indexed = [(k, item) for k, item in enumerate(evaluation.fields) if item.residual is not None]
+    if not indexed:
         return None
-    samples = []
-    for item in items:
-        samples.append(_finite_sample(item.residual))
+    samples = [_finite_sample(item.residual) for _, item in indexed]
     top = float(np.percentile(np.concatenate(samples), 99.5)) if samples else 1.0
     bins = np.linspace(0.0, max(top, 1e-6), 80)
     figure = _figure(6.4, 4.0)
     axes = figure.add_subplot()
-    for item, values in zip(items, samples):
-        _, _, patches = axes.hist(values, bins=bins, histtype="step", density=True, label=item.name)
-        axes.axvline(item.background_used, color=patches[0].get_edgecolor(), linestyle="--")
+    for (k, item), values in zip(indexed, samples):
+        color = field_color(k)
+        axes.hist(values, bins=bins, histtype="step", density=True, label=item.name, color=color)
+        axes.axvline(item.background_used, color=color, linestyle="--")
     axes.set_xlabel("gray residual (gray levels)")
     axes.set_ylabel("density")
     axes.set_title("Residual distribution (dashed: background r0)")

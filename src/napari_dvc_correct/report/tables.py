@@ -1,7 +1,9 @@
 """CSV tables of an accuracy evaluation: phases (paper Table 1), summary, strain bins, background.
 
 Every table is a list of dicts (one per row, same keys) so the Markdown report and the CSV files
-show the same numbers; :func:`write_csv` writes one atomically.
+show the same numbers; :func:`write_csv` writes one atomically. Phases are numbered from 1, dark
+to bright, as the Evaluate panel numbers them (:func:`phase_number`; the engine's labels and the
+``labels_*.tif`` volumes hold phase ``k`` as ``k - 1``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,11 @@ def _number(value):
     return float(value)
 
 
+def phase_number(label: int) -> int:
+    """The phase number people read (1, 2, ...) of the engine's phase label (0, 1, ...)."""
+    return int(label) + 1
+
+
 def phase_rows(evaluation: Evaluation) -> list[dict]:
     """One row per state and phase: gray range, mean gray, voxels (paper Table 1)."""
     rows = []
@@ -35,7 +42,7 @@ def phase_rows(evaluation: Evaluation) -> list[dict]:
             rows.append(
                 {
                     "state": state,
-                    "phase": stats.phase,
+                    "phase": phase_number(stats.phase),
                     "gray_lower": stats.lower,
                     "gray_upper": stats.upper,
                     "mean_gray": stats.mean_gray,
@@ -98,7 +105,12 @@ def background_rows(evaluation: Evaluation) -> list[dict]:
     for item in evaluation.fields:
         for phase, mean, voxels in item.background.per_phase:
             rows.append(
-                {"field": item.name, "phase": phase, "mean_residual": mean, "voxels": voxels}
+                {
+                    "field": item.name,
+                    "phase": phase_number(phase),
+                    "mean_residual": mean,
+                    "voxels": voxels,
+                }
             )
         rows.append(
             {

@@ -119,6 +119,21 @@ def one_line(error: BaseException) -> str:
     return text if text else type(error).__name__
 
 
+#: Characters a panel's combo box shows at least (longer entries are elided, the list shows
+#: them whole): panels stay narrow so the canvas keeps most of the window.
+COMBO_CHARACTERS = 10
+
+
+def compact(panel: QWidget) -> None:
+    """Let ``panel``'s combo boxes shrink to :data:`COMBO_CHARACTERS` instead of their longest
+    entry (the width the dock asks for, next to napari's own docks, comes from them)."""
+    for combo in panel.findChildren(QComboBox):
+        combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        combo.setMinimumContentsLength(COMBO_CHARACTERS)
+        # (Qt keeps the minimum size hint it computed from the entries before: set it)
+        combo.setMinimumWidth(combo.sizeHint().width())
+
+
 class LayerCombo(QComboBox):
     """A combo box of the viewer's layers that pass ``accept``, kept in sync with the viewer.
 
@@ -246,9 +261,6 @@ class EngineWidget(QWidget):
         self.cancel_button.clicked.connect(lambda checked=False: self.cancel())
         self.last_error: str | None = None
         if napari_viewer is not None:  # (None: a plain Qt host, no napari around)
-            from .._reader import prefer_this_reader
-
-            prefer_this_reader()  # field files then open with our reader, without a dialog
             follow_layers(self.viewer, self, self._label_axes)
             self._label_axes()
 
@@ -278,6 +290,7 @@ class EngineWidget(QWidget):
             self.body.addStretch(1)
             self._stretched = True
             self.watch_inputs()
+            compact(self)
         super().showEvent(event)
 
     def watch_inputs(self) -> None:

@@ -6,10 +6,10 @@ import numpy as np
 from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
 from matplotlib.figure import Figure
 
+from ..report.plots import FIELD_COLORS  # one colour per field, the report's (noqa: F401)
+
 BACKGROUND = "#262930"
 FOREGROUND = "#d1d2d4"
-#: Colours of the fields in the plots (uncorrected first, then corrected, then others).
-FIELD_COLORS = ("#f28e2b", "#4e9fde", "#59a14f", "#e15759", "#b07aa1", "#edc948")
 PHASE_COLORS = ("#9c755f", "#bab0ac", "#76b7b2", "#edc948", "#ff9da7", "#59a14f", "#e15759")
 
 
@@ -27,7 +27,11 @@ class PlotCanvas(FigureCanvasQTAgg):
     """A small figure with ``ncols`` axes side by side."""
 
     def __init__(self, ncols: int = 1, height: float = 2.0, parent=None) -> None:
-        self.figure = Figure(figsize=(4.0, height), dpi=90, facecolor=BACKGROUND)
+        # constrained layout: worked out when the figure draws (draw_idle, a later turn of the
+        # event loop), not in the slot that plots (tight_layout rendered every label there)
+        self.figure = Figure(
+            figsize=(4.0, height), dpi=90, facecolor=BACKGROUND, layout="constrained"
+        )
         super().__init__(self.figure)
         self.setParent(parent)
         self.axes = [self.figure.add_subplot(1, ncols, i + 1) for i in range(ncols)]
@@ -36,7 +40,6 @@ class PlotCanvas(FigureCanvasQTAgg):
         self.setMinimumHeight(int(height * 90))
 
     def redraw(self) -> None:
-        self.figure.tight_layout(pad=0.6)
         self.draw_idle()
 
 
@@ -130,7 +133,9 @@ class ProfileCanvas(PlotCanvas):
                     label=profile.source,
                 )
             if group:
-                axes.set_xlabel("distance along the line", fontsize=8)
+                unit = group[0].distance_unit
+                label = f"distance along the line [{unit}]" if unit else "distance along the line"
+                axes.set_xlabel(label, fontsize=8)
                 axes.set_ylabel(f"{group[0].quantity} [{group[0].unit}]", fontsize=8)
         if groups and groups[0]:
             legend = self.axes[0].legend(fontsize=7, frameon=False)

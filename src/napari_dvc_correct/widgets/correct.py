@@ -56,8 +56,8 @@ class CorrectWidget(EngineWidget):
         self.region = RegionBox(self.viewer)  # masked nodes keep their input values
         self.controls.addWidget(self.region)
         self.reference.currentIndexChanged.connect(self._reference_changed)
-        self.table = QTableWidget(0, 4)
-        self.table.setHorizontalHeaderLabels(["pass", "mean residual", "applied", "nodes moved"])
+        self.table = QTableWidget(0, len(model.PASS_HEADERS))
+        self.table.setHorizontalHeaderLabels(model.PASS_HEADERS)
         self.table.verticalHeader().setVisible(False)
         self.table.setMaximumHeight(150)
         self.body.addWidget(self.table)
@@ -198,6 +198,7 @@ class CorrectWidget(EngineWidget):
             self.region.restore(settings["region"])
 
     def _fill_table(self, headers, rows) -> None:
+        self.table.setColumnCount(len(headers))
         self.table.setHorizontalHeaderLabels(headers)
         self.table.setRowCount(len(rows))
         for r, row in enumerate(rows):
@@ -212,9 +213,13 @@ class CorrectWidget(EngineWidget):
         placement = {"voxel_size": first.voxel_size, "offset": first.offset}
         L.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
         rows = model.series_rows(result.results)
-        self._fill_table(["state", "mean residual", "passes", "nodes moved"], rows)
+        self._fill_table(model.SERIES_HEADERS, rows)
+        methods = dict.fromkeys(model.method_message(r.field) for r in result.results)
         self.show_message(
-            "Self-corrected every state: " + "; ".join(f"{r[0]} {r[1]}" for r in rows) + "."
+            "Self-corrected every state: "
+            + "; ".join(f"{r[0]} {r[1]}" for r in rows)
+            + "."
+            + "".join(f" {method}" for method in methods if method)
         )
 
     def on_result(self, result) -> None:
@@ -227,7 +232,5 @@ class CorrectWidget(EngineWidget):
                 result.field, "corrected", voxel_size=result.voxel_size, offset=result.offset
             ),
         )
-        self._fill_table(
-            ["pass", "mean residual", "applied", "nodes moved"], model.pass_rows(result.field)
-        )
+        self._fill_table(model.PASS_HEADERS, model.pass_rows(result.field))
         self.show_message(model.summary_message(result.field))

@@ -68,24 +68,56 @@ def run_correction(
     )
 
 
-def pass_rows(field: DisplacementField) -> list[tuple[str, str, str, str]]:
-    """One row per pass for the dock's table: pass, mean gray residual, applied, nodes changed."""
-    from ..engine.correction import correction_table
+#: Column headers of :func:`pass_rows`.
+PASS_HEADERS = ["pass", "order", "subvolume", "residual", "applied", "moved"]
+
+
+def pass_rows(field: DisplacementField) -> list[tuple[str, ...]]:
+    """One row per pass for the dock's table (:data:`PASS_HEADERS`): pass (0: the cleaned
+    input), the correcting matches' shape-function order and subvolume, mean gray residual,
+    applied, share of the nodes moved by more than 0.1 voxel."""
+    from ..report.passes import pass_rows as report_rows
 
     rows = []
-    for entry in correction_table(field):
-        number = int(entry.number)
-        label = "0 (cleaned input)" if number == 0 else str(number)
-        residual = entry.mean_gray_residual
-        applied = "—" if number == 0 else ("yes" if entry.accepted else "no")
-        changed = f"{100 * float(entry.fraction_changed):.0f} %"
-        rows.append((label, f"{residual:.3f}", applied, changed))
+    for row in report_rows(field):
+        number = row["pass"]
+        label = "0 (input)" if number == 0 else str(number)
+        changed = f"{100 * row['nodes_changed']:.0f} %"
+        residual = f"{row['mean_gray_residual']:.3f}"
+        rows.append((label, row["order"], row["subvolume"], residual, row["applied"], changed))
     return rows
+
+
+def method_message(field: DisplacementField) -> str:
+    """What the correcting matches were, against what the user chose, and why (the engine's
+    words, :func:`..report.passes.method_lines`); "" for a field without those records."""
+    from ..report.passes import (
+        changed_parameters,
+        first_run_parameters,
+        method_lines,
+        order_text,
+        subvolume_text,
+    )
+
+    lines = method_lines(field)
+    if not lines:
+        return ""
+    order, subvolume = first_run_parameters(field)
+    head = "Correcting matches"
+    if order and subvolume:
+        chosen = f"{order_text(order)} order, {subvolume_text(subvolume)}"
+        head += (
+            f" changed from your {chosen}"
+            if changed_parameters(field)
+            else f" as you chose ({chosen})"
+        )
+    return head + ": " + "; ".join(lines) + "."
 
 
 def summary_message(field: DisplacementField) -> str:
     """The panel's line after a correction: the mean gray residual before → after, the passes
-    applied, and why the loop stopped (``metadata["correction"]["stop_reason"]``)."""
+    applied, why the loop stopped (``metadata["correction"]["stop_reason"]``), and the
+    correcting matches' order and subvolume with the reason (:func:`method_message`)."""
     info = field.metadata.get("correction", {})
     before = float(info.get("mean_gray_residual_before", float("nan")))
     after = float(info.get("mean_gray_residual_after", float("nan")))
@@ -96,6 +128,9 @@ def summary_message(field: DisplacementField) -> str:
     reason = info.get("stop_reason")
     if reason:
         text += f" Stopped: {reason}."
+    method = method_message(field)
+    if method:
+        text += " " + method
     return text
 
 
@@ -128,16 +163,21 @@ def run_series_correction(pairs, fields, **options):
     return SeriesCorrection(results, series_fields([r.field for r in results]))
 
 
-def series_rows(results) -> list[tuple[str, str, str, str]]:
-    """One row per state for the dock's table: state, residual before → after, passes, moved."""
+#: Column headers of :func:`series_rows`.
+SERIES_HEADERS = ["state", "mean residual", "passes", "matches", "nodes moved"]
+
+
+def series_rows(results) -> list[tuple[str, ...]]:
+    """One row per state for the dock's table (:data:`SERIES_HEADERS`): state, residual
+    before → after, passes, the correcting matches' order and subvolume, nodes moved."""
     rows = []
     for k, result in enumerate(results, start=1):
         info = result.field.metadata.get("correction", {})
         before = info.get("mean_gray_residual_before", float("nan"))
         after = info.get("mean_gray_residual_after", float("nan"))
         table = pass_rows(result.field)
-        moved = table[-1][3] if table else "—"
-        rows.append(
-            (f"state {k}", f"{before:.3f} → {after:.3f}", str(info.get("passes_applied", 0)), moved)
-        )
+        moved = table[-1][5] if table else "—"
+        matches = f"{table[-1][1]}, {table[-1][2]}" if len(table) > 1 else "—"
+        passes = str(info.get("passes_applied", 0))
+        rows.append((f"state {k}", f"{before:.3f} → {after:.3f}", passes, matches, moved))
     return rows

@@ -157,7 +157,8 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             self.placement.currentIndexChanged,
             *self.region.changed_signals(),
         ):
-            signal.connect(self._update.trigger)
+            signal.connect(self._settings_changed)
+        self._preview_held = False
         self.mode.currentIndexChanged.connect(self._mode_changed)
         self.placement.currentIndexChanged.connect(self._mode_changed)
         self.points.currentIndexChanged.connect(self._points_edited)
@@ -198,6 +199,8 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         """Pick sensible inputs: the roles the sample data declares, else two different images."""
         images = self.reference.layers()
         inserted = getattr(event, "value", None) if event is not None else None
+        if inserted is not None:  # napari ignores units that disagree (and warns on every draw)
+            L.match_units(self.viewer, inserted)
         for layer in images if inserted is None else [inserted]:
             role = layer_role(layer)
             if role == "reference":
@@ -263,15 +266,16 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         """
         edited, self._voxel_edited = self._voxel_edited, False
         unit = self.unit.currentData()
-        for layer in self._scans():
-            if edited:  # an anisotropic scale stays until the user types a size
-                layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
-            if unit:
-                layer.units = (unit,) * layer.ndim
+        scans = self._scans()
+        if edited:  # an anisotropic scale stays until the user types a size
+            with L.KeepSliceAndFrame(self.viewer):  # the scan fills the canvas again
+                for layer in scans:
+                    layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
         if unit:
-            for layer in self.viewer.layers:  # napari ignores units that disagree
-                if L.plugin_metadata(layer) is not None:
-                    layer.units = (unit,) * layer.ndim
+            # every layer, not only the chosen scans (the others are a series' states): napari
+            # ignores units that disagree and warns on every draw
+            for layer in self.viewer.layers:
+                layer.units = (unit,) * layer.ndim
             L.canvas_overlay(self.viewer, "scale_bar").visible = True
         self._update.trigger()
 
@@ -454,6 +458,17 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         self._update.trigger()
 
     # -- preview and estimate ------------------------------------------------------------------
+    def _settings_changed(self, *args) -> None:
+        self._preview_held = False  # the user changed something: the preview may show again
+        self._update.trigger()
+
+    def hold_preview(self) -> None:
+        """Keep the grid preview hidden (a reopened session shows its fields, as after a run)
+        until a setting of the panel changes."""
+        self._update.flush()
+        self._preview_held = True
+        self._set_preview_visible(False)
+
     def update_preview(self) -> None:
         """Redraw the POI grid preview and the estimate (debounced from every change).
 
@@ -485,7 +500,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         if job.mask is not None and job.kept is None:
             region = "; the run marks the POIs outside the region (read as it runs)"
         self.estimate_label.setText(estimate.text() + region)
-        if not self.preview.isChecked():
+        if not self.preview.isChecked() or self._preview_held:
             self._set_preview_visible(False)
             return
         points, box, _ = model.grid_preview(job.shape, job.params)

@@ -11,7 +11,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..engine.field import DisplacementField, Provenance, Status, grid_for_volume
+from ..engine.field import (
+    GOOD_STATUSES,
+    DisplacementField,
+    Provenance,
+    Status,
+    grid_for_volume,
+)
 from ..engine.params import CorrelationParams
 from ..engine.progress import Progress
 from ..tiled.memory import format_bytes
@@ -239,11 +245,14 @@ def is_lazy(volume) -> bool:
 
 
 def suggest_tiled(volumes, memory: int | None = None) -> bool:
-    """Whether a run should be out of core: a lazy scan, or in-memory working copies
-    (:func:`estimate_run`'s 6 float32 per voxel) above half the available ``memory``."""
+    """Whether a run should be out of core: a Dask or Zarr scan, or in-memory working copies
+    (:func:`estimate_run`'s 6 float32 per voxel) above half the available ``memory``.
+
+    A memory-mapped TIFF is judged by its size only: the in-memory run reads a small one whole
+    in no time (a 4 MB scan is not a reason to go out of core)."""
     from ..tiled.memory import available_memory
 
-    if any(is_lazy(v) for v in volumes):
+    if any(is_lazy(v) and not isinstance(v, np.memmap) for v in volumes):
         return True
     voxels = float(np.prod(volumes[0].shape)) if volumes else 0.0
     memory = available_memory() if memory is None else memory
@@ -535,13 +544,17 @@ def describe_poi(field: DisplacementField, index) -> dict:
     u = field.u[i, j, k]
     position = np.asarray(field.origin) + np.asarray(index) * np.asarray(field.step)
     status, provenance = int(field.status[i, j, k]), int(field.provenance[i, j, k])
+    status_text = Status(status).label if status in Status._value2member_map_ else str(status)
+    if provenance == Provenance.CORRECTED and status not in [int(s) for s in GOOD_STATUSES]:
+        # the status is the first match's; the self-correction measured the node since
+        status_text = f"{status_text} in the first match, corrected since"
     return {
         "index": (int(i), int(j), int(k)),
         "position": tuple(float(p) for p in position),
         "u": tuple(float(v) for v in u),
         "magnitude": float(np.linalg.norm(u)),
         "zncc": float(field.zncc[i, j, k]),
-        "status": Status(status).label if status in Status._value2member_map_ else str(status),
+        "status": status_text,
         "provenance": Provenance(provenance).label
         if provenance in Provenance._value2member_map_
         else str(provenance),

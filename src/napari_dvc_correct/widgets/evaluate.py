@@ -16,6 +16,7 @@ from qtpy.QtWidgets import (
     QSpinBox,
 )
 from superqt import QDoubleRangeSlider
+from superqt.utils import GeneratorWorker
 
 from .. import layers as L
 from . import evaluate_model as model
@@ -183,7 +184,26 @@ class EvaluateWidget(EngineWidget):
             "mode": self.mode.currentData(),
             "tiled": self.tiled.isChecked(),
             "max_memory": self.max_memory.text(),
+            "evaluated": self.evaluated_fields(),
         }
+
+    def evaluated_fields(self) -> list[str]:
+        """Names of the fields of the evaluation on show ([] if none)."""
+        evaluation = getattr(self, "evaluation", None)
+        if evaluation is None:
+            return []
+        return [item.name for item in evaluation.fields]
+
+    def evaluate_again(self, names) -> GeneratorWorker | None:
+        """Evaluate the fields ``names`` again (a reopened session: the residual layers and the
+        summary come back), with the panel's thresholds; the worker, or None (message)."""
+        for i in range(self.fields.count()):
+            item = self.fields.item(i)
+            checked = item.text() in names
+            item.setCheckState(Qt.CheckState.Checked if checked else Qt.CheckState.Unchecked)
+        if not self.checked_fields():
+            return None
+        return self.run()
 
     def restore(self, settings: dict) -> None:
         index = self.mode.findData(settings.get("mode"))
@@ -298,7 +318,7 @@ class EvaluateWidget(EngineWidget):
             memory = check_tiled("pair", None, self.max_memory.text())
             self._outputs = self._temporary.new(chosen)
             self._writing = str(next(iter(self._outputs.values())).parent)
-        return model.run_evaluation(
+        run = model.run_evaluation(
             reference,
             deformed,
             chosen,
@@ -307,6 +327,7 @@ class EvaluateWidget(EngineWidget):
             outputs=self._outputs,
             max_memory=memory,
         )
+        return model.with_residual_layers(run, self._placement, self._outputs, TEMPORARY_KEY)
 
     def _panel_pair(self):
         reference = self._volume(self.reference, "reference")
@@ -356,21 +377,13 @@ class EvaluateWidget(EngineWidget):
             self.curves.plot(self.evaluation)
             self.show_message(f"Evaluation done for {len(evaluation)} states.")
             return
+        if isinstance(evaluation, model.ShownEvaluation):  # its layers made in the worker
+            evaluation, tuples = evaluation.evaluation, evaluation.layers
+        else:
+            outputs = getattr(self, "_outputs", None)
+            tuples = model.residual_layers(evaluation, self._placement, outputs, TEMPORARY_KEY)
         self.evaluations = [("", evaluation)]
         self.evaluation = evaluation
-        report = model.evaluation_report(evaluation)
-        voxel_size, offset = self._placement
-        tuples = []
-        outputs = getattr(self, "_outputs", None)
-        for item in evaluation.fields:
-            residual = model.open_residual(outputs[item.name]) if outputs else item.residual
-            data, kwargs, kind = L.residual_layer(
-                residual, item.name, voxel_size=voxel_size, offset=offset
-            )
-            kwargs["metadata"][L.MARKER]["report"] = report
-            if outputs:  # the folder this layer reads lazily (see _release_temporary)
-                kwargs["metadata"][L.MARKER][TEMPORARY_KEY] = str(outputs[item.name].parent)
-            tuples.append((data, kwargs, kind))
         L.show_layers(self.viewer, tuples)  # replacing layers: their folder is still _writing
         self._writing = None
         self._release_temporary()

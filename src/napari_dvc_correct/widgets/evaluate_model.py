@@ -224,6 +224,51 @@ def run_evaluation(
     )
 
 
+@dataclass
+class ShownEvaluation:
+    """An evaluation and its residual layers (layer data tuples), made in the worker so the
+    panel's result slot only adds them (the residual's contrast range is a percentile of the
+    whole volume: seconds on the main thread for a large scan)."""
+
+    evaluation: object
+    layers: list
+
+
+def residual_layers(evaluation, placement, outputs=None, temporary_key=None) -> list:
+    """The hidden residual layer of every evaluated field, carrying the evaluation's report.
+
+    ``placement`` is ``(voxel_size, offset)``; ``outputs`` (name -> Zarr path) the residuals of
+    an out-of-core run, read lazily; their folder is recorded under ``temporary_key``.
+    """
+    from ..layers import MARKER, residual_layer
+
+    report = evaluation_report(evaluation)
+    voxel_size, offset = placement if placement is not None else (None, None)
+    tuples = []
+    for item in evaluation.fields:
+        residual = open_residual(outputs[item.name]) if outputs else item.residual
+        data, kwargs, kind = residual_layer(
+            residual, item.name, voxel_size=voxel_size, offset=offset
+        )
+        kwargs["metadata"][MARKER]["report"] = report
+        kwargs["metadata"][MARKER]["evaluation"] = evaluation  # the report Export writes
+        if outputs and temporary_key:  # the folder this layer reads lazily
+            kwargs["metadata"][MARKER][temporary_key] = str(outputs[item.name].parent)
+        tuples.append((data, kwargs, kind))
+    return tuples
+
+
+def with_residual_layers(generator, placement, outputs=None, temporary_key=None):
+    """Run an evaluation ``generator``; then, still in the worker, make its residual layers
+    (:func:`residual_layers`). Returns a :class:`ShownEvaluation` (a series' list as it is)."""
+    evaluation = yield from generator
+    if isinstance(evaluation, list):
+        return evaluation
+    return ShownEvaluation(
+        evaluation, residual_layers(evaluation, placement, outputs, temporary_key)
+    )
+
+
 def evaluation_report(evaluation) -> dict:
     """A JSON-friendly summary of an :class:`~napari_dvc_correct.engine.accuracy.Evaluation`."""
     report = {

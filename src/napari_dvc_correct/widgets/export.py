@@ -69,7 +69,11 @@ class ExportWidget(EngineWidget):
         self.with_strain.setChecked(True)
         self.strain_tiff = QCheckBox("equivalent strain as a TIFF stack")
         self.residual_tiff = QCheckBox("gray residual volume as a TIFF stack")
-        self.report = QCheckBox("evaluation report (.md and .json)")
+        self.report = QCheckBox("evaluation report (folder, .json)")
+        self.report.setToolTip(
+            "NAME_report/: report.md with its plots and CSV tables, as evaluate --out-dir "
+            "writes it; NAME_report.json: the numbers"
+        )
         for box in (self.with_strain, self.strain_tiff, self.residual_tiff, self.report):
             self.form.addRow(box)
         sessions = QHBoxLayout()
@@ -251,7 +255,7 @@ class ExportWidget(EngineWidget):
             from ..engine.strain import equivalent_strain_field
 
             strain = equivalent_strain_field(field)
-        residual = report = None
+        residual = report = evaluation = None
         if self.residual_tiff.isChecked() or self.report.isChecked():
             residual_layer = self._layer_of(source, "residual")
             if residual_layer is None:
@@ -263,6 +267,7 @@ class ExportWidget(EngineWidget):
                 residual = np.asarray(residual_layer.data)
             if self.report.isChecked():
                 report = L.plugin_metadata(residual_layer).get("report")
+                evaluation = L.plugin_metadata(residual_layer).get("evaluation")
         return model.run_export(
             model.ExportRequest(
                 field=field,
@@ -273,6 +278,7 @@ class ExportWidget(EngineWidget):
                 strain_tiff=self.strain_tiff.isChecked(),
                 residual=residual,
                 report=report,
+                evaluation=evaluation,
                 voxel_size=tuple(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
                 offset=tuple(field.metadata.get("offset", (0.0, 0.0, 0.0))),
             )

@@ -25,7 +25,8 @@ from ..engine.scattered import ScatteredField
 
 #: Formats offered in the panel: label -> file suffix.
 FORMATS = {
-    "NPZ (napari-dvc-correct field)": ".npz",
+    "DVC field (.dvcfield: opens in napari with this plugin)": ".dvcfield",
+    "NPZ (napari-dvc-correct field, the same contents)": ".npz",
     "HDF5": ".h5",
     "VTK image data, XML (.vti, ParaView)": ".vti",
     "VTK legacy structured points (.vtk)": ".vtk",
@@ -69,7 +70,11 @@ class ExportRequest:
     residual : ndarray (NZ, NY, NX) or None
         Dense gray residual written as ``STEM_residual.tif``.
     report : dict or None
-        Evaluation report written as ``STEM_report.md`` and ``STEM_report.json``.
+        Evaluation summary written as ``STEM_report.json``.
+    evaluation : Evaluation or None
+        The evaluation behind ``report``: its report is written into the folder ``STEM_report/``
+        by :func:`..report.write_report`, as ``evaluate --out-dir`` writes it (``report.md`` with
+        the plots, the CSV tables; no volumes).
     """
 
     field: DisplacementField | ScatteredField
@@ -80,13 +85,14 @@ class ExportRequest:
     strain_tiff: bool = False
     residual: np.ndarray | None = None
     report: dict | None = None
+    evaluation: object | None = None
     voxel_size: tuple = (1.0, 1.0, 1.0)
     offset: tuple = (0.0, 0.0, 0.0)
     written: list = field(default_factory=list)
 
 
 #: Formats that keep the field's metadata inside the file (the others get a JSON side file).
-WITH_METADATA = (".npz", ".h5", ".hdf5")
+WITH_METADATA = (".dvcfield", ".npz", ".h5", ".hdf5")
 
 
 def is_points(field) -> bool:
@@ -123,7 +129,7 @@ def check_request(request: ExportRequest) -> None:
             "the equivalent strain as a TIFF stack needs a grid field: a result at points has "
             "its strain per point (the CSV's equivalent_strain column)"
         )
-    if request.residual is not None or request.report is not None:
+    if request.residual is not None or request.report is not None or request.evaluation is not None:
         raise ValueError(
             "the gray residual and the report come from Evaluate on a grid field, not from a "
             "result at points of interest"
@@ -182,8 +188,8 @@ def describe(field: DisplacementField | ScatteredField, source: str) -> str:
     return text + ")"
 
 
-def default_name(source: str, suffix: str = ".npz") -> str:
-    """File name the panel proposes for the field ``source``, e.g. ``dvc_corrected.npz``."""
+def default_name(source: str, suffix: str = ".dvcfield") -> str:
+    """File name the panel proposes for the field ``source``, e.g. ``dvc_corrected.dvcfield``."""
     slug = "".join(c if c.isalnum() else "_" for c in source).strip("_")
     while "__" in slug:
         slug = slug.replace("__", "_")
@@ -204,6 +210,23 @@ def check_path(path: str, suffix: str) -> Path:
     return target
 
 
+def evaluation_report_files(request: ExportRequest, stem: Path) -> list[Path]:
+    """The evaluation report of the command line (``evaluate --out-dir``), written into
+    ``STEM_report/``: ``report.md``, its plots and CSV tables (no volumes)."""
+    from ..report import write_report
+
+    inputs = {"field": request.source}
+    origin = request.field.metadata.get("provenance") or {}
+    for key in ("reference", "deformed"):
+        name = request.field.metadata.get(key) or origin.get(key)
+        if name:
+            inputs[key] = name
+    files = write_report(
+        request.evaluation, stem.parent / f"{stem.name}_report", inputs=inputs, volumes=False
+    )
+    return [path for paths in files.values() for path in paths]
+
+
 def run_export(request: ExportRequest):
     """Write everything the request asks for; yields Progress per file, returns the paths."""
     from ..io import export
@@ -219,7 +242,7 @@ def run_export(request: ExportRequest):
         strain = point_strain(field)
         extra = None if strain is None else {"equivalent_strain": strain}
     elif request.strain_with_field and request.equivalent_strain is not None:
-        if suffix != ".npz":
+        if suffix not in (".dvcfield", ".npz"):  # (the native file holds the field only)
             extra = {"equivalent_strain": request.equivalent_strain}
     stem = request.path.with_suffix("")
 
@@ -270,11 +293,12 @@ def run_export(request: ExportRequest):
             (
                 "report",
                 lambda: [
-                    export.export_report(request.report, stem.parent / f"{stem.name}_report.md"),
-                    export.export_report(request.report, stem.parent / f"{stem.name}_report.json"),
+                    export.export_report(request.report, stem.parent / f"{stem.name}_report.json")
                 ],
             )
         )
+    if request.evaluation is not None:
+        jobs.append(("report", lambda: evaluation_report_files(request, stem)))
     written = []
     for index, (name, job) in enumerate(jobs):
         yield Progress("export", index, len(jobs), f"writing the {name}")

@@ -28,6 +28,8 @@ class Profile:
         Distance from the line's start, world units.
     values : ndarray (n,)
         NaN where the line leaves the grid or crosses a node without a displacement.
+    distance_unit : str
+        Unit of ``distance``: the field's length unit (``"mm"``...), ``"vx"`` (voxels).
     """
 
     source: str
@@ -35,6 +37,7 @@ class Profile:
     unit: str
     distance: np.ndarray
     values: np.ndarray
+    distance_unit: str = ""
 
 
 def line_profile(
@@ -81,6 +84,7 @@ def line_profile(
         unit=L.unit_of(quantity, field),
         distance=t * float(np.linalg.norm(end - start)),
         values=sampled,
+        distance_unit=L.unit_of("|u|", field),  # a length, in the units of the layers' scale
     )
 
 

@@ -1,8 +1,9 @@
 """Sessions without Qt: what a session file holds, written and read back.
 
 A session is a JSON file (``*.dvc-session.json``) with the scans' paths and placement, the
-panels' parameters and thresholds, and the fields, each saved as the plugin's ``.npz`` field file
-in a folder next to it (``STEM_fields/SOURCE.npz``, so a field reopens under its own name).
+panels' parameters and thresholds, and the fields, each saved as the plugin's field file in a
+folder next to it (``STEM_fields/SOURCE.dvcfield``, so a field reopens under its own name; sessions
+written before hold ``SOURCE.npz``, read the same way).
 Reopening opens the scans, restores the panels and opens the fields.
 """
 
@@ -33,7 +34,13 @@ def fields_folder(path) -> Path:
     return path.with_name(path.name.removesuffix(SUFFIX) + "_fields")
 
 
-def write_session(path, scans: list, panels: dict, fields: dict[str, DisplacementField]) -> Path:
+def write_session(
+    path,
+    scans: list,
+    panels: dict,
+    fields: dict[str, DisplacementField],
+    view: dict | None = None,
+) -> Path:
     """Write the session file and its field files; returns the session file's path.
 
     Parameters
@@ -43,10 +50,13 @@ def write_session(path, scans: list, panels: dict, fields: dict[str, Displacemen
     panels : dict
         Panel name -> its settings (JSON-friendly).
     fields : dict of source -> DisplacementField
-        Saved as ``STEM_fields/SOURCE.npz``.
+        Saved as ``STEM_fields/SOURCE.dvcfield``.
+    view : dict, optional
+        What the canvas showed (:func:`..session.view_state`): the field and quantity on view,
+        the slice, the camera. JSON-friendly.
     """
     from ..io.atomic import atomic_path
-    from ..io.npz import save_field
+    from ..io.npz import FIELD_SUFFIX, save_field
 
     path = session_path(path)
     if not path.parent.is_dir():
@@ -62,7 +72,8 @@ def write_session(path, scans: list, panels: dict, fields: dict[str, Displacemen
     if fields:
         folder.mkdir(exist_ok=True)
     for source, field in fields.items():
-        target = folder / f"{_file_stem(source, files)}.npz"  # always inside the fields folder
+        # always inside the fields folder
+        target = folder / f"{_file_stem(source, files)}{FIELD_SUFFIX}"
         save_field(field, target)
         files[source] = str(target.relative_to(path.parent))
     content = {
@@ -71,6 +82,7 @@ def write_session(path, scans: list, panels: dict, fields: dict[str, Displacemen
         "scans": scans,
         "panels": panels,
         "fields": files,
+        "view": view or {},
     }
     with atomic_path(path) as temp:
         temp.write_text(json.dumps(content, indent=2) + "\n", encoding="utf-8")

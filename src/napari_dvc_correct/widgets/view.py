@@ -21,7 +21,7 @@ from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButto
 from .. import layers as L
 from .. import point_layers as P
 from . import profile_model
-from ._base import LatestWorker, follow_layers
+from ._base import LatestWorker, compact, follow_layers
 from ._plots import ProfileCanvas
 
 #: Camera of the 3-D view (napari's Euler angles, degrees): tilted 20–30° off the y axis, so a
@@ -91,6 +91,7 @@ class ViewWidget(QWidget):
         self._profile_values: dict = {}
         follow_layers(self.viewer, self, self._layers_changed)
         self._layers_changed()
+        compact(self)
 
     # -- line profile -----------------------------------------------------------------------
     def start_line(self):
@@ -312,11 +313,13 @@ class ViewWidget(QWidget):
         for layer in layers:
             layer.colorbar.visible = bool(layer is top and self.colorbar.isChecked())
         text = L.caption(top) if top is not None else "No field yet: run Correlate."
+        title = L.colorbar_title(top) if top is not None else ""
         points = [x for x in P.points_result_layers(self.viewer) if x.visible]
         if top is None and points:  # only points of interest: their colours are the caption
             top, text = points[-1], P.points_caption(points[-1])
-        self.caption.setText(text)
-        L.text_overlay(self.viewer).text = text if top is not None else ""
+            title = text
+        self.caption.setText(text)  # the whole caption in the panel, the short title on canvas
+        L.text_overlay(self.viewer).text = title if top is not None else ""
         L.text_overlay(self.viewer).visible = top is not None
 
     def oblique_3d(self) -> None:

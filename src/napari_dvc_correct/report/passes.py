@@ -1,0 +1,95 @@
+"""The self-correction passes of a field in words and rows: one wording for the Self-correct
+panel, the command line and the report.
+
+The paper promises the correction reuses "the same DVC parameters"; where the engine's
+correcting matches use another shape-function order or subvolume
+(:class:`..engine.correction_record.CorrectionPass` ``order``, ``subvolume``, ``method``), every
+front end says so, with the engine's reason.
+"""
+
+from __future__ import annotations
+
+from ..engine.correction_record import CorrectionPass, correction_table
+from ..engine.field import DisplacementField
+
+_ORDER_NAMES = {1: "first", 2: "second"}
+
+
+def order_text(order: int) -> str:
+    """Shape-function order as a word ("first", "second"), "—" where not recorded (0)."""
+    return _ORDER_NAMES.get(int(order), str(int(order))) if int(order) else "—"
+
+
+def subvolume_text(subvolume: int) -> str:
+    """Subvolume edge as ``"15³"`` (voxels), "—" where not recorded (0)."""
+    return f"{int(subvolume)}³" if int(subvolume) else "—"
+
+
+def first_run_parameters(field: DisplacementField) -> tuple[int, int]:
+    """The (order, subvolume) the user chose for the run that made the field (0 if unknown)."""
+    params = field.params or {}
+    try:
+        return int(params.get("order", 0)), int(params.get("subvolume", 0))
+    except (TypeError, ValueError):
+        return 0, 0
+
+
+def method_lines(field: DisplacementField) -> list[str]:
+    """Why the correcting matches used their order and subvolume, one line per run of passes
+    with the same reason, e.g. ``"passes 1–2: second order on 15³ instead of ..."``.
+
+    Falls back to ``metadata["correction"]["pass_method"]`` where the records carry none, and
+    returns [] for a field that was not corrected (or an older file without the words).
+    """
+    groups: list[tuple[list[int], str]] = []
+    for entry in correction_table(field):
+        if entry.number == 0 or not entry.method:
+            continue
+        if groups and groups[-1][1] == entry.method:
+            groups[-1][0].append(entry.number)
+        else:
+            groups.append(([entry.number], entry.method))
+    if not groups:
+        method = field.metadata.get("correction", {}).get("pass_method")
+        return [f"correcting matches: {method}"] if method else []
+    lines = []
+    for numbers, method in groups:
+        span = f"pass {numbers[0]}" if len(numbers) == 1 else f"passes {numbers[0]}–{numbers[-1]}"
+        lines.append(f"{span}: {method}")
+    return lines
+
+
+def changed_parameters(field: DisplacementField) -> bool:
+    """True if some pass matched with another order or subvolume than the first run's."""
+    order, subvolume = first_run_parameters(field)
+    for entry in correction_table(field):
+        if entry.number == 0 or not entry.order:
+            continue
+        if (order and entry.order != order) or (subvolume and entry.subvolume != subvolume):
+            return True
+    return False
+
+
+def _row(entry: CorrectionPass) -> dict:
+    first = entry.number == 0
+    return {
+        "pass": int(entry.number),
+        "order": "—" if first else order_text(entry.order),
+        "subvolume": "—" if first else subvolume_text(entry.subvolume),
+        "mean_gray_residual": float(entry.mean_gray_residual),
+        "applied": "—" if first else ("yes" if entry.accepted else "no"),
+        "nodes_changed": float(entry.fraction_changed),
+        "mean_change": float(entry.mean_change),
+        "max_change": float(entry.max_change),
+        "accepted_nodes": int(entry.accepted_nodes),
+        "refused_nodes": int(entry.rejected_nodes),
+        "noise_floor": float(entry.noise_floor),
+        "matched_nodes": int(entry.matched_nodes),
+    }
+
+
+def pass_rows(field: DisplacementField) -> list[dict]:
+    """One row per pass (pass 0 = the cleaned input): order, subvolume, residual, applied,
+    nodes changed (fraction), mean and max change (voxels), accepted/refused nodes, noise
+    floor, matches run. [] for a field that was not corrected."""
+    return [_row(entry) for entry in correction_table(field)]
