@@ -5,7 +5,8 @@ there): ``upper`` far from the fracture, ``lower`` crossed by the open crack, wi
 cylinder. No true field exists, so a field is judged the way the paper judges one, by how well it
 explains the images, with a judge that is not ours:
 
-* **residual**: ``F(X + u(X))`` pulled back with the cleaned field, a least-squares gray-level
+* **residual**: ``F(X + u(X))`` pulled back with the field's grid values as a user receives
+  them (nodes without a value filled in from their neighbours), a least-squares gray-level
   line ``G ≈ a F~ + b`` fitted over the whole crop (global, unlike the correction's local map),
   the mean ``|G - a F~ - b|`` over the voxels where the field is defined, as a fraction of the
   zero field's;
@@ -41,8 +42,12 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-rock"
 
 
 def judge_residual(reference, deformed, field: DisplacementField):
-    """Independent residual: pull-back with the cleaned field, global least-squares gray line."""
-    moved, _ = moved_and_residual(reference, deformed, clean(field))
+    """Independent residual: pull-back with the field's grid values as they are (only the
+    nodes without a value filled in, whatever the statuses say), global least-squares gray
+    line."""
+    as_given = field.copy()
+    as_given.status[np.all(np.isfinite(field.u), axis=-1)] = int(Status.CONVERGED)
+    moved, _ = moved_and_residual(reference, deformed, clean(as_given))
     ok = np.isfinite(moved)
     design = np.column_stack([moved[ok], np.ones(int(ok.sum()))])
     line, *_ = np.linalg.lstsq(design, reference[ok], rcond=None)

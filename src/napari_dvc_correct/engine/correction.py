@@ -546,9 +546,14 @@ def _correction_loop(
     flagged_after = int(unexplained.sum())
     passes[-1] = dataclasses.replace(passes[-1], stop=stop)
     result = current.copy()
-    result.u[masked] = field.u[masked]
+    # a crack's nodes keep their own measurement where they had one (the motion of the side
+    # their centre is on), flagged: refilled from both sides it would smear the jump
+    measured_crack = cracked & _good(field) & (field.provenance == Provenance.MEASURED)
+    kept = masked | measured_crack
+    result.u[kept] = field.u[kept]
     if result.gradient is not None and field.gradient is not None:
-        result.gradient[masked] = field.gradient[masked]
+        result.gradient[kept] = field.gradient[kept]
+    result.provenance[measured_crack] = Provenance.MEASURED
     result.metadata["correction_passes"] = [p.to_dict() for p in passes]
     result.metadata["gray_levels"] = gray_levels.to_dict()
     result.metadata["correction"] = {
