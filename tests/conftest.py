@@ -43,5 +43,9 @@ def changed_method_field():
         "passes_applied": 2,
         "stop_reason": "max_passes (2) reached",
         "pass_method": method,
+        "flagged_after": 14,
+        "discontinuity_nodes": 11,
+        "shielded_nodes": 6,
     }
+    field.metadata["gray_levels"] = {"description": "G ≈ 2.3·F + -23 (local, 32-voxel cells)"}
     return field, method

@@ -48,6 +48,9 @@ def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_pat
     assert f"{passes[1]['subvolume']}³" in printed
     assert corrected.metadata["correction"]["pass_method"] in printed
     assert "you chose: first order, " in printed
+    # the gray-level map the residuals were judged with, and what was flagged
+    assert corrected.metadata["gray_levels"]["description"] in printed
+    assert "flagged after the passes: " in printed
     assert corrected.metadata["corrected_from"] == str(field_path)
     error = corrected.displacement[corrected.valid.reshape(-1)] - SHIFT
     assert np.sqrt(np.mean(error**2)) < 0.05

@@ -159,7 +159,13 @@ def pass_table(field) -> str:
     """The per-pass report of a corrected field as aligned text lines: the correcting matches'
     order and subvolume per pass, and why (:func:`..report.passes.method_lines`)."""
     from ..engine.correction import correction_table
-    from ..report.passes import method_lines, order_text, subvolume_text
+    from ..report.passes import (
+        flag_line,
+        gray_level_line,
+        method_lines,
+        order_text,
+        subvolume_text,
+    )
 
     lines = [
         "pass  order   subvolume  mean gray residual  applied  nodes changed  mean change"
@@ -184,6 +190,7 @@ def pass_table(field) -> str:
             f"{subvolume_text(params['subvolume'])} subvolume"
         )
     lines.extend(f"correcting matches, {line}" for line in method_lines(field))
+    lines.extend(line for line in (gray_level_line(field), flag_line(field)) if line)
     if table and table[-1].stop:
         lines.append(f"stopped: {table[-1].stop}")
     return "\n".join(lines)

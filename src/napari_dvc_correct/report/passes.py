@@ -93,3 +93,33 @@ def pass_rows(field: DisplacementField) -> list[dict]:
     nodes changed (fraction), mean and max change (voxels), accepted/refused nodes, noise
     floor, matches run. [] for a field that was not corrected."""
     return [_row(entry) for entry in correction_table(field)]
+
+
+def gray_level_line(field: DisplacementField) -> str:
+    """The gray-level map the correction judged by, in words ("" for a field without one):
+    every residual of the correction is ``|map(F~) - G|`` in the reference's gray levels."""
+    gray = field.metadata.get("gray_levels") or {}
+    description = gray.get("description")
+    if not description:
+        return ""
+    return (
+        f"gray levels of the loaded scan mapped onto the reference's: {description}; "
+        "residuals are in the reference's gray levels"
+    )
+
+
+def flag_line(field: DisplacementField) -> str:
+    """What the correction flagged after its passes, in words ("" for an uncorrected field)."""
+    info = field.metadata.get("correction") or {}
+    if "flagged_after" not in info:
+        return ""
+    flagged = int(info.get("flagged_after", 0))
+    crack = int(info.get("discontinuity_nodes", 0))
+    shielded = int(info.get("shielded_nodes", 0))
+    text = (
+        f"flagged after the passes: {flagged - crack} nodes whose residual no small error "
+        f"explains (outlier replaced), {crack} along a discontinuity (a crack: discontinuity)"
+    )
+    if shielded:
+        text += f"; {shielded} nodes near it kept their values"
+    return text

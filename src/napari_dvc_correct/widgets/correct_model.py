@@ -131,6 +131,11 @@ def summary_message(field: DisplacementField) -> str:
     method = method_message(field)
     if method:
         text += " " + method
+    from ..report.passes import flag_line, gray_level_line
+
+    for line in (gray_level_line(field), flag_line(field)):
+        if line:
+            text += " " + line[0].upper() + line[1:] + "."
     return text
 
 
