@@ -261,7 +261,7 @@ def correct_iter(
         )
     # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
     check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
-    if field is not None:  # a few |u| > the volume: failed matches, cleaned (issue 27 item 14)
+    if field is not None:  # a few |u| > the volume: failed matches, cleaned
         field, _ = flag_absurd_nodes(field, reference.shape)
     volumes = InMemoryVolumes(reference, deformed, frame, mask)
     options = dict(update=update, max_passes=max_passes, min_improvement=min_improvement)

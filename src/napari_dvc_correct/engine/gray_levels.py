@@ -1,4 +1,4 @@
-"""The gray-level model: how the loaded scan's gray levels map onto the reference's (issue 25).
+"""The gray-level model: how the loaded scan's gray levels map onto the reference's.
 
 Real scans change their gray levels between load steps (the paper's Table 1; a fractured rock
 whose mean falls from 113 to 60 and its contrast by 3x). A raw gray residual
