@@ -84,5 +84,11 @@ def test_noise_keeps_the_first_runs_subvolume_where_a_smaller_one_would_scatter_
     assert scatter == pytest.approx(
         np.sqrt(3) * 0.05 * (21 / chosen.subvolume) ** 1.5 * 1.5, rel=1e-9
     )
+    # predicted errors: first order 21³ 0.22, second order 21³ 0.16, second order 15³ 0.23:
+    # the noise forbids the smaller subvolume, and second order on the first run's wins
     chosen, why = pass_method(field, params)
-    assert chosen == params and "scatter" in why
+    assert (chosen.order, chosen.subvolume) == (2, 21) and "predicted errors" in why
+    # heavy noise: 0.2 voxel per component, nothing beats the first run's parameters
+    field.uncertainty = np.full((*shape, 3), 0.2)
+    chosen, why = pass_method(field, params)
+    assert chosen == params and "predicted errors" in why
