@@ -434,6 +434,7 @@ def _correction_loop(
         # a good node whose correcting match failed keeps its value and its status: a failed
         # (or smaller, noisier) correcting match says nothing about the node's own error
         failed_match = _good(current) & ~_good(candidate)
+        failed_match &= candidate.status != Status.MASKED  # outside the mask: not a failure
         refuse = (
             unsupported_updates(delta, read_points)
             | unsupported_by_noise.reshape(-1)
