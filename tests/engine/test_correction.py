@@ -501,13 +501,20 @@ def _real_crop(name, box):
     return data["reference"][box].astype(np.float32), data["deformed"][box].astype(np.float32)
 
 
-def _independent_residual(reference, deformed, field):
-    """Pull-back with the cleaned field, one least-squares gray line G ~ a F~ + b, mean |res|."""
+def _independent_residual_volume(reference, deformed, field):
+    """Pull-back with the cleaned field, one least-squares gray line G ~ a F~ + b: |residual|
+    (NaN where undefined)."""
     moved, _ = residual.moved_and_residual(reference, deformed, clean(field))
     ok = np.isfinite(moved)
     design = np.column_stack([moved[ok], np.ones(int(ok.sum()))])
     line, *_ = np.linalg.lstsq(design, reference[ok], rcond=None)
-    return float(np.mean(np.abs(reference[ok] - design @ line)))
+    volume = np.full(reference.shape, np.nan, np.float32)
+    volume[ok] = np.abs(reference[ok] - design @ line)
+    return volume
+
+
+def _independent_residual(reference, deformed, field):
+    return float(np.nanmean(_independent_residual_volume(reference, deformed, field)))
 
 
 def test_real_scans_whose_gray_levels_change_are_not_flagged_where_the_rock_is_intact():
@@ -542,12 +549,7 @@ def test_a_real_crack_is_flagged_as_a_discontinuity_where_it_opened():
     assert crack.sum() >= 5
     # DISCONTINUITY nodes are where the plain field explains the images worst: their cells'
     # gray-level-corrected residual is far above the rest
-    moved, _ = residual.moved_and_residual(reference, deformed, clean(measured))
-    ok = np.isfinite(moved)
-    design = np.column_stack([moved[ok], np.ones(int(ok.sum()))])
-    line, *_ = np.linalg.lstsq(design, reference[ok], rcond=None)
-    worst = np.full(reference.shape, np.nan, np.float32)
-    worst[ok] = np.abs(reference[ok] - design @ line)
+    worst = _independent_residual_volume(reference, deformed, measured)
     nodes = np.clip(np.rint(corrected.points).astype(int), 0, np.asarray(reference.shape) - 1)
     local = np.array(
         [np.nanmean(worst[tuple(slice(max(c - 5, 0), c + 6) for c in node)]) for node in nodes]

@@ -154,35 +154,27 @@ class TiledResiduals:
         floor = total / count if self.thresholds is not None and count else float("inf")
         return [m.reshape(field.shape) for m in means], floor
 
-    def signed_means(self, field: DisplacementField, half: int):
-        volumes = self.volumes
-        jobs = self._jobs(field, (half,))
-        spline = FieldSpline.from_field(field)
-        results = run_to_completion(
-            volumes._tasks(
-                _node_signed_block,
-                [volumes.reference, volumes.deformed, spline],
-                jobs,
-                "signed residual",
-            )
-        )
+    def _node_means(self, field, function, shared, jobs, stage) -> np.ndarray:
+        """Run ``function(*shared, job)`` per node block; gather its ``(index, means)``."""
+        results = run_to_completion(self.volumes._tasks(function, shared, jobs, stage))
         means = np.full(field.n_points, np.nan)
         for index, values in results:
             means[index] = values.reshape(-1)
         return means.reshape(field.shape)
 
+    def signed_means(self, field: DisplacementField, half: int):
+        volumes = self.volumes
+        shared = [volumes.reference, volumes.deformed, FieldSpline.from_field(field)]
+        jobs = self._jobs(field, (half,))
+        return self._node_means(field, _node_signed_block, shared, jobs, "signed residual")
+
     def gradient_means(self, field: DisplacementField, half: int):
         key = (tuple(field.origin), tuple(field.step), field.shape, int(half))
         if key not in self._gradients:
-            volumes = self.volumes
             jobs = self._jobs(field, (half,), reach_extra=GRADIENT_REACH)
-            results = run_to_completion(
-                volumes._tasks(_node_gradient_block, [volumes.reference], jobs, "local gradient")
+            self._gradients[key] = self._node_means(
+                field, _node_gradient_block, [self.volumes.reference], jobs, "local gradient"
             )
-            means = np.full(field.n_points, np.nan)
-            for index, values in results:
-                means[index] = values.reshape(-1)
-            self._gradients[key] = means.reshape(field.shape)
         return self._gradients[key]
 
 
