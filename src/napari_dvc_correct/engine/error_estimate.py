@@ -1,0 +1,96 @@
+"""An error estimate in voxels per node, from the gray residual (issue 26).
+
+The accuracy index of eq. 2 measures the gray mismatch in units of the phase contrast: any field
+with errors under a voxel scores above 0.99, so it cannot tell a field that is 0.5 voxel off in
+a band from a good one. This module turns the same gray-level-corrected residual into a
+displacement error, node by node:
+
+- a displacement error ``e`` (voxels) moves the residual by ``grad G · e``; over a node's region,
+  with the error's direction random against the texture's gradients, the misplaced texture adds
+  a gray difference of variance ``e² <|grad G|²> / 3``;
+- the imaging noise leaves a residual ``|n|`` of mean ``r0`` (eq. 1's background residual,
+  ``r0 = sqrt(2/π) σ`` for Gaussian noise of standard deviation ``σ``);
+- with both Gaussian, the mean residual over the region is
+  ``R = sqrt(2/π) sqrt(σ² + e² g² / 3)``, ``g² = <|grad G|²>``, so
+
+  ``e_res = sqrt(3 π / 2 · max(R² − r0², 0)) / g``.
+
+It is combined in quadrature with the noise-based uncertainty of the match
+(``field.uncertainty``, the error the imaging noise alone leaves where the residual cannot see
+it): ``e = sqrt(e_res² + |σ_u|²)``. Measured against true errors in ``docs/evaluation.md``
+(``benchmarks/bench_error_estimate.py``). Arrays are on the field's grid ``(nz, ny, nx)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Nodes whose estimated error exceeds this many voxels are counted as likely bad.
+LIKELY_BAD = 0.5
+
+#: ``3 π / 2``: turns the excess of the squared mean residual over the noise's into the
+#: misplaced texture's variance (see the module).
+_FACTOR = 1.5 * np.pi
+
+
+def residual_error(local_residual, local_gradient, background: float) -> np.ndarray:
+    """The error the residual's excess over the noise explains, per node (voxels).
+
+    Parameters
+    ----------
+    local_residual : ndarray, shape (nz, ny, nx)
+        Mean gray-level-corrected residual over each node's region ``R`` (reference gray levels;
+        NaN where undefined).
+    local_gradient : ndarray, shape (nz, ny, nx)
+        RMS gray gradient ``g = sqrt(<|grad G|²>)`` over the same regions (gray levels per
+        voxel).
+    background : float
+        ``r0`` of the scan pair (eq. 1), gray levels.
+
+    Returns
+    -------
+    ndarray, float64, voxels
+        ``sqrt(3π/2 · max(R² − r0², 0)) / g``; NaN where ``R`` is undefined, ``inf`` where the
+        region has an excess but no gradient (flat texture: the residual cannot say).
+    """
+    r = np.asarray(local_residual, dtype=np.float64)
+    g = np.asarray(local_gradient, dtype=np.float64)
+    r0 = float(background)
+    excess = np.maximum(r * r - r0 * r0, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        error = np.sqrt(_FACTOR * excess) / g
+    error = np.where((excess == 0) & np.isfinite(r), 0.0, error)
+    return np.where(np.isfinite(r), error, np.nan)
+
+
+def noise_error(field) -> np.ndarray:
+    """``|σ_u|``: the norm of the field's noise uncertainty per node (voxels; 0 where unknown)."""
+    if field.uncertainty is None:
+        return np.zeros(field.shape)
+    sigma = np.sqrt(np.sum(np.asarray(field.uncertainty, np.float64) ** 2, axis=-1))
+    return np.where(np.isfinite(sigma), sigma, 0.0)
+
+
+def error_estimate(field, local_residual, local_gradient, background: float) -> np.ndarray:
+    """Estimated displacement error per node (voxels): :func:`residual_error` and the noise
+    uncertainty in quadrature. NaN where the node's region has no defined residual."""
+    e_res = residual_error(local_residual, local_gradient, background)
+    return np.sqrt(e_res**2 + noise_error(field) ** 2)
+
+
+def error_summary(estimate, nodes=None) -> dict:
+    """Median, 95th percentile and share of nodes above :data:`LIKELY_BAD` (over ``nodes``, a
+    boolean grid mask, default all; NaN nodes count as likely bad: their region is not
+    explained at all)."""
+    values = np.asarray(estimate, dtype=np.float64)
+    if nodes is not None:
+        values = values[np.asarray(nodes, bool)]
+    values = values.ravel()
+    if values.size == 0:
+        return {"median": float("nan"), "p95": float("nan"), "likely_bad": float("nan")}
+    filled = np.where(np.isfinite(values), values, np.inf)
+    return {
+        "median": float(np.median(filled)),
+        "p95": float(np.percentile(filled, 95.0)),
+        "likely_bad": float(np.mean(filled > LIKELY_BAD)),
+    }
