@@ -22,8 +22,20 @@ import numpy as np
 
 from .accuracy_blocks import BackgroundResidual
 from .field_spline import FieldSpline
-from .gray_levels import GrayLevelMap, fit_gray_levels
+from .gray_levels import (
+    DEFAULT_CELL,
+    CellSums,
+    GrayLevelMap,
+    block_sums,
+    cells_shape,
+    map_from_sums,
+    start_map,
+)
 from .phase_sums import residual_phase_sums
+from .phases import otsu_stride
+
+#: z-slab of the in-memory passes (voxels).
+SLAB = 32
 
 
 @dataclass(frozen=True)
@@ -59,19 +71,69 @@ class PairStatistics:
         }
 
 
-def _background(sums) -> BackgroundResidual:
-    count = int(sums.same_counts.sum())
+def background_from_sums(same_sums, same_counts, max_label) -> BackgroundResidual:
+    count = int(np.sum(same_counts))
     if count == 0:
         return BackgroundResidual(float("inf"), 0, ())
     per_phase = tuple(
-        (
-            k,
-            float(sums.same_sums[k] / sums.same_counts[k]) if sums.same_counts[k] else np.nan,
-            int(sums.same_counts[k]),
-        )
-        for k in range(sums.max_label + 1)
+        (k, float(same_sums[k] / same_counts[k]) if same_counts[k] else np.nan, int(same_counts[k]))
+        for k in range(max_label + 1)
     )
-    return BackgroundResidual(float(sums.same_sums.sum() / count), count, per_phase)
+    return BackgroundResidual(float(np.sum(same_sums) / count), count, per_phase)
+
+
+def pair_start_map(reference_sample, deformed_sample) -> GrayLevelMap:
+    """The first guess of the map from lattice samples of ``G`` and ``F`` (the scans' own
+    histograms: :func:`.gray_levels.start_map`), the same in memory and block by block."""
+    return start_map(reference_sample, deformed_sample)
+
+
+def lattice(volume) -> np.ndarray:
+    """The lattice sample ``volume[::s, ::s, ::s]`` of multi-Otsu (:func:`.phases.otsu_stride`)."""
+    stride = otsu_stride(np.shape(volume))
+    return np.asarray(volume[::stride, ::stride, ::stride]).ravel()
+
+
+def fit_from_passes(sums_with, start: GrayLevelMap, shape, cell: int = DEFAULT_CELL):
+    """The gray-level map from passes over the blocks (as :func:`.gray_levels.fit_gray_levels`:
+    least squares trimmed by the previous map, twice). ``sums_with(previous)`` returns the
+    :class:`CellSums` of the whole volume with the voxels ``previous`` explains worst left out
+    (a generator: yields progress, returns the sums)."""
+    previous = start
+    for _ in range(2):
+        sums = yield from sums_with(previous)
+        fitted = map_from_sums(sums, shape, cell)
+        if fitted.fitted_voxels < 2 or not np.isfinite(fitted.rms):
+            return fitted if previous.is_identity else previous
+        previous = fitted
+    return previous
+
+
+def same_phase_block(reference_block, moved_block, labels_block, thresholds, gray, region):
+    """Eq. 1's same-phase sums of one block: ``(sums, counts, max_label)`` of
+    ``|gray(moved) - G|`` where both sides hold the same phase."""
+    sums = residual_phase_sums(
+        reference_block, gray.apply(moved_block, region), labels_block, thresholds
+    )
+    return sums.same_sums, sums.same_counts, sums.max_label
+
+
+def choose_best(candidates: dict) -> PairStatistics:
+    """The candidate (name -> (map, BackgroundResidual)) with the smallest ``r0``."""
+    name = min(candidates, key=lambda k: candidates[k][1].mean)
+    gray, background = candidates[name]
+    if not np.isfinite(background.mean):
+        raise ValueError(
+            "no voxel holds the same phase in both states with a finite residual for any field: "
+            "the background residual is undefined (check the thresholds and the fields)"
+        )
+    values = {k: float(v[1].mean) for k, v in candidates.items()}
+    return PairStatistics(gray, background, name, values)
+
+
+def _slabs(shape):
+    for z0 in range(0, shape[0], SLAB):
+        yield (slice(z0, min(z0 + SLAB, shape[0])), slice(0, shape[1]), slice(0, shape[2]))
 
 
 def measure_pair(
@@ -84,6 +146,7 @@ def measure_pair(
     fit_map: bool = True,
     gray_levels: GrayLevelMap | None = None,
     deformed_coefficients: np.ndarray | None = None,
+    cell: int = DEFAULT_CELL,
 ) -> PairStatistics:
     """The pair's map and ``r0``, measured with the best of ``candidates`` (see the module).
 
@@ -104,6 +167,8 @@ def measure_pair(
         A map known already (then nothing is fitted: only ``r0`` is measured with it).
     deformed_coefficients : ndarray, optional
         ``interpolation.prefilter(F)``, to reuse.
+    cell : int
+        Cell of the local map (voxels), as :func:`.gray_levels.fit_gray_levels`.
 
     Raises
     ------
@@ -113,12 +178,14 @@ def measure_pair(
     """
     from . import warp
     from .interpolation import prefilter
+    from .progress import run_to_completion
 
     if not candidates:
         raise ValueError("measuring the pair's background residual needs at least one field")
     coefficients = prefilter(deformed) if deformed_coefficients is None else deformed_coefficients
-    best = None
-    values = {}
+    shape = tuple(int(n) for n in reference.shape)
+    start = pair_start_map(lattice(reference), lattice(deformed))
+    measured = {}
     for name, field in candidates.items():
         moved = warp.pull_back(
             deformed,
@@ -127,20 +194,28 @@ def measure_pair(
             cval=np.nan,
             outside="nan",  # inside the grid's hull, where the field was measured
         )
+
+        def sums_with(previous, moved=moved):
+            total = CellSums.zeros(cells_shape(shape, cell))
+            for region in _slabs(shape):
+                total.add(
+                    block_sums(reference[region], moved[region], region, shape, cell, previous)
+                )
+            return total
+            yield
+
         if gray_levels is not None:
             gray = gray_levels
         elif fit_map:
-            gray = fit_gray_levels(reference, moved)
+            gray = run_to_completion(fit_from_passes(sums_with, start, shape, cell))
         else:
-            gray = GrayLevelMap.identity(reference.shape)
-        sums = residual_phase_sums(reference, gray.apply(moved), labels_reference, thresholds_moved)
-        background = _background(sums)
-        values[str(name)] = background.mean
-        if best is None or background.mean < best[1].mean:
-            best = (gray, background, str(name))
-    if not np.isfinite(best[1].mean):
-        raise ValueError(
-            "no voxel holds the same phase in both states with a finite residual for any field: "
-            "the background residual is undefined (check the thresholds and the fields)"
-        )
-    return PairStatistics(best[0], best[1], best[2], values)
+            gray = GrayLevelMap.identity(shape)
+        same_sums, same_counts, largest = 0.0, 0, -1
+        for region in _slabs(shape):
+            s, c, m = same_phase_block(
+                reference[region], moved[region], labels_reference[region], thresholds_moved,
+                gray, region,
+            )  # fmt: skip
+            same_sums, same_counts, largest = same_sums + s, same_counts + c, max(largest, m)
+        measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
+    return choose_best(measured)

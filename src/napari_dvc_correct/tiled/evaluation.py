@@ -41,8 +41,22 @@ from ..engine.accuracy import (
     plan_evaluation,
 )
 from ..engine.accuracy_blocks import FieldAccumulator, field_block, field_partial
+from ..engine.accuracy_pair import (
+    background_from_sums,
+    choose_best,
+    fit_from_passes,
+    pair_start_map,
+    same_phase_block,
+)
 from ..engine.binning import node_voxels
 from ..engine.field_spline import FieldSpline
+from ..engine.gray_levels import (
+    DEFAULT_CELL,
+    CellSums,
+    GrayLevelMap,
+    block_sums,
+    cells_shape,
+)
 from ..engine.local_accuracy import region_half
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.phases import (
@@ -55,6 +69,7 @@ from ..engine.phases import (
     validate_thresholds,
 )
 from ..engine.progress import Progress, run_to_completion
+from ..engine.warp import pull_back_block
 from ..io.lazy import as_lazy, open_volume
 from ..io.lazy_outputs import create_output
 from . import scheduling
@@ -170,9 +185,61 @@ def _scan_block(reference, deformed, block, stride):
     return out
 
 
+def _pair_sums_block(reference, deformed, spline, block, shape, cell, previous):
+    """The gray-level map's cell sums of one block (:func:`..engine.gray_levels.block_sums`)."""
+    g = reference.read_region(block)
+    moved = pull_back_block(LazySampler(deformed), spline, block, "nan")
+    return block_sums(g, moved, block, shape, cell, previous)
+
+
+def _pair_background_block(reference, deformed, spline, block, thresholds, gray):
+    """Eq. 1's same-phase sums of one block with the map ``gray`` (``thresholds``: the
+    reference's, then the moved scan's)."""
+    g = reference.read_region(block)
+    moved = pull_back_block(LazySampler(deformed), spline, block, "nan")
+    labels = label_phases(g, thresholds[0])
+    return same_phase_block(g, moved, labels, thresholds[1], gray, block)
+
+
+def _measure_pair(volumes, candidates, blocks, shape, thresholds, fit, start, run):
+    """:func:`..engine.accuracy_pair.measure_pair` block by block (generator): for every
+    candidate two passes fit its map, one more measures its ``r0``."""
+    import dask
+
+    measured = {}
+    for name, field in candidates.items():
+        spline = dask.delayed(FieldSpline.from_field(field))
+
+        def sums_with(previous, spline=spline, name=name):
+            task = dask.delayed(_pair_sums_block, pure=False)
+            tasks = [
+                task(*volumes, spline, block, shape, DEFAULT_CELL, previous) for block in blocks
+            ]
+            parts = yield from run(tasks, f"gray levels ({name})")
+            total = CellSums.zeros(cells_shape(shape, DEFAULT_CELL))
+            for part in parts:
+                total.add(part)
+            return total
+
+        if isinstance(fit, GrayLevelMap):
+            gray = fit
+        elif fit:
+            gray = yield from fit_from_passes(sums_with, start, shape, DEFAULT_CELL)
+        else:
+            gray = GrayLevelMap.identity(shape)
+        task = dask.delayed(_pair_background_block, pure=False)
+        tasks = [task(*volumes, spline, block, thresholds, gray) for block in blocks]
+        parts = yield from run(tasks, f"background ({name})")
+        same_sums = sum(p[0] for p in parts)
+        same_counts = sum(p[1] for p in parts)
+        largest = max(p[2] for p in parts)
+        measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
+    return choose_best(measured)
+
+
 def _evaluate_block(reference, deformed, splines, block, setup, outputs):
     """Phases of both states and every field's totals in one block; writes the volumes asked."""
-    mode, thresholds, plan, centers, halves = setup
+    mode, thresholds, plan, centers, halves, mapping, mapped_levels = setup
     g = reference.read_region(block)
     f = deformed.read_region(block)
     labels = [label_phases(g, thresholds[0]), label_phases(f, thresholds[1])]
@@ -184,9 +251,11 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs):
         if key in outputs:
             outputs[key].write(block, lab)
     if mode == "reference":
-        own, other, own_labels, other_thresholds = g, deformed, labels[0], thresholds[1]
+        own, other, own_labels = g, deformed, labels[0]
+        other_thresholds = thresholds[0] if mapped_levels else thresholds[1]
     else:
-        own, other, own_labels, other_thresholds = f, reference, labels[1], thresholds[0]
+        own, other, other_thresholds = f, reference, thresholds[0]
+        own_labels = None if mapping is not None else labels[1]
 
     sampler = LazySampler(other)  # a callable, and a one-pass pull-back (reference mode)
 
@@ -194,7 +263,7 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs):
     for index, ((name, _), spline) in enumerate(zip(plan.named, splines)):
         result, _, residual, mapped = field_block(
             own, sampler, spline, block, mode, other_thresholds, own_labels,
-            plan.bin_fields[index], centers[index], halves[index],
+            plan.bin_fields[index], centers[index], halves[index], mapping,
         )  # fmt: skip
         for key, values in ((("residual", name), residual), (("labels_mapped", name), mapped)):
             if key in outputs:
@@ -250,6 +319,9 @@ def evaluate_tiled_iter(
     max_memory=None,
     workers: int | None = None,
     scheduler=None,
+    gray_levels=True,
+    background_fields=None,
+    pair=None,
 ) -> Iterator[Progress]:
     """:func:`..engine.accuracy.evaluate_iter` on lazily read volumes, block by block (generator).
 
@@ -261,8 +333,10 @@ def evaluate_tiled_iter(
     reference, deformed : lazy volume, path or array
         ``G`` and ``F`` (:func:`..io.lazy.as_lazy`), of one shape.
     fields, phases, phases_deformed, n_phases, phase_pair, mode, strain_measure, strain_method, \
-strain_window, n_bins, bin_edges, shared_background, bin_by
+strain_window, n_bins, bin_edges, shared_background, bin_by, gray_levels, background_fields, pair
         As :func:`..engine.accuracy.evaluate_iter` (fields must be finite: clean them first).
+        The pair's map and ``r0`` are measured block by block, three passes per candidate
+        field (two fit the map, one measures ``r0``), as in memory.
     outputs : dict, optional
         Volumes to write, key -> path (``.zarr``, ``.tif``): ``"labels_reference"``,
         ``"labels_deformed"`` (uint8 phases), ``("residual", name)`` (float32, NaN where
@@ -360,7 +434,7 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
         for choice, is_auto in zip(choices, auto):
             if isinstance(choice, str) and not is_auto:
                 raise ValueError(f"phases must be 'auto' or a list of thresholds, got {choice!r}")
-        stride = otsu_stride(shape) if any(auto) else None
+        stride = otsu_stride(shape)  # multi-Otsu's lattice, and the gray-level map's start
         volumes = [dask.delayed(reference), dask.delayed(deformed)]
         scan = dask.delayed(_scan_block, pure=False)
         tasks = [scan(*volumes, block, stride) for block in blocks]
@@ -376,6 +450,22 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
                 thresholds.append(validate_thresholds(choice, (low, high), name))
         check_same_phase_count(*thresholds)
 
+        def run(tasks, stage):
+            return (yield from _run(tasks, scheduler, workers, client, stage))
+
+        mapped_levels = gray_levels is not False
+        if pair is None:
+            candidates = dict(background_fields) if background_fields else dict(plan.named)
+            start = pair_start_map(
+                np.concatenate([item[0][2] for item in scanned]),
+                np.concatenate([item[1][2] for item in scanned]),
+            )
+            moved_thresholds = (thresholds[0], thresholds[0] if mapped_levels else thresholds[1])
+            pair = yield from _measure_pair(
+                volumes, candidates, blocks, shape, moved_thresholds, gray_levels, start, run
+            )
+        mapping = None if pair.gray_levels.is_identity else pair.gray_levels
+
         # pass 2: phases and every field's totals, block by block
         for key, path in outputs.items():
             dtype = np.float32 if metadata[key]["quantity"] == "gray residual" else np.uint8
@@ -389,6 +479,8 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
             plan,
             [node_voxels(item, shape) for item in items],
             [region_half(item) for item in items],
+            mapping,
+            mapped_levels,
         )
         task = dask.delayed(_evaluate_block, pure=False)
         shared = [dask.delayed(setup), dask.delayed(created)]
@@ -434,7 +526,7 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
         for k, (name, _) in enumerate(plan.named)
     ]
     labels = (final.get("labels_reference"), final.get("labels_deformed"))
-    return assemble_evaluation(plan, tuple(thresholds), tables, phase_pair, partial, labels)
+    return assemble_evaluation(plan, tuple(thresholds), tables, phase_pair, partial, labels, pair)
 
 
 def evaluate_tiled(reference, deformed, fields, **options):
