@@ -199,8 +199,9 @@ class FieldEvaluation:
     labels_mapped : ndarray or None
         Phases of the other state brought onto the residual's voxels by the field, uint8
         (:data:`~.phases.NO_PHASE` where undefined; kept with ``keep_volumes``).
-    local_gradient : ndarray, shape field.shape
-        RMS gray gradient over each node's region (gray levels per voxel).
+    local_gradient, cell_residual : ndarray, shape field.shape
+        RMS gray gradient and mean residual over each node's cell
+        (:func:`.error_estimate.error_region_half`; gray levels per voxel, gray levels).
     error_estimate : ndarray, shape field.shape
         Estimated displacement error per node, voxels (:mod:`.error_estimate`).
     """
@@ -221,6 +222,7 @@ class FieldEvaluation:
     residual: np.ndarray | None = None
     labels_mapped: np.ndarray | None = None
     local_gradient: np.ndarray | None = None
+    cell_residual: np.ndarray | None = None
     error_estimate: np.ndarray | None = None
 
     @property
@@ -445,7 +447,7 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels, p
     for p in partial:
         r0 = shared if plan.options["shared_background"] else p["background"].mean
         local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
-        estimate = error_estimate(p["field"], p["local_residual"], p["local_gradient"], shared)
+        estimate = error_estimate(p["field"], p["cell_residual"], p["local_gradient"], shared)
         results.append(
             FieldEvaluation(
                 **p,
@@ -556,6 +558,7 @@ def evaluate_iter(
     """
     from .accuracy_blocks import FieldAccumulator, field_block, field_partial
     from .binning import node_voxels
+    from .error_estimate import error_region_half
     from .field_spline import FieldSpline
     from .interpolation import prefilter
     from .pair_checks import check_pair_and_fields
@@ -621,7 +624,7 @@ def evaluate_iter(
             block, _, block_residual, block_mapped = field_block(
                 own[z], sampler, spline, box, mode, other_thresholds,
                 None if own_labels is None else own_labels[z], plan.bin_fields[index], centers,
-                half, mapping,
+                half, mapping, error_region_half(item),
             )  # fmt: skip
             totals.add(block)
             if keep_volumes:

@@ -153,7 +153,8 @@ class BlockTotals:
     max_label: int  # largest defined phase of the own state in the block (-1: none)
     cells: GridPart  # residual per node cell of the binning field's grid
     nodes: GridPart  # residual per node box of this field (local residual)
-    gradients: GridPart | None = None  # |grad own|^2 per node box (the error estimate's scale)
+    gradients: GridPart | None = None  # |grad own|^2 per node cell (the error estimate's scale)
+    error_nodes: GridPart | None = None  # residual per node cell (the error estimate's region)
 
 
 def field_block(
@@ -168,6 +169,7 @@ def field_block(
     centers,
     half: int,
     gray_levels: GrayLevelMap | None = None,
+    error_half: int | None = None,
 ) -> tuple[BlockTotals, np.ndarray, np.ndarray, np.ndarray]:
     """Moved volume, residual and mapped phases of one block, and its totals.
 
@@ -204,6 +206,9 @@ def field_block(
         Node voxels of the field (:func:`node_voxels`) and the half-size of their regions.
     gray_levels : GrayLevelMap, optional
         The pair's gray-level map (None: the raw residual).
+    error_half : int, optional
+        Half-size of the boxes of the error estimate (the node's cell,
+        :func:`.error_estimate.error_region_half`; default ``half``).
 
     Returns
     -------
@@ -233,6 +238,7 @@ def field_block(
         own_block = gray_levels.apply(own_block, box)
     if own_labels is None:
         own_labels = label_phases(own_block, thresholds_other)
+    error_half = half if error_half is None else int(error_half)
     sums = residual_phase_sums(own_block, moved, own_labels, thresholds_other)
     residual = sums.residual
     totals = BlockTotals(
@@ -243,7 +249,8 @@ def field_block(
         max_label=sums.max_label,
         cells=cell_sums_block(residual, box, bin_field, positions),
         nodes=node_box_sums(residual, box, centers, half),
-        gradients=node_box_sums(squared_gradient(own_block), box, centers, half),
+        gradients=node_box_sums(squared_gradient(own_block), box, centers, error_half),
+        error_nodes=node_box_sums(residual, box, centers, error_half),
     )
     return totals, moved, residual, sums.mapped
 
@@ -263,6 +270,8 @@ class FieldAccumulator:
         self.node_counts = np.zeros(field.shape, np.int64)
         self.gradient_sums = np.zeros(field.shape)
         self.gradient_counts = np.zeros(field.shape, np.int64)
+        self.error_sums = np.zeros(field.shape)
+        self.error_counts = np.zeros(field.shape, np.int64)
 
     def add(self, block: BlockTotals) -> None:
         self.residual_sum += block.residual_sum
@@ -274,6 +283,8 @@ class FieldAccumulator:
         block.nodes.add_to(self.node_sums, self.node_counts)
         if block.gradients is not None:
             block.gradients.add_to(self.gradient_sums, self.gradient_counts)
+        if block.error_nodes is not None:
+            block.error_nodes.add_to(self.error_sums, self.error_counts)
 
     @property
     def mean_residual(self) -> float:
@@ -295,9 +306,17 @@ class FieldAccumulator:
         )
         return BackgroundResidual(mean=float(sums.sum() / total), voxels=total, per_phase=per_phase)
 
+    def cell_residual(self) -> np.ndarray:
+        """Mean residual over every node's cell (the error estimate's region; NaN where it
+        holds no finite voxel)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(
+                self.error_counts > 0, self.error_sums / np.maximum(self.error_counts, 1), np.nan
+            )
+
     def local_gradient(self) -> np.ndarray:
-        """RMS gray gradient ``sqrt(mean |grad|^2)`` over every node's box (gray levels per
-        voxel; NaN where the box holds no finite voxel)."""
+        """RMS gray gradient ``sqrt(mean |grad|^2)`` over every node's cell (gray levels per
+        voxel; NaN where the cell holds no finite voxel)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(
                 self.gradient_counts > 0,
@@ -336,6 +355,7 @@ def field_partial(plan, index: int, totals: FieldAccumulator, residual, mapped):
         ),
         local_residual=totals.local_residual(),
         local_gradient=totals.local_gradient(),
+        cell_residual=totals.cell_residual(),
         residual=residual,
         labels_mapped=mapped,
     )

@@ -49,6 +49,7 @@ from ..engine.accuracy_pair import (
     same_phase_block,
 )
 from ..engine.binning import node_voxels
+from ..engine.error_estimate import error_region_half
 from ..engine.field_spline import FieldSpline
 from ..engine.gray_levels import (
     DEFAULT_CELL,
@@ -264,6 +265,7 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs):
         result, _, residual, mapped = field_block(
             own, sampler, spline, block, mode, other_thresholds, own_labels,
             plan.bin_fields[index], centers[index], halves[index], mapping,
+            error_region_half(plan.named[index][1]),
         )  # fmt: skip
         for key, values in ((("residual", name), residual), (("labels_mapped", name), mapped)):
             if key in outputs:
