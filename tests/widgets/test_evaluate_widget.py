@@ -96,6 +96,12 @@ def test_evaluate_adds_residual_layers_and_plots(correlated, run_panel, small):
 
 
 def test_same_layer_twice_a_message(correlated):
+    from napari_dvc_correct.layers import fields_in
+
+    # a field whose own volumes are open is evaluated on them whatever the panel's pair (a
+    # series opened as separate layers, issue 26); without them, the panel's pair is checked
+    for field in fields_in(correlated.viewer.layers).values():
+        field.metadata.pop("deformed_layer", None)
     widget = _dock(correlated.viewer)
     widget.deformed.set_layer("reference")
     assert widget.run() is None

@@ -291,7 +291,7 @@ class EvaluateWidget(EngineWidget):
             return model.run_groups(
                 groups, self.thresholds(), self.mode.currentData(), memory, tiled
             )
-        _, reference, deformed, chosen = groups[0]
+        _, reference, deformed, chosen, known = groups[0]
         self._outputs, memory, self._writing = None, None, None
         self._release_temporary()  # folders of earlier runs no layer reads any more
         if self.tiled.isChecked():
@@ -306,6 +306,7 @@ class EvaluateWidget(EngineWidget):
             self.mode.currentData(),
             outputs=self._outputs,
             max_memory=memory,
+            background_fields=known,
         )
 
     def _panel_pair(self):
@@ -322,20 +323,43 @@ class EvaluateWidget(EngineWidget):
     def _groups(self, chosen: dict) -> list:
         """Chosen fields grouped by the pair of volumes they were measured on.
 
-        A field measured on the states of a series (``"scan[2]"``) is evaluated on them; the
-        others on the panel's reference and deformed volumes.
+        A field whose metadata names volumes open in the viewer — the states of a series
+        (``"scan[2]"``) or separate layers — is evaluated on them; the others on the panel's
+        reference and deformed volumes. Each entry is ``(label, reference, deformed, chosen,
+        known)``, ``known`` every field of the viewer on that pair, ticked or not: the pair's
+        gray-level map and ``r0`` are measured with the best of them.
         """
+        panel = (self.reference.currentText(), self.deformed.currentText())
+
+        def key_of(field):
+            pair = (field.metadata.get("reference_layer"), field.metadata.get("deformed_layer"))
+            if not all(pair) or pair == panel:
+                return None
+            try:
+                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
+            except ValueError:  # not open any more: the panel's pair
+                return None
+            return pair if volumes[0].shape == volumes[1].shape else None
+
+        every = L.fields_in(self.viewer.layers)
+        keys = {name: key_of(field) for name, field in every.items()}
         groups: dict = {}
         for name, field in chosen.items():
-            pair = (field.metadata.get("reference_layer"), field.metadata.get("deformed_layer"))
-            if "[" in str(pair[1]):
-                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
-                label = f"state {pair[1].rsplit('[', 1)[1].rstrip(']')}"
-            else:
-                pair, label = None, ""
+            pair = keys.get(name, key_of(field))
+            if pair is None:
+                label = ""
                 volumes = groups[None][1:3] if None in groups else self._panel_pair()
-            entry = groups.setdefault(pair, [label, *volumes, {}])
+            else:
+                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
+                if "[" in str(pair[1]):
+                    label = f"state {pair[1].rsplit('[', 1)[1].rstrip(']')}"
+                else:
+                    label = f"{pair[0]} → {pair[1]}"
+            entry = groups.setdefault(pair, [label, *volumes, {}, {}])
             entry[3][name] = field
+        for pair, entry in groups.items():
+            entry[4].update({n: f for n, f in every.items() if keys.get(n) == pair})
+            entry[4].update(entry[3])
         return [tuple(entry) for entry in groups.values()]
 
     def _release_temporary(self, event=None) -> None:
