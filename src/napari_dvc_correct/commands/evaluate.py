@@ -58,6 +58,21 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="the two phases A,B whose gray contrast is used in eq. 2 (default: most abundant)",
     )
     group.add_argument(
+        "--background-field",
+        action="append",
+        default=[],
+        metavar="OTHER.npz",
+        help="another field known on this pair, not evaluated (repeatable): the pair's "
+        "gray-level map and background residual r0 are measured with the best of all the fields "
+        "given, so a field's r0 and p do not depend on which are evaluated",
+    )
+    group.add_argument(
+        "--raw-gray-levels",
+        action="store_true",
+        help="no gray-level map: the raw residual |F~ - G| (default: the loaded scan's gray "
+        "levels are mapped onto the reference's first)",
+    )
+    group.add_argument(
         "--own-background",
         action="store_true",
         help="use each field's own background residual instead of one shared (smallest) value",
@@ -173,7 +188,9 @@ def run(args) -> int:
     names = _names(args)
     paths = [args.field, *args.compare]
     out_dir = check_output_dir(
-        args.out_dir, inputs=(args.reference, args.deformed, *paths), patterns=REPORT_PATTERNS
+        args.out_dir,
+        inputs=(args.reference, args.deformed, *paths, *args.background_field),
+        patterns=REPORT_PATTERNS,
     )
     loaded = {  # --format is --field's; the --compare fields' formats are sniffed
         name: read_input_field(args, path, sniff=k > 0).field
@@ -193,6 +210,10 @@ def run(args) -> int:
         fields[name], note = ready_for_evaluation(field, name)
         if note:
             print(note)
+    known = dict(fields)
+    for k, path in enumerate(args.background_field):
+        name = f"background {k + 1}: {Path(path).stem}"
+        known[name], _ = ready_for_evaluation(read_input_field(args, path, sniff=True).field, name)
     options = dict(
         phases=phases,
         phases_deformed=phases_deformed,
@@ -205,6 +226,8 @@ def run(args) -> int:
         n_bins=args.bins,
         bin_by=args.bin_by,
         shared_background=not args.own_background,
+        gray_levels=not args.raw_gray_levels,
+        background_fields=known,
     )
     inputs = {
         "reference": f"{args.reference} {tuple(reference.shape)}",
@@ -223,11 +246,25 @@ def run(args) -> int:
         if evaluation is None:  # tiled: the volumes are written into the set as they are made
             evaluation = _evaluate_tiled(args, reference, deformed, fields, options, temp)
         files = write_report(evaluation, temp, inputs=inputs, volumes=not args.no_volumes)
+    print(
+        f"mean gray residual: mean of {evaluation.residual_text}; gray levels "
+        f"{evaluation.gray_levels.describe()}; background r0 {evaluation.pair.background.mean:.4g}"
+        f" (the pair's, measured with '{evaluation.pair.measured_with}')"
+    )
     for item in evaluation.fields:
+        error = item.error
+        if not item.meaningful:
+            print(
+                f"WARNING {item.name}: only {item.measured_nodes} of {item.field.n_points} nodes "
+                "were measured (the rest inpainted): its accuracy index is not meaningful"
+            )
         print(
             f"{item.name}: mean residual {item.mean_residual:.3f}, background "
             f"{item.background_used:.3f}, accuracy index {item.accuracy:.4f}, "
-            f"local accuracy index {item.local_accuracy_index:.4f}"
+            f"local accuracy index {item.local_accuracy_index:.4f}, error estimate median "
+            f"{error['median']:.3f} voxel (95 % {error['p95']:.3f}, "
+            f"{100 * error['likely_bad']:.0f} % of nodes likely > 0.5 voxel), measured nodes "
+            f"{item.measured_nodes}/{item.field.n_points}"
         )
     count = sum(len(paths) for paths in files.values())
     print(f"wrote {count} files to {out_dir} (open {out_dir / 'report.md'})")

@@ -556,7 +556,12 @@ def evaluate_iter(
     ValueError
         Bad thresholds, an empty phase, a field that does not fit the volume or holds NaN.
     """
-    from .accuracy_blocks import FieldAccumulator, field_block, field_partial
+    from .accuracy_blocks import (
+        FieldAccumulator,
+        field_block,
+        field_partial,
+        halo_squared_gradient,
+    )
     from .binning import node_voxels
     from .error_estimate import error_region_half
     from .field_spline import FieldSpline
@@ -594,6 +599,10 @@ def evaluate_iter(
 
         yield Progress("pair", 0, 1, "gray-level map and background residual of the pair")
         candidates = dict(plan.named) if not background_fields else dict(background_fields)
+        for name, item in candidates.items():
+            check_field_fits(item, reference.shape, name=f"field {name!r}")
+            if not np.all(np.isfinite(item.u)):
+                raise ValueError(f"field {name!r} holds NaN displacements: clean it first")
         pair = measure_pair(
             reference, deformed, candidates, thresholds_g if mapped_levels else thresholds_f,
             labels_g, fit_map=gray_levels is True,
@@ -621,10 +630,13 @@ def evaluate_iter(
         residual = np.empty(own.shape, np.float32) if keep_volumes else None
         mapped = np.empty(own.shape, np.uint8) if keep_volumes else None
         for z, box in slab_boxes(own.shape):
+            gradient2 = halo_squared_gradient(  # whole-volume central differences
+                own.__getitem__, box, own.shape, None if mode == "reference" else mapping
+            )
             block, _, block_residual, block_mapped = field_block(
                 own[z], sampler, spline, box, mode, other_thresholds,
                 None if own_labels is None else own_labels[z], plan.bin_fields[index], centers,
-                half, mapping, error_region_half(item),
+                half, mapping, error_region_half(item), gradient2,
             )  # fmt: skip
             totals.add(block)
             if keep_volumes:

@@ -141,6 +141,21 @@ def squared_gradient(block: np.ndarray) -> np.ndarray:
     return total
 
 
+def halo_squared_gradient(read_region, box, shape, gray_levels=None) -> np.ndarray:
+    """:func:`squared_gradient` of the block ``box`` read with a one-voxel halo, so that any
+    cutting of the volume into blocks gives the whole volume's central differences.
+
+    ``read_region(slices)`` returns the voxels of a region of the state the residual lives on;
+    ``gray_levels`` (a map, or None) is applied to them first (the loaded state, mapped).
+    """
+    grown = tuple(slice(max(0, s.start - 1), min(int(n), s.stop + 1)) for s, n in zip(box, shape))
+    values = np.asarray(read_region(grown), dtype=np.float32)
+    if gray_levels is not None:
+        values = gray_levels.apply(values, grown)
+    inner = tuple(slice(s.start - g.start, s.stop - g.start) for s, g in zip(box, grown))
+    return squared_gradient(values)[inner]
+
+
 # --- one block of one field -----------------------------------------------------------------------
 @dataclass
 class BlockTotals:
@@ -170,6 +185,7 @@ def field_block(
     half: int,
     gray_levels: GrayLevelMap | None = None,
     error_half: int | None = None,
+    gradient2: np.ndarray | None = None,
 ) -> tuple[BlockTotals, np.ndarray, np.ndarray, np.ndarray]:
     """Moved volume, residual and mapped phases of one block, and its totals.
 
@@ -207,8 +223,11 @@ def field_block(
     gray_levels : GrayLevelMap, optional
         The pair's gray-level map (None: the raw residual).
     error_half : int, optional
-        Half-size of the boxes of the error estimate (the node's cell,
-        :func:`.error_estimate.error_region_half`; default ``half``).
+        Half-size of the boxes of the error estimate (:func:`.error_estimate.error_region_half`;
+        default ``half``).
+    gradient2 : ndarray, shape box_shape(box), optional
+        ``|grad own|²`` of the block (:func:`halo_squared_gradient`; default: from the block
+        alone, one-sided at its faces).
 
     Returns
     -------
@@ -249,7 +268,12 @@ def field_block(
         max_label=sums.max_label,
         cells=cell_sums_block(residual, box, bin_field, positions),
         nodes=node_box_sums(residual, box, centers, half),
-        gradients=node_box_sums(squared_gradient(own_block), box, centers, error_half),
+        gradients=node_box_sums(
+            squared_gradient(own_block) if gradient2 is None else gradient2,
+            box,
+            centers,
+            error_half,
+        ),
         error_nodes=node_box_sums(residual, box, centers, error_half),
     )
     return totals, moved, residual, sums.mapped

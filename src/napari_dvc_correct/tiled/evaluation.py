@@ -40,7 +40,12 @@ from ..engine.accuracy import (
     phase_contrast,
     plan_evaluation,
 )
-from ..engine.accuracy_blocks import FieldAccumulator, field_block, field_partial
+from ..engine.accuracy_blocks import (
+    FieldAccumulator,
+    field_block,
+    field_partial,
+    halo_squared_gradient,
+)
 from ..engine.accuracy_pair import (
     background_from_sums,
     choose_best,
@@ -259,13 +264,17 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs):
         own_labels = None if mapping is not None else labels[1]
 
     sampler = LazySampler(other)  # a callable, and a one-pass pull-back (reference mode)
+    own_volume = reference if mode == "reference" else deformed
+    gradient2 = halo_squared_gradient(
+        own_volume.read_region, block, own_volume.shape, None if mode == "reference" else mapping
+    )
 
     totals = []
     for index, ((name, _), spline) in enumerate(zip(plan.named, splines)):
         result, _, residual, mapped = field_block(
             own, sampler, spline, block, mode, other_thresholds, own_labels,
             plan.bin_fields[index], centers[index], halves[index], mapping,
-            error_region_half(plan.named[index][1]),
+            error_region_half(plan.named[index][1]), gradient2,
         )  # fmt: skip
         for key, values in ((("residual", name), residual), (("labels_mapped", name), mapped)):
             if key in outputs:
