@@ -88,6 +88,14 @@ def test_evaluate_adds_residual_layers_and_plots(correlated, run_panel, small):
     assert 0 < item["background residual r0"] <= item["mean gray residual"] + 1e-9
     assert 0.9 < item["accuracy index p"] <= 1.0 + 1e-9
     assert "accuracy index p" in widget.summary.text()
+    # one stated residual, the pair's r0, the error estimate, left on the field for View
+    text = widget.summary.text()
+    assert "reference frame" in text and "error estimate median" in text and "r0 =" in text
+    assert item["error estimate median (voxels)"] < 0.5
+    from napari_dvc_correct.layers import fields_in
+    from napari_dvc_correct.quantities import available_quantities
+
+    assert "error estimate" in available_quantities(fields_in(viewer.layers)["uncorrected"])
     residual_axes, accuracy_axes = widget.curves.axes
     assert len(residual_axes.lines) == 1 and len(accuracy_axes.lines) == 1
     np.testing.assert_allclose(

@@ -142,3 +142,37 @@ def error_summary(estimate, nodes=None) -> dict:
             "p95": float(np.percentile(filled, 95.0, method="higher")),
             "likely_bad": float(np.mean(filled > LIKELY_BAD)),
         }
+
+
+#: Key of ``field.metadata`` where an evaluation leaves its estimate (View, exports).
+METADATA_KEY = "error_estimate"
+
+
+def attach_estimate(field, estimate, **info) -> None:
+    """Keep ``estimate`` (voxels, the field's grid) in ``field.metadata["error_estimate"]``
+    (JSON-ready: NaN as None), with ``info`` (e.g. the pair's r0, the residual's frame), so the
+    View panel shows it and every export writes it as a per-node column."""
+    values = np.asarray(estimate, dtype=np.float64)
+    if values.shape != tuple(field.shape):
+        raise ValueError(f"estimate {values.shape} is not on the field's grid {field.shape}")
+    as_list = np.where(np.isfinite(values), np.round(values, 6), np.nan).tolist()
+    field.metadata[METADATA_KEY] = {
+        "voxels": _none_for_nan(as_list),
+        **{k: v for k, v in info.items()},
+    }
+
+
+def _none_for_nan(values):
+    if isinstance(values, list):
+        return [_none_for_nan(v) for v in values]
+    return None if values != values else values
+
+
+def estimate_of(field) -> np.ndarray | None:
+    """The estimate an evaluation left on ``field`` (voxels, ``field.shape``; NaN where
+    undefined), or None."""
+    entry = (getattr(field, "metadata", None) or {}).get(METADATA_KEY)
+    if not isinstance(entry, dict) or "voxels" not in entry:
+        return None
+    values = np.asarray(entry["voxels"], dtype=np.float64)  # None -> NaN
+    return values if values.shape == tuple(field.shape) else None

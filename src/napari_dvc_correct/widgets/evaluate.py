@@ -284,6 +284,7 @@ class EvaluateWidget(EngineWidget):
         self._placement = (
             layer_placement(self.reference.layer()) if self.reference.layer() else None
         )
+        self._chosen = dict(chosen)  # the layers' fields: the estimates go onto them
         groups = self._groups(chosen)
         if len(groups) > 1:  # a series: each state against its own pair of volumes
             tiled = self.tiled.isChecked()
@@ -372,7 +373,17 @@ class EvaluateWidget(EngineWidget):
                 in_use.append(entry[TEMPORARY_KEY])
         self._temporary.release(in_use)
 
+    def _attach_estimates(self, evaluations) -> None:
+        """Leave each field's error estimate on the field its layers carry (View shows it,
+        exports write it)."""
+        chosen = getattr(self, "_chosen", {})
+        for _, evaluation in evaluations:
+            for item in evaluation.fields:
+                if item.name in chosen and item.error_estimate is not None:
+                    model.attach_estimate(chosen[item.name], item, evaluation)
+
     def on_result(self, evaluation) -> None:
+        self._attach_estimates(evaluation if isinstance(evaluation, list) else [("", evaluation)])
         if isinstance(evaluation, list):  # a series: one evaluation per state
             self.evaluations = evaluation
             self.evaluation = evaluation[-1][1]

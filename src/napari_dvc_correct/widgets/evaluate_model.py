@@ -282,6 +282,20 @@ def evaluation_report(evaluation) -> dict:
     return report
 
 
+def attach_estimate(field, item, evaluation) -> None:
+    """Leave ``item``'s error estimate on ``field`` (the layer's), with what it was measured
+    against (:func:`..engine.error_estimate.attach_estimate`)."""
+    from ..engine.error_estimate import attach_estimate as attach
+
+    attach(
+        field,
+        item.error_estimate,
+        background_residual=float(evaluation.pair.background.mean),
+        residual=evaluation.residual_text,
+        gray_levels=evaluation.gray_levels.describe(),
+    )
+
+
 def field_lines(item) -> list[str]:
     """The dock's lines for one field: a warning first when most nodes were not measured, then
     the mean residual, p and the error estimate."""
