@@ -82,3 +82,37 @@ def test_a_mostly_inpainted_field_is_not_certified(pair):
     assert summary_rows(result)[0]["accuracy_meaningful"] == "no"
     first = render_markdown(result).split("\n\n")[1]
     assert "Warning" in first and "only 3 of 27 nodes were measured" in first
+
+
+def test_a_specimen_region_keeps_the_air_out_of_phases_r0_and_residuals():
+    """A concrete cylinder in air: without a region the two phases are air and concrete; with
+    the cylinder they are matrix and aggregates, and no air voxel enters any number."""
+    from napari_dvc_correct.engine.accuracy import specimen_mask
+    from napari_dvc_correct.engine.placement import Cylinder
+    from napari_dvc_correct.engine.synthetic import (
+        concrete_ct_volume,
+        ct_noise_sigma,
+        make_pair,
+        translation,
+    )
+
+    shape = (40, 48, 48)
+    truth = translation((0.6, -1.2, 0.9))
+    reference, deformed = make_pair(lambda s: concrete_ct_volume(s, seed=2), shape, truth, 8)
+    sigma = ct_noise_sigma(reference, 0.02)
+    reference, deformed = add_noise(reference, sigma, seed=3), add_noise(deformed, sigma, seed=4)
+    origin, step, grid = grid_for_volume(shape, 11, 6)
+    base = DisplacementField.zeros(origin, step, grid, params={"subvolume": 11})
+    field = base.replace(u=sample_displacement(truth, base.points).reshape((*grid, 3)))
+    cylinder = Cylinder((23.5, 23.5), 0.46 * 48 - 3.0)
+    region = specimen_mask(shape, cylinder)
+    assert 0.4 < region.mean() < 0.7
+    whole = evaluate_fields(reference, deformed, {"f": field}, keep_volumes=True)
+    inside = evaluate_fields(reference, deformed, {"f": field}, region=region)
+    # without the region, phase 0 is the air (gray ~0.1); inside, both phases are concrete
+    assert whole.phases_reference[0].mean_gray < 0.2
+    assert min(s.mean_gray for s in inside.phases_reference) > 0.5
+    assert sum(s.voxels for s in inside.phases_reference) == int(region.sum())
+    assert np.all(np.isnan(inside["f"].residual[~region]))
+    assert inside["f"].voxels <= int(region.sum())
+    assert inside.contrast < 0.2 * whole.contrast  # aggregates are 5 % brighter, not air

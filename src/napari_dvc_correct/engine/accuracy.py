@@ -476,6 +476,56 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels, p
     )
 
 
+def check_region(region, shape) -> np.ndarray:
+    """The specimen region as a boolean array of ``shape``, refused when empty or misshapen."""
+    region = np.asarray(region) != 0
+    if region.shape != tuple(shape):
+        raise ValueError(
+            f"the specimen region {region.shape} must have the reference volume's shape {shape}"
+        )
+    if not region.any():
+        raise ValueError("the specimen region holds no voxel: draw or choose another one")
+    return region
+
+
+def specimen_mask(shape, region) -> np.ndarray:
+    """Boolean volume of ``shape``: the voxels whose centres ``region`` (a
+    :class:`.placement.Box` or :class:`.placement.Cylinder`, voxels z, y, x) contains."""
+    shape = tuple(int(n) for n in shape)
+    mask = np.empty(shape, bool)
+    yy, xx = np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij")
+    plane = np.stack([np.zeros(yy.size), yy.ravel(), xx.ravel()], axis=1)
+    for z in range(shape[0]):
+        plane[:, 0] = z
+        mask[z] = region.contains(plane).reshape(shape[1:])
+    return mask
+
+
+def region_phases(volume, choice, n_phases, region, name):
+    """Thresholds (multi-Otsu over the region's voxels, or the user's), labels (NO_PHASE
+    outside the region) and Table 1 of one state over a specimen region."""
+    from .phases import label_phases, otsu_stride, otsu_thresholds, validate_thresholds
+
+    inside = np.where(region, np.asarray(volume, np.float64), np.nan)
+    if choice is None or (isinstance(choice, str) and choice == "auto"):
+        stride = otsu_stride(volume.shape)
+        thresholds = otsu_thresholds(inside[::stride, ::stride, ::stride], n_phases)
+    elif isinstance(choice, str):
+        raise ValueError(f"phases must be 'auto' or a list of thresholds, got {choice!r}")
+    else:
+        values = inside[np.isfinite(inside)]
+        thresholds = validate_thresholds(choice, (values.min(), values.max()), name)
+    labels = label_phases(inside, thresholds)  # NaN outside the region: NO_PHASE
+    table = phase_table(inside, labels, thresholds)
+    empty = [s.phase for s in table if s.voxels == 0]
+    if empty:
+        raise ValueError(
+            f"phase {empty[0]} has no voxel inside the specimen region of the {name}: move the "
+            "thresholds or ask for fewer phases"
+        )
+    return thresholds, labels, table
+
+
 def evaluate_iter(
     reference: np.ndarray,
     deformed: np.ndarray,
@@ -497,6 +547,7 @@ def evaluate_iter(
     gray_levels: bool | GrayLevelMap = True,
     background_fields: Mapping[str, DisplacementField] | None = None,
     pair: PairStatistics | None = None,
+    region: np.ndarray | None = None,
 ) -> Iterator[Progress]:
     """Evaluate one or several fields on the same pair of volumes (generator).
 
@@ -550,6 +601,11 @@ def evaluate_iter(
     pair : PairStatistics, optional
         The pair's map and ``r0`` measured already (then ``gray_levels`` and
         ``background_fields`` are not used).
+    region : ndarray of bool, shape (nz, ny, nx), optional
+        The specimen region in the reference (True inside; :func:`specimen_mask` makes one from
+        a box or a cylinder): the phase thresholds, Table 1 of both states, the gray-level map,
+        ``r0`` and every residual statistic use only its voxels (in loaded mode, the loaded
+        voxels at the same indices: the displacements are a few voxels).
 
     Raises
     ------
@@ -579,16 +635,28 @@ def evaluate_iter(
     check_pair_and_fields(reference, deformed, dict(plan.named))  # finite volumes, shape
 
     yield Progress("phases", 0, 2, "segmenting the phases")
-    thresholds_g = phase_thresholds(reference, phases, n_phases, "reference volume")
     phases_f = phases if phases_deformed is None else phases_deformed
-    thresholds_f = phase_thresholds(deformed, phases_f, n_phases, "deformed volume")
-    check_same_phase_count(thresholds_g, thresholds_f)
-    labels_g = segment_phases(reference, thresholds_g, "reference volume")
-    labels_f = segment_phases(deformed, thresholds_f, "deformed volume")
-    tables = (
-        phase_table(reference, labels_g, thresholds_g),
-        phase_table(deformed, labels_f, thresholds_f),
-    )
+    if region is None:
+        thresholds_g = phase_thresholds(reference, phases, n_phases, "reference volume")
+        thresholds_f = phase_thresholds(deformed, phases_f, n_phases, "deformed volume")
+        check_same_phase_count(thresholds_g, thresholds_f)
+        labels_g = segment_phases(reference, thresholds_g, "reference volume")
+        labels_f = segment_phases(deformed, thresholds_f, "deformed volume")
+        tables = (
+            phase_table(reference, labels_g, thresholds_g),
+            phase_table(deformed, labels_f, thresholds_f),
+        )
+    else:
+        region = check_region(region, reference.shape)
+        (thresholds_g, labels_g, table_g), (thresholds_f, labels_f, table_f) = (
+            region_phases(volume, choice, n_phases, region, name)
+            for volume, choice, name in (
+                (reference, phases, "reference volume"),
+                (deformed, phases_f, "deformed volume"),
+            )
+        )
+        check_same_phase_count(thresholds_g, thresholds_f)
+        tables = (table_g, table_f)
     phase_contrast(*tables, phase_pair)  # an undefined contrast fails before the residuals
     yield Progress("phases", 2, 2, "phases segmented")
 
@@ -607,7 +675,7 @@ def evaluate_iter(
             reference, deformed, candidates, thresholds_g if mapped_levels else thresholds_f,
             labels_g, fit_map=gray_levels is True,
             gray_levels=gray_levels if isinstance(gray_levels, GrayLevelMap) else None,
-            deformed_coefficients=coefficients_f,
+            deformed_coefficients=coefficients_f, region=region,
         )  # fmt: skip
         yield Progress("pair", 1, 1, pair.gray_levels.describe())
     mapping = None if pair.gray_levels.is_identity else pair.gray_levels
@@ -637,6 +705,7 @@ def evaluate_iter(
                 own[z], sampler, spline, box, mode, other_thresholds,
                 None if own_labels is None else own_labels[z], plan.bin_fields[index], centers,
                 half, mapping, error_region_half(item), gradient2,
+                None if region is None else region[z],
             )  # fmt: skip
             totals.add(block)
             if keep_volumes:

@@ -186,6 +186,7 @@ def field_block(
     gray_levels: GrayLevelMap | None = None,
     error_half: int | None = None,
     gradient2: np.ndarray | None = None,
+    region_block: np.ndarray | None = None,
 ) -> tuple[BlockTotals, np.ndarray, np.ndarray, np.ndarray]:
     """Moved volume, residual and mapped phases of one block, and its totals.
 
@@ -228,6 +229,9 @@ def field_block(
     gradient2 : ndarray, shape box_shape(box), optional
         ``|grad own|²`` of the block (:func:`halo_squared_gradient`; default: from the block
         alone, one-sided at its faces).
+    region_block : ndarray of bool, shape box_shape(box), optional
+        The specimen region at the block's voxels: outside it the residual is undefined (NaN)
+        and takes no part in any number.
 
     Returns
     -------
@@ -255,6 +259,8 @@ def field_block(
         moved = gray_levels.apply(moved, box)
     elif gray_levels is not None:
         own_block = gray_levels.apply(own_block, box)
+    if region_block is not None:
+        moved = np.where(region_block, moved, np.float32(np.nan)).astype(np.float32)
     if own_labels is None:
         own_labels = label_phases(own_block, thresholds_other)
     error_half = half if error_half is None else int(error_half)

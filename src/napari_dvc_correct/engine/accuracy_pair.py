@@ -147,6 +147,7 @@ def measure_pair(
     gray_levels: GrayLevelMap | None = None,
     deformed_coefficients: np.ndarray | None = None,
     cell: int = DEFAULT_CELL,
+    region: np.ndarray | None = None,
 ) -> PairStatistics:
     """The pair's map and ``r0``, measured with the best of ``candidates`` (see the module).
 
@@ -169,6 +170,8 @@ def measure_pair(
         ``interpolation.prefilter(F)``, to reuse.
     cell : int
         Cell of the local map (voxels), as :func:`.gray_levels.fit_gray_levels`.
+    region : ndarray of bool, shape (nz, ny, nx), optional
+        The specimen: the map and ``r0`` use only its voxels.
 
     Raises
     ------
@@ -194,6 +197,8 @@ def measure_pair(
             cval=np.nan,
             outside="nan",  # inside the grid's hull, where the field was measured
         )
+        if region is not None:
+            moved[~region] = np.nan
 
         def sums_with(previous, moved=moved):
             total = CellSums.zeros(cells_shape(shape, cell))
