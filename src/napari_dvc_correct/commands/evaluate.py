@@ -77,6 +77,22 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="use each field's own background residual instead of one shared (smallest) value",
     )
+    group = parser.add_argument_group(
+        "specimen region (phases, r0 and every residual statistic use only its voxels)"
+    )
+    group.add_argument("--mask", help="reference-space mask volume (non-zero = specimen)")
+    group.add_argument(
+        "--roi",
+        default=None,
+        metavar="Z0:Z1,Y0:Y1,X0:X1",
+        help="box of the specimen (voxels, half-open like numpy slices; empty = volume edge)",
+    )
+    group.add_argument(
+        "--cylinder",
+        default=None,
+        metavar="Y,X,R[,Z0:Z1]",
+        help="cylindrical specimen along z: centre (y, x), radius, optional z range",
+    )
     group = parser.add_argument_group("residual and strain")
     group.add_argument(
         "--mode",
@@ -189,7 +205,7 @@ def run(args) -> int:
     paths = [args.field, *args.compare]
     out_dir = check_output_dir(
         args.out_dir,
-        inputs=(args.reference, args.deformed, *paths, *args.background_field),
+        inputs=(args.reference, args.deformed, *paths, *args.background_field, args.mask),
         patterns=REPORT_PATTERNS,
     )
     loaded = {  # --format is --field's; the --compare fields' formats are sniffed
@@ -205,6 +221,7 @@ def run(args) -> int:
         reference = read_volume(args.reference)
         deformed = read_volume(args.deformed)
         check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
+    region = _specimen_region(args, reference)
     fields = {}
     for name, field in loaded.items():
         fields[name], note = ready_for_evaluation(field, name)
@@ -229,6 +246,8 @@ def run(args) -> int:
         gray_levels=not args.raw_gray_levels,
         background_fields=known,
     )
+    if region is not None:
+        options["region"] = region
     inputs = {
         "reference": f"{args.reference} {tuple(reference.shape)}",
         "deformed": f"{args.deformed} {tuple(deformed.shape)}",
@@ -269,6 +288,31 @@ def run(args) -> int:
     count = sum(len(paths) for paths in files.values())
     print(f"wrote {count} files to {out_dir} (open {out_dir / 'report.md'})")
     return 0
+
+
+def _specimen_region(args, reference):
+    """The specimen region of ``--mask``, ``--roi`` or ``--cylinder`` (a boolean volume), or
+    None. Refused with ``--tiled`` (not built there yet) and when more than one is given."""
+    given = [name for name in ("mask", "roi", "cylinder") if getattr(args, name, None)]
+    if not given:
+        return None
+    if len(given) > 1:
+        raise UserError(f"give one specimen region, not {' and '.join('--' + g for g in given)}")
+    if wants_tiled_evaluation(args):
+        raise UserError("--mask, --roi and --cylinder do not apply to tiled evaluations yet")
+    from ..engine.accuracy import check_region, specimen_mask
+    from ._grid_options import parse_cylinder, parse_roi
+
+    shape = tuple(reference.shape)
+    try:
+        if args.mask:
+            from ..io.volumes import read_volume
+
+            return check_region(read_volume(args.mask), shape)
+        shape_region = parse_roi(args.roi, shape) if args.roi else parse_cylinder(args.cylinder)
+        return check_region(specimen_mask(shape, shape_region), shape)
+    except ValueError as error:
+        raise UserError(f"the specimen region: {error}") from None
 
 
 def _evaluate_tiled(args, reference, deformed, fields, options, out_dir):

@@ -202,10 +202,8 @@ def measure_pair(
 
         def sums_with(previous, moved=moved):
             total = CellSums.zeros(cells_shape(shape, cell))
-            for region in _slabs(shape):
-                total.add(
-                    block_sums(reference[region], moved[region], region, shape, cell, previous)
-                )
+            for box in _slabs(shape):
+                total.add(block_sums(reference[box], moved[box], box, shape, cell, previous))
             return total
             yield
 
@@ -216,11 +214,10 @@ def measure_pair(
         else:
             gray = GrayLevelMap.identity(shape)
         same_sums, same_counts, largest = 0.0, 0, -1
-        for region in _slabs(shape):
+        for box in _slabs(shape):
             s, c, m = same_phase_block(
-                reference[region], moved[region], labels_reference[region], thresholds_moved,
-                gray, region,
-            )  # fmt: skip
+                reference[box], moved[box], labels_reference[box], thresholds_moved, gray, box
+            )
             same_sums, same_counts, largest = same_sums + s, same_counts + c, max(largest, m)
         measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
     return choose_best(measured)
