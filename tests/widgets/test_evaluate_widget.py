@@ -128,3 +128,20 @@ def test_2d_reference_a_message(make_napari_viewer):
     widget = _dock(viewer)
     assert widget.run() is None
     assert "not a 3-D volume" in widget.message.text()
+
+
+def test_a_specimen_region_limits_the_evaluation(correlated, run_panel, small):
+    """The Correlate panel's regions in Evaluate (issue 26): a box, and only its voxels phase."""
+    viewer = correlated.viewer
+    widget = _dock(viewer)
+    widget.region.set_kind("box")
+    nz, ny, nx = small.shape
+    widget.region.z_from.setValue(2)
+    widget.region.z_to.setValue(nz - 2)
+    widget.region.y_from.setValue(3)
+    widget.region.y_to.setValue(ny - 3)
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    voxels = sum(s.voxels for s in widget.evaluation.phases_reference)
+    assert voxels == (nz - 4) * (ny - 6) * nx
+    assert widget.settings()["region"]["kind"] == "box"

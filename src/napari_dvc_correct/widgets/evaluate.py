@@ -37,6 +37,7 @@ from .correlate_model import (
     named_volume,
     suggest_tiled,
 )
+from .regions import RegionBox
 
 #: Key of a residual layer's plugin metadata: the temporary folder it reads lazily.
 TEMPORARY_KEY = "temporary_folder"
@@ -76,6 +77,10 @@ class EvaluateWidget(EngineWidget):
             "by itself). Same numbers as in memory. A pair (its residual kept on disk) or every "
             "state of a series (the numbers only)."
         )
+
+        # the specimen: phases, r0 and the residual statistics use only its voxels
+        self.region = RegionBox(self.viewer)
+        self.controls.addWidget(self.region)
 
         self.n_phases = QSpinBox()
         self.n_phases.setRange(2, 8)
@@ -166,6 +171,7 @@ class EvaluateWidget(EngineWidget):
             return
         self._volume_key = key
         volume = self._volume(self.reference, "reference")
+        self.region.set_volume(volume.shape, volume)
         self.tiled.setChecked(suggest_tiled([volume]))
         counts, edges = model.gray_histogram(volume)
         self.histogram.set_histogram(counts, edges)
@@ -178,6 +184,7 @@ class EvaluateWidget(EngineWidget):
     def settings(self) -> dict:
         """Thresholds, number of phases and residual mode, JSON-friendly (for a session file)."""
         return {
+            "region": self.region.settings(),
             "n_phases": self.n_phases.value(),
             "thresholds": self.thresholds(),
             "mode": self.mode.currentData(),
@@ -194,6 +201,8 @@ class EvaluateWidget(EngineWidget):
         self.n_phases.setValue(int(settings.get("n_phases", self.n_phases.value())))
         self.n_phases.blockSignals(False)
         self._reference_changed()
+        if "region" in settings:
+            self.region.restore(settings["region"])
         if settings.get("thresholds"):
             self.set_thresholds(settings["thresholds"], show=False)
         self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
@@ -286,11 +295,13 @@ class EvaluateWidget(EngineWidget):
         )
         self._chosen = dict(chosen)  # the layers' fields: the estimates go onto them
         groups = self._groups(chosen)
+        reference = self._volume(self.reference, "reference")
+        region = self.region.mask(reference.shape, reference, self._placement)
         if len(groups) > 1:  # a series: each state against its own pair of volumes
             tiled = self.tiled.isChecked()
             memory = check_tiled("pair", None, self.max_memory.text()) if tiled else None
             return model.run_groups(
-                groups, self.thresholds(), self.mode.currentData(), memory, tiled
+                groups, self.thresholds(), self.mode.currentData(), memory, tiled, region
             )
         _, reference, deformed, chosen, known = groups[0]
         self._outputs, memory, self._writing = None, None, None
@@ -308,6 +319,7 @@ class EvaluateWidget(EngineWidget):
             outputs=self._outputs,
             max_memory=memory,
             background_fields=known,
+            region=region,
         )
 
     def _panel_pair(self):

@@ -170,6 +170,7 @@ def run_evaluation(
     max_memory: str | None = None,
     tiled: bool | None = None,
     background_fields: dict | None = None,
+    region=None,
 ):
     """Generator for the panel's worker: cleans the fields if needed, then evaluates them all.
 
@@ -192,6 +193,9 @@ def run_evaluation(
         Every field known on this pair, ticked or not: the pair's gray-level map and ``r0``
         are measured with the best of them, so a field's p does not depend on which others are
         ticked (default: ``fields``).
+    region : ndarray of bool or lazy region, optional
+        The specimen (the Correlate panel's regions, reference space): phases, r0 and every
+        residual statistic use only its voxels. In memory only, for now.
 
     Returns
     -------
@@ -206,6 +210,13 @@ def run_evaluation(
         name: ready[name] if name in ready else ready_for_evaluation(field)
         for name, field in (background_fields or fields).items()
     }
+    if region is not None and (outputs is not None or tiled):
+        raise ValueError(
+            "a specimen region does not apply to out-of-core evaluations yet: choose 'all' or "
+            "untick out of core"
+        )
+    if region is not None:
+        region = np.asarray(region) != 0  # read here, in the worker
     if outputs is not None or tiled:
         from ..tiled.evaluation import evaluate_tiled_iter
         from ..tiled.memory import parse_memory
@@ -231,6 +242,7 @@ def run_evaluation(
             mode=mode,
             keep_volumes=True,
             background_fields=candidates,
+            region=region,
         )
     )
 
@@ -337,7 +349,9 @@ def summary_text(evaluation) -> str:
     return "\n".join(lines)
 
 
-def run_groups(groups, thresholds, mode: str = "reference", max_memory=None, tiled=False):
+def run_groups(
+    groups, thresholds, mode: str = "reference", max_memory=None, tiled=False, region=None
+):
     """Evaluate fields measured on different pairs (the states of a series), pair by pair.
 
     Parameters
@@ -360,7 +374,7 @@ def run_groups(groups, thresholds, mode: str = "reference", max_memory=None, til
         yield Progress(f"{label} ({index + 1}/{len(groups)})", 0, 1, "evaluating")
         evaluation = yield from run_evaluation(
             reference, deformed, fields, thresholds, mode, max_memory=max_memory, tiled=tiled,
-            background_fields=known[0] if known else None,
+            background_fields=known[0] if known else None, region=region,
         )  # fmt: skip
         results.append((label, evaluation))
     return results
