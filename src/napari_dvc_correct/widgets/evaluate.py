@@ -43,8 +43,8 @@ from .regions import RegionBox
 TEMPORARY_KEY = "temporary_folder"
 
 MODES = {
-    "reference": "reference frame: |F(X + u) − G(X)|",
-    "loaded": "loaded state: |F − G'| (paper)",
+    "reference": "reference frame: |map(F)(X + u) − G(X)|",
+    "loaded": "loaded state: |map(F) − G'| (paper)",
 }
 
 
