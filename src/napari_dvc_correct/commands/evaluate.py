@@ -292,19 +292,25 @@ def run(args) -> int:
 
 def _specimen_region(args, reference):
     """The specimen region of ``--mask``, ``--roi`` or ``--cylinder`` (a boolean volume), or
-    None. Refused with ``--tiled`` (not built there yet) and when more than one is given."""
+    None (``--mask`` with ``--tiled``: opened lazily, read block by block). Refused when more
+    than one is given."""
     given = [name for name in ("mask", "roi", "cylinder") if getattr(args, name, None)]
     if not given:
         return None
     if len(given) > 1:
         raise UserError(f"give one specimen region, not {' and '.join('--' + g for g in given)}")
-    if wants_tiled_evaluation(args):
-        raise UserError("--mask, --roi and --cylinder do not apply to tiled evaluations yet")
     from ..engine.accuracy import check_region, specimen_mask
     from ._grid_options import parse_cylinder, parse_roi
 
     shape = tuple(reference.shape)
     try:
+        if args.mask and wants_tiled_evaluation(args):
+            from ..io.lazy import open_volume
+
+            mask = open_volume(args.mask)
+            if tuple(mask.shape) != shape:
+                raise ValueError(f"the mask {tuple(mask.shape)} must have the shape {shape}")
+            return mask
         if args.mask:
             from ..io.volumes import read_volume
 

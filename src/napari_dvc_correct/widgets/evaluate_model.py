@@ -195,7 +195,7 @@ def run_evaluation(
         ticked (default: ``fields``).
     region : ndarray of bool or lazy region, optional
         The specimen (the Correlate panel's regions, reference space): phases, r0 and every
-        residual statistic use only its voxels. In memory only, for now.
+        residual statistic use only its voxels (out of core: read block by block).
 
     Returns
     -------
@@ -210,14 +210,10 @@ def run_evaluation(
         name: ready[name] if name in ready else ready_for_evaluation(field)
         for name, field in (background_fields or fields).items()
     }
-    if region is not None and (outputs is not None or tiled):
-        raise ValueError(
-            "a specimen region does not apply to out-of-core evaluations yet: choose 'all' or "
-            "untick out of core"
-        )
-    if region is not None:
+    out_of_core = outputs is not None or bool(tiled)
+    if region is not None and not out_of_core:
         region = np.asarray(region) != 0  # read here, in the worker
-    if outputs is not None or tiled:
+    if out_of_core:
         from ..tiled.evaluation import evaluate_tiled_iter
         from ..tiled.memory import parse_memory
 
@@ -231,6 +227,7 @@ def run_evaluation(
                 outputs={("residual", name): str(path) for name, path in (outputs or {}).items()},
                 max_memory=parse_memory(max_memory) if max_memory else None,
                 background_fields=candidates,
+                region=region,  # read block by block
             )
         )
     return (
