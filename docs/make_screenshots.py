@@ -153,6 +153,12 @@ def main() -> None:
     viewer.layers.selection.active = viewer.layers["residual (corrected)"]
     shot(viewer, "residual-corrected.png")
 
+    # the evaluation's error estimate per node (voxels), uncorrected field
+    view.show_source("uncorrected")
+    quantity(view, "error estimate")
+    viewer.layers.selection.active = viewer.layers["error estimate (uncorrected)"]
+    shot(viewer, "view-error-estimate.png")
+
     # 3-D view of the equivalent strain of the corrected field, from an oblique angle
     quantity(view, "εeq")
     viewer.dims.order = (0, 1, 2)

@@ -69,6 +69,7 @@ QUANTITIES = {
     "ZNCC": ("zero-normalised cross-correlation", "zncc"),
     "status": ("matching status of each POI", "status"),
     "uncertainty": ("displacement uncertainty", "magnitude"),
+    "error estimate": ("estimated displacement error (Evaluate)", "magnitude"),
     "residual": ("gray residual |F(X + u) − G(X)|", "residual"),
 }
 #: What a new field layer shows.
@@ -91,9 +92,14 @@ def field_uncertainty(field: DisplacementField) -> np.ndarray | None:
 
 def available_quantities(field: DisplacementField, residual: bool = False) -> list[str]:
     """The keys of :data:`QUANTITIES` that ``field`` can show (``residual`` once evaluated)."""
-    keys = [key for key in QUANTITIES if key not in ("uncertainty", "residual")]
+    from .engine.error_estimate import estimate_of
+
+    optional = ("uncertainty", "error estimate", "residual")
+    keys = [key for key in QUANTITIES if key not in optional]
     if field_uncertainty(field) is not None:
         keys.append("uncertainty")
+    if estimate_of(field) is not None:
+        keys.append("error estimate")
     if residual:
         keys.append("residual")
     return keys
@@ -171,6 +177,13 @@ def quantity_values(
         values = field_uncertainty(field)
         if values is None:
             raise ValueError("this field has no uncertainty")
+        values = values * float(np.mean(vs))
+    elif quantity == "error estimate":
+        from .engine.error_estimate import estimate_of
+
+        values = estimate_of(field)
+        if values is None:
+            raise ValueError("this field has no error estimate: run Evaluate on it first")
         values = values * float(np.mean(vs))
     elif kind in _DISPLACEMENT_KINDS:
         u = field.u * vs

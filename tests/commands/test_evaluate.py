@@ -104,3 +104,48 @@ def test_bad_input_is_one_line_and_writes_nothing(scans, capsys, extra, message)
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
     assert not out.exists()
+
+
+def test_r0_of_the_pair_a_specimen_region_and_the_error_estimate(scans, capsys):
+    """--background-field makes r0 and p of a field evaluated alone those of the pair (issue
+    26); --roi keeps phases and residuals to the specimen; the error estimate is printed and
+    written."""
+    common = [str(scans / "ref.tif"), str(scans / "def.npy"), "--quiet", "--no-volumes"]
+    alone, both = scans / "alone", scans / "both"
+    assert (
+        cli.main(
+            [
+                "evaluate",
+                *common,
+                "--field",
+                str(scans / "rigid.npz"),
+                "--background-field",
+                str(scans / "exact.npz"),
+                "--out-dir",
+                str(alone),
+            ]
+        )
+        == 0
+    )
+    assert cli.main(["evaluate", *common, "--field", str(scans / "rigid.npz"),
+                     "--compare", str(scans / "exact.npz"), "--out-dir", str(both)]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "error estimate median" in printed and "measured with 'exact'" in printed
+    rows = []
+    for out in (alone, both):
+        with open(out / "summary.csv", newline="") as stream:
+            rows.append({row["field"]: row for row in csv.DictReader(stream)})
+    for key in ("background_used", "accuracy_index", "error_median"):
+        assert float(rows[0]["rigid"][key]) == pytest.approx(float(rows[1]["rigid"][key]), rel=1e-9)
+    assert float(rows[1]["rigid"]["error_median"]) > 3 * float(rows[1]["exact"]["error_median"])
+    region = scans / "region"
+    assert cli.main(["evaluate", *common, "--field", str(scans / "exact.npz"),
+                     "--roi", "4:28,4:28,4:28", "--out-dir", str(region)]) == 0  # fmt: skip
+    with open(region / "phases.csv", newline="") as stream:
+        voxels = sum(
+            int(row["voxels"]) for row in csv.DictReader(stream) if row["state"] == "reference"
+        )
+    assert voxels == 24**3
+    code = cli.main(["evaluate", *common, "--field", str(scans / "exact.npz"), "--roi", "4:28,,",
+                     "--cylinder", "16,16,10", "--out-dir", str(scans / "two")])  # fmt: skip
+    assert code != 0 and "one specimen region" in capsys.readouterr().err

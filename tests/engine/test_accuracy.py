@@ -166,7 +166,9 @@ def test_accuracy_index_falls_monotonically_with_a_known_error(scans):
     assert accuracy[0] == pytest.approx(1.0, abs=0.01)
     assert accuracy[-1] < 0.85  # 2.5 voxels off: well below the paper's 0.85 line
     # one shared noise estimate (the smallest same-phase residual: the exact field's)
-    assert all(item.background_used == result.fields[0].background.mean for item in result.fields)
+    r0 = result.fields[0].background.mean
+    assert all(item.background_used == pytest.approx(r0, rel=1e-6) for item in result.fields)
+    assert result.pair.measured_with == "error 0.0"
     assert result.fields[-1].background.mean > result.fields[0].background.mean
     # per-field r0 still ranks the fields the same way
     own = evaluate_fields(reference, deformed, fields, shared_background=False, keep_volumes=False)

@@ -255,3 +255,27 @@ def test_every_export_marks_a_failed_node_the_same_way(tmp_path):
         assert np.isnan(back.u[0]).all() and not back.valid[0], fmt
         assert np.isfinite(back.u[7]).all(), fmt
     assert np.isfinite(field.u).all()  # the field itself is not changed
+
+
+def test_the_error_estimate_of_an_evaluation_travels_to_every_export(field, tmp_path):
+    """Evaluate leaves its per-node error estimate on the field (issue 26): a CSV column, a
+    TIFF stack, a VTK array and a View quantity."""
+    from napari_dvc_correct.engine.error_estimate import attach_estimate, estimate_of
+    from napari_dvc_correct.quantities import available_quantities, quantity_values
+
+    estimate = np.random.default_rng(3).uniform(0.0, 1.0, field.shape)
+    estimate[0, 0, 0] = np.nan
+    marked = field.replace(metadata=dict(field.metadata))
+    attach_estimate(marked, estimate, background_residual=2.0)
+    np.testing.assert_allclose(estimate_of(marked), estimate, atol=1e-6)
+    rows = list(csv.DictReader(open(export.export_csv(marked, tmp_path / "f.csv"))))
+    assert float(rows[1]["error_estimate"]) == pytest.approx(estimate.reshape(-1)[1], abs=1e-6)
+    assert rows[0]["error_estimate"] == "nan"
+    written = export.export_tiff(marked, tmp_path / "f.tif")
+    assert any(p.name == "f_error_estimate.tif" for p in written)
+    assert b"error_estimate" in export.export_vtk(marked, tmp_path / "f.vti").read_bytes()
+    assert "error estimate" in available_quantities(marked)
+    assert "error estimate" not in available_quantities(field)
+    np.testing.assert_allclose(
+        quantity_values(marked, "error estimate"), estimate, atol=1e-6, equal_nan=True
+    )

@@ -228,3 +228,21 @@ def test_a_cancelled_run_stops_and_leaves_no_output(pair, tmp_path):
     assert len(list(tmp_path.iterdir())) == 2  # being written
     generator.close()
     assert not list(tmp_path.iterdir())
+
+
+def test_a_specimen_region_block_by_block_equals_in_memory(pair):
+    """The specimen region (issue 26) read block by block: the in-memory evaluation's numbers."""
+    from napari_dvc_correct.engine.accuracy import specimen_mask
+    from napari_dvc_correct.engine.placement import Cylinder
+
+    folder, reference, deformed, fields = pair
+    region = specimen_mask(SHAPE, Cylinder((21.5, 23.5), 17.0))
+    expected = evaluate_fields(reference, deformed, fields, keep_volumes=False, region=region)
+    got = evaluate_tiled(
+        open_volume(folder / "G.tif"), open_volume(folder / "F.zarr"), fields,
+        block_shape=BLOCK, scheduler="sync", region=region,
+    )  # fmt: skip
+    assert sum(s.voxels for s in expected.phases_reference) == int(region.sum())
+    assert_same_evaluation(expected, got)
+    for x, y in zip(expected.fields, got.fields):
+        np.testing.assert_allclose(y.error_estimate, x.error_estimate, rtol=1e-5, atol=1e-6)

@@ -88,6 +88,14 @@ def test_evaluate_adds_residual_layers_and_plots(correlated, run_panel, small):
     assert 0 < item["background residual r0"] <= item["mean gray residual"] + 1e-9
     assert 0.9 < item["accuracy index p"] <= 1.0 + 1e-9
     assert "accuracy index p" in widget.summary.text()
+    # one stated residual, the pair's r0, the error estimate, left on the field for View
+    text = widget.summary.text()
+    assert "reference frame" in text and "error estimate median" in text and "r0 =" in text
+    assert item["error estimate median (voxels)"] < 0.5
+    from napari_dvc_correct.layers import fields_in
+    from napari_dvc_correct.quantities import available_quantities
+
+    assert "error estimate" in available_quantities(fields_in(viewer.layers)["uncorrected"])
     residual_axes, accuracy_axes = widget.curves.axes
     assert len(residual_axes.lines) == 1 and len(accuracy_axes.lines) == 1
     np.testing.assert_allclose(
@@ -115,6 +123,12 @@ def test_residual_layers_are_made_in_the_worker(correlated, qtbot):
 
 
 def test_same_layer_twice_a_message(correlated):
+    from napari_dvc_correct.layers import fields_in
+
+    # a field whose own volumes are open is evaluated on them whatever the panel's pair (a
+    # series opened as separate layers, issue 26); without them, the panel's pair is checked
+    for field in fields_in(correlated.viewer.layers).values():
+        field.metadata.pop("deformed_layer", None)
     widget = _dock(correlated.viewer)
     widget.deformed.set_layer("reference")
     assert widget.run() is None
@@ -133,3 +147,20 @@ def test_2d_reference_a_message(make_napari_viewer):
     widget = _dock(viewer)
     assert widget.run() is None
     assert "not a 3-D volume" in widget.message.text()
+
+
+def test_a_specimen_region_limits_the_evaluation(correlated, run_panel, small):
+    """The Correlate panel's regions in Evaluate (issue 26): a box, and only its voxels phase."""
+    viewer = correlated.viewer
+    widget = _dock(viewer)
+    widget.region.set_kind("box")
+    nz, ny, nx = small.shape
+    widget.region.z_from.setValue(2)
+    widget.region.z_to.setValue(nz - 2)
+    widget.region.y_from.setValue(3)
+    widget.region.y_to.setValue(ny - 3)
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    voxels = sum(s.voxels for s in widget.evaluation.phases_reference)
+    assert voxels == (nz - 4) * (ny - 6) * nx
+    assert widget.settings()["region"]["kind"] == "box"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from qtpy.QtCore import Qt
 
 from napari_dvc_correct._sample_data import scan_series, true_field
 from napari_dvc_correct.layers import fields_in
@@ -170,3 +171,49 @@ def test_a_lazy_series_runs_out_of_core_as_in_memory(series40, make_napari_viewe
     for key, (accuracy, residual) in results[True].items():
         assert accuracy == pytest.approx(results[False][key][0], abs=1e-5)
         assert residual == pytest.approx(results[False][key][1], rel=1e-5)
+
+
+def test_a_series_as_separate_layers_is_evaluated_state_by_state(
+    series40, make_napari_viewer, run_panel
+):
+    """Three states opened as three layers, a field per state: each state against its own pair,
+    and a field's r0 and p the same whether it is ticked alone or with the others (issue 26)."""
+    from napari_dvc_correct import layers as L
+    from napari_dvc_correct.engine.accuracy import evaluate_fields
+    from napari_dvc_correct.engine.field import grid_for_volume
+
+    volumes, truths = series40
+    viewer = make_napari_viewer()
+    for k in range(3):
+        viewer.add_image(volumes[k], name=f"scan{k}")
+    origin, step, shape = grid_for_volume(volumes[0].shape, 11, 8)
+    fields = {}
+    for k in (1, 2):
+        field = true_field(truths[k], origin, step, shape)
+        field.metadata.update(reference_layer="scan0", deformed_layer=f"scan{k}")
+        fields[f"state {k}"] = field
+        L.show_layers(viewer, L.field_layers(field, f"state {k}"))
+    evaluate = _dock(viewer, EvaluateWidget)
+    evaluate.reference.set_layer("scan0")
+    evaluate.deformed.set_layer("scan1")
+    run_panel(evaluate)
+    assert evaluate.last_error is None, evaluate.last_error
+    labels = [label for label, _ in evaluate.evaluations]
+    assert labels == ["", "scan0 → scan2"]  # state 1 is the panel's pair, state 2 its own
+    thresholds = evaluate.thresholds()
+    for (_, evaluation), k in zip(evaluate.evaluations, (1, 2)):
+        alone = evaluate_fields(
+            volumes[0], volumes[k], {f"state {k}": fields[f"state {k}"]}, phases=thresholds
+        )
+        item = evaluation[f"state {k}"]
+        # its own pair: the exact field explains it down to the noise
+        assert item.mean_residual == pytest.approx(alone[f"state {k}"].mean_residual, rel=1e-6)
+        assert item.accuracy == pytest.approx(alone[f"state {k}"].accuracy, abs=1e-9)
+    # ticked alone: the same r0 and p as ticked with the other
+    first = evaluate.evaluations[1][1]["state 2"]
+    evaluate.fields.item(0).setCheckState(Qt.CheckState.Unchecked)
+    run_panel(evaluate)
+    assert [label for label, _ in evaluate.evaluations] == [""]
+    again = evaluate.evaluation["state 2"]
+    assert again.background_used == pytest.approx(first.background_used, rel=1e-9)
+    assert again.accuracy == pytest.approx(first.accuracy, abs=1e-12)

@@ -58,9 +58,40 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="the two phases A,B whose gray contrast is used in eq. 2 (default: most abundant)",
     )
     group.add_argument(
+        "--background-field",
+        action="append",
+        default=[],
+        metavar="OTHER.npz",
+        help="another field known on this pair, not evaluated (repeatable): the pair's "
+        "gray-level map and background residual r0 are measured with the best of all the fields "
+        "given, so a field's r0 and p do not depend on which are evaluated",
+    )
+    group.add_argument(
+        "--raw-gray-levels",
+        action="store_true",
+        help="no gray-level map: the raw residual |F~ - G| (default: the loaded scan's gray "
+        "levels are mapped onto the reference's first)",
+    )
+    group.add_argument(
         "--own-background",
         action="store_true",
         help="use each field's own background residual instead of one shared (smallest) value",
+    )
+    group = parser.add_argument_group(
+        "specimen region (phases, r0 and every residual statistic use only its voxels)"
+    )
+    group.add_argument("--mask", help="reference-space mask volume (non-zero = specimen)")
+    group.add_argument(
+        "--roi",
+        default=None,
+        metavar="Z0:Z1,Y0:Y1,X0:X1",
+        help="box of the specimen (voxels, half-open like numpy slices; empty = volume edge)",
+    )
+    group.add_argument(
+        "--cylinder",
+        default=None,
+        metavar="Y,X,R[,Z0:Z1]",
+        help="cylindrical specimen along z: centre (y, x), radius, optional z range",
     )
     group = parser.add_argument_group("residual and strain")
     group.add_argument(
@@ -180,7 +211,11 @@ def run(args) -> int:
     pair = _phase_pair(args.phase_pair)
     names = _names(args)
     paths = [args.field, *args.compare]
-    out_dir = check_output_dir(args.out_dir, inputs=command_inputs(args), patterns=REPORT_PATTERNS)
+    out_dir = check_output_dir(
+        args.out_dir,
+        inputs=(*command_inputs(args), *paths, *args.background_field),
+        patterns=REPORT_PATTERNS,
+    )
     loaded = {  # --format is --field's; the --compare fields' formats are sniffed
         name: read_input_field(args, path, sniff=k > 0).field
         for k, (name, path) in enumerate(zip(names, paths))
@@ -198,11 +233,16 @@ def run(args) -> int:
         warn(args, note)
     if not wants_tiled_evaluation(args):
         check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
+    region = _specimen_region(args, reference)
     fields = {}
     for name, field in loaded.items():
         fields[name], note = ready_for_evaluation(field, name)
         if note:
             print(note)
+    known = dict(fields)
+    for k, path in enumerate(args.background_field):
+        name = f"background {k + 1}: {Path(path).stem}"
+        known[name], _ = ready_for_evaluation(read_input_field(args, path, sniff=True).field, name)
     options = dict(
         phases=phases,
         phases_deformed=phases_deformed,
@@ -215,7 +255,11 @@ def run(args) -> int:
         n_bins=args.bins,
         bin_by=args.bin_by,
         shared_background=not args.own_background,
+        gray_levels=not args.raw_gray_levels,
+        background_fields=known,
     )
+    if region is not None:
+        options["region"] = region
     inputs = {
         "reference": f"{args.reference} {tuple(reference.shape)}",
         "deformed": f"{args.deformed} {tuple(deformed.shape)}",
@@ -233,15 +277,60 @@ def run(args) -> int:
         if evaluation is None:  # tiled: the volumes are written into the set as they are made
             evaluation = _evaluate_tiled(args, reference, deformed, fields, options, temp)
         files = write_report(evaluation, temp, inputs=inputs, volumes=not args.no_volumes)
+    print(
+        f"mean gray residual: mean of {evaluation.residual_text}; gray levels "
+        f"{evaluation.gray_levels.describe()}; background r0 {evaluation.pair.background.mean:.4g}"
+        f" (the pair's, measured with '{evaluation.pair.measured_with}')"
+    )
     for item in evaluation.fields:
+        error = item.error
+        if not item.meaningful:
+            print(
+                f"WARNING {item.name}: only {item.measured_nodes} of {item.field.n_points} nodes "
+                "were measured (the rest inpainted): its accuracy index is not meaningful"
+            )
         print(
             f"{item.name}: mean residual {item.mean_residual:.3f}, background "
             f"{item.background_used:.3f}, accuracy index {item.accuracy:.4f}, "
-            f"local accuracy index {item.local_accuracy_index:.4f}"
+            f"local accuracy index {item.local_accuracy_index:.4f}, error estimate median "
+            f"{error['median']:.3f} voxel (95 % {error['p95']:.3f}, "
+            f"{100 * error['likely_bad']:.0f} % of nodes likely > 0.5 voxel), measured nodes "
+            f"{item.measured_nodes}/{item.field.n_points}"
         )
     count = sum(len(paths) for paths in files.values())
     print(f"wrote {count} files to {out_dir} (open {out_dir / 'report.md'})")
     return 0
+
+
+def _specimen_region(args, reference):
+    """The specimen region of ``--mask``, ``--roi`` or ``--cylinder`` (a boolean volume), or
+    None (``--mask`` with ``--tiled``: opened lazily, read block by block). Refused when more
+    than one is given."""
+    given = [name for name in ("mask", "roi", "cylinder") if getattr(args, name, None)]
+    if not given:
+        return None
+    if len(given) > 1:
+        raise UserError(f"give one specimen region, not {' and '.join('--' + g for g in given)}")
+    from ..engine.accuracy import check_region, specimen_mask
+    from ._grid_options import parse_cylinder, parse_roi
+
+    shape = tuple(reference.shape)
+    try:
+        if args.mask and wants_tiled_evaluation(args):
+            from ..io.lazy import open_volume
+
+            mask = open_volume(args.mask)
+            if tuple(mask.shape) != shape:
+                raise ValueError(f"the mask {tuple(mask.shape)} must have the shape {shape}")
+            return mask
+        if args.mask:
+            from ..io.volumes import read_volume
+
+            return check_region(read_volume(args.mask), shape)
+        shape_region = parse_roi(args.roi, shape) if args.roi else parse_cylinder(args.cylinder)
+        return check_region(specimen_mask(shape, shape_region), shape)
+    except ValueError as error:
+        raise UserError(f"the specimen region: {error}") from None
 
 
 def _evaluate_tiled(args, reference, deformed, fields, options, out_dir):

@@ -35,8 +35,10 @@ from .accuracy_blocks import (  # noqa: F401 (part of this module's interface)
     background_residual,
     corrected_residual,
 )
+from .accuracy_pair import PairStatistics
 from .binning import StrainBins
-from .field import DisplacementField
+from .field import GOOD_STATUSES, DisplacementField, Provenance
+from .gray_levels import GrayLevelMap
 from .local_accuracy import (  # noqa: F401 (part of this module's interface)
     honest_accuracy,
     local_accuracy_map,
@@ -50,6 +52,17 @@ from .phases import (
     segment_phases,
 )
 from .progress import Progress, run_to_completion
+
+#: Below this share of measured nodes an evaluation says first that p is not meaningful: it
+#: would judge values inpainted from a few matches.
+MIN_MEASURED_FRACTION = 0.5
+
+
+def measured_mask(field: DisplacementField) -> np.ndarray:
+    """Nodes measured by a match (good status, provenance measured or corrected)."""
+    good = np.isin(field.status, [int(s) for s in GOOD_STATUSES])
+    kept = np.isin(field.provenance, [int(Provenance.MEASURED), int(Provenance.CORRECTED)])
+    return good & kept & np.all(np.isfinite(field.u), axis=-1)
 
 
 # --- grid quantities ready to display -------------------------------------------------------------
@@ -181,10 +194,16 @@ class FieldEvaluation:
         0. It falls where a field ruins a region so badly that its residual becomes undefined,
         which ``accuracy`` (eq. 2 over the defined voxels) cannot see.
     residual : ndarray or None
-        Residual volume, float32, NaN where undefined (kept with ``keep_volumes``).
+        Residual volume ``|map(F~) - G|`` (reference gray levels; float32, NaN where undefined;
+        kept with ``keep_volumes``).
     labels_mapped : ndarray or None
         Phases of the other state brought onto the residual's voxels by the field, uint8
         (:data:`~.phases.NO_PHASE` where undefined; kept with ``keep_volumes``).
+    local_gradient, cell_residual : ndarray, shape field.shape
+        RMS gray gradient and mean residual over each node's cell
+        (:func:`.error_estimate.error_region_half`; gray levels per voxel, gray levels).
+    error_estimate : ndarray, shape field.shape
+        Estimated displacement error per node, voxels (:mod:`.error_estimate`).
     """
 
     name: str
@@ -202,11 +221,39 @@ class FieldEvaluation:
     local_accuracy_index: float = float("nan")
     residual: np.ndarray | None = None
     labels_mapped: np.ndarray | None = None
+    local_gradient: np.ndarray | None = None
+    cell_residual: np.ndarray | None = None
+    error_estimate: np.ndarray | None = None
 
     @property
     def mean_corrected_residual(self) -> float:
         """``mean(r') = mean(r) - r0`` (gray levels)."""
         return self.mean_residual - self.background_used
+
+    @property
+    def measured_nodes(self) -> int:
+        """Nodes whose displacement a match measured (good status, measured or corrected):
+        inpainted, interpolated, failed and masked nodes do not count."""
+        return int(np.count_nonzero(measured_mask(self.field)))
+
+    @property
+    def measured_fraction(self) -> float:
+        """Share of the grid's nodes that were measured (:attr:`measured_nodes`)."""
+        return self.measured_nodes / max(1, int(self.field.n_points))
+
+    @property
+    def meaningful(self) -> bool:
+        """False when most nodes were not measured: p then judges an inpainted field."""
+        return self.measured_fraction >= MIN_MEASURED_FRACTION
+
+    @property
+    def error(self) -> dict:
+        """:func:`.error_estimate.error_summary` of :attr:`error_estimate` (voxels)."""
+        from .error_estimate import error_summary
+
+        if self.error_estimate is None:
+            return error_summary(np.array([]))
+        return error_summary(self.error_estimate)
 
 
 @dataclass
@@ -233,6 +280,9 @@ class Evaluation:
     fields : list of FieldEvaluation
     labels_reference, labels_deformed : ndarray or None
         Phase label volumes (uint8), kept with ``keep_volumes``.
+    pair : PairStatistics or None
+        The scan pair's gray-level map and ``r0`` (:mod:`.accuracy_pair`), measured with the best
+        field known on the pair, whichever fields are evaluated.
     """
 
     mode: str
@@ -247,6 +297,23 @@ class Evaluation:
     fields: list = dataclass_field(default_factory=list)
     labels_reference: np.ndarray | None = None
     labels_deformed: np.ndarray | None = None
+    pair: PairStatistics | None = None
+
+    @property
+    def gray_levels(self) -> GrayLevelMap:
+        """The pair's gray-level map (identity without one)."""
+        return GrayLevelMap.identity() if self.pair is None else self.pair.gray_levels
+
+    @property
+    def residual_text(self) -> str:
+        """What every mean gray residual of this evaluation is: its definition and frame."""
+        f = "F" if self.gray_levels.is_identity else "map(F)"
+        if self.mode == "reference":
+            text, where = f"|{f}(X + u) − G(X)|", "reference frame"
+        else:
+            text, where = f"|{f} − G'|", "loaded frame"
+        levels = "raw gray levels" if self.gray_levels.is_identity else "reference gray levels"
+        return f"{text}, {where}, {levels}"
 
     def __getitem__(self, name: str) -> FieldEvaluation:
         for item in self.fields:
@@ -348,8 +415,9 @@ def check_same_phase_count(thresholds_g, thresholds_f) -> None:
         )
 
 
-def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels):
-    """The :class:`.accuracy.Evaluation`: the contrast, ``r0`` (shared or own), eq. 2 everywhere.
+def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels, pair=None):
+    """The :class:`.accuracy.Evaluation`: the contrast, ``r0`` (the pair's or own), eq. 2
+    everywhere, the error estimate.
 
     Parameters
     ----------
@@ -359,16 +427,31 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels):
     phase_pair : (int, int) or None
     partial : list of dict
         :func:`field_partial` of every field, in the plan's order.
+    pair : PairStatistics, optional
+        The pair's map and ``r0`` (:func:`.accuracy_pair.measure_pair`); without it, ``r0`` is
+        the smallest of the fields' own.
     """
-    contrast, pair = phase_contrast(tables[0], tables[1], phase_pair)
-    shared = min(p["background"].mean for p in partial)
+    from .error_estimate import error_estimate
+
+    contrast, phases = phase_contrast(tables[0], tables[1], phase_pair)
+    if pair is None:
+        best = min(partial, key=lambda p: p["background"].mean)
+        pair = PairStatistics(
+            GrayLevelMap.identity(),
+            best["background"],
+            best["name"],
+            {p["name"]: p["background"].mean for p in partial},
+        )
+    shared = pair.background.mean
     results = []
     for p in partial:
         r0 = shared if plan.options["shared_background"] else p["background"].mean
         local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
+        estimate = error_estimate(p["field"], p["cell_residual"], p["local_gradient"], shared)
         results.append(
             FieldEvaluation(
                 **p,
+                error_estimate=estimate,
                 local_accuracy=local_accuracy,
                 local_accuracy_index=honest_accuracy(local_accuracy),
                 background_used=r0,
@@ -383,13 +466,64 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels):
         phases_reference=tables[0],
         phases_deformed=tables[1],
         contrast=contrast,
-        phase_pair=pair,
+        phase_pair=phases,
         edges=plan.edges,
         options=dict(plan.options),
         fields=results,
         labels_reference=labels[0],
         labels_deformed=labels[1],
+        pair=pair,
     )
+
+
+def check_region(region, shape) -> np.ndarray:
+    """The specimen region as a boolean array of ``shape``, refused when empty or misshapen."""
+    region = np.asarray(region) != 0
+    if region.shape != tuple(shape):
+        raise ValueError(
+            f"the specimen region {region.shape} must have the reference volume's shape {shape}"
+        )
+    if not region.any():
+        raise ValueError("the specimen region holds no voxel: draw or choose another one")
+    return region
+
+
+def specimen_mask(shape, region) -> np.ndarray:
+    """Boolean volume of ``shape``: the voxels whose centres ``region`` (a
+    :class:`.placement.Box` or :class:`.placement.Cylinder`, voxels z, y, x) contains."""
+    shape = tuple(int(n) for n in shape)
+    mask = np.empty(shape, bool)
+    yy, xx = np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij")
+    plane = np.stack([np.zeros(yy.size), yy.ravel(), xx.ravel()], axis=1)
+    for z in range(shape[0]):
+        plane[:, 0] = z
+        mask[z] = region.contains(plane).reshape(shape[1:])
+    return mask
+
+
+def region_phases(volume, choice, n_phases, region, name):
+    """Thresholds (multi-Otsu over the region's voxels, or the user's), labels (NO_PHASE
+    outside the region) and Table 1 of one state over a specimen region."""
+    from .phases import label_phases, otsu_stride, otsu_thresholds, validate_thresholds
+
+    inside = np.where(region, np.asarray(volume, np.float64), np.nan)
+    if choice is None or (isinstance(choice, str) and choice == "auto"):
+        stride = otsu_stride(volume.shape)
+        thresholds = otsu_thresholds(inside[::stride, ::stride, ::stride], n_phases)
+    elif isinstance(choice, str):
+        raise ValueError(f"phases must be 'auto' or a list of thresholds, got {choice!r}")
+    else:
+        values = inside[np.isfinite(inside)]
+        thresholds = validate_thresholds(choice, (values.min(), values.max()), name)
+    labels = label_phases(inside, thresholds)  # NaN outside the region: NO_PHASE
+    table = phase_table(inside, labels, thresholds)
+    empty = [s.phase for s in table if s.voxels == 0]
+    if empty:
+        raise ValueError(
+            f"phase {empty[0]} has no voxel inside the specimen region of the {name}: move the "
+            "thresholds or ask for fewer phases"
+        )
+    return thresholds, labels, table
 
 
 def evaluate_iter(
@@ -410,6 +544,10 @@ def evaluate_iter(
     shared_background: bool = True,
     bin_by: str | None = None,
     keep_volumes: bool = True,
+    gray_levels: bool | GrayLevelMap = True,
+    background_fields: Mapping[str, DisplacementField] | None = None,
+    pair: PairStatistics | None = None,
+    region: np.ndarray | None = None,
 ) -> Iterator[Progress]:
     """Evaluate one or several fields on the same pair of volumes (generator).
 
@@ -440,24 +578,48 @@ def evaluate_iter(
     bin_edges : sequence of float, optional
         Explicit bin edges.
     shared_background : bool
-        Use one ``r0`` for every field: the smallest of their same-phase residuals. Imaging noise
-        belongs to the scans, not to a field, and a field's errors can only add misplaced texture
-        to its same-phase residual, so the smallest is the best noise estimate and the fields are
-        compared against the same baseline. False: each field uses its own ``r0``.
+        Use the scan pair's ``r0`` for every field (:mod:`.accuracy_pair`: the smallest
+        same-phase residual of the fields known on the pair). Imaging noise belongs to the scans,
+        not to a field, and a field's errors can only add misplaced texture to its same-phase
+        residual, so the smallest is the best noise estimate and the fields are compared against
+        the same baseline. False: each field uses its own ``r0`` for ``p`` (the error estimate
+        always uses the pair's).
     bin_by : str, optional
         Name of the field whose equivalent strain bins *every* field's residual, so that all
         curves compare the same material regions (e.g. bin the uncorrected and the corrected
         residuals by the corrected field's strain). Default: each field by its own strain.
     keep_volumes : bool
         Keep the residual and label volumes in the result (for display and export).
+    gray_levels : bool or GrayLevelMap
+        True (default): fit the pair's gray-level map (:mod:`.gray_levels`) with the best field
+        and judge every residual as ``|map(F~) - G|`` in the reference's gray levels, phased by
+        the reference's thresholds; a map: use it; False: the raw residual ``|F~ - G|``, the
+        moved scan phased by its own thresholds.
+    background_fields : dict of name -> DisplacementField, optional
+        Every field known on this pair (finite nodes), evaluated or not: the pair's map and
+        ``r0`` are measured with the best of them. Default: the evaluated fields.
+    pair : PairStatistics, optional
+        The pair's map and ``r0`` measured already (then ``gray_levels`` and
+        ``background_fields`` are not used).
+    region : ndarray of bool, shape (nz, ny, nx), optional
+        The specimen region in the reference (True inside; :func:`specimen_mask` makes one from
+        a box or a cylinder): the phase thresholds, Table 1 of both states, the gray-level map,
+        ``r0`` and every residual statistic use only its voxels (in loaded mode, the loaded
+        voxels at the same indices: the displacements are a few voxels).
 
     Raises
     ------
     ValueError
         Bad thresholds, an empty phase, a field that does not fit the volume or holds NaN.
     """
-    from .accuracy_blocks import FieldAccumulator, field_block, field_partial
+    from .accuracy_blocks import (
+        FieldAccumulator,
+        field_block,
+        field_partial,
+        halo_squared_gradient,
+    )
     from .binning import node_voxels
+    from .error_estimate import error_region_half
     from .field_spline import FieldSpline
     from .interpolation import prefilter
     from .pair_checks import check_pair_and_fields
@@ -473,24 +635,57 @@ def evaluate_iter(
     check_pair_and_fields(reference, deformed, dict(plan.named))  # finite volumes, shape
 
     yield Progress("phases", 0, 2, "segmenting the phases")
-    thresholds_g = phase_thresholds(reference, phases, n_phases, "reference volume")
     phases_f = phases if phases_deformed is None else phases_deformed
-    thresholds_f = phase_thresholds(deformed, phases_f, n_phases, "deformed volume")
-    check_same_phase_count(thresholds_g, thresholds_f)
-    labels_g = segment_phases(reference, thresholds_g, "reference volume")
-    labels_f = segment_phases(deformed, thresholds_f, "deformed volume")
-    tables = (
-        phase_table(reference, labels_g, thresholds_g),
-        phase_table(deformed, labels_f, thresholds_f),
-    )
+    if region is None:
+        thresholds_g = phase_thresholds(reference, phases, n_phases, "reference volume")
+        thresholds_f = phase_thresholds(deformed, phases_f, n_phases, "deformed volume")
+        check_same_phase_count(thresholds_g, thresholds_f)
+        labels_g = segment_phases(reference, thresholds_g, "reference volume")
+        labels_f = segment_phases(deformed, thresholds_f, "deformed volume")
+        tables = (
+            phase_table(reference, labels_g, thresholds_g),
+            phase_table(deformed, labels_f, thresholds_f),
+        )
+    else:
+        region = check_region(region, reference.shape)
+        (thresholds_g, labels_g, table_g), (thresholds_f, labels_f, table_f) = (
+            region_phases(volume, choice, n_phases, region, name)
+            for volume, choice, name in (
+                (reference, phases, "reference volume"),
+                (deformed, phases_f, "deformed volume"),
+            )
+        )
+        check_same_phase_count(thresholds_g, thresholds_f)
+        tables = (table_g, table_f)
     phase_contrast(*tables, phase_pair)  # an undefined contrast fails before the residuals
     yield Progress("phases", 2, 2, "phases segmented")
 
+    mapped_levels = gray_levels is not False
+    coefficients_f = prefilter(deformed)
+    if pair is None:
+        from .accuracy_pair import measure_pair
+
+        yield Progress("pair", 0, 1, "gray-level map and background residual of the pair")
+        candidates = dict(plan.named) if not background_fields else dict(background_fields)
+        for name, item in candidates.items():  # (a NaN node: FieldSpline says so)
+            check_field_fits(item, reference.shape, name=f"field {name!r}")
+        pair = measure_pair(
+            reference, deformed, candidates, thresholds_g if mapped_levels else thresholds_f,
+            labels_g, fit_map=gray_levels is True,
+            gray_levels=gray_levels if isinstance(gray_levels, GrayLevelMap) else None,
+            deformed_coefficients=coefficients_f, region=region,
+        )  # fmt: skip
+        yield Progress("pair", 1, 1, pair.gray_levels.describe())
+    mapping = None if pair.gray_levels.is_identity else pair.gray_levels
     if mode == "reference":
-        own, other, own_labels, other_thresholds = reference, deformed, labels_g, thresholds_f
+        own, own_labels = reference, labels_g
+        other_thresholds = thresholds_g if mapped_levels else thresholds_f
+        sampler = spline_sampler(coefficients_f)
     else:
-        own, other, own_labels, other_thresholds = deformed, reference, labels_f, thresholds_g
-    sampler = spline_sampler(prefilter(other))
+        own = deformed
+        own_labels = None if mapping is not None else labels_f
+        other_thresholds = thresholds_g
+        sampler = spline_sampler(prefilter(reference))
 
     partial = []
     for index, (name, item) in enumerate(plan.named):
@@ -501,9 +696,14 @@ def evaluate_iter(
         residual = np.empty(own.shape, np.float32) if keep_volumes else None
         mapped = np.empty(own.shape, np.uint8) if keep_volumes else None
         for z, box in slab_boxes(own.shape):
+            gradient2 = halo_squared_gradient(  # whole-volume central differences
+                own.__getitem__, box, own.shape, None if mode == "reference" else mapping
+            )
             block, _, block_residual, block_mapped = field_block(
-                own[z], sampler, spline, box, mode, other_thresholds, own_labels[z],
-                plan.bin_fields[index], centers, half,
+                own[z], sampler, spline, box, mode, other_thresholds,
+                None if own_labels is None else own_labels[z], plan.bin_fields[index], centers,
+                half, mapping, error_region_half(item), gradient2,
+                None if region is None else region[z],
             )  # fmt: skip
             totals.add(block)
             if keep_volumes:
@@ -512,7 +712,7 @@ def evaluate_iter(
     yield Progress("residual", len(plan.named), len(plan.named), "residuals done")
     return assemble_evaluation(
         plan, (thresholds_g, thresholds_f), tables, phase_pair, partial,
-        (labels_g, labels_f) if keep_volumes else (None, None),
+        (labels_g, labels_f) if keep_volumes else (None, None), pair,
     )  # fmt: skip
 
 

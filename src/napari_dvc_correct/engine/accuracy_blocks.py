@@ -28,9 +28,10 @@ import numpy as np
 from .binning import GridPart, cell_sums_block, node_box_sums
 from .field import DisplacementField
 from .field_spline import FieldSpline
+from .gray_levels import GrayLevelMap
 from .inverse_lattice import LatticeInverter
 from .phase_sums import residual_phase_sums
-from .phases import NO_PHASE
+from .phases import NO_PHASE, label_phases
 from .slabs import iter_slabs
 from .warp import (
     INVERSE_ACCURACY,
@@ -128,6 +129,33 @@ def corrected_residual(residual: np.ndarray, background: BackgroundResidual | fl
     return (np.asarray(residual, dtype=np.float32) - np.float32(r0)).astype(np.float32)
 
 
+def squared_gradient(block: np.ndarray) -> np.ndarray:
+    """``|grad g|^2`` (gray levels² per voxel², float32) of a block by central differences
+    (one-sided at the block's faces), NaN where a neighbour is undefined."""
+    values = np.asarray(block, dtype=np.float32)
+    total = np.zeros(values.shape, np.float32)
+    for axis in range(3):
+        if values.shape[axis] < 2:
+            continue
+        total += np.gradient(values, axis=axis) ** 2
+    return total
+
+
+def halo_squared_gradient(read_region, box, shape, gray_levels=None) -> np.ndarray:
+    """:func:`squared_gradient` of the block ``box`` read with a one-voxel halo, so that any
+    cutting of the volume into blocks gives the whole volume's central differences.
+
+    ``read_region(slices)`` returns the voxels of a region of the state the residual lives on;
+    ``gray_levels`` (a map, or None) is applied to them first (the loaded state, mapped).
+    """
+    grown = tuple(slice(max(0, s.start - 1), min(int(n), s.stop + 1)) for s, n in zip(box, shape))
+    values = np.asarray(read_region(grown), dtype=np.float32)
+    if gray_levels is not None:
+        values = gray_levels.apply(values, grown)
+    inner = tuple(slice(s.start - g.start, s.stop - g.start) for s, g in zip(box, grown))
+    return squared_gradient(values)[inner]
+
+
 # --- one block of one field -----------------------------------------------------------------------
 @dataclass
 class BlockTotals:
@@ -140,6 +168,8 @@ class BlockTotals:
     max_label: int  # largest defined phase of the own state in the block (-1: none)
     cells: GridPart  # residual per node cell of the binning field's grid
     nodes: GridPart  # residual per node box of this field (local residual)
+    gradients: GridPart | None = None  # |grad own|^2 per node cell (the error estimate's scale)
+    error_nodes: GridPart | None = None  # residual per node cell (the error estimate's region)
 
 
 def field_block(
@@ -149,12 +179,23 @@ def field_block(
     box,
     mode: str,
     thresholds_other,
-    own_labels: np.ndarray,
+    own_labels: np.ndarray | None,
     bin_field: DisplacementField,
     centers,
     half: int,
+    gray_levels: GrayLevelMap | None = None,
+    error_half: int | None = None,
+    gradient2: np.ndarray | None = None,
+    region_block: np.ndarray | None = None,
 ) -> tuple[BlockTotals, np.ndarray, np.ndarray, np.ndarray]:
     """Moved volume, residual and mapped phases of one block, and its totals.
+
+    With ``gray_levels`` (the pair's :class:`.gray_levels.GrayLevelMap`), the loaded scan's gray
+    values are first brought into the reference's (``map(F~)`` in reference mode, ``map(F)`` in
+    loaded mode), so the residual is ``|map(F~) - G|`` (or ``|map(F) - G'|``) in reference gray
+    levels and the reference's thresholds phase both sides: ``thresholds_other`` must then be
+    the reference's, and ``own_labels`` None in loaded mode (the phases of ``map(F)`` are
+    computed here).
 
     Parameters
     ----------
@@ -173,12 +214,24 @@ def field_block(
         whose reference positions also place the voxels in the binning cells).
     thresholds_other : ndarray
         Phase thresholds of the other state (for the mapped phases).
-    own_labels : ndarray of uint8, shape box_shape(box)
-        Phases of ``own_block``.
+    own_labels : ndarray of uint8, shape box_shape(box), or None
+        Phases of ``own_block`` (None: computed here with ``thresholds_other``, for a
+        gray-level-mapped loaded state).
     bin_field : DisplacementField
         Whose grid's cells bin the residual (the field itself, or ``bin_by``'s).
     centers, half
         Node voxels of the field (:func:`node_voxels`) and the half-size of their regions.
+    gray_levels : GrayLevelMap, optional
+        The pair's gray-level map (None: the raw residual).
+    error_half : int, optional
+        Half-size of the boxes of the error estimate (:func:`.error_estimate.error_region_half`;
+        default ``half``).
+    gradient2 : ndarray, shape box_shape(box), optional
+        ``|grad own|²`` of the block (:func:`halo_squared_gradient`; default: from the block
+        alone, one-sided at its faces).
+    region_block : ndarray of bool, shape box_shape(box), optional
+        The specimen region at the block's voxels: outside it the residual is undefined (NaN)
+        and takes no part in any number.
 
     Returns
     -------
@@ -202,6 +255,15 @@ def field_block(
         moved[~inverse.in_hull] = np.nan
         moved = moved.reshape(box_shape(box))
         positions = source
+    if gray_levels is not None and mode == "reference":
+        moved = gray_levels.apply(moved, box)
+    elif gray_levels is not None:
+        own_block = gray_levels.apply(own_block, box)
+    if region_block is not None:
+        moved = np.where(region_block, moved, np.float32(np.nan)).astype(np.float32)
+    if own_labels is None:
+        own_labels = label_phases(own_block, thresholds_other)
+    error_half = half if error_half is None else int(error_half)
     sums = residual_phase_sums(own_block, moved, own_labels, thresholds_other)
     residual = sums.residual
     totals = BlockTotals(
@@ -212,6 +274,13 @@ def field_block(
         max_label=sums.max_label,
         cells=cell_sums_block(residual, box, bin_field, positions),
         nodes=node_box_sums(residual, box, centers, half),
+        gradients=node_box_sums(
+            squared_gradient(own_block) if gradient2 is None else gradient2,
+            box,
+            centers,
+            error_half,
+        ),
+        error_nodes=node_box_sums(residual, box, centers, error_half),
     )
     return totals, moved, residual, sums.mapped
 
@@ -229,6 +298,10 @@ class FieldAccumulator:
         self.cell_counts = np.zeros(bin_field.shape, np.int64)
         self.node_sums = np.zeros(field.shape)
         self.node_counts = np.zeros(field.shape, np.int64)
+        self.gradient_sums = np.zeros(field.shape)
+        self.gradient_counts = np.zeros(field.shape, np.int64)
+        self.error_sums = np.zeros(field.shape)
+        self.error_counts = np.zeros(field.shape, np.int64)
 
     def add(self, block: BlockTotals) -> None:
         self.residual_sum += block.residual_sum
@@ -238,6 +311,10 @@ class FieldAccumulator:
         self.max_label = max(self.max_label, block.max_label)
         block.cells.add_to(self.cell_sums, self.cell_counts)
         block.nodes.add_to(self.node_sums, self.node_counts)
+        if block.gradients is not None:
+            block.gradients.add_to(self.gradient_sums, self.gradient_counts)
+        if block.error_nodes is not None:
+            block.error_nodes.add_to(self.error_sums, self.error_counts)
 
     @property
     def mean_residual(self) -> float:
@@ -258,6 +335,25 @@ class FieldAccumulator:
             for k in range(self.max_label + 1)
         )
         return BackgroundResidual(mean=float(sums.sum() / total), voxels=total, per_phase=per_phase)
+
+    def cell_residual(self) -> np.ndarray:
+        """Mean residual over every node's cell (the error estimate's region; NaN where it
+        holds no finite voxel)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(
+                self.error_counts > 0, self.error_sums / np.maximum(self.error_counts, 1), np.nan
+            )
+
+    def local_gradient(self) -> np.ndarray:
+        """RMS gray gradient ``sqrt(mean |grad|^2)`` over every node's cell (gray levels per
+        voxel; NaN where the cell holds no finite voxel)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(
+                self.gradient_counts > 0,
+                self.gradient_sums / np.maximum(self.gradient_counts, 1),
+                np.nan,
+            )
+        return np.sqrt(mean)
 
     def local_residual(self) -> np.ndarray:
         """Mean residual over every node's box (NaN where it holds no finite voxel)."""
@@ -288,6 +384,8 @@ def field_partial(plan, index: int, totals: FieldAccumulator, residual, mapped):
             totals.cell_sums, totals.cell_counts, plan.bin_strains[index], plan.edges
         ),
         local_residual=totals.local_residual(),
+        local_gradient=totals.local_gradient(),
+        cell_residual=totals.cell_residual(),
         residual=residual,
         labels_mapped=mapped,
     )

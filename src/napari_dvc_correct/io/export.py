@@ -82,11 +82,17 @@ def _check_extra(
 
 
 def _with_uncertainty(field: DisplacementField, extra: dict) -> dict:
-    """``extra`` plus the per-node uncertainty ``uncertainty_uz/uy/ux`` (voxels), if the field has one."""
-    if field.uncertainty is None:
-        return extra
-    sigma = np.asarray(field.uncertainty, np.float32)
-    own = {f"uncertainty_{axis}": sigma[..., k] for k, axis in enumerate(("uz", "uy", "ux"))}
+    """``extra`` plus the per-node uncertainty ``uncertainty_uz/uy/ux`` and the evaluation's
+    ``error_estimate`` (voxels), where the field has them."""
+    from ..engine.error_estimate import estimate_of
+
+    own = {}
+    if field.uncertainty is not None:
+        sigma = np.asarray(field.uncertainty, np.float32)
+        own = {f"uncertainty_{axis}": sigma[..., k] for k, axis in enumerate(("uz", "uy", "ux"))}
+    estimate = estimate_of(field)  # left by an accuracy evaluation (voxels)
+    if estimate is not None:
+        own["error_estimate"] = estimate.astype(np.float32)
     return {**extra, **own}
 
 

@@ -61,7 +61,8 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
     Files: ``labels_reference.tif``, ``labels_deformed.tif`` (uint8 phases),
     ``residual_<field>.tif`` (float32 voxels, NaN where undefined), ``labels_mapped_<field>.tif``
     (phases of the other state brought over by the field, 255 where undefined) and
-    ``equivalent_strain_<field>.tif`` (float32 on the POI grid, with ``scale = step`` and
+    ``equivalent_strain_<field>.tif`` and ``error_estimate_<field>.tif`` (voxels; float32 on
+    the POI grid, with ``scale = step`` and
     ``translate = origin`` in its description so it overlays the volume).
     """
     from ..io.export import export_volume_tiff
@@ -98,6 +99,16 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
             description={"quantity": "equivalent strain (grid)", "field": item.name},
         )
         written.append(target)
+        if item.error_estimate is not None:
+            target = out_dir / f"error_estimate_{stem}.tif"
+            export_volume_tiff(
+                item.error_estimate.astype(np.float32),
+                target,
+                scale=item.field.step,
+                translate=item.field.origin,
+                description={"quantity": "error estimate (voxels, grid)", "field": item.name},
+            )
+            written.append(target)
     return written
 
 

@@ -140,6 +140,14 @@ def render_markdown(
     """
     files = files or {}
     parts = [f"# {title}"]
+    for item in evaluation.fields:
+        if not item.meaningful:
+            parts.append(
+                f"> **Warning — {item.name}: only {item.measured_nodes} of "
+                f"{item.field.n_points} nodes were measured**; the others were inpainted, so "
+                "its accuracy index p is not meaningful (it judges values filled in from a few "
+                "matches)."
+            )
     if inputs:
         parts.append("\n".join(f"- **{key}**: {value}" for key, value in inputs.items()))
     options = evaluation.options
@@ -147,6 +155,13 @@ def render_markdown(
         "r(X) = |F(X + u(X)) − G(X)| on reference voxels"
         if evaluation.mode == "reference"
         else "r(x) = |F(x) − G'(x)| on loaded-state voxels (the paper's form)"
+    )
+    pair = evaluation.pair
+    parts.append(
+        f"Every mean gray residual here is the mean of {evaluation.residual_text}. Gray levels: "
+        f"{evaluation.gray_levels.describe()}, fitted once for the scan pair. Background "
+        f"residual r̄0 = {pair.background.mean:.4g} (eq. 1, the pair's, measured with "
+        f"'{pair.measured_with}'; a field's p does not depend on which others are evaluated)."
     )
     parts.append(
         f"Residual: {residual_kind}, defined inside the box spanned by the grid nodes. "
@@ -171,13 +186,16 @@ def render_markdown(
                 "background_used": "r̄0 used",
                 "mean_corrected_residual": "Mean r' = r̄ − r̄0",
                 "accuracy_index": "Accuracy index p (eq. 2)",
+                "error_median": "Error estimate, median (voxels)",
+                "error_p95": "95th percentile",
+                "likely_bad_fraction": "Share of nodes likely > 0.5 voxel",
                 "max_equivalent_strain": "Max equivalent strain",
-                "valid_nodes": "Valid nodes",
+                "valid_nodes": "Measured nodes",
                 "nodes": "Nodes",
             },
         )
     )
-    best = max(evaluation.fields, key=lambda item: item.accuracy)
+    best = max(evaluation.fields, key=lambda item: (item.meaningful, item.accuracy))
     shared = "one shared" if options.get("shared_background") else "each field's own"
     parts.append(
         f"p = 1 means the residual is at the imaging-noise level; p falls by 0.1 for each tenth of "

@@ -58,18 +58,24 @@ def summary_rows(evaluation: Evaluation) -> list[dict]:
     rows = []
     for item in evaluation.fields:
         strain = item.equivalent_strain[np.isfinite(item.equivalent_strain)]
+        error = item.error
         rows.append(
             {
                 "field": item.name,
+                "residual": evaluation.residual_text,
                 "mean_residual": item.mean_residual,
                 "background_residual": item.background.mean,
                 "background_used": item.background_used,
                 "mean_corrected_residual": item.mean_corrected_residual,
                 "phase_contrast": evaluation.contrast,
                 "accuracy_index": item.accuracy,
+                "accuracy_meaningful": "yes" if item.meaningful else "no",
+                "error_median": error["median"],
+                "error_p95": error["p95"],
+                "likely_bad_fraction": error["likely_bad"],
                 "residual_voxels": item.voxels,
                 "same_phase_voxels": item.background.voxels,
-                "valid_nodes": int(item.field.valid.sum()),
+                "valid_nodes": item.measured_nodes,
                 "nodes": item.field.n_points,
                 "mean_equivalent_strain": float(strain.mean()) if strain.size else math.nan,
                 "max_equivalent_strain": float(strain.max()) if strain.size else math.nan,

@@ -40,12 +40,33 @@ from ..engine.accuracy import (
     phase_contrast,
     plan_evaluation,
 )
-from ..engine.accuracy_blocks import FieldAccumulator, field_block, field_partial
+from ..engine.accuracy_blocks import (
+    FieldAccumulator,
+    field_block,
+    field_partial,
+    halo_squared_gradient,
+)
+from ..engine.accuracy_pair import (
+    background_from_sums,
+    choose_best,
+    fit_from_passes,
+    pair_start_map,
+    same_phase_block,
+)
 from ..engine.binning import node_voxels
+from ..engine.error_estimate import error_region_half
 from ..engine.field_spline import FieldSpline
+from ..engine.gray_levels import (
+    DEFAULT_CELL,
+    CellSums,
+    GrayLevelMap,
+    block_sums,
+    cells_shape,
+)
 from ..engine.local_accuracy import region_half
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.phases import (
+    NO_PHASE,
     OTSU_SAMPLES,
     PhaseTotals,
     label_phases,
@@ -55,6 +76,7 @@ from ..engine.phases import (
     validate_thresholds,
 )
 from ..engine.progress import Progress, run_to_completion
+from ..engine.warp import pull_back_block
 from ..io.lazy import as_lazy, open_volume
 from ..io.lazy_outputs import create_output
 from . import scheduling
@@ -160,41 +182,130 @@ def _read_finite(volume, block, name):
     return values
 
 
-def _scan_block(reference, deformed, block, stride):
-    """Finite check, gray range and the multi-Otsu lattice sample of both states in one block."""
+def _region_block(region, block):
+    """The specimen region at ``block`` (bool), or None for the whole volume."""
+    if region is None:
+        return None
+    if hasattr(region, "read_region"):
+        return np.asarray(region.read_region(block)) != 0
+    return np.asarray(region[block]) != 0
+
+
+def _scan_block(reference, deformed, block, stride, region=None):
+    """Finite check, gray range and the multi-Otsu lattice sample of both states in one block
+    (range and sample over the specimen region's voxels, with one)."""
+    inside = _region_block(region, block)
     out = []
     for volume, name in ((reference, "reference volume"), (deformed, "deformed volume")):
         values = _read_finite(volume, block, name)
+        if inside is not None:
+            values = np.where(inside, values.astype(np.float64), np.nan)
         sample = None if stride is None else lattice_sample(values, block, stride)
-        out.append((float(values.min()), float(values.max()), sample))
+        finite = values[np.isfinite(values)] if inside is not None else values
+        low = float(finite.min()) if finite.size else np.inf
+        high = float(finite.max()) if finite.size else -np.inf
+        out.append((low, high, sample))
     return out
 
 
-def _evaluate_block(reference, deformed, splines, block, setup, outputs):
+def _pair_moved(reference, deformed, spline, block, region):
+    g = reference.read_region(block)
+    moved = pull_back_block(LazySampler(deformed), spline, block, "nan")
+    inside = _region_block(region, block)
+    if inside is not None:
+        moved[~inside] = np.nan
+    return g, moved
+
+
+def _pair_sums_block(reference, deformed, spline, block, shape, cell, previous, region=None):
+    """The gray-level map's cell sums of one block (:func:`..engine.gray_levels.block_sums`)."""
+    g, moved = _pair_moved(reference, deformed, spline, block, region)
+    return block_sums(g, moved, block, shape, cell, previous)
+
+
+def _pair_background_block(reference, deformed, spline, block, thresholds, gray, region=None):
+    """Eq. 1's same-phase sums of one block with the map ``gray`` (``thresholds``: the
+    reference's, then the moved scan's)."""
+    g, moved = _pair_moved(reference, deformed, spline, block, region)
+    labels = label_phases(g, thresholds[0])
+    return same_phase_block(g, moved, labels, thresholds[1], gray, block)
+
+
+def _measure_pair(volumes, candidates, blocks, shape, thresholds, fit, start, run, region=None):
+    """:func:`..engine.accuracy_pair.measure_pair` block by block (generator): for every
+    candidate two passes fit its map, one more measures its ``r0``."""
+    import dask
+
+    measured = {}
+    for name, field in candidates.items():
+        spline = dask.delayed(FieldSpline.from_field(field))
+
+        def sums_with(previous, spline=spline, name=name):
+            task = dask.delayed(_pair_sums_block, pure=False)
+            tasks = [
+                task(*volumes, spline, block, shape, DEFAULT_CELL, previous, region)
+                for block in blocks
+            ]
+            parts = yield from run(tasks, f"gray levels ({name})")
+            total = CellSums.zeros(cells_shape(shape, DEFAULT_CELL))
+            for part in parts:
+                total.add(part)
+            return total
+
+        if isinstance(fit, GrayLevelMap):
+            gray = fit
+        elif fit:
+            gray = yield from fit_from_passes(sums_with, start, shape, DEFAULT_CELL)
+        else:
+            gray = GrayLevelMap.identity(shape)
+        task = dask.delayed(_pair_background_block, pure=False)
+        tasks = [task(*volumes, spline, block, thresholds, gray, region) for block in blocks]
+        parts = yield from run(tasks, f"background ({name})")
+        same_sums = sum(p[0] for p in parts)
+        same_counts = sum(p[1] for p in parts)
+        largest = max(p[2] for p in parts)
+        measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
+    return choose_best(measured)
+
+
+def _evaluate_block(reference, deformed, splines, block, setup, outputs, region=None):
     """Phases of both states and every field's totals in one block; writes the volumes asked."""
-    mode, thresholds, plan, centers, halves = setup
+    mode, thresholds, plan, centers, halves, mapping, mapped_levels = setup
     g = reference.read_region(block)
     f = deformed.read_region(block)
+    inside = _region_block(region, block)
     labels = [label_phases(g, thresholds[0]), label_phases(f, thresholds[1])]
+    grays = (g, f)
+    if inside is not None:  # outside the specimen: no phase, no gray range
+        for lab in labels:
+            lab[~inside] = NO_PHASE
+        grays = tuple(np.where(inside, v.astype(np.float64), np.nan) for v in (g, f))
     phase_totals = [
         PhaseTotals(thresholds[k].size + 1).add(v, lab)
-        for k, (v, lab) in enumerate(zip((g, f), labels))
+        for k, (v, lab) in enumerate(zip(grays, labels))
     ]
     for key, lab in zip(("labels_reference", "labels_deformed"), labels):
         if key in outputs:
             outputs[key].write(block, lab)
     if mode == "reference":
-        own, other, own_labels, other_thresholds = g, deformed, labels[0], thresholds[1]
+        own, other, own_labels = g, deformed, labels[0]
+        other_thresholds = thresholds[0] if mapped_levels else thresholds[1]
     else:
-        own, other, own_labels, other_thresholds = f, reference, labels[1], thresholds[0]
+        own, other, other_thresholds = f, reference, thresholds[0]
+        own_labels = None if mapping is not None else labels[1]
 
     sampler = LazySampler(other)  # a callable, and a one-pass pull-back (reference mode)
+    own_volume = reference if mode == "reference" else deformed
+    gradient2 = halo_squared_gradient(
+        own_volume.read_region, block, own_volume.shape, None if mode == "reference" else mapping
+    )
 
     totals = []
     for index, ((name, _), spline) in enumerate(zip(plan.named, splines)):
         result, _, residual, mapped = field_block(
             own, sampler, spline, block, mode, other_thresholds, own_labels,
-            plan.bin_fields[index], centers[index], halves[index],
+            plan.bin_fields[index], centers[index], halves[index], mapping,
+            error_region_half(plan.named[index][1]), gradient2, inside,
         )  # fmt: skip
         for key, values in ((("residual", name), residual), (("labels_mapped", name), mapped)):
             if key in outputs:
@@ -250,6 +361,10 @@ def evaluate_tiled_iter(
     max_memory=None,
     workers: int | None = None,
     scheduler=None,
+    gray_levels=True,
+    background_fields=None,
+    pair=None,
+    region=None,
 ) -> Iterator[Progress]:
     """:func:`..engine.accuracy.evaluate_iter` on lazily read volumes, block by block (generator).
 
@@ -261,8 +376,13 @@ def evaluate_tiled_iter(
     reference, deformed : lazy volume, path or array
         ``G`` and ``F`` (:func:`..io.lazy.as_lazy`), of one shape.
     fields, phases, phases_deformed, n_phases, phase_pair, mode, strain_measure, strain_method, \
-strain_window, n_bins, bin_edges, shared_background, bin_by
+strain_window, n_bins, bin_edges, shared_background, bin_by, gray_levels, background_fields, pair
         As :func:`..engine.accuracy.evaluate_iter` (fields must be finite: clean them first).
+        The pair's map and ``r0`` are measured block by block, three passes per candidate
+        field (two fit the map, one measures ``r0``), as in memory.
+    region : ndarray of bool or lazy region (``read_region``), optional
+        The specimen region (reference space), as :func:`..engine.accuracy.evaluate_iter`'s:
+        read block by block.
     outputs : dict, optional
         Volumes to write, key -> path (``.zarr``, ``.tif``): ``"labels_reference"``,
         ``"labels_deformed"`` (uint8 phases), ``("residual", name)`` (float32, NaN where
@@ -360,10 +480,11 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
         for choice, is_auto in zip(choices, auto):
             if isinstance(choice, str) and not is_auto:
                 raise ValueError(f"phases must be 'auto' or a list of thresholds, got {choice!r}")
-        stride = otsu_stride(shape) if any(auto) else None
+        stride = otsu_stride(shape)  # multi-Otsu's lattice, and the gray-level map's start
         volumes = [dask.delayed(reference), dask.delayed(deformed)]
         scan = dask.delayed(_scan_block, pure=False)
-        tasks = [scan(*volumes, block, stride) for block in blocks]
+        region_task = dask.delayed(region)
+        tasks = [scan(*volumes, block, stride, region_task) for block in blocks]
         scanned = yield from _run(tasks, scheduler, workers, client, "scan")
         thresholds = []
         for k, (choice, name) in enumerate(zip(choices, ("reference volume", "deformed volume"))):
@@ -375,6 +496,23 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
                 high = max(item[k][1] for item in scanned)
                 thresholds.append(validate_thresholds(choice, (low, high), name))
         check_same_phase_count(*thresholds)
+
+        def run(tasks, stage):
+            return (yield from _run(tasks, scheduler, workers, client, stage))
+
+        mapped_levels = gray_levels is not False
+        if pair is None:
+            candidates = dict(background_fields) if background_fields else dict(plan.named)
+            start = pair_start_map(
+                np.concatenate([item[0][2] for item in scanned]),
+                np.concatenate([item[1][2] for item in scanned]),
+            )
+            moved_thresholds = (thresholds[0], thresholds[0] if mapped_levels else thresholds[1])
+            pair = yield from _measure_pair(
+                volumes, candidates, blocks, shape, moved_thresholds, gray_levels, start, run,
+                region_task,
+            )  # fmt: skip
+        mapping = None if pair.gray_levels.is_identity else pair.gray_levels
 
         # pass 2: phases and every field's totals, block by block
         for key, path in outputs.items():
@@ -389,10 +527,12 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
             plan,
             [node_voxels(item, shape) for item in items],
             [region_half(item) for item in items],
+            mapping,
+            mapped_levels,
         )
         task = dask.delayed(_evaluate_block, pure=False)
         shared = [dask.delayed(setup), dask.delayed(created)]
-        tasks = [task(*volumes, splines, block, *shared) for block in blocks]
+        tasks = [task(*volumes, splines, block, *shared, region_task) for block in blocks]
         results = yield from _run(tasks, scheduler, workers, client, "evaluate")
     except BaseException:
         for output in created.values():
@@ -434,7 +574,7 @@ strain_window, n_bins, bin_edges, shared_background, bin_by
         for k, (name, _) in enumerate(plan.named)
     ]
     labels = (final.get("labels_reference"), final.get("labels_deformed"))
-    return assemble_evaluation(plan, tuple(thresholds), tables, phase_pair, partial, labels)
+    return assemble_evaluation(plan, tuple(thresholds), tables, phase_pair, partial, labels, pair)
 
 
 def evaluate_tiled(reference, deformed, fields, **options):

@@ -114,6 +114,18 @@ def method_message(field: DisplacementField) -> str:
     return head + ": " + "; ".join(lines) + "."
 
 
+def residual_frame(field: DisplacementField) -> str:
+    """What the correction's mean gray residual is, as Evaluate states it (same definition:
+    Evaluate in the same frame gives the same number, docs/evaluation.md)."""
+    info = field.metadata.get("correction", {})
+    mapped = bool(field.metadata.get("gray_levels"))
+    f = "map(F)" if mapped else "F"
+    levels = "reference gray levels" if mapped else "raw gray levels"
+    if info.get("frame", "loaded") == "loaded":
+        return f"|{f} − G'|, loaded frame, {levels}"
+    return f"|{f}(X + u) − G(X)|, reference frame, {levels}"
+
+
 def summary_message(field: DisplacementField) -> str:
     """The panel's line after a correction: the mean gray residual before → after, the passes
     applied, why the loop stopped (``metadata["correction"]["stop_reason"]``), and the
@@ -122,7 +134,7 @@ def summary_message(field: DisplacementField) -> str:
     before = float(info.get("mean_gray_residual_before", float("nan")))
     after = float(info.get("mean_gray_residual_after", float("nan")))
     text = (
-        f"Mean gray residual {before:.3f} → {after:.3f} "
+        f"Mean gray residual ({residual_frame(field)}) {before:.3f} → {after:.3f} "
         f"({int(info.get('passes_applied', 0))} pass(es) applied)."
     )
     reason = info.get("stop_reason")

@@ -38,13 +38,14 @@ from .correlate_model import (
     named_volume,
     suggest_tiled,
 )
+from .regions import RegionBox
 
 #: Key of a residual layer's plugin metadata: the temporary folder it reads lazily.
 TEMPORARY_KEY = "temporary_folder"
 
 MODES = {
-    "reference": "reference frame: |F(X + u) − G(X)|",
-    "loaded": "loaded state: |F − G'| (paper)",
+    "reference": "reference frame: |map(F)(X + u) − G(X)|",
+    "loaded": "loaded state: |map(F) − G'| (paper)",
 }
 
 
@@ -77,6 +78,10 @@ class EvaluateWidget(EngineWidget):
             "by itself). Same numbers as in memory. A pair (its residual kept on disk) or every "
             "state of a series (the numbers only)."
         )
+
+        # the specimen: phases, r0 and the residual statistics use only its voxels
+        self.region = RegionBox(self.viewer)
+        self.controls.addWidget(self.region)
 
         self.n_phases = QSpinBox()
         self.n_phases.setRange(2, 8)
@@ -167,6 +172,7 @@ class EvaluateWidget(EngineWidget):
             return
         self._volume_key = key
         volume = self._volume(self.reference, "reference")
+        self.region.set_volume(volume.shape, volume)
         self.tiled.setChecked(suggest_tiled([volume]))
         counts, edges = model.gray_histogram(volume)
         self.histogram.set_histogram(counts, edges)
@@ -179,6 +185,7 @@ class EvaluateWidget(EngineWidget):
     def settings(self) -> dict:
         """Thresholds, number of phases and residual mode, JSON-friendly (for a session file)."""
         return {
+            "region": self.region.settings(),
             "n_phases": self.n_phases.value(),
             "thresholds": self.thresholds(),
             "mode": self.mode.currentData(),
@@ -214,6 +221,8 @@ class EvaluateWidget(EngineWidget):
         self.n_phases.setValue(int(settings.get("n_phases", self.n_phases.value())))
         self.n_phases.blockSignals(False)
         self._reference_changed()
+        if "region" in settings:
+            self.region.restore(settings["region"])
         if settings.get("thresholds"):
             self.set_thresholds(settings["thresholds"], show=False)
         self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
@@ -304,14 +313,17 @@ class EvaluateWidget(EngineWidget):
         self._placement = (
             layer_placement(self.reference.layer()) if self.reference.layer() else None
         )
+        self._chosen = dict(chosen)  # the layers' fields: the estimates go onto them
         groups = self._groups(chosen)
+        reference = self._volume(self.reference, "reference")
+        region = self.region.mask(reference.shape, reference, self._placement)
         if len(groups) > 1:  # a series: each state against its own pair of volumes
             tiled = self.tiled.isChecked()
             memory = check_tiled("pair", None, self.max_memory.text()) if tiled else None
             return model.run_groups(
-                groups, self.thresholds(), self.mode.currentData(), memory, tiled
+                groups, self.thresholds(), self.mode.currentData(), memory, tiled, region
             )
-        _, reference, deformed, chosen = groups[0]
+        _, reference, deformed, chosen, known = groups[0]
         self._outputs, memory, self._writing = None, None, None
         self._release_temporary()  # folders of earlier runs no layer reads any more
         if self.tiled.isChecked():
@@ -326,6 +338,8 @@ class EvaluateWidget(EngineWidget):
             self.mode.currentData(),
             outputs=self._outputs,
             max_memory=memory,
+            background_fields=known,
+            region=region,
         )
         return model.with_residual_layers(run, self._placement, self._outputs, TEMPORARY_KEY)
 
@@ -343,20 +357,43 @@ class EvaluateWidget(EngineWidget):
     def _groups(self, chosen: dict) -> list:
         """Chosen fields grouped by the pair of volumes they were measured on.
 
-        A field measured on the states of a series (``"scan[2]"``) is evaluated on them; the
-        others on the panel's reference and deformed volumes.
+        A field whose metadata names volumes open in the viewer — the states of a series
+        (``"scan[2]"``) or separate layers — is evaluated on them; the others on the panel's
+        reference and deformed volumes. Each entry is ``(label, reference, deformed, chosen,
+        known)``, ``known`` every field of the viewer on that pair, ticked or not: the pair's
+        gray-level map and ``r0`` are measured with the best of them.
         """
+        panel = (self.reference.currentText(), self.deformed.currentText())
+
+        def key_of(field):
+            pair = (field.metadata.get("reference_layer"), field.metadata.get("deformed_layer"))
+            if not all(pair) or pair == panel:
+                return None
+            try:
+                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
+            except ValueError:  # not open any more: the panel's pair
+                return None
+            return pair if volumes[0].shape == volumes[1].shape else None
+
+        every = L.fields_in(self.viewer.layers)
+        keys = {name: key_of(field) for name, field in every.items()}
         groups: dict = {}
         for name, field in chosen.items():
-            pair = (field.metadata.get("reference_layer"), field.metadata.get("deformed_layer"))
-            if "[" in str(pair[1]):
-                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
-                label = f"state {pair[1].rsplit('[', 1)[1].rstrip(']')}"
-            else:
-                pair, label = None, ""
+            pair = keys.get(name, key_of(field))
+            if pair is None:
+                label = ""
                 volumes = groups[None][1:3] if None in groups else self._panel_pair()
-            entry = groups.setdefault(pair, [label, *volumes, {}])
+            else:
+                volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)
+                if "[" in str(pair[1]):
+                    label = f"state {pair[1].rsplit('[', 1)[1].rstrip(']')}"
+                else:
+                    label = f"{pair[0]} → {pair[1]}"
+            entry = groups.setdefault(pair, [label, *volumes, {}, {}])
             entry[3][name] = field
+        for pair, entry in groups.items():
+            entry[4].update({n: f for n, f in every.items() if keys.get(n) == pair})
+            entry[4].update(entry[3])
         return [tuple(entry) for entry in groups.values()]
 
     def _release_temporary(self, event=None) -> None:
@@ -369,7 +406,17 @@ class EvaluateWidget(EngineWidget):
                 in_use.append(entry[TEMPORARY_KEY])
         self._temporary.release(in_use)
 
+    def _attach_estimates(self, evaluations) -> None:
+        """Leave each field's error estimate on the field its layers carry (View shows it,
+        exports write it)."""
+        chosen = getattr(self, "_chosen", {})
+        for _, evaluation in evaluations:
+            for item in evaluation.fields:
+                if item.name in chosen and item.error_estimate is not None:
+                    model.attach_estimate(chosen[item.name], item, evaluation)
+
     def on_result(self, evaluation) -> None:
+        self._attach_estimates(evaluation if isinstance(evaluation, list) else [("", evaluation)])
         if isinstance(evaluation, list):  # a series: one evaluation per state
             self.evaluations = evaluation
             self.evaluation = evaluation[-1][1]

@@ -169,6 +169,8 @@ def run_evaluation(
     outputs: dict | None = None,
     max_memory: str | None = None,
     tiled: bool | None = None,
+    background_fields: dict | None = None,
+    region=None,
 ):
     """Generator for the panel's worker: cleans the fields if needed, then evaluates them all.
 
@@ -187,6 +189,13 @@ def run_evaluation(
     tiled : bool, optional
         Out of core even without ``outputs`` (then no residual volume is kept: the numbers
         only, as a series needs). Default: out of core when ``outputs`` are given.
+    background_fields : dict of name -> DisplacementField, optional
+        Every field known on this pair, ticked or not: the pair's gray-level map and ``r0``
+        are measured with the best of them, so a field's p does not depend on which others are
+        ticked (default: ``fields``).
+    region : ndarray of bool or lazy region, optional
+        The specimen (the Correlate panel's regions, reference space): phases, r0 and every
+        residual statistic use only its voxels (out of core: read block by block).
 
     Returns
     -------
@@ -197,7 +206,14 @@ def run_evaluation(
     if not fields:
         raise ValueError("no displacement field to evaluate: run Correlate first")
     ready = {name: ready_for_evaluation(field) for name, field in fields.items()}
-    if outputs is not None or tiled:
+    candidates = {
+        name: ready[name] if name in ready else ready_for_evaluation(field)
+        for name, field in (background_fields or fields).items()
+    }
+    out_of_core = outputs is not None or bool(tiled)
+    if region is not None and not out_of_core:
+        region = np.asarray(region) != 0  # read here, in the worker
+    if out_of_core:
         from ..tiled.evaluation import evaluate_tiled_iter
         from ..tiled.memory import parse_memory
 
@@ -210,6 +226,8 @@ def run_evaluation(
                 mode=mode,
                 outputs={("residual", name): str(path) for name, path in (outputs or {}).items()},
                 max_memory=parse_memory(max_memory) if max_memory else None,
+                background_fields=candidates,
+                region=region,  # read block by block
             )
         )
     return (
@@ -220,6 +238,8 @@ def run_evaluation(
             phases=[float(t) for t in thresholds],
             mode=mode,
             keep_volumes=True,
+            background_fields=candidates,
+            region=region,
         )
     )
 
@@ -273,9 +293,10 @@ def evaluation_report(evaluation) -> dict:
     """A JSON-friendly summary of an :class:`~napari_dvc_correct.engine.accuracy.Evaluation`."""
     report = {
         "title": "DVC accuracy evaluation",
-        "residual": "|F(X + u(X)) - G(X)|"
-        if evaluation.mode == "reference"
-        else "|F - G'| (loaded state)",
+        "residual": evaluation.residual_text,
+        "gray levels": evaluation.gray_levels.describe(),
+        "background residual r0 (pair)": float(evaluation.pair.background.mean),
+        "r0 measured with": evaluation.pair.measured_with,
         "thresholds (reference)": [float(t) for t in evaluation.thresholds_reference],
         "thresholds (deformed)": [float(t) for t in evaluation.thresholds_deformed],
         "phase pair": [int(p) for p in evaluation.phase_pair],
@@ -295,11 +316,18 @@ def evaluation_report(evaluation) -> dict:
             for s in table
         }
     for item in evaluation.fields:
+        error = item.error
         report[f"field: {item.name}"] = {
             "mean gray residual": float(item.mean_residual),
             "background residual r0": float(item.background_used),
             "own background residual": float(item.background.mean),
             "accuracy index p": float(item.accuracy),
+            "p meaningful": bool(item.meaningful),
+            "measured nodes": int(item.measured_nodes),
+            "nodes": int(item.field.n_points),
+            "error estimate median (voxels)": error["median"],
+            "error estimate 95th percentile (voxels)": error["p95"],
+            "share of nodes likely > 0.5 voxel": error["likely_bad"],
             "voxels": int(item.voxels),
             "mean residual per strain bin": [float(v) for v in item.bins.mean_residual],
             "accuracy per strain bin": [float(v) for v in np.asarray(item.bin_accuracy)],
@@ -308,27 +336,71 @@ def evaluation_report(evaluation) -> dict:
     return report
 
 
+def attach_estimate(field, item, evaluation) -> None:
+    """Leave ``item``'s error estimate on ``field`` (the layer's), with what it was measured
+    against (:func:`..engine.error_estimate.attach_estimate`)."""
+    from ..engine.error_estimate import attach_estimate as attach
+
+    attach(
+        field,
+        item.error_estimate,
+        background_residual=float(evaluation.pair.background.mean),
+        residual=evaluation.residual_text,
+        gray_levels=evaluation.gray_levels.describe(),
+    )
+
+
+def field_lines(item) -> list[str]:
+    """The dock's lines for one field: a warning first when most nodes were not measured, then
+    the mean residual, p and the error estimate."""
+    from ..engine.error_estimate import LIKELY_BAD
+
+    lines = []
+    nodes = int(item.field.n_points)
+    if not item.meaningful:
+        lines.append(
+            f"⚠ {item.name}: only {item.measured_nodes} of {nodes} nodes were measured (the rest "
+            "inpainted): p is not meaningful"
+        )
+    error = item.error
+    p = f"{item.accuracy:.4f}" if item.meaningful else f"({item.accuracy:.4f}, not meaningful)"
+    lines.append(
+        f"{item.name}: mean residual {item.mean_residual:.2f}, accuracy index p = {p}; error "
+        f"estimate median "
+        f"{error['median']:.3f} voxel, 95 % {error['p95']:.3f}, "
+        f"{100 * error['likely_bad']:.0f} % of nodes likely > {LIKELY_BAD:g} voxel; "
+        f"measured nodes {item.measured_nodes} / {nodes}"
+    )
+    return lines
+
+
 def summary_text(evaluation) -> str:
-    """Few lines for the dock: per-phase mean gray, then r0 and p for each field."""
+    """Few lines for the dock: what the residual is (frame, gray levels), the pair's r0 and
+    phases, then each field's residual, p and error estimate."""
     gray = ", ".join(f"{s.mean_gray:.1f}" for s in evaluation.phases_reference)
+    pair = evaluation.pair
     lines = [
-        f"Mean gray per phase (reference): {gray}; contrast {evaluation.contrast:.1f}",
+        f"Mean gray residual = mean of {evaluation.residual_text}; gray levels "
+        f"{evaluation.gray_levels.describe()}",
+        f"Background r0 = {pair.background.mean:.2f} (the pair's, measured with "
+        f"'{pair.measured_with}'); mean gray per phase (reference): {gray}; contrast "
+        f"{evaluation.contrast:.1f}",
     ]
     for item in evaluation.fields:
-        lines.append(
-            f"{item.name}: mean residual {item.mean_residual:.2f}, background r0 "
-            f"{item.background_used:.2f}, accuracy index p = {item.accuracy:.4f}"
-        )
+        lines.extend(field_lines(item))
     return "\n".join(lines)
 
 
-def run_groups(groups, thresholds, mode: str = "reference", max_memory=None, tiled=False):
+def run_groups(
+    groups, thresholds, mode: str = "reference", max_memory=None, tiled=False, region=None
+):
     """Evaluate fields measured on different pairs (the states of a series), pair by pair.
 
     Parameters
     ----------
-    groups : list of (label, reference, deformed, fields)
-        One entry per pair of volumes, e.g. ``("state 2", G0, F2, {"state 2 (total)": d})``.
+    groups : list of (label, reference, deformed, fields[, background_fields])
+        One entry per pair of volumes, e.g. ``("state 2", G0, F2, {"state 2 (total)": d})``;
+        ``background_fields``: every field known on that pair (see :func:`run_evaluation`).
     max_memory, tiled
         Out of core (``tiled``): each pair read block by block within ``max_memory``; only the
         numbers are kept (the panel shows no residual layer for a series).
@@ -340,11 +412,12 @@ def run_groups(groups, thresholds, mode: str = "reference", max_memory=None, til
     from ..engine.progress import Progress
 
     results = []
-    for index, (label, reference, deformed, fields) in enumerate(groups):
+    for index, (label, reference, deformed, fields, *known) in enumerate(groups):
         yield Progress(f"{label} ({index + 1}/{len(groups)})", 0, 1, "evaluating")
         evaluation = yield from run_evaluation(
-            reference, deformed, fields, thresholds, mode, max_memory=max_memory, tiled=tiled
-        )
+            reference, deformed, fields, thresholds, mode, max_memory=max_memory, tiled=tiled,
+            background_fields=known[0] if known else None, region=region,
+        )  # fmt: skip
         results.append((label, evaluation))
     return results
 

@@ -1,0 +1,66 @@
+"""The error estimate on the real rock pair of ../shared/data/real-rock (issue 26; no truth).
+
+Correlates each crop (subvolume 21, step 10, first order), cleans the field and evaluates it:
+the estimate should be high along the crack of ``rock_lower.npz`` and low in ``rock_upper.npz``.
+Prints the pair's gray-level map, r0, p, the estimate's median / 95th percentile / share above
+0.5 voxel, and (lower crop) the estimate near the crack (nodes the correlation could not match
+or flagged as discontinuous, and their neighbours) against the rest.
+
+    python benchmarks/bench_error_estimate_rock.py [../shared/data/real-rock]
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from napari_dvc_correct.engine.accuracy import evaluate_fields, measured_mask
+from napari_dvc_correct.engine.cleaning import clean
+from napari_dvc_correct.engine.correlate import correlate
+from napari_dvc_correct.engine.params import CorrelationParams
+
+
+def main(folder: Path) -> None:
+    for name in ("rock_upper", "rock_lower"):
+        data = np.load(folder / f"{name}.npz")
+        reference = data["reference"].astype(np.float32)
+        deformed = data["deformed"].astype(np.float32)
+        started = time.perf_counter()
+        field = correlate(reference, deformed, CorrelationParams(subvolume=21, step=10))
+        cleaned = clean(field, fill_masked=True)
+        result = evaluate_fields(reference, deformed, {name: cleaned}, keep_volumes=False)
+        item = result[name]
+        error = item.error
+        print(
+            f"{name}: {time.perf_counter() - started:.0f} s; {result.gray_levels.describe()}; "
+            f"r0 {result.pair.background.mean:.3f}; mean residual {item.mean_residual:.3f}; "
+            f"p {item.accuracy:.4f}; measured {item.measured_nodes}/{cleaned.n_points}; "
+            f"estimate median {error['median']:.3f}, 95 % {error['p95']:.3f}, "
+            f"likely > 0.5: {100 * error['likely_bad']:.1f} %"
+        )
+        # the crack: nodes the DVC could not match, and their neighbours
+        unmatched = ~measured_mask(field)
+        near = ndimage.binary_dilation(unmatched) & ~unmatched
+        far = ~ndimage.binary_dilation(unmatched, iterations=2)
+        e = item.error_estimate
+        for label, nodes in (("unmatched", unmatched), ("next to them", near), ("far", far)):
+            values = e[nodes & np.isfinite(e)]
+            if values.size:
+                print(
+                    f"  {label}: {values.size} nodes, median {np.median(values):.3f}, "
+                    f"share > 0.5 {100 * np.mean(values > 0.5):.0f} %"
+                )
+        z = np.argmax(np.nansum(e > 0.5, axis=(1, 2)))
+        rows = np.where(np.isfinite(e[z]), np.minimum(e[z], 9.9), np.nan)
+        print(f"  estimate at node plane z={z} (voxels, capped at 9.9):")
+        for row in rows:
+            print("   " + " ".join(f"{v:4.1f}" for v in row))
+
+
+if __name__ == "__main__":
+    here = Path(__file__).resolve().parents[1]
+    main(Path(sys.argv[1]) if len(sys.argv) > 1 else here.parent / "shared/data/real-rock")
