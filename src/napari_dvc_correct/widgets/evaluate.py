@@ -416,6 +416,9 @@ class EvaluateWidget(EngineWidget):
                     model.attach_estimate(chosen[item.name], item, evaluation)
 
     def on_result(self, evaluation) -> None:
+        tuples = None
+        if isinstance(evaluation, model.ShownEvaluation):  # its layers made in the worker
+            evaluation, tuples = evaluation.evaluation, evaluation.layers
         self._attach_estimates(evaluation if isinstance(evaluation, list) else [("", evaluation)])
         if isinstance(evaluation, list):  # a series: one evaluation per state
             self.evaluations = evaluation
@@ -424,9 +427,7 @@ class EvaluateWidget(EngineWidget):
             self.curves.plot(self.evaluation)
             self.show_message(f"Evaluation done for {len(evaluation)} states.")
             return
-        if isinstance(evaluation, model.ShownEvaluation):  # its layers made in the worker
-            evaluation, tuples = evaluation.evaluation, evaluation.layers
-        else:
+        if tuples is None:
             outputs = getattr(self, "_outputs", None)
             tuples = model.residual_layers(evaluation, self._placement, outputs, TEMPORARY_KEY)
         self.evaluations = [("", evaluation)]
