@@ -426,6 +426,7 @@ def match_iter(
             else int(seeds.levels)
         )
         guess_params = None
+        guess_counts = {}
         for lev in range(levels, -1, -1):
             level = (
                 fine
@@ -463,6 +464,7 @@ def match_iter(
                 its_l,
                 order,
                 params,
+                counts=guess_counts,
             )
             failed = ~np.isin(status_l, _GOOD)
             guess_params[failed] = before[failed]  # keep the carried guess where matching failed
@@ -471,6 +473,8 @@ def match_iter(
             if nb == 10:
                 shaped[:, :, 4:] /= 2.0  # second derivatives scale with 1 / factor
             yield Progress("initial guess", levels - lev + 2, levels + 2, f"level {lev} refined")
+        for name, value in guess_counts.items():
+            timings[f"{name}_guess"] = value
     timings["initial_guess_s"] = time.perf_counter() - t0
 
     # full-resolution IC-GN in batches
