@@ -260,8 +260,11 @@ def test_fault_case_wrong_matches_do_not_keep_a_good_status_unless_unsure():
     assert np.all(np.isnan(field.measured_displacement.reshape(*field.shape, 3)[~good]))
 
 
-def test_an_integer_deformed_volume_is_read_as_it_is_with_the_float32_copys_field():
-    """match_iter keeps a 16-bit deformed volume uncopied (memory, issue 30): same field."""
+def test_an_integer_deformed_volume_is_read_as_it_is_with_the_float32_copys_field(monkeypatch):
+    """match_iter keeps a large 16-bit deformed volume uncopied (memory, issue 30): same field."""
+    from napari_dvc_correct.engine import correlate as correlate_module
+
+    monkeypatch.setattr(correlate_module, "KEEP_INTEGER_FROM", 0)
     from napari_dvc_correct.engine.initial_guess import bin_volume, pyramid_levels
     from napari_dvc_correct.engine.interpolation import prefilter
 

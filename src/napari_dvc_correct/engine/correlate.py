@@ -39,14 +39,19 @@ _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 #: not copied to float32 by :func:`match_iter` (its kernels read it as it is, with the same values).
 _EXACT_IN_FLOAT32 = (np.uint8, np.int8, np.uint16, np.int16)
 
+#: ... from this many voxels (64 MiB as float32): below, the copy costs less than loading the
+#: prefilter's kernel for one more dtype at start-up.
+KEEP_INTEGER_FROM = 2**24
+
 
 def validate_pair(
     reference, deformed, params: CorrelationParams, mask=None, *, exact_deformed=False
 ):
     """Check the inputs of a correlation; return float32 volumes and a boolean mask (or None).
 
-    ``exact_deformed``: a deformed volume of 8- or 16-bit integers is returned as it is (C order)
-    rather than as a float32 copy (every value is exact in float32; saves a volume of memory).
+    ``exact_deformed``: a deformed volume of 8- or 16-bit integers of at least
+    :data:`KEEP_INTEGER_FROM` voxels is returned as it is (C order) rather than as a float32 copy
+    (every value is exact in float32; saves a volume of memory).
 
     Raises
     ------
@@ -69,7 +74,11 @@ def validate_pair(
             + largest_subvolume_advice(reference.shape)
         )
     reference = np.ascontiguousarray(reference, dtype=np.float32)
-    if exact_deformed and deformed.dtype.type in _EXACT_IN_FLOAT32:
+    if (
+        exact_deformed
+        and deformed.dtype.type in _EXACT_IN_FLOAT32
+        and deformed.size >= KEEP_INTEGER_FROM
+    ):
         deformed = np.ascontiguousarray(deformed)
     else:
         deformed = np.ascontiguousarray(deformed, dtype=np.float32)
