@@ -258,3 +258,32 @@ def test_fault_case_wrong_matches_do_not_keep_a_good_status_unless_unsure():
     assert not (good & (error > 0.5)).any()
     assert field.metadata["noise"]["uncertainty_bound"] == pytest.approx(0.1)
     assert np.all(np.isnan(field.measured_displacement.reshape(*field.shape, 3)[~good]))
+
+
+def test_an_integer_deformed_volume_is_read_as_it_is_with_the_float32_copys_field(monkeypatch):
+    """match_iter keeps a large 16-bit deformed volume uncopied (memory, issue 30): same field."""
+    from napari_dvc_correct.engine import correlate as correlate_module
+
+    monkeypatch.setattr(correlate_module, "KEEP_INTEGER_FROM", 0)
+    from napari_dvc_correct.engine.initial_guess import bin_volume, pyramid_levels
+    from napari_dvc_correct.engine.interpolation import prefilter
+
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=7),
+        (48, 48, 48),
+        synthetic.translation((1.4, -7.2, 3.1)),
+    )
+    scale = 60000.0 / max(float(reference.max()), float(deformed.max()))
+    reference = np.rint(reference * scale).astype(np.uint16)
+    deformed = np.rint(deformed * scale).astype(np.uint16)
+    np.testing.assert_array_equal(prefilter(deformed), prefilter(deformed.astype(np.float32)))
+    np.testing.assert_array_equal(
+        bin_volume(deformed, 2), bin_volume(deformed.astype(np.float32), 2)
+    )
+    params = CorrelationParams(subvolume=19, step=8, search_radius=12)
+    assert pyramid_levels(12, 19, reference.shape) == 1  # binning and the global shift run
+    as_is = correlate(reference, deformed, params)
+    copied = correlate(reference.astype(np.float32), deformed.astype(np.float32), params)
+    assert np.isin(as_is.status, [0, 1]).mean() > 0.9
+    for name in ("u", "status", "zncc", "iterations", "uncertainty"):
+        np.testing.assert_array_equal(getattr(as_is, name), getattr(copied, name))

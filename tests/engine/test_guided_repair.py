@@ -1,13 +1,22 @@
 """Seeds of the initial guess laid out on the whole POI grid, so a box of the grid (a tiled batch)
 starts its POIs from the in-memory run's guesses."""
 
+import heapq
+
 import numpy as np
 import pytest
 
 from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correlate import PyramidLevel, _grid_centers
-from napari_dvc_correct.engine.field import grid_for_volume
-from napari_dvc_correct.engine.guided_repair import _testable_seeds, seed_axes, seed_guesses
+from napari_dvc_correct.engine.field import Status, grid_for_volume
+from napari_dvc_correct.engine.guided_repair import (
+    _testable_seeds,
+    is_good,
+    neighbour_outliers,
+    repair,
+    seed_axes,
+    seed_guesses,
+)
 from napari_dvc_correct.engine.params import CorrelationParams
 
 PARAMS = CorrelationParams(subvolume=11, step=4, search_radius=8)  # seeds every 3 POIs
@@ -75,3 +84,66 @@ def test_a_box_with_a_margin_gets_the_whole_grids_guesses(band, offset, box):
     own = seed_guesses(level, centers[index], box, np.array([2, -3, 2]), 8, 1, PARAMS)
     own = own.reshape(*box, -1)
     assert np.abs(own[core] - whole[window][core]).max() > 1e-3
+
+
+def _one_at_a_time(level, centers, grid_shape, params, zncc, status, iterations, settings):
+    """The repair as it was written before its matches were batched (first order, the
+    settings' threshold), for comparison: one ``level.match`` call per re-match."""
+    good = is_good(status, zncc, settings.min_zncc)
+    good &= ~neighbour_outliers(params.reshape(-1, 3, 4)[:, :, 0], good, grid_shape)
+    retry = np.isin(status, [int(Status.MASKED), int(Status.LOW_TEXTURE)])
+    bad = ~good & ~retry & np.isin(status, [0, 1, 2, 3, 6, 7])
+    grid_index = np.arange(len(centers)).reshape(grid_shape)
+    offsets = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
+    offsets.remove((0, 0, 0))
+    heap = [(-zncc[i], i) for i in np.flatnonzero(good)]
+    heapq.heapify(heap)
+    attempts = np.zeros(len(centers), np.int64)
+    most = np.where(status == 3, settings.repair_attempts_out_of_bounds, settings.repair_attempts)
+    calls = 0
+    while heap and bad.any():
+        _, i = heapq.heappop(heap)
+        iz, iy, ix = np.unravel_index(i, grid_shape)
+        for a, b, c in offsets:
+            jz, jy, jx = iz + a, iy + b, ix + c
+            if not all(0 <= v < n for v, n in zip((jz, jy, jx), grid_shape)):
+                continue
+            j = grid_index[jz, jy, jx]
+            if not bad[j] or attempts[j] >= most[j]:
+                continue
+            attempts[j] += 1
+            guess = params[i].reshape(3, 4).copy()
+            guess[:, 0] += guess[:, 1:4] @ (centers[j] - centers[i]).astype(np.float64)
+            trial = np.ascontiguousarray(guess.reshape(1, -1))
+            t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, 1, settings)
+            calls += 1
+            if t_status[0] in (0, 1) and t_zncc[0] >= settings.min_zncc:
+                params[j], zncc[j], status[j], iterations[j] = (
+                    trial[0],
+                    t_zncc[0],
+                    t_status[0],
+                    t_its[0],
+                )
+                bad[j] = False
+                heapq.heappush(heap, (-zncc[j], j))
+    return int(bad.sum()), calls
+
+
+def test_the_batched_repair_repairs_exactly_as_one_match_at_a_time(band):
+    """Re-matches computed ahead, many per call, give the one-at-a-time repair's result."""
+    level, centers, shape, guesses = band
+    params = np.ascontiguousarray(guesses.reshape(len(centers), -1))
+    params[::3, 0] += 6.0  # a third of the POIs start far off: they fail and are repaired
+    zncc, status, iterations = level.match(centers, params, 1, PARAMS)
+    arrays = [a.copy() for a in (params, zncc, status, iterations)]
+    left, calls = _one_at_a_time(level, centers, shape, *arrays, PARAMS)
+    assert calls > 10 and np.sum(np.any(arrays[0] != params, axis=1)) > 10  # POIs repaired
+    for batch in (1, 7, 64):
+        other = [a.copy() for a in (params, zncc, status, iterations)]
+        counts = {}
+        assert repair(level, centers, shape, *other, 1, PARAMS, batch=batch, counts=counts) == left
+        for a, b in zip(arrays, other):
+            np.testing.assert_array_equal(a, b)
+        assert counts["repair_trials"] == calls
+        assert counts["repair_matches"] >= calls
+        assert counts["repair_calls"] < calls

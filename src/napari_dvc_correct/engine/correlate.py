@@ -35,8 +35,23 @@ from .validation import validate_volume
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
 
-def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
+#: Integer dtypes whose every value float32 holds exactly: a deformed volume of one of these is
+#: not copied to float32 by :func:`match_iter` (its kernels read it as it is, with the same values).
+_EXACT_IN_FLOAT32 = (np.uint8, np.int8, np.uint16, np.int16)
+
+#: ... from this many voxels (64 MiB as float32): below, the copy costs less than loading the
+#: prefilter's kernel for one more dtype at start-up.
+KEEP_INTEGER_FROM = 2**24
+
+
+def validate_pair(
+    reference, deformed, params: CorrelationParams, mask=None, *, exact_deformed=False
+):
     """Check the inputs of a correlation; return float32 volumes and a boolean mask (or None).
+
+    ``exact_deformed``: a deformed volume of 8- or 16-bit integers of at least
+    :data:`KEEP_INTEGER_FROM` voxels is returned as it is (C order) rather than as a float32 copy
+    (every value is exact in float32; saves a volume of memory).
 
     Raises
     ------
@@ -59,7 +74,14 @@ def validate_pair(reference, deformed, params: CorrelationParams, mask=None):
             + largest_subvolume_advice(reference.shape)
         )
     reference = np.ascontiguousarray(reference, dtype=np.float32)
-    deformed = np.ascontiguousarray(deformed, dtype=np.float32)
+    if (
+        exact_deformed
+        and deformed.dtype.type in _EXACT_IN_FLOAT32
+        and deformed.size >= KEEP_INTEGER_FROM
+    ):
+        deformed = np.ascontiguousarray(deformed)
+    else:
+        deformed = np.ascontiguousarray(deformed, dtype=np.float32)
     if mask is not None:
         mask = np.asarray(mask)
         if mask.shape != reference.shape:
@@ -148,6 +170,9 @@ class PyramidLevel:
             if mask is not None:
                 mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
             prefiltered = None
+        if std is None:  # else: the whole volume's, when these are a region of it (tiled)
+            # before the level's arrays exist: np.std makes a temporary copy of the volume
+            std = float(np.std(reference[mask] if mask is not None else reference))
         prefiltered = Prefiltered() if prefiltered is None else prefiltered
         prefiltered.check(reference.shape)
         gradient = prefiltered.gradient
@@ -156,8 +181,6 @@ class PyramidLevel:
         coef_deformed = prefiltered.coef_deformed
         if coef_deformed is None:
             coef_deformed = prefilter(deformed)
-        if std is None:  # else: the whole volume's, when these are a region of it (tiled)
-            std = float(np.std(reference[mask] if mask is not None else reference))
         return cls(
             factor=factor,
             reference=_read_only(reference),
@@ -370,7 +393,9 @@ def match_iter(
     device = select_device(device)
     start_time = time.perf_counter()
     timings = {}
-    reference, deformed, mask = validate_pair(reference, deformed, params, mask)
+    reference, deformed, mask = validate_pair(
+        reference, deformed, params, mask, exact_deformed=True
+    )
     if grid is None:
         grid = grid_for_volume(reference.shape, params.subvolume, params.step)
     origin, step, grid_shape = grid
@@ -387,24 +412,38 @@ def match_iter(
             f"initial field grid {initial.shape} differs from the POI grid {grid_shape}"
         )
 
-    yield Progress("prefilter", 0, 1, "prefiltering the volumes")
-    t0 = time.perf_counter()
-    fine = PyramidLevel.build(
-        1,
-        reference,
-        deformed,
-        mask,
-        half,
-        params.min_texture,
-        device.kind,
-        std=None if texture_std is None else texture_std[1],
-        prefiltered=prefiltered,
-    )
-    timings["prefilter_s"] = time.perf_counter() - t0
-    yield Progress("prefilter", 1, 1, "volumes prefiltered")
+    def build_fine():
+        yield Progress("prefilter", 0, 1, "prefiltering the volumes")
+        started = time.perf_counter()
+        level = PyramidLevel.build(
+            1,
+            reference,
+            deformed,
+            mask,
+            half,
+            params.min_texture,
+            device.kind,
+            std=None if texture_std is None else texture_std[1],
+            prefiltered=prefiltered,
+        )
+        timings["prefilter_s"] = time.perf_counter() - started
+        yield Progress("prefilter", 1, 1, "volumes prefiltered")
+        return level
 
-    t0 = time.perf_counter()
     radius = params.effective_search_radius
+    timings["prefilter_s"] = 0.0
+    # with a pyramid, the full-resolution level (∇G, F's coefficients: five volumes) is built
+    # after the coarse levels are done with, so that the two never take memory together
+    fine = None
+    if (
+        initial is not None
+        or seeds is None
+        and (pyramid_levels(radius, params.subvolume, reference.shape) == 0)
+    ):
+        fine = yield from build_fine()
+
+    built_early = fine is not None
+    t0 = time.perf_counter()
     if initial is not None:
         guess_params = shape_function.displacement_to_params(
             initial.displacement,
@@ -426,7 +465,11 @@ def match_iter(
             else int(seeds.levels)
         )
         guess_params = None
+        guess_counts = {}
         for lev in range(levels, -1, -1):
+            if lev == 0 and fine is None:
+                level = None  # the coarse level's memory is free before the fine one is built
+                fine = yield from build_fine()
             level = (
                 fine
                 if lev == 0
@@ -463,6 +506,7 @@ def match_iter(
                 its_l,
                 order,
                 params,
+                counts=guess_counts,
             )
             failed = ~np.isin(status_l, _GOOD)
             guess_params[failed] = before[failed]  # keep the carried guess where matching failed
@@ -471,7 +515,13 @@ def match_iter(
             if nb == 10:
                 shaped[:, :, 4:] /= 2.0  # second derivatives scale with 1 / factor
             yield Progress("initial guess", levels - lev + 2, levels + 2, f"level {lev} refined")
-    timings["initial_guess_s"] = time.perf_counter() - t0
+        for name, value in guess_counts.items():
+            timings[f"{name}_guess"] = value
+    if fine is None:  # seeds=GivenSeeds with no level
+        fine = yield from build_fine()
+    timings["initial_guess_s"] = (
+        time.perf_counter() - t0 - (0.0 if built_early else timings["prefilter_s"])
+    )
 
     # full-resolution IC-GN in batches
     t0 = time.perf_counter()

@@ -34,6 +34,116 @@ def is_good(status, zncc, min_zncc):
     return np.isin(status, _GOOD) & (zncc >= min_zncc)
 
 
+#: The 26 neighbour offsets ``(dz, dy, dx)`` in the order the repair visits them.
+_OFFSETS = [
+    (a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)
+]
+
+#: Re-matches the repair computes in one parallel call (:func:`repair`'s ``batch``).
+REPAIR_BATCH = 64
+
+
+def _neighbour_table(grid_shape):
+    """Flat indices of each POI's 26 neighbours in :data:`_OFFSETS` order, -1 outside the grid.
+
+    Returns ndarray of int64, shape (N, 26).
+    """
+    shape = np.asarray(grid_shape, np.int64)
+    index = np.arange(int(np.prod(shape))).reshape(tuple(shape))
+    padded = np.pad(index, 1, constant_values=-1)
+    n0, n1, n2 = (int(n) for n in shape)
+    table = np.empty((*index.shape, len(_OFFSETS)), np.int64)
+    for column, (a, b, c) in enumerate(_OFFSETS):
+        table[..., column] = padded[1 + a : 1 + a + n0, 1 + b : 1 + b + n1, 1 + c : 1 + c + n2]
+    return table.reshape(-1, len(_OFFSETS))
+
+
+class _Trials:
+    """Re-matches of the repair, ``(i, j)``: POI ``j`` from POI ``i``'s final warp, cached.
+
+    A trial's result depends only on ``i``'s warp, which is final once ``i`` is on the repair's
+    heap, and on ``j``; so trials may be computed ahead of the order in which the repair reads
+    them, many in one parallel call, and the repair reads exactly what it would have computed
+    one at a time. A trial computed ahead from the warp ``i`` was expected to get (a POI the
+    look-ahead saw repaired) is read only if ``i`` got that warp (:meth:`get`).
+    """
+
+    def __init__(self, level, centers, params, order, settings):
+        self.level, self.centers, self.params = level, centers, params
+        self.order, self.settings = order, settings
+        self.nb = shape_function.n_monomials(order)
+        self.results = {}
+        self.expected = {}  # POI -> warp it gets in the look-ahead (not yet in params)
+        self.computed = 0
+        self.calls = 0
+
+    def warp(self, i):
+        """POI ``i``'s warp: its final one, or the one the look-ahead expects it to get."""
+        return self.expected.get(i, self.params[i])
+
+    def get(self, i, j):
+        """The computed trial ``(i, j)`` if it started from ``i``'s warp now, else None."""
+        result = self.results.get((i, j))
+        if result is None or not np.array_equal(result[0], self.params[i]):
+            return None
+        return result[1:]
+
+    def compute(self, pairs):
+        """Match every ``(i, j)`` of ``pairs`` in one call."""
+        j = np.array([p[1] for p in pairs], np.int64)
+        trial = np.empty((len(pairs), 3 * self.nb))
+        sources = []
+        for row, (i, k) in enumerate(pairs):
+            # u + ∇u·Δ, computed as the one-at-a-time repair computed it (a fresh 3×nb copy and
+            # numpy's matrix-vector product, whose last bits depend on the operands' layout)
+            source = self.warp(i)
+            sources.append(source)
+            guess = source.reshape(3, self.nb).copy()
+            delta = (self.centers[k] - self.centers[i]).astype(np.float64)
+            guess[:, 0] += guess[:, 1:4] @ delta
+            trial[row] = guess.reshape(-1)
+        t_zncc, t_status, t_its = self.level.match(
+            self.centers[j], trial, self.order, self.settings
+        )
+        for row, pair in enumerate(pairs):
+            self.results[pair] = (sources[row], trial[row], t_zncc[row], t_status[row], t_its[row])
+        self.computed += len(pairs)
+        self.calls += 1
+
+
+def _lookahead(first, heap, bad, attempts, max_attempts, neighbours, trials, limit):
+    """The trials the repair will most likely read next, after ``first`` (uncomputed pairs).
+
+    Runs the repair forward on copies of its state: computed trials count with their results,
+    uncomputed ones are collected (at most ``limit``) and their POI is left alone until its
+    result is known. The repair reads them unless a POI it repairs meanwhile jumps the queue.
+    """
+    pairs = list(first)
+    pending = {j for _, j in pairs}
+    heap = list(heap)  # a copy, already a heap
+    bad = bad.copy()
+    attempts = attempts.copy()
+    trials.expected = {}
+    while heap and len(pairs) < limit:
+        _, i = heapq.heappop(heap)
+        for j in neighbours[i]:
+            if j < 0 or not bad[j] or attempts[j] >= max_attempts[j] or j in pending:
+                continue
+            result = trials.results.get((i, j))
+            if result is None or not np.array_equal(result[0], trials.warp(i)):
+                pairs.append((i, j))
+                pending.add(j)
+                if len(pairs) >= limit:
+                    break
+                continue
+            attempts[j] += 1
+            if result[3] in _GOOD and result[2] >= trials.thresholds[j]:
+                bad[j] = False
+                trials.expected[j] = result[1]
+                heapq.heappush(heap, (-result[2], j))
+    return pairs
+
+
 def repair(
     level,
     centers,
@@ -45,6 +155,9 @@ def repair(
     order,
     settings,
     thresholds=None,
+    *,
+    batch=REPAIR_BATCH,
+    counts=None,
 ):
     """Reliability-guided propagation into POIs that failed or are outliers.
 
@@ -52,6 +165,12 @@ def repair(
     popped POI's warp carried over to its position (``u + ∇u·Δ``). A new match replaces the old
     one when it converges above its ZNCC threshold (``thresholds`` (N,), default
     ``settings.min_zncc``); it then seeds its own neighbours.
+
+    The re-matches are computed ``batch`` at a time in one parallel call, ahead of the order in
+    which they are read (:func:`_lookahead`); each depends only on its two POIs, so the result
+    is the one of matching them one at a time (``batch=1``), in the same order. ``counts``
+    (dict, optional) receives ``repair_trials`` (re-matches read), ``repair_matches``
+    (computed; the difference was computed ahead and not needed) and ``repair_calls``.
     """
     if thresholds is None:
         thresholds = np.full(len(centers), float(settings.min_zncc))
@@ -79,15 +198,7 @@ def repair(
     )
     if not bad.any() or not good.any():
         return int(bad.sum())
-    nb = shape_function.n_monomials(order)
-    grid_index = np.arange(len(centers)).reshape(grid_shape)
-    offsets = [
-        (a, b, c)
-        for a in (-1, 0, 1)
-        for b in (-1, 0, 1)
-        for c in (-1, 0, 1)
-        if (a, b, c) != (0, 0, 0)
-    ]
+    neighbours = _neighbour_table(grid_shape)
     heap = [(-zncc[i], i) for i in np.flatnonzero(good)]
     heapq.heapify(heap)
     attempts = np.zeros(len(centers), np.int64)
@@ -96,31 +207,43 @@ def repair(
         settings.repair_attempts_out_of_bounds,
         settings.repair_attempts,
     )
-    while heap and bad.any():
+    trials = _Trials(level, centers, params, order, settings)
+    trials.thresholds = thresholds
+    read = 0
+    remaining = int(bad.sum())
+    while heap and remaining:
         _, i = heapq.heappop(heap)
-        iz, iy, ix = np.unravel_index(i, grid_shape)
-        for a, b, c in offsets:
-            jz, jy, jx = iz + a, iy + b, ix + c
-            if not (
-                0 <= jz < grid_shape[0] and 0 <= jy < grid_shape[1] and 0 <= jx < grid_shape[2]
-            ):
-                continue
-            j = grid_index[jz, jy, jx]
-            if not bad[j] or attempts[j] >= max_attempts[j]:
-                continue
+        row = neighbours[i]
+        row = row[row >= 0]
+        todo = row[bad[row] & (attempts[row] < max_attempts[row])]
+        if len(todo) == 0:
+            continue
+        missing = [(i, int(j)) for j in todo if trials.get(i, int(j)) is None]
+        if missing:
+            trials.compute(
+                _lookahead(
+                    missing, heap, bad, attempts, max_attempts, neighbours, trials,
+                    max(batch, len(missing)),
+                )
+            )  # fmt: skip
+        for j in todo:
+            j = int(j)
             attempts[j] += 1
-            guess = params[i].reshape(3, nb).copy()
-            delta = (centers[j] - centers[i]).astype(np.float64)
-            guess[:, 0] += guess[:, 1:4] @ delta
-            trial = np.ascontiguousarray(guess.reshape(1, -1))
-            t_zncc, t_status, t_its = level.match(centers[j : j + 1], trial, order, settings)
-            if t_status[0] in _GOOD and t_zncc[0] >= thresholds[j]:
-                params[j] = trial[0]
-                zncc[j] = t_zncc[0]
-                status[j] = t_status[0]
-                iterations[j] = t_its[0]
+            trial, t_zncc, t_status, t_its = trials.get(i, j)
+            del trials.results[(i, j)]
+            read += 1
+            if t_status in _GOOD and t_zncc >= thresholds[j]:
+                params[j] = trial
+                zncc[j] = t_zncc
+                status[j] = t_status
+                iterations[j] = t_its
                 bad[j] = False
+                remaining -= 1
                 heapq.heappush(heap, (-zncc[j], j))
+    if counts is not None:
+        counts["repair_trials"] = counts.get("repair_trials", 0) + read
+        counts["repair_matches"] = counts.get("repair_matches", 0) + trials.computed
+        counts["repair_calls"] = counts.get("repair_calls", 0) + trials.calls
     return int(bad.sum())
 
 

@@ -30,11 +30,15 @@ def bin_volume(volume: np.ndarray, factor: int = 2) -> np.ndarray:
     shape = tuple(n // factor for n in volume.shape)
     if min(shape) < 1:
         raise ValueError(f"volume {volume.shape} is too small to bin by {factor}")
-    cropped = np.asarray(
-        volume[: shape[0] * factor, : shape[1] * factor, : shape[2] * factor], dtype=np.float32
-    )
-    blocks = cropped.reshape(shape[0], factor, shape[1], factor, shape[2], factor)
-    return blocks.mean(axis=(1, 3, 5), dtype=np.float64).astype(np.float32)
+    cropped = volume[: shape[0] * factor, : shape[1] * factor, : shape[2] * factor]
+    # one slab of ``factor`` planes at a time: the float32 copy of another dtype and the float64
+    # sums numpy's mean makes are a slab's, not the volume's (same sums, same order)
+    out = np.empty(shape, np.float32)
+    for k in range(shape[0]):
+        slab = np.asarray(cropped[k * factor : (k + 1) * factor], dtype=np.float32)
+        blocks = slab.reshape(1, factor, shape[1], factor, shape[2], factor)
+        out[k] = blocks.mean(axis=(1, 3, 5), dtype=np.float64)[0].astype(np.float32)
+    return out
 
 
 def pyramid_levels(search_radius: int, subvolume: int, volume_shape, max_coarse_radius: int = 4):

@@ -170,9 +170,13 @@ def judge_iter(
     t0 = time.perf_counter()
     yield Progress("repair", 0, 1, "re-matching failed POIs from their neighbours")
     before = params_out.copy()
+    counts = {}
     repair(
-        fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds
-    )
+        fine, centers, grid_shape, params_out, zncc, status, iterations, order, params, thresholds,
+        counts=counts,
+    )  # fmt: skip
+    for name, value in counts.items():
+        timings[f"{name}_fine"] = value
     repaired = np.any(params_out != before, axis=1)
     timings["repair_s"] = time.perf_counter() - t0
 

@@ -1,0 +1,96 @@
+"""Peak memory of an in-memory ``correlate`` of a uint16 pair (issue 30: 384³ under 1.5 GB).
+
+A ``--size``³ uint16 pair (smoothed random texture, the deformed scan shifted by whole voxels
+and re-noised) is held by the caller, as a user's arrays are; ``correlate_iter`` then runs with
+a thread sampling the process's resident memory (``/proc/self/statm``) every 2 ms. Printed: the
+peak RSS of the process, the peak above the RSS before the call, the pair's own size, and the
+largest RSS seen in each stage (the stage a ``Progress`` record last named).
+
+    python benchmarks/bench_memory.py [--size 384] [--subvolume 21] [--step 24]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import threading
+import time
+
+import numpy as np
+from scipy import ndimage
+
+PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+def rss_bytes() -> int:
+    with open("/proc/self/statm") as handle:
+        return int(handle.read().split()[1]) * PAGE
+
+
+class Sampler(threading.Thread):
+    def __init__(self):
+        super().__init__(daemon=True)
+        self.stage = "start"
+        self.peaks = {}
+        self.running = True
+
+    def run(self):
+        while self.running:
+            value = rss_bytes()
+            self.peaks[self.stage] = max(self.peaks.get(self.stage, 0), value)
+            time.sleep(0.002)
+
+
+def pair(size: int):
+    rng = np.random.default_rng(3)
+    texture = ndimage.uniform_filter(rng.random((size + 8,) * 3, np.float32), 3)
+    texture -= texture.min()
+    texture *= 40000.0 / texture.max()
+    reference = (texture[4:-4, 4:-4, 4:-4] + 5000).astype(np.uint16)
+    deformed = texture[3:-5, 6:-2, 2:-6] + 5000 + rng.normal(0, 300, (size,) * 3)
+    return reference, np.clip(deformed, 0, 65535).astype(np.uint16)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=384)
+    parser.add_argument("--subvolume", type=int, default=21)
+    parser.add_argument("--step", type=int, default=24)
+    args = parser.parse_args()
+    from napari_dvc_correct.engine.correlate import correlate_iter
+    from napari_dvc_correct.engine.params import CorrelationParams
+
+    reference, deformed = pair(args.size)
+    sampler = Sampler()
+    base = rss_bytes()
+    sampler.start()
+    started, cpu = time.perf_counter(), time.process_time()
+    run = correlate_iter(reference, deformed, CorrelationParams(args.subvolume, args.step))
+    try:
+        while True:
+            sampler.stage = next(run).stage
+    except StopIteration as stop:
+        field = stop.value
+    wall, cpu = time.perf_counter() - started, time.process_time() - cpu
+    sampler.running = False
+    sampler.join()
+    gib = 2**30
+    peak = max(
+        max(sampler.peaks.values()), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    )
+    print(f"{args.size}³ uint16 pair ({2 * reference.nbytes / gib:.2f} GiB), subvolume "
+          f"{args.subvolume}, step {args.step}: {field.n_points} nodes, wall {wall:.1f} s, "
+          f"cpu {cpu:.1f} s, load {os.getloadavg()[0]:.1f}")  # fmt: skip
+    print(
+        f"peak RSS {peak / gib:.2f} GiB (ru_maxrss), {(peak - base) / gib:.2f} GiB above the "
+        f"RSS before the call ({base / gib:.2f} GiB: interpreter, libraries, the pair)"
+    )
+    for stage, value in sampler.peaks.items():
+        print(f"  {stage}: {value / gib:.2f} GiB")
+    statuses = dict(zip(*np.unique(field.status, return_counts=True)))
+    print("statuses", {int(k): int(v) for k, v in statuses.items()})
+
+
+if __name__ == "__main__":
+    main()
