@@ -47,5 +47,5 @@ def changed_method_field():
         "discontinuity_nodes": 11,
         "shielded_nodes": 6,
     }
-    field.metadata["gray_levels"] = {"description": "G ≈ 2.3·F + -23 (local, 32-voxel cells)"}
+    field.metadata["gray_levels"] = {"description": "G ≈ 2.3·F − 23 (local, 32-voxel cells)"}
     return field, method

@@ -145,6 +145,6 @@ def test_the_panel_says_when_the_correction_changed_the_method(
     assert "changed from your first order, 21³" in message
     assert f"passes 1–2: {method}" in message
     # the gray-level map the residuals were judged with, and the flags by kind
-    assert "G ≈ 2.3·F + -23 (local, 32-voxel cells)" in message
+    assert "G ≈ 2.3·F − 23 (local, 32-voxel cells)" in message
     assert "3 nodes whose residual no small error explains" in message
     assert "11 along a discontinuity" in message and "6 nodes near it kept" in message

@@ -242,7 +242,8 @@ class GrayLevelMap:
 
     def describe(self) -> str:
         """One line for panels and reports."""
-        text = f"G ≈ {self.contrast:.3g}·F + {self.offset:.4g}"
+        sign = "+" if self.offset >= 0 else "−"
+        text = f"G ≈ {self.contrast:.3g}·F {sign} {abs(self.offset):.4g}"
         if self.is_local:
             lo, hi = np.nanmin(self.local_contrast), np.nanmax(self.local_contrast)
             text += f" (local, {self.cell}-voxel cells: contrast {lo:.3g}–{hi:.3g})"
