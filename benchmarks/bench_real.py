@@ -67,14 +67,21 @@ def good(field: DisplacementField) -> np.ndarray:
     return np.isin(field.status, [int(s) for s in GOOD_STATUSES])
 
 
-def run(name: str, params: CorrelationParams) -> None:
+def load_crop(name: str):
+    """``(reference, deformed)`` of a crop as float32, or None (said) where ../shared is absent."""
     path = DATA / f"rock_{name}.npz"
     if not path.exists():
         print(f"{path} is absent (a user's clone without ../shared): skipped")
-        return
+        return None
     data = np.load(path)
-    reference = data["reference"].astype(np.float32)
-    deformed = data["deformed"].astype(np.float32)
+    return data["reference"].astype(np.float32), data["deformed"].astype(np.float32)
+
+
+def run(name: str, params: CorrelationParams) -> None:
+    crop = load_crop(name)
+    if crop is None:
+        return
+    reference, deformed = crop
     started = time.perf_counter()
     plain = correlate(reference, deformed, params)
     plain_seconds = time.perf_counter() - started

@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-rock"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_real import load_crop  # noqa: E402  (the crops as bench_real reads them)
 
 
 def main() -> None:
@@ -32,13 +33,10 @@ def main() -> None:
     from napari_dvc_correct.engine.params import CorrelationParams
 
     name = sys.argv[1] if len(sys.argv) > 1 else "lower"
-    path = DATA / f"rock_{name}.npz"
-    if not path.exists():
-        print(f"{path} is absent: skipped")
+    crop = load_crop(name)
+    if crop is None:
         return
-    data = np.load(path)
-    reference = data["reference"].astype(np.float32)
-    deformed = data["deformed"].astype(np.float32)
+    reference, deformed = crop
     calls = collections.defaultdict(lambda: [0, 0, 0, 0.0, 0.0])
     original = correlate_module.PyramidLevel.match
 

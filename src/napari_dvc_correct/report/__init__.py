@@ -90,23 +90,17 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
                         volume, target, description={"quantity": quantity, "field": item.name}
                     )
                 written.append(target)
-        target = out_dir / f"equivalent_strain_{stem}.tif"
-        export_volume_tiff(
-            item.equivalent_strain.astype(np.float32),
-            target,
-            scale=item.field.step,
-            translate=item.field.origin,
-            description={"quantity": "equivalent strain (grid)", "field": item.name},
-        )
-        written.append(target)
+        grids = [("equivalent_strain", item.equivalent_strain, "equivalent strain (grid)")]
         if item.error_estimate is not None:
-            target = out_dir / f"error_estimate_{stem}.tif"
+            grids.append(("error_estimate", item.error_estimate, "error estimate (voxels, grid)"))
+        for prefix, values, quantity in grids:
+            target = out_dir / f"{prefix}_{stem}.tif"
             export_volume_tiff(
-                item.error_estimate.astype(np.float32),
+                values.astype(np.float32),
                 target,
                 scale=item.field.step,
                 translate=item.field.origin,
-                description={"quantity": "error estimate (voxels, grid)", "field": item.name},
+                description={"quantity": quantity, "field": item.name},
             )
             written.append(target)
     return written
