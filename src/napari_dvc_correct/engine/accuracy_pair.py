@@ -28,7 +28,7 @@ from .gray_levels import (
     GrayLevelMap,
     block_sums,
     cells_shape,
-    map_from_sums,
+    fit_from_passes,
     start_map,
 )
 from .phase_sums import residual_phase_sums
@@ -92,21 +92,6 @@ def lattice(volume) -> np.ndarray:
     """The lattice sample ``volume[::s, ::s, ::s]`` of multi-Otsu (:func:`.phases.otsu_stride`)."""
     stride = otsu_stride(np.shape(volume))
     return np.asarray(volume[::stride, ::stride, ::stride]).ravel()
-
-
-def fit_from_passes(sums_with, start: GrayLevelMap, shape, cell: int = DEFAULT_CELL):
-    """The gray-level map from passes over the blocks (as :func:`.gray_levels.fit_gray_levels`:
-    least squares trimmed by the previous map, twice). ``sums_with(previous)`` returns the
-    :class:`CellSums` of the whole volume with the voxels ``previous`` explains worst left out
-    (a generator: yields progress, returns the sums)."""
-    previous = start
-    for _ in range(2):
-        sums = yield from sums_with(previous)
-        fitted = map_from_sums(sums, shape, cell)
-        if fitted.fitted_voxels < 2 or not np.isfinite(fitted.rms):
-            return fitted if previous.is_identity else previous
-        previous = fitted
-    return previous
 
 
 def same_phase_block(reference_block, moved_block, labels_block, thresholds, gray, region):

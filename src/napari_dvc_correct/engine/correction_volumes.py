@@ -32,10 +32,11 @@ from . import warp
 from .correlate import Prefiltered, correlate_iter
 from .field import DisplacementField
 from .field_spline import FieldSpline
-from .gray_levels import GrayLevelMap, fit_gray_levels
+from .gray_levels import GrayLevelMap, fit_gray_levels, start_map
 from .interpolation import prefilter
 from .local_acceptance import ReferenceResiduals
 from .params import CorrelationParams
+from .phases import otsu_stride
 from .progress import Progress
 
 
@@ -174,7 +175,10 @@ class InMemoryVolumes(CorrectionVolumes):
         moved = warp.pull_back(
             self.deformed, spline, coefficients=self._deformed_coefficients(), cval=np.nan
         )
-        self.gray_levels = fit_gray_levels(self.reference, moved)
+        # the first guess from the raw scans' lattice, as the tiled back-end's statistics pass
+        lattice = (slice(None, None, otsu_stride(self.shape)),) * 3
+        start = start_map(self.reference[lattice], self.deformed[lattice])
+        self.gray_levels = fit_gray_levels(self.reference, moved, start=start)
         return self.gray_levels
         yield
 

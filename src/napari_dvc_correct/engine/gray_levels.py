@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .progress import run_to_completion
+
 #: Edge of a cell of the local map (voxels): a few subvolumes, far larger than a crack's width.
 DEFAULT_CELL = 32
 
@@ -354,12 +356,28 @@ def start_map(reference_sample: np.ndarray, deformed_sample: np.ndarray) -> Gray
     )
 
 
+def fit_from_passes(sums_with, start: GrayLevelMap, shape, cell: int = DEFAULT_CELL):
+    """The gray-level map from passes over the blocks (as :func:`fit_gray_levels`:
+    least squares trimmed by the previous map, twice). ``sums_with(previous)`` returns the
+    :class:`CellSums` of the whole volume with the voxels ``previous`` explains worst left out
+    (a generator: yields progress, returns the sums)."""
+    previous = start
+    for _ in range(2):
+        sums = yield from sums_with(previous)
+        fitted = map_from_sums(sums, shape, cell)
+        if fitted.fitted_voxels < 2 or not np.isfinite(fitted.rms):
+            return fitted if previous.is_identity else previous
+        previous = fitted
+    return previous
+
+
 def fit_gray_levels(
     reference: np.ndarray,
     moved: np.ndarray,
     *,
     cell: int = DEFAULT_CELL,
     slab: int = 32,
+    start: GrayLevelMap | None = None,
 ) -> GrayLevelMap:
     """Fit ``G ≈ contrast(X) · F~ + offset(X)`` on two whole volumes (see the module).
 
@@ -372,6 +390,8 @@ def fit_gray_levels(
         where undefined).
     cell : int
         Edge of the local map's cells (voxels); 0: the global line only.
+    start : GrayLevelMap, optional
+        The first guess (:func:`start_map`); default: from the two volumes' lattice samples.
 
     Returns
     -------
@@ -388,14 +408,14 @@ def fit_gray_levels(
         raise ValueError(f"cell must be >= 0 voxels, got {cell}")
     shape = reference.shape
     lattice = tuple(slice(None, None, max(1, n // 64)) for n in shape)
-    previous = start_map(reference[lattice], moved[lattice])
-    for _ in range(2):  # least squares without the voxels the last map explains worst, twice
+
+    def sums_with(previous):
         sums = CellSums.zeros(cells_shape(shape, cell))
         for z0 in range(0, shape[0], slab):
             region = (slice(z0, min(z0 + slab, shape[0])), slice(0, shape[1]), slice(0, shape[2]))
             sums.add(block_sums(reference[region], moved[region], region, shape, cell, previous))
-        fitted = map_from_sums(sums, shape, cell)
-        if fitted.fitted_voxels < 2 or not np.isfinite(fitted.rms):
-            return fitted if previous.is_identity else previous
-        previous = fitted
-    return previous
+        return sums
+        yield  # a generator without progress: the arrays are at hand
+
+    start = start_map(reference[lattice], moved[lattice]) if start is None else start
+    return run_to_completion(fit_from_passes(sums_with, start, shape, cell))

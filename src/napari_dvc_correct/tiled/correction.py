@@ -48,7 +48,8 @@ from ..engine.gray_levels import (
     GrayLevelMap,
     block_sums,
     cells_shape,
-    map_from_sums,
+    fit_from_passes,
+    start_map,
 )
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.params import CorrelationParams
@@ -341,6 +342,7 @@ class TiledVolumes(CorrectionVolumes):
         except ValueError:  # a volume with a single gray value: no phases, no eq. 1
             thresholds = None
         self._statistics = SimpleNamespace(
+            samples=(found["reference"][0], found["deformed"][0]),
             thresholds=thresholds,
             mean_reference=found["reference"][1],
             mean_deformed=found["deformed"][1],
@@ -403,6 +405,7 @@ class TiledVolumes(CorrectionVolumes):
         return self.gray_levels if self.gray_levels is not None else GrayLevelMap.identity()
 
     def fit_gray_levels(self, field):
+        stats = yield from self.statistics()
         spline = FieldSpline.from_field(field)
         blocks = [
             tuple(slice(a, min(a + b, n)) for a, b, n in zip(start, self.block_shape, self.shape))
@@ -410,8 +413,8 @@ class TiledVolumes(CorrectionVolumes):
                 *(range(0, n, b) for n, b in zip(self.shape, self.block_shape))
             )
         ]
-        previous = None
-        for _ in range(2):  # as engine.gray_levels.fit_gray_levels: fit, then trimmed
+
+        def sums_with(previous):
             parts = yield from self._tasks(
                 _gray_sums_block,
                 [self.reference, self.deformed, spline, DEFAULT_CELL, previous],
@@ -421,13 +424,12 @@ class TiledVolumes(CorrectionVolumes):
             sums = CellSums.zeros(cells_shape(self.shape, DEFAULT_CELL))
             for part in parts:
                 sums.add(part)
-            fitted = map_from_sums(sums, self.shape, DEFAULT_CELL)
-            if fitted.fitted_voxels < 2 or not np.isfinite(fitted.rms):
-                fitted = fitted if previous is None else previous
-                break
-            previous = fitted
-        self.gray_levels = fitted
-        return fitted
+            return sums
+
+        # the robust start from the scans' lattice samples (the statistics pass's), as in memory
+        start = start_map(*stats.samples)
+        self.gray_levels = yield from fit_from_passes(sums_with, start, self.shape, DEFAULT_CELL)
+        return self.gray_levels
 
     def residuals(self):
         stats = yield from self.statistics()

@@ -49,7 +49,6 @@ from ..engine.accuracy_blocks import (
 from ..engine.accuracy_pair import (
     background_from_sums,
     choose_best,
-    fit_from_passes,
     pair_start_map,
     same_phase_block,
 )
@@ -62,6 +61,7 @@ from ..engine.gray_levels import (
     GrayLevelMap,
     block_sums,
     cells_shape,
+    fit_from_passes,
 )
 from ..engine.local_accuracy import region_half
 from ..engine.pair_checks import check_field_on_volume
