@@ -238,11 +238,14 @@ class Judge:
         material that appeared or vanished, not texture misplaced by a wrong value. ``local``
         is the nodes' cell residual.
         """
+        flagged = np.asarray(flagged, bool)
+        if not flagged.any():  # nothing flagged: no pull-back of the signed residual
+            return flagged
         signed = self.residuals.signed_means(field, self.half)
         excess = local - self.floor
         one_signed = np.isfinite(signed) & (excess > 0)
         one_signed &= np.abs(signed) > DISCONTINUITY_SIGN * excess
-        return surfaces(one_signed & np.asarray(flagged, bool))
+        return surfaces(one_signed & flagged)
 
 
 def surfaces(nodes: np.ndarray) -> np.ndarray:
