@@ -24,14 +24,16 @@ import tracemalloc
 
 import numpy as np
 
-from napari_dvc_correct.engine import field_spline, residual, synthetic, warp
-from napari_dvc_correct.engine.cleaning import clean
-from napari_dvc_correct.engine.correction import correct
-from napari_dvc_correct.engine.correlate import correlate
-from napari_dvc_correct.engine.field import DisplacementField
-from napari_dvc_correct.engine.interpolation import prefilter
-from napari_dvc_correct.engine.params import CorrelationParams
-from napari_dvc_correct.engine.series import series
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correction.cleaning import clean
+from napari_dvc_correct.engine.correction.self_correction import correct
+from napari_dvc_correct.engine.correlation.correlate import correlate
+from napari_dvc_correct.engine.correlation.interpolation import prefilter
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.evaluation import residual
+from napari_dvc_correct.engine.fields import field_spline, warp
+from napari_dvc_correct.engine.fields.field import DisplacementField
+from napari_dvc_correct.engine.series.strategies import series
 
 SIZE = 64
 PARAMS = CorrelationParams(subvolume=25, step=5)

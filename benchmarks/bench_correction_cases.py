@@ -30,10 +30,10 @@ import numpy as np
 from scipy import ndimage
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.correction import correct, correction_table
-from napari_dvc_correct.engine.correlate import correlate
-from napari_dvc_correct.engine.field import GOOD_STATUSES
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correction.self_correction import correct, correction_table
+from napari_dvc_correct.engine.correlation.correlate import correlate
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import GOOD_STATUSES
 
 N = 64
 CENTER = (N - 1) / 2.0

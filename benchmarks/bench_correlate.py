@@ -74,8 +74,8 @@ def make_pair(size: int, max_displacement: float, seed: int = 0):
 def run_engine(size: int, threads: int | None) -> dict:
     import numba
 
-    from napari_dvc_correct.engine.correlate import correlate
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     reference, deformed, truth = make_pair(size, 2.0)
     params = CorrelationParams(subvolume=31, step=8)

@@ -22,8 +22,8 @@ import time
 import numpy as np
 from scipy.stats import spearmanr
 
-from napari_dvc_correct.engine.accuracy import evaluate_fields
-from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
 from napari_dvc_correct.engine.synthetic import (
     add_noise,
     affine,

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from napari_dvc_correct.engine.accuracy import evaluate_fields, measured_mask
-from napari_dvc_correct.engine.cleaning import clean
-from napari_dvc_correct.engine.correlate import correlate
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correction.cleaning import clean
+from napari_dvc_correct.engine.correlation.correlate import correlate
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields, measured_mask
 
 
 def main(folder: Path) -> None:

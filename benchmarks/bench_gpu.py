@@ -5,7 +5,7 @@ grid, integer initial guesses as the FFT search would give them) the script
 
 1. matches every POI on the GPU (``engine.cuda.match_many_cuda``), for each block size /
    register cap asked for, after a warm-up that compiles the kernel and copies the volumes;
-2. matches a subset of the same POIs on the CPU (``engine.icgn.match_many``, all cores);
+2. matches a subset of the same POIs on the CPU (``engine.correlation.icgn.match_many``, all cores);
 3. prints the GPU's name, voxel-iterations per second on both (Σ iterations × subvolume³ / wall
    time of the call, as ``correlate`` counts them), the speed-up, the largest |u_GPU − u_CPU| on
    the common POIs, and the achieved fraction of the GPU's FP32 peak and memory bandwidth from the
@@ -123,7 +123,7 @@ def poi_grid(size: int, subvolume: int, step: int, margin: int = 6) -> np.ndarra
 
 
 def run_matcher(kernel, level, centers, guesses, nb, **options):
-    from napari_dvc_correct.engine import icgn
+    from napari_dvc_correct.engine.correlation import icgn
 
     n = len(centers)
     params = guesses.copy()
@@ -149,9 +149,9 @@ def run_matcher(kernel, level, centers, guesses, nb, **options):
 
 
 def workload(args, gpu, name, size, subvolume, step, order, cpu_pois, max_pois):
-    from napari_dvc_correct.engine import icgn, icgn_reference, shape_function
+    from napari_dvc_correct.engine.correlation import icgn, icgn_reference, shape_function
+    from napari_dvc_correct.engine.correlation.interpolation import prefilter
     from napari_dvc_correct.engine.cuda import match_many_cuda
-    from napari_dvc_correct.engine.interpolation import prefilter
 
     t0 = time.perf_counter()
     reference, deformed, truth = make_pair(size)

@@ -58,8 +58,8 @@ def main() -> None:
     parser.add_argument("--subvolume", type=int, default=21)
     parser.add_argument("--step", type=int, default=24)
     args = parser.parse_args()
-    from napari_dvc_correct.engine.correlate import correlate_iter
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate import correlate_iter
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     reference, deformed = pair(args.size)
     sampler = Sampler()

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from napari_dvc_correct.engine.correlate import correlate
-from napari_dvc_correct.engine.field import GOOD_STATUSES
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.correlate import correlate
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import GOOD_STATUSES
 
 
 def _synthetic():

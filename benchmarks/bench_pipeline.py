@@ -30,7 +30,7 @@ import numpy as np
 from scipy import ndimage
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import GOOD_STATUSES
+from napari_dvc_correct.engine.fields.field import GOOD_STATUSES
 from napari_dvc_correct.io.npz import load_field
 
 

@@ -31,12 +31,12 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from napari_dvc_correct.engine.cleaning import clean
-from napari_dvc_correct.engine.correction import correct
-from napari_dvc_correct.engine.correlate import correlate
-from napari_dvc_correct.engine.field import GOOD_STATUSES, DisplacementField, Status
-from napari_dvc_correct.engine.params import CorrelationParams
-from napari_dvc_correct.engine.residual import moved_and_residual
+from napari_dvc_correct.engine.correction.cleaning import clean
+from napari_dvc_correct.engine.correction.self_correction import correct
+from napari_dvc_correct.engine.correlation.correlate import correlate
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.evaluation.residual import moved_and_residual
+from napari_dvc_correct.engine.fields.field import GOOD_STATUSES, DisplacementField, Status
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-rock"
 

@@ -29,8 +29,8 @@ from bench_real import load_crop  # noqa: E402  (the crops as bench_real reads t
 
 
 def main() -> None:
-    from napari_dvc_correct.engine import correlate as correlate_module
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation import correlate as correlate_module
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     name = sys.argv[1] if len(sys.argv) > 1 else "lower"
     crop = load_crop(name)

@@ -1,7 +1,7 @@
 """Start-up of the command line, measured as a user sees it: new processes, wall-clock time.
 
 * ``--help``: ``python -m napari_dvc_correct.cli --help`` (argparse only: no numba, no scipy);
-* ``import engine``: ``python -c "import napari_dvc_correct.engine.correlate"`` (numpy, numba,
+* ``import engine``: ``python -c "import napari_dvc_correct.engine.correlation.correlate"`` (numpy, numba,
   scipy.fft/ndimage and the engine's modules; no kernel loaded yet);
 * ``correlate``: ``napari-dvc-correct correlate`` on a small pair on disk (``--size``³ float32
   ``.npy``, subvolume 15, step 8), with numba's cache **cold** (a fresh ``NUMBA_CACHE_DIR``: every
@@ -112,7 +112,11 @@ def measure(checkouts: list[Path], size: int, repeat: int, cold: bool) -> dict:
                     _wall([py, "-m", "napari_dvc_correct.cli", "--help"], env, folder)
                 )
                 entry["import_engine_s"].append(
-                    _wall([py, "-c", "import napari_dvc_correct.engine.correlate"], env, folder)
+                    _wall(
+                        [py, "-c", "import napari_dvc_correct.engine.correlation.correlate"],
+                        env,
+                        folder,
+                    )
                 )
                 entry["warm_correlate_s"].append(_wall(correlate, env, folder))
                 entry["warm_stages"] = _stage_times(out, env)

@@ -130,7 +130,7 @@ def write_pair(folder: Path, size: int, fmt: str, slab: int = 8) -> tuple[Path, 
 
 # --- the runs ----------------------------------------------------------------------------------
 def _summary(field, seconds, size, params, peak=None):
-    from napari_dvc_correct.engine.field import Status
+    from napari_dvc_correct.engine.fields.field import Status
 
     good = field.status == Status.CONVERGED
     truth = displacement(field.points, size).reshape(field.u.shape)
@@ -206,7 +206,9 @@ def run_cluster(paths, size, params, n_workers, batch_shape, margin):
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
-        client.run(lambda: __import__("napari_dvc_correct.engine.correlate"))  # warm imports
+        client.run(
+            lambda: __import__("napari_dvc_correct.engine.correlation.correlate")
+        )  # warm imports
         before = client.run(_worker_usage)
         started = time.perf_counter()
         field = correlate_tiled(
@@ -229,8 +231,8 @@ def run_cluster(paths, size, params, n_workers, batch_shape, margin):
 def warm_up():
     """Compile (or load from numba's cache) every kernel before timing."""
     from napari_dvc_correct.engine import synthetic
-    from napari_dvc_correct.engine.correlate import correlate
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     volume = synthetic.textured_volume((40, 40, 40), 2.0, seed=1)
     moved = synthetic.deform_volume(volume, synthetic.translation((0.5, 0.2, -0.3)))
@@ -256,7 +258,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", help="write the figures to this JSON file")
     args = parser.parse_args(argv)
 
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     params = CorrelationParams(subvolume=args.subvolume, step=args.step, search_radius=args.search)
     folder = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="bench_tiled_"))

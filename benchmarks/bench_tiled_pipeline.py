@@ -79,7 +79,7 @@ def crop_pair(paths, folder: Path, size: int, crop: int) -> tuple[Path, Path, in
 
 
 def field_summary(path: Path, size: int, offset: int = 0) -> dict:
-    from napari_dvc_correct.engine.field import GOOD_STATUSES
+    from napari_dvc_correct.engine.fields.field import GOOD_STATUSES
     from napari_dvc_correct.io.npz import load_field
 
     field = load_field(path)
@@ -96,7 +96,7 @@ def field_summary(path: Path, size: int, offset: int = 0) -> dict:
 
 
 def max_difference(first: Path, second: Path) -> dict:
-    from napari_dvc_correct.engine.field import GOOD_STATUSES
+    from napari_dvc_correct.engine.fields.field import GOOD_STATUSES
     from napari_dvc_correct.io.npz import load_field
 
     a, b = load_field(first), load_field(second)

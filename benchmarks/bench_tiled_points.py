@@ -4,7 +4,7 @@ The pair is ``bench_tiled.py``'s (uint16 TIFF stacks written slab by slab, a kno
 up to about 3.5 voxels). ``--points`` random points are correlated with
 :func:`napari_dvc_correct.tiled.points.correlate_points_tiled` under ``--max-memory``, sampling
 the resident memory every 5 ms; with ``--compare`` the same points are correlated in memory
-(:func:`napari_dvc_correct.engine.correlate_points.correlate_points`, the volumes read whole)
+(:func:`napari_dvc_correct.engine.correlation.correlate_points.correlate_points`, the volumes read whole)
 for the time, the memory and the largest difference. Run::
 
     python benchmarks/bench_tiled_points.py --size 384 --points 2000 --compare
@@ -46,8 +46,8 @@ def main(argv=None) -> int:
     parser.add_argument("--compare", action="store_true", help="also run in memory")
     args = parser.parse_args(argv)
 
-    from napari_dvc_correct.engine.correlate_points import correlate_points
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate_points import correlate_points
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
     from napari_dvc_correct.io.lazy import open_volume
     from napari_dvc_correct.tiled.points import correlate_points_tiled
 

@@ -1,6 +1,6 @@
 """The whole-volume kernels every DVC run and correction pass starts with, on a ``--size``³ volume.
 
-* ``prefilter``: the cubic B-spline coefficients (``engine.interpolation.prefilter``), against
+* ``prefilter``: the cubic B-spline coefficients (``engine.correlation.interpolation.prefilter``), against
   ``scipy.ndimage.spline_filter(..., output=float32)`` (what the engine used before, one thread);
 * ``gradient``: ``∇G`` of the interpolant at every voxel (``icgn_reference.gradient_volume``);
 * ``second-order set-up``: IC-GN of second order from a zero guess on a clean shifted pair, so
@@ -27,10 +27,10 @@ import numpy as np  # noqa: E402
 from scipy import ndimage  # noqa: E402
 
 from napari_dvc_correct.engine import synthetic  # noqa: E402
-from napari_dvc_correct.engine.correlate import PyramidLevel  # noqa: E402
-from napari_dvc_correct.engine.icgn_reference import gradient_volume  # noqa: E402
-from napari_dvc_correct.engine.interpolation import prefilter  # noqa: E402
-from napari_dvc_correct.engine.params import CorrelationParams  # noqa: E402
+from napari_dvc_correct.engine.correlation.correlate import PyramidLevel  # noqa: E402
+from napari_dvc_correct.engine.correlation.icgn_reference import gradient_volume  # noqa: E402
+from napari_dvc_correct.engine.correlation.interpolation import prefilter  # noqa: E402
+from napari_dvc_correct.engine.correlation.params import CorrelationParams  # noqa: E402
 
 
 def _best(function, repeat: int) -> float:

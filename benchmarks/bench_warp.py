@@ -34,8 +34,8 @@ import numpy as np
 
 def make_case(size: int, kind: str):
     from napari_dvc_correct.engine import synthetic
-    from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
-    from napari_dvc_correct.engine.field_spline import FieldSpline
+    from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
+    from napari_dvc_correct.engine.fields.field_spline import FieldSpline
 
     centre = np.full(3, size / 2.0)
     if kind == "smooth":
@@ -71,8 +71,8 @@ def run(coefficients, spline, accuracy):
     volume (its coarse stage is counted in the inversion), solved slab by slab, as
     ``warp.warp_forward`` does.
     """
-    from napari_dvc_correct.engine import warp
-    from napari_dvc_correct.engine.interpolation import sample
+    from napari_dvc_correct.engine.correlation.interpolation import sample
+    from napari_dvc_correct.engine.fields import warp
     from napari_dvc_correct.engine.slabs import iter_slabs
 
     shape = coefficients.shape
@@ -80,7 +80,7 @@ def run(coefficients, spline, accuracy):
     newton = 0
     times = np.zeros(4)  # inversion wall, cpu; sampling wall, cpu
     if accuracy is not None:
-        from napari_dvc_correct.engine.inverse_lattice import LatticeInverter
+        from napari_dvc_correct.engine.fields.inverse_lattice import LatticeInverter
 
         box = tuple(slice(0, n) for n in shape)
         inverter, wall, cpu = timed(lambda: LatticeInverter(spline, box, accuracy=accuracy))
@@ -104,7 +104,7 @@ def run(coefficients, spline, accuracy):
 
 def run_fused(coefficients, spline, accuracy):
     """The fused warp: coarse stage (Newton at the nodes, checks), then fill and sampling."""
-    from napari_dvc_correct.engine.inverse_lattice import LatticeInverter
+    from napari_dvc_correct.engine.fields.inverse_lattice import LatticeInverter
 
     box = tuple(slice(0, n) for n in coefficients.shape)
     inverter, wall, cpu = timed(lambda: LatticeInverter(spline, box, accuracy=accuracy))
@@ -134,8 +134,8 @@ def main() -> None:
     import numba
 
     from napari_dvc_correct.engine import synthetic
-    from napari_dvc_correct.engine.field_spline import inside_hull
-    from napari_dvc_correct.engine.interpolation import prefilter, sample
+    from napari_dvc_correct.engine.correlation.interpolation import prefilter, sample
+    from napari_dvc_correct.engine.fields.field_spline import inside_hull
 
     accuracy = None if args.exact_only else 1e-3  # warp.INVERSE_ACCURACY
 

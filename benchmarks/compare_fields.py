@@ -33,7 +33,7 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-rock"
 def _inputs(names):
     from bench_correction_cases import make_case
 
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     for name in names:
         if name.startswith("rock_"):
@@ -49,7 +49,7 @@ def _inputs(names):
 
 
 def save(path, names):
-    from napari_dvc_correct.engine.correlate import correlate
+    from napari_dvc_correct.engine.correlation.correlate import correlate
 
     arrays, info = {}, {}
     for name, reference, deformed, params in _inputs(names):
@@ -67,7 +67,7 @@ def save(path, names):
 
 
 def compare(before_path, after_path):
-    from napari_dvc_correct.engine.field import GOOD_STATUSES
+    from napari_dvc_correct.engine.fields.field import GOOD_STATUSES
 
     good_codes = [int(s) for s in GOOD_STATUSES]
     before, after = np.load(before_path), np.load(after_path)

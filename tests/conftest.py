@@ -9,8 +9,8 @@ import pytest
 def changed_method_field():
     """A corrected field whose passes matched second order on 15³ while the user chose first
     order on 21³ (what the engine does on a curved field), without running the engine."""
-    from napari_dvc_correct.engine.correction_record import CorrectionPass
-    from napari_dvc_correct.engine.field import DisplacementField
+    from napari_dvc_correct.engine.correction.record import CorrectionPass
+    from napari_dvc_correct.engine.fields.field import DisplacementField
 
     field = DisplacementField.zeros((40, 40, 40), (8, 8, 8), (3, 3, 3))
     field.params = {"order": 1, "subvolume": 21}

@@ -23,7 +23,7 @@ PACKAGE = "napari_dvc_correct"
 ROOT = Path(__file__).resolve().parents[1] / "src" / PACKAGE
 
 #: Third-party top-level packages the engine may use (plus the standard library). llvmlite is
-#: numba's code generator: the four-wide kernels (``engine/simd*.py``) write LLVM IR through it.
+#: numba's code generator: the four-wide kernels (``engine/correlation/simd*.py``) write LLVM IR through it.
 ENGINE_FLOOR = {"numpy", "scipy", "numba", "llvmlite", "skimage"}
 
 #: For each part of the package, the parts it must not import.
@@ -100,9 +100,9 @@ def _part(module: str) -> str:
 
 def test_the_scan_finds_the_package_and_its_arrows():
     graph = _graph()
-    assert f"{PACKAGE}.engine.correlate" in graph
-    assert f"{PACKAGE}.engine.icgn" in graph[f"{PACKAGE}.engine.correlate"]
-    assert f"{PACKAGE}.engine.field" in graph[f"{PACKAGE}.io.npz"]
+    assert f"{PACKAGE}.engine.correlation.correlate" in graph
+    assert f"{PACKAGE}.engine.correlation.icgn" in graph[f"{PACKAGE}.engine.correlation.correlate"]
+    assert f"{PACKAGE}.engine.fields.field" in graph[f"{PACKAGE}.io.npz"]
 
 
 @pytest.mark.parametrize("part", sorted(FORBIDDEN))

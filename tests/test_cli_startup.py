@@ -110,7 +110,11 @@ def test_plain_correlate_imports_only_what_it_uses_and_loads_each_kernel_once(tm
     top = {m.split(".")[0] for m in report["modules"]}
     unused = top & set(NOT_FOR_A_PLAIN_CORRELATE)
     assert not unused, f"a plain correlate imported {sorted(unused)}"
-    for module in ("scipy.sparse", "scipy.spatial", "napari_dvc_correct.engine.correction"):
+    for module in (
+        "scipy.sparse",
+        "scipy.spatial",
+        "napari_dvc_correct.engine.correction.self_correction",
+    ):
         assert module not in report["modules"], f"a plain correlate imported {module}"
     # one IC-GN signature for all levels: one cache load (and one cold compile), not two
     assert report["signatures"] == 1
@@ -119,15 +123,15 @@ def test_plain_correlate_imports_only_what_it_uses_and_loads_each_kernel_once(tm
 def test_correction_defaults_are_those_the_engine_uses():
     import inspect
 
-    from napari_dvc_correct.engine.cleaning import CleaningOptions, clean
-    from napari_dvc_correct.engine.correction import correct_iter
+    from napari_dvc_correct.engine.correction.cleaning import CleaningOptions, clean
+    from napari_dvc_correct.engine.correction.self_correction import correct_iter
 
     defaults = _common.correction_defaults()
     signature = inspect.signature(correct_iter).parameters
     for name in ("frame", "update", "max_passes", "min_improvement"):
         assert defaults[name] == signature[name].default
     assert defaults["threshold"] == CleaningOptions().threshold
-    assert clean.__module__ == "napari_dvc_correct.engine.cleaning"
+    assert clean.__module__ == "napari_dvc_correct.engine.correction.cleaning"
 
 
 @pytest.mark.parametrize("argv", [["correlate", "--help"], ["--help"]])

@@ -8,7 +8,7 @@ from napari.components import ViewerModel
 from napari.layers import Layer
 
 from napari_dvc_correct import layers as L
-from napari_dvc_correct.engine.field import DisplacementField, Status
+from napari_dvc_correct.engine.fields.field import DisplacementField, Status
 
 
 @pytest.fixture

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from napari_dvc_correct import quantities as Q
-from napari_dvc_correct.engine.field import DisplacementField
+from napari_dvc_correct.engine.fields.field import DisplacementField
 
 
 def _uniaxial(shape=(6, 7, 8), e=0.01, voxel_size=(1.0, 1.0, 1.0)):

@@ -7,7 +7,7 @@ import pytest
 import tifffile
 
 from napari_dvc_correct._reader import napari_get_reader
-from napari_dvc_correct.engine.field import DisplacementField, Status
+from napari_dvc_correct.engine.fields.field import DisplacementField, Status
 from napari_dvc_correct.io.export import export_volume_tiff
 from napari_dvc_correct.io.npz import save_field
 from napari_dvc_correct.layers import field_of

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct._reader import napari_get_reader
-from napari_dvc_correct.engine.field import DisplacementField
-from napari_dvc_correct.engine.scattered import ScatteredField
+from napari_dvc_correct.engine.fields.field import DisplacementField
+from napari_dvc_correct.engine.fields.scattered import ScatteredField
 from napari_dvc_correct.io.formats import write_field
 from napari_dvc_correct.layers import field_of
 

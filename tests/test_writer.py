@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct._writer import write_fields
-from napari_dvc_correct.engine.field import DisplacementField
+from napari_dvc_correct.engine.fields.field import DisplacementField
 from napari_dvc_correct.io.npz import load_field
 from napari_dvc_correct.layers import field_layers, show_layers
 

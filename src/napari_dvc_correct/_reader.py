@@ -209,7 +209,7 @@ def _has_data_row(path) -> bool:
 
 def read_foreign_field(path) -> list[tuple]:
     """Read another tool's field file as the plugin's field layers (scattered points are put on
-    a grid, with provenance; see :func:`.engine.scattered.to_grid`)."""
+    a grid, with provenance; see :func:`.engine.fields.scattered.to_grid`)."""
     from .io.formats import read_field
     from .layers import field_layers
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .engine.field import DisplacementField
+from .engine.fields.field import DisplacementField
 from .engine.synthetic import (
     add_noise,
     deform_volume,

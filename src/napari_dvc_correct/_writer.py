@@ -1,7 +1,7 @@
 """npe2 writer: displacement field files (``.dvcfield``, or ``.npz``) from the layers the plugin made.
 
 Every field layer the plugin makes (vectors, ``|u|``, components, ZNCC, status, εeq) carries its
-:class:`~napari_dvc_correct.engine.field.DisplacementField` in ``metadata["dvc_correct"]["field"]``;
+:class:`~napari_dvc_correct.engine.fields.field.DisplacementField` in ``metadata["dvc_correct"]["field"]``;
 the writer saves that field, not the displayed (subsampled) layer data. Selecting layers of
 several fields (e.g. uncorrected and corrected) writes one file per field, named
 ``STEM_SOURCE.dvcfield``. A ``.dvcfield`` file opens in napari with this plugin's reader without

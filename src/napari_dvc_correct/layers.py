@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from .engine.field import DisplacementField
+from .engine.fields.field import DisplacementField
 from .quantities import (  # noqa: F401 (the quantities are part of what layers offers)
     DEFAULT_QUANTITY,
     QUANTITIES,

@@ -1,6 +1,6 @@
 """napari layer data tuples of a field at scattered points of interest (a Points layer result).
 
-:func:`points_layers` turns a :class:`.engine.scattered.ScatteredField` (what the Correlate panel
+:func:`points_layers` turns a :class:`.engine.fields.scattered.ScatteredField` (what the Correlate panel
 returns for the points of a Points layer) into a Points layer coloured by one quantity, with every
 quantity as a feature, and the displacement arrows; :func:`color_points` switches the colour in
 place (the View panel's quantity chooser). Placement as the scans: positions in reference voxels
@@ -42,7 +42,7 @@ def points_result_layers(viewer) -> list:
 
 def points_in(layers) -> dict:
     """Fields at points of interest carried by ``layers``, by source name, in layer order (first
-    layer of each wins): the :class:`.engine.scattered.ScatteredField` of every points result
+    layer of each wins): the :class:`.engine.fields.scattered.ScatteredField` of every points result
     (the companion of :func:`.layers.fields_in`, which holds the grid fields)."""
     found = {}
     for layer in layers:
@@ -91,7 +91,7 @@ def points_layers(
     quantity: str = DEFAULT_QUANTITY,
     exaggerate: bool = True,
 ) -> list[LayerDataTuple]:
-    """A field at scattered points (:class:`.engine.scattered.ScatteredField`) as two layers.
+    """A field at scattered points (:class:`.engine.fields.scattered.ScatteredField`) as two layers.
 
     * a Points layer at the points (voxel positions, placed with ``scale = voxel_size`` and
       ``translate = offset`` like the scans), coloured by ``quantity`` with every quantity of

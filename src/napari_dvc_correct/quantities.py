@@ -12,7 +12,7 @@ import weakref
 
 import numpy as np
 
-from .engine.field import DisplacementField, Status
+from .engine.fields.field import DisplacementField, Status
 
 #: Colours of the status codes in the status quantity (converged stays transparent).
 STATUS_COLORS = {
@@ -92,7 +92,7 @@ def field_uncertainty(field: DisplacementField) -> np.ndarray | None:
 
 def available_quantities(field: DisplacementField, residual: bool = False) -> list[str]:
     """The keys of :data:`QUANTITIES` that ``field`` can show (``residual`` once evaluated)."""
-    from .engine.error_estimate import estimate_of
+    from .engine.evaluation.error_estimate import estimate_of
 
     optional = ("uncertainty", "error estimate", "residual")
     keys = [key for key in QUANTITIES if key not in optional]
@@ -127,7 +127,7 @@ def physical_strain(field: DisplacementField) -> np.ndarray:
     ``du_i/dX_j`` measured in voxels becomes ``du_i/dX_j * vs_i / vs_j`` with ``vs`` the field's
     ``metadata["voxel_size"]``; NaN at nodes without a usable displacement.
     """
-    from .engine.strain import displacement_gradient, small_strain
+    from .engine.evaluation.strain import displacement_gradient, small_strain
 
     vs = as_triple(field.metadata.get("voxel_size"), 1.0)
     gradient = displacement_gradient(field) * (vs[:, None] / vs[None, :])
@@ -179,7 +179,7 @@ def quantity_values(
             raise ValueError("this field has no uncertainty")
         values = values * float(np.mean(vs))
     elif quantity == "error estimate":
-        from .engine.error_estimate import estimate_of
+        from .engine.evaluation.error_estimate import estimate_of
 
         values = estimate_of(field)
         if values is None:
@@ -202,11 +202,11 @@ def quantity_values(
         elif quantity == "εvol":
             values = np.trace(tensor, axis1=-2, axis2=-1)
         elif quantity == "εeq":
-            from .engine.strain import equivalent_strain
+            from .engine.evaluation.strain import equivalent_strain
 
             values = equivalent_strain(tensor)
         else:
-            from .engine.strain import principal_strains
+            from .engine.evaluation.strain import principal_strains
 
             principal = principal_strains(tensor)
             index = {"ε1": 0, "ε2": 1, "ε3": 2}
@@ -223,13 +223,13 @@ def quantity_values(
 def point_quantities(points_field) -> dict[str, np.ndarray]:
     """Every quantity of :data:`QUANTITIES` a field at scattered points can show, per point.
 
-    ``points_field`` is a :class:`..engine.scattered.ScatteredField`. Displacements are in the
+    ``points_field`` is a :class:`..engine.fields.scattered.ScatteredField`. Displacements are in the
     units of :func:`unit_of` (voxels times ``metadata["voxel_size"]``); strains come from each
     point's matched displacement gradient (the subvolume's own first-order warp, physical axes),
     not from neighbouring points; NaN where the point has no usable value. Returns float64
     arrays ``(N,)`` by quantity key, in :data:`QUANTITIES` order.
     """
-    from .engine.strain import equivalent_strain, principal_strains, small_strain
+    from .engine.evaluation.strain import equivalent_strain, principal_strains, small_strain
 
     vs = as_triple(points_field.metadata.get("voxel_size"), 1.0)
     valid = np.asarray(points_field.valid, dtype=bool)

@@ -15,7 +15,12 @@ import pytest
 
 from napari_dvc_correct import cli
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status, grid_for_volume
+from napari_dvc_correct.engine.fields.field import (
+    DisplacementField,
+    Provenance,
+    Status,
+    grid_for_volume,
+)
 from napari_dvc_correct.io.npz import load_field, save_field
 
 SHAPE = (24, 24, 24)

@@ -7,7 +7,7 @@ import pytest
 
 from napari_dvc_correct.cli import main
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import DisplacementField, Provenance
+from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance
 from napari_dvc_correct.io.npz import load_field, save_field
 
 SHAPE = (36, 36, 36)

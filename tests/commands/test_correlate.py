@@ -84,7 +84,7 @@ def test_bad_input_exits_non_zero_with_one_line_and_writes_nothing(
 def test_cli_and_engine_do_not_import_napari_or_qt():
     code = (
         "import sys; import napari_dvc_correct.cli as c; c.build_parser();"
-        "import napari_dvc_correct.engine.correlate;"
+        "import napari_dvc_correct.engine.correlation.correlate;"
         "bad = [m for m in sys.modules if m.split('.')[0] in ('napari', 'qtpy', 'PyQt6', 'PyQt5',"
         " 'PySide6', 'magicgui', 'vispy')]; print(bad); assert not bad"
     )

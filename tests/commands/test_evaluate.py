@@ -8,7 +8,7 @@ import tifffile
 
 from napari_dvc_correct import cli
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
 from napari_dvc_correct.io.npz import save_field
 
 SHAPE = (32, 32, 32)

@@ -6,8 +6,8 @@ import pytest
 
 from napari_dvc_correct.cli import main
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.scattered import ScatteredField
+from napari_dvc_correct.engine.fields.field import Status
+from napari_dvc_correct.engine.fields.scattered import ScatteredField
 from napari_dvc_correct.io.formats import read_field, read_points, write_field
 from napari_dvc_correct.io.npz import load_field
 
@@ -74,7 +74,7 @@ def test_points_out_of_core_give_the_in_memory_points(volumes, tmp_path, capsys)
 def test_points_to_a_grid_format_are_refused_before_any_work(
     volumes, tmp_path, capsys, monkeypatch
 ):
-    from napari_dvc_correct.engine import correlate_points as module
+    from napari_dvc_correct.engine.correlation import correlate_points as module
 
     monkeypatch.setattr(module, "correlate_points", lambda *a, **k: pytest.fail("correlated"))
     npy = tmp_path / "pois.npy"

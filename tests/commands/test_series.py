@@ -7,7 +7,7 @@ import pytest
 
 from napari_dvc_correct.cli import main
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.placement import Box, grid_for_region
+from napari_dvc_correct.engine.correlation.placement import Box, grid_for_region
 from napari_dvc_correct.io.formats import read_points
 from napari_dvc_correct.io.npz import load_field
 

@@ -8,8 +8,8 @@ import tifffile
 
 from napari_dvc_correct.commands._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import Status
 from napari_dvc_correct.tiled import MemoryBudgetError, correlate_tiled
 
 

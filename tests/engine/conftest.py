@@ -3,7 +3,7 @@
 import pytest
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
 
 
 @pytest.fixture(scope="module")

@@ -6,17 +6,17 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.absurd_nodes import flag_absurd_nodes
-from napari_dvc_correct.engine.accuracy import evaluate_fields
-from napari_dvc_correct.engine.correlate import validate_pair
-from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine.correlation.correlate import validate_pair
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+from napari_dvc_correct.engine.fields.absurd_nodes import flag_absurd_nodes
+from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
 from napari_dvc_correct.engine.pair_checks import (
     check_field_on_volume,
     check_pair,
     check_pair_and_fields,
     largest_subvolume_advice,
 )
-from napari_dvc_correct.engine.params import CorrelationParams
 
 SHAPE = (24, 24, 24)
 
@@ -97,7 +97,7 @@ def test_failed_nodes_do_not_count_for_the_plausibility_check():
 def test_a_few_absurd_nodes_are_failed_matches_and_most_are_another_field():
     """Issue 27 item 14: spam's ldic leaves a few diverged nodes at 10^3-10^6 voxels marked
     converged; they are flagged as failed (for cleaning), only a mostly absurd field is refused."""
-    from napari_dvc_correct.engine.field import Status
+    from napari_dvc_correct.engine.fields.field import Status
 
     field = field_on(shape=(48, 48, 48), u=(0.5, -1.0, 0.3))  # 6x6x6 nodes
     field.gradient = np.zeros((*field.shape, 3, 3))
@@ -147,7 +147,7 @@ def test_subvolume_advice(shape, text):
 
 @pytest.mark.parametrize("frame", ["loaded", "reference"])
 def test_correct_iter_refuses_an_empty_mask_and_a_field_outside_in_both_frames(pair, frame):
-    from napari_dvc_correct.engine.correction import correct_iter
+    from napari_dvc_correct.engine.correction.self_correction import correct_iter
 
     with pytest.raises(ValueError, match="the mask is empty"):
         next(correct_iter(*pair, field_on(), frame=frame, mask=np.zeros(SHAPE, bool)))

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status
+from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
 from napari_dvc_correct.io import export
 from napari_dvc_correct.io.npz import load_field
 
@@ -223,7 +223,7 @@ def test_every_export_marks_a_failed_node_the_same_way(tmp_path):
     import h5py
     import tifffile
 
-    from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status
+    from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
     from napari_dvc_correct.io.export import export_field
     from napari_dvc_correct.io.formats import read_points, write_field
 
@@ -260,7 +260,7 @@ def test_every_export_marks_a_failed_node_the_same_way(tmp_path):
 def test_the_error_estimate_of_an_evaluation_travels_to_every_export(field, tmp_path):
     """Evaluate leaves its per-node error estimate on the field (issue 26): a CSV column, a
     TIFF stack, a VTK array and a View quantity."""
-    from napari_dvc_correct.engine.error_estimate import attach_estimate, estimate_of
+    from napari_dvc_correct.engine.evaluation.error_estimate import attach_estimate, estimate_of
     from napari_dvc_correct.quantities import available_quantities, quantity_values
 
     estimate = np.random.default_rng(3).uniform(0.0, 1.0, field.shape)

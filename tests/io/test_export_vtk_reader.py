@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.field import DisplacementField, Status
-from napari_dvc_correct.engine.scattered import ScatteredField
+from napari_dvc_correct.engine.fields.field import DisplacementField, Status
+from napari_dvc_correct.engine.fields.scattered import ScatteredField
 from napari_dvc_correct.io import export
 
 vtk = pytest.importorskip("vtk")

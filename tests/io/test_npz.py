@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status
+from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
 from napari_dvc_correct.io.npz import FORMAT_VERSION, load_field, save_field
 
 

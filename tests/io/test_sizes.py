@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from napari_dvc_correct.engine.field import DisplacementField
+from napari_dvc_correct.engine.fields.field import DisplacementField
 from napari_dvc_correct.io.npz import load_field, save_field
 from napari_dvc_correct.io.sizes import check_npz_sizes, npz_members
 from napari_dvc_correct.io.volumes import read_volume

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.accuracy import evaluate_fields
-from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
 from napari_dvc_correct.engine.synthetic import (
     add_noise,
     deform_volume,

@@ -3,8 +3,8 @@
 import numpy as np
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import Status
 from napari_dvc_correct.tiled import batches, correlate_tiled
 
 PARAMS = CorrelationParams(subvolume=15, step=8, tolerance=1e-5)

@@ -22,14 +22,14 @@ import tifffile
 import zarr
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.cleaning import clean
-from napari_dvc_correct.engine.correction import correct, correction_table
-from napari_dvc_correct.engine.correction_volumes import InMemoryVolumes
-from napari_dvc_correct.engine.correlate import correlate
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.interpolation import prefilter
-from napari_dvc_correct.engine.local_acceptance import ReferenceResiduals
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correction.acceptance import ReferenceResiduals
+from napari_dvc_correct.engine.correction.cleaning import clean
+from napari_dvc_correct.engine.correction.self_correction import correct, correction_table
+from napari_dvc_correct.engine.correction.volumes import InMemoryVolumes
+from napari_dvc_correct.engine.correlation.correlate import correlate
+from napari_dvc_correct.engine.correlation.interpolation import prefilter
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import Status
 from napari_dvc_correct.engine.progress import run_to_completion
 from napari_dvc_correct.tiled.correction import TiledVolumes, correct_tiled, correct_tiled_iter
 from napari_dvc_correct.tiled.memory import MemoryBudgetError

@@ -8,10 +8,10 @@ import tifffile
 import zarr
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.correlate import correlate
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.interpolation import prefilter
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.correlate import correlate
+from napari_dvc_correct.engine.correlation.interpolation import prefilter
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import Status
 from napari_dvc_correct.engine.progress import Progress
 from napari_dvc_correct.io.lazy import ArrayVolume
 from napari_dvc_correct.tiled import (
@@ -69,7 +69,7 @@ def test_prefilter_margin_reaches_float32_rounding():
 def test_whole_volume_pass_equals_the_whole_volume_quantities(monkeypatch):
     import dask
 
-    from napari_dvc_correct.engine.initial_guess import bin_volume, global_shift
+    from napari_dvc_correct.engine.correlation.initial_guess import bin_volume, global_shift
 
     reference = synthetic.textured_volume((101, 50, 199), 3.0, seed=2)  # binned by 3, cropped
     deformed = np.roll(reference, (7, -4, 11), axis=(0, 1, 2))

@@ -13,8 +13,8 @@ import pytest
 import tifffile
 import zarr
 
-from napari_dvc_correct.engine.accuracy import evaluate_fields
-from napari_dvc_correct.engine.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
 from napari_dvc_correct.engine.synthetic import (
     add_noise,
     affine,
@@ -232,8 +232,8 @@ def test_a_cancelled_run_stops_and_leaves_no_output(pair, tmp_path):
 
 def test_a_specimen_region_block_by_block_equals_in_memory(pair):
     """The specimen region (issue 26) read block by block: the in-memory evaluation's numbers."""
-    from napari_dvc_correct.engine.accuracy import specimen_mask
-    from napari_dvc_correct.engine.placement import Cylinder
+    from napari_dvc_correct.engine.correlation.placement import Cylinder
+    from napari_dvc_correct.engine.evaluation.accuracy import specimen_mask
 
     folder, reference, deformed, fields = pair
     region = specimen_mask(SHAPE, Cylinder((21.5, 23.5), 17.0))

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.field import grid_for_volume
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import grid_for_volume
 from napari_dvc_correct.tiled.memory import (
     BYTES_PER_FIELD_POINT,
     BYTES_PER_HELD_POINT,

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.correlate_points import correlate_points
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.correlate_points import correlate_points
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import Status
 from napari_dvc_correct.io.lazy import ArrayVolume
 from napari_dvc_correct.tiled.memory import MemoryBudgetError
 from napari_dvc_correct.tiled.points import correlate_points_tiled, correlate_points_tiled_iter

@@ -25,9 +25,9 @@ import tifffile
 import zarr
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.params import CorrelationParams
-from napari_dvc_correct.engine.series import series
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import Status
+from napari_dvc_correct.engine.series.strategies import series
 from napari_dvc_correct.tiled import correlate as tiled_correlate
 from napari_dvc_correct.tiled.memory import MemoryBudgetError
 from napari_dvc_correct.tiled.series import series_tiled, series_tiled_iter

@@ -1,15 +1,17 @@
-"""Chunked voxel-wise outputs equal the in-memory ones of engine.warp, on Zarr and TIFF."""
+"""Chunked voxel-wise outputs equal the in-memory ones of engine.fields.warp, on Zarr and TIFF."""
 
 import numpy as np
 import pytest
 import tifffile
 import zarr
 
-from napari_dvc_correct.engine import field_spline, residual, synthetic, warp
-from napari_dvc_correct.engine.field import DisplacementField
-from napari_dvc_correct.engine.interpolation import prefilter, sample
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correlation.interpolation import prefilter, sample
+from napari_dvc_correct.engine.evaluation import residual
+from napari_dvc_correct.engine.evaluation.strain import equivalent_strain_field
+from napari_dvc_correct.engine.fields import field_spline, warp
+from napari_dvc_correct.engine.fields.field import DisplacementField
 from napari_dvc_correct.engine.progress import run_to_completion
-from napari_dvc_correct.engine.strain import equivalent_strain_field
 from napari_dvc_correct.io.lazy import ArrayVolume
 from napari_dvc_correct.tiled.volumes import (
     mean_gray_residual_iter,

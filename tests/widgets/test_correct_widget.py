@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from napari_dvc_correct._sample_data import true_field
-from napari_dvc_correct.engine.field import Provenance
+from napari_dvc_correct.engine.fields.field import Provenance
 from napari_dvc_correct.layers import field_of
 from napari_dvc_correct.widgets import CorrectWidget
 
@@ -97,7 +97,7 @@ def test_a_region_limits_the_correction(correlated, run_panel, small):
     """Outside the region no correction is measured: those nodes are never corrected (an update
     read more than a step beyond the measured ones is refused: the node keeps its value; a nearer
     one is interpolated, provenance replaced); inside it is measured (provenance corrected)."""
-    from napari_dvc_correct.engine.field import Provenance as P
+    from napari_dvc_correct.engine.fields.field import Provenance as P
 
     viewer = correlated.viewer
     widget = _dock(viewer)

@@ -5,8 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status, grid_for_volume
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import (
+    DisplacementField,
+    Provenance,
+    Status,
+    grid_for_volume,
+)
 from napari_dvc_correct.widgets import correlate_model as model
 from napari_dvc_correct.widgets import points_model
 
@@ -98,7 +103,7 @@ def test_pair_job_runs_on_the_chosen_device_and_records_it():
     import numpy as np
 
     from napari_dvc_correct.engine import synthetic
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
     from napari_dvc_correct.engine.progress import run_to_completion
     from napari_dvc_correct.widgets import correlate_model as model
 
@@ -174,7 +179,7 @@ def test_job_points_refuses_a_series_and_a_missing_layer():
 
 
 def test_run_points_job_equals_the_engine_and_finds_a_translation():
-    from napari_dvc_correct.engine.correlate_points import correlate_points
+    from napari_dvc_correct.engine.correlation.correlate_points import correlate_points
     from napari_dvc_correct.engine.progress import Progress, run_to_completion
     from napari_dvc_correct.engine.synthetic import make_pair, textured_volume, translation
 

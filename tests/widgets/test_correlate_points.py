@@ -18,8 +18,8 @@ def _world(small, voxels):
 def test_points_layer_run_gives_readable_point_layers(
     points_panel, run_panel, small, pair48, point_voxels
 ):
-    from napari_dvc_correct.engine.correlate_points import correlate_points
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate_points import correlate_points
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     voxels = point_voxels
     widget, viewer = points_panel, points_panel.viewer
@@ -82,8 +82,8 @@ def test_points_layer_run_gives_readable_point_layers(
 def test_points_run_out_of_core_as_in_memory(points_panel, run_panel, small, pair48, point_voxels):
     """'Out of core' with points of interest: the guide in batches and the points in groups,
     each reading its region of the scans; the points get the in-memory result."""
-    from napari_dvc_correct.engine.correlate_points import correlate_points
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate_points import correlate_points
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     widget = points_panel
     widget.tiled.setChecked(True)
@@ -132,8 +132,8 @@ def test_points_need_a_pair_and_a_points_layer(points_panel):
 
 def test_point_layers_without_napari_viewer():
     """The builders: hollow points without a value, the status in its own colours."""
-    from napari_dvc_correct.engine.field import Status
-    from napari_dvc_correct.engine.scattered import ScatteredField
+    from napari_dvc_correct.engine.fields.field import Status
+    from napari_dvc_correct.engine.fields.scattered import ScatteredField
 
     field = ScatteredField(
         points=np.array([[10.0, 10.0, 10.0], [20.0, 20.0, 20.5]]),

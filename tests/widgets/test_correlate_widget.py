@@ -10,7 +10,7 @@ import pytest
 from qtpy.QtCore import QTimer
 
 from napari_dvc_correct._sample_data import true_field
-from napari_dvc_correct.engine.field import DisplacementField, Status, grid_for_volume
+from napari_dvc_correct.engine.fields.field import DisplacementField, Status, grid_for_volume
 from napari_dvc_correct.layers import field_of, fields_in
 from napari_dvc_correct.widgets import CorrelateWidget
 from napari_dvc_correct.widgets.correlate import PREVIEW_BOX, PREVIEW_POINTS
@@ -177,8 +177,8 @@ def test_clicked_poi_shows_its_values(correlated, placement):
 
 def test_ui_stays_responsive_during_a_run(viewer_pair, qtbot, small):
     """Largest gap between 10 ms timer ticks on the main thread while the engine runs."""
-    from napari_dvc_correct.engine.correlate import correlate
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     reference = viewer_pair.layers["reference"].data
     deformed = viewer_pair.layers["deformed"].data

@@ -39,8 +39,8 @@ def test_automatic_thresholds_split_two_grays():
 
 
 def test_report_of_a_real_evaluation():
-    from napari_dvc_correct.engine.accuracy import evaluate_fields
-    from napari_dvc_correct.engine.field import DisplacementField
+    from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+    from napari_dvc_correct.engine.fields.field import DisplacementField
     from napari_dvc_correct.engine.synthetic import two_phase_volume
 
     volume = two_phase_volume((32, 32, 32), seed=2)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from napari_dvc_correct.engine.strain import equivalent_strain_field
+from napari_dvc_correct.engine.evaluation.strain import equivalent_strain_field
 from napari_dvc_correct.io.npz import load_field
 from napari_dvc_correct.layers import field_of
 from napari_dvc_correct.widgets import EvaluateWidget, ExportWidget
@@ -132,7 +132,7 @@ def test_points_result_in_every_point_format(points_panel, run_panel, tmp_path):
     CSV (one row per point), the NPZ and .vtu of ``correlate --points``; grid formats refused."""
     import csv
 
-    from napari_dvc_correct.engine.field import Status
+    from napari_dvc_correct.engine.fields.field import Status
     from napari_dvc_correct.io.formats import read_points
     from napari_dvc_correct.layers import plugin_metadata
     from napari_dvc_correct.quantities import point_quantities
@@ -182,7 +182,7 @@ def test_points_result_in_every_point_format(points_panel, run_panel, tmp_path):
 
 def test_points_refuse_what_needs_a_grid(tmp_path):
     """The model refuses grid formats and grid extras for a result at points, writing nothing."""
-    from napari_dvc_correct.engine.scattered import ScatteredField
+    from napari_dvc_correct.engine.fields.scattered import ScatteredField
     from napari_dvc_correct.widgets import export_model as model
 
     points = ScatteredField(points=np.array([[10.0, 11.0, 12.5]]), u=np.array([[0.1, 0.2, 0.3]]))

@@ -18,8 +18,8 @@ def test_a_lazy_pair_runs_out_of_core_and_gives_the_in_memory_field(
     in-memory one (the tiled engine's promise, ~1e-7 voxel)."""
     import dask.array as da
 
-    from napari_dvc_correct.engine.correlate import correlate
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     reference, deformed, _ = pair48
     viewer = make_napari_viewer()
@@ -48,7 +48,7 @@ def test_a_lazy_pair_runs_out_of_core_and_gives_the_in_memory_field(
 def test_a_lazy_pair_self_corrects_out_of_core(lazy_panel, pair48, run_panel, small):
     """The Self-correct panel ticks 'out of core' for Dask-backed scans; the tiled correction
     gives the in-memory correction of the same field."""
-    from napari_dvc_correct.engine.correction import correct_iter
+    from napari_dvc_correct.engine.correction.self_correction import correct_iter
     from napari_dvc_correct.engine.progress import run_to_completion
     from napari_dvc_correct.widgets import CorrectWidget
 
@@ -74,7 +74,7 @@ def test_a_lazy_pair_self_corrects_out_of_core(lazy_panel, pair48, run_panel, sm
 def test_a_lazy_pair_evaluates_out_of_core(lazy_panel, pair48, run_panel, small):
     """The Evaluate panel ticks 'out of core' for Dask-backed scans; the residual comes back as
     a lazy Zarr layer and the accuracy is the in-memory one."""
-    from napari_dvc_correct.engine.accuracy import evaluate_iter
+    from napari_dvc_correct.engine.evaluation.accuracy import evaluate_iter
     from napari_dvc_correct.engine.progress import run_to_completion
     from napari_dvc_correct.widgets import EvaluateWidget
     from napari_dvc_correct.widgets.evaluate_model import ready_for_evaluation
@@ -126,9 +126,9 @@ def test_a_threshold_region_over_a_lazy_pair_is_read_by_the_tiled_run(
 ):
     """The region's mask over a Dask-backed scan stays lazy: the tiled run reads it batch by
     batch and gives the in-memory field with the whole mask."""
-    from napari_dvc_correct.engine.correlate import correlate
-    from napari_dvc_correct.engine.field import Status
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+    from napari_dvc_correct.engine.fields.field import Status
     from napari_dvc_correct.widgets import regions_model
 
     reference, deformed, _ = pair48

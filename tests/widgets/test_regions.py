@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import Status
 from napari_dvc_correct.layers import field_of
 from napari_dvc_correct.widgets import CorrelateWidget
 from napari_dvc_correct.widgets import regions_model as model

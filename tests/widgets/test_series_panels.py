@@ -111,8 +111,8 @@ def test_a_lazy_series_runs_out_of_core_as_in_memory(series40, make_napari_viewe
     (tiled.series), the same totals as the in-memory series."""
     import dask.array as da
 
-    from napari_dvc_correct.engine.params import CorrelationParams
-    from napari_dvc_correct.engine.series import series
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+    from napari_dvc_correct.engine.series.strategies import series
 
     volumes, _ = series40
     viewer = make_napari_viewer()
@@ -136,7 +136,7 @@ def test_a_lazy_series_runs_out_of_core_as_in_memory(series40, make_napari_viewe
         good = total.valid
         assert np.max(np.abs(field.u[good] - total.u[good])) < 1e-4
     # the Self-correct panel corrects every state out of core too (ticked by itself)
-    from napari_dvc_correct.engine.correction import correct
+    from napari_dvc_correct.engine.correction.self_correction import correct
 
     correct_panel = _dock(viewer, CorrectWidget)
     assert correct_panel.field.currentText() == f"series ({job.strategy})"
@@ -179,8 +179,8 @@ def test_a_series_as_separate_layers_is_evaluated_state_by_state(
     """Three states opened as three layers, a field per state: each state against its own pair,
     and a field's r0 and p the same whether it is ticked alone or with the others (issue 26)."""
     from napari_dvc_correct import layers as L
-    from napari_dvc_correct.engine.accuracy import evaluate_fields
-    from napari_dvc_correct.engine.field import grid_for_volume
+    from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+    from napari_dvc_correct.engine.fields.field import grid_for_volume
 
     volumes, truths = series40
     viewer = make_napari_viewer()

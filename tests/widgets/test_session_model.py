@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.field import DisplacementField
+from napari_dvc_correct.engine.fields.field import DisplacementField
 from napari_dvc_correct.widgets.session_model import FORMAT, read_session, write_session
 
 

@@ -219,8 +219,8 @@ def check_search(params, volume_shape) -> None:
 
 # --- defaults read from the engine's records (never retyped in the CLI) ------------------------
 def correlation_defaults() -> dict:
-    """Field name -> default of :class:`~napari_dvc_correct.engine.params.CorrelationParams`."""
-    from ..engine.params import CorrelationParams
+    """Field name -> default of :class:`~napari_dvc_correct.engine.correlation.params.CorrelationParams`."""
+    from ..engine.correlation.params import CorrelationParams
 
     return {
         f.name: f.default
@@ -231,7 +231,7 @@ def correlation_defaults() -> dict:
 
 def correction_defaults() -> dict:
     """Defaults of the self-correction and of the cleaning (frame, update, passes, threshold,
-    smoothing...), from :mod:`..engine.options`, which loads neither numba nor scipy."""
-    from ..engine.options import defaults
+    smoothing...), from :mod:`..engine.correction.options`, which loads neither numba nor scipy."""
+    from ..engine.correction.options import defaults
 
     return defaults()

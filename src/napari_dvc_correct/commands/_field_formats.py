@@ -131,8 +131,8 @@ def read_input_field(
     cleaned instead of spread by the interpolation; a field mostly made of them is refused
     (:func:`..engine.pair_checks.flag_absurd_nodes`). ``InputField.note`` then says so.
     """
-    from ..engine.absurd_nodes import flag_absurd_nodes
-    from ..engine.scattered import to_grid
+    from ..engine.fields.absurd_nodes import flag_absurd_nodes
+    from ..engine.fields.scattered import to_grid
     from ..io.formats import read_points, sniff_format
 
     if not Path(path).is_file():
@@ -201,7 +201,7 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
     too: in another tool's format ``out`` holds the field at those points and ``<stem>_grid.npz``
     the grid; in our ``.npz`` ``out`` holds the grid and ``<stem>_points.csv`` the points.
     """
-    from ..engine.scattered import ScatteredField, sample_field
+    from ..engine.fields.scattered import ScatteredField, sample_field
     from ..io.formats import write_field
 
     fmt = output_format(args, out)
@@ -273,9 +273,9 @@ def prepare_correction_field(args, volume_shape):
     The field keeps its own grid unless ``--grid-step``, ``--roi``, ``--cylinder`` or
     ``--origin`` ask for another one (then it is interpolated onto it, with provenance).
     """
-    from ..engine.params import CorrelationParams
-    from ..engine.placement import grid_for_region, restrict_to_region
-    from ..engine.scattered import from_grid, to_grid
+    from ..engine.correlation.params import CorrelationParams
+    from ..engine.correlation.placement import grid_for_region, restrict_to_region
+    from ..engine.fields.scattered import from_grid, to_grid
     from . import _grid_options
 
     imported = read_input_field(args, args.field, volume_shape=volume_shape)
@@ -331,7 +331,7 @@ def run_points(args, params, out, started, tiled: bool = False) -> int:
 
         result = run_tiled_points(args, params, points)
     else:
-        from ..engine.correlate_points import correlate_points
+        from ..engine.correlation.correlate_points import correlate_points
         from ..io.volumes import read_volume
 
         reference = read_volume(args.reference)

@@ -68,8 +68,8 @@ def _range(text: str, axis: str, size: int | None) -> tuple[float, float]:
 
 
 def parse_roi(text: str, volume_shape=None):
-    """``"z0:z1,y0:y1,x0:x1"`` -> :class:`..engine.placement.Box`."""
-    from ..engine.placement import Box
+    """``"z0:z1,y0:y1,x0:x1"`` -> :class:`..engine.correlation.placement.Box`."""
+    from ..engine.correlation.placement import Box
 
     parts = text.split(",")
     if len(parts) != 3:
@@ -80,8 +80,8 @@ def parse_roi(text: str, volume_shape=None):
 
 
 def parse_cylinder(text: str):
-    """``"Y,X,R"`` or ``"Y,X,R,Z0:Z1"`` -> :class:`..engine.placement.Cylinder`."""
-    from ..engine.placement import Cylinder
+    """``"Y,X,R"`` or ``"Y,X,R,Z0:Z1"`` -> :class:`..engine.correlation.placement.Cylinder`."""
+    from ..engine.correlation.placement import Cylinder
 
     parts = [p.strip() for p in text.split(",")]
     if len(parts) not in (3, 4):
@@ -164,7 +164,7 @@ def wants_placement(args) -> bool:
 
 def grid_from_args(args, volume_shape, params):
     """The POI grid for ``correlate``; None when no placement option is given."""
-    from ..engine.placement import grid_for_region
+    from ..engine.correlation.placement import grid_for_region
 
     if not any(getattr(args, name, None) for name in ("roi", "cylinder", "origin")):
         return None
@@ -176,7 +176,7 @@ def grid_from_args(args, volume_shape, params):
 
 def finish_grid_field(args, field, volume_shape):
     """Drop the nodes outside a cylinder (a box needs nothing: the grid is inside it)."""
-    from ..engine.placement import describe_region, restrict_to_region
+    from ..engine.correlation.placement import describe_region, restrict_to_region
 
     region = region_from_args(args, volume_shape)
     if region is None:

@@ -1,6 +1,6 @@
 """``napari-dvc-correct clean FIELD.npz --out CLEANED.npz``: replace failed and outlying nodes.
 
-The paper's step b on its own (:func:`napari_dvc_correct.engine.cleaning.clean`): nodes whose
+The paper's step b on its own (:func:`napari_dvc_correct.engine.correction.cleaning.clean`): nodes whose
 match failed, or that fail the normalised median test, are refilled by thin-plate inpainting
 from the good ones. With ``--fill-masked`` the nodes outside the mask are filled too (as the
 evaluation needs: every node finite); they keep provenance ``MASKED``.
@@ -45,7 +45,7 @@ def counts_text(field) -> str:
 
 
 def run(args) -> int:
-    from ..engine.cleaning import clean
+    from ..engine.correction.cleaning import clean
     from ..io.npz import load_field, save_field
 
     out = check_output_path(args.out, inputs=command_inputs(args))

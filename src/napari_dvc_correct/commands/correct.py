@@ -73,8 +73,8 @@ def _positive(text: str) -> float:
 def add_correction_options(parser: argparse.ArgumentParser) -> None:
     """Options of the self-correction (all optional: the DVC parameters are reused).
 
-    Defaults are those of :func:`~napari_dvc_correct.engine.correction.correct_iter` and
-    :func:`~napari_dvc_correct.engine.cleaning.clean`.
+    Defaults are those of :func:`~napari_dvc_correct.engine.correction.self_correction.correct_iter` and
+    :func:`~napari_dvc_correct.engine.correction.cleaning.clean`.
     """
     d = correction_defaults()
     group = parser.add_argument_group("self-correction")
@@ -137,8 +137,8 @@ def add_self_correct_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def correction_options_from_args(args) -> dict:
-    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.correct_iter`."""
-    from ..engine.options import CleaningOptions
+    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.self_correction.correct_iter`."""
+    from ..engine.correction.options import CleaningOptions
 
     if args.max_passes < 1:
         raise ValueError(f"--max-passes must be >= 1, got {args.max_passes}")
@@ -158,7 +158,7 @@ def correction_options_from_args(args) -> dict:
 def pass_table(field) -> str:
     """The per-pass report of a corrected field as aligned text lines: the correcting matches'
     order and subvolume per pass, and why (:func:`..report.passes.method_lines`)."""
-    from ..engine.correction import correction_table
+    from ..engine.correction.self_correction import correction_table
     from ..report.passes import (
         flag_line,
         gray_level_line,
@@ -202,7 +202,7 @@ def apply_self_correction(args, field, reference, deformed):
     Used by ``correlate --self-correct``: call it after the correlation, before saving. Reads
     ``args.mask`` (a path) if the parser has one; prints the per-pass table on stdout.
     """
-    from ..engine.correction import correct_iter
+    from ..engine.correction.self_correction import correct_iter
     from ..io.volumes import read_volume
 
     options = correction_options_from_args(args)
@@ -219,7 +219,7 @@ def apply_self_correction(args, field, reference, deformed):
 
 
 def run(args) -> int:
-    from ..engine.correction import correct_iter
+    from ..engine.correction.self_correction import correct_iter
     from ..engine.pair_checks import check_pair_and_fields
     from ..io.volumes import read_volume
 

@@ -79,7 +79,7 @@ def add_correlation_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def params_from_args(args):
-    from ..engine.params import CorrelationParams
+    from ..engine.correlation.params import CorrelationParams
 
     values = dict(
         subvolume=args.subvolume,
@@ -108,7 +108,7 @@ def summary(field, seconds: float) -> str:
 
 def run(args) -> int:
     from ..engine.backend import select_device
-    from ..engine.correlate import correlate_iter
+    from ..engine.correlation.correlate import correlate_iter
     from ..engine.pair_checks import check_pair
     from ..io.volumes import read_volume
 

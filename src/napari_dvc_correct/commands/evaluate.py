@@ -179,12 +179,12 @@ def ready_for_evaluation(field, name: str):
     """``(field, note)``: a field with failed or masked nodes cleaned first, as the panel does.
 
     The evaluation densifies the field, which needs a finite value at every node; failed and
-    masked nodes are refilled by :func:`~napari_dvc_correct.engine.cleaning.clean` (paper step
+    masked nodes are refilled by :func:`~napari_dvc_correct.engine.correction.cleaning.clean` (paper step
     b, ``fill_masked=True``). ``note`` says what was done (None when nothing was needed).
     """
     if field.valid.all():
         return field, None
-    from ..engine.cleaning import clean
+    from ..engine.correction.cleaning import clean
     from .clean import counts_text
 
     cleaned = clean(field, fill_masked=True)
@@ -192,8 +192,8 @@ def ready_for_evaluation(field, name: str):
 
 
 def run(args) -> int:
-    from ..engine.absurd_nodes import flag_absurd_nodes
-    from ..engine.accuracy import evaluate_iter
+    from ..engine.evaluation.accuracy import evaluate_iter
+    from ..engine.fields.absurd_nodes import flag_absurd_nodes
     from ..engine.pair_checks import check_pair_and_fields
     from ..io.volumes import read_volume
     from ..report import write_report
@@ -311,7 +311,7 @@ def _specimen_region(args, reference):
         return None
     if len(given) > 1:
         raise UserError(f"give one specimen region, not {' and '.join('--' + g for g in given)}")
-    from ..engine.accuracy import check_region, specimen_mask
+    from ..engine.evaluation.accuracy import check_region, specimen_mask
     from ._grid_options import parse_cylinder, parse_roi
 
     shape = tuple(reference.shape)

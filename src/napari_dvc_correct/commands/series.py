@@ -118,7 +118,7 @@ def field_suffix(args, at_points: bool) -> str:
 
 def run(args) -> int:
     from ..engine.pair_checks import check_pair
-    from ..engine.series import series_iter
+    from ..engine.series.strategies import series_iter
     from ..io.volumes import read_volume
     from . import _field_formats, _grid_options
     from ._common import (

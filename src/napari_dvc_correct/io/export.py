@@ -8,7 +8,7 @@ pyevtk does not write) by a small writer here.
 Grid quantities beyond the field itself (equivalent strain, ...) are passed as ``extra``: a dict of
 arrays of the grid shape ``(nz, ny, nx)``, written next to the field's own arrays.
 
-A field at scattered points (:class:`..engine.scattered.ScatteredField`, e.g. a Correlate run on a
+A field at scattered points (:class:`..engine.fields.scattered.ScatteredField`, e.g. a Correlate run on a
 Points layer) goes through :func:`export_points`: CSV here, ``.vtu`` points, and the other tools'
 formats of :mod:`.formats` (the writers the command line's ``correlate --points`` uses); formats
 that need a regular grid are refused.
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.field import DisplacementField, Provenance, Status
-from ..engine.scattered import ScatteredField
+from ..engine.fields.field import DisplacementField, Provenance, Status
+from ..engine.fields.scattered import ScatteredField
 from .atomic import atomic_path
 from .formats._common import unusable_as_nan
 from .npz import FIELD_SUFFIX, _json_default, save_field
@@ -84,7 +84,7 @@ def _check_extra(
 def _with_uncertainty(field: DisplacementField, extra: dict) -> dict:
     """``extra`` plus the per-node uncertainty ``uncertainty_uz/uy/ux`` and the evaluation's
     ``error_estimate`` (voxels), where the field has them."""
-    from ..engine.error_estimate import estimate_of
+    from ..engine.evaluation.error_estimate import estimate_of
 
     own = {}
     if field.uncertainty is not None:
@@ -252,7 +252,7 @@ def _write_vti(path: Path, dims, origin, spacing, arrays) -> None:
 
 
 def export_vtk_points(field, path: str | os.PathLike, *, voxel_size=None) -> Path:
-    """Write a field at scattered points (:class:`..engine.scattered.ScatteredField`, or a grid
+    """Write a field at scattered points (:class:`..engine.fields.scattered.ScatteredField`, or a grid
     field's nodes) as a VTK unstructured grid of vertices, ``.vtu``, via ``pyevtk.hl.pointsToVTK``.
 
     Point coordinates and the ``displacement`` vector ``(ux, uy, uz)`` are in physical units
@@ -261,7 +261,7 @@ def export_vtk_points(field, path: str | os.PathLike, *, voxel_size=None) -> Pat
     """
     from pyevtk.hl import pointsToVTK
 
-    from ..engine.scattered import ScatteredField, from_grid
+    from ..engine.fields.scattered import ScatteredField, from_grid
 
     path = Path(path)
     if path.suffix.lower() != ".vtu":
@@ -421,7 +421,7 @@ def export_csv(
     ``extra`` names; with a ``voxel_size`` also the physical position and displacement
     (``z_phys``..., ``uz_phys``...). A grid field's rows follow the grid's C order and its
     ``extra`` arrays have the grid shape ``(nz, ny, nx)``; a field at scattered points
-    (:class:`..engine.scattered.ScatteredField`) has one row per point in its order and
+    (:class:`..engine.fields.scattered.ScatteredField`) has one row per point in its order and
     ``extra`` arrays of shape ``(N,)``.
     """
     field = unusable_as_nan(field)

@@ -16,7 +16,7 @@ import zipfile
 
 import numpy as np
 
-from ..engine.field import DisplacementField, Provenance, Status
+from ..engine.fields.field import DisplacementField, Provenance, Status
 from .atomic import atomic_path
 from .sizes import check_npz_sizes
 

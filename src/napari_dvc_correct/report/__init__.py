@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.accuracy import Evaluation
+from ..engine.evaluation.accuracy import Evaluation
 from .markdown import render_markdown, write_markdown
 from .plots import (
     plot_accuracy_vs_strain,
@@ -119,7 +119,7 @@ def write_report(
     Parameters
     ----------
     evaluation : Evaluation
-        From :func:`napari_dvc_correct.engine.accuracy.evaluate_fields`.
+        From :func:`napari_dvc_correct.engine.evaluation.accuracy.evaluate_fields`.
     out_dir : path
         Existing or new folder (created if missing; its parent must exist).
     inputs : dict, optional

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..engine.accuracy import Evaluation
+from ..engine.evaluation.accuracy import Evaluation
 from ..io.atomic import atomic_path
 from .passes import first_run_parameters, method_lines, order_text, pass_rows, subvolume_text
 from .tables import (
@@ -131,7 +131,7 @@ def render_markdown(
     Parameters
     ----------
     evaluation : Evaluation
-        From :func:`napari_dvc_correct.engine.accuracy.evaluate_fields`.
+        From :func:`napari_dvc_correct.engine.evaluation.accuracy.evaluate_fields`.
     files : dict of str -> list of Path, optional
         Files written next to the report, by kind (``"plots"``, ``"tables"``, ``"volumes"``);
         plots are embedded, the rest listed, all by their name relative to the report.

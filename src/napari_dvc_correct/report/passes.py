@@ -3,14 +3,14 @@ panel, the command line and the report.
 
 The paper promises the correction reuses "the same DVC parameters"; where the engine's
 correcting matches use another shape-function order or subvolume
-(:class:`..engine.correction_record.CorrectionPass` ``order``, ``subvolume``, ``method``), every
+(:class:`..engine.correction.record.CorrectionPass` ``order``, ``subvolume``, ``method``), every
 front end says so, with the engine's reason.
 """
 
 from __future__ import annotations
 
-from ..engine.correction_record import CorrectionPass, correction_table
-from ..engine.field import DisplacementField
+from ..engine.correction.record import CorrectionPass, correction_table
+from ..engine.fields.field import DisplacementField
 
 _ORDER_NAMES = {1: "first", 2: "second"}
 

@@ -1,11 +1,11 @@
 """Volumes larger than memory, in spatial batches on Dask: above :mod:`..engine` and :mod:`..io`.
 
-* :mod:`.correlate`: :func:`correlate_tiled` — the in-memory :func:`..engine.correlate.correlate`
+* :mod:`.correlate`: :func:`correlate_tiled` — the in-memory :func:`..engine.correlation.correlate.correlate`
   batch by batch on lazily read volumes, equal to it within the IC-GN tolerance;
 * :mod:`.correction`: :func:`correct_tiled` — the engine's self-correction loop with every volume
   operation block by block (warps to temporary Zarr, tiled correcting DVC, local residuals);
 * :mod:`.series`: :func:`series_tiled` — the in-memory scan series
-  (:func:`..engine.series.series_iter`, on a grid) with every pair correlated, corrected and
+  (:func:`..engine.series.strategies.series_iter`, on a grid) with every pair correlated, corrected and
   judged batch by batch and block by block;
 * :mod:`.evaluation`: :func:`evaluate_tiled` — the in-memory accuracy evaluation block by block,
   equal to it to float32 rounding;

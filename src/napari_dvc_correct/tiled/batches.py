@@ -1,9 +1,9 @@
 """One batch of :mod:`.correlate`'s tiled correlation: what its tasks receive and return.
 
 Each batch runs as two tasks: :func:`match_batch` (the first half of
-:func:`..engine.correlate.correlate_iter`: pyramid and IC-GN in the batch's region) and, once
+:func:`..engine.correlation.correlate.correlate_iter`: pyramid and IC-GN in the batch's region) and, once
 every batch is matched and the whole run's noise is known, :func:`judge_batch` (the thresholds,
-the reliability-guided repair and the uncertainties at that noise, :func:`..engine.judge.judge_iter`).
+the reliability-guided repair and the uncertainties at that noise, :func:`..engine.correlation.match_judgement.judge_iter`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..engine.backend import select_device
-from ..engine.correlate import PyramidLevel, match_iter, validate_pair
-from ..engine.field import DisplacementField, Provenance, Status
-from ..engine.guided_repair import GivenSeeds
-from ..engine.judge import MatchedGrid, judge_iter, measure_plain_sigma
-from ..engine.params import CorrelationParams
+from ..engine.correlation.correlate import PyramidLevel, match_iter, validate_pair
+from ..engine.correlation.guided_repair import GivenSeeds
+from ..engine.correlation.match_judgement import MatchedGrid, judge_iter, measure_plain_sigma
+from ..engine.correlation.params import CorrelationParams
+from ..engine.fields.field import DisplacementField, Provenance, Status
 from ..engine.progress import run_to_completion
 
 

@@ -1,7 +1,7 @@
 """The self-correction of volumes larger than memory: the engine's loop on a block-by-block back-end.
 
 :func:`correct_tiled_iter` runs the one correction loop of the engine
-(:func:`..engine.correction.correct_volumes_iter`: clean, judge node by node against the noise,
+(:func:`..engine.correction.self_correction.correct_volumes_iter`: clean, judge node by node against the noise,
 warp, correlate, compose, stop) with :class:`TiledVolumes` doing every volume operation on lazily
 read volumes (:mod:`..io.lazy`: TIFF, Zarr, .npy...), as Dask tasks on local threads or a
 ``dask.distributed`` cluster (:mod:`.scheduling`). The fields (node arrays) stay in memory.
@@ -18,9 +18,9 @@ read volumes (:mod:`..io.lazy`: TIFF, Zarr, .npy...), as Dask tasks on local thr
   the prefilter margin in ``F``); eq. 1's background residual is summed over a partition of the
   voxels; the local gray gradients likewise (with the Gaussian's reach). The phase thresholds
   (multi-Otsu) are those of the in-memory run exactly: the lattice sample it uses
-  (:func:`..engine.phases.lattice_sample`) is gathered block by block.
+  (:func:`..engine.evaluation.phases.lattice_sample`) is gathered block by block.
 
-Equal to :func:`..engine.correction.correct_iter` up to float32 rounding of the regions'
+Equal to :func:`..engine.correction.self_correction.correct_iter` up to float32 rounding of the regions'
 prefilters and box means, and to what batching changes in the correcting DVC (the
 reliability-guided repair works per batch; the noise-aware thresholds are the whole run's,
 :func:`.correlate.correlate_tiled_iter`); see ``docs/scaling.md``.
@@ -37,12 +37,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..engine.absurd_nodes import flag_absurd_nodes
-from ..engine.correction import check_options, correct_volumes_iter, params_of
-from ..engine.correction_volumes import CorrectionVolumes
-from ..engine.field import DisplacementField
-from ..engine.field_spline import FieldSpline
-from ..engine.gray_levels import (
+from ..engine.correction.self_correction import check_options, correct_volumes_iter, params_of
+from ..engine.correction.volumes import CorrectionVolumes
+from ..engine.correlation.params import CorrelationParams
+from ..engine.evaluation.gray_levels import (
     DEFAULT_CELL,
     CellSums,
     GrayLevelMap,
@@ -51,16 +49,18 @@ from ..engine.gray_levels import (
     fit_from_passes,
     start_map,
 )
-from ..engine.pair_checks import check_field_on_volume
-from ..engine.params import CorrelationParams
-from ..engine.phases import lattice_sample, otsu_stride, otsu_thresholds
-from ..engine.progress import Progress, run_to_completion
-from ..engine.warp import (
+from ..engine.evaluation.phases import lattice_sample, otsu_stride, otsu_thresholds
+from ..engine.fields.absurd_nodes import flag_absurd_nodes
+from ..engine.fields.field import DisplacementField
+from ..engine.fields.field_spline import FieldSpline
+from ..engine.fields.warp import (
     INVERT_MAX_ITERATIONS,
     INVERT_TOLERANCE,
     pull_back_block,
     warp_forward_block,
 )
+from ..engine.pair_checks import check_field_on_volume
+from ..engine.progress import Progress, run_to_completion
 from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, iter_blocks, open_volume
 from . import scheduling
@@ -115,7 +115,7 @@ def _statistics_block(volume, stride, region):
 
 
 def _gray_sums_block(reference, deformed, spline, gray_cell, previous, block):
-    """The gray-level map's cell sums of one block (:func:`..engine.gray_levels.block_sums`)."""
+    """The gray-level map's cell sums of one block (:func:`..engine.evaluation.gray_levels.block_sums`)."""
     moved = pull_back_block(LazySampler(deformed), spline, block)
     g = reference.read_region(block)
     return block_sums(g, moved, block, reference.shape, gray_cell, previous)
@@ -448,10 +448,10 @@ def plan_memory(volumes: TiledVolumes, params: CorrelationParams, field=None) ->
 
     The estimate is the largest of: the DVC runs (:func:`.memory.estimate_peak_memory` for the
     first run's parameters and for second-order correcting matches on the smaller subvolume
-    :func:`..engine.pass_params.correction_params` may choose), the warp blocks and the node
+    :func:`..engine.correction.pass_method.correction_params` may choose), the warp blocks and the node
     blocks of the local residuals, each times the blocks held at once.
     """
-    from ..engine.pass_params import MIN_PASS_SUBVOLUME, PASS_SUBVOLUME_FRACTION
+    from ..engine.correction.pass_method import MIN_PASS_SUBVOLUME, PASS_SUBVOLUME_FRACTION
 
     shape = volumes.shape
     dtype = np.result_type(volumes.reference.dtype, volumes.deformed.dtype)
@@ -514,7 +514,7 @@ def correct_tiled_iter(
     reference, deformed : LazyVolume, path or array, shape (nz, ny, nx)
         ``G`` and ``F`` (:func:`..io.lazy.as_lazy`: TIFF, Zarr, OME-Zarr, .npy, slices...).
     field, params, frame, update, max_passes, min_improvement, clean_options, selective
-        As :func:`..engine.correction.correct_iter` (``field`` None: a tiled DVC runs first).
+        As :func:`..engine.correction.self_correction.correct_iter` (``field`` None: a tiled DVC runs first).
     mask : LazyVolume, path or array, optional
         Reference-space material mask (non-zero = inside).
     batch_shape, max_memory, workers, scheduler, device
@@ -532,7 +532,7 @@ def correct_tiled_iter(
     Returns
     -------
     DisplacementField
-        As :func:`..engine.correction.correct_iter`; ``metadata["correction"]["tiled"]``
+        As :func:`..engine.correction.self_correction.correct_iter`; ``metadata["correction"]["tiled"]``
         records the estimate and the blocks.
 
     Raises

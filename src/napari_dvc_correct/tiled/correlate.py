@@ -10,12 +10,12 @@
    value is finite.
 2. **Seed pass**: the POI grid is split into boxes of ``batch_shape`` POIs. The seeds of the
    initial guess (every ``round(subvolume / step)`` POIs of the whole grid,
-   :func:`..engine.guided_repair.seed_axes`) are matched first, one ``dask.delayed`` task per box
+   :func:`..engine.correlation.guided_repair.seed_axes`) are matched first, one ``dask.delayed`` task per box
    that holds seeds, each reading only the region of its seeds (:func:`match_seeds`,
    :func:`.correlate.correlate_seeds`: FFT search and IC-GN at the coarsest pyramid level).
    The seeds are then judged on the whole seed grid (ZNCC, status, median test) and every POI
    is given its nearest good seed of the whole grid, exactly as
-   :func:`..engine.guided_repair.seed_guesses` does in memory (``seeds=`` of
+   :func:`..engine.correlation.guided_repair.seed_guesses` does in memory (``seeds=`` of
    :func:`.correlate.correlate_iter`); each batch receives the seeds its POIs need.
 3. **Batches**, in two tasks each (``dask.delayed``), each reading its region of ``G`` and ``F``
    plus a halo. The first (:func:`.batches.match_batch`) runs the first half of
@@ -24,9 +24,9 @@
    (``rigid_shift``, ``texture_std``, ``seeds``), on its POIs plus ``margin`` layers of
    neighbouring POIs (default 1). It returns the matched POIs and the noise estimates
    ``s² (1 − ZNCC)`` of the batch's own POIs. The noise of the scans is then the median over all
-   batches' POIs, exactly the in-memory run's (:func:`..engine.noise.noise_aware_thresholds`).
+   batches' POIs, exactly the in-memory run's (:func:`..engine.correlation.noise.noise_aware_thresholds`).
    The second task (:func:`.batches.judge_batch`) judges the batch at that noise
-   (:func:`..engine.judge.judge_iter`: thresholds, ``LOW_TEXTURE``, the reliability-guided
+   (:func:`..engine.correlation.match_judgement.judge_iter`: thresholds, ``LOW_TEXTURE``, the reliability-guided
    repair, ``LOW_ZNCC``, the uncertainties), reading the region again only if it repairs a POI
    or measures an uncertainty again, so that every POI gets the in-memory threshold. The margin lets the repair and the median test see, at the batch's
    border, the neighbours they see in memory (only the batch's own POIs are kept). Every POI
@@ -37,7 +37,7 @@
    gave the in-memory field to 4e-8 voxel, the coarse prefilter at the regions' edges). A
    repair chain that runs more than ``margin`` POIs across a face still differs there.
 4. The batches' results are assembled into one field, and the uncertainty bound (a median over
-   the whole run's POIs too, :func:`..engine.noise.uncertainty_bound`) is applied to it.
+   the whole run's POIs too, :func:`..engine.correlation.noise.uncertainty_bound`) is applied to it.
 
 The halo around a batch's POIs (per side, in voxels) covers the subvolume half-size widened by
 :data:`.memory.STRAIN_ALLOWANCE` for the shape function, the search radius around the rigid shift, the
@@ -62,9 +62,15 @@ from collections.abc import Generator
 
 import numpy as np
 
-from ..engine.field import GOOD_STATUSES, DisplacementField, Provenance, Status, grid_for_volume
-from ..engine.noise import noise_metadata, uncertainty_bound, zncc_floor
-from ..engine.params import CorrelationParams
+from ..engine.correlation.noise import noise_metadata, uncertainty_bound, zncc_floor
+from ..engine.correlation.params import CorrelationParams
+from ..engine.fields.field import (
+    GOOD_STATUSES,
+    DisplacementField,
+    Provenance,
+    Status,
+    grid_for_volume,
+)
 from ..engine.progress import Progress, run_to_completion
 from ..io.lazy import as_lazy
 from . import scheduling
@@ -253,7 +259,7 @@ def correlate_tiled_iter(
         (``grid_anchor``), which differs from memory at the batch faces unless ``margin``
         reaches each POI's nearest good seed.
     active : ndarray of bool, shape of the grid, optional
-        Match only these POIs (as :func:`..engine.correlate.correlate_iter`'s ``active``); a
+        Match only these POIs (as :func:`..engine.correlation.correlate.correlate_iter`'s ``active``); a
         batch with none of its own POIs active is not run. The others get
         ``Status.NOT_COMPUTED``.
 

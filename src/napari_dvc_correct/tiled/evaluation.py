@@ -1,10 +1,10 @@
 """The accuracy evaluation of large volumes, block by block on Dask (issue 13).
 
-:func:`evaluate_tiled_iter` computes the same :class:`..engine.accuracy.Evaluation` as
-:func:`..engine.accuracy.evaluate_iter` — mean residuals, background residual (eq. 1), phases and
+:func:`evaluate_tiled_iter` computes the same :class:`..engine.evaluation.accuracy.Evaluation` as
+:func:`..engine.evaluation.accuracy.evaluate_iter` — mean residuals, background residual (eq. 1), phases and
 their Table 1 statistics, accuracy index (eq. 2), local accuracy and the curves against strain —
 from lazily read volumes (TIFF, Zarr, ...), holding only a few blocks at a time. Both run the
-engine's block code (:mod:`..engine.accuracy_blocks`): the in-memory path on z-slabs of arrays,
+engine's block code (:mod:`..engine.evaluation.accuracy_blocks`): the in-memory path on z-slabs of arrays,
 this one on 3-D blocks that read their region of the other volume (the positions the field
 reaches, plus :data:`.memory.SPLINE_SUPPORT` + :data:`.memory.PREFILTER_MARGIN` voxels) and
 prefilter it there (:func:`.volumes.sample_lazy`).
@@ -13,10 +13,10 @@ Two passes over the volumes, each a list of ``dask.delayed`` block tasks (local 
 ``dask.distributed`` cluster, :mod:`.scheduling`):
 
 1. **scan**: finite values, the gray range of each state and, for ``phases="auto"``, the lattice
-   subsample multi-Otsu uses (:func:`..engine.phases.lattice_sample`: the very voxels the
+   subsample multi-Otsu uses (:func:`..engine.evaluation.phases.lattice_sample`: the very voxels the
    in-memory run samples, so the thresholds are equal);
 2. **blocks**: the phases of both states (Table 1 sums and counts) and, for every field, the
-   residual, the mapped phases and their sums (:func:`..engine.accuracy_blocks.field_block`);
+   residual, the mapped phases and their sums (:func:`..engine.evaluation.accuracy_blocks.field_block`);
    with ``outputs`` the residual and label volumes are written block by block (Zarr or TIFF,
    committed only when every block is written).
 
@@ -34,28 +34,27 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ..engine.accuracy import (
+from ..engine.evaluation.accuracy import (
     assemble_evaluation,
     check_same_phase_count,
     phase_contrast,
     plan_evaluation,
 )
-from ..engine.accuracy_blocks import (
+from ..engine.evaluation.accuracy_blocks import (
     FieldAccumulator,
     field_block,
     field_partial,
     halo_squared_gradient,
 )
-from ..engine.accuracy_pair import (
+from ..engine.evaluation.accuracy_pair import (
     background_from_sums,
     choose_best,
     pair_start_map,
     same_phase_block,
 )
-from ..engine.binning import node_voxels
-from ..engine.error_estimate import error_region_half
-from ..engine.field_spline import FieldSpline
-from ..engine.gray_levels import (
+from ..engine.evaluation.binning import node_voxels
+from ..engine.evaluation.error_estimate import error_region_half
+from ..engine.evaluation.gray_levels import (
     DEFAULT_CELL,
     CellSums,
     GrayLevelMap,
@@ -63,9 +62,8 @@ from ..engine.gray_levels import (
     cells_shape,
     fit_from_passes,
 )
-from ..engine.local_accuracy import region_half
-from ..engine.pair_checks import check_field_on_volume
-from ..engine.phases import (
+from ..engine.evaluation.local_accuracy import region_half
+from ..engine.evaluation.phases import (
     NO_PHASE,
     OTSU_SAMPLES,
     PhaseTotals,
@@ -75,8 +73,10 @@ from ..engine.phases import (
     otsu_thresholds,
     validate_thresholds,
 )
+from ..engine.fields.field_spline import FieldSpline
+from ..engine.fields.warp import pull_back_block
+from ..engine.pair_checks import check_field_on_volume
 from ..engine.progress import Progress, run_to_completion
-from ..engine.warp import pull_back_block
 from ..io.lazy import as_lazy, open_volume
 from ..io.lazy_outputs import create_output
 from . import scheduling
@@ -92,7 +92,7 @@ from .volumes import LazySampler, _block_slices
 #: Default voxels per block (z, y, x).
 DEFAULT_EVALUATION_BLOCK = (128, 128, 128)
 
-#: Bytes per voxel of a block while :func:`..engine.accuracy_blocks.field_block` runs on it
+#: Bytes per voxel of a block while :func:`..engine.evaluation.accuracy_blocks.field_block` runs on it
 #: (dense field, voxel lattice and displaced positions as float64, moved, residual and the two
 #: states as float32, labels, integral images of sum and count, cell indices).
 BYTES_PER_BLOCK_VOXEL = 128
@@ -218,7 +218,7 @@ def _pair_moved(reference, deformed, spline, block, region):
 
 
 def _pair_sums_block(reference, deformed, spline, block, shape, cell, previous, region=None):
-    """The gray-level map's cell sums of one block (:func:`..engine.gray_levels.block_sums`)."""
+    """The gray-level map's cell sums of one block (:func:`..engine.evaluation.gray_levels.block_sums`)."""
     g, moved = _pair_moved(reference, deformed, spline, block, region)
     return block_sums(g, moved, block, shape, cell, previous)
 
@@ -232,7 +232,7 @@ def _pair_background_block(reference, deformed, spline, block, thresholds, gray,
 
 
 def _measure_pair(volumes, candidates, blocks, shape, thresholds, fit, start, run, region=None):
-    """:func:`..engine.accuracy_pair.measure_pair` block by block (generator): for every
+    """:func:`..engine.evaluation.accuracy_pair.measure_pair` block by block (generator): for every
     candidate two passes fit its map, one more measures its ``r0``."""
     import dask
 
@@ -366,10 +366,10 @@ def evaluate_tiled_iter(
     pair=None,
     region=None,
 ) -> Iterator[Progress]:
-    """:func:`..engine.accuracy.evaluate_iter` on lazily read volumes, block by block (generator).
+    """:func:`..engine.evaluation.accuracy.evaluate_iter` on lazily read volumes, block by block (generator).
 
     Yields :class:`Progress` (``"plan"`` with the memory estimate, ``"scan"``, ``"evaluate"``)
-    and returns the :class:`..engine.accuracy.Evaluation`.
+    and returns the :class:`..engine.evaluation.accuracy.Evaluation`.
 
     Parameters
     ----------
@@ -377,11 +377,11 @@ def evaluate_tiled_iter(
         ``G`` and ``F`` (:func:`..io.lazy.as_lazy`), of one shape.
     fields, phases, phases_deformed, n_phases, phase_pair, mode, strain_measure, strain_method, \
 strain_window, n_bins, bin_edges, shared_background, bin_by, gray_levels, background_fields, pair
-        As :func:`..engine.accuracy.evaluate_iter` (fields must be finite: clean them first).
+        As :func:`..engine.evaluation.accuracy.evaluate_iter` (fields must be finite: clean them first).
         The pair's map and ``r0`` are measured block by block, three passes per candidate
         field (two fit the map, one measures ``r0``), as in memory.
     region : ndarray of bool or lazy region (``read_region``), optional
-        The specimen region (reference space), as :func:`..engine.accuracy.evaluate_iter`'s:
+        The specimen region (reference space), as :func:`..engine.evaluation.accuracy.evaluate_iter`'s:
         read block by block.
     outputs : dict, optional
         Volumes to write, key -> path (``.zarr``, ``.tif``): ``"labels_reference"``,

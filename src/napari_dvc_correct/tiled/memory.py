@@ -17,9 +17,9 @@ import math
 
 import numpy as np
 
-from ..engine.field import grid_for_volume
-from ..engine.initial_guess import fft_search, pyramid_levels
-from ..engine.params import CorrelationParams
+from ..engine.correlation.initial_guess import fft_search, pyramid_levels
+from ..engine.correlation.params import CorrelationParams
+from ..engine.fields.field import grid_for_volume
 from ..io.sizes import available_memory  # noqa: F401  (re-exported: part of this API)
 
 #: Voxels read at a time by the whole-volume pass of :mod:`.tiled`.

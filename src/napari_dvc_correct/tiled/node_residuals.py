@@ -1,6 +1,6 @@
 """The judge's numbers out of core: node residuals and gradients of the correction, block by block.
 
-:class:`TiledResiduals` gives what :class:`..engine.local_acceptance.ReferenceResiduals` gives in
+:class:`TiledResiduals` gives what :class:`..engine.correction.acceptance.ReferenceResiduals` gives in
 memory — the box means of the reference-frame residual ``|F(X + D(X)) - G(X)|`` at every node
 (cells and subvolumes), eq. 1's sums for the noise floor, and the box means of the Gaussian gray
 gradient of ``G`` — for a tiled correction (:class:`.correction.TiledVolumes`): the grid is cut
@@ -15,15 +15,15 @@ from types import SimpleNamespace
 import numpy as np
 from scipy import ndimage
 
-from ..engine.field import DisplacementField
-from ..engine.field_spline import FieldSpline
-from ..engine.local_accuracy import local_mean_residual
-from ..engine.phases import NO_PHASE, label_phases
+from ..engine.evaluation.local_accuracy import local_mean_residual
+from ..engine.evaluation.phases import NO_PHASE, label_phases
+from ..engine.fields.field import DisplacementField
+from ..engine.fields.field_spline import FieldSpline
+from ..engine.fields.warp import pull_back_block
 from ..engine.progress import run_to_completion
-from ..engine.warp import pull_back_block
 from .volumes import LazySampler
 
-#: Reach of the Gaussian gradient of :class:`..engine.local_acceptance.ReferenceResiduals`
+#: Reach of the Gaussian gradient of :class:`..engine.correction.acceptance.ReferenceResiduals`
 #: (sigma 1 voxel, truncated at 4 sigma).
 GRADIENT_REACH = 4
 
@@ -69,7 +69,7 @@ def _node_gradient_block(reference, job):
 
 
 class TiledResiduals:
-    """:class:`..engine.local_acceptance.ReferenceResiduals`' numbers, node block by node block."""
+    """:class:`..engine.correction.acceptance.ReferenceResiduals`' numbers, node block by node block."""
 
     def __init__(self, volumes, thresholds, gray_levels):
         self.volumes = volumes

@@ -1,4 +1,4 @@
-"""Points of interest in scans larger than memory: :func:`..engine.correlate_points.correlate_points`
+"""Points of interest in scans larger than memory: :func:`..engine.correlation.correlate_points.correlate_points`
 region by region.
 
 1. The guide field on a grid a step beyond the points' bounding box, out of core
@@ -8,7 +8,7 @@ region by region.
    B-spline prefilter need (:func:`.memory.halo` with an initial guess) — is read once,
    prefiltered and matched as in memory, with the whole reference's gray standard deviation for
    the texture test.
-3. All points judged together (:func:`..engine.correlate_points.points_field`): the noise is
+3. All points judged together (:func:`..engine.correlation.correlate_points.points_field`): the noise is
    the median over every point, as in memory.
 
 The result equals the in-memory one within the IC-GN tolerance (the guide is the tiled field,
@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..engine.backend import select_device
-from ..engine.correlate import PyramidLevel, validate_pair
-from ..engine.correlate_points import (
+from ..engine.correlation.correlate import PyramidLevel, validate_pair
+from ..engine.correlation.correlate_points import (
     PointMatches,
     check_points,
     guide_grid,
@@ -36,11 +36,11 @@ from ..engine.correlate_points import (
     points_field,
     starting_warps,
 )
-from ..engine.field import Status
-from ..engine.params import CorrelationParams
+from ..engine.correlation.params import CorrelationParams
+from ..engine.correlation.shape_function import params_to_displacement
+from ..engine.fields.field import Status
+from ..engine.fields.scattered import ScatteredField
 from ..engine.progress import Progress, run_to_completion
-from ..engine.scattered import ScatteredField
-from ..engine.shape_function import params_to_displacement
 from . import scheduling
 from .batches import read_regions
 from .correlate import correlate_tiled_iter, lazy_pair
@@ -92,7 +92,7 @@ class PointGroup:
 
 def match_group(group: PointGroup, reference, deformed, mask=None) -> PointMatches:
     """One task: read the group's region, match its points as in memory (their
-    :class:`..engine.correlate_points.PointMatches`, in the order of ``group.index``)."""
+    :class:`..engine.correlation.correlate_points.PointMatches`, in the order of ``group.index``)."""
     g, f, m = read_regions(group, reference, deformed, mask)
     n = len(group.index)
     trial = group.trial.copy()
@@ -158,7 +158,7 @@ def correlate_points_tiled_iter(
         The volumes, read region by region (:func:`..io.lazy.as_lazy`).
     points : array-like, shape (N, 3)
         Positions ``(z, y, x)`` in reference voxels, as for
-        :func:`..engine.correlate_points.correlate_points`.
+        :func:`..engine.correlation.correlate_points.correlate_points`.
     params : CorrelationParams, optional
         Subvolume, shape function... (``step`` is the guide grid's).
     mask : LazyVolume, path or array, optional
@@ -181,7 +181,7 @@ def correlate_points_tiled_iter(
     Returns
     -------
     ScatteredField
-        As :func:`..engine.correlate_points.correlate_points`; ``metadata["tiled"]`` records the
+        As :func:`..engine.correlation.correlate_points.correlate_points`; ``metadata["tiled"]`` records the
         groups, the largest region and the memory estimate.
 
     Raises

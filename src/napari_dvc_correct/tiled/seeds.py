@@ -1,11 +1,11 @@
 """The seed pass of tiled correlation: the initial guess's seeds matched once for the whole grid.
 
-The in-memory initial guess (:func:`..engine.guided_repair.seed_guesses`) searches a sparse
-sub-grid of seed POIs laid out on whole-grid indices (:func:`..engine.guided_repair.seed_axes`)
+The in-memory initial guess (:func:`..engine.correlation.guided_repair.seed_guesses`) searches a sparse
+sub-grid of seed POIs laid out on whole-grid indices (:func:`..engine.correlation.guided_repair.seed_axes`)
 and carries every good seed's warp to its nearest POIs. Here the seeds are matched first, one
 Dask task per batch box that holds seeds (:func:`match_seeds`, reading only its seeds' region),
 judged once on the whole seed grid as in memory (:func:`give_seeds`), and every batch receives
-the seeds its POIs need (:class:`..engine.guided_repair.GivenSeeds`), so each POI starts IC-GN
+the seeds its POIs need (:class:`..engine.correlation.guided_repair.GivenSeeds`), so each POI starts IC-GN
 from the in-memory guess.
 """
 
@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..engine.correlate import correlate_seeds
-from ..engine.field import Status
-from ..engine.guided_repair import GivenSeeds, judge_seeds, nearest_seeds, seed_axes
-from ..engine.params import CorrelationParams
-from ..engine.shape_function import n_monomials
+from ..engine.correlation.correlate import correlate_seeds
+from ..engine.correlation.guided_repair import GivenSeeds, judge_seeds, nearest_seeds, seed_axes
+from ..engine.correlation.params import CorrelationParams
+from ..engine.correlation.shape_function import n_monomials
+from ..engine.fields.field import Status
 from .memory import _region, halo
 
 

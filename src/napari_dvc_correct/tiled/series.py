@@ -1,7 +1,7 @@
 """Scan series of volumes larger than memory: the engine's series loop on a batch-by-batch back-end.
 
 :func:`series_tiled_iter` runs the one series loop of the engine
-(:func:`..engine.series.series_volumes_iter`: the total or incremental strategy, the
+(:func:`..engine.series.strategies.series_volumes_iter`: the total or incremental strategy, the
 self-correction of increments and/or totals, the cleaning and composition of the increments,
 the provenance and the summary) with :class:`TiledSeries` doing every volume operation on lazily
 read volumes (:mod:`..io.lazy`: TIFF, Zarr, OME-Zarr, .npy, folders of slices), as Dask tasks on
@@ -26,7 +26,7 @@ the plan, and closed): a series over the machine's memory or ``max_memory`` is r
 :class:`.memory.MemoryBudgetError` before anything is read. Each run checks its plan again when it
 starts (the correction and the residual blocks then with the field's real reach).
 
-Equal to :func:`..engine.series.series_iter` as the tiled correlation and correction are to theirs
+Equal to :func:`..engine.series.strategies.series_iter` as the tiled correlation and correction are to theirs
 (``docs/scaling.md``): the same statuses, displacements within the IC-GN tolerance's trace, mean
 gray residuals to float32 rounding of the regions' prefilters.
 """
@@ -40,11 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.field import DisplacementField, grid_for_volume
-from ..engine.params import CorrelationParams
+from ..engine.correlation.params import CorrelationParams
+from ..engine.fields.field import DisplacementField, grid_for_volume
 from ..engine.progress import Progress, run_to_completion
-from ..engine.series import STRATEGIES, SeriesResult, series_volumes_iter
-from ..engine.series_volumes import SeriesVolumes
+from ..engine.series.strategies import STRATEGIES, SeriesResult, series_volumes_iter
+from ..engine.series.volumes import SeriesVolumes
 from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, open_volume
 from . import scheduling
@@ -337,14 +337,14 @@ def series_tiled_iter(
     params : CorrelationParams, optional
         DVC parameters for every correlation and every correction pass.
     strategy, correct_increments, correct_total, correction_options
-        As :func:`..engine.series.series_iter` (``correction_options`` are keyword arguments of
+        As :func:`..engine.series.strategies.series_iter` (``correction_options`` are keyword arguments of
         :func:`.correction.correct_tiled_iter`).
     mask : LazyVolume, path or array, shape (nz, ny, nx), optional
         Material mask in the first state's voxels (non-zero = inside); for increments it is
         carried to state ``k-1`` by the merged field.
     grid : (origin, step, shape), optional
         POI grid in the first state's voxels, on whole voxels (default
-        :func:`..engine.field.grid_for_volume`). A series at points runs in memory only.
+        :func:`..engine.fields.field.grid_for_volume`). A series at points runs in memory only.
     batch_shape, max_memory, workers, scheduler, device
         As :func:`.correlate.correlate_tiled_iter`, for every DVC run; ``workers`` and
         ``scheduler`` also for the blocks of the warps and residuals.
@@ -355,13 +355,13 @@ def series_tiled_iter(
     ------
     Progress
         ``"plan"`` first (the estimated peak memory of each kind of run), then as
-        :func:`..engine.series.series_iter`, stages prefixed by ``"state k/n"``, with the
+        :func:`..engine.series.strategies.series_iter`, stages prefixed by ``"state k/n"``, with the
         batches and blocks of every run.
 
     Returns
     -------
     SeriesResult
-        As :func:`..engine.series.series_iter`; every field's ``metadata["tiled"]`` records its
+        As :func:`..engine.series.strategies.series_iter`; every field's ``metadata["tiled"]`` records its
         correlation's batches (and ``metadata["correction"]["tiled"]`` its correction's blocks).
 
     Raises

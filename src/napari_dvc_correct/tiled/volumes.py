@@ -4,8 +4,8 @@ The voxel-wise operations of :mod:`.warp` for volumes that do not fit in memory:
 block is a ``dask.delayed`` task (dask's local threaded scheduler by default, or a
 ``dask.distributed`` cluster, see :mod:`.scheduling`) that
 
-1. evaluates the field's cubic spline on the block's voxel lattice (:meth:`..engine.field_spline.FieldSpline.lattice`),
-   or inverts it there (:meth:`..engine.field_spline.FieldSpline.invert`) for the forward warp;
+1. evaluates the field's cubic spline on the block's voxel lattice (:meth:`..engine.fields.field_spline.FieldSpline.lattice`),
+   or inverts it there (:meth:`..engine.fields.field_spline.FieldSpline.invert`) for the forward warp;
 2. reads only the region of the input volume those positions reach, plus
    :data:`.memory.SPLINE_SUPPORT` + :data:`.memory.PREFILTER_MARGIN` voxels, from a lazy volume
    (:mod:`..io.lazy`), prefilters it and samples it (:func:`.interpolation.sample`) — equal to
@@ -15,8 +15,8 @@ block is a ``dask.delayed`` task (dask's local threaded scheduler by default, or
 3. writes the block into the output (:mod:`..io.lazy_outputs`), which is renamed onto its path only
    when every block is written.
 
-The results equal :func:`..engine.field_spline.densify`, :func:`..engine.warp.pull_back`, :func:`..engine.warp.warp_forward` and
-:func:`..engine.residual.gray_residual` on the whole arrays.
+The results equal :func:`..engine.fields.field_spline.densify`, :func:`..engine.fields.warp.pull_back`, :func:`..engine.fields.warp.warp_forward` and
+:func:`..engine.evaluation.residual.gray_residual` on the whole arrays.
 """
 
 from __future__ import annotations
@@ -25,20 +25,20 @@ from collections.abc import Generator
 
 import numpy as np
 
-from ..engine.field import DisplacementField
-from ..engine.field_spline import FieldSpline, as_field_spline
-from ..engine.interpolation import prefilter, sample
-from ..engine.inverse_fill import region_bounds
-from ..engine.progress import Progress
-from ..engine.pull_back_fill import pull_back_box
-from ..engine.strain import equivalent_strain_field
-from ..engine.warp import (
+from ..engine.correlation.interpolation import prefilter, sample
+from ..engine.evaluation.strain import equivalent_strain_field
+from ..engine.fields.field import DisplacementField
+from ..engine.fields.field_spline import FieldSpline, as_field_spline
+from ..engine.fields.inverse_per_voxel import region_bounds
+from ..engine.fields.pull_back_fill import pull_back_box
+from ..engine.fields.warp import (
     INVERT_MAX_ITERATIONS,
     INVERT_TOLERANCE,
     box_axes,
     pull_back_block,
     warp_forward_block,
 )
+from ..engine.progress import Progress
 from ..io.lazy import as_lazy
 from ..io.lazy_outputs import create_output, output_chunks
 from . import scheduling
@@ -106,7 +106,7 @@ class LazySampler:
 
     :meth:`pull_back` gives ``F(X + u(X))`` over a box from one region read around it (the box
     widened by the field's reach, the spline's support and the prefilter margin), prefiltered
-    and sampled in one pass (:func:`..engine.pull_back_fill.pull_back_box`): no positions array.
+    and sampled in one pass (:func:`..engine.fields.pull_back_fill.pull_back_box`): no positions array.
     Voxels whose position leaves that region (the coarse reach missed an overshoot) are sampled
     by :func:`sample_lazy`, so the values are those of ``sample_lazy`` at every voxel, to float32
     rounding.
@@ -146,7 +146,7 @@ class LazySampler:
 
     def warp_forward(self, inverter) -> tuple[np.ndarray, np.ndarray]:
         """``G(X)`` with ``X + u(X) = x`` over ``inverter``'s box (an
-        :class:`..engine.inverse_lattice.LatticeInverter`): one region read, sampled as the
+        :class:`..engine.fields.inverse_lattice.LatticeInverter`): one region read, sampled as the
         positions are made (its ``warp``); the same positions as its ``solve``."""
         coefficients, low, shape = self._region(inverter.spline, inverter.box)
         margin = SPLINE_SUPPORT + PREFILTER_MARGIN
@@ -352,7 +352,7 @@ def write_dense_field(
         ``.zarr`` or ``.tif``: a float32 array of shape ``(nz, ny, nx, 3)``, components
         ``(uz, uy, ux)`` in voxels.
     outside : {"extrapolate", "nan"}
-        As :func:`..engine.field_spline.densify`.
+        As :func:`..engine.fields.field_spline.densify`.
     block_shape : tuple of 3 ints
         Voxels per task (and per Zarr chunk).
     scheduler, workers
@@ -393,7 +393,7 @@ def write_pull_back(
     workers: int = 2,
     progress=None,
 ) -> dict:
-    """``F~(X) = F(X + u(X))`` written to ``path`` (see :func:`..engine.warp.pull_back`).
+    """``F~(X) = F(X + u(X))`` written to ``path`` (see :func:`..engine.fields.warp.pull_back`).
 
     ``deformed`` is a lazy volume, a path or an array (:func:`..io.lazy.as_lazy`).
     """
@@ -429,7 +429,7 @@ def write_warp_forward(
     workers: int = 2,
     progress=None,
 ) -> dict:
-    """``G'(X + u(X)) = G(X)`` (paper step d) written to ``path`` (see :func:`..engine.warp.warp_forward`)."""
+    """``G'(X + u(X)) = G(X)`` (paper step d) written to ``path`` (see :func:`..engine.fields.warp.warp_forward`)."""
 
     reference = as_lazy(reference)
     shape = _check(reference.shape if shape is None else shape, "shape")
@@ -460,13 +460,13 @@ def write_gray_residual(
     workers: int = 2,
     progress=None,
 ) -> dict:
-    """Gray residual volume written to ``path`` (see :func:`..engine.residual.gray_residual`).
+    """Gray residual volume written to ``path`` (see :func:`..engine.evaluation.residual.gray_residual`).
 
     Returns
     -------
     dict
         With ``mean``: the mean residual over the voxels where it is defined (as
-        :func:`..engine.residual.mean_gray_residual`).
+        :func:`..engine.evaluation.residual.mean_gray_residual`).
     """
 
     reference, deformed, shape, outside = _residual_inputs(reference, deformed, mode, region)
@@ -497,7 +497,7 @@ def mean_gray_residual_iter(
 ) -> Generator[Progress, None, float]:
     """Mean of the gray residual block by block, nothing written; yields progress per block.
 
-    The mean of :func:`..engine.residual.mean_gray_residual` (same ``mode`` and ``region``) from
+    The mean of :func:`..engine.evaluation.residual.mean_gray_residual` (same ``mode`` and ``region``) from
     lazily read volumes: every block (a ``dask.delayed`` task) reads its part of one volume and
     the region of the other its positions reach, and returns the sum and count of its defined
     residuals. Equal to the in-memory mean to float32 rounding of the regions' prefilters.
@@ -567,7 +567,7 @@ def write_equivalent_strain(
     if not np.all(np.isfinite(values)):
         raise ValueError(
             f"{int(np.sum(~np.isfinite(values)))} grid nodes have no strain: clean the field "
-            "first (napari_dvc_correct.engine.cleaning.clean)"
+            "first (napari_dvc_correct.engine.correction.cleaning.clean)"
         )
     spline = FieldSpline(field.origin, field.step, values[..., None])
     return _write(

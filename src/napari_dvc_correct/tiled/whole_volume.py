@@ -1,6 +1,6 @@
 """The whole-volume pass of tiled correlation: one read of both volumes, block by block.
 
-Each block (a Dask task) is binned exactly as :func:`..engine.initial_guess.global_shift` bins the
+Each block (a Dask task) is binned exactly as :func:`..engine.correlation.initial_guess.global_shift` bins the
 whole volumes, for the rigid shift, and gives the gray moments of the reference (inside the mask)
 binned by every pyramid factor, for the low-texture test; the pass also checks that every value is
 finite. :func:`combine` assembles the blocks' shares into a :class:`WholeVolume`.
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..engine.initial_guess import bin_volume, global_shift
+from ..engine.correlation.initial_guess import bin_volume, global_shift
 from ..io.lazy import iter_blocks
 from .memory import SHIFT_BLOCK_VOXELS
 

@@ -75,7 +75,7 @@ def _result_fields(result) -> list:
     """The grid fields in a panel's result (a correlation, a correction, a list of them), each
     once; a series' ``series`` (the fields as its 4-D layers show them: a correlated or a
     self-corrected series) brings its state 0."""
-    from ..engine.field import DisplacementField
+    from ..engine.fields.field import DisplacementField
 
     items = result if isinstance(result, list) else [result]
     found = []

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..engine.field import DisplacementField
+from ..engine.fields.field import DisplacementField
 from .regions_model import whole
 
 FRAMES = {  # the first entry is the panel's default: the engine's measured best (docs/method.md)
@@ -54,7 +54,7 @@ def run_correction(
             reference, deformed, field, max_memory=max_memory, **options
         )
     else:
-        from ..engine.correction import correct_iter
+        from ..engine.correction.self_correction import correct_iter
 
         options["mask"] = whole(mask)  # the region as one array, made here in the worker
         corrected = yield from correct_iter(reference, deformed, field, **options)

@@ -11,14 +11,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..engine.field import (
+from ..engine.correlation.params import CorrelationParams
+from ..engine.fields.field import (
     GOOD_STATUSES,
     DisplacementField,
     Provenance,
     Status,
     grid_for_volume,
 )
-from ..engine.params import CorrelationParams
 from ..engine.progress import Progress
 from ..tiled.memory import format_bytes
 from .regions_model import whole
@@ -54,7 +54,7 @@ class CorrelationJob:
         out-of-core run, whole by an in-memory one).
     strategy : {"pair", "total", "incremental"}
     correct_states : bool
-        For a series: self-correct every state's total displacement (engine/series.py).
+        For a series: self-correct every state's total displacement (engine/series/strategies.py).
     voxel_size, offset : tuple of 3 floats
         ``scale`` and ``translate`` (z, y, x) of the reference layer, for display.
     names : list of str
@@ -151,7 +151,7 @@ def run_grid_job(job: CorrelationJob):
     was self-corrected), each the total displacement from state 0, and the result's ``series``
     (state 0 first, as the 4-D layers show it).
     """
-    from ..engine.correlate import correlate_iter
+    from ..engine.correlation.correlate import correlate_iter
     from ..layers import series_fields
 
     results = []
@@ -187,7 +187,7 @@ def run_grid_job(job: CorrelationJob):
 
 
 def run_points_job(job: CorrelationJob):
-    """DVC at the job's points (:func:`..engine.correlate_points.correlate_points`).
+    """DVC at the job's points (:func:`..engine.correlation.correlate_points.correlate_points`).
 
     The guide field (the initial guess of every point) is correlated first on a grid of the
     job's step over the points' bounding box, with progress and cancel; then IC-GN runs at each
@@ -214,8 +214,8 @@ def run_points_job(job: CorrelationJob):
             device=job.device,
         )
     else:
-        from ..engine.correlate import correlate_iter
-        from ..engine.correlate_points import correlate_points, guide_grid
+        from ..engine.correlation.correlate import correlate_iter
+        from ..engine.correlation.correlate_points import correlate_points, guide_grid
 
         mask = whole(job.mask)
         grid = guide_grid(reference.shape, points, params)  # as correlate_points' own guide
@@ -277,7 +277,7 @@ def check_tiled(job_strategy: str, points, max_memory: str | None) -> str | None
 
 
 def run_series(job: CorrelationJob):
-    """Total displacements ``U_0→k`` of a scan series (:func:`..engine.series.series_iter`;
+    """Total displacements ``U_0→k`` of a scan series (:func:`..engine.series.strategies.series_iter`;
     out of core, :func:`..tiled.series.series_tiled_iter`: every state read batch by batch)."""
     if job.tiled:
         from ..tiled.series import series_tiled_iter
@@ -292,7 +292,7 @@ def run_series(job: CorrelationJob):
             device=job.device,
         )
         return result.totals
-    from ..engine.series import series_iter
+    from ..engine.series.strategies import series_iter
 
     result = yield from series_iter(
         job.volumes,

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..engine.field import DisplacementField
+from ..engine.fields.field import DisplacementField
 
 #: Voxels sampled for the histogram and the automatic thresholds of a large volume.
 HISTOGRAM_SAMPLES = 1 << 21
@@ -40,7 +40,7 @@ def automatic_thresholds(volume: np.ndarray, n_phases: int) -> np.ndarray:
     A lazy volume (Dask, Zarr) is read only on the engine's sampling lattice, never whole; the
     thresholds are the same.
     """
-    from ..engine.phases import auto_thresholds, otsu_stride
+    from ..engine.evaluation.phases import auto_thresholds, otsu_stride
 
     if not isinstance(volume, np.ndarray):  # a lazy scan: read only the lattice Otsu samples
         stride = otsu_stride(volume.shape)
@@ -73,7 +73,7 @@ def check_thresholds(thresholds) -> np.ndarray:
 
 def phase_preview(volume: np.ndarray, thresholds) -> PhasePreview:
     """Split ``volume`` by increasing ``thresholds``; labels shifted by one for a Labels layer."""
-    from ..engine.phases import NO_PHASE, label_phases, phase_table
+    from ..engine.evaluation.phases import NO_PHASE, label_phases, phase_table
 
     values = check_thresholds(thresholds)
     labels = label_phases(volume, values)
@@ -91,12 +91,12 @@ def ready_for_evaluation(field: DisplacementField) -> DisplacementField:
     """The field as the evaluation needs it: every node finite, failed matches refilled.
 
     A freshly correlated field can hold failed or out-of-bounds nodes; they are replaced by
-    :func:`~napari_dvc_correct.engine.cleaning.clean` (paper step b) so the field can be
+    :func:`~napari_dvc_correct.engine.correction.cleaning.clean` (paper step b) so the field can be
     densified. A field that is already usable everywhere is returned as is.
     """
     if field.valid.all():
         return field
-    from ..engine.cleaning import clean
+    from ..engine.correction.cleaning import clean
 
     return clean(field, fill_masked=True)
 
@@ -201,7 +201,7 @@ def run_evaluation(
     -------
     Evaluation
     """
-    from ..engine.accuracy import evaluate_iter
+    from ..engine.evaluation.accuracy import evaluate_iter
 
     if not fields:
         raise ValueError("no displacement field to evaluate: run Correlate first")
@@ -290,7 +290,7 @@ def with_residual_layers(generator, placement, outputs=None, temporary_key=None)
 
 
 def evaluation_report(evaluation) -> dict:
-    """A JSON-friendly summary of an :class:`~napari_dvc_correct.engine.accuracy.Evaluation`."""
+    """A JSON-friendly summary of an :class:`~napari_dvc_correct.engine.evaluation.accuracy.Evaluation`."""
     report = {
         "title": "DVC accuracy evaluation",
         "residual": evaluation.residual_text,
@@ -338,8 +338,8 @@ def evaluation_report(evaluation) -> dict:
 
 def attach_estimate(field, item, evaluation) -> None:
     """Leave ``item``'s error estimate on ``field`` (the layer's), with what it was measured
-    against (:func:`..engine.error_estimate.attach_estimate`)."""
-    from ..engine.error_estimate import attach_estimate as attach
+    against (:func:`..engine.evaluation.error_estimate.attach_estimate`)."""
+    from ..engine.evaluation.error_estimate import attach_estimate as attach
 
     attach(
         field,
@@ -353,7 +353,7 @@ def attach_estimate(field, item, evaluation) -> None:
 def field_lines(item) -> list[str]:
     """The dock's lines for one field: a warning first when most nodes were not measured, then
     the mean residual, p and the error estimate."""
-    from ..engine.error_estimate import LIKELY_BAD
+    from ..engine.evaluation.error_estimate import LIKELY_BAD
 
     lines = []
     nodes = int(item.field.n_points)

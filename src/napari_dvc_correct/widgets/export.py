@@ -252,7 +252,7 @@ class ExportWidget(EngineWidget):
             )
         strain = None
         if self.with_strain.isChecked() or self.strain_tiff.isChecked():
-            from ..engine.strain import equivalent_strain_field
+            from ..engine.evaluation.strain import equivalent_strain_field
 
             strain = equivalent_strain_field(field)
         residual = report = evaluation = None

@@ -5,7 +5,7 @@ passes, gray residuals, DVC parameters, voxel size): inside the file for NPZ and
 field's ``metadata["provenance"]``), in a ``STEM_provenance.json`` next to it for VTK, TIFF and
 CSV, which have no place for it.
 
-A result at points of interest (a :class:`..engine.scattered.ScatteredField`, from a Correlate
+A result at points of interest (a :class:`..engine.fields.scattered.ScatteredField`, from a Correlate
 run on a Points layer) is written in the formats of :data:`POINT_FORMATS` (those of the command
 line's ``correlate --points``), always with the provenance side file; the formats and extras
 that need a grid (VTK image data, TIFF stacks, HDF5, the strain TIFF, residual and report) are
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.field import DisplacementField
+from ..engine.fields.field import DisplacementField
+from ..engine.fields.scattered import ScatteredField
 from ..engine.progress import Progress
-from ..engine.scattered import ScatteredField
 
 #: Formats offered in the panel: label -> file suffix.
 FORMATS = {

@@ -67,7 +67,7 @@ def check_points(points: np.ndarray, volume_shape, subvolume: int, name: str = "
 
     A point is matched at its nearest voxel ``c = rint(p)``; its subvolume of ``subvolume``
     voxels fits when ``M <= c <= n - 1 - M`` on every axis (``M = subvolume // 2``), as in
-    :func:`..engine.correlate_points.correlate_points`.
+    :func:`..engine.correlation.correlate_points.correlate_points`.
     """
     points = np.asarray(points, dtype=np.float64)
     if not np.all(np.isfinite(points)):

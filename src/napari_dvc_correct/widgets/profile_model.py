@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import layers as L
-from ..engine.field import DisplacementField
+from ..engine.fields.field import DisplacementField
 
 
 @dataclass

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..engine.field import grid_for_volume
-from ..engine.params import CorrelationParams
+from ..engine.correlation.params import CorrelationParams
+from ..engine.fields.field import grid_for_volume
 from ..io.lazy import VolumeBase, normalize_slices
 
 #: Region kinds offered by the panels: key -> label.

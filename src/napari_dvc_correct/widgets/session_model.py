@@ -14,7 +14,7 @@ import math
 import re
 from pathlib import Path
 
-from ..engine.field import DisplacementField
+from ..engine.fields.field import DisplacementField
 
 FORMAT = "napari-dvc-correct session"
 VERSION = 1

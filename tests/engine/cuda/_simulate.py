@@ -19,8 +19,8 @@ import numpy as np
 def main(cases_path: str, results_path: str) -> int:
     if os.environ.get("NUMBA_ENABLE_CUDASIM") != "1":
         raise SystemExit("set NUMBA_ENABLE_CUDASIM=1")
-    from napari_dvc_correct.engine import icgn
     from napari_dvc_correct.engine.backend import select_device
+    from napari_dvc_correct.engine.correlation import icgn
     from napari_dvc_correct.engine.cuda import launch as gpu_launch
     from napari_dvc_correct.engine.cuda import match_many_cuda, sample_cuda, simulator_enabled
 
@@ -40,8 +40,8 @@ def main(cases_path: str, results_path: str) -> int:
             out[f"{name}/values"] = sample_cuda(case["coefficients"], case["points"])
             continue
         if str(case["kind"]) == "correlate":  # the whole pipeline with device="cuda"
-            from napari_dvc_correct.engine.correlate import correlate
-            from napari_dvc_correct.engine.params import CorrelationParams
+            from napari_dvc_correct.engine.correlation.correlate import correlate
+            from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
             grid = (tuple(case["origin"]), tuple(case["step"]), tuple(case["grid_shape"]))
             params = CorrelationParams(

@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import icgn, icgn_reference, shape_function, synthetic
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.interpolation import prefilter, sample
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correlation import icgn, icgn_reference, shape_function
+from napari_dvc_correct.engine.correlation.interpolation import prefilter, sample
+from napari_dvc_correct.engine.fields.field import Status
 
 pytestmark = pytest.mark.slow
 
@@ -287,8 +288,8 @@ def test_device_selection_in_the_simulator(results):
 
 
 def test_correlate_with_device_cuda_gives_the_cpu_field(results):
-    from napari_dvc_correct.engine.correlate import correlate
-    from napari_dvc_correct.engine.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
 
     cases, gpu = results
     case = cases["pipeline"]

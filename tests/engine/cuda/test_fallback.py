@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import icgn, icgn_reference, synthetic
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correlation import icgn, icgn_reference
+from napari_dvc_correct.engine.correlation.interpolation import prefilter
 from napari_dvc_correct.engine.cuda import launch as gpu_launch
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.interpolation import prefilter
+from napari_dvc_correct.engine.fields.field import Status
 
 
 def _inputs(nb=4):

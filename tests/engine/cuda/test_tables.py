@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine import shape_function
+from napari_dvc_correct.engine.correlation import shape_function
 from napari_dvc_correct.engine.cuda.tables import (
     MAX_TERMS,
     monomial_exponents,

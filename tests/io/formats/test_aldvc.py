@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.io import savemat
 
-from napari_dvc_correct.engine.field import Status
-from napari_dvc_correct.engine.scattered import ScatteredField, to_grid
+from napari_dvc_correct.engine.fields.field import Status
+from napari_dvc_correct.engine.fields.scattered import ScatteredField, to_grid
 from napari_dvc_correct.io.formats import aldvc, read_field, read_points, sniff_format, write_field
 
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.field import DisplacementField, Provenance, Status
-from napari_dvc_correct.engine.scattered import ScatteredField, to_grid
+from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
+from napari_dvc_correct.engine.fields.scattered import ScatteredField, to_grid
 from napari_dvc_correct.io.formats import read_field, read_points, sniff_format, spam, write_field
 
 HEADER = (

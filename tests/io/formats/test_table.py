@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.scattered import ScatteredField, to_grid
+from napari_dvc_correct.engine.fields.scattered import ScatteredField, to_grid
 from napari_dvc_correct.io.formats import read_field, read_points, sniff_format, table, write_field
 
 

@@ -1,5 +1,5 @@
 """IC-GN on the GPU: the kernel, one thread block per POI, with the same algorithm and statuses
-as :func:`napari_dvc_correct.engine.icgn.match_many`.
+as :func:`napari_dvc_correct.engine.correlation.icgn.match_many`.
 
 Mapping
 -------
@@ -38,8 +38,8 @@ import math
 import numpy as np
 from numba import float32, float64, int32, int64, uint64
 
-from .. import icgn as cpu_icgn
-from ..field import Status
+from ..correlation import icgn as cpu_icgn
+from ..fields.field import Status
 from ._numba_cuda import cuda, simulator_enabled
 from .device_algebra import (
     REDUCE_CHUNK,

@@ -1,5 +1,5 @@
 """Host side of the GPU IC-GN: :func:`match_many_cuda`, a drop-in for
-:func:`napari_dvc_correct.engine.icgn.match_many`.
+:func:`napari_dvc_correct.engine.correlation.icgn.match_many`.
 
 It uploads the volumes (kept on the GPU between calls, :mod:`.memory`) and the reference tables of
 :mod:`.tables`, launches the kernel of :mod:`.icgn` in chunks of at most
@@ -15,7 +15,7 @@ import warnings
 
 import numpy as np
 
-from .. import icgn as cpu_icgn
+from ..correlation import icgn as cpu_icgn
 from ._numba_cuda import cuda
 from .icgn import FALLBACK, build_kernel
 from .memory import default_threads, to_device_cached

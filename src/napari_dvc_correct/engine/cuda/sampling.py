@@ -1,5 +1,5 @@
 """Tricubic B-spline sampling on the GPU (numba.cuda), the same interpolant as
-:mod:`napari_dvc_correct.engine.interpolation`.
+:mod:`napari_dvc_correct.engine.correlation.interpolation`.
 
 The coefficients are a flat float32 device array (C order, strides ``sz = ny * nx`` and
 ``sy = nx``). A sample at position ``i + t`` per axis (``i`` integer, ``t`` in ``[0, 1)``) sums the
@@ -176,12 +176,12 @@ def _sample_kernel(coef, nz, ny, nx, points, cval, out):
 def sample_cuda(
     coefficients: np.ndarray, points: np.ndarray, cval: float = np.nan, *, threads_per_block=None
 ) -> np.ndarray:
-    """GPU version of :func:`napari_dvc_correct.engine.interpolation.sample`.
+    """GPU version of :func:`napari_dvc_correct.engine.correlation.interpolation.sample`.
 
     Parameters
     ----------
     coefficients : ndarray, shape (nz, ny, nx), float32
-        From :func:`~napari_dvc_correct.engine.interpolation.prefilter`. Kept on the GPU between
+        From :func:`~napari_dvc_correct.engine.correlation.interpolation.prefilter`. Kept on the GPU between
         calls while the same array object is alive (see :mod:`.memory`).
     points : ndarray, shape (N, 3), float64
         Positions ``(z, y, x)`` in voxels.
@@ -192,7 +192,7 @@ def sample_cuda(
     -------
     ndarray, shape (N,), float32
     """
-    from ..interpolation import _check_points
+    from ..correlation.interpolation import _check_points
     from .memory import default_threads, to_device_cached
 
     points = _check_points(points)

@@ -37,7 +37,7 @@ MAX_TERMS = 35
 def monomial_exponents(max_degree: int) -> np.ndarray:
     """Exponents ``(a, b, c)`` of ``ξz^a ξy^b ξx^c`` up to ``max_degree``, shape (n, 3).
 
-    The first 10 follow :mod:`napari_dvc_correct.engine.icgn`:
+    The first 10 follow :mod:`napari_dvc_correct.engine.correlation.icgn`:
     ``1, z, y, x, zz, yy, xx, zy, yx, zx``; higher degrees follow in a fixed order.
     """
     first = [

@@ -11,7 +11,7 @@ each follows, and where they were checked, are in its docstring:
 * ``"npz"`` — our own field file (:mod:`..npz`).
 
 :func:`read_points` sniffs the format from the suffix and the header; :func:`read_field` puts
-the points on a grid (:func:`.engine.scattered.to_grid`: exactly when they form one, else
+the points on a grid (:func:`.engine.fields.scattered.to_grid`: exactly when they form one, else
 interpolated, with provenance); :func:`write_field` writes any field in any of the formats.
 """
 
@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...engine.field import DisplacementField
-from ...engine.scattered import ScatteredField, from_grid, to_grid
+from ...engine.fields.field import DisplacementField
+from ...engine.fields.scattered import ScatteredField, from_grid, to_grid
 from . import aldvc, idvc, spam, table
 from ._common import first_line, unusable_as_nan
 
@@ -159,7 +159,7 @@ def read_field(
         Default: sniffed (:func:`sniff_format`).
     grid : (origin, step, shape), optional
         Target grid in voxels; default: the points' own grid, or one over their bounding box at
-        their typical spacing (:func:`.engine.scattered.default_grid`).
+        their typical spacing (:func:`.engine.fields.scattered.default_grid`).
     **options
         Passed to the format's reader (``xyz``, ``voxel_size``, ``frame``, ``bin_ratio``...).
     """

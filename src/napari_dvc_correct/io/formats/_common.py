@@ -7,8 +7,8 @@ import warnings
 
 import numpy as np
 
-from ...engine.field import DisplacementField
-from ...engine.scattered import ScatteredField, from_grid
+from ...engine.fields.field import DisplacementField
+from ...engine.fields.scattered import ScatteredField, from_grid
 
 
 def as_scattered(field: DisplacementField | ScatteredField) -> ScatteredField:

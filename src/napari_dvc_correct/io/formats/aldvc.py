@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...engine.field import Provenance, Status
-from ...engine.scattered import ScatteredField, regular_grid_of
+from ...engine.fields.field import Provenance, Status
+from ...engine.fields.scattered import ScatteredField, regular_grid_of
 from ..atomic import atomic_path
 from ..sizes import check_npz_sizes
 from ._common import as_scattered, flip_tensors, flip_vectors

@@ -37,8 +37,8 @@ import os
 
 import numpy as np
 
-from ...engine.field import Provenance, Status
-from ...engine.scattered import ScatteredField
+from ...engine.fields.field import Provenance, Status
+from ...engine.fields.scattered import ScatteredField
 from ..atomic import atomic_path
 from ._common import as_scattered, column, flip_vectors, load_numbers, read_named_table
 

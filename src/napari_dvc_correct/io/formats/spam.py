@@ -21,7 +21,7 @@ status) and the ``spam-pixelSearch`` script (``pixelSearchCC``):
   number of iterations, -1 = diverging, -2 = singular matrix, -3 = displacement too large; any
   value < 1 is a failure (spam uses 0 and -5 for nodes not correlated, e.g. in the background).
 
-Mapping to :class:`.engine.field.Status`: 2 → ``CONVERGED``, 1 → ``MAX_ITERATIONS``, -1 →
+Mapping to :class:`.engine.fields.field.Status`: 2 → ``CONVERGED``, 1 → ``MAX_ITERATIONS``, -1 →
 ``DIVERGED``, -2 → ``SINGULAR``, -3 → ``OUT_OF_BOUNDS``, anything else < 1 → ``NOT_COMPUTED``.
 ``pixelSearchCC`` becomes the ZNCC. Written files also carry three extra columns, ``ndcZNCC
 ndcStatus ndcProvenance`` (our ZNCC, status and provenance codes), which spam's reader ignores
@@ -34,8 +34,8 @@ import os
 
 import numpy as np
 
-from ...engine.field import Provenance, Status
-from ...engine.scattered import ScatteredField
+from ...engine.fields.field import Provenance, Status
+from ...engine.fields.scattered import ScatteredField
 from ..atomic import atomic_path
 from ._common import as_scattered, column, read_named_table
 

@@ -8,7 +8,7 @@ Our own convention (no other tool's), for fields from any program that can write
   DIC names ``u v w`` or pyALDVC's ``disp_u disp_v disp_w`` = displacement along **x, y, z**;
   with OpenCorr's ``u v w ux uy uz vx vy vz wx wy wz`` the ``ux``... are the gradient du/dx...;
   empty cells are NaN); optional ``valid`` (pyALDVC: 0 = not usable), ``zncc``, ``status`` (our
-  :class:`.engine.field.Status` codes), ``provenance``, ``iterations``;
+  :class:`.engine.fields.field.Status` codes), ``provenance``, ``iterations``;
 * units in brackets or parentheses after a name: ``z [voxel]``, ``ux (mm)``. ``voxel``/``vox``/
   ``px``/``pixel`` (or no unit) are voxels; ``m``, ``mm``, ``um``/``µm``, ``nm`` need the voxel
   size (mm per voxel, one value or z, y, x) to be converted to voxels;
@@ -27,8 +27,8 @@ import re
 
 import numpy as np
 
-from ...engine.field import Provenance, Status
-from ...engine.scattered import ScatteredField
+from ...engine.fields.field import Provenance, Status
+from ...engine.fields.scattered import ScatteredField
 from ..atomic import atomic_path
 from ._common import as_scattered, first_line, load_numbers
 

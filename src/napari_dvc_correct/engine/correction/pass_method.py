@@ -1,0 +1,229 @@
+"""How the correcting DVC runs of the self-correction match, chosen from the data.
+
+The paper reuses the first run's parameters (no new user parameter). We keep that rule and choose,
+from the input field alone, the shape function of the correcting matches: where the field bends
+inside a subvolume more than an affine shape function can follow, the correcting matches are
+second order on a smaller subvolume (measured in docs/method.md); elsewhere the first run's
+parameters are reused unchanged. Displacements in voxels, axes (z, y, x).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from ..correlation.params import CorrelationParams
+from ..fields.field import DisplacementField
+
+#: A first-order field whose curvature bends a subvolume by more than this (voxels, see
+#: :func:`field_curvature`) is corrected with second-order matches.
+CURVATURE_VOXELS = 0.1
+
+#: Subvolume of the second-order correcting matches, as a fraction of the first run's.
+PASS_SUBVOLUME_FRACTION = 2.0 / 3.0
+
+#: Scatter of a second-order match over a first-order one on the same subvolume (the
+#: translation terms share the subvolume's information with 27 other parameters instead of 9).
+SECOND_ORDER_NOISE_GAIN = 1.5
+
+#: Another order or subvolume than the first run's is used only where its predicted error is
+#: under this fraction of the first run's (the paper's rule is "the same parameters"; on the
+#: narrow band under heavy noise second order on 21³ predicted 0.23 against 0.24 and did worse,
+#: 0.32 against 0.30).
+CHANGE_MARGIN = 0.8
+
+#: Share of a first-order bend that a second-order match on the same subvolume still leaves
+#: (:func:`predicted_error`; measured 0.14 / 0.29 on the narrow band of docs/method.md).
+SECOND_ORDER_BIAS = 0.5
+
+#: Smallest subvolume edge of a correcting match (voxels).
+MIN_PASS_SUBVOLUME = 11
+
+
+def field_curvature(field: DisplacementField, half: int) -> float:
+    """How far a first-order subvolume is from following ``field``, in voxels.
+
+    The second differences of the node displacements (smoothed over one node) give the field's
+    curvature; over a
+    subvolume of half-size ``M`` a quadratic term ``u'' M^2 / 2`` is what an affine shape function
+    cannot follow. Returns the 90th percentile over the interior nodes of the largest such term
+    (any component, any axis), 0 for grids too small to tell.
+    """
+    u = np.asarray(field.u, dtype=np.float64)
+    if not np.all(np.isfinite(u)):
+        return 0.0
+    # the affine trend has no curvature: remove it so the smoothing's border handling cannot
+    # bend it
+    points = field.points
+    design = np.column_stack([np.ones(len(points)), points])
+    coefficients, *_ = np.linalg.lstsq(design, u.reshape(-1, 3), rcond=None)
+    u = u - (design @ coefficients).reshape(u.shape)
+    # one node of Gaussian smoothing first: the matching noise of the nodes (a few hundredths of
+    # a voxel, independent from node to node) would otherwise read as curvature
+    u = np.stack([ndimage.gaussian_filter(u[..., c], 1.0, mode="nearest") for c in range(3)], -1)
+    # nodes next to the grid's border are bent by the smoothing's border handling
+    u = u[tuple(slice(1, -1) if n >= 5 else slice(None) for n in u.shape[:3])]
+    terms = []
+    for axis in range(3):
+        if u.shape[axis] < 3:
+            continue
+        second = np.diff(u, n=2, axis=axis) / float(field.step[axis]) ** 2
+        terms.append(np.max(np.abs(second), axis=-1).reshape(-1))
+    if not terms:
+        return 0.0
+    values = np.concatenate(terms)
+    values = values[np.isfinite(values)]
+    return float(0.5 * np.percentile(values, 90.0) * half**2) if values.size else 0.0
+
+
+def predicted_scatter(field: DisplacementField, subvolume: int, pass_subvolume: int) -> float:
+    """Predicted random error (voxels, norm) of second-order matches on ``pass_subvolume``³.
+
+    From the first run's measured uncertainties (median of the nodes' norms; 0 where the field
+    carries none): the scatter grows as the number of voxels falls, ``(S / s)^(3/2)``, and a
+    second-order shape function spends its subvolume's information on 30 parameters instead of
+    12 (:data:`SECOND_ORDER_NOISE_GAIN`).
+    """
+    if field.uncertainty is None:
+        return 0.0
+    sigma = np.linalg.norm(field.uncertainty, axis=-1)
+    sigma = sigma[np.isfinite(sigma)]
+    if not sigma.size:
+        return 0.0
+    ratio = (float(subvolume) / float(pass_subvolume)) ** 1.5
+    return float(np.median(sigma)) * ratio * SECOND_ORDER_NOISE_GAIN
+
+
+def pass_order(field: DisplacementField, params: CorrelationParams) -> int:
+    """Shape-function order of the correcting matches, chosen from the data (no user parameter).
+
+    Second order where the input field bends inside a subvolume by more than
+    :data:`CURVATURE_VOXELS` (:func:`field_curvature`): the first-order floor then dominates the
+    error, and the correcting match only follows the error of ``D``, whose second-order part a
+    quadratic subvolume can take. First order otherwise (translations, affine fields, gentle
+    gradients), which is cheaper and no less accurate there. ``params.order == 2`` stays 2.
+    """
+    if params.order == 2:
+        return 2
+    return 2 if field_curvature(field, params.half) > CURVATURE_VOXELS else 1
+
+
+def correction_params(field: DisplacementField, params: CorrelationParams) -> CorrelationParams:
+    """Matching parameters of the correcting DVC runs, chosen from the data.
+
+    Where the field bends inside a subvolume (:func:`pass_order` says second order), the
+    correcting matches use the second-order shape function on a subvolume of about
+    :data:`PASS_SUBVOLUME_FRACTION` of the first run's (odd, at least :data:`MIN_PASS_SUBVOLUME`):
+    they only have to find the error of ``D``, a small motion that a smaller subvolume finds as
+    well, and a smaller quadratic subvolume follows a narrow band that neither a large one nor a
+    first-order one can (measured in docs/method.md). Elsewhere the first run's parameters are
+    reused unchanged, as in the paper.
+    """
+    return pass_method(field, params)[0]
+
+
+def pass_method(
+    field: DisplacementField, params: CorrelationParams
+) -> tuple[CorrelationParams, str]:
+    """:func:`correction_params` and, in words, why they differ from the first run's (or not).
+
+    The reason is shown to the user (panel, command line, report): the paper promises "the same
+    DVC parameters", so any change must be said.
+    """
+    if params.order == 2:
+        return params, f"the first run's parameters (second order, {params.subvolume}³)"
+    bend = field_curvature(field, params.half)
+    if bend <= CURVATURE_VOXELS:
+        return params, (
+            f"the first run's parameters (first order, {params.subvolume}³): the field bends a "
+            f"subvolume by {bend:.2g} voxel, at most {CURVATURE_VOXELS:g}"
+        )
+    smaller = 2 * int(round(PASS_SUBVOLUME_FRACTION * params.half)) + 1
+    smaller = min(params.subvolume, max(MIN_PASS_SUBVOLUME, smaller))
+    # the predicted error of each way to match: the bias the bend leaves, the scatter the
+    # noise adds (root of the sum of squares); the smallest wins
+    errors = {
+        (order, subvolume): predicted_error(field, bend, params.subvolume, order, subvolume)
+        for order, subvolume in ((1, params.subvolume), (2, params.subvolume), (2, smaller))
+    }
+    (order, subvolume), best = min(errors.items(), key=lambda item: item[1])
+    if best > CHANGE_MARGIN * errors[(1, params.subvolume)]:
+        order = 1  # not clearly better: the paper's rule, the first run's parameters
+    listed = ", ".join(
+        f"{'first' if o == 1 else 'second'} order on {s}³ {e:.2g}" for (o, s), e in errors.items()
+    )
+    if order == 1:
+        return params, (
+            f"the first run's parameters (first order, {params.subvolume}³): the field bends a "
+            f"subvolume by {bend:.2g} voxel, but on these scans' noise the predicted errors are "
+            f"{listed} voxel"
+        )
+    return params.replace(order=2, subvolume=subvolume), (
+        f"second order on {subvolume}³ instead of first order on {params.subvolume}³: the field "
+        f"bends a {params.subvolume}³ subvolume by {bend:.2g} voxel (> {CURVATURE_VOXELS:g}), more "
+        f"than an affine shape function can follow (predicted errors: {listed} voxel)"
+    )
+
+
+def predicted_error(
+    field: DisplacementField, bend: float, subvolume: int, order: int, pass_subvolume: int
+) -> float:
+    """Predicted error (voxels) of correcting matches of ``order`` on ``pass_subvolume``³.
+
+    Bias: a first-order match keeps the bend ``bend`` of the first run's ``subvolume``³; a
+    second-order one about :data:`SECOND_ORDER_BIAS` of it, falling as the square of the
+    subvolume (measured on the narrow band of docs/method.md: 0.29 first order on 21³, 0.14
+    second order on 21³, 0.07 on 15³). Scatter: :func:`predicted_scatter` (second order), the
+    first run's median uncertainty (first order on its subvolume). Root of the sum of squares.
+    """
+    if order == 1:
+        sigma = predicted_scatter(field, subvolume, subvolume) / SECOND_ORDER_NOISE_GAIN
+        return float(np.hypot(bend * (pass_subvolume / subvolume) ** 2, sigma))
+    bias = SECOND_ORDER_BIAS * bend * (pass_subvolume / subvolume) ** 2
+    return float(np.hypot(bias, predicted_scatter(field, subvolume, pass_subvolume)))
+
+
+def correction_grid(
+    field: DisplacementField, volume_shape, params: CorrelationParams, read_points: np.ndarray
+) -> tuple[tuple, tuple, tuple]:
+    """POI grid ``(origin, step, shape)`` of the correcting DVC runs.
+
+    ``field``'s lattice (same origin and step), extended by whole steps towards the nodes'
+    read points (where their updates read ``ΔD``: ``X + D(X)`` in the loaded frame) as far as the
+    lattice node nearest to the outermost read point, and no further than the correcting
+    subvolume (``params.half``) fits in the volume. Under a large displacement the faces' nodes
+    are carried one or more steps beyond ``field``'s grid; without these nodes their update would
+    be the spline's extrapolation of ``ΔD``, not a measurement. Never smaller than ``field``'s
+    grid; unchanged where every read point lies within half a step of it.
+
+    Parameters
+    ----------
+    field : DisplacementField
+        The field being corrected (its grid is the lattice).
+    volume_shape : tuple of 3 ints
+        ``(nz, ny, nx)`` of the volumes.
+    params : CorrelationParams
+        Parameters of the correcting matches (:func:`correction_params`).
+    read_points : ndarray, shape (n, 3)
+        Positions ``(z, y, x)`` in voxels; non-finite rows are ignored.
+
+    Returns
+    -------
+    origin, step, shape : tuples of 3
+        Origin and step in voxels (whole voxels where ``field``'s are), node counts.
+    """
+    origin = np.asarray(field.origin, dtype=np.float64)
+    step = np.asarray(field.step, dtype=np.float64)
+    last = np.asarray(field.shape) - 1
+    points = np.asarray(read_points, dtype=np.float64).reshape(-1, 3)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points):
+        return field.origin, field.step, field.shape
+    half = params.half
+    fits_lo = np.ceil((half - origin) / step)
+    fits_hi = np.floor((np.asarray(volume_shape, dtype=np.float64) - 1 - half - origin) / step)
+    lo = np.minimum(0, np.maximum(np.rint((points.min(axis=0) - origin) / step), fits_lo))
+    hi = np.maximum(last, np.minimum(np.rint((points.max(axis=0) - origin) / step), fits_hi))
+    new_origin = origin + lo * step
+    shape = (hi - lo + 1).astype(int)
+    return tuple(float(o) for o in new_origin), field.step, tuple(int(n) for n in shape)

@@ -1,0 +1,633 @@
+"""The self-correcting strategy of the DVC displacement field (SPEC §3, paper Fig. 3).
+
+Steps, with the DVC parameters of the first run reused unchanged (no new user parameter):
+
+a) ``D = DVC(G, F)`` (or a field the user already has);
+b) clean ``D`` (:func:`.cleaning.clean`: median test, failed and low-ZNCC nodes, inpainting);
+c) densify ``D`` by cubic splines (:mod:`.warp`);
+d) bring the pair together with ``D``, in one of two frames:
+
+   * ``frame="loaded"`` (the paper's, default): warp the reference to the loaded state,
+     ``G'(X + D(X)) = G(X)`` (inverse map by fixed-point iteration);
+   * ``frame="reference"``: pull the deformed volume back, ``F~(X) = F(X + D(X))`` (no
+     inversion needed);
+
+e) ``ΔD = DVC(G, F~)`` or ``DVC(G', F)`` on the same grid, starting from zero;
+f) update the field:
+
+   * ``update="exact"`` (default): the composition of the two motions,
+     ``D'(X) = ΔD(X) + D(X + ΔD(X))`` in the reference frame and
+     ``D'(X) = D(X) + ΔD(X + D(X))`` in the loaded frame (``ΔD`` is then measured at the
+     deformed positions);
+   * ``update="sum"``: the paper's ``D' = D + ΔD`` at the same node.
+
+Beyond the paper (issue 10):
+
+* every pass is judged **locally and against the imaging noise**: the residual
+  ``|F(X + D(X)) - G(X)|`` is averaged over each node's cell; a node keeps its corrected value
+  unless that local residual rose by more than resampling the noise can explain (the noise floor
+  ``r0`` of eq. 1, or the lower quartile of the local residuals where eq. 1 is spoilt), else it
+  keeps its previous value. A pass cannot make a node measurably worse;
+* passes repeat (``max_passes``) while some region (a node's subvolume) improves by more than
+  the noise allows, not while the global mean falls (under noise it barely moves), and only
+  while enough nodes moved by enough to improve in another pass (:mod:`.rematch_region`; a pass
+  that could only confirm is not run); the reason the loop stopped is recorded;
+* after the first pass, a pass matches again only near the nodes the previous one changed
+  (the subvolume's half-width plus the spline's reach) and judges only the nodes whose update
+  can differ; the other matches are the previous pass's, less what it applied, and the other
+  nodes keep their value (``selective=False`` matches and judges every node);
+* the correcting matches use the second-order shape function when the field bends inside a
+  subvolume (:func:`pass_order`, chosen from the data, no user parameter);
+* nodes whose local residual only an error of more than a voxel explains are flagged
+  ``OUTLIER_REPLACED`` (refilled before the passes, flagged after them);
+* every pass is recorded as a :class:`CorrectionPass` in ``field.metadata["correction_passes"]``
+  (as dicts, for JSON; :func:`correction_table` reads them back).
+
+One loop, two volume back-ends (issue 13): :func:`correct_volumes_iter` is the loop; every volume
+operation goes through a :class:`.volumes.CorrectionVolumes`, in memory for
+:func:`correct_iter` (:class:`.volumes.InMemoryVolumes`) or block by block from lazily
+read volumes for ``napari_dvc_correct.tiled.correction.correct_tiled_iter``.
+
+See ``docs/method.md`` for the measurements behind the defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Generator
+
+import numpy as np
+
+from ..correlation.params import CorrelationParams
+from ..fields.absurd_nodes import flag_absurd_nodes
+from ..fields.compose import compose
+from ..fields.field import GOOD_STATUSES, DisplacementField, Provenance, Status
+from ..pair_checks import check_pair_and_fields
+from ..progress import Progress, run_to_completion
+from .acceptance import (
+    Judge,
+    accept_locally,
+    crack_shield,
+    flag_and_refill,
+    mix_fields,
+    shrink_to_support,
+    unsupported_updates,
+)
+from .cleaning import clean, masked_nodes
+from .options import CorrectionOptions
+from .pass_method import correction_grid, pass_method
+from .record import CHANGE_THRESHOLD, CorrectionPass, correction_table
+from .rematch_region import applied_change, changed_nodes, reuse, select
+from .volumes import CorrectionVolumes, InMemoryVolumes
+
+__all__ = ["CorrectionPass", "correct", "correct_iter", "correct_volumes_iter", "correction_table"]
+
+#: Another pass runs only while at least this fraction of the nodes improved above the noise.
+MIN_IMPROVED_FRACTION = 0.01
+
+#: ... and while at least this fraction moved by enough to improve in another pass
+#: (:func:`.rematch_region.changed_nodes`): the same share, predicted before the pass instead of
+#: found after it.
+MIN_CHANGED_FRACTION = MIN_IMPROVED_FRACTION
+
+
+def _relabel(progress: Progress, prefix: str) -> Progress:
+    return Progress(f"{prefix}: {progress.stage}", progress.done, progress.total, progress.message)
+
+
+def forward_progress(generator, prefix: str):
+    """Re-yield an engine generator's progress with stages prefixed by ``prefix``; return its
+    result (use as ``result = yield from forward_progress(gen, "pass 1")``)."""
+    try:
+        while True:
+            try:
+                progress = next(generator)
+            except StopIteration as stop:
+                return stop.value
+            yield _relabel(progress, prefix)
+    finally:
+        generator.close()  # a cancelled caller stops the inner run too (its Dask work, its files)
+
+
+def _update(current: DisplacementField, delta: DisplacementField, frame: str, update: str):
+    if update == "sum":
+        return compose(current, delta, mode="sum")
+    if frame == "reference":
+        return compose(delta, current)
+    return compose(current, delta)
+
+
+def _zeros(grid) -> DisplacementField:
+    """The zero start of a correcting DVC on ``grid`` (origin, step, shape)."""
+    zero = DisplacementField.zeros(*grid)
+    zero.gradient = np.zeros((*grid[2], 3, 3))
+    return zero
+
+
+def _read_points(current: DisplacementField, frame: str, update: str) -> np.ndarray:
+    """Where each node's update reads ``ΔD``: ``X + D(X)`` (loaded frame, exact), else ``X``."""
+    if frame == "loaded" and update == "exact":
+        return current.points + current.u.reshape(-1, 3)
+    return current.points
+
+
+def _good(field: DisplacementField) -> np.ndarray:
+    return np.isin(field.status, [int(s) for s in GOOD_STATUSES])
+
+
+def _nearest(delta: DisplacementField, read_points: np.ndarray, shape) -> tuple:
+    """Index into ``delta``'s grid of the node nearest to each read point (``shape``: the
+    corrected field's grid)."""
+    index = np.rint((read_points - np.asarray(delta.origin)) / np.asarray(delta.step))
+    index = np.nan_to_num(index, nan=0.0)
+    return tuple(
+        np.clip(index[:, a], 0, delta.shape[a] - 1).astype(np.intp).reshape(shape) for a in range(3)
+    )
+
+
+def _correction_sigma(delta: DisplacementField, read_points: np.ndarray, shape) -> np.ndarray:
+    """Uncertainty (voxels, norm over the 3 components) of each node's correcting match; NaN
+    where unknown (an interpolated match, or a field without uncertainties)."""
+    if delta.uncertainty is None:
+        return np.full(shape, np.nan)
+    return np.linalg.norm(delta.uncertainty[_nearest(delta, read_points, shape)], axis=-1)
+
+
+def _finish_pass(
+    candidate: DisplacementField,
+    delta: DisplacementField,
+    input_field: DisplacementField,
+    masked: np.ndarray,
+    read_points: np.ndarray,
+) -> DisplacementField:
+    """Quality arrays of a corrected field: those of the correcting match; masked nodes kept.
+
+    A node's correcting match is the node of ``delta`` nearest to where its update reads ``ΔD``
+    (``read_points``: its displaced position in the loaded frame, itself otherwise). Nodes where
+    that match failed or was masked (its value interpolated from the neighbours' by the
+    cleaning) are ``REPLACED``, the others ``CORRECTED``.
+    """
+    nearest = _nearest(delta, read_points, candidate.shape)
+    candidate.zncc = delta.zncc[nearest].copy()
+    candidate.status = delta.status[nearest].copy()
+    candidate.iterations = delta.iterations[nearest].copy()
+    candidate.provenance = np.full(candidate.shape, Provenance.CORRECTED, np.uint8)
+    interpolated = np.isin(delta.provenance[nearest], [Provenance.REPLACED, Provenance.MASKED])
+    candidate.provenance[interpolated] = Provenance.REPLACED
+    candidate.provenance[masked] = Provenance.MASKED
+    candidate.status[masked] = input_field.status[masked]
+    return candidate
+
+
+def correct_iter(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    field: DisplacementField | None = None,
+    params: CorrelationParams | None = None,
+    *,
+    frame: str = CorrectionOptions.frame,
+    update: str = CorrectionOptions.update,
+    max_passes: int = CorrectionOptions.max_passes,
+    min_improvement: float = CorrectionOptions.min_improvement,
+    mask: np.ndarray | None = None,
+    clean_options: dict | None = None,
+    selective: bool = True,
+) -> Generator[Progress, None, DisplacementField]:
+    """Self-correct a DVC displacement field, yielding progress; returns the corrected field.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        ``G`` and ``F``, same shape, any real dtype (processed as float32).
+    field : DisplacementField, optional
+        ``D`` from a previous DVC of this pair. None runs the DVC first (step a).
+    params : CorrelationParams, optional
+        DVC parameters; default: those that produced ``field`` (``field.params``), else the
+        defaults. The correction reuses them unchanged.
+    frame : {"loaded", "reference"}
+        Warp ``G`` forward to the loaded state as in the paper (default), or pull ``F`` back to
+        the reference (no inversion, but the correcting match then sees the error multiplied by
+        the inverse deformation gradient, and fill values near the borders; see docs/method.md).
+    update : {"exact", "sum"}
+        Compose ``D`` with ``ΔD`` (default) or add them node by node as in the paper.
+    max_passes : int
+        Most correction passes (each is one DVC run), >= 1.
+    min_improvement : float
+        Another pass runs only if the last one removed more than this fraction of the local
+        residual in excess of the noise floor (mean over the nodes; 0: as long as it falls), and
+        only while at least :data:`MIN_IMPROVED_FRACTION` of the nodes improved by more than the
+        noise allows.
+    mask : ndarray of bool, shape (nz, ny, nx), optional
+        Reference-space material mask, passed to every DVC run.
+    clean_options : dict, optional
+        Keyword arguments for :func:`.cleaning.clean` (threshold, radius, epsilon, smoothing...),
+        used on ``D`` and on every ``ΔD``.
+    selective : bool
+        After the first pass, match again only near the nodes the previous pass changed and
+        judge only the nodes that can change (:mod:`.rematch_region`; default). False: every pass
+        matches and judges every node (the reference the selective passes are tested against).
+        Either way a pass runs only if some node's change can still matter.
+
+    Yields
+    ------
+    Progress
+        Stages ``"clean"``, ``"correction pass k: <DVC stage>"``, ``"residual"``, ``"done"``.
+
+    Returns
+    -------
+    DisplacementField
+        The corrected field on ``D``'s grid. After an applied pass, nodes carry the ZNCC /
+        status / iterations of the correcting match and ``Provenance.CORRECTED`` (or
+        ``REPLACED`` where that match failed and its correction was interpolated from the
+        neighbours); nodes whose correction was refused keep their previous value and quality
+        arrays; masked nodes keep their input values; nodes whose local residual no small error
+        explains get ``Status.OUTLIER_REPLACED``. ``metadata["correction_passes"]`` holds one
+        :class:`CorrectionPass` per pass as a dict (pass 0 = the cleaned input; read them with
+        :func:`correction_table`).
+        ``metadata["correction"]`` holds the options, the residual before and after, the noise
+        floor, the order, subvolume and grid shape (of the last pass) of the correcting matches,
+        the flagged node counts, ``stop_reason`` (why the loop stopped, also the last record's
+        ``stop``) and ``stages`` (wall seconds of the set-up, warps, correcting DVC with its
+        IC-GN and statistics, and local acceptance).
+    """
+    check_options(frame, update, max_passes, min_improvement)
+    reference = np.asanyarray(reference)
+    deformed = np.asanyarray(deformed)
+    if reference.shape != deformed.shape:
+        raise ValueError(
+            f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
+            "same shape"
+        )
+    # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
+    check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
+    if field is not None:  # a few |u| > the volume: failed matches, cleaned
+        field, _ = flag_absurd_nodes(field, reference.shape)
+    volumes = InMemoryVolumes(reference, deformed, frame, mask)
+    options = dict(update=update, max_passes=max_passes, min_improvement=min_improvement)
+    return (
+        yield from correct_volumes_iter(
+            volumes, field, params, **options, clean_options=clean_options, selective=selective
+        )
+    )
+
+
+def check_options(frame, update, max_passes, min_improvement) -> None:
+    """Raise ``ValueError`` for a correction option out of range (see :func:`correct_iter`)."""
+    CorrectionOptions(frame, update, max_passes, min_improvement)
+
+
+def params_of(field: DisplacementField | None, params: CorrelationParams | None):
+    """The DVC parameters of a correction: ``params``, else the field's, else the defaults."""
+    if params is not None:
+        return params
+    if field is not None and field.params:
+        return CorrelationParams.from_dict(field.params)
+    return CorrelationParams()
+
+
+def correct_volumes_iter(
+    volumes: CorrectionVolumes,
+    field: DisplacementField | None,
+    params: CorrelationParams | None = None,
+    *,
+    update: str = CorrectionOptions.update,
+    max_passes: int = CorrectionOptions.max_passes,
+    min_improvement: float = CorrectionOptions.min_improvement,
+    clean_options: dict | None = None,
+    selective: bool = True,
+) -> Generator[Progress, None, DisplacementField]:
+    """The correction loop of :func:`correct_iter` on any volume back-end (issue 13).
+
+    ``volumes`` does every volume operation (:class:`.volumes.CorrectionVolumes`:
+    in memory, or block by block from lazy volumes in ``napari_dvc_correct.tiled.correction``);
+    the fields stay in memory. Options and result as :func:`correct_iter` (the frame is
+    ``volumes.frame``); the input volumes and field are checked by the caller. ``volumes`` is
+    closed at the end, also on error or when the generator is closed (cancelled).
+    """
+    check_options(volumes.frame, update, max_passes, min_improvement)
+    try:
+        return (
+            yield from _correction_loop(
+                volumes, field, params_of(field, params), update, max_passes, min_improvement,
+                clean_options, selective,
+            )
+        )  # fmt: skip
+    finally:
+        volumes.close()
+
+
+def _correction_loop(
+    volumes, field, params, update, max_passes, min_improvement, clean_options, selective
+):  # fmt: skip
+    frame = volumes.frame
+    clean_options = dict(clean_options or {})
+    clean_options["fill_masked"] = True
+    started = time.perf_counter()
+    if field is None:
+        field = yield from forward_progress(volumes.correlate(params), "DVC")
+
+    yield Progress("clean", 0, 1, "cleaning the field")
+    masked = masked_nodes(field)
+    current = clean(field, **clean_options)
+    yield Progress("clean", 1, 1, f"{current.metadata['cleaning']['rejected']} nodes replaced")
+
+    yield Progress("gray levels", 0, 1, "fitting the gray-level change between the scans")
+    gray_levels = yield from volumes.fit_gray_levels(current)
+    yield Progress("gray levels", 1, 1, gray_levels.describe())
+    residuals = yield from volumes.residuals()
+    judge = Judge(None, None, None, current.step, params.half, residuals=residuals)
+    yield Progress("residual", 0, 1, "gray residual of the input field")
+    local_current = judge.local(current)
+    # a discontinuity (a crack) breaks the continuous warp the passes rest on: its nodes are
+    # not corrected, and the good measured nodes around it keep their values (the splines
+    # through the crack's refilled nodes would otherwise pull them across it)
+    flagged_input = judge.unexplained(current, local_current) & ~masked
+    crack = judge.discontinuous(current, local_current, flagged_input)
+    shielded = crack_shield(current, crack)
+    current, local_current, flagged = flag_and_refill(
+        judge, current, local_current, masked, clean_options
+    )
+    moved, residual = yield from volumes.align(current)
+    yield Progress("residual", 1, 1, f"mean gray residual {residual:.4g}")
+    passes = [
+        CorrectionPass(
+            number=0,
+            mean_gray_residual=residual,
+            noise_floor=judge.floor,
+            residual_before=residual,
+            local_residual_before=_mean(local_current),
+            local_residual_after=_mean(local_current),
+            accepted=True,
+            accepted_nodes=int(current.n_points),
+            rejected_nodes=0,
+            improved_nodes=0,
+            fraction_changed=float(current.metadata["cleaning"]["rejected"])
+            / max(1, current.n_points),
+            mean_change=0.0,
+            max_change=0.0,
+            converged_fraction=float(np.mean(field.valid)),
+            seconds=time.perf_counter() - started,
+        )
+    ]
+    grid = (current.origin, current.step, current.shape)
+    pass_params, method = pass_method(current, params)
+    residual_before = residual
+    unmasked = max(1, int(np.count_nonzero(~masked)))
+    stop = f"max_passes ({int(max_passes)}) reached"
+    previous_raw, next_pass = None, None
+    stages = {"setup_s": passes[0].seconds}
+    for number in range(1, int(max_passes) + 1):
+        pass_started = time.perf_counter()
+        read_points = _read_points(current, frame, update)
+        pass_grid = (
+            grid
+            if update == "sum"
+            else correction_grid(current, volumes.shape, pass_params, read_points)
+        )
+        selection = None
+        if next_pass is not None and selective:
+            changed, last_change, tolerance, change_vectors = next_pass
+            selection = select(
+                changed, last_change, read_points, read_points, pass_grid,
+                (previous_raw.origin, previous_raw.step, previous_raw.shape),
+                pass_params.half, tolerance,
+            )  # fmt: skip
+            selection = selection if not selection.matched.all() else None
+        active = None if selection is None else selection.matched
+        t0 = time.perf_counter()
+        pair = yield from volumes.matching_pair(moved, current)
+        t1 = time.perf_counter()
+        delta = yield from forward_progress(
+            volumes.correlate(
+                pass_params, pair, grid=pass_grid, initial=_zeros(pass_grid), active=active
+            ),
+            f"correction pass {number}",
+        )
+        volumes.release(pair[2])
+        _add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
+        t0 = time.perf_counter()
+        if selection is not None:
+            reused = delta.points.reshape(*delta.shape, 3)[~selection.matched]
+            loaded = frame == "loaded" and update == "exact"
+            taken = applied_change(current, change_vectors, reused, loaded)
+            delta = reuse(delta, previous_raw, selection.matched, taken)
+        previous_raw = delta
+        judged = np.ones(current.shape, bool) if selection is None else selection.judged
+        converged = float(np.mean(delta.valid))
+        try:
+            delta = clean(delta, **clean_options)
+        except ValueError:
+            passes.append(_failed_pass(number, converged, pass_started, passes[-1]))
+            stop = "the correcting field could not be cleaned"
+            break
+        candidate = _finish_pass(
+            _update(current, delta, frame, update), delta, field, masked, read_points
+        )
+        yield Progress("residual", 0, 1, f"local acceptance of pass {number}")
+        floor_before = judge.floor
+        # a correction is applied in proportion to its support above the correcting match's
+        # own noise; one the noise alone explains is not applied (the node keeps its value)
+        candidate, unsupported_by_noise = shrink_to_support(
+            current, candidate, _correction_sigma(delta, read_points, current.shape)
+        )
+        # a good node whose correcting match failed keeps its value and its status: a failed
+        # (or smaller, noisier) correcting match says nothing about the node's own error
+        failed_match = _good(current) & ~_good(candidate)
+        failed_match &= candidate.status != Status.MASKED  # outside the mask: not a failure
+        refuse = (
+            unsupported_updates(delta, read_points)
+            | unsupported_by_noise.reshape(-1)
+            | failed_match.reshape(-1)
+            | shielded.reshape(-1)
+        )
+        if selection is not None:  # the other nodes keep their value, unjudged
+            candidate = mix_fields(current, candidate, judged)
+        mixed, local_mixed, accept, improved = accept_locally(
+            judge, current, local_current, candidate, refuse=refuse | ~judged.reshape(-1)
+        )
+        accept[masked] = False
+        improved[masked] = False
+        n_accepted = int(np.count_nonzero(accept))
+        applied = n_accepted > 0
+        t1 = time.perf_counter()
+        _add_stages(stages, None, acceptance_s=t1 - t0)
+        if applied:
+            mixed_moved, mixed_residual = yield from volumes.align(mixed)
+            _add_stages(stages, None, warp_s=time.perf_counter() - t1)
+        else:
+            mixed, mixed_moved, mixed_residual, local_mixed = (
+                current,
+                moved,
+                residual,
+                local_current,
+            )
+        change_vectors = np.nan_to_num(mixed.u - current.u, nan=0.0)
+        change_vectors[masked] = 0.0
+        node_change = np.linalg.norm(change_vectors, axis=-1)
+        change = node_change[~masked]
+        record = CorrectionPass(
+            number=number,
+            mean_gray_residual=mixed_residual,
+            noise_floor=judge.floor,
+            residual_before=residual,
+            local_residual_before=_mean(local_current),
+            local_residual_after=_mean(local_mixed),
+            accepted=applied,
+            accepted_nodes=n_accepted,
+            rejected_nodes=int(np.count_nonzero(judged & ~accept & ~masked)),
+            improved_nodes=int(np.count_nonzero(improved)),
+            fraction_changed=float(np.mean(change > CHANGE_THRESHOLD)) if change.size else 0.0,
+            mean_change=float(np.mean(change)) if change.size else 0.0,
+            max_change=float(np.max(change)) if change.size else 0.0,
+            converged_fraction=converged,
+            seconds=time.perf_counter() - pass_started,
+            unsupported_nodes=int(
+                np.count_nonzero(refuse.reshape(accept.shape) & judged & ~masked)
+            ),
+            matched_nodes=int(np.prod(pass_grid[2]) if active is None else active.sum()),
+            judged_nodes=int(np.count_nonzero(judged & ~masked)),
+            failed_match_nodes=int(np.count_nonzero(failed_match & judged & ~masked)),
+            noise_refused_nodes=int(np.count_nonzero(unsupported_by_noise & judged & ~masked)),
+            order=int(pass_params.order),
+            subvolume=int(pass_params.subvolume),
+            method=method,
+        )
+        passes.append(record)
+        yield Progress(
+            "residual",
+            1,
+            1,
+            f"pass {number}: {n_accepted} nodes accepted, {record.rejected_nodes} refused, "
+            f"{record.improved_nodes} improved above the noise floor {judge.floor:.4g}; "
+            f"mean gray residual {residual:.4g} -> {mixed_residual:.4g}",
+        )
+        if not applied:
+            stop = f"pass {number} kept no node"
+            break
+        excess = record.local_residual_before - min(floor_before, judge.floor)
+        removed = record.local_residual_before - record.local_residual_after
+        volumes.release(moved)
+        current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
+        # a further pass can change only what this one moved by enough (pass_reach)
+        changed, tolerance = changed_nodes(
+            node_change, judge.useful(current), judge.region_tolerance
+        )
+        changed &= ~masked
+        if number < max_passes and changed.sum() < MIN_CHANGED_FRACTION * unmasked:
+            stop = (
+                f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
+                f"above the noise floor in another pass (about {tolerance:.3g} voxel): it could "
+                "only confirm"
+            )
+            break
+        if record.improved_nodes < MIN_IMPROVED_FRACTION * unmasked:
+            stop = (
+                f"pass {number} improved {record.improved_nodes} nodes above the noise floor "
+                f"(fewer than {MIN_IMPROVED_FRACTION:.0%})"
+            )
+            break  # no region improves above the noise floor any more
+        if excess > 0 and removed <= min_improvement * excess:
+            stop = (
+                f"pass {number} removed {removed / excess:.1%} of the residual above the floor "
+                f"(at most min_improvement {min_improvement:.0%})"
+            )
+            break
+        next_pass = (changed, node_change, tolerance, change_vectors)
+
+    # after the passes, unexplained nodes are flagged but keep their value: refilling them from
+    # neighbours that the same fault may have spoiled does not make them any more right
+    # flagged nodes whose residual is one-signed straddle a discontinuity (a crack): their own
+    # status, so that a user sees the crack rather than "outliers"
+    unexplained = judge.unexplained(current, local_current) & ~masked
+    cracked = judge.discontinuous(current, local_current, unexplained) | (crack & unexplained)
+    current = current.copy()
+    current.status[unexplained] = Status.OUTLIER_REPLACED
+    current.status[cracked] = Status.DISCONTINUITY
+    flagged_after = int(unexplained.sum())
+    passes[-1] = dataclasses.replace(passes[-1], stop=stop)
+    result = current.copy()
+    # a crack's nodes keep their own measurement where they had one (the motion of the side
+    # their centre is on), flagged: refilled from both sides it would smear the jump
+    measured_crack = cracked & _good(field) & (field.provenance == Provenance.MEASURED)
+    kept = masked | measured_crack
+    result.u[kept] = field.u[kept]
+    if result.gradient is not None and field.gradient is not None:
+        result.gradient[kept] = field.gradient[kept]
+    result.provenance[measured_crack] = Provenance.MEASURED
+    result.metadata["correction_passes"] = [p.to_dict() for p in passes]
+    result.metadata["gray_levels"] = gray_levels.to_dict()
+    result.metadata["correction"] = {
+        "frame": frame,
+        "update": update,
+        "max_passes": int(max_passes),
+        "min_improvement": float(min_improvement),
+        "passes_applied": int(sum(p.accepted for p in passes[1:])),
+        "mean_gray_residual_before": residual_before,
+        "mean_gray_residual_after": residual,
+        "noise_floor": judge.floor,
+        "pass_order": int(pass_params.order),
+        "pass_subvolume": int(pass_params.subvolume),
+        "pass_method": method,
+        "pass_grid_shape": [int(n) for n in pass_grid[2]],
+        "flagged_before": int(flagged),
+        "flagged_after": int(flagged_after),
+        "discontinuity_nodes": int(cracked.sum()),
+        "shielded_nodes": int(shielded.sum()),
+        "stop_reason": stop,
+        "selective": bool(selective),
+        "stages": stages,
+        "seconds": time.perf_counter() - started,
+    }
+    yield Progress("done", 1, 1, f"mean gray residual {residual_before:.4g} -> {residual:.4g}")
+    return result
+
+
+def _add_stages(stages: dict, delta, **seconds) -> None:
+    """Add wall times to ``stages`` (with the correcting DVC's IC-GN and statistics)."""
+    for key, value in seconds.items():
+        stages[key] = stages.get(key, 0.0) + float(value)
+    timings = {} if delta is None else delta.metadata.get("timings", {})
+    timings = timings.get("task_s", timings)  # a tiled run sums its batches' stages there
+    for key, name in (("icgn_s", "correcting_icgn_s"), ("noise_s", "correcting_statistics_s")):
+        stages[name] = stages.get(name, 0.0) + float(timings.get(key, 0.0))
+    if "uncertainty_s" in timings:
+        stages["correcting_statistics_s"] += float(timings["uncertainty_s"])
+
+
+def _mean(values: np.ndarray) -> float:
+    finite = np.isfinite(values)
+    return float(np.mean(values[finite])) if finite.any() else float("nan")
+
+
+def _failed_pass(
+    number: int, converged: float, started: float, previous: CorrectionPass
+) -> CorrectionPass:
+    return CorrectionPass(
+        number=number,
+        mean_gray_residual=float("nan"),
+        noise_floor=previous.noise_floor,
+        residual_before=previous.mean_gray_residual,
+        local_residual_before=previous.local_residual_after,
+        local_residual_after=float("nan"),
+        accepted=False,
+        accepted_nodes=0,
+        rejected_nodes=0,
+        improved_nodes=0,
+        fraction_changed=0.0,
+        mean_change=0.0,
+        max_change=0.0,
+        converged_fraction=converged,
+        seconds=time.perf_counter() - started,
+    )
+
+
+def correct(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    field: DisplacementField | None = None,
+    params: CorrelationParams | None = None,
+    **options,
+) -> DisplacementField:
+    """Blocking form of :func:`correct_iter` (same parameters, no progress)."""
+    return run_to_completion(correct_iter(reference, deformed, field, params, **options))

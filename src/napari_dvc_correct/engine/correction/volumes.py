@@ -1,0 +1,222 @@
+"""The volume operations of the self-correction, behind one small interface (issue 13).
+
+:func:`.self_correction.correct_volumes_iter` is the one correction loop (clean, judge, warp, correlate,
+compose, accept node by node, stop). Everything it does to the *volumes* goes through a
+:class:`CorrectionVolumes`; the node arrays (fields) always stay in memory:
+
+* :meth:`~CorrectionVolumes.correlate`: a DVC run (step a, or the correcting DVC of step e on
+  the pair :meth:`~CorrectionVolumes.matching_pair` gives);
+* :meth:`~CorrectionVolumes.align`: bring the pair together with a field (the forward warp of
+  ``G`` in the loaded frame, the pull-back of ``F`` in the reference frame) and the mean gray
+  residual of that field;
+* :meth:`~CorrectionVolumes.matching_pair`: ``(G', F, warped mask)`` or ``(G, F~, mask)`` for
+  the correcting DVC;
+* :meth:`~CorrectionVolumes.residuals`: the reference-frame residuals the local acceptance
+  (:class:`.acceptance.Judge`) judges nodes by (:class:`.acceptance.ReferenceResiduals`
+  in memory);
+* :meth:`~CorrectionVolumes.release` and :meth:`~CorrectionVolumes.close`: drop a moved volume
+  that is no longer needed, and everything at the end (also on error or cancel).
+
+:class:`InMemoryVolumes` is the in-memory back-end (whole arrays, prefiltered once; the results of
+:func:`.self_correction.correct_iter`). The out-of-core back-end, lazily read volumes batch by batch on
+Dask, is ``napari_dvc_correct.tiled.correction.TiledVolumes`` (above the engine).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+
+import numpy as np
+
+from ..correlation.correlate import Prefiltered, correlate_iter
+from ..correlation.interpolation import prefilter
+from ..correlation.params import CorrelationParams
+from ..evaluation.gray_levels import GrayLevelMap, fit_gray_levels, start_map
+from ..evaluation.phases import otsu_stride
+from ..fields import warp
+from ..fields.field import DisplacementField
+from ..fields.field_spline import FieldSpline
+from ..progress import Progress
+from .acceptance import ReferenceResiduals
+
+
+class CorrectionVolumes:
+    """What the correction loop needs of a pair of volumes (the interface; see the module).
+
+    Attributes
+    ----------
+    frame : {"loaded", "reference"}
+        The frame the correcting DVC matches in.
+    shape : tuple of 3 ints
+        ``(nz, ny, nx)`` of the volumes.
+    """
+
+    frame: str
+    shape: tuple
+    gray_levels: GrayLevelMap | None = None
+
+    def correlate(
+        self,
+        params: CorrelationParams,
+        pair=None,
+        *,
+        grid=None,
+        initial: DisplacementField | None = None,
+        active=None,
+    ) -> Generator[Progress, None, DisplacementField]:
+        """A DVC run: of ``(G, F)`` with the input mask when ``pair`` is None (step a), else of
+        ``pair = (g, f, mask)`` from :meth:`matching_pair`, on ``grid`` from ``initial``; only
+        the POIs of ``active`` (bool, the grid's shape) when given, the others
+        ``Status.NOT_COMPUTED`` (:func:`.correlate.correlate_iter`)."""
+        raise NotImplementedError
+
+    def align(self, field: DisplacementField) -> Generator[Progress, None, tuple[object, float]]:
+        """The moved volume for the next DVC and the mean gray residual of ``field`` (reference
+        gray levels, in the frame's sense: ``|map(F) - G'|`` over the loaded voxels whose
+        reference position lies in the grid's hull, or ``|map(F~) - G|`` over the hull, with the
+        gray-level map :attr:`gray_levels`, the identity until it is fitted)."""
+        raise NotImplementedError
+
+    def matching_pair(self, moved, field: DisplacementField) -> Generator[Progress, None, tuple]:
+        """``(reference, deformed, mask)`` for the correcting DVC of step e."""
+        raise NotImplementedError
+
+    def fit_gray_levels(self, field: DisplacementField) -> Generator[Progress, None, GrayLevelMap]:
+        """Fit the pair's gray-level map with ``field`` (:mod:`.gray_levels`), keep it as
+        :attr:`gray_levels` for :meth:`align` and :meth:`residuals`, and return it."""
+        raise NotImplementedError
+
+    def residuals(self) -> Generator[Progress, None, object]:
+        """The reference-frame residual access of the local acceptance (see
+        :class:`.acceptance.ReferenceResiduals` for the methods), with
+        :attr:`gray_levels`."""
+        raise NotImplementedError
+
+    def release(self, moved) -> None:
+        """``moved`` (from :meth:`align`) is no longer needed."""
+
+    def close(self) -> None:
+        """Free what the back-end holds (temporary files, connections); called once at the end."""
+
+
+def _finite_or_fill(volume: np.ndarray, fill: float) -> np.ndarray:
+    volume = np.asarray(volume, dtype=np.float32)
+    bad = ~np.isfinite(volume)
+    if bad.any():
+        volume = volume.copy()
+        volume[bad] = fill
+    return volume
+
+
+def _hull_mean(difference: np.ndarray, hull) -> float:
+    block = difference[hull]
+    finite = np.isfinite(block)
+    return float(np.mean(block[finite], dtype=np.float64)) if finite.any() else float("nan")
+
+
+class InMemoryVolumes(CorrectionVolumes):
+    """The two volumes as arrays with their spline coefficients, prefiltered once for every pass.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        ``G`` and ``F`` (checked by the caller), any real dtype; held as float32.
+    frame : {"loaded", "reference"}
+    mask : ndarray, optional
+        Reference-space material mask (non-zero = inside).
+    """
+
+    def __init__(self, reference, deformed, frame: str, mask=None):
+        self._inputs = (reference, deformed, mask)
+        self.reference = np.ascontiguousarray(reference, dtype=np.float32)
+        self.deformed = np.ascontiguousarray(deformed, dtype=np.float32)
+        self.shape = self.reference.shape
+        self.frame = frame
+        self.mask = None if mask is None else np.asarray(mask) != 0
+        self._coef_deformed = None
+        if frame == "reference":
+            self.coefficients = prefilter(self.deformed)
+            self.fill = float(np.mean(self.deformed))
+        else:
+            self.coefficients = prefilter(self.reference)
+            self.fill = float(np.mean(self.reference))
+            self.mask_coefficients = (
+                None if self.mask is None else prefilter(self.mask.astype(np.float32))
+            )
+
+    def correlate(self, params, pair=None, *, grid=None, initial=None, active=None):
+        if pair is None:
+            reference, deformed, mask = self._inputs
+            return correlate_iter(reference, deformed, params, mask=mask)
+        g, f, mask = pair
+        return correlate_iter(
+            g, f, params, mask=mask, grid=grid, initial=initial, active=active,
+            prefiltered=self._unchanged_side(),
+        )  # fmt: skip
+
+    def _unchanged_side(self) -> Prefiltered | None:
+        """``F``'s coefficients in the loaded frame, whose every pass matches ``(G', F)``: held
+        anyway for the residuals, so computed once. In the reference frame (pairs ``(G, F~)``)
+        ``∇G`` is recomputed per pass (about 10 ms per million voxels) rather than held
+        (12 bytes per voxel) between passes."""
+        if self.frame == "reference":
+            return None
+        return Prefiltered(coef_deformed=self._deformed_coefficients())
+
+    def _deformed_coefficients(self) -> np.ndarray:
+        if self.frame == "reference":
+            return self.coefficients
+        if self._coef_deformed is None:
+            self._coef_deformed = prefilter(self.deformed)
+        return self._coef_deformed
+
+    def fit_gray_levels(self, field):
+        spline = FieldSpline.from_field(field)
+        moved = warp.pull_back(
+            self.deformed, spline, coefficients=self._deformed_coefficients(), cval=np.nan
+        )
+        # the first guess from the raw scans' lattice, as the tiled back-end's statistics pass
+        lattice = (slice(None, None, otsu_stride(self.shape)),) * 3
+        start = start_map(self.reference[lattice], self.deformed[lattice])
+        self.gray_levels = fit_gray_levels(self.reference, moved, start=start)
+        return self.gray_levels
+        yield
+
+    def align(self, field):
+        spline = FieldSpline.from_field(field)
+        gray = self.gray_levels
+        if self.frame == "reference":
+            moved = warp.pull_back(
+                self.deformed, spline, coefficients=self.coefficients, cval=np.nan
+            )
+            mapped = moved if gray is None else gray.apply(moved)
+            residual = _hull_mean(
+                np.abs(mapped - self.reference), spline.hull_slices(self.reference.shape)
+            )
+        else:
+            moved, residual = warp.warp_forward_with_residual(
+                self.reference, self.deformed, spline, coefficients=self.coefficients,
+                gray_levels=gray,
+            )  # fmt: skip
+        return _finite_or_fill(moved, self.fill), residual
+        yield  # a generator without progress: the arrays are at hand
+
+    def matching_pair(self, moved, field):
+        if self.frame == "reference":
+            return self.reference, moved, self.mask
+        mask = None
+        if self.mask is not None:
+            warped = warp.warp_forward(
+                self.mask, field, coefficients=self.mask_coefficients, cval=0.0
+            )
+            mask = warped > 0.5
+            if not mask.any():
+                mask = None
+        return moved, self.deformed, mask
+        yield
+
+    def residuals(self):
+        return ReferenceResiduals(
+            self.reference, self.deformed, self._deformed_coefficients(), self.gray_levels
+        )
+        yield

@@ -1,0 +1,706 @@
+"""Local DVC: ``correlate(G, F, params) -> DisplacementField``.
+
+The pipeline, coarse to fine:
+
+1. prefilter ``F`` into B-spline coefficients and compute the gradient of ``G`` (once per volume);
+2. estimate the rigid shift of the whole specimen (phase correlation of binned volumes);
+3. on a binned pyramid (when the search radius exceeds a few voxels), search every POI's integer
+   displacement by FFT cross-correlation at the coarsest level and refine it with IC-GN level by
+   level;
+4. run IC-GN at full resolution for every POI in parallel, in batches that report progress;
+5. reliability-guided repair: POIs that failed, matched poorly or disagree with their neighbours are
+   matched again from the warps of their best converged neighbours, best first.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Generator
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from ..backend import select_device
+from ..fields.field import GOOD_STATUSES, DisplacementField, Status, grid_for_volume
+from ..progress import Progress, run_to_completion
+from ..validation import validate_volume
+from . import icgn, icgn_reference, icgn_uncertainty, shape_function
+from .guided_repair import repair, search_seeds, seed_guesses
+from .initial_guess import bin_volume, global_shift, pyramid_levels
+from .interpolation import prefilter
+from .match_judgement import MatchedGrid, judge_iter, match_statistics
+from .params import CorrelationParams
+
+_GOOD = np.array([int(s) for s in GOOD_STATUSES])
+
+
+#: Integer dtypes whose every value float32 holds exactly: a deformed volume of one of these is
+#: not copied to float32 by :func:`match_iter` (its kernels read it as it is, with the same values).
+_EXACT_IN_FLOAT32 = (np.uint8, np.int8, np.uint16, np.int16)
+
+#: ... from this many voxels (64 MiB as float32): below, the copy costs less than loading the
+#: prefilter's kernel for one more dtype at start-up.
+KEEP_INTEGER_FROM = 2**24
+
+
+def validate_pair(
+    reference, deformed, params: CorrelationParams, mask=None, *, exact_deformed=False
+):
+    """Check the inputs of a correlation; return float32 volumes and a boolean mask (or None).
+
+    ``exact_deformed``: a deformed volume of 8- or 16-bit integers of at least
+    :data:`KEEP_INTEGER_FROM` voxels is returned as it is (C order) rather than as a float32 copy
+    (every value is exact in float32; saves a volume of memory).
+
+    Raises
+    ------
+    ValueError
+        With a message that says what to change: not 3-D, shapes that differ, NaN or infinite
+        values, a subvolume larger than the volume, an empty mask or a mask of another shape.
+    """
+    reference = validate_volume(reference, "reference volume")
+    deformed = validate_volume(deformed, "deformed volume")
+    if reference.shape != deformed.shape:
+        raise ValueError(
+            f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
+            "same shape"
+        )
+    if params.subvolume > min(reference.shape):
+        from ..pair_checks import largest_subvolume_advice
+
+        raise ValueError(
+            f"subvolume {params.subvolume} is larger than the volume {reference.shape}: "
+            + largest_subvolume_advice(reference.shape)
+        )
+    reference = np.ascontiguousarray(reference, dtype=np.float32)
+    if (
+        exact_deformed
+        and deformed.dtype.type in _EXACT_IN_FLOAT32
+        and deformed.size >= KEEP_INTEGER_FROM
+    ):
+        deformed = np.ascontiguousarray(deformed)
+    else:
+        deformed = np.ascontiguousarray(deformed, dtype=np.float32)
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != reference.shape:
+            raise ValueError(f"mask shape {mask.shape} differs from the volume {reference.shape}")
+        if mask.dtype.kind == "f" and not np.all(np.isfinite(mask)):  # NaN != 0 is "material"
+            raise ValueError(
+                "the mask contains NaN or infinite values: use 0 = outside, 1 = material"
+            )
+        mask = np.ascontiguousarray(mask != 0)
+        if not mask.any():
+            raise ValueError("the mask is empty: no voxel is selected")
+    return reference, deformed, mask
+
+
+def _grid_centers(grid, volume_shape, half):
+    origin, step, shape = grid
+    axes = [np.asarray(origin[a]) + np.asarray(step[a]) * np.arange(shape[a]) for a in range(3)]
+    zz, yy, xx = np.meshgrid(*axes, indexing="ij")
+    points = np.stack([zz.ravel(), yy.ravel(), xx.ravel()], axis=1)
+    centers = np.rint(points).astype(np.int64)
+    if np.max(np.abs(points - centers), initial=0.0) > 1e-6:
+        raise ValueError("POI positions (origin + i * step) must be whole voxels")
+    inside = np.all((centers >= half) & (centers <= np.array(volume_shape) - 1 - half), axis=1)
+    return centers, inside
+
+
+def _read_only(volume: np.ndarray) -> np.ndarray:
+    """A read-only view: the kernels then see one array type whether the volume came from a
+    read-only memory map or was computed, so numba compiles (and loads) one signature, not two."""
+    view = volume.view()
+    view.flags.writeable = False
+    return view
+
+
+class Prefiltered(NamedTuple):
+    """Full-resolution arrays a caller already holds for the pair it correlates.
+
+    The self-correction matches every pass against one unchanged volume: ``F`` in the loaded
+    frame (its coefficients), ``G`` in the reference frame (its gradient), so it computes them
+    once. ``None`` entries are computed from the volumes as usual.
+
+    Attributes
+    ----------
+    gradient : ndarray (3, nz, ny, nx) float32, optional
+        ``∇G`` of the reference's B-spline interpolant (:func:`.icgn_reference.gradient_volume`).
+    coef_deformed : ndarray (nz, ny, nx) float32, optional
+        ``F``'s B-spline coefficients (:func:`.interpolation.prefilter`).
+    """
+
+    gradient: np.ndarray | None = None
+    coef_deformed: np.ndarray | None = None
+
+    def check(self, shape) -> None:
+        shape = tuple(shape)
+        if self.gradient is not None and tuple(self.gradient.shape) != (3, *shape):
+            raise ValueError(f"gradient {self.gradient.shape} does not fit volumes {shape}")
+        if self.coef_deformed is not None and tuple(self.coef_deformed.shape) != shape:
+            raise ValueError(f"coefficients {self.coef_deformed.shape} do not fit volumes {shape}")
+
+
+@dataclass
+class PyramidLevel:
+    """Everything IC-GN needs at one pyramid level."""
+
+    factor: int
+    reference: np.ndarray
+    deformed: np.ndarray
+    gradient: np.ndarray
+    coef_deformed: np.ndarray
+    mask: np.ndarray
+    use_mask: bool
+    half: int
+    min_std: float
+    device: str = "cpu"  # "cuda": IC-GN runs on the GPU (engine.cuda)
+
+    @classmethod
+    def build(
+        cls, factor, reference, deformed, mask, half, min_texture, device="cpu", std=None,
+        prefiltered=None,
+    ):  # fmt: skip
+        """The level of binning ``factor``; ``prefiltered`` (:class:`Prefiltered`, factor 1 only)
+        gives ``∇G`` and ``F``'s coefficients already computed for these volumes."""
+        if factor > 1:
+            reference = bin_volume(reference, factor)
+            deformed = bin_volume(deformed, factor)
+            if mask is not None:
+                mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
+            prefiltered = None
+        if std is None:  # else: the whole volume's, when these are a region of it (tiled)
+            # before the level's arrays exist: np.std makes a temporary copy of the volume
+            std = float(np.std(reference[mask] if mask is not None else reference))
+        prefiltered = Prefiltered() if prefiltered is None else prefiltered
+        prefiltered.check(reference.shape)
+        gradient = prefiltered.gradient
+        if gradient is None:
+            gradient = icgn_reference.gradient_volume(prefilter(reference))
+        coef_deformed = prefiltered.coef_deformed
+        if coef_deformed is None:
+            coef_deformed = prefilter(deformed)
+        return cls(
+            factor=factor,
+            reference=_read_only(reference),
+            deformed=deformed,
+            gradient=gradient,
+            coef_deformed=coef_deformed,
+            mask=mask if mask is not None else np.zeros((1, 1, 1), np.bool_),
+            use_mask=mask is not None,
+            half=half,
+            min_std=min_texture * std,
+            device=device,
+        )
+
+    def centers_from_fine(self, centers):
+        """Nearest coarse voxels to fine positions, kept where the subvolume fits."""
+        f = self.factor
+        coarse = np.rint((centers - (f - 1) / 2.0) / f).astype(np.int64)
+        high = np.array(self.reference.shape) - 1 - self.half
+        return np.clip(coarse, self.half, np.maximum(high, self.half))
+
+    def statistics(self, centers, warps, zncc, order, sensitivity, out, index):
+        """Fill ``out``'s variance, gradient power and sigma at ``index``.
+
+        (:func:`.icgn_uncertainty.subvolume_statistics`; ``out`` is ``(variance, power, sigma)``,
+        an entry None where not wanted.)
+        """
+        if len(centers) == 0:
+            return
+        var = np.empty(len(centers))
+        power = np.empty(len(centers))
+        sig = np.empty((len(centers), 3))
+        icgn_uncertainty.subvolume_statistics(
+            self.reference,
+            self.gradient,
+            self.coef_deformed,
+            self.mask,
+            self.use_mask,
+            np.ascontiguousarray(centers, dtype=np.int64),
+            self.half,
+            shape_function.n_monomials(order),
+            np.ascontiguousarray(warps, dtype=np.float64),
+            np.ascontiguousarray(zncc, dtype=np.float64),
+            np.ascontiguousarray(sensitivity, dtype=np.bool_),
+            var,
+            power,
+            sig,
+        )
+        for target, values in zip(out, (var, power, sig)):
+            if target is not None:  # None: not wanted
+                target[index] = values
+
+    def moments(self, centers, order, out, index):
+        """Fill ``out = (variance, power)`` at ``index`` (:func:`.icgn_uncertainty.subvolume_moments`)."""
+        var = np.full(len(centers), np.nan)
+        power = np.full(len(centers), np.nan)
+        if len(centers):
+            icgn_uncertainty.subvolume_moments(
+                self.reference,
+                self.gradient,
+                self.mask,
+                self.use_mask,
+                np.ascontiguousarray(centers, dtype=np.int64),
+                self.half,
+                shape_function.n_monomials(order),
+                var,
+                power,
+            )
+        out[0][index] = var
+        out[1][index] = power
+
+    def inputs(self, order, params: CorrelationParams) -> icgn.MatchInputs:
+        """The kernels' argument bundle at this level for ``params``."""
+        return icgn.MatchInputs(
+            reference=self.reference,
+            gradient=self.gradient,
+            coef_deformed=self.coef_deformed,
+            mask=self.mask,
+            use_mask=bool(self.use_mask),
+            half=int(self.half),
+            nb=shape_function.n_monomials(order),
+            max_iterations=int(params.max_iterations),
+            tolerance=float(params.tolerance),
+            min_std=float(self.min_std),
+            min_mask_fraction=float(params.min_mask_fraction),
+            max_update=float(max(self.half, params.min_max_update)),
+            noise_fraction=float(params.noise_tolerance),
+        )
+
+    def match(self, centers, warps, order, params):
+        """IC-GN at ``centers`` from ``warps`` (N, 3·nb), updated in place.
+
+        ``params`` is the run's :class:`CorrelationParams`. Returns ``(zncc, status,
+        iterations)``.
+        """
+        n = len(centers)
+        zncc = np.full(n, np.nan)
+        status = np.full(n, int(Status.NOT_COMPUTED), np.int64)
+        iterations = np.zeros(n, np.int64)
+        if n == 0:
+            return zncc, status, iterations
+        if self.device == "cuda":
+            from ..cuda import match_many_cuda as kernel  # same arguments as icgn.match_many
+        else:
+            kernel = icgn.match_many
+        kernel(
+            self.inputs(order, params),
+            np.ascontiguousarray(centers, dtype=np.int64),
+            warps,
+            zncc,
+            status,
+            iterations,
+        )
+        return zncc, status, iterations
+
+
+def _pyramid_level(lev, reference, deformed, mask, params, device_kind, texture_std):
+    """:class:`PyramidLevel` ``lev`` (factor ``2**lev``) as :func:`correlate_iter` builds it."""
+    return PyramidLevel.build(
+        2**lev,
+        reference,
+        deformed,
+        mask,
+        params.half if lev == 0 else max(4, params.half // 2**lev),
+        params.min_texture,
+        device_kind,
+        std=None if texture_std is None else texture_std[2**lev],
+    )
+
+
+def correlate_seeds(
+    reference,
+    deformed,
+    params: CorrelationParams,
+    centers,
+    *,
+    levels: int,
+    rigid_shift,
+    mask=None,
+    texture_std=None,
+    device="cpu",
+):
+    """The seeds of :func:`correlate_iter`'s initial guess, matched at ``centers`` alone.
+
+    What :func:`.guided_repair.seed_guesses` computes for its seeds at the coarsest of
+    ``levels`` pyramid levels: FFT search within the level's radius around ``rigid_shift``, then
+    IC-GN (:func:`.guided_repair.search_seeds`). For :mod:`.tiled`'s seed pass, on a region
+    of the volumes.
+
+    Parameters
+    ----------
+    reference, deformed, mask, texture_std, device
+        As for :func:`correlate_iter` (volumes may be a region of the whole ones).
+    centers : ndarray of int, shape (S, 3)
+        Seed POI centres, voxels of ``reference``.
+    levels : int
+        Pyramid levels of the whole volume.
+    rigid_shift : array-like of 3 ints
+        The whole volume's rigid shift (voxels).
+
+    Returns
+    -------
+    params : ndarray, shape (S, 3·nb)
+        Shape-function parameters at the coarsest level (its voxels).
+    zncc, status : ndarray, shape (S,)
+    level_centers : ndarray of int, shape (S, 3)
+        The seeds' centres at that level, in its voxels of ``reference``.
+    """
+    device = select_device(device)
+    reference, deformed, mask = validate_pair(reference, deformed, params, mask)
+    level = _pyramid_level(levels, reference, deformed, mask, params, device.kind, texture_std)
+    level_centers = level.centers_from_fine(np.asarray(centers, np.int64).reshape(-1, 3))
+    shift = np.rint(np.asarray(rigid_shift, np.float64)).astype(np.int64).reshape(3)
+    radius = params.effective_search_radius
+    coarse_radius = int(np.ceil(radius / 2**levels)) + (1 if levels else 0)
+    seed_params, zncc, status = search_seeds(
+        level, level_centers, shift / 2**levels, coarse_radius, params.order, params
+    )
+    return seed_params, zncc, status, level_centers
+
+
+def match_iter(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    params: CorrelationParams | None = None,
+    *,
+    mask: np.ndarray | None = None,
+    grid: tuple | None = None,
+    initial: DisplacementField | None = None,
+    rigid_shift=None,
+    device="cpu",
+    texture_std=None,
+    grid_anchor=None,
+    seeds=None,
+    active=None,
+    prefiltered=None,
+) -> Generator[Progress, None, tuple[MatchedGrid, PyramidLevel]]:
+    """The first half of :func:`correlate_iter` (same parameters): the POIs matched, not judged.
+
+    Prefilter, initial guess and full-resolution IC-GN, then each POI's subvolume statistics
+    (:func:`.match_judgement.match_statistics`); :func:`.match_judgement.judge_iter` does the rest. :mod:`..tiled`
+    runs the two halves as separate tasks, with the whole run's noise estimate in between.
+
+    Returns
+    -------
+    matched : judge.MatchedGrid
+    fine : PyramidLevel
+        The full-resolution level (the volumes' prefilter and gradient), for the judge's repair.
+    """
+    params = CorrelationParams() if params is None else params
+    device = select_device(device)
+    start_time = time.perf_counter()
+    timings = {}
+    reference, deformed, mask = validate_pair(
+        reference, deformed, params, mask, exact_deformed=True
+    )
+    if grid is None:
+        grid = grid_for_volume(reference.shape, params.subvolume, params.step)
+    origin, step, grid_shape = grid
+    grid_shape = tuple(int(n) for n in grid_shape)
+    if min(grid_shape) < 1:
+        raise ValueError(f"the POI grid is empty (shape {grid_shape})")
+    half = params.half
+    centers, inside = _grid_centers(grid, reference.shape, half)
+    n_points = len(centers)
+    order = params.order
+    nb = shape_function.n_monomials(order)
+    if initial is not None and initial.shape != grid_shape:
+        raise ValueError(
+            f"initial field grid {initial.shape} differs from the POI grid {grid_shape}"
+        )
+
+    def build_fine():
+        yield Progress("prefilter", 0, 1, "prefiltering the volumes")
+        started = time.perf_counter()
+        level = PyramidLevel.build(
+            1,
+            reference,
+            deformed,
+            mask,
+            half,
+            params.min_texture,
+            device.kind,
+            std=None if texture_std is None else texture_std[1],
+            prefiltered=prefiltered,
+        )
+        timings["prefilter_s"] = time.perf_counter() - started
+        yield Progress("prefilter", 1, 1, "volumes prefiltered")
+        return level
+
+    radius = params.effective_search_radius
+    timings["prefilter_s"] = 0.0
+    # with a pyramid, the full-resolution level (∇G, F's coefficients: five volumes) is built
+    # after the coarse levels are done with, so that the two never take memory together
+    fine = None
+    if (
+        initial is not None
+        or seeds is None
+        and (pyramid_levels(radius, params.subvolume, reference.shape) == 0)
+    ):
+        fine = yield from build_fine()
+
+    built_early = fine is not None
+    t0 = time.perf_counter()
+    if initial is not None:
+        guess_params = shape_function.displacement_to_params(
+            initial.displacement,
+            None if initial.gradient is None else initial.gradient.reshape(-1, 3, 3),
+            order,
+        )
+        shift = np.zeros(3, np.int64)
+        levels = 0
+    else:
+        yield Progress("initial guess", 0, 1, "estimating the rigid shift")
+        shift = (
+            global_shift(reference, deformed)
+            if rigid_shift is None
+            else np.rint(np.asarray(rigid_shift, np.float64)).astype(np.int64).reshape(3)
+        )
+        levels = (
+            pyramid_levels(radius, params.subvolume, reference.shape)
+            if seeds is None
+            else int(seeds.levels)
+        )
+        guess_params = None
+        guess_counts = {}
+        for lev in range(levels, -1, -1):
+            if lev == 0 and fine is None:
+                level = None  # the coarse level's memory is free before the fine one is built
+                fine = yield from build_fine()
+            level = (
+                fine
+                if lev == 0
+                else _pyramid_level(
+                    lev, reference, deformed, mask, params, device.kind, texture_std
+                )
+            )
+            level_centers = level.centers_from_fine(centers)
+            if guess_params is None:
+                coarse_radius = int(np.ceil(radius / 2**lev)) + (1 if lev else 0)
+                guess_params = seed_guesses(
+                    level,
+                    level_centers,
+                    grid_shape,
+                    shift / 2**lev,
+                    coarse_radius,
+                    order,
+                    params,
+                    anchor=grid_anchor,
+                    seeds=seeds,
+                )
+                yield Progress("initial guess", 1, levels + 2, f"seeds matched (level {lev})")
+            if lev == 0:
+                break
+            before = guess_params.copy()
+            zncc_l, status_l, its_l = level.match(level_centers, guess_params, order, params)
+            repair(
+                level,
+                level_centers,
+                grid_shape,
+                guess_params,
+                zncc_l,
+                status_l,
+                its_l,
+                order,
+                params,
+                counts=guess_counts,
+            )
+            failed = ~np.isin(status_l, _GOOD)
+            guess_params[failed] = before[failed]  # keep the carried guess where matching failed
+            shaped = guess_params.reshape(-1, 3, nb)
+            shaped[:, :, 0] *= 2.0  # displacement in the next finer voxels
+            if nb == 10:
+                shaped[:, :, 4:] /= 2.0  # second derivatives scale with 1 / factor
+            yield Progress("initial guess", levels - lev + 2, levels + 2, f"level {lev} refined")
+        for name, value in guess_counts.items():
+            timings[f"{name}_guess"] = value
+    if fine is None:  # seeds=GivenSeeds with no level
+        fine = yield from build_fine()
+    timings["initial_guess_s"] = (
+        time.perf_counter() - t0 - (0.0 if built_early else timings["prefilter_s"])
+    )
+
+    # full-resolution IC-GN in batches
+    t0 = time.perf_counter()
+    params_out = np.ascontiguousarray(guess_params, dtype=np.float64)
+    zncc = np.full(n_points, np.nan)
+    status = np.full(n_points, int(Status.OUT_OF_BOUNDS), np.int64)
+    iterations = np.zeros(n_points, np.int64)
+    todo = np.flatnonzero(inside)
+    if active is not None:
+        chosen = np.asarray(active, bool).reshape(-1)
+        todo = todo[chosen[todo]]
+        status[~chosen] = int(Status.NOT_COMPUTED)
+    batch = params.batch_size
+    for start in range(0, len(todo), batch):
+        index = todo[start : start + batch]
+        sub_params = np.ascontiguousarray(params_out[index])
+        z_b, s_b, i_b = fine.match(centers[index], sub_params, order, params)
+        params_out[index] = sub_params
+        zncc[index] = z_b
+        status[index] = s_b
+        iterations[index] = i_b
+        yield Progress(
+            "IC-GN",
+            min(start + batch, len(todo)),
+            len(todo),
+            f"matched {min(start + batch, len(todo))} of {len(todo)} POIs",
+        )
+    timings["icgn_s"] = time.perf_counter() - t0
+    timings["voxel_iterations"] = int(iterations.sum()) * params.subvolume**3
+
+    # the noise estimates' ingredients (judge.match_statistics)
+    t0 = time.perf_counter()
+    matched = MatchedGrid(
+        grid=(origin, step, grid_shape),
+        centers=centers,
+        todo=todo,
+        params=params_out,
+        zncc=zncc,
+        status=status,
+        iterations=iterations,
+        variance=np.full(n_points, np.nan),
+        power=np.full(n_points, np.nan),
+        sigma=np.full((n_points, 3), np.nan),
+        metadata={
+            "volume_shape": list(reference.shape),
+            "global_shift": [int(s) for s in shift],
+            "pyramid_levels": int(levels),
+            "timings": timings,
+            "masked": mask is not None,
+            "device": device.description,
+        },
+        started=start_time,
+    )
+    match_statistics(fine, matched, order)
+    timings["noise_s"] = time.perf_counter() - t0
+    return matched, fine
+
+
+def correlate_iter(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    params: CorrelationParams | None = None,
+    *,
+    mask: np.ndarray | None = None,
+    grid: tuple | None = None,
+    initial: DisplacementField | None = None,
+    rigid_shift=None,
+    device="cpu",
+    texture_std=None,
+    grid_anchor=None,
+    seeds=None,
+    active=None,
+    prefiltered=None,
+) -> Generator[Progress, None, DisplacementField]:
+    """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        The two volumes, any real dtype (processed as float32). Axis order (z, y, x).
+    params : CorrelationParams, optional
+        Subvolume, step, shape-function order, search radius... (defaults if None).
+    mask : ndarray of bool, shape (nz, ny, nx), optional
+        Reference-space mask of the material: only voxels inside it enter the matching, and POIs
+        with less than ``params.min_mask_fraction`` of their subvolume inside get ``MASKED``.
+    grid : (origin, step, shape), optional
+        POI grid in reference voxels; whole-voxel positions. Default:
+        :func:`grid_for_volume` ``(shape, subvolume, step)``.
+    initial : DisplacementField, optional
+        Initial guess on the same grid (skips the global and FFT searches).
+    rigid_shift : array-like of 3 ints, optional
+        Rigid shift ``(z, y, x)`` voxels to search around instead of estimating it from these
+        volumes: the whole volume's shift when they are a region of larger volumes
+        (:mod:`.tiled`).
+    texture_std : mapping of int to float, optional
+        Gray standard deviation of the whole reference volume (inside the mask) binned by each
+        pyramid factor ``1, 2, 4...``, for the low-texture test, when these volumes are a region
+        of larger ones (:mod:`.tiled`). Default: computed from these volumes.
+    grid_anchor : (offset, whole_shape), optional
+        When ``grid`` is a box of a larger POI grid (a batch of :mod:`.tiled`): the whole-grid
+        index ``(z, y, x)`` of its first POI and the whole grid's shape, so that the seeds of the
+        initial guess are the whole grid's (:func:`.guided_repair.seed_axes`) and the batch
+        computes what the in-memory run computes for its POIs. Default: ``grid`` is the whole
+        grid.
+    seeds : guided_repair.GivenSeeds, optional
+        The seeds of the initial guess, matched and judged on the whole grid (:mod:`.tiled`'s
+        seed pass): every POI starts from its nearest good seed of the whole grid, as in memory,
+        and the pyramid has the whole volume's ``seeds.levels``. Default: seeds searched here.
+    active : ndarray of bool, shape of the grid, optional
+        Match only these POIs (the self-correction's selective passes, :mod:`.self_correction`); the
+        others get ``Status.NOT_COMPUTED`` and NaN, and take no part in the noise estimate, the
+        thresholds or the repair. Default: every POI.
+    prefiltered : Prefiltered, optional
+        ``∇G`` and/or ``F``'s coefficients already computed for exactly these volumes (the
+        self-correction's unchanged volume, computed once for all passes). Default: computed.
+    device : {"cpu", "cuda", "auto"} or backend.Device
+        Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
+        a warning). The field's ``metadata["device"]`` says which was used.
+
+    Yields
+    ------
+    Progress
+        One report per stage and per batch of POIs.
+
+    Returns
+    -------
+    DisplacementField
+        ``u`` in voxels at each POI, with ``zncc``, ``status``, ``iterations`` and the shape
+        function's displacement ``gradient``.
+    """
+    params = CorrelationParams() if params is None else params
+    matched, fine = yield from match_iter(
+        reference,
+        deformed,
+        params,
+        mask=mask,
+        grid=grid,
+        initial=initial,
+        rigid_shift=rigid_shift,
+        device=device,
+        texture_std=texture_std,
+        grid_anchor=grid_anchor,
+        seeds=seeds,
+        active=active,
+        prefiltered=prefiltered,
+    )
+    field, _ = yield from judge_iter(matched, fine, params)
+    return field
+
+
+# correlate repeats correlate_iter's signature (the duplicate finder pairs them): the blocking
+# form of the generator keeps the same keywords, spelt out so that help() shows them.
+def correlate(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    params: CorrelationParams | None = None,
+    *,
+    mask: np.ndarray | None = None,
+    grid: tuple | None = None,
+    initial: DisplacementField | None = None,
+    rigid_shift=None,
+    device="cpu",
+    texture_std=None,
+    grid_anchor=None,
+    seeds=None,
+) -> DisplacementField:
+    """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
+    return run_to_completion(
+        correlate_iter(
+            reference,
+            deformed,
+            params,
+            mask=mask,
+            grid=grid,
+            initial=initial,
+            rigid_shift=rigid_shift,
+            device=device,
+            texture_std=texture_std,
+            grid_anchor=grid_anchor,
+            seeds=seeds,
+        )
+    )

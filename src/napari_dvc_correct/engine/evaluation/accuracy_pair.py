@@ -1,0 +1,208 @@
+"""What an accuracy evaluation measures once per scan pair: the gray-level map and ``r0`` (issue 26).
+
+The background residual ``r0`` of eq. 1 estimates the imaging noise, and the gray-level map
+(:mod:`.gray_levels`) the brightness change between the scans: both belong to the pair of scans,
+not to a field (the paper's Table 1 gives one per scan). A wrong field adds misplaced texture to
+its same-phase residual and bends a map fitted through it, so both are measured with the *best
+field available* on the pair: each candidate field (every field known on the pair, whichever of
+them are evaluated) brings the loaded scan back (``F~ = F(X + u(X))``), a map is fitted through
+it, and the candidate whose gray-level-corrected same-phase residual is smallest gives the pair's
+map and ``r0``. Every field of the pair is then judged with that map and against that ``r0``, so
+a field's numbers do not depend on which other fields are evaluated with it.
+
+Residuals here are in the reference frame, ``|map(F~) - G|`` on reference voxels, in the
+reference's gray levels; the reference's phase thresholds phase both sides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..fields.field_spline import FieldSpline
+from .accuracy_blocks import BackgroundResidual
+from .gray_levels import (
+    DEFAULT_CELL,
+    CellSums,
+    GrayLevelMap,
+    block_sums,
+    cells_shape,
+    fit_from_passes,
+    start_map,
+)
+from .phase_sums import residual_phase_sums
+from .phases import otsu_stride
+
+#: z-slab of the in-memory passes (voxels).
+SLAB = 32
+
+
+@dataclass(frozen=True)
+class PairStatistics:
+    """The scan pair's gray-level map and background residual.
+
+    Attributes
+    ----------
+    gray_levels : GrayLevelMap
+        ``G ≈ contrast(X) · F~ + offset(X)`` (identity when the evaluation is asked for the raw
+        residual).
+    background : BackgroundResidual
+        ``r0`` of eq. 1 with that map, reference gray levels.
+    measured_with : str
+        Name of the field both were measured with.
+    candidates : dict of str -> float
+        Each candidate field's same-phase residual (the smallest was kept).
+    """
+
+    gray_levels: GrayLevelMap
+    background: BackgroundResidual
+    measured_with: str
+    candidates: dict
+
+    def to_dict(self) -> dict:
+        """JSON-ready (reports, layer metadata)."""
+        return {
+            "background_residual": float(self.background.mean),
+            "background_voxels": int(self.background.voxels),
+            "measured_with": self.measured_with,
+            "candidates": {k: float(v) for k, v in self.candidates.items()},
+            "gray_levels": self.gray_levels.to_dict(),
+        }
+
+
+def background_from_sums(same_sums, same_counts, max_label) -> BackgroundResidual:
+    count = int(np.sum(same_counts))
+    if count == 0:
+        return BackgroundResidual(float("inf"), 0, ())
+    per_phase = tuple(
+        (k, float(same_sums[k] / same_counts[k]) if same_counts[k] else np.nan, int(same_counts[k]))
+        for k in range(max_label + 1)
+    )
+    return BackgroundResidual(float(np.sum(same_sums) / count), count, per_phase)
+
+
+def pair_start_map(reference_sample, deformed_sample) -> GrayLevelMap:
+    """The first guess of the map from lattice samples of ``G`` and ``F`` (the scans' own
+    histograms: :func:`.gray_levels.start_map`), the same in memory and block by block."""
+    return start_map(reference_sample, deformed_sample)
+
+
+def lattice(volume) -> np.ndarray:
+    """The lattice sample ``volume[::s, ::s, ::s]`` of multi-Otsu (:func:`.phases.otsu_stride`)."""
+    stride = otsu_stride(np.shape(volume))
+    return np.asarray(volume[::stride, ::stride, ::stride]).ravel()
+
+
+def same_phase_block(reference_block, moved_block, labels_block, thresholds, gray, region):
+    """Eq. 1's same-phase sums of one block: ``(sums, counts, max_label)`` of
+    ``|gray(moved) - G|`` where both sides hold the same phase."""
+    sums = residual_phase_sums(
+        reference_block, gray.apply(moved_block, region), labels_block, thresholds
+    )
+    return sums.same_sums, sums.same_counts, sums.max_label
+
+
+def choose_best(candidates: dict) -> PairStatistics:
+    """The candidate (name -> (map, BackgroundResidual)) with the smallest ``r0``."""
+    name = min(candidates, key=lambda k: candidates[k][1].mean)
+    gray, background = candidates[name]
+    if not np.isfinite(background.mean):
+        raise ValueError(
+            "no voxel holds the same phase in both states with a finite residual for any field: "
+            "the background residual is undefined (check the thresholds and the fields)"
+        )
+    values = {k: float(v[1].mean) for k, v in candidates.items()}
+    return PairStatistics(gray, background, name, values)
+
+
+def _slabs(shape):
+    for z0 in range(0, shape[0], SLAB):
+        yield (slice(z0, min(z0 + SLAB, shape[0])), slice(0, shape[1]), slice(0, shape[2]))
+
+
+def measure_pair(
+    reference: np.ndarray,
+    deformed: np.ndarray,
+    candidates: dict,
+    thresholds_moved,
+    labels_reference: np.ndarray,
+    *,
+    fit_map: bool = True,
+    gray_levels: GrayLevelMap | None = None,
+    deformed_coefficients: np.ndarray | None = None,
+    cell: int = DEFAULT_CELL,
+    region: np.ndarray | None = None,
+) -> PairStatistics:
+    """The pair's map and ``r0``, measured with the best of ``candidates`` (see the module).
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        ``G`` and ``F``.
+    candidates : dict of str -> DisplacementField
+        The fields known on the pair (finite at every node).
+    thresholds_moved : ndarray, shape (N - 1,)
+        The thresholds that phase ``map(F~)``: the reference's with a map (both sides are then
+        in its gray levels), the deformed scan's without.
+    labels_reference : ndarray of uint8, shape (nz, ny, nx)
+        The reference's phases.
+    fit_map : bool
+        Fit the gray-level map (False: the identity, the raw residual).
+    gray_levels : GrayLevelMap, optional
+        A map known already (then nothing is fitted: only ``r0`` is measured with it).
+    deformed_coefficients : ndarray, optional
+        ``interpolation.prefilter(F)``, to reuse.
+    cell : int
+        Cell of the local map (voxels), as :func:`.gray_levels.fit_gray_levels`.
+    region : ndarray of bool, shape (nz, ny, nx), optional
+        The specimen: the map and ``r0`` use only its voxels.
+
+    Raises
+    ------
+    ValueError
+        Without candidates, or when no candidate leaves a voxel of the same phase in both
+        states.
+    """
+    from ..correlation.interpolation import prefilter
+    from ..fields import warp
+    from ..progress import run_to_completion
+
+    if not candidates:
+        raise ValueError("measuring the pair's background residual needs at least one field")
+    coefficients = prefilter(deformed) if deformed_coefficients is None else deformed_coefficients
+    shape = tuple(int(n) for n in reference.shape)
+    start = pair_start_map(lattice(reference), lattice(deformed))
+    measured = {}
+    for name, field in candidates.items():
+        moved = warp.pull_back(
+            deformed,
+            FieldSpline.from_field(field),
+            coefficients=coefficients,
+            cval=np.nan,
+            outside="nan",  # inside the grid's hull, where the field was measured
+        )
+        if region is not None:
+            moved[~region] = np.nan
+
+        def sums_with(previous, moved=moved):
+            total = CellSums.zeros(cells_shape(shape, cell))
+            for box in _slabs(shape):
+                total.add(block_sums(reference[box], moved[box], box, shape, cell, previous))
+            return total
+            yield
+
+        if gray_levels is not None:
+            gray = gray_levels
+        elif fit_map:
+            gray = run_to_completion(fit_from_passes(sums_with, start, shape, cell))
+        else:
+            gray = GrayLevelMap.identity(shape)
+        same_sums, same_counts, largest = 0.0, 0, -1
+        for box in _slabs(shape):
+            s, c, m = same_phase_block(
+                reference[box], moved[box], labels_reference[box], thresholds_moved, gray, box
+            )
+            same_sums, same_counts, largest = same_sums + s, same_counts + c, max(largest, m)
+        measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
+    return choose_best(measured)

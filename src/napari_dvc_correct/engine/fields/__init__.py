@@ -1,0 +1,1 @@
+"""The data model and its operations: grid and scattered fields, splines, composition, warps."""

@@ -1,0 +1,1 @@
+"""Scan series: the total and incremental strategies (paper Fig. 2)."""

@@ -1,0 +1,59 @@
+"""The decision rules of engine/correction/acceptance.py on small fields with known answers."""
+
+import numpy as np
+
+from napari_dvc_correct.engine.correction.acceptance import MEASURED_REACH, unsupported_updates
+from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
+
+
+def _delta(shape=(4, 5, 6), origin=(10.0, 10.0, 10.0), step=(5.0, 5.0, 5.0)):
+    return DisplacementField.zeros(origin, step, shape)
+
+
+def test_updates_read_within_one_step_of_the_measured_nodes_are_supported():
+    delta = _delta()
+    lo = np.array(delta.origin)
+    hi = lo + (np.array(delta.shape) - 1) * np.array(delta.step)
+    inside = np.array([lo, hi, (lo + hi) / 2])
+    reach = MEASURED_REACH * 5.0
+    # just inside the reach on each side, along one axis at a time
+    edge = np.array(
+        [lo - [reach - 0.01, 0, 0], hi + [0, reach - 0.01, 0], hi + [0, 0, reach - 0.01]]
+    )
+    beyond = np.array(
+        [lo - [reach + 0.01, 0, 0], hi + [0, reach + 0.01, 0], lo - [0, 0, 2 * reach]]
+    )
+    refused = unsupported_updates(delta, np.concatenate([inside, edge, beyond]))
+    assert refused.tolist() == [False] * 6 + [True] * 3
+
+
+def test_the_reach_counts_from_the_good_measured_nodes_only():
+    delta = _delta()
+    hi_x = delta.origin[2] + (delta.shape[2] - 1) * delta.step[2]  # 35
+    # the two outermost x-layers failed (cleaning refilled them): the measured box ends at x = 25
+    delta.status[:, :, -2:] = Status.OUT_OF_BOUNDS
+    delta.provenance[:, :, -1] = Provenance.REPLACED
+    points = np.array([[15.0, 15.0, 25.0 + 4.9], [15.0, 15.0, 25.0 + 5.1], [15.0, 15.0, hi_x]])
+    assert unsupported_updates(delta, points).tolist() == [False, True, True]
+    # non-finite read points (a node sent nowhere) are refused; no good node: all refused
+    assert unsupported_updates(delta, np.array([[np.nan, 15.0, 15.0]])).tolist() == [True]
+    delta.status[:] = Status.DIVERGED
+    assert unsupported_updates(delta, points).all()
+
+
+def test_a_correction_is_applied_in_proportion_to_its_support_above_the_noise():
+    from napari_dvc_correct.engine.correction.acceptance import SUPPORT_Z, shrink_to_support
+
+    current = _delta(shape=(1, 1, 4))
+    candidate = current.copy()
+    candidate.u[0, 0, :, 0] = 0.3  # every node corrected by 0.3 voxel along z
+    # its match's uncertainty: none known, tiny, comparable, larger than the correction
+    sigma = np.array([[[np.nan, 0.003, 0.3 / SUPPORT_Z / 2.0, 0.3 / SUPPORT_Z * 1.5]]])
+    shrunk, unsupported = shrink_to_support(current, candidate, sigma)
+    applied = shrunk.u[0, 0, :, 0]
+    assert applied[0] == 0.3  # unknown uncertainty: the correction whole
+    assert applied[1] == np.float64(0.3) * (1 - (SUPPORT_Z * 0.003 / 0.3) ** 2)
+    assert np.isclose(applied[2], 0.3 * 0.75)  # half its size: three quarters of it
+    assert applied[3] == 0.0  # the noise explains it: not applied, and refused
+    assert unsupported.reshape(-1).tolist() == [False, False, False, True]
+    assert np.all(shrunk.u[..., 1:] == 0.0)

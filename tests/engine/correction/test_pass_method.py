@@ -1,0 +1,94 @@
+"""How the correcting matches are parametrised (engine/correction/pass_method.py), on fields with a known curvature."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correction.pass_method import (
+    MIN_PASS_SUBVOLUME,
+    correction_grid,
+    correction_params,
+    field_curvature,
+    pass_order,
+)
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
+
+
+def test_second_order_passes_where_the_field_bends_inside_a_subvolume():
+    params = CorrelationParams(subvolume=21, step=6)
+    origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
+    field = DisplacementField.zeros(origin, step, shape)
+    points = field.points.reshape(*shape, 3)
+    gradient = np.array([[0.02, 0.01, 0.0], [0.0, -0.015, 0.01], [0.01, 0.0, 0.02]])
+    field.u[:] = synthetic.sample_displacement(synthetic.affine(gradient, (32,) * 3), points)
+    assert field_curvature(field, params.half) < 1e-9
+    assert pass_order(field, params) == 1
+    # u_z = a x^2: u'' = 2a, so a first-order subvolume misses a M^2 (0.2 voxel here)
+    a = 0.002
+    field.u[..., 0] += a * (points[..., 2] - 32.0) ** 2
+    assert field_curvature(field, params.half) == pytest.approx(a * params.half**2, rel=0.15)
+    assert pass_order(field, params) == 2
+    assert pass_order(field.copy(), params.replace(order=2)) == 2
+
+
+def test_bending_fields_are_corrected_with_smaller_second_order_subvolumes():
+    params = CorrelationParams(subvolume=21, step=6)
+    origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
+    field = DisplacementField.zeros(origin, step, shape)
+    assert correction_params(field, params) == params  # a flat field: the paper's rule
+    points = field.points.reshape(*shape, 3)
+    field.u[..., 0] = 0.004 * (points[..., 2] - 32.0) ** 2
+    chosen = correction_params(field, params)
+    assert chosen.order == 2 and chosen.subvolume == 15  # 2/3 of the half-size, odd
+    small = correction_params(field, CorrelationParams(subvolume=11, step=6))
+    assert small.subvolume == MIN_PASS_SUBVOLUME == 11
+
+
+def test_the_correcting_grid_follows_the_displaced_nodes_as_far_as_a_subvolume_fits():
+    # the shear band's grid: 64^3, nodes 14, 19, ..., 49; correcting subvolume 17 (half 8) fits
+    # with its centre in [8, 55]
+    field = DisplacementField.zeros((14.0, 14.0, 14.0), (5.0, 5.0, 5.0), (8, 8, 8))
+    params = CorrelationParams(subvolume=17, step=5, order=2)
+    shift = np.array([8.0, -6.0, 2.4])  # z: 1.6 steps up, y: 1.2 steps down, x: < half a step
+    origin, step, shape = correction_grid(field, (64,) * 3, params, field.points + shift)
+    # z: one more node (54; 59 would not fit), y: one more below (9), x unchanged
+    assert origin == (14.0, 9.0, 14.0) and step == field.step and shape == (9, 9, 8)
+    # the first run's subvolume (25) fits nowhere beyond the grid: unchanged
+    big = CorrelationParams(subvolume=25, step=5)
+    assert correction_grid(field, (64,) * 3, big, field.points + shift) == (
+        field.origin,
+        field.step,
+        field.shape,
+    )
+    # never smaller than the field's grid, whatever the read points
+    inward = correction_grid(field, (64,) * 3, params, field.points[:1] * 0 + 30.0)
+    assert inward == (field.origin, field.step, field.shape)
+
+
+def test_noise_keeps_the_first_runs_subvolume_where_a_smaller_one_would_scatter_more():
+    from napari_dvc_correct.engine.correction.pass_method import pass_method, predicted_scatter
+
+    params = CorrelationParams(subvolume=21, step=6)
+    origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
+    field = DisplacementField.zeros(origin, step, shape)
+    points = field.points.reshape(*shape, 3)
+    field.u[..., 0] += 0.002 * (points[..., 2] - 32.0) ** 2  # bends a subvolume by 0.2 voxel
+    # clean scans: the first run scattered by a thousandth of a voxel
+    field.uncertainty = np.full((*shape, 3), 0.001)
+    chosen, why = pass_method(field, params)
+    assert chosen.order == 2 and chosen.subvolume < 21 and "second order" in why
+    # noisy, weak texture: 0.05 voxel per component at 21³ -> about 0.2 at 15³ second order
+    field.uncertainty = np.full((*shape, 3), 0.05)
+    scatter = predicted_scatter(field, 21, chosen.subvolume)
+    assert scatter == pytest.approx(
+        np.sqrt(3) * 0.05 * (21 / chosen.subvolume) ** 1.5 * 1.5, rel=1e-9
+    )
+    # predicted errors: first order 21³ 0.22, second order 21³ 0.16, second order 15³ 0.23:
+    # the noise forbids the smaller subvolume, and second order on the first run's wins
+    chosen, why = pass_method(field, params)
+    assert (chosen.order, chosen.subvolume) == (2, 21) and "predicted errors" in why
+    # heavy noise: 0.2 voxel per component, nothing beats the first run's parameters
+    field.uncertainty = np.full((*shape, 3), 0.2)
+    chosen, why = pass_method(field, params)
+    assert chosen == params and "predicted errors" in why

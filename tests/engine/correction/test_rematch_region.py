@@ -1,0 +1,127 @@
+"""Which nodes a further correction pass can change (engine/correction/rematch_region.py), on known answers."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine.correction.acceptance import MIN_USEFUL_CHANGE
+from napari_dvc_correct.engine.correction.rematch_region import (
+    SPLINE_TAIL,
+    applied_change,
+    changed_nodes,
+    reuse,
+    select,
+    spline_reach,
+)
+from napari_dvc_correct.engine.fields.field import DisplacementField, Status
+from napari_dvc_correct.engine.fields.field_spline import FieldSpline
+
+
+def test_the_spline_tail_is_the_field_splines_response_to_one_node():
+    # the cardinal cubic spline: 1 at its node, max 0.137 beyond one step, then x0.268 per step
+    assert SPLINE_TAIL[0] == pytest.approx(1.0)
+    assert SPLINE_TAIL[1] == pytest.approx(0.1367, abs=2e-4)
+    assert SPLINE_TAIL[3] / SPLINE_TAIL[2] == pytest.approx(2.0 - np.sqrt(3.0), rel=0.02)
+    # the field spline (trend removed, padded) of one changed node in a line of 31 nodes
+    values = np.zeros((1, 1, 31, 3))
+    values[0, 0, 15, 2] = 1.0
+    spline = FieldSpline((0.0, 0.0, 0.0), (1.0, 1.0, 4.0), values)
+    x = np.linspace(0.0, 120.0, 2401)
+    response = np.abs(spline(np.column_stack([np.zeros_like(x), np.zeros_like(x), x]))[:, 2])
+    for d in (1, 2, 3):
+        beyond = response[np.abs(x - 60.0) >= 4.0 * d]
+        assert SPLINE_TAIL[d] * 0.95 <= beyond.max() <= SPLINE_TAIL[d] * 1.05, d
+
+
+def test_the_spline_reach_is_where_the_largest_change_falls_below_the_tolerance():
+    assert spline_reach(0.05, 0.01) == 1  # 0.05 * 0.137 = 0.007
+    assert spline_reach(0.5, 0.01) == 3  # 0.5 * 0.037 = 0.018 > 0.01, 0.5 * 0.0098 < 0.01
+    assert spline_reach(0.0, 0.01) == 1
+
+
+def test_a_change_counts_only_if_its_region_could_improve_above_the_floor():
+    useful = np.full(4, 0.5 * MIN_USEFUL_CHANGE * 20.0)  # |grad G| = 20 gray levels / voxel
+    change = np.array([0.005, 0.015, 0.025, 0.5])
+    # clean scans: the bound is MIN_USEFUL_CHANGE
+    changed, tolerance = changed_nodes(change, useful, 0.0)
+    assert changed.tolist() == [False, True, True, True] and tolerance == pytest.approx(0.01)
+    # noise worth the useful change again doubles it: 1/2 |grad G| c must beat 0.2 gray levels
+    changed, tolerance = changed_nodes(change, useful, float(useful[0]))
+    assert changed.tolist() == [False, False, True, True] and tolerance == pytest.approx(0.02)
+    # no gradient: nothing a change could show
+    assert not changed_nodes(change, np.zeros(4), 0.0)[0].any()
+
+
+def _grid(shape=(12, 12, 12), origin=(7.0, 7.0, 7.0), step=4.0):
+    return (origin, (step,) * 3, shape)
+
+
+def test_select_matches_and_judges_only_near_the_changed_nodes():
+    grid = _grid()
+    field = DisplacementField.zeros(*grid)
+    changed = np.zeros(grid[2], bool)
+    changed[2, 2, 2] = True
+    change = np.where(changed, 0.05, 0.0)  # spline reach 1 step at tolerance 0.01
+    points = field.points  # reference frame: nodes read delta at themselves
+    selection = select(changed, change, points, points, grid, grid, half=5, tolerance=0.01)
+    assert selection.reach == 1
+    # ceil(5 / 4) = 2 steps of subvolume plus 1 of spline around node (2, 2, 2)
+    expected = np.zeros(grid[2], bool)
+    expected[:6, :6, :6] = True
+    np.testing.assert_array_equal(selection.matched, expected)
+    # judged: reading within one step of a matched node
+    judged = np.zeros(grid[2], bool)
+    judged[:7, :7, :7] = True
+    np.testing.assert_array_equal(selection.judged, judged)
+    # a changed node displaced by two steps in x: the matches follow its read point
+    moved = points + np.array([0.0, 0.0, 8.0])
+    shifted = select(changed, change, moved, moved, grid, grid, 5, 0.01)
+    assert shifted.matched[:6, :6, 1:8].all() and not shifted.matched[..., 0].any()
+
+
+def test_select_matches_the_nodes_new_to_the_correcting_grid():
+    grid = _grid()
+    bigger = ((3.0, 7.0, 7.0), grid[1], (13, 12, 12))  # one layer more, below in z
+    changed = np.zeros(grid[2], bool)
+    changed[11, 11, 11] = True
+    field = DisplacementField.zeros(*grid)
+    selection = select(
+        changed, np.where(changed, 0.05, 0.0), field.points, field.points, bigger, grid, 5, 0.01
+    )
+    assert selection.matched[0].all()  # the new layer
+    assert selection.matched[12, 11, 11] and not selection.matched[5, 5, 5]
+
+
+def test_reuse_takes_the_previous_matches_less_what_was_applied():
+    grid = _grid(shape=(4, 4, 4))
+    previous = DisplacementField.zeros(*grid)
+    previous.u[:] = (0.1, 0.2, 0.3)
+    previous.zncc[:] = 0.9
+    previous.status[:] = Status.CONVERGED
+    # the new grid starts one step further in x; its last x layer is new (and matched)
+    new_grid = ((7.0, 7.0, 11.0), grid[1], (4, 4, 4))
+    delta = DisplacementField.zeros(*new_grid)
+    delta.u[:] = np.nan
+    delta.status[:] = Status.NOT_COMPUTED
+    matched = np.zeros(new_grid[2], bool)
+    matched[..., 3] = True
+    matched[1, 1, 1] = True
+    delta.u[matched] = 0.0
+    delta.status[matched] = Status.CONVERGED
+    applied = np.full((int((~matched).sum()), 3), 0.1)
+    merged = reuse(delta, previous, matched, applied)
+    np.testing.assert_allclose(merged.u[~matched], np.broadcast_to([0.0, 0.1, 0.2], (63 - 16, 3)))
+    assert np.all(merged.u[matched] == 0.0) and np.all(merged.status == Status.CONVERGED)
+    assert np.all(merged.zncc[~matched] == np.float32(0.9))
+
+
+@pytest.mark.parametrize("loaded", [False, True])
+def test_the_applied_change_is_read_at_the_reference_position(loaded):
+    grid = _grid(shape=(6, 6, 6))
+    field = DisplacementField.zeros(*grid)
+    field.u[:] = (0.0, 0.0, 4.0)  # a shift of one step in x
+    change = np.zeros((*grid[2], 3))
+    change[..., 2] = np.arange(6.0)[None, None, :] * 0.01  # linear in the x index
+    y = np.array([[15.0, 15.0, 15.0]])  # node index (2, 2, 2) of the lattice
+    value = applied_change(field, change, y, loaded)[0, 2]
+    # loaded frame: the reference position of y is X = y - 4 voxels, index 1 in x
+    assert value == pytest.approx(0.01 if loaded else 0.02, abs=1e-9)

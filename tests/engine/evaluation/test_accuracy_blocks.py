@@ -1,0 +1,93 @@
+"""Block-wise sums of the evaluation: any tiling of the volume gives the whole-volume numbers."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine.evaluation.binning import (
+    cell_sums,
+    cell_sums_block,
+    node_box_sums,
+    node_voxels,
+)
+from napari_dvc_correct.engine.evaluation.local_accuracy import local_mean_residual
+from napari_dvc_correct.engine.evaluation.phases import (
+    PhaseTotals,
+    label_phases,
+    lattice_sample,
+    phase_table,
+)
+from napari_dvc_correct.engine.fields.field import DisplacementField
+
+SHAPE = (23, 19, 29)
+
+
+def tiles(shape, block):
+    for z in range(0, shape[0], block[0]):
+        for y in range(0, shape[1], block[1]):
+            for x in range(0, shape[2], block[2]):
+                yield tuple(slice(a, min(n, a + b)) for a, n, b in zip((z, y, x), shape, block))
+
+
+@pytest.fixture(scope="module")
+def residual():
+    rng = np.random.default_rng(3)
+    values = rng.random(SHAPE).astype(np.float32) * 10
+    values[rng.random(SHAPE) < 0.1] = np.nan
+    values[:8] = np.nan  # a slab with no defined voxel: the first layer of nodes sees none
+    return values
+
+
+def field():
+    return DisplacementField.zeros((2.0, 3.4, 1.0), (4.0, 3.0, 5.5), (6, 6, 6))
+
+
+def test_node_box_sums_are_the_brute_force_box_means_in_any_tiling(residual):
+    item = field()
+    centers = node_voxels(item, SHAPE)
+    half = 3
+    expected = np.full(item.shape, np.nan)
+    for index in np.ndindex(item.shape):
+        box = tuple(slice(max(0, c[i] - half), c[i] + half + 1) for c, i in zip(centers, index))
+        values = residual[box][np.isfinite(residual[box])]
+        expected[index] = values.astype(np.float64).mean() if values.size else np.nan
+    np.testing.assert_allclose(local_mean_residual(residual, item, half), expected, rtol=1e-12)
+    sums, counts = np.zeros(item.shape), np.zeros(item.shape, np.int64)
+    for box in tiles(SHAPE, (5, 7, 4)):
+        node_box_sums(residual[box], box, centers, half).add_to(sums, counts)
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_allclose(sums / counts, expected, rtol=1e-12)
+    assert np.isnan(expected).any() and np.isfinite(expected).any()
+
+
+def test_cell_sums_of_blocks_add_up_to_the_whole_volume(residual):
+    item = field()
+    whole_sums, whole_counts = cell_sums(residual, item)
+    sums, counts = np.zeros(item.shape), np.zeros(item.shape, np.int64)
+    for box in tiles(SHAPE, (6, 5, 8)):
+        cell_sums_block(residual[box], box, item).add_to(sums, counts)
+    np.testing.assert_array_equal(counts, whole_counts)
+    np.testing.assert_allclose(sums, whole_sums, rtol=1e-12)
+    # every finite voxel inside the cells counts once
+    assert whole_counts.sum() <= np.isfinite(residual).sum() and whole_counts.sum() > 0
+
+
+def test_lattice_samples_and_phase_totals_of_blocks_are_the_whole_volumes():
+    rng = np.random.default_rng(4)
+    volume = rng.normal(100, 20, SHAPE).astype(np.float32)
+    stride = 3
+    parts = [lattice_sample(volume[box], box, stride) for box in tiles(SHAPE, (4, 5, 7))]
+    np.testing.assert_array_equal(
+        np.sort(np.concatenate(parts)), np.sort(volume[::stride, ::stride, ::stride].ravel())
+    )
+    thresholds = np.array([90.0, 115.0])
+    totals = PhaseTotals(3)
+    for box in tiles(SHAPE, (4, 5, 7)):
+        totals.add(volume[box], label_phases(volume[box], thresholds))
+    whole = phase_table(volume, label_phases(volume, thresholds), thresholds)
+    for ours, theirs in zip(totals.table(thresholds), whole):
+        assert (ours.voxels, ours.lower, ours.upper) == (theirs.voxels, theirs.lower, theirs.upper)
+        assert ours.mean_gray == pytest.approx(theirs.mean_gray, rel=1e-12)
+    with pytest.raises(ValueError, match="phase 1 .* has no voxel"):
+        PhaseTotals(3).add(volume, label_phases(volume, [300.0, 400.0])).check_nonempty(
+            [300.0, 400.0]
+        )
