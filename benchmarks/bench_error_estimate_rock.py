@@ -21,7 +21,8 @@ from scipy import ndimage
 from napari_dvc_correct.engine.correction.cleaning import clean
 from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
-from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields, measured_mask
+from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+from napari_dvc_correct.engine.evaluation.results import measured_mask
 
 
 def main(folder: Path) -> None:

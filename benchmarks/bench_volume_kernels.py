@@ -27,10 +27,10 @@ import numpy as np  # noqa: E402
 from scipy import ndimage  # noqa: E402
 
 from napari_dvc_correct.engine import synthetic  # noqa: E402
-from napari_dvc_correct.engine.correlation.correlate import PyramidLevel  # noqa: E402
 from napari_dvc_correct.engine.correlation.icgn_reference import gradient_volume  # noqa: E402
 from napari_dvc_correct.engine.correlation.interpolation import prefilter  # noqa: E402
 from napari_dvc_correct.engine.correlation.params import CorrelationParams  # noqa: E402
+from napari_dvc_correct.engine.correlation.pyramid import PyramidLevel  # noqa: E402
 
 
 def _best(function, repeat: int) -> float:

@@ -8,6 +8,7 @@ from napari.components import ViewerModel
 from napari.layers import Layer
 
 from napari_dvc_correct import layers as L
+from napari_dvc_correct import viewer_layers as V
 from napari_dvc_correct.engine.fields.field import DisplacementField, Status
 
 
@@ -58,7 +59,7 @@ def test_vectors_are_subsampled(field):
 
 def test_show_quantity_switches_in_place_and_series_are_4d(field):
     viewer = ViewerModel()
-    (layer, _) = L.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    (layer, _) = V.show_layers(viewer, L.field_layers(field, "uncorrected"))
     L.show_quantity(layer, "status")
     assert layer.name == "status (uncorrected)" and layer.data[1, 2, 3] == Status.DIVERGED
     assert L.find_layer(viewer, L.field_key("uncorrected")) is layer
@@ -73,7 +74,7 @@ def test_show_quantity_switches_in_place_and_series_are_4d(field):
     assert arrows.shape[2] == 4 and set(arrows[:, 0, 0]) == {0.0, 1.0, 2.0}
     np.testing.assert_array_equal(image[0][field.valid], 0.0)  # state 0 does not move
     viewer = ViewerModel()
-    L.show_layers(viewer, tuples)
+    V.show_layers(viewer, tuples)
     assert list(L.fields_in(viewer.layers)) == ["state 1 (total)", "state 2 (total)"]
     assert viewer.dims.axis_labels == ("state", "z", "y", "x")
 
@@ -81,7 +82,7 @@ def test_show_quantity_switches_in_place_and_series_are_4d(field):
 def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(field):
     viewer = ViewerModel()
     viewer.add_image(np.zeros((3, 3, 3)), name="|u| (uncorrected)")  # the user's own layer
-    first = L.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    first = V.show_layers(viewer, L.field_layers(field, "uncorrected"))
     assert len(first) == 2  # one quantity layer and the arrows
     assert L.fields_in(viewer.layers) == {"uncorrected": field}
     # the user's layer stays; ours got napari's numbered name
@@ -89,7 +90,7 @@ def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(fiel
     assert viewer.layers["|u| (uncorrected) [1]"] in first
     count = len(viewer.layers)
     other = field.copy()
-    second = L.show_layers(viewer, L.field_layers(other, "uncorrected"))
+    second = V.show_layers(viewer, L.field_layers(other, "uncorrected"))
     assert len(viewer.layers) == count
     assert all(layer in viewer.layers for layer in second)
     # updated in place (no new canvas visual, no garbage-collection pause), with the new field
@@ -114,7 +115,7 @@ def test_show_layers_keeps_layers_that_share_a_metadata_dict():
     meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
     points = (np.zeros((2, 3)), {"name": "a", "metadata": meta}, "points")
     image = (np.zeros((2, 2, 2)), {"name": "b", "metadata": meta}, "image")
-    L.show_layers(viewer, [points])
-    L.show_layers(viewer, [image])
+    V.show_layers(viewer, [points])
+    V.show_layers(viewer, [image])
     assert [layer.name for layer in viewer.layers] == ["a", "b"]
     assert L.find_layer(viewer, "a").name == "a" and L.find_layer(viewer, "b").name == "b"

@@ -8,7 +8,8 @@ import pytest
 from napari_dvc_correct._writer import write_fields
 from napari_dvc_correct.engine.fields.field import DisplacementField
 from napari_dvc_correct.io.npz import load_field
-from napari_dvc_correct.layers import field_layers, show_layers
+from napari_dvc_correct.layers import field_layers
+from napari_dvc_correct.viewer_layers import show_layers
 
 
 def _field(value: float) -> DisplacementField:

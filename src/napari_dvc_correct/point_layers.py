@@ -199,7 +199,8 @@ def show_points(viewer, points_field, placement: dict) -> str:
     view (default ``|u|``) and their arrows, the caption on the canvas. Returns the panel's
     message: the counts by status. It does not name the quantity: the View panel recolours the
     points later, and the canvas caption (kept by the View panel) says what is shown."""
-    from .layers import canvas_overlay, quantity_layers, show_layers, text_overlay
+    from .layers import quantity_layers
+    from .viewer_layers import canvas_overlay, show_layers, text_overlay
 
     current = next((x for x in quantity_layers(viewer) if x.visible), None)
     quantity = plugin_metadata(current).get("quantity") if current is not None else None

@@ -7,6 +7,7 @@ import pytest
 
 from napari_dvc_correct import layers as L
 from napari_dvc_correct import point_layers as P
+from napari_dvc_correct import viewer_layers as V
 from napari_dvc_correct.engine.synthetic import sample_displacement, shear_band
 from napari_dvc_correct.widgets import ViewWidget
 
@@ -60,7 +61,7 @@ def test_points_layer_run_gives_readable_point_layers(
     np.testing.assert_allclose(arrows.data[:, 1], field.u[field.valid])
     np.testing.assert_allclose(arrows.scale, small.voxel_size)
     assert "Done: 4 points" in widget.message.text()
-    caption = L.text_overlay(viewer).text
+    caption = V.text_overlay(viewer).text
     assert caption.startswith("|u| [scale units] at the points")  # not [vx]: a voxel size
     assert "viridis 0 to" in caption
     # the View panel recolours the points with the chosen quantity
@@ -70,7 +71,7 @@ def test_points_layer_run_gives_readable_point_layers(
     assert layer.name == "ZNCC (points)"
     assert layer.face_colormap.name == "magma"
     assert "ZNCC" in view.caption.text() and "at the points" in view.caption.text()
-    assert L.text_overlay(viewer).text.startswith("ZNCC [–] at the points")  # what is shown
+    assert V.text_overlay(viewer).text.startswith("ZNCC [–] at the points")  # what is shown
     # the Correlate panel's line does not name the quantity the points were first coloured by
     assert "|u|" not in widget.message.text() and "ZNCC" not in widget.message.text()
     assert "canvas caption" in widget.message.text()

@@ -283,6 +283,7 @@ def test_a_new_series_shows_its_strain_computed_in_the_worker(
     tensor (the worker computes the states' strain; before, the slot computed state 0's)."""
     from napari_dvc_correct import layers as L
     from napari_dvc_correct import quantities
+    from napari_dvc_correct import viewer_layers as V
     from napari_dvc_correct.widgets import ViewWidget
 
     volumes, _ = series48
@@ -290,7 +291,7 @@ def test_a_new_series_shows_its_strain_computed_in_the_worker(
     viewer.add_image(volumes, name="scan")
     view = ViewWidget(viewer)
     viewer.window.add_dock_widget(view)
-    L.show_field(viewer, L.field_layers(_zero_field(small), "earlier"))
+    V.show_field(viewer, L.field_layers(_zero_field(small), "earlier"))
     view.set_quantity("εeq")
     qtbot.waitUntil(lambda: not view.busy, timeout=30_000)
     widget = CorrelateWidget(viewer)

@@ -179,6 +179,7 @@ def test_a_series_as_separate_layers_is_evaluated_state_by_state(
     """Three states opened as three layers, a field per state: each state against its own pair,
     and a field's r0 and p the same whether it is ticked alone or with the others (issue 26)."""
     from napari_dvc_correct import layers as L
+    from napari_dvc_correct import viewer_layers as V
     from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
     from napari_dvc_correct.engine.fields.field import grid_for_volume
 
@@ -192,7 +193,7 @@ def test_a_series_as_separate_layers_is_evaluated_state_by_state(
         field = true_field(truths[k], origin, step, shape)
         field.metadata.update(reference_layer="scan0", deformed_layer=f"scan{k}")
         fields[f"state {k}"] = field
-        L.show_layers(viewer, L.field_layers(field, f"state {k}"))
+        V.show_layers(viewer, L.field_layers(field, f"state {k}"))
     evaluate = _dock(viewer, EvaluateWidget)
     evaluate.reference.set_layer("scan0")
     evaluate.deformed.set_layer("scan1")

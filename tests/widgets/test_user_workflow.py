@@ -16,7 +16,8 @@ import pytest
 import tifffile
 
 from napari_dvc_correct._sample_data import soil_pair
-from napari_dvc_correct.layers import canvas_overlay, fields_in
+from napari_dvc_correct.layers import fields_in
+from napari_dvc_correct.viewer_layers import canvas_overlay
 from napari_dvc_correct.widgets import (
     CorrectWidget,
     CorrelateWidget,

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct import layers as L
+from napari_dvc_correct import viewer_layers as V
 from napari_dvc_correct.engine.fields.field import DisplacementField
 from napari_dvc_correct.widgets import ViewWidget
 
@@ -38,8 +39,8 @@ def view(make_napari_viewer):
     viewer.add_image(np.zeros((40, 32, 32), np.float32), name="scan")
     widget = ViewWidget(viewer)
     viewer.window.add_dock_widget(widget)
-    L.show_field(viewer, L.field_layers(_shear(1.1), "uncorrected"))
-    L.show_field(viewer, L.field_layers(_shear(1.0), "corrected"))
+    V.show_field(viewer, L.field_layers(_shear(1.1), "uncorrected"))
+    V.show_field(viewer, L.field_layers(_shear(1.0), "corrected"))
     return widget
 
 
@@ -64,8 +65,8 @@ def test_chooser_switches_every_field_with_one_range_and_a_colorbar(view, qtbot)
     assert not uncorrected.visible and not uncorrected.colorbar.visible
     assert "εzx" in view.caption.text() and "strain" in view.caption.text()
     # on the canvas, a short colorbar title that a narrow canvas does not cut off
-    assert L.text_overlay(viewer).text == "εzx [strain, –] · corrected"
-    assert len(L.text_overlay(viewer).text) < 40
+    assert V.text_overlay(viewer).text == "εzx [strain, –] · corrected"
+    assert len(V.text_overlay(viewer).text) < 40
     view.set_quantity("|u|")
     settle(qtbot, view)
     assert "[vx]" in view.caption.text()
@@ -128,7 +129,7 @@ def large_view(make_napari_viewer):
     widget = ViewWidget(viewer)
     viewer.window.add_dock_widget(widget)
     field = _large()
-    L.show_field(viewer, L.field_layers(field, "uncorrected"))
+    V.show_field(viewer, L.field_layers(field, "uncorrected"))
     return widget, field
 
 
@@ -222,7 +223,7 @@ def test_a_new_result_shows_the_quantity_on_view_and_the_chooser_says_so(view, q
     (it said |u| before, while the layers showed εeq)."""
     view.set_quantity("εeq")
     settle(qtbot, view)
-    L.show_field(view.viewer, L.field_layers(_shear(1.2), "corrected"))
+    V.show_field(view.viewer, L.field_layers(_shear(1.2), "corrected"))
     (shown,) = [x for x in L.quantity_layers(view.viewer) if x.visible]
     assert L.plugin_metadata(shown)["quantity"] == "εeq"
     assert view.quantity.currentData() == "εeq"

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.evaluation.accuracy import Evaluation
+from ..engine.evaluation.results import Evaluation
 from .markdown import render_markdown, write_markdown
 from .plots import (
     plot_accuracy_vs_strain,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..engine.evaluation.accuracy import Evaluation
+from ..engine.evaluation.results import Evaluation
 from ..io.atomic import atomic_path
 from .passes import first_run_parameters, method_lines, order_text, pass_rows, subvolume_text
 from .tables import (

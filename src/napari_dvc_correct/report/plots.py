@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.evaluation.accuracy import Evaluation
+from ..engine.evaluation.results import Evaluation
 from ..io.atomic import atomic_path
 from .tables import phase_number
 

@@ -14,10 +14,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..engine.backend import select_device
-from ..engine.correlation.correlate import PyramidLevel, match_iter, validate_pair
+from ..engine.correlation.correlate import match_iter, validate_pair
 from ..engine.correlation.guided_repair import GivenSeeds
 from ..engine.correlation.match_judgement import MatchedGrid, judge_iter, measure_plain_sigma
 from ..engine.correlation.params import CorrelationParams
+from ..engine.correlation.pyramid import PyramidLevel
 from ..engine.fields.field import DisplacementField, Provenance, Status
 from ..engine.progress import run_to_completion
 

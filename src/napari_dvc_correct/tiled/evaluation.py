@@ -1,6 +1,6 @@
 """The accuracy evaluation of large volumes, block by block on Dask (issue 13).
 
-:func:`evaluate_tiled_iter` computes the same :class:`..engine.evaluation.accuracy.Evaluation` as
+:func:`evaluate_tiled_iter` computes the same :class:`..engine.evaluation.results.Evaluation` as
 :func:`..engine.evaluation.accuracy.evaluate_iter` — mean residuals, background residual (eq. 1), phases and
 their Table 1 statistics, accuracy index (eq. 2), local accuracy and the curves against strain —
 from lazily read volumes (TIFF, Zarr, ...), holding only a few blocks at a time. Both run the
@@ -369,7 +369,7 @@ def evaluate_tiled_iter(
     """:func:`..engine.evaluation.accuracy.evaluate_iter` on lazily read volumes, block by block (generator).
 
     Yields :class:`Progress` (``"plan"`` with the memory estimate, ``"scan"``, ``"evaluate"``)
-    and returns the :class:`..engine.evaluation.accuracy.Evaluation`.
+    and returns the :class:`..engine.evaluation.results.Evaluation`.
 
     Parameters
     ----------

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..engine.backend import select_device
-from ..engine.correlation.correlate import PyramidLevel, validate_pair
+from ..engine.correlation.correlate import validate_pair
 from ..engine.correlation.correlate_points import (
     PointMatches,
     check_points,
@@ -37,6 +37,7 @@ from ..engine.correlation.correlate_points import (
     starting_warps,
 )
 from ..engine.correlation.params import CorrelationParams
+from ..engine.correlation.pyramid import PyramidLevel
 from ..engine.correlation.shape_function import params_to_displacement
 from ..engine.fields.field import Status
 from ..engine.fields.scattered import ScatteredField

@@ -48,13 +48,8 @@ from ..engine.series.volumes import SeriesVolumes
 from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, open_volume
 from . import scheduling
-from .correction import (
-    CORRECTION_BLOCK,
-    NODE_BLOCK,
-    _warp_bytes,
-    correct_tiled_iter,
-    warp_mask_iter,
-)
+from .correction import CORRECTION_BLOCK, NODE_BLOCK, _warp_bytes, correct_tiled_iter
+from .correction_blocks import warp_mask_iter
 from .correlate import correlate_tiled_iter
 from .memory import format_bytes, memory_budget, parse_memory, refuse_blocks_over
 from .volumes import mean_gray_residual_iter

@@ -280,7 +280,7 @@ class EngineWidget(QWidget):
         self.form.addRow(row)
 
     def _label_axes(self, event=None) -> None:
-        from ..layers import label_axes
+        from ..viewer_layers import label_axes
 
         label_axes(self.viewer)
 

@@ -10,6 +10,7 @@ from qtpy.QtWidgets import (
 )
 
 from .. import layers as L
+from .. import viewer_layers as V
 from . import correct_model as model
 from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
 from ._layer_kinds import is_scan
@@ -211,7 +212,7 @@ class CorrectWidget(EngineWidget):
         corrected = source[:-1] + ", corrected)" if source.endswith(")") else source + " corrected"
         first = result.results[0]
         placement = {"voxel_size": first.voxel_size, "offset": first.offset}
-        L.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
+        V.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
         rows = model.series_rows(result.results)
         self._fill_table(model.SERIES_HEADERS, rows)
         methods = dict.fromkeys(model.method_message(r.field) for r in result.results)
@@ -226,7 +227,7 @@ class CorrectWidget(EngineWidget):
         if isinstance(result, model.SeriesCorrection):
             self._series_result(result)
             return
-        L.show_field(
+        V.show_field(
             self.viewer,
             L.field_layers(
                 result.field, "corrected", voxel_size=result.voxel_size, offset=result.offset

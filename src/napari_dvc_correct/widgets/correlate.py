@@ -19,6 +19,7 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from .. import point_layers as P
+from .. import viewer_layers as V
 from . import correlate_model as model
 from . import points_model, regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
@@ -200,7 +201,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         images = self.reference.layers()
         inserted = getattr(event, "value", None) if event is not None else None
         if inserted is not None:  # napari ignores units that disagree (and warns on every draw)
-            L.match_units(self.viewer, inserted)
+            V.match_units(self.viewer, inserted)
         for layer in images if inserted is None else [inserted]:
             role = layer_role(layer)
             if role == "reference":
@@ -268,7 +269,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         unit = self.unit.currentData()
         scans = self._scans()
         if edited:  # an anisotropic scale stays until the user types a size
-            with L.KeepSliceAndFrame(self.viewer):  # the scan fills the canvas again
+            with V.KeepSliceAndFrame(self.viewer):  # the scan fills the canvas again
                 for layer in scans:
                     layer.scale = model.voxel_scale(layer.scale, self.voxel_size.value())
         if unit:
@@ -276,7 +277,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             # ignores units that disagree and warns on every draw
             for layer in self.viewer.layers:
                 layer.units = (unit,) * layer.ndim
-            L.canvas_overlay(self.viewer, "scale_bar").visible = True
+            V.canvas_overlay(self.viewer, "scale_bar").visible = True
         self._update.trigger()
 
     def _ticked(self) -> list[str]:
@@ -550,7 +551,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             return
         meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
         kwargs = {"name": name, "metadata": meta, **style, **placement}
-        L.show_layers(self.viewer, [(data, kwargs, layer_type)])
+        V.show_layers(self.viewer, [(data, kwargs, layer_type)])
 
     def _set_preview_visible(self, visible: bool) -> None:
         for name in (PREVIEW_POINTS, PREVIEW_BOX):
@@ -577,10 +578,10 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             return
         if len(result.fields) == 1:
             source, field = result.fields[0]
-            L.show_field(self.viewer, L.field_layers(field, source, **placement))
+            V.show_field(self.viewer, L.field_layers(field, source, **placement))
         else:  # a series: one 4-D field, state 0 (no displacement) first, made in the worker
             source = "series " + result.fields[0][0].split(" ", 2)[2]
-            L.show_field(self.viewer, L.field_layers(result.series, source, **placement))
+            V.show_field(self.viewer, L.field_layers(result.series, source, **placement))
         lines = []
         for source, field in result.fields:
             counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())

@@ -19,6 +19,7 @@ from superqt import QDoubleRangeSlider
 from superqt.utils import GeneratorWorker
 
 from .. import layers as L
+from .. import viewer_layers as V
 from . import evaluate_model as model
 from ._base import (
     Debouncer,
@@ -296,7 +297,7 @@ class EvaluateWidget(EngineWidget):
             existing.data = preview.labels
             existing.scale, existing.translate = voxel_size, offset
         else:
-            L.show_layers(
+            V.show_layers(
                 self.viewer, [L.phase_layer(preview.labels, voxel_size=voxel_size, offset=offset)]
             )
 
@@ -432,7 +433,7 @@ class EvaluateWidget(EngineWidget):
             tuples = model.residual_layers(evaluation, self._placement, outputs, TEMPORARY_KEY)
         self.evaluations = [("", evaluation)]
         self.evaluation = evaluation
-        L.show_layers(self.viewer, tuples)  # replacing layers: their folder is still _writing
+        V.show_layers(self.viewer, tuples)  # replacing layers: their folder is still _writing
         self._writing = None
         self._release_temporary()
         self.summary.setText(model.summary_text(evaluation))

@@ -290,7 +290,7 @@ def with_residual_layers(generator, placement, outputs=None, temporary_key=None)
 
 
 def evaluation_report(evaluation) -> dict:
-    """A JSON-friendly summary of an :class:`~napari_dvc_correct.engine.evaluation.accuracy.Evaluation`."""
+    """A JSON-friendly summary of an :class:`~napari_dvc_correct.engine.evaluation.results.Evaluation`."""
     report = {
         "title": "DVC accuracy evaluation",
         "residual": evaluation.residual_text,

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import layers as L
+from .. import viewer_layers as V
 from . import session_model as model
 
 
@@ -72,7 +73,7 @@ def restore_view(viewer, view: dict) -> None:
                 if entry.get("kind") == "quantity":
                     layer.colorbar.visible = layer.visible
                     if layer.visible:
-                        L.text_overlay(viewer).text = L.colorbar_title(layer)
+                        V.text_overlay(viewer).text = L.colorbar_title(layer)
     if view.get("ndisplay") in (2, 3):
         viewer.dims.ndisplay = view["ndisplay"]
     step = view.get("current_step") or []
@@ -113,7 +114,7 @@ def open_session(viewer, path, panels: dict) -> dict:
 
     content = model.read_session(path)
     view = content.get("view") or {}
-    with L.KeepSliceAndFrame(viewer):  # the scans fill the canvas, whatever was shown before
+    with V.KeepSliceAndFrame(viewer):  # the scans fill the canvas, whatever was shown before
         for scan in content["scans"]:
             placement = {"scale": scan["scale"], "translate": scan["translate"]}
             if scan.get("units"):
@@ -122,7 +123,7 @@ def open_session(viewer, path, panels: dict) -> dict:
             if layer.name != scan["name"]:
                 layer.name = scan["name"]
         for file in content["fields"].values():
-            L.show_field(viewer, read_field_file(file), quantity=view.get("quantity"))
+            V.show_field(viewer, read_field_file(file), quantity=view.get("quantity"))
         for name, panel in panels.items():
             if name in content["panels"]:
                 panel.restore(content["panels"][name])

@@ -20,6 +20,7 @@ from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButto
 
 from .. import layers as L
 from .. import point_layers as P
+from .. import viewer_layers as V
 from . import profile_model
 from ._base import LatestWorker, compact, follow_layers
 from ._plots import ProfileCanvas
@@ -105,7 +106,7 @@ class ViewWidget(QWidget):
                 "edge_width": 1.0,
                 "metadata": {L.MARKER: {"kind": "profile", "source": "profile"}},
             }
-            (layer,) = L.show_layers(self.viewer, [([], kwargs, "shapes")])
+            (layer,) = V.show_layers(self.viewer, [([], kwargs, "shapes")])
             layer.events.data.connect(lambda event=None: self.update_profile())
         self.viewer.layers.selection.active = layer
         layer.mode = "add_line"
@@ -319,8 +320,8 @@ class ViewWidget(QWidget):
             top, text = points[-1], P.points_caption(points[-1])
             title = text
         self.caption.setText(text)  # the whole caption in the panel, the short title on canvas
-        L.text_overlay(self.viewer).text = title if top is not None else ""
-        L.text_overlay(self.viewer).visible = top is not None
+        V.text_overlay(self.viewer).text = title if top is not None else ""
+        V.text_overlay(self.viewer).visible = top is not None
 
     def oblique_3d(self) -> None:
         """3-D view from an oblique angle, the quantity as an attenuated maximum projection."""

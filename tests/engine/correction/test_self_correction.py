@@ -491,7 +491,7 @@ def test_a_gray_level_change_neither_flags_nor_moves_a_right_field():
 
 
 # --- the real loaded pair of ../shared/data/real-rock (issue 25) --------------------------------
-REAL_ROCK = Path(__file__).resolve().parents[3] / "shared" / "data" / "real-rock"
+REAL_ROCK = Path(__file__).resolve().parents[4] / "shared" / "data" / "real-rock"
 
 
 def _real_crop(name, box):

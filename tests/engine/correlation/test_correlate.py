@@ -112,9 +112,9 @@ def test_generator_yields_progress_and_matches_blocking(speckle):
 
 
 def test_given_prefilter_gives_the_same_field_and_must_fit(speckle):
-    from napari_dvc_correct.engine.correlation.correlate import Prefiltered
     from napari_dvc_correct.engine.correlation.icgn_reference import gradient_volume
     from napari_dvc_correct.engine.correlation.interpolation import prefilter
+    from napari_dvc_correct.engine.correlation.pyramid import Prefiltered
     from napari_dvc_correct.engine.progress import run_to_completion
 
     deformed = synthetic.deform_volume(speckle, synthetic.translation((0.6, -1.2, 0.3)))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.correlation.correlate import PyramidLevel, _grid_centers
+from napari_dvc_correct.engine.correlation.correlate import _grid_centers
 from napari_dvc_correct.engine.correlation.guided_repair import (
     _testable_seeds,
     is_good,
@@ -17,6 +17,7 @@ from napari_dvc_correct.engine.correlation.guided_repair import (
     seed_guesses,
 )
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.correlation.pyramid import PyramidLevel
 from napari_dvc_correct.engine.fields.field import Status, grid_for_volume
 
 PARAMS = CorrelationParams(subvolume=11, step=4, search_radius=8)  # seeds every 3 POIs

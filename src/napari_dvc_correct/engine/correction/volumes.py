@@ -28,9 +28,10 @@ from collections.abc import Generator
 
 import numpy as np
 
-from ..correlation.correlate import Prefiltered, correlate_iter
+from ..correlation.correlate import correlate_iter
 from ..correlation.interpolation import prefilter
 from ..correlation.params import CorrelationParams
+from ..correlation.pyramid import Prefiltered
 from ..evaluation.gray_levels import GrayLevelMap, fit_gray_levels, start_map
 from ..evaluation.phases import otsu_stride
 from ..fields import warp

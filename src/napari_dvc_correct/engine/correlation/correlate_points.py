@@ -31,7 +31,7 @@ from ..backend import select_device
 from ..fields.field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from ..fields.scattered import ScatteredField, sample_field
 from . import shape_function
-from .correlate import PyramidLevel, correlate, validate_pair
+from .correlate import correlate, validate_pair
 from .noise import (
     MIN_PERFECT_ZNCC,
     noise_aware_thresholds,
@@ -41,6 +41,7 @@ from .noise import (
 )
 from .params import CorrelationParams
 from .placement import Box, grid_for_region
+from .pyramid import PyramidLevel
 
 GOOD_CODES = np.array([int(s) for s in GOOD_STATUSES])
 
