@@ -46,6 +46,7 @@ FORBIDDEN = {
     "tiled": {"commands", "widgets", "report", "layers", "viewer_layers", "cli", "demo"},
     "report": {"tiled", "commands", "widgets", "cli", "demo"},
     "commands": {"widgets", "layers", "viewer_layers", "demo", "_reader", "_writer", "_sample_data"},
+    "jobs": {"commands", "widgets", "layers", "viewer_layers", "cli", "demo", "_reader", "_writer"},
 }
 
 

@@ -25,7 +25,7 @@ from .commands._common import (  # re-exported: bad input (exit 2), SIGTERM as a
 )
 
 #: Subcommand modules under napari_dvc_correct.commands, in the order ``--help`` lists them.
-SUBCOMMANDS = ("correlate", "clean", "evaluate", "correct", "series")
+SUBCOMMANDS = ("correlate", "clean", "evaluate", "correct", "series", "export")
 
 __all__ = ["SUBCOMMANDS", "Terminated", "UserError", "build_parser", "main"]
 

@@ -52,9 +52,9 @@ def add_field_format_arguments(
     )
 
 
-def _add_input_arguments(group) -> None:
+def _add_input_arguments(group, flag: str = "--format") -> None:
     group.add_argument(
-        "--format",
+        flag,
         choices=("auto", *FORMATS),
         default="auto",
         help="format of --field: spam TSV, pyALDVC/ALDVC .npz/.mat, iDVC .disp, a plain "
@@ -344,9 +344,8 @@ def run_points(args, params, out, started, tiled: bool = False) -> int:
     result.metadata["deformed"] = str(args.deformed)
     result.metadata["points_file"] = str(args.points)
     write_output_field(args, result, out)
-    good = result.valid
     print(
-        f"POIs: {result.n_points} from {args.points}; converged fraction {good.mean():.3f}; "
+        f"POIs: {result.n_points} from {args.points}; {result.node_counts().text()}; "
         f"time {time.perf_counter() - started:.2f} s; wrote {out}"
     )
     return 0

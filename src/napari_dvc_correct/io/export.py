@@ -44,6 +44,25 @@ FIELD_FORMATS = {
     ".csv": "CSV, one row per POI",
     ".tif": "TIFF stacks, one file per component",
     ".tiff": "TIFF stacks, one file per component",
+    ".vtu": "VTK XML points, one per node (ParaView)",
+    ".tsv": "spam TSV",
+    ".disp": "iDVC .disp",
+    ".mat": "ALDVC MATLAB .mat",
+}
+
+#: Export format names (the command line's ``export --format``) -> the suffix that writes them.
+EXPORT_FORMATS = {
+    "dvcfield": FIELD_SUFFIX,
+    "npz": ".npz",
+    "hdf5": ".h5",
+    "vti": ".vti",
+    "vtk": ".vtk",
+    "vtu": ".vtu",
+    "csv": ".csv",
+    "tiff": ".tif",
+    "spam": ".tsv",
+    "idvc": ".disp",
+    "aldvc": ".mat",
 }
 
 #: File suffixes :func:`export_points` understands (a field at scattered points), and what they
@@ -515,7 +534,8 @@ def export_field(
     voxel_size=None,
 ) -> list[Path]:
     """Export ``field`` in the format named by the suffix of ``path`` (see :data:`FIELD_FORMATS`;
-    a field at scattered points: :func:`export_points`).
+    a field at scattered points: :func:`export_points`). ``.vtu``, ``.tsv``, ``.disp`` and
+    ``.mat`` write a grid's nodes as points (:func:`export_points`; no ``extra`` arrays).
 
     Returns
     -------
@@ -537,12 +557,14 @@ def export_field(
         return [export_csv(field, path, extra=extra, voxel_size=voxel_size)]
     if suffix in (".tif", ".tiff"):
         return export_tiff(field, path, extra=extra, voxel_size=voxel_size)
+    if suffix in _POINT_WRITERS or suffix == ".vtu":  # the grid's nodes, in another tool's format
+        return export_points(field, path, voxel_size=voxel_size)
     known = ", ".join(sorted(FIELD_FORMATS))
     raise ValueError(f"{path}: unknown export format {suffix!r}; use one of {known}")
 
 
 def export_points(
-    field: ScatteredField,
+    field: ScatteredField | DisplacementField,
     path: str | os.PathLike,
     *,
     extra: dict | None = None,
@@ -552,8 +574,9 @@ def export_points(
 
     Parameters
     ----------
-    field : ScatteredField
-        Positions and displacements ``(z, y, x)`` in reference voxels, one entry per point.
+    field : ScatteredField or DisplacementField
+        Positions and displacements ``(z, y, x)`` in reference voxels, one entry per point (a
+        grid field: one per node, as :func:`export_field` writes it for these suffixes).
     path : path
         ``.csv`` (:func:`export_csv`), ``.vtu`` (:func:`export_vtk_points`), or ``.npz``
         (pyALDVC layout), ``.tsv`` (spam), ``.disp`` (iDVC), ``.mat`` (ALDVC): the writers of

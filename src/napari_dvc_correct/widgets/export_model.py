@@ -1,27 +1,25 @@
-"""The Export panel without Qt: what to write for a field, as a generator for the worker.
+"""The Export panel without Qt: the formats it offers, its checks and texts.
 
-Every export carries the field's provenance (:func:`provenance`: which field, corrected or not,
-passes, gray residuals, DVC parameters, voxel size): inside the file for NPZ and HDF5 (the
-field's ``metadata["provenance"]``), in a ``STEM_provenance.json`` next to it for VTK, TIFF and
-CSV, which have no place for it.
-
-A result at points of interest (a :class:`..engine.fields.scattered.ScatteredField`, from a Correlate
-run on a Points layer) is written in the formats of :data:`POINT_FORMATS` (those of the command
-line's ``correlate --points``), always with the provenance side file; the formats and extras
-that need a grid (VTK image data, TIFF stacks, HDF5, the strain TIFF, residual and report) are
-refused for it (:func:`check_request`).
+What an export writes (the field, its provenance, the extras) is :mod:`..jobs.export`, the code
+path the command line's ``export`` uses too; its names are re-exported here for the panel.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
-
-import numpy as np
 
 from ..engine.fields.field import DisplacementField
 from ..engine.fields.scattered import ScatteredField
-from ..engine.progress import Progress
+from ..jobs.export import (  # noqa: F401  (the panel's worker runs these)
+    WITH_METADATA,
+    ExportRequest,
+    check_request,
+    evaluation_report_files,
+    is_points,
+    point_strain,
+    provenance,
+    run_export,
+)
 
 #: Formats offered in the panel: label -> file suffix.
 FORMATS = {
@@ -46,60 +44,6 @@ POINT_FORMATS = {
 }
 
 
-@dataclass
-class ExportRequest:
-    """A checked export: the field, its strain, where to, and the extras.
-
-    Attributes
-    ----------
-    field : DisplacementField or ScatteredField
-        A grid field, or a result at points of interest (positions and displacements
-        ``(z, y, x)`` in reference voxels).
-    source : str
-        The panel's name of the field (recorded in its provenance).
-    path : Path
-        Target of the field file; the extras are written next to it, named after its stem.
-    equivalent_strain : ndarray (nz, ny, nx) or None
-        Equivalent strain on the field's grid.
-    strain_with_field : bool
-        Write the strain into the field file as an extra grid array (all formats but NPZ,
-        which holds the field only); for points, an ``equivalent_strain`` column of the CSV
-        (each point's strain from its matched gradient, as the View panel shows it).
-    strain_tiff : bool
-        Also write the strain on the grid as ``STEM_equivalent_strain.tif``.
-    residual : ndarray (NZ, NY, NX) or None
-        Dense gray residual written as ``STEM_residual.tif``.
-    report : dict or None
-        Evaluation summary written as ``STEM_report.json``.
-    evaluation : Evaluation or None
-        The evaluation behind ``report``: its report is written into the folder ``STEM_report/``
-        by :func:`..report.write_report`, as ``evaluate --out-dir`` writes it (``report.md`` with
-        the plots, the CSV tables; no volumes).
-    """
-
-    field: DisplacementField | ScatteredField
-    path: Path
-    source: str = "field"
-    equivalent_strain: np.ndarray | None = None
-    strain_with_field: bool = True
-    strain_tiff: bool = False
-    residual: np.ndarray | None = None
-    report: dict | None = None
-    evaluation: object | None = None
-    voxel_size: tuple = (1.0, 1.0, 1.0)
-    offset: tuple = (0.0, 0.0, 0.0)
-    written: list = field(default_factory=list)
-
-
-#: Formats that keep the field's metadata inside the file (the others get a JSON side file).
-WITH_METADATA = (".dvcfield", ".npz", ".h5", ".hdf5")
-
-
-def is_points(field) -> bool:
-    """True for a result at points of interest (no grid)."""
-    return isinstance(field, ScatteredField)
-
-
 def formats_for(field) -> dict:
     """The formats the panel offers for ``field``: label -> suffix."""
     return POINT_FORMATS if is_points(field) else FORMATS
@@ -116,58 +60,6 @@ def check_format(field, suffix: str) -> None:
             f"it as {', '.join(POINT_FORMATS.values())}"
         )
     raise ValueError(f"unknown export format {suffix!r}; use one of {', '.join(formats.values())}")
-
-
-def check_request(request: ExportRequest) -> None:
-    """Refuse what a result at points of interest cannot be written as (ValueError that says
-    what to choose instead); grid fields pass."""
-    if not is_points(request.field):
-        return
-    check_format(request.field, request.path.suffix.lower())
-    if request.strain_tiff or request.equivalent_strain is not None:
-        raise ValueError(
-            "the equivalent strain as a TIFF stack needs a grid field: a result at points has "
-            "its strain per point (the CSV's equivalent_strain column)"
-        )
-    if request.residual is not None or request.report is not None or request.evaluation is not None:
-        raise ValueError(
-            "the gray residual and the report come from Evaluate on a grid field, not from a "
-            "result at points of interest"
-        )
-
-
-def point_strain(field: ScatteredField) -> np.ndarray | None:
-    """Equivalent strain (N,) at each point, from its matched displacement gradient (physical
-    axes, as the View panel shows it); None without gradients."""
-    from ..quantities import point_quantities
-
-    return point_quantities(field).get("εeq")
-
-
-def provenance(field: DisplacementField | ScatteredField, source: str) -> dict:
-    """Where an exported field comes from, JSON-friendly.
-
-    Keys: ``source`` (the panel's name of the field), ``corrected`` (bool), ``passes_applied``,
-    ``mean_gray_residual_before``/``_after`` (gray levels, None when not corrected),
-    ``correction`` (the options), ``params`` (DVC parameters), ``voxel_size`` (z, y, x),
-    ``unit``, ``reference``/``deformed`` (layer names), ``status_counts``.
-    """
-    info = field.metadata.get("correction") or {}
-    corrected = bool(info) or "correction_passes" in field.metadata
-    return {
-        "source": source,
-        "corrected": corrected,
-        "passes_applied": int(info.get("passes_applied", 0)) if corrected else 0,
-        "mean_gray_residual_before": info.get("mean_gray_residual_before"),
-        "mean_gray_residual_after": info.get("mean_gray_residual_after"),
-        "correction": {k: v for k, v in info.items() if k != "seconds"},
-        "params": dict(field.params),
-        "voxel_size": list(field.metadata.get("voxel_size", (1.0, 1.0, 1.0))),
-        "unit": field.metadata.get("unit") or "voxel",
-        "reference": field.metadata.get("reference_layer"),
-        "deformed": field.metadata.get("deformed_layer"),
-        "status_counts": field.status_counts(),
-    }
 
 
 def describe(field: DisplacementField | ScatteredField, source: str) -> str:
@@ -208,100 +100,3 @@ def check_path(path: str, suffix: str) -> Path:
     if not target.parent.exists():
         raise ValueError(f"the folder {target.parent} does not exist")
     return target
-
-
-def evaluation_report_files(request: ExportRequest, stem: Path) -> list[Path]:
-    """The evaluation report of the command line (``evaluate --out-dir``), written into
-    ``STEM_report/``: ``report.md``, its plots and CSV tables (no volumes)."""
-    from ..report import write_report
-
-    inputs = {"field": request.source}
-    origin = request.field.metadata.get("provenance") or {}
-    for key in ("reference", "deformed"):
-        name = request.field.metadata.get(key) or origin.get(key)
-        if name:
-            inputs[key] = name
-    files = write_report(
-        request.evaluation, stem.parent / f"{stem.name}_report", inputs=inputs, volumes=False
-    )
-    return [path for paths in files.values() for path in paths]
-
-
-def run_export(request: ExportRequest):
-    """Write everything the request asks for; yields Progress per file, returns the paths."""
-    from ..io import export
-
-    check_request(request)
-    points = is_points(request.field)
-    origin = provenance(request.field, request.source)
-    field = request.field.copy()
-    field.metadata["provenance"] = origin
-    extra = None
-    suffix = request.path.suffix.lower()
-    if request.strain_with_field and points and suffix == ".csv":
-        strain = point_strain(field)
-        extra = None if strain is None else {"equivalent_strain": strain}
-    elif request.strain_with_field and request.equivalent_strain is not None:
-        if suffix not in (".dvcfield", ".npz"):  # (the native file holds the field only)
-            extra = {"equivalent_strain": request.equivalent_strain}
-    stem = request.path.with_suffix("")
-
-    def write_field():
-        return export.export_field(field, request.path, extra=extra, voxel_size=request.voxel_size)
-
-    jobs = [("field", write_field)]
-    if points or suffix not in WITH_METADATA:  # (the points' .npz has no room for it either)
-        side = stem.parent / f"{stem.name}_provenance.json"
-        report = {"title": "DVC field provenance", **origin, "metadata": field.metadata}
-        jobs.append(("provenance", lambda: [export.export_report(report, side)]))
-    if request.strain_tiff and request.equivalent_strain is not None:
-        placement = {
-            "scale": np.asarray(request.field.step) * np.asarray(request.voxel_size),
-            "translate": np.asarray(request.offset)
-            + np.asarray(request.field.origin) * np.asarray(request.voxel_size),
-        }
-        jobs.append(
-            (
-                "equivalent strain",
-                lambda: [
-                    export.export_volume_tiff(
-                        request.equivalent_strain,
-                        stem.parent / f"{stem.name}_equivalent_strain.tif",
-                        description={"quantity": "equivalent strain"},
-                        **placement,
-                    )
-                ],
-            )
-        )
-    if request.residual is not None:
-        jobs.append(
-            (
-                "residual",
-                lambda: [
-                    export.export_volume_tiff(
-                        request.residual,
-                        stem.parent / f"{stem.name}_residual.tif",
-                        scale=request.voxel_size,
-                        translate=request.offset,
-                        description={"quantity": "gray residual"},
-                    )
-                ],
-            )
-        )
-    if request.report is not None:
-        jobs.append(
-            (
-                "report",
-                lambda: [
-                    export.export_report(request.report, stem.parent / f"{stem.name}_report.json")
-                ],
-            )
-        )
-    if request.evaluation is not None:
-        jobs.append(("report", lambda: evaluation_report_files(request, stem)))
-    written = []
-    for index, (name, job) in enumerate(jobs):
-        yield Progress("export", index, len(jobs), f"writing the {name}")
-        written += [Path(p) for p in job()]
-    yield Progress("export", len(jobs), len(jobs), f"{len(written)} files written")
-    return written

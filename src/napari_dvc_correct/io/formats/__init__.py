@@ -25,6 +25,7 @@ import numpy as np
 
 from ...engine.fields.field import DisplacementField
 from ...engine.fields.scattered import ScatteredField, from_grid, to_grid
+from ..npz import FIELD_SUFFIX
 from . import aldvc, idvc, spam, table
 from ._common import first_line, unusable_as_nan
 
@@ -69,7 +70,7 @@ def sniff_format(path: str | os.PathLike) -> str:
                 f"{path}: a .mat without DVCmesh or coordinatesFEM: not an ALDVC result"
             )
         return "aldvc"
-    if suffix == ".npz":
+    if suffix in (".npz", FIELD_SUFFIX):  # ours carries the same contents under both names
         return _npz_kind(path)
     header = first_line(path)
     if spam.looks_like(header):

@@ -72,12 +72,17 @@ def _number(text: str) -> float:
 
 
 def load_numbers(
-    path: str | os.PathLike, delimiter: str | None, skiprows: int = 0, columns: int | None = None
+    path: str | os.PathLike,
+    delimiter: str | None,
+    skiprows: int = 0,
+    columns: int | None = None,
+    usecols=None,
 ) -> np.ndarray:
     """The rows ``(N, C)`` of a delimited text table of numbers (``#`` lines are comments).
 
     Empty cells are NaN. ``columns`` is the number of columns the header names: a file with a
-    header and no rows gives ``(0, columns)``.
+    header and no rows gives ``(0, columns)``. ``usecols`` (indices) reads only those columns
+    (the others may hold text).
 
     Raises
     ------
@@ -95,6 +100,7 @@ def load_numbers(
                 ndmin=2,
                 dtype=np.float64,
                 converters=_number if delimiter is not None else None,
+                usecols=usecols,
             )
     except ValueError as error:
         raise ValueError(f"{path}: not a table of numbers ({error})") from None

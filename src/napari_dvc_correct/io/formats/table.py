@@ -47,6 +47,8 @@ _ALIASES = {
     "provenance": ("provenance",),
     "iterations": ("iterations", "iter"),
 }
+#: Text columns skipped (the words of the codes in ``status`` and ``provenance``).
+_TEXT_COLUMNS = ("status_name", "provenance_name")
 _SPLIT = re.compile(r"^\s*([^\[\(]*?)\s*(?:[\[\(]\s*([^\]\)]*)\s*[\]\)])?\s*$")
 
 
@@ -113,7 +115,11 @@ def read(
     if _has_header(header):
         raw = [c for c in (header.split(delimiter) if delimiter else header.split())]
         parsed = [_parse_name(c) for c in raw]
-        rows = load_numbers(path, delimiter, _skip(path), len(parsed))
+        # our export's CSV names each status and provenance in words next to its code
+        numeric = [i for i, (name, _) in enumerate(parsed) if name not in _TEXT_COLUMNS]
+        subset = numeric if len(numeric) < len(parsed) else None
+        rows = load_numbers(path, delimiter, _skip(path), len(numeric), usecols=subset)
+        parsed = [parsed[i] for i in numeric]
     else:
         rows = load_numbers(path, delimiter)
         order = ("x", "y", "z", "ux", "uy", "uz") if xyz else ("z", "y", "x", "uz", "uy", "ux")
