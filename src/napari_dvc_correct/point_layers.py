@@ -212,7 +212,7 @@ def show_points(viewer, points_field, placement: dict) -> str:
     text_overlay(viewer).text = caption
     text_overlay(viewer).visible = True
     canvas_overlay(viewer, "scale_bar").visible = True
-    counts = ", ".join(f"{n} {k}" for k, n in points_field.status_counts().items())
+    counts = points_field.node_counts().text().replace(" nodes", " points", 1)
     return (
         f"Done: {points_field.n_points} points: {counts}; the canvas caption says what the "
         "colours show."

@@ -46,7 +46,11 @@ def test_correlate_writes_a_field_and_a_summary(pair, capsys):
     assert good.mean() > 0.9
     assert np.allclose(field.u[good], [0.4, -1.2, 2.5], atol=0.02)
     printed = capsys.readouterr().out
-    assert "POIs" in printed and "mean ZNCC" in printed and "converged fraction" in printed
+    assert "POIs" in printed and "mean ZNCC of the matched" in printed
+    # the usable fraction and the counts by status say the same thing (one definition)
+    counts = field.node_counts()
+    assert counts.text() in printed
+    assert f"usable {int(good.sum())} of {field.n_points} nodes ({good.mean():.3f})" in printed
 
 
 @pytest.mark.parametrize(

@@ -95,14 +95,17 @@ def params_from_args(args):
 
 
 def summary(field, seconds: float) -> str:
-    good = field.valid
-    zncc = field.zncc[good]
-    counts = ", ".join(f"{name} {n}" for name, n in field.status_counts().items())
+    """The run's line: the grid, the usable nodes with the counts by status (one definition:
+    :class:`..engine.fields.field.NodeCounts`), the mean ZNCC of the matched nodes, the time."""
+    from ..engine.fields.field import GOOD_STATUSES
+
+    matched = field.valid & np.isin(field.status, [int(s) for s in GOOD_STATUSES])
+    zncc = field.zncc[matched]
     mean_zncc = float(np.mean(zncc)) if zncc.size else float("nan")
     return (
         f"POIs: {field.n_points} on a {field.shape[0]}x{field.shape[1]}x{field.shape[2]} grid; "
-        f"converged fraction {good.mean():.3f}; mean ZNCC {mean_zncc:.4f}; "
-        f"time {seconds:.2f} s ({counts})"
+        f"{field.node_counts().text()}; mean ZNCC of the matched {mean_zncc:.4f}; "
+        f"time {seconds:.2f} s"
     )
 
 

@@ -584,6 +584,6 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             V.show_field(self.viewer, L.field_layers(result.series, source, **placement))
         lines = []
         for source, field in result.fields:
-            counts = ", ".join(f"{n} {name}" for name, n in field.status_counts().items())
+            counts = field.node_counts().text()
             lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
         self.show_message("Done: " + "; ".join(lines) + ".")

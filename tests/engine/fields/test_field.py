@@ -40,3 +40,31 @@ def test_grid_keeps_subvolumes_inside_and_is_centred():
         assert o + s * n + 12 > size - 1  # one more node would not fit
     with pytest.raises(ValueError, match="larger than the volume"):
         grid_for_volume((10, 40, 40), 21, 8)
+
+
+def test_node_counts_agree_with_the_counts_by_status():
+    """A usable fraction of 1.000 next to "diverged 5" is right when those 5 were filled in: the
+    counts say so (matched + filled = usable; the filled keep their failed status)."""
+    from napari_dvc_correct.engine.fields.field import Provenance, Status, node_counts
+
+    field = DisplacementField.zeros((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (10, 10, 10))
+    flat_status = field.status.reshape(-1)
+    flat_provenance = field.provenance.reshape(-1)
+    flat_status[:5] = Status.DIVERGED
+    flat_provenance[:5] = Provenance.REPLACED  # cleaning filled them in
+    flat_status[5:8] = Status.DIVERGED  # not filled
+    flat_status[8:10] = Status.MAX_ITERATIONS
+    flat_status[10:14] = Status.MASKED
+    counts = field.node_counts()
+    assert counts == node_counts(field.status, field.provenance, field.u)
+    assert (counts.total, counts.matched, counts.filled) == (1000, 988, 5)
+    assert counts.usable == int(field.valid.sum()) == 993
+    assert counts.usable_fraction == pytest.approx(field.valid.mean())
+    assert counts.statuses == {"converged": 986, "max iterations": 2, "diverged": 8, "masked": 4}
+    assert counts.text() == (
+        "usable 993 of 1000 nodes (0.993): 988 matched, 5 filled in; status: converged 986, "
+        "max iterations 2, diverged 8, masked 4"
+    )
+    # a good status with a non-finite value is not usable, hence not matched either
+    field.u[0, 0, 9] = np.nan
+    assert field.node_counts().matched == 987

@@ -44,7 +44,8 @@ class CorrectionPass:
     mean_change, max_change : float
         Node displacement change of the pass (voxels).
     converged_fraction : float
-        Fraction of good matches of the pass's DVC.
+        Usable fraction of the pass's correcting matches (matched or filled in, of all its
+        nodes: :class:`..fields.field.NodeCounts`).
     seconds : float
         Wall time of the pass.
     unsupported_nodes : int

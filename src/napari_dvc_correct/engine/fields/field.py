@@ -80,6 +80,65 @@ def usable_nodes(status: np.ndarray, provenance: np.ndarray, u: np.ndarray) -> n
     return (measured_ok | filled) & np.all(np.isfinite(u), axis=-1)
 
 
+@dataclass(frozen=True)
+class NodeCounts:
+    """How many nodes (or points) hold a usable displacement, and why: the one definition of
+    the "usable fraction" every summary prints next to the counts by status.
+
+    A node is usable (:func:`usable_nodes`) when its match succeeded (status converged or max
+    iterations) or when post-processing filled it in (replaced, corrected, interpolated); a
+    filled node keeps the status of its failed match, so "diverged 5" and a usable fraction of
+    1.000 agree when those 5 were filled in.
+
+    Attributes
+    ----------
+    total : int
+        Every node of the field (masked and not computed ones included).
+    matched : int
+        Usable nodes whose own match succeeded (status converged or max iterations).
+    filled : int
+        Usable nodes whose match failed (or never ran) and that post-processing filled in.
+    statuses : dict of str -> int
+        Nodes per status, by readable name (:attr:`Status.label`), the statuses present only.
+    """
+
+    total: int
+    matched: int
+    filled: int
+    statuses: dict
+
+    @property
+    def usable(self) -> int:
+        return self.matched + self.filled
+
+    @property
+    def usable_fraction(self) -> float:
+        """Usable nodes / all nodes (NaN for an empty field)."""
+        return self.usable / self.total if self.total else float("nan")
+
+    def text(self) -> str:
+        """One phrase, e.g. ``"usable 997 of 997 nodes (1.000): 992 matched, 5 filled in;
+        status: converged 992, diverged 5"``."""
+        statuses = ", ".join(f"{name} {n}" for name, n in self.statuses.items())
+        return (
+            f"usable {self.usable} of {self.total} nodes ({self.usable_fraction:.3f}): "
+            f"{self.matched} matched, {self.filled} filled in; status: {statuses}"
+        )
+
+
+def node_counts(status: np.ndarray, provenance: np.ndarray, u: np.ndarray) -> NodeCounts:
+    """The :class:`NodeCounts` of a field's ``status``, ``provenance`` and ``u`` (``(..., 3)``)."""
+    usable = usable_nodes(status, provenance, u)
+    matched = usable & np.isin(status, [int(s) for s in GOOD_STATUSES])
+    codes, counts = np.unique(status, return_counts=True)
+    return NodeCounts(
+        total=int(np.asarray(status).size),
+        matched=int(matched.sum()),
+        filled=int(usable.sum() - matched.sum()),
+        statuses={Status(int(c)).label: int(n) for c, n in zip(codes, counts)},
+    )
+
+
 def _as_triple(value: Any, name: str, dtype=float) -> tuple:
     array = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,))
     if not np.all(np.isfinite(array)):
@@ -235,6 +294,10 @@ class DisplacementField:
         """Number of nodes of each status, by readable name (only the statuses present)."""
         codes, counts = np.unique(self.status, return_counts=True)
         return {Status(int(c)).label: int(n) for c, n in zip(codes, counts)}
+
+    def node_counts(self) -> NodeCounts:
+        """Usable, matched and filled-in nodes, and the counts by status (:class:`NodeCounts`)."""
+        return node_counts(self.status, self.provenance, self.u)
 
     # -- copies ---------------------------------------------------------------------------
     def copy(self) -> DisplacementField:

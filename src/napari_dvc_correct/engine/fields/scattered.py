@@ -24,7 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from .field import DisplacementField, Provenance, Status, usable_nodes
+from .field import (
+    DisplacementField,
+    NodeCounts,
+    Provenance,
+    Status,
+    node_counts,
+    usable_nodes,
+)
 
 
 @dataclass
@@ -106,6 +113,10 @@ class ScatteredField:
         """Number of points of each status, by readable name (only the statuses present)."""
         codes, counts = np.unique(self.status, return_counts=True)
         return {Status(int(c)).label: int(n) for c, n in zip(codes, counts)}
+
+    def node_counts(self) -> NodeCounts:
+        """Usable, matched and filled-in points, and the counts by status (:class:`NodeCounts`)."""
+        return node_counts(self.status, self.provenance, self.u)
 
     def copy(self) -> ScatteredField:
         """Deep copy (arrays and dictionaries)."""
