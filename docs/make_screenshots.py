@@ -176,6 +176,7 @@ def main() -> None:
     viewer.close()
     tiff_walkthrough()
     points_walkthrough()
+    series_walkthrough()
 
 
 def tiff_walkthrough() -> None:
@@ -243,6 +244,43 @@ def points_walkthrough() -> None:
     viewer.close()
 
 
+def series_walkthrough() -> None:
+    """A scan series (four states of the soil sample under growing shear, one 4-D layer):
+    Correlate (total), one self-correcting pass, Evaluate; the series plot against the slip
+    typed as the load of each state."""
+    from napari_dvc_correct._sample_data import scan_series
+
+    slips = (0.0, 1.5, 3.0, 4.5)
+    volumes, _ = scan_series((64, 64, 64), slips=slips)
+    viewer, panels, docks = make_viewer(sample=None, show=True)
+    normal_size(viewer)
+    viewer.add_image(volumes, name="scan")
+    correlate = panels["Correlate"]
+    front(docks["Correlate"])
+    correlate.mode.setCurrentIndex(correlate.mode.findData("series4d"))
+    correlate.reference.set_layer("scan")
+    correlate.subvolume.setValue(21)
+    correlate.step.setValue(6)
+    print(f"correlate series: {wait(correlate):.1f} s")
+    correct = panels["Self-correct"]
+    front(docks["Self-correct"])
+    correct.max_passes.setValue(1)
+    print(f"self-correct series: {wait(correct):.1f} s")
+    evaluate = panels["Evaluate"]
+    front(docks["Evaluate"])
+    print(f"evaluate series: {wait(evaluate):.1f} s")
+    evaluate.loads.setText(", ".join(f"{s:g}" for s in slips[1:]))
+    evaluate.plot_series()
+    viewer.dims.set_current_step(0, len(slips) - 1)
+    shot(viewer, "evaluate-series.png")
+    viewer.close()
+
+
 if __name__ == "__main__":
-    parts = {"all": main, "tiff": tiff_walkthrough, "points": points_walkthrough}
+    parts = {
+        "all": main,
+        "tiff": tiff_walkthrough,
+        "points": points_walkthrough,
+        "series": series_walkthrough,
+    }
     parts[sys.argv[1] if len(sys.argv) > 1 else "all"]()

@@ -165,3 +165,37 @@ def test_series_tiled_refuses_a_run_over_max_memory_and_writes_nothing(volumes, 
     assert code == 2
     assert "--max-memory" in capsys.readouterr().err
     assert not out_dir.exists()
+
+
+def test_series_report_plots_residual_p_and_error_against_the_load(volumes, tmp_path, capsys):
+    """``--evaluate --loads``: each state against its own pair, the numbers of an evaluation of
+    the written field, the states at the given loads, and a bad load list refused first."""
+    from napari_dvc_correct.commands.evaluate import ready_for_evaluation
+    from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+
+    out_dir = tmp_path / "series"
+    bad = ["series", *volumes, "--out-dir", str(out_dir), "--evaluate", "--loads", "1", *DVC]
+    assert main(bad) == 2
+    assert "one load value per deformed state" in capsys.readouterr().err
+    assert not out_dir.exists()
+    command = ["series", *volumes, "--out-dir", str(out_dir), "--strategy", "total", *DVC]
+    assert main([*command, "--evaluate", "--loads", "0.5, 2", "--load-label", "force [kN]"]) == 0
+    with open(out_dir / "series_evaluation.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [(r["state"], r["tick"], r["load"]) for r in rows] == [
+        ("1", "state 1", "0.5"),
+        ("2", "state 2", "2"),
+    ]
+    reference = np.load(volumes[0])
+    for k, row in enumerate(rows, start=1):
+        field, _ = ready_for_evaluation(load_field(out_dir / f"state_{k:02d}.npz"), "f")
+        item = evaluate_fields(reference, np.load(volumes[k]), {"f": field})["f"]
+        assert float(row["accuracy"]) == pytest.approx(item.accuracy, abs=1e-5)
+        assert float(row["mean_residual"]) == pytest.approx(item.mean_residual, rel=1e-5)
+        assert float(row["error_median"]) == pytest.approx(item.error["median"], rel=1e-4)
+        # a pure translation, well measured: p near 1, errors well under a voxel
+        assert float(row["accuracy"]) > 0.9 and float(row["error_median"]) < 0.2
+    png = (out_dir / "series_plot.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    page = (out_dir / "series_report.md").read_text()
+    assert "![series](series_plot.png)" in page and "| state 2 | 2 | field |" in page

@@ -218,3 +218,54 @@ def test_a_series_as_separate_layers_is_evaluated_state_by_state(
     again = evaluate.evaluation["state 2"]
     assert again.background_used == pytest.approx(first.background_used, rel=1e-9)
     assert again.accuracy == pytest.approx(first.accuracy, abs=1e-12)
+
+
+def test_series_plots_against_the_load_state(series40, make_napari_viewer, run_panel):
+    """Three states as three layers: the Evaluate panel plots each state's mean residual, p and
+    error estimate, every state ticked (by its volume), then at the loads the user types."""
+    from napari_dvc_correct import layers as L
+    from napari_dvc_correct import viewer_layers as V
+    from napari_dvc_correct.engine.fields.field import grid_for_volume
+
+    volumes, truths = series40
+    viewer = make_napari_viewer()
+    for k in range(3):
+        viewer.add_image(volumes[k], name=f"scan{k}")
+    origin, step, shape = grid_for_volume(volumes[0].shape, 11, 8)
+    for k in (1, 2):
+        field = true_field(truths[k], origin, step, shape)
+        field.metadata.update(reference_layer="scan0", deformed_layer=f"scan{k}")
+        V.show_layers(viewer, L.field_layers(field, f"state {k}"))
+    evaluate = _dock(viewer, EvaluateWidget)
+    evaluate.reference.set_layer("scan0")
+    evaluate.deformed.set_layer("scan1")
+    assert not evaluate.series_plot.isVisibleTo(evaluate)  # a series shows it, a pair not
+    run_panel(evaluate)
+    assert evaluate.last_error is None, evaluate.last_error
+    assert evaluate.series_plot.isVisibleTo(evaluate) and evaluate.loads.isVisibleTo(evaluate)
+    items = [evaluation["state 1" if k == 0 else "state 2"] for k, (_, evaluation) in
+             enumerate(evaluate.evaluations)]  # fmt: skip
+    expected = {
+        0: [item.mean_residual for item in items],
+        1: [item.accuracy for item in items],
+        2: [item.error["median"] for item in items],
+    }
+    for index, axes in enumerate(evaluate.series_plot.axes):
+        assert [t.get_text() for t in axes.get_xticklabels()] == ["scan1", "scan2"]
+        (line,) = [line for line in axes.get_lines() if line.get_label() == "field"]
+        np.testing.assert_allclose(line.get_xdata(), [1, 2])
+        np.testing.assert_allclose(line.get_ydata(), expected[index])
+    # exact fields: a good p and a small error at both states
+    assert all(p > 0.85 for p in expected[1]) and all(e < 0.3 for e in expected[2])
+    # the user's load values move the states along x, still ticked
+    evaluate.loads.setText("0.5, 2")
+    evaluate.loads.editingFinished.emit()
+    axes = evaluate.series_plot.axes[1]
+    np.testing.assert_allclose(axes.get_xticks(), [0.5, 2.0])
+    assert axes.get_xlabel() == "load"
+    np.testing.assert_allclose(axes.get_lines()[0].get_xdata(), [0.5, 2.0])
+    # a wrong count is said in one line, the plot kept
+    evaluate.loads.setText("1")
+    evaluate.loads.editingFinished.emit()
+    assert "one load value per deformed state" in evaluate.message.text()
+    np.testing.assert_allclose(axes.get_xticks(), [0.5, 2.0])

@@ -75,8 +75,42 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "totals (default), the increments, or both",
     )
     add_tiled_arguments(parser)
+    group = parser.add_argument_group("series report")
+    group.add_argument(
+        "--evaluate",
+        action="store_true",
+        help="evaluate every state against its own pair and write series_report.md, "
+        "series_plot.png (mean gray residual, accuracy index p and error estimate per state) "
+        "and series_evaluation.csv into --out-dir (a grid series in memory)",
+    )
+    group.add_argument(
+        "--loads",
+        default=None,
+        help="with --evaluate: the load of each deformed state, e.g. '0.5,1.0,1.5' (the x "
+        "axis of the plots; default: the state index)",
+    )
+    group.add_argument(
+        "--load-label",
+        default=None,
+        help="with --loads: the x axis label, e.g. 'force [kN]' (default 'load')",
+    )
     parser.set_defaults(run=run)
     return parser
+
+
+def evaluate_states(volumes, totals, bar) -> list:
+    """Each total against its own pair (``volumes[0]``, ``volumes[k]``): [(label, Evaluation)]."""
+    from ..engine.evaluation.accuracy import evaluate_iter
+    from ._common import drive
+    from .evaluate import ready_for_evaluation
+
+    results = []
+    for k, total in enumerate(totals, start=1):
+        name = f"state {k}"
+        field, _ = ready_for_evaluation(total, name)
+        evaluation = drive(evaluate_iter(volumes[0], volumes[k], {name: field}), bar)
+        results.append((name, evaluation))
+    return results
 
 
 def _format(value) -> str:
@@ -98,7 +132,7 @@ def write_summary(rows: list[dict], path: Path) -> None:
 
 
 #: Files a series writes (an older series folder holding only these may be replaced).
-SERIES_PATTERNS = ("state_*", "increment_*_*", "summary.csv")
+SERIES_PATTERNS = ("state_*", "increment_*_*", "summary.csv", "series_*")
 
 
 def field_suffix(args, at_points: bool) -> str:
@@ -154,6 +188,18 @@ def run(args) -> int:
                 "--batch, --workers, --scheduler, --temp-dir), or use a grid (--roi, --cylinder)"
             )
         points = _grid_options.load_points(args.points)
+    evaluate = getattr(args, "evaluate", False)
+    if evaluate and (at_points or tiled):
+        raise ValueError(
+            "--evaluate evaluates a grid series in memory: leave out --points and the "
+            "out-of-core options (or run 'evaluate' on each state)"
+        )
+    if not evaluate and (getattr(args, "loads", None) or getattr(args, "load_label", None)):
+        raise ValueError("--loads and --load-label go with --evaluate")
+    if evaluate:
+        from ..report.series import parse_loads
+
+        parse_loads(args.loads, len(args.volumes) - 1)  # refused before any work
     correct_increments = args.self_correct and args.correct in ("increments", "both")
     correct_total = args.self_correct and args.correct in ("total", "both")
     strategy = dict(
@@ -203,9 +249,14 @@ def run(args) -> int:
             name = f"increment_{k - 1:02d}_{k:02d}{suffix}"
             _field_formats.write_output_field(args, increment, str(temp / name))
         write_summary(rows, temp / "summary.csv")
-    for row in rows[1:]:
+        if evaluate:
+            from ..report.series import write_series_report
+
+            states = evaluate_states(volumes, result.totals, ProgressBar(args.quiet))
+            write_series_report(states, temp, args.loads, args.load_label)
+    for row, total in zip(rows[1:], result.totals):
         print(
-            f"state {row['state']}: valid {row['valid_fraction']:.3f}, mean |u| "
+            f"state {row['state']}: {total.node_counts().text()}; mean |u| "
             f"{row['mean_displacement']:.3f} voxels, mean gray residual "
             f"{row['mean_gray_residual']:.4f}"
         )

@@ -113,6 +113,31 @@ class CurvesCanvas(PlotCanvas):
         self.redraw()
 
 
+class SeriesCanvas(PlotCanvas):
+    """A series: mean gray residual, accuracy index p and the error estimate against the load
+    state, one curve per field, every state ticked (:func:`..report.series.draw_series`, the
+    drawing of the command line's series report)."""
+
+    def __init__(self, parent=None) -> None:
+        super().__init__(3, 2.4, parent)
+        self.rows = []
+
+    def plot(self, rows, x_label: str | None = None) -> None:
+        from ..report.series import draw_series
+
+        self.rows = list(rows)
+        for axes in self.axes:
+            axes.clear()
+        draw_series(self.axes, self.rows, x_label)
+        for axes in self.axes:
+            style_axes(axes)
+            axes.title.set_fontsize(8)
+        for legend in self.figure.legends:
+            for text in legend.get_texts():
+                text.set_color(FOREGROUND)
+        self.redraw()
+
+
 class ProfileCanvas(PlotCanvas):
     """Displacement (left) and strain (right) along a line, one curve per field."""
 

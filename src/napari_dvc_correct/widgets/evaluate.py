@@ -8,11 +8,14 @@ import numpy as np
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
     QComboBox,
+    QFrame,
     QHBoxLayout,
     QLabel,
+    QLineEdit,
     QListWidget,
     QListWidgetItem,
     QPushButton,
+    QScrollArea,
     QSpinBox,
 )
 from superqt import QDoubleRangeSlider
@@ -31,7 +34,7 @@ from ._base import (
     pair_in_order,
 )
 from ._layer_kinds import is_scan
-from ._plots import CurvesCanvas, HistogramCanvas
+from ._plots import CurvesCanvas, HistogramCanvas, SeriesCanvas
 from .correlate_model import (
     check_tiled,
     layer_placement,
@@ -105,8 +108,31 @@ class EvaluateWidget(EngineWidget):
         self.summary.setWordWrap(True)
         self.summary.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.curves = CurvesCanvas()
-        self.body.addWidget(self.summary)
+        # a series' summary has a block per state: scrolled, so the plots stay on screen
+        self.summary_box = QScrollArea()
+        self.summary_box.setWidget(self.summary)
+        self.summary_box.setWidgetResizable(True)
+        self.summary_box.setFrameShape(QFrame.Shape.NoFrame)
+        self.summary_box.setMaximumHeight(190)
+        self.body.addWidget(self.summary_box)
         self.body.addWidget(self.curves)
+        # a series: residual, p and error estimate against the load state (hidden for a pair)
+        self.loads = QLineEdit()
+        self.loads.setPlaceholderText("load per deformed state, e.g. 0.5, 1, 1.5 (empty: state)")
+        self.loads.setToolTip(
+            "The load of each evaluated state, in order, for the x axis of the series plot; "
+            "empty: the states in order. Every state stays ticked."
+        )
+        self.series_label = QLabel("Load values")
+        self.series_plot = SeriesCanvas()
+        row = QHBoxLayout()
+        row.addWidget(self.series_label)
+        row.addWidget(self.loads)
+        self.body.addLayout(row)
+        self.body.addWidget(self.series_plot)
+        for widget in (self.series_label, self.loads, self.series_plot):
+            widget.setVisible(False)
+        self.loads.editingFinished.connect(self.plot_series)
 
         self.evaluation = None
         self._volume_key = None
@@ -427,6 +453,7 @@ class EvaluateWidget(EngineWidget):
             self.summary.setText(model.groups_text(evaluation))
             self.curves.plot(self.evaluation)
             self.show_message(f"Evaluation done for {len(evaluation)} states.")
+            self.plot_series()
             return
         if tuples is None:
             outputs = getattr(self, "_outputs", None)
@@ -439,6 +466,24 @@ class EvaluateWidget(EngineWidget):
         self.summary.setText(model.summary_text(evaluation))
         self.curves.plot(evaluation)
         self.show_message("Evaluation done.")
+        for widget in (self.series_label, self.loads, self.series_plot):
+            widget.setVisible(False)
+
+    def plot_series(self) -> None:
+        """The series plot of the evaluations on show (states ticked, at the typed loads)."""
+        evaluations = getattr(self, "evaluations", [])
+        if len(evaluations) < 2:
+            return
+        try:
+            rows = model.series_rows(
+                evaluations, self.loads.text(), self.deformed.currentText() or None
+            )
+        except ValueError as error:
+            self.show_message(one_line(error), error=True)
+            return
+        for widget in (self.series_label, self.loads, self.series_plot):
+            widget.setVisible(True)
+        self.series_plot.plot(rows)
 
 
 def _phase_preview(volume, thresholds):

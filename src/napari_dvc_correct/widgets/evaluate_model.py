@@ -425,3 +425,13 @@ def run_groups(
 def groups_text(results) -> str:
     """The per-pair summary: one block of :func:`summary_text` per state."""
     return "\n".join(f"— {label} —\n{summary_text(evaluation)}" for label, evaluation in results)
+
+
+def series_rows(results, loads_text: str = "", deformed: str | None = None) -> list[dict]:
+    """The rows of the series plot (:func:`..report.series.series_rows`) of a series'
+    evaluations, with the load values typed in the panel (empty: the state index); ``deformed``
+    names the state evaluated on the panel's own pair. Raises ValueError for a bad load list."""
+    from ..report.series import parse_loads
+    from ..report.series import series_rows as rows_of
+
+    return rows_of(results, parse_loads(loads_text, len(results)), deformed)
