@@ -61,6 +61,10 @@ def test_points_layer_run_gives_readable_point_layers(
     np.testing.assert_allclose(arrows.data[:, 1], field.u[field.valid])
     np.testing.assert_allclose(arrows.scale, small.voxel_size)
     assert "Done: 4 points" in widget.message.text()
+    counts = field.node_counts()  # the usable count and the counts by status, one definition
+    assert f"usable {counts.usable} of 4 points ({counts.usable_fraction:.3f})" in (
+        widget.message.text()
+    )
     caption = V.text_overlay(viewer).text
     assert caption.startswith("|u| [scale units] at the points")  # not [vx]: a voxel size
     assert "viridis 0 to" in caption
