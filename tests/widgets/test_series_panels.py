@@ -264,6 +264,11 @@ def test_series_plots_against_the_load_state(series40, make_napari_viewer, run_p
     np.testing.assert_allclose(axes.get_xticks(), [0.5, 2.0])
     assert axes.get_xlabel() == "load"
     np.testing.assert_allclose(axes.get_lines()[0].get_xdata(), [0.5, 2.0])
+    # a session keeps the load values
+    settings = evaluate.settings()
+    evaluate.loads.clear()
+    evaluate.restore(settings)
+    assert settings["loads"] == "0.5, 2" and evaluate.loads.text() == "0.5, 2"
     # a wrong count is said in one line, the plot kept
     evaluate.loads.setText("1")
     evaluate.loads.editingFinished.emit()

@@ -210,7 +210,8 @@ class EvaluateWidget(EngineWidget):
 
     # -- sessions -------------------------------------------------------------------------------
     def settings(self) -> dict:
-        """Thresholds, number of phases and residual mode, JSON-friendly (for a session file)."""
+        """Thresholds, number of phases, residual mode and a series' load values, JSON-friendly
+        (for a session file)."""
         return {
             "region": self.region.settings(),
             "n_phases": self.n_phases.value(),
@@ -219,6 +220,7 @@ class EvaluateWidget(EngineWidget):
             "tiled": self.tiled.isChecked(),
             "max_memory": self.max_memory.text(),
             "evaluated": self.evaluated_fields(),
+            "loads": self.loads.text(),
         }
 
     def evaluated_fields(self) -> list[str]:
@@ -253,6 +255,7 @@ class EvaluateWidget(EngineWidget):
         if settings.get("thresholds"):
             self.set_thresholds(settings["thresholds"], show=False)
         self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
+        self.loads.setText(str(settings.get("loads", "")))
 
     # -- thresholds and live phases -----------------------------------------------------------
     def thresholds(self) -> list[float]:
