@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -218,3 +219,32 @@ def test_the_provenance_side_file_may_not_be_the_input(tmp_path, capsys):
     assert main(["export", str(table), str(tmp_path / "run.vti"), "--in-format", "table"]) == 2
     assert "is the input field" in capsys.readouterr().err
     assert table.read_bytes() == before and not (tmp_path / "run.vti").exists()
+
+
+FORMATS_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "formats"
+
+
+@pytest.mark.skipif(
+    not FORMATS_DIR.is_dir(),
+    reason=f"the other tools' real files are not here ({FORMATS_DIR}: ../shared is absent)",
+)
+@pytest.mark.parametrize(
+    ("name", "reader", "fmt"),
+    [
+        ("spam/reg_ldic/ref-def-ldic.tsv", "spam", "dvcfield"),
+        ("pyaldvc/aldvc.mat", "aldvc", "spam"),
+        ("ccpi_dvc/snow48/snow48.disp", "idvc", "aldvc"),
+    ],
+)
+def test_real_files_of_other_tools_convert_with_their_values(name, reader, fmt, tmp_path):
+    """spam, ALDVC and iDVC files from those tools' own runs: converted, read back, the same
+    grid and the same displacement at every node the tool measured."""
+    source = FORMATS_DIR / name
+    out = tmp_path / f"converted{EXPORT_FORMATS[fmt]}"
+    assert main(["export", str(source), str(out), "--quiet"]) == 0
+    original = read_field(source, reader)
+    back = load_field(out) if fmt == "dvcfield" else read_field(out, fmt)
+    assert back.same_grid(original)
+    good = original.valid & back.valid
+    assert good.sum() >= 0.9 * original.valid.sum()
+    np.testing.assert_allclose(back.u[good], original.u[good], rtol=1e-5, atol=1e-4)
