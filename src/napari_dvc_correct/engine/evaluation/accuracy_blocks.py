@@ -303,7 +303,7 @@ class FieldAccumulator:
         self.node_sums = np.zeros(field.shape)
         self.node_counts = np.zeros(field.shape, np.int64)
         self.moment_sums = np.zeros((len(MOMENTS), *field.shape))
-        self.moment_counts = np.zeros((len(MOMENTS), *field.shape), np.int64)
+        self.moment_counts = np.zeros(field.shape, np.int64)  # the same for every moment
         self.error_sums = np.zeros(field.shape)
         self.error_counts = np.zeros(field.shape, np.int64)
 
@@ -316,7 +316,11 @@ class FieldAccumulator:
         block.cells.add_to(self.cell_sums, self.cell_counts)
         block.nodes.add_to(self.node_sums, self.node_counts)
         for k, part in enumerate(block.moments or ()):
-            part.add_to(self.moment_sums[k], self.moment_counts[k])
+            if k == 0:
+                part.add_to(self.moment_sums[0], self.moment_counts)
+            elif part.sums.size:  # the same voxels: only the sums
+                where = tuple(slice(int(a), int(a) + n) for a, n in zip(part.lo, part.sums.shape))
+                self.moment_sums[k][where] += part.sums
         if block.error_nodes is not None:
             block.error_nodes.add_to(self.error_sums, self.error_counts)
 
@@ -350,7 +354,7 @@ class FieldAccumulator:
 
     def error_moments(self) -> ErrorMoments:
         """Window means of the error estimate's moments (:class:`.error_estimate.ErrorMoments`)."""
-        return ErrorMoments.from_sums(self.moment_sums, self.moment_counts[0])
+        return ErrorMoments.from_sums(self.moment_sums, self.moment_counts)
 
     def local_residual(self) -> np.ndarray:
         """Mean residual over every node's box (NaN where it holds no finite voxel)."""
