@@ -46,8 +46,12 @@ def _window_moments(shift, gain=1.0, offset=0.0, sigma=2.0, seed=0, size=2.0, ha
     reference = big + rng.normal(0.0, sigma, big.shape)
     moved = gain * (moved + rng.normal(0.0, sigma, big.shape)) + offset
     window = tuple(slice(24 - half, 24 + half + 1) for _ in range(3))
-    volumes = moment_volumes(
-        (moved - reference)[window], reference[window], gradient_components(reference)[:, *window]
+    volumes = list(
+        moment_volumes(
+            (moved - reference)[window],
+            reference[window],
+            gradient_components(reference)[:, *window],
+        )
     )
     sums = np.array([np.nansum(v) for v in volumes]).reshape(len(MOMENTS), 1, 1, 1)
     count = np.full((1, 1, 1), np.isfinite(volumes[0]).sum())

@@ -91,9 +91,10 @@ def noise_sigma(background: float) -> float:
     return float(background) * np.sqrt(np.pi) / 2.0
 
 
-def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray) -> list[np.ndarray]:
-    """The voxel quantities whose window means make :class:`ErrorMoments`, in :data:`MOMENTS`'s
-    order (float32, NaN where ``signed`` is).
+def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray):
+    """The voxel quantities whose window means make :class:`ErrorMoments`, one at a time in
+    :data:`MOMENTS`'s order (a generator of float32 arrays, NaN where ``signed`` is: a block
+    holds one product at a time, not twenty).
 
     Parameters
     ----------
@@ -109,14 +110,16 @@ def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray) ->
     nan = np.float32(np.nan)
     gray = np.where(valid, np.asarray(own, np.float32), nan)
     g = np.where(valid[None], np.asarray(gradient, np.float32), nan)
-    return (
-        [s, gray, g[0], g[1], g[2]]
-        + [g[i] * g[j] for i, j in _PAIRS]
-        + [g[i] * gray for i in range(3)]
-        + [gray * gray]
-        + [g[i] * s for i in range(3)]
-        + [gray * s, s * s]
-    )
+    yield from (s, gray, g[0], g[1], g[2])
+    for i, j in _PAIRS:
+        yield g[i] * g[j]
+    for i in range(3):
+        yield g[i] * gray
+    yield gray * gray
+    for i in range(3):
+        yield g[i] * s
+    yield gray * s
+    yield s * s
 
 
 @dataclass(frozen=True)
