@@ -29,8 +29,10 @@ node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   of the match (``field.uncertainty``) where the field has it: below the resolution the residual
   cannot rank the nodes, and the error of a match is then its noise error.
 
-``σ`` is one scan's noise, from the pair's ``r0`` (eq. 1). Where the window has no texture
-(``H_t`` near 0: air, a flat region) the resolution is infinite. Measured against true errors in
+``σ`` is the scans' noise, from the pair's ``r0`` (eq. 1: the residual's noise has variance
+``π r0²/2``), shared between the two scans by the gray-level map's gain
+(:func:`own_noise_share`). Where the window has no texture (``H_t`` near 0: air, a flat region)
+the resolution is infinite. Measured against true errors in
 ``docs/evaluation.md`` (``benchmarks/bench_error_estimate.py``). Arrays are on the field's grid
 ``(nz, ny, nx)``.
 """
@@ -183,7 +185,20 @@ class ResidualError:
     unexplained: np.ndarray
 
 
-def residual_error(moments: ErrorMoments, background: float) -> ResidualError:
+def own_noise_share(contrast: float = 1.0, mode: str = "reference") -> float:
+    """Share of the residual's noise variance that is the noise of the state the residual lives
+    on, with the same noise in both scans in their own gray levels and the loaded one brought
+    into the reference's by a map of gain ``contrast``: ``1 / (1 + c²)`` for ``G`` (reference
+    mode), ``c² / (1 + c²)`` for ``map(F)`` (loaded mode); 1/2 without a map."""
+    c2 = float(contrast) ** 2
+    if not np.isfinite(c2) or c2 <= 0:
+        return 0.5
+    return 1.0 / (1.0 + c2) if mode == "reference" else c2 / (1.0 + c2)
+
+
+def residual_error(
+    moments: ErrorMoments, background: float, own_share: float = 0.5
+) -> ResidualError:
     """The error each node's window residual resolves (see the module for the model).
 
     Parameters
@@ -192,9 +207,14 @@ def residual_error(moments: ErrorMoments, background: float) -> ResidualError:
         Window means of the signed residual, the gray value and its gradient
         (:func:`moment_volumes`).
     background : float
-        ``r0`` of the scan pair (eq. 1), gray levels.
+        ``r0`` of the scan pair (eq. 1), gray levels: the residual's noise has variance
+        ``π r0² / 2`` (``2σ²`` for two scans of noise ``σ``).
+    own_share : float
+        Share of that variance that is the noise of the state the residual lives on (the one
+        whose gradient is used; :func:`own_noise_share`).
     """
-    sigma2 = noise_sigma(background) ** 2
+    total = 0.5 * np.pi * float(background) ** 2  # the residual's noise variance
+    sigma2 = total * float(own_share)  # the gradient's state's noise variance
     n = np.maximum(moments.count.astype(np.float64), 1.0)
     defined = (moments.count > 1) & np.all(np.isfinite(moments.means), axis=0)
     axes = ("gz", "gy", "gx")
@@ -229,15 +249,15 @@ def residual_error(moments: ErrorMoments, background: float) -> ResidualError:
     safe = np.where(textured[..., None], w_t, 1.0)
     coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # Δu in the eigenbasis
     shift = np.einsum("...ij,...j->...i", v, coordinates)
-    variance = 2.0 * sigma2 / n * np.sum(np.where(textured[..., None], w / safe**2, 0.0), -1)
+    variance = total / n * np.sum(np.where(textured[..., None], w / safe**2, 0.0), -1)
     variance = variance / contrast**2
     resolution = np.where(textured, np.sqrt(variance), np.inf)
     squared = np.sum(shift * shift, axis=-1)
     resolved = np.sqrt(np.maximum(squared - variance, 0.0))
     # the residual's excess variance (gray offset and gain out) against what the step explains
-    excess = cov("s", "s") - lift**2 * gray - 2.0 * sigma2
+    excess = cov("s", "s") - lift**2 * gray - total
     explained = contrast**2 * np.sum(w_t * coordinates * coordinates, axis=-1)
-    noise = 2.0 * np.sqrt(2.0) * sigma2 / np.sqrt(n)
+    noise = np.sqrt(2.0) * total / np.sqrt(n)
     unexplained = (
         defined
         & (1.0 + lift < MATCHED_CONTRAST)
@@ -264,9 +284,10 @@ def noise_error(field) -> np.ndarray:
 
 
 def error_estimate(
-    field, moments: ErrorMoments, background: float
+    field, moments: ErrorMoments, background: float, own_share: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Estimated displacement error per node and the residual's resolution there (voxels).
+    """Estimated displacement error per node and the residual's resolution there (voxels);
+    ``background`` and ``own_share`` as in :func:`residual_error`.
 
     Returns
     -------
@@ -277,7 +298,7 @@ def error_estimate(
         The noise of the residual's estimate: where ``estimate`` is not above it, the residual
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
-    residual = residual_error(moments, background)
+    residual = residual_error(moments, background, own_share)
     estimate = np.sqrt(residual.resolved**2 + noise_error(field) ** 2)
     return estimate, residual.resolution
 
