@@ -249,7 +249,7 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels, p
         The pair's map and ``r0`` (:func:`.accuracy_pair.measure_pair`); without it, ``r0`` is
         the smallest of the fields' own.
     """
-    from .error_estimate import error_estimate, own_noise_share
+    from .error_estimate import error_estimate
 
     contrast, phases = phase_contrast(tables[0], tables[1], phase_pair)
     if pair is None:
@@ -261,13 +261,12 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels, p
             {p["name"]: p["background"].mean for p in partial},
         )
     shared = pair.background.mean
-    share = own_noise_share(pair.gray_levels.contrast, plan.mode)
     results = []
     for p in partial:
         r0 = shared if plan.options["shared_background"] else p["background"].mean
         local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
         own = {k: v for k, v in p.items() if k != "error_moments"}
-        estimate, resolution = error_estimate(p["field"], p["error_moments"], shared, share)
+        estimate, resolution = error_estimate(p["field"], p["error_moments"], shared)
         results.append(
             FieldEvaluation(
                 **own,

@@ -30,9 +30,8 @@ node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   cannot rank the nodes, and the error of a match is then its noise error.
 
 ``σ`` is the scans' noise, from the pair's ``r0`` (eq. 1: the residual's noise has variance
-``π r0²/2``), shared between the two scans by the gray-level map's gain
-(:func:`own_noise_share`). Where the window has no texture (``H_t`` near 0: air, a flat region)
-the resolution is infinite. Measured against true errors in
+``π r0²/2``), half of it each scan's. Where the window has no texture (``H_t`` near 0: air, a
+flat region) the resolution is infinite. Measured against true errors in
 ``docs/evaluation.md`` (``benchmarks/bench_error_estimate.py``). Arrays are on the field's grid
 ``(nz, ny, nx)``.
 """
@@ -185,17 +184,6 @@ class ResidualError:
     unexplained: np.ndarray
 
 
-def own_noise_share(contrast: float = 1.0, mode: str = "reference") -> float:
-    """Share of the residual's noise variance that is the noise of the state the residual lives
-    on, with the same noise in both scans in their own gray levels and the loaded one brought
-    into the reference's by a map of gain ``contrast``: ``1 / (1 + c²)`` for ``G`` (reference
-    mode), ``c² / (1 + c²)`` for ``map(F)`` (loaded mode); 1/2 without a map."""
-    c2 = float(contrast) ** 2
-    if not np.isfinite(c2) or c2 <= 0:
-        return 0.5
-    return 1.0 / (1.0 + c2) if mode == "reference" else c2 / (1.0 + c2)
-
-
 def residual_error(
     moments: ErrorMoments, background: float, own_share: float = 0.5
 ) -> ResidualError:
@@ -211,7 +199,9 @@ def residual_error(
         ``π r0² / 2`` (``2σ²`` for two scans of noise ``σ``).
     own_share : float
         Share of that variance that is the noise of the state the residual lives on (the one
-        whose gradient is used; :func:`own_noise_share`).
+        whose gradient is used): 1/2 for the same noise in both scans in the reference's gray
+        levels. (A map's gain cannot tell which: a real rescaling of the loaded scan scales its
+        noise too, the dilution of a least-squares map by noise does not.)
     """
     total = 0.5 * np.pi * float(background) ** 2  # the residual's noise variance
     sigma2 = total * float(own_share)  # the gradient's state's noise variance
