@@ -189,6 +189,7 @@ def render_markdown(
                 "error_median": "Error estimate, median (voxels)",
                 "error_p95": "95th percentile",
                 "likely_bad_fraction": "Share of nodes likely > 0.5 voxel",
+                "below_resolution_fraction": "Share below the residual's resolution (a bound)",
                 "max_equivalent_strain": "Max equivalent strain",
                 "valid_nodes": "Measured nodes",
                 "nodes": "Nodes",

@@ -73,6 +73,8 @@ def summary_rows(evaluation: Evaluation) -> list[dict]:
                 "error_median": error["median"],
                 "error_p95": error["p95"],
                 "likely_bad_fraction": error["likely_bad"],
+                "error_resolution": error["resolution"],
+                "below_resolution_fraction": error["below_resolution"],
                 "residual_voxels": item.voxels,
                 "same_phase_voxels": item.background.voxels,
                 "valid_nodes": item.measured_nodes,

@@ -44,7 +44,7 @@ from ..engine.evaluation.accuracy_blocks import (
     FieldAccumulator,
     field_block,
     field_partial,
-    halo_squared_gradient,
+    halo_gradient,
 )
 from ..engine.evaluation.accuracy_pair import (
     background_from_sums,
@@ -296,7 +296,7 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs, region=
 
     sampler = LazySampler(other)  # a callable, and a one-pass pull-back (reference mode)
     own_volume = reference if mode == "reference" else deformed
-    gradient2 = halo_squared_gradient(
+    gradient = halo_gradient(
         own_volume.read_region, block, own_volume.shape, None if mode == "reference" else mapping
     )
 
@@ -305,7 +305,7 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs, region=
         result, _, residual, mapped = field_block(
             own, sampler, spline, block, mode, other_thresholds, own_labels,
             plan.bin_fields[index], centers[index], halves[index], mapping,
-            error_region_half(plan.named[index][1]), gradient2, inside,
+            error_region_half(plan.named[index][1]), gradient, inside,
         )  # fmt: skip
         for key, values in ((("residual", name), residual), (("labels_mapped", name), mapped)):
             if key in outputs:

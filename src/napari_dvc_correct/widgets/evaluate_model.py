@@ -328,6 +328,7 @@ def evaluation_report(evaluation) -> dict:
             "error estimate median (voxels)": error["median"],
             "error estimate 95th percentile (voxels)": error["p95"],
             "share of nodes likely > 0.5 voxel": error["likely_bad"],
+            "share of nodes below the residual's resolution": error["below_resolution"],
             "voxels": int(item.voxels),
             "mean residual per strain bin": [float(v) for v in item.bins.mean_residual],
             "accuracy per strain bin": [float(v) for v in np.asarray(item.bin_accuracy)],
@@ -368,8 +369,14 @@ def field_lines(item) -> list[str]:
         f"{item.name}: mean residual {item.mean_residual:.2f}, accuracy index p = {p}; error "
         f"estimate median "
         f"{error['median']:.3f} voxel, 95 % {error['p95']:.3f}, "
-        f"{100 * error['likely_bad']:.0f} % of nodes likely > {LIKELY_BAD:g} voxel; "
-        f"measured nodes {item.measured_nodes} / {nodes}"
+        f"{100 * error['likely_bad']:.0f} % of nodes likely > {LIKELY_BAD:g} voxel"
+        + (
+            f", {100 * error['below_resolution']:.0f} % below the residual's resolution "
+            f"({error['resolution']:.3f} voxel, median: a bound there)"
+            if np.isfinite(error["below_resolution"])
+            else ""
+        )
+        + f"; measured nodes {item.measured_nodes} / {nodes}"
     )
     return lines
 

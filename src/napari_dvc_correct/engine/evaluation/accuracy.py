@@ -265,11 +265,13 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels, p
     for p in partial:
         r0 = shared if plan.options["shared_background"] else p["background"].mean
         local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
-        estimate = error_estimate(p["field"], p["cell_residual"], p["local_gradient"], shared)
+        own = {k: v for k, v in p.items() if k != "error_moments"}
+        estimate, resolution = error_estimate(p["field"], p["error_moments"], shared)
         results.append(
             FieldEvaluation(
-                **p,
+                **own,
                 error_estimate=estimate,
+                error_resolution=resolution,
                 local_accuracy=local_accuracy,
                 local_accuracy_index=honest_accuracy(local_accuracy),
                 background_used=r0,
@@ -434,7 +436,7 @@ def evaluate_iter(
     from ..fields.field_spline import FieldSpline
     from ..fields.warp import slab_boxes, spline_sampler
     from ..pair_checks import check_pair_and_fields
-    from .accuracy_blocks import FieldAccumulator, field_block, field_partial, halo_squared_gradient
+    from .accuracy_blocks import FieldAccumulator, field_block, field_partial, halo_gradient
     from .binning import node_voxels
     from .error_estimate import error_region_half
 
@@ -509,13 +511,13 @@ def evaluate_iter(
         residual = np.empty(own.shape, np.float32) if keep_volumes else None
         mapped = np.empty(own.shape, np.uint8) if keep_volumes else None
         for z, box in slab_boxes(own.shape):
-            gradient2 = halo_squared_gradient(  # whole-volume central differences
+            gradient = halo_gradient(  # whole-volume central differences
                 own.__getitem__, box, own.shape, None if mode == "reference" else mapping
             )
             block, _, block_residual, block_mapped = field_block(
                 own[z], sampler, spline, box, mode, other_thresholds,
                 None if own_labels is None else own_labels[z], plan.bin_fields[index], centers,
-                half, mapping, error_region_half(item), gradient2,
+                half, mapping, error_region_half(item), gradient,
                 None if region is None else region[z],
             )  # fmt: skip
             totals.add(block)

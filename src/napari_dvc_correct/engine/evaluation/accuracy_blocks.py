@@ -37,6 +37,7 @@ from ..fields.warp import (
 )
 from ..slabs import iter_slabs
 from .binning import GridPart, cell_sums_block, node_box_sums
+from .error_estimate import MOMENTS, ErrorMoments, moment_volumes
 from .gray_levels import GrayLevelMap
 from .phase_sums import residual_phase_sums
 from .phases import NO_PHASE, label_phases
@@ -129,20 +130,20 @@ def corrected_residual(residual: np.ndarray, background: BackgroundResidual | fl
     return (np.asarray(residual, dtype=np.float32) - np.float32(r0)).astype(np.float32)
 
 
-def squared_gradient(block: np.ndarray) -> np.ndarray:
-    """``|grad g|^2`` (gray levels² per voxel², float32) of a block by central differences
-    (one-sided at the block's faces), NaN where a neighbour is undefined."""
+def gradient_components(block: np.ndarray) -> np.ndarray:
+    """``grad g`` (gray levels per voxel, float32, shape ``(3, *block.shape)``, components
+    ``(z, y, x)``) of a block by central differences (one-sided at the block's faces; 0 along an
+    axis of length 1), NaN where a neighbour is undefined."""
     values = np.asarray(block, dtype=np.float32)
-    total = np.zeros(values.shape, np.float32)
+    out = np.zeros((3, *values.shape), np.float32)
     for axis in range(3):
-        if values.shape[axis] < 2:
-            continue
-        total += np.gradient(values, axis=axis) ** 2
-    return total
+        if values.shape[axis] >= 2:
+            out[axis] = np.gradient(values, axis=axis)
+    return out
 
 
-def halo_squared_gradient(read_region, box, shape, gray_levels=None) -> np.ndarray:
-    """:func:`squared_gradient` of the block ``box`` read with a one-voxel halo, so that any
+def halo_gradient(read_region, box, shape, gray_levels=None) -> np.ndarray:
+    """:func:`gradient_components` of the block ``box`` read with a one-voxel halo, so that any
     cutting of the volume into blocks gives the whole volume's central differences.
 
     ``read_region(slices)`` returns the voxels of a region of the state the residual lives on;
@@ -153,7 +154,7 @@ def halo_squared_gradient(read_region, box, shape, gray_levels=None) -> np.ndarr
     if gray_levels is not None:
         values = gray_levels.apply(values, grown)
     inner = tuple(slice(s.start - g.start, s.stop - g.start) for s, g in zip(box, grown))
-    return squared_gradient(values)[inner]
+    return gradient_components(values)[(slice(None), *inner)]
 
 
 # --- one block of one field -----------------------------------------------------------------------
@@ -168,8 +169,8 @@ class BlockTotals:
     max_label: int  # largest defined phase of the own state in the block (-1: none)
     cells: GridPart  # residual per node cell of the binning field's grid
     nodes: GridPart  # residual per node box of this field (local residual)
-    gradients: GridPart | None = None  # |grad own|^2 per node cell (the error estimate's scale)
-    error_nodes: GridPart | None = None  # residual per node cell (the error estimate's region)
+    error_nodes: GridPart | None = None  # residual per node window (the error estimate's region)
+    moments: list | None = None  # GridPart per error_estimate.MOMENTS, over the same windows
 
 
 def field_block(
@@ -185,7 +186,7 @@ def field_block(
     half: int,
     gray_levels: GrayLevelMap | None = None,
     error_half: int | None = None,
-    gradient2: np.ndarray | None = None,
+    gradient: np.ndarray | None = None,
     region_block: np.ndarray | None = None,
 ) -> tuple[BlockTotals, np.ndarray, np.ndarray, np.ndarray]:
     """Moved volume, residual and mapped phases of one block, and its totals.
@@ -226,9 +227,10 @@ def field_block(
     error_half : int, optional
         Half-size of the boxes of the error estimate (:func:`.error_estimate.error_region_half`;
         default ``half``).
-    gradient2 : ndarray, shape box_shape(box), optional
-        ``|grad own|²`` of the block (:func:`halo_squared_gradient`; default: from the block
-        alone, one-sided at its faces).
+    gradient : ndarray, shape (3, *box_shape(box)), optional
+        ``grad own`` of the block (:func:`halo_gradient`; default: from the block alone,
+        one-sided at its faces), with the signed residual the error estimate's moments
+        (:func:`.error_estimate.moment_volumes`).
     region_block : ndarray of bool, shape box_shape(box), optional
         The specimen region at the block's voxels: outside it the residual is undefined (NaN)
         and takes no part in any number.
@@ -274,13 +276,15 @@ def field_block(
         max_label=sums.max_label,
         cells=cell_sums_block(residual, box, bin_field, positions),
         nodes=node_box_sums(residual, box, centers, half),
-        gradients=node_box_sums(
-            squared_gradient(own_block) if gradient2 is None else gradient2,
-            box,
-            centers,
-            error_half,
-        ),
         error_nodes=node_box_sums(residual, box, centers, error_half),
+        moments=[
+            node_box_sums(volume, box, centers, error_half)
+            for volume in moment_volumes(
+                np.where(np.isfinite(residual), moved - own_block, np.float32(np.nan)),
+                own_block,
+                gradient_components(own_block) if gradient is None else gradient,
+            )
+        ],
     )
     return totals, moved, residual, sums.mapped
 
@@ -298,8 +302,8 @@ class FieldAccumulator:
         self.cell_counts = np.zeros(bin_field.shape, np.int64)
         self.node_sums = np.zeros(field.shape)
         self.node_counts = np.zeros(field.shape, np.int64)
-        self.gradient_sums = np.zeros(field.shape)
-        self.gradient_counts = np.zeros(field.shape, np.int64)
+        self.moment_sums = np.zeros((len(MOMENTS), *field.shape))
+        self.moment_counts = np.zeros(field.shape, np.int64)  # the same for every moment
         self.error_sums = np.zeros(field.shape)
         self.error_counts = np.zeros(field.shape, np.int64)
 
@@ -311,8 +315,12 @@ class FieldAccumulator:
         self.max_label = max(self.max_label, block.max_label)
         block.cells.add_to(self.cell_sums, self.cell_counts)
         block.nodes.add_to(self.node_sums, self.node_counts)
-        if block.gradients is not None:
-            block.gradients.add_to(self.gradient_sums, self.gradient_counts)
+        for k, part in enumerate(block.moments or ()):
+            if k == 0:
+                part.add_to(self.moment_sums[0], self.moment_counts)
+            elif part.sums.size:  # the same voxels: only the sums
+                where = tuple(slice(int(a), int(a) + n) for a, n in zip(part.lo, part.sums.shape))
+                self.moment_sums[k][where] += part.sums
         if block.error_nodes is not None:
             block.error_nodes.add_to(self.error_sums, self.error_counts)
 
@@ -337,23 +345,16 @@ class FieldAccumulator:
         return BackgroundResidual(mean=float(sums.sum() / total), voxels=total, per_phase=per_phase)
 
     def cell_residual(self) -> np.ndarray:
-        """Mean residual over every node's cell (the error estimate's region; NaN where it
+        """Mean residual over every node's window (the error estimate's region; NaN where it
         holds no finite voxel)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(
                 self.error_counts > 0, self.error_sums / np.maximum(self.error_counts, 1), np.nan
             )
 
-    def local_gradient(self) -> np.ndarray:
-        """RMS gray gradient ``sqrt(mean |grad|^2)`` over every node's cell (gray levels per
-        voxel; NaN where the cell holds no finite voxel)."""
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.where(
-                self.gradient_counts > 0,
-                self.gradient_sums / np.maximum(self.gradient_counts, 1),
-                np.nan,
-            )
-        return np.sqrt(mean)
+    def error_moments(self) -> ErrorMoments:
+        """Window means of the error estimate's moments (:class:`.error_estimate.ErrorMoments`)."""
+        return ErrorMoments.from_sums(self.moment_sums, self.moment_counts)
 
     def local_residual(self) -> np.ndarray:
         """Mean residual over every node's box (NaN where it holds no finite voxel)."""
@@ -373,6 +374,7 @@ def field_partial(plan, index: int, totals: FieldAccumulator, residual, mapped):
     from .binning import bin_cells_by_strain
 
     name, item = plan.named[index]
+    moments = totals.error_moments()
     return dict(
         name=name,
         field=item,
@@ -384,7 +386,8 @@ def field_partial(plan, index: int, totals: FieldAccumulator, residual, mapped):
             totals.cell_sums, totals.cell_counts, plan.bin_strains[index], plan.edges
         ),
         local_residual=totals.local_residual(),
-        local_gradient=totals.local_gradient(),
+        error_moments=moments,
+        local_gradient=moments.rms_gradient,
         cell_residual=totals.cell_residual(),
         residual=residual,
         labels_mapped=mapped,

@@ -1,52 +1,90 @@
-"""An error estimate in voxels per node, from the gray residual (issue 26).
+"""An error estimate in voxels per node, from the gray residual and the image gradient.
 
 The accuracy index of eq. 2 measures the gray mismatch in units of the phase contrast: any field
 with errors under a voxel scores above 0.99, so it cannot tell a field that is 0.5 voxel off in
 a band from a good one. This module turns the same gray-level-corrected residual into a
-displacement error, node by node:
+displacement error, node by node, over a window of half-size :func:`error_region_half` around the
+node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
 
-- a displacement error ``e`` (voxels) moves the residual by ``grad G · e``; over a node's region,
-  with the error's direction random against the texture's gradients, the misplaced texture adds
-  a gray difference of variance ``e² <|grad G|²> / 3``;
-- the imaging noise leaves a residual ``|n|`` of mean ``r0`` (eq. 1's background residual,
-  ``r0 = sqrt(2/π) σ`` for Gaussian noise of standard deviation ``σ``);
-- with both Gaussian, the mean residual over the region is
-  ``R = sqrt(2/π) sqrt(σ² + e² g² / 3)``, ``g² = <|grad G|²>``, so
+- **the error the residual resolves.** A field wrong by ``e`` at a voxel leaves the signed
+  residual ``s = map(F)(X + u) - G(X) ≈ grad G · e + α G + β + n`` (``n`` the two scans' noise,
+  variance ``2σ²``; ``α G + β`` what the gray-level map leaves of a gray change, or adds by its
+  own error). One Gauss-Newton step of the matcher on the window, invariant to the local gray
+  offset and gain as the ZNSSD criterion is, gives ``e`` back: with ``g = grad G`` and window
+  covariances, ``Δu = H_t⁻¹ (cov(g, s) − a cov(G, s) / v)``, ``a = cov(g, G)``,
+  ``v = var G − σ²``, ``H_t = cov(g, g) − a aᵀ / v − σ²/2 I`` (central differences of the noise
+  add ``σ²/2`` per component, which would shrink ``Δu`` by the share of noise in the gradient).
+  Its noise has covariance ``C = 2σ²/n H_t⁻¹ (H_t + σ²/2 I) H_t⁻¹`` over ``n`` voxels: ``√tr C``
+  is the node's **resolution** (errors below it do not show in the residual) and the resolved
+  error is ``e_r = √max(|Δu|² − tr C, 0)``.
+- **a residual the linear model does not explain.** Beyond the linear range (errors of a few
+  voxels, a crack, the texture changed) the moved texture no longer matches the reference's
+  (its contrast ``k = 1 + (cov(G, s) + σ²)/v`` against it falls below
+  :data:`MATCHED_CONTRAST`) and ``Δu`` falls short. There, where the residual's excess variance
+  ``V = var s − (k − 1)² v − 2σ²`` exceeds the part ``k² Δuᵀ H_t Δu`` that ``Δu`` explains by
+  more than :data:`UNEXPLAINED_SIGMAS` of its noise (``2√2 σ²/√n``), the error that explains
+  ``V`` with the error's direction random against the texture, ``√(3 V / tr H_t)``, is taken if
+  larger.
+- **the noise of the match.** ``e = √(e_r² + |σ_u|²)`` with ``|σ_u|`` the noise-based uncertainty
+  of the match (``field.uncertainty``) where the field has it: below the resolution the residual
+  cannot rank the nodes, and the error of a match is then its noise error.
 
-  ``e_res = sqrt(3 π / 2 · max(R² − r0², 0)) / g``.
-
-It is combined in quadrature with the noise-based uncertainty of the match
-(``field.uncertainty``, the error the imaging noise alone leaves where the residual cannot see
-it): ``e = sqrt(e_res² + |σ_u|²)``. Measured against true errors in ``docs/evaluation.md``
-(``benchmarks/bench_error_estimate.py``). Arrays are on the field's grid ``(nz, ny, nx)``.
+``σ`` is the scans' noise, from the pair's ``r0`` (eq. 1: the residual's noise has variance
+``π r0²/2``), half of it each scan's. Where the window has no texture (``H_t`` near 0: air, a
+flat region) the resolution is infinite. Measured against true errors in
+``docs/evaluation.md`` (``benchmarks/bench_error_estimate.py``). Arrays are on the field's grid
+``(nz, ny, nx)``.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 #: Nodes whose estimated error exceeds this many voxels are counted as likely bad.
 LIKELY_BAD = 0.5
 
-#: The texture's gradient is kept above this share of the measured one (noise included).
+#: The texture's part of each gradient product is kept above this share of the measured one.
 MIN_TEXTURE_SHARE = 0.05
 
-#: ``3 π / 2``: turns the excess of the squared mean residual over the noise's into the
-#: misplaced texture's variance (see the module).
-_FACTOR = 1.5 * np.pi
+#: The moved texture's contrast against the reference's is taken as at least this (below it the
+#: two do not match: the residual's excess then speaks, not the step).
+MIN_CONTRAST = 0.2
+
+#: Below this contrast of the moved texture against the reference's, the two no longer match
+#: (the error is beyond the linear range, or the texture changed): the residual's excess then
+#: speaks. Above it, an excess the step leaves unexplained is the error varying inside the
+#: window (a band's edge), which the step's mean already measures.
+MATCHED_CONTRAST = 0.5
+
+#: How many standard deviations of its noise the residual's unexplained excess variance must
+#: reach before it counts as an error beyond the linear range.
+UNEXPLAINED_SIGMAS = 4.0
+
+#: Order of the moments gathered per node (:class:`ErrorMoments`): the signed residual ``s``, the
+#: state's gray value ``G`` and its gradient ``g = (gz, gy, gx)``, then their products.
+MOMENTS = (
+    "s", "G", "gz", "gy", "gx",
+    "gzgz", "gzgy", "gzgx", "gygy", "gygx", "gxgx",
+    "gzG", "gyG", "gxG", "GG",
+    "gzs", "gys", "gxs", "Gs", "ss",
+)  # fmt: skip
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def error_region_half(field) -> int:
-    """Half-size of a node's region for the error estimate: the field's subvolume region
-    (:func:`.local_accuracy.region_half`), where the match measured the node. Measured against
-    the node's own cell (edge ``2 ceil(step / 2) + 1``) in ``benchmarks/bench_error_estimate.py``:
-    on faint CT texture at 3 % noise the cell's residual is too noisy (13 % of the nodes of the
-    exact field flagged above 0.5 voxel, against 1 % with the subvolume region), while the
-    subvolume still catches 98-99 % of the nodes off by more than 0.5 voxel in a 12-voxel band.
+    """Half-size of a node's window for the error estimate: one grid step (the largest), within
+    the field's subvolume region (:func:`.local_accuracy.region_half`), at least 2 voxels.
+
+    A window reaching the neighbouring nodes, not further: a wider one (the subvolume, 15
+    voxels at step 5) spreads a band's error onto nodes two steps away and flags them; a
+    narrower one is too noisy on faint texture (``benchmarks/bench_error_estimate.py``).
     """
     from .local_accuracy import region_half
 
-    return region_half(field)
+    step = int(np.ceil(max(field.step)))
+    return max(2, min(region_half(field), step))
 
 
 def noise_sigma(background: float) -> float:
@@ -54,93 +92,238 @@ def noise_sigma(background: float) -> float:
     return float(background) * np.sqrt(np.pi) / 2.0
 
 
-def texture_gradient(local_gradient, background: float) -> np.ndarray:
-    """The texture's RMS gradient: the measured one less the noise's (central differences of
-    white noise of variance ``σ²`` have ``|grad n|²`` of mean ``1.5 σ²``), kept above
-    :data:`MIN_TEXTURE_SHARE` of the measured one."""
-    g2 = np.asarray(local_gradient, dtype=np.float64) ** 2
-    sigma = noise_sigma(background)
-    return np.sqrt(np.maximum(g2 - 1.5 * sigma * sigma, MIN_TEXTURE_SHARE * g2))
-
-
-def residual_error(local_residual, local_gradient, background: float) -> np.ndarray:
-    """The error the residual's excess over the noise explains, per node (voxels).
+def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray):
+    """The voxel quantities whose window means make :class:`ErrorMoments`, one at a time in
+    :data:`MOMENTS`'s order (a generator of float32 arrays, NaN where ``signed`` is: a block
+    holds one product at a time, not twenty).
 
     Parameters
     ----------
-    local_residual : ndarray, shape (nz, ny, nx)
-        Mean gray-level-corrected residual over each node's cell ``R`` (reference gray levels;
-        NaN where undefined).
-    local_gradient : ndarray, shape (nz, ny, nx)
-        RMS gray gradient ``sqrt(<|grad G|²>)`` over the same cells (gray levels per voxel),
-        noise included (:func:`texture_gradient` takes it out).
+    signed : ndarray, shape (nz, ny, nx)
+        Signed residual ``s`` (gray levels; NaN where undefined).
+    own : ndarray, shape (nz, ny, nx)
+        The state the residual lives on, ``G`` (gray levels).
+    gradient : ndarray, shape (3, nz, ny, nx)
+        Its gradient, components ``(z, y, x)`` (gray levels per voxel).
+    """
+    s = np.asarray(signed, np.float32)
+    valid = np.isfinite(s)
+    nan = np.float32(np.nan)
+    gray = np.where(valid, np.asarray(own, np.float32), nan)
+    g = np.where(valid[None], np.asarray(gradient, np.float32), nan)
+    yield from (s, gray, g[0], g[1], g[2])
+    for i, j in _PAIRS:
+        yield g[i] * g[j]
+    for i in range(3):
+        yield g[i] * gray
+    yield gray * gray
+    for i in range(3):
+        yield g[i] * s
+    yield gray * s
+    yield s * s
+
+
+@dataclass(frozen=True)
+class ErrorMoments:
+    """Window means per node of the quantities of :func:`moment_volumes`.
+
+    Attributes
+    ----------
+    count : ndarray, shape (nz, ny, nx), int64
+        Voxels with a defined residual in each node's window.
+    means : ndarray, shape (20, nz, ny, nx), float64
+        Their means, in :data:`MOMENTS`'s order (NaN where ``count`` is 0).
+    """
+
+    count: np.ndarray
+    means: np.ndarray
+
+    @classmethod
+    def from_sums(cls, sums: np.ndarray, count: np.ndarray) -> ErrorMoments:
+        """From the window sums ``(20, nz, ny, nx)`` and the voxel count."""
+        count = np.asarray(count, np.int64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            means = np.where(count > 0, sums / np.maximum(count, 1), np.nan)
+        return cls(count, means)
+
+    def mean(self, name: str) -> np.ndarray:
+        return self.means[MOMENTS.index(name)]
+
+    def covariance(self, a: str, b: str) -> np.ndarray:
+        """``<a b> - <a><b>`` over each window (``a``, ``b`` among ``s, G, gz, gy, gx``)."""
+        key = a + b if a + b in MOMENTS else b + a
+        return self.mean(key) - self.mean(a) * self.mean(b)
+
+    @property
+    def rms_gradient(self) -> np.ndarray:
+        """``sqrt(<|grad G|²>)`` (gray levels per voxel), noise included."""
+        return np.sqrt(self.mean("gzgz") + self.mean("gygy") + self.mean("gxgx"))
+
+
+@dataclass(frozen=True)
+class ResidualError:
+    """What the residual says of each node's error (voxels, the field's grid).
+
+    Attributes
+    ----------
+    shift : ndarray, shape (nz, ny, nx, 3)
+        ``Δu``, the Gauss-Newton step the window's residual asks for.
+    resolved : ndarray, shape (nz, ny, nx)
+        ``e_r``: ``|Δu|`` less its noise, or the error that explains an excess the linear model
+        does not (see the module); NaN where the window has no defined residual, ``inf`` where it
+        has an unexplained excess but no texture.
+    resolution : ndarray, shape (nz, ny, nx)
+        ``√tr C``: the noise of ``|Δu|``; errors below it do not show (``inf`` without texture).
+    unexplained : ndarray of bool, shape (nz, ny, nx)
+        Where the residual's excess is beyond what ``Δu`` explains (beyond the linear range).
+    """
+
+    shift: np.ndarray
+    resolved: np.ndarray
+    resolution: np.ndarray
+    unexplained: np.ndarray
+
+
+def residual_error(
+    moments: ErrorMoments, background: float, own_share: float = 0.5
+) -> ResidualError:
+    """The error each node's window residual resolves (see the module for the model).
+
+    Parameters
+    ----------
+    moments : ErrorMoments
+        Window means of the signed residual, the gray value and its gradient
+        (:func:`moment_volumes`).
     background : float
-        ``r0`` of the scan pair (eq. 1), gray levels.
+        ``r0`` of the scan pair (eq. 1), gray levels: the residual's noise has variance
+        ``π r0² / 2`` (``2σ²`` for two scans of noise ``σ``).
+    own_share : float
+        Share of that variance that is the noise of the state the residual lives on (the one
+        whose gradient is used): 1/2 for the same noise in both scans in the reference's gray
+        levels. (A map's gain cannot tell which: a real rescaling of the loaded scan scales its
+        noise too, the dilution of a least-squares map by noise does not.)
+    """
+    total = 0.5 * np.pi * float(background) ** 2  # the residual's noise variance
+    sigma2 = total * float(own_share)  # the gradient's state's noise variance
+    n = np.maximum(moments.count.astype(np.float64), 1.0)
+    defined = (moments.count > 1) & np.all(np.isfinite(moments.means), axis=0)
+    axes = ("gz", "gy", "gx")
+
+    def cov(a, b):
+        return np.where(defined, moments.covariance(a, b), 0.0)
+
+    # covariances over the window (the gray offset out)
+    h = np.empty((*moments.count.shape, 3, 3))
+    for i, j in _PAIRS:
+        h[..., i, j] = h[..., j, i] = cov(axes[i], axes[j])
+    a = np.stack([cov(k, "G") for k in axes], axis=-1)
+    b = np.stack([cov(k, "s") for k in axes], axis=-1)
+    gray = cov("G", "G") - sigma2  # the texture's variance (noise out)
+    contrasted = gray > MIN_TEXTURE_SHARE * (gray + sigma2)
+    safe_gray = np.where(contrasted, gray, 1.0)
+    # the moved texture's contrast against G's: s ≈ (k - 1) G + k g·e + β (G's noise is in s too)
+    lift = np.where(contrasted, (cov("G", "s") + sigma2) / safe_gray, 0.0)
+    contrast = np.maximum(1.0 + lift, MIN_CONTRAST)
+    h_s = (
+        h
+        - a[..., :, None]
+        * a[..., None, :]
+        / safe_gray[..., None, None]
+        * contrasted[..., None, None]
+    )
+    b_s = (b - a * lift[..., None]) / contrast[..., None]
+    w, v = np.linalg.eigh(h_s)
+    w = np.maximum(w, 0.0)
+    w_t = np.maximum(w - 0.5 * sigma2, MIN_TEXTURE_SHARE * w)  # texture's part (noise out)
+    textured = np.all(w_t > 1e-12 * max(1.0, sigma2), axis=-1) & defined
+    safe = np.where(textured[..., None], w_t, 1.0)
+    coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # Δu in the eigenbasis
+    shift = np.einsum("...ij,...j->...i", v, coordinates)
+    variance = total / n * np.sum(np.where(textured[..., None], w / safe**2, 0.0), -1)
+    variance = variance / contrast**2
+    resolution = np.where(textured, np.sqrt(variance), np.inf)
+    squared = np.sum(shift * shift, axis=-1)
+    resolved = np.sqrt(np.maximum(squared - variance, 0.0))
+    # the residual's excess variance (gray offset and gain out) against what the step explains
+    excess = cov("s", "s") - lift**2 * gray - total
+    explained = contrast**2 * np.sum(w_t * coordinates * coordinates, axis=-1)
+    noise = np.sqrt(2.0) * total / np.sqrt(n)
+    unexplained = (
+        defined
+        & (1.0 + lift < MATCHED_CONTRAST)
+        & (excess - explained > UNEXPLAINED_SIGMAS * noise)
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beyond = np.sqrt(3.0 * np.maximum(excess, 0.0) / np.sum(w_t, axis=-1))
+    beyond = np.where(textured, beyond, np.inf)
+    resolved = np.where(unexplained, np.maximum(resolved, beyond), resolved)
+    resolved = np.where(defined, resolved, np.nan)
+    resolution = np.where(defined, resolution, np.nan)
+    shift = np.where(textured[..., None], shift, np.nan)
+    return ResidualError(shift, resolved, resolution, unexplained)
+
+
+def noise_error(field) -> np.ndarray:
+    """The error the imaging noise alone leaves in each match (voxels): ``|σ_u|``, the norm of
+    the field's noise uncertainty (``field.uncertainty``, from the correlation), 0 where it is
+    not known (inpainted nodes, fields from other tools: there only the residual speaks)."""
+    if field.uncertainty is None:
+        return np.zeros(field.shape)
+    sigma = np.sqrt(np.sum(np.asarray(field.uncertainty, np.float64) ** 2, axis=-1))
+    return np.where(np.isfinite(sigma), sigma, 0.0)
+
+
+def error_estimate(
+    field, moments: ErrorMoments, background: float, own_share: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """Estimated displacement error per node and the residual's resolution there (voxels);
+    ``background`` and ``own_share`` as in :func:`residual_error`.
 
     Returns
     -------
-    ndarray, float64, voxels
-        ``sqrt(3π/2 · max(R² − r0², 0)) / g``; NaN where ``R`` is undefined, ``inf`` where the
-        region has an excess but no gradient (flat texture: the residual cannot say).
+    estimate : ndarray, shape field.shape
+        ``√(e_r² + |σ_u|²)`` (:func:`residual_error`, :func:`noise_error`); NaN where the node's
+        window has no defined residual.
+    resolution : ndarray, shape field.shape
+        The noise of the residual's estimate: where ``estimate`` is not above it, the residual
+        cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
-    r = np.asarray(local_residual, dtype=np.float64)
-    g = texture_gradient(local_gradient, background)
-    r0 = float(background)
-    excess = np.maximum(r * r - r0 * r0, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        error = np.sqrt(_FACTOR * excess) / g
-    error = np.where((excess == 0) & np.isfinite(r), 0.0, error)
-    return np.where(np.isfinite(r), error, np.nan)
+    residual = residual_error(moments, background, own_share)
+    estimate = np.sqrt(residual.resolved**2 + noise_error(field) ** 2)
+    return estimate, residual.resolution
 
 
-def noise_error(field, local_gradient=None, background: float | None = None) -> np.ndarray:
-    """The error the imaging noise alone leaves in each match (voxels).
-
-    ``|σ_u|``, the norm of the field's noise uncertainty where it is known
-    (``field.uncertainty``, from the correlation); elsewhere (inpainted nodes, fields from
-    other tools) the translation uncertainty of a subvolume of ``n`` voxels with the texture's
-    gradient ``g`` and noise ``σ`` on both scans, ``|σ_u| = 3 √2 σ / (g √n)`` (the
-    least-squares covariance ``2 σ² (Σ ∂G ∂Gᵀ)⁻¹`` with isotropic texture); 0 without
-    ``local_gradient``.
-    """
-    floor = np.zeros(field.shape)
-    if local_gradient is not None and background is not None:
-        from .local_accuracy import region_half
-
-        n = (2 * region_half(field) + 1) ** 3
-        g = texture_gradient(local_gradient, background)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            floor = 3.0 * np.sqrt(2.0) * noise_sigma(background) / (g * np.sqrt(n))
-        floor = np.where(np.isfinite(floor), floor, 0.0)
-    if field.uncertainty is None:
-        return floor
-    sigma = np.sqrt(np.sum(np.asarray(field.uncertainty, np.float64) ** 2, axis=-1))
-    return np.where(np.isfinite(sigma), sigma, floor)
-
-
-def error_estimate(field, local_residual, local_gradient, background: float) -> np.ndarray:
-    """Estimated displacement error per node (voxels): :func:`residual_error` and
-    :func:`noise_error` in quadrature. NaN where the node's cell has no defined residual."""
-    e_res = residual_error(local_residual, local_gradient, background)
-    return np.sqrt(e_res**2 + noise_error(field, local_gradient, background) ** 2)
-
-
-def error_summary(estimate, nodes=None) -> dict:
+def error_summary(estimate, nodes=None, resolution=None) -> dict:
     """Median, 95th percentile and share of nodes above :data:`LIKELY_BAD` (over ``nodes``, a
     boolean grid mask, default all; NaN nodes count as likely bad: their region is not
-    explained at all)."""
+    explained at all).
+
+    With ``resolution`` (:func:`error_estimate`'s, same grid) also ``resolution`` (its median)
+    and ``below_resolution``, the share of nodes whose estimate is not above it: there the
+    residual cannot see the error and the estimate is a bound (NaN without ``resolution``).
+    """
     values = np.asarray(estimate, dtype=np.float64)
+    limit = None if resolution is None else np.asarray(resolution, dtype=np.float64)
     if nodes is not None:
         values = values[np.asarray(nodes, bool)]
+        limit = None if limit is None else limit[np.asarray(nodes, bool)]
     values = values.ravel()
+    summary = {"resolution": float("nan"), "below_resolution": float("nan")}
     if values.size == 0:
-        return {"median": float("nan"), "p95": float("nan"), "likely_bad": float("nan")}
+        return {"median": float("nan"), "p95": float("nan"), "likely_bad": float("nan"), **summary}
     filled = np.where(np.isfinite(values), values, np.inf)
+    if limit is not None:
+        limit = np.where(np.isnan(limit.ravel()), np.inf, limit.ravel())
+        summary = {
+            "resolution": float(np.median(limit)),
+            "below_resolution": float(np.mean(filled <= limit)),
+        }
     with np.errstate(invalid="ignore"):  # inf - inf between two undefined nodes
         return {
             "median": float(np.median(filled)),
             "p95": float(np.percentile(filled, 95.0, method="higher")),
             "likely_bad": float(np.mean(filled > LIKELY_BAD)),
+            **summary,
         }
 
 

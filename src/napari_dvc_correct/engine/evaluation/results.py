@@ -79,10 +79,13 @@ class FieldEvaluation:
         Phases of the other state brought onto the residual's voxels by the field, uint8
         (:data:`~.phases.NO_PHASE` where undefined; kept with ``keep_volumes``).
     local_gradient, cell_residual : ndarray, shape field.shape
-        RMS gray gradient and mean residual over each node's cell
+        RMS gray gradient and mean residual over each node's window
         (:func:`.error_estimate.error_region_half`; gray levels per voxel, gray levels).
     error_estimate : ndarray, shape field.shape
         Estimated displacement error per node, voxels (:mod:`.error_estimate`).
+    error_resolution : ndarray, shape field.shape
+        The residual's resolution per node, voxels: where ``error_estimate`` is not above it,
+        the estimate is a bound (:func:`.error_estimate.error_estimate`).
     """
 
     name: str
@@ -103,6 +106,7 @@ class FieldEvaluation:
     local_gradient: np.ndarray | None = None
     cell_residual: np.ndarray | None = None
     error_estimate: np.ndarray | None = None
+    error_resolution: np.ndarray | None = None
 
     @property
     def mean_corrected_residual(self) -> float:
@@ -132,7 +136,7 @@ class FieldEvaluation:
 
         if self.error_estimate is None:
             return error_summary(np.array([]))
-        return error_summary(self.error_estimate)
+        return error_summary(self.error_estimate, resolution=self.error_resolution)
 
 
 @dataclass
