@@ -325,6 +325,10 @@ def match_iter(
     zncc = np.full(n_points, np.nan)
     status = np.full(n_points, int(Status.OUT_OF_BOUNDS), np.int64)
     iterations = np.zeros(n_points, np.int64)
+    # the uncertainty from each match's own reference terms (the judge then measures again
+    # only the POIs that need the sensitivity pass or were repaired)
+    sigma = np.full((n_points, 3), np.nan)
+    sigma_plain = np.zeros(n_points, bool)
     todo = np.flatnonzero(inside)
     if active is not None:
         chosen = np.asarray(active, bool).reshape(-1)
@@ -334,7 +338,11 @@ def match_iter(
     for start in range(0, len(todo), batch):
         index = todo[start : start + batch]
         sub_params = np.ascontiguousarray(params_out[index])
-        z_b, s_b, i_b = fine.match(centers[index], sub_params, order, params)
+        sub_sigma = np.zeros((len(index), 4))
+        z_b, s_b, i_b = fine.match(centers[index], sub_params, order, params, sigma=sub_sigma)
+        plain = sub_sigma[:, 3] == 1.0
+        sigma[index[plain]] = sub_sigma[plain, :3]
+        sigma_plain[index[plain]] = True
         params_out[index] = sub_params
         zncc[index] = z_b
         status[index] = s_b
@@ -360,7 +368,8 @@ def match_iter(
         iterations=iterations,
         variance=np.full(n_points, np.nan),
         power=np.full(n_points, np.nan),
-        sigma=np.full((n_points, 3), np.nan),
+        sigma=sigma,
+        sigma_plain=sigma_plain,
         metadata={
             "volume_shape": list(reference.shape),
             "global_shift": [int(s) for s in shift],
