@@ -80,8 +80,11 @@ class PyramidLevel:
                 mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
             prefiltered = None
         if std is None:  # else: the whole volume's, when these are a region of it (tiled)
-            # before the level's arrays exist: np.std makes a temporary copy of the volume
-            std = float(np.std(reference[mask] if mask is not None else reference))
+            # before the level's arrays exist: np.std makes a temporary copy of the volume;
+            # of float32 values (a reference of integers kept as it is gives the same std)
+            values = reference[mask] if mask is not None else reference
+            std = float(np.std(np.asarray(values, dtype=np.float32)))
+            del values
         prefiltered = Prefiltered() if prefiltered is None else prefiltered
         prefiltered.check(reference.shape)
         gradient = prefiltered.gradient
