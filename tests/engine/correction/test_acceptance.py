@@ -57,3 +57,61 @@ def test_a_correction_is_applied_in_proportion_to_its_support_above_the_noise():
     assert applied[3] == 0.0  # the noise explains it: not applied, and refused
     assert unsupported.reshape(-1).tolist() == [False, False, False, True]
     assert np.all(shrunk.u[..., 1:] == 0.0)
+
+
+def test_the_residuals_pull_a_field_back_once_and_the_correction_is_unchanged(monkeypatch):
+    """The last pull-back is kept (the gray-level fit's is handed over): the same field judged
+    again costs no warp, a changed field is pulled back anew, and the corrected field is the
+    one computed with a pull-back for every residual, bit for bit."""
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correction import acceptance
+    from napari_dvc_correct.engine.correction.self_correction import correct
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+    from napari_dvc_correct.engine.fields import warp
+
+    truth = synthetic.shear_band((20.0,) * 3, width=6.0, slip=3.0, shift=(0.5, -0.7, 1.2))
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.two_phase_volume(s, seed=2), (40,) * 3, truth, margin=8
+    )
+    field = correlate(reference, deformed, CorrelationParams(subvolume=15, step=5))
+    calls = []
+    pull_back = warp.pull_back
+    monkeypatch.setattr(warp, "pull_back", lambda *a, **k: calls.append(1) or pull_back(*a, **k))
+    kept = correct(reference, deformed, field, max_passes=2)
+    n_kept = len(calls)
+
+    residuals = acceptance.ReferenceResiduals(
+        reference.astype(np.float32), deformed.astype(np.float32),
+        prefilter_of(deformed),
+    )  # fmt: skip
+    calls.clear()
+    first = residuals.moved(field)
+    again = residuals.moved(field)
+    np.testing.assert_array_equal(first, again)
+    assert len(calls) == 1
+    moved_field = field.copy()
+    moved_field.u[0, 0, 0, 0] += 0.5
+    residuals.moved(moved_field)
+    assert len(calls) == 2
+
+    def always(self, field):
+        spline = acceptance.FieldSpline.from_field(field)
+        return warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
+
+    monkeypatch.setattr(acceptance.ReferenceResiduals, "pulled_back", always)
+    calls.clear()
+    every = correct(reference, deformed, field, max_passes=2)
+    assert n_kept < len(calls)
+    for name in ("u", "zncc", "status", "provenance"):
+        np.testing.assert_array_equal(getattr(kept, name), getattr(every, name), err_msg=name)
+    for name in ("mean_gray_residual", "accepted_nodes", "improved_nodes", "noise_floor"):
+        assert [p[name] for p in kept.metadata["correction_passes"]] == [
+            p[name] for p in every.metadata["correction_passes"]
+        ], name
+
+
+def prefilter_of(volume):
+    from napari_dvc_correct.engine.correlation.interpolation import prefilter
+
+    return prefilter(np.asarray(volume, np.float32))

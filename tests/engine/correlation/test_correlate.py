@@ -7,7 +7,7 @@ from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correlation.correlate import correlate, correlate_iter
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
 from napari_dvc_correct.engine.fields.field import Status
-from napari_dvc_correct.engine.progress import Progress
+from napari_dvc_correct.engine.progress import Progress, run_to_completion
 
 
 def _errors(field, displacement):
@@ -261,7 +261,7 @@ def test_fault_case_wrong_matches_do_not_keep_a_good_status_unless_unsure():
 
 
 def test_an_integer_deformed_volume_is_read_as_it_is_with_the_float32_copys_field(monkeypatch):
-    """match_iter keeps a large 16-bit deformed volume uncopied (memory, issue 30): same field."""
+    """match_iter keeps a large 16-bit pair uncopied (memory, issue 30): same field."""
     from napari_dvc_correct.engine.correlation import correlate as correlate_module
 
     monkeypatch.setattr(correlate_module, "KEEP_INTEGER_FROM", 0)
@@ -284,6 +284,10 @@ def test_an_integer_deformed_volume_is_read_as_it_is_with_the_float32_copys_fiel
     assert pyramid_levels(12, 19, reference.shape) == 1  # binning and the global shift run
     as_is = correlate(reference, deformed, params)
     copied = correlate(reference.astype(np.float32), deformed.astype(np.float32), params)
+    # both volumes are read as they are (no float32 copy of either)
+    _, fine = run_to_completion(correlate_module.match_iter(reference, deformed, params))
+    assert fine.reference.dtype == np.uint16 and np.shares_memory(fine.reference, reference)
+    assert fine.deformed.dtype == np.uint16 and np.shares_memory(fine.deformed, deformed)
     assert np.isin(as_is.status, [0, 1]).mean() > 0.9
     for name in ("u", "status", "zncc", "iterations", "uncertainty"):
         np.testing.assert_array_equal(getattr(as_is, name), getattr(copied, name))

@@ -50,3 +50,66 @@ def test_subvolume_moments_equal_the_full_statistics(order):
     ]
     inside = mask[5 - half : 5 + half + 1, 14 - half : 14 + half + 1, 12 - half : 12 + half + 1]
     np.testing.assert_allclose(variance[1], np.var(window[inside].astype(np.float64)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_the_matchs_own_sigma_equals_the_statistics_pass(order):
+    """IC-GN's sigma from its own reference terms is the statistics kernel's, bit for bit;
+    matches that dropped voxels (near the volume's edge) or failed are not measured there."""
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correlation import shape_function
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+    from napari_dvc_correct.engine.correlation.pyramid import PyramidLevel
+
+    reference = synthetic.textured_volume((40, 40, 40), 2.0, seed=3)
+    deformed = synthetic.deform_volume(reference, synthetic.translation((0.4, -0.3, 0.6)))
+    params = CorrelationParams(subvolume=11, step=4, order=order)
+    level = PyramidLevel.build(
+        1, reference.astype(np.float32), deformed.astype(np.float32), None, params.half, 0.0,
+        "cpu",
+    )  # fmt: skip
+    nb = shape_function.n_monomials(order)
+    # inner POIs, one at the volume's edge pushed out by its guess (drops voxels), one flat
+    centers = np.array([[12, 14, 20], [20, 20, 20], [26, 22, 15], [5, 20, 20]], np.int64)
+    warps = np.zeros((len(centers), 3 * nb))
+    warps[3, 0] = -3.0
+    sigma = np.zeros((len(centers), 4))
+    zncc, status, _ = level.match(centers, warps.copy(), order, params, sigma=sigma)
+    matched = warps.copy()
+    level.match(centers, matched, order, params)  # the same matches without sigma
+    measured = sigma[:, 3] == 1.0
+    assert measured[:3].all() and not measured[3]
+    expected = np.empty((len(centers), 3))
+    icgn_uncertainty.subvolume_statistics(
+        level.reference, level.gradient, level.coef_deformed, level.mask, False, centers,
+        params.half, nb, matched, zncc, np.zeros(len(centers), bool), np.empty(len(centers)),
+        np.empty(len(centers)), expected,
+    )  # fmt: skip
+    assert np.all(np.isfinite(expected[:3])) and np.all(expected[:3] > 0)
+    np.testing.assert_array_equal(sigma[:3, :3], expected[:3])
+
+
+def test_a_field_is_the_same_whether_icgn_or_the_judge_measures_sigma(monkeypatch):
+    """Letting IC-GN measure the noise-free sigma changes nothing in the field."""
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correlation import pyramid
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+
+    truth = synthetic.shear_band((24.0,) * 3, width=6.0, slip=2.0, shift=(0.5, -0.7, 1.2))
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=5), (48,) * 3, truth, margin=8
+    )
+    deformed = synthetic.add_noise(deformed, 2.0, seed=1)  # some POIs need the sensitivity
+    params = CorrelationParams(subvolume=15, step=6)
+    fast = correlate(reference, deformed, params)
+    original = pyramid.PyramidLevel.match
+
+    def without_sigma(self, centers, warps, order, params, sigma=None):
+        return original(self, centers, warps, order, params)
+
+    monkeypatch.setattr(pyramid.PyramidLevel, "match", without_sigma)
+    slow = correlate(reference, deformed, params)
+    for name in ("u", "zncc", "status", "iterations", "uncertainty"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+    assert np.isfinite(fast.uncertainty).any()

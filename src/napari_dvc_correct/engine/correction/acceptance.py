@@ -105,13 +105,31 @@ class ReferenceResiduals:
         except ValueError:  # a volume with a single gray value: no phases, no eq. 1
             self.labels_g = None
         self._gradient = None
+        self._last = None  # the last field pulled back and its pull-back (one volume)
+
+    def remember(self, field: DisplacementField, pulled_back: np.ndarray) -> None:
+        """Take ``pulled_back = F(X + u(X))`` (NaN where undefined, before the gray-level map)
+        as the pull-back of ``field``, computed elsewhere with the same volume and coefficients
+        (the gray-level fit's), so that the next residual of that field does not pull back
+        again."""
+        self._last = (_field_key(field), np.array(field.u, copy=True), pulled_back)
+
+    def pulled_back(self, field: DisplacementField) -> np.ndarray:
+        """``F(X + u(X))`` (NaN where undefined, the loaded scan's gray levels); the last field's
+        pull-back is kept, so judging the same field again (the setup's checks, the final
+        discontinuity test) costs no warp."""
+        last = self._last
+        if last is not None and last[0] == _field_key(field) and np.array_equal(last[1], field.u):
+            return last[2]
+        spline = FieldSpline.from_field(field)
+        moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
+        self.remember(field, moved)
+        return moved
 
     def moved(self, field: DisplacementField) -> np.ndarray:
         """``F(X + u(X))`` in the reference's gray levels (the gray-level map applied), NaN where
         undefined."""
-        spline = FieldSpline.from_field(field)
-        moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
-        return self.gray_levels.apply(moved)
+        return self.gray_levels.apply(self.pulled_back(field))
 
     def local_means(self, field: DisplacementField, halves) -> tuple[list, float]:
         """Per-node box means of the gray-level-corrected residual ``|map(F~) - G|`` of
@@ -138,6 +156,15 @@ class ReferenceResiduals:
         if self._gradient is None:
             self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
         return local_mean_residual(self._gradient, field, half)
+
+
+def _field_key(field: DisplacementField) -> tuple:
+    """What besides ``u`` a field's spline depends on: its grid."""
+    return (
+        tuple(float(o) for o in field.origin),
+        tuple(float(d) for d in field.step),
+        tuple(int(n) for n in field.shape),
+    )
 
 
 class Judge:

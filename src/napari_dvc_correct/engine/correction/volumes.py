@@ -135,6 +135,7 @@ class InMemoryVolumes(CorrectionVolumes):
         self.frame = frame
         self.mask = None if mask is None else np.asarray(mask) != 0
         self._coef_deformed = None
+        self._fitted_with = None
         if frame == "reference":
             self.coefficients = prefilter(self.deformed)
             self.fill = float(np.mean(self.deformed))
@@ -180,6 +181,7 @@ class InMemoryVolumes(CorrectionVolumes):
         lattice = (slice(None, None, otsu_stride(self.shape)),) * 3
         start = start_map(self.reference[lattice], self.deformed[lattice])
         self.gray_levels = fit_gray_levels(self.reference, moved, start=start)
+        self._fitted_with = (field, moved)  # the residuals' first pull-back (same field)
         return self.gray_levels
         yield
 
@@ -217,7 +219,11 @@ class InMemoryVolumes(CorrectionVolumes):
         yield
 
     def residuals(self):
-        return ReferenceResiduals(
+        residuals = ReferenceResiduals(
             self.reference, self.deformed, self._deformed_coefficients(), self.gray_levels
         )
+        if self._fitted_with is not None:
+            residuals.remember(*self._fitted_with)
+            self._fitted_with = None
+        return residuals
         yield

@@ -33,8 +33,8 @@ from .pyramid import PyramidLevel, _pyramid_level
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
 
-#: Integer dtypes whose every value float32 holds exactly: a deformed volume of one of these is
-#: not copied to float32 by :func:`match_iter` (its kernels read it as it is, with the same values).
+#: Integer dtypes whose every value float32 holds exactly: volumes of one of these are not copied
+#: to float32 by :func:`match_iter` (its kernels read them as they are, with the same values).
 _EXACT_IN_FLOAT32 = (np.uint8, np.int8, np.uint16, np.int16)
 
 #: ... from this many voxels (64 MiB as float32): below, the copy costs less than loading the
@@ -43,13 +43,19 @@ KEEP_INTEGER_FROM = 2**24
 
 
 def validate_pair(
-    reference, deformed, params: CorrelationParams, mask=None, *, exact_deformed=False
+    reference,
+    deformed,
+    params: CorrelationParams,
+    mask=None,
+    *,
+    exact_deformed=False,
+    exact_reference=False,
 ):
     """Check the inputs of a correlation; return float32 volumes and a boolean mask (or None).
 
-    ``exact_deformed``: a deformed volume of 8- or 16-bit integers of at least
-    :data:`KEEP_INTEGER_FROM` voxels is returned as it is (C order) rather than as a float32 copy
-    (every value is exact in float32; saves a volume of memory).
+    ``exact_deformed`` / ``exact_reference``: a deformed / reference volume of 8- or 16-bit
+    integers of at least :data:`KEEP_INTEGER_FROM` voxels is returned as it is (C order) rather
+    than as a float32 copy (every value is exact in float32; saves a volume of memory).
 
     Raises
     ------
@@ -71,15 +77,8 @@ def validate_pair(
             f"subvolume {params.subvolume} is larger than the volume {reference.shape}: "
             + largest_subvolume_advice(reference.shape)
         )
-    reference = np.ascontiguousarray(reference, dtype=np.float32)
-    if (
-        exact_deformed
-        and deformed.dtype.type in _EXACT_IN_FLOAT32
-        and deformed.size >= KEEP_INTEGER_FROM
-    ):
-        deformed = np.ascontiguousarray(deformed)
-    else:
-        deformed = np.ascontiguousarray(deformed, dtype=np.float32)
+    reference = _float32_or_exact(reference, exact_reference)
+    deformed = _float32_or_exact(deformed, exact_deformed)
     if mask is not None:
         mask = np.asarray(mask)
         if mask.shape != reference.shape:
@@ -92,6 +91,14 @@ def validate_pair(
         if not mask.any():
             raise ValueError("the mask is empty: no voxel is selected")
     return reference, deformed, mask
+
+
+def _float32_or_exact(volume, exact: bool) -> np.ndarray:
+    """``volume`` as C-ordered float32, or as it is where ``exact`` allows (see
+    :func:`validate_pair`)."""
+    if exact and volume.dtype.type in _EXACT_IN_FLOAT32 and volume.size >= KEEP_INTEGER_FROM:
+        return np.ascontiguousarray(volume)
+    return np.ascontiguousarray(volume, dtype=np.float32)
 
 
 def _grid_centers(grid, volume_shape, half):
@@ -189,9 +196,11 @@ def match_iter(
     device = select_device(device)
     start_time = time.perf_counter()
     timings = {}
+    # the GPU's kernels read a float32 reference; the CPU's read integers as they are
     reference, deformed, mask = validate_pair(
-        reference, deformed, params, mask, exact_deformed=True
-    )
+        reference, deformed, params, mask, exact_deformed=True,
+        exact_reference=device.kind == "cpu",
+    )  # fmt: skip
     if grid is None:
         grid = grid_for_volume(reference.shape, params.subvolume, params.step)
     origin, step, grid_shape = grid
@@ -325,6 +334,10 @@ def match_iter(
     zncc = np.full(n_points, np.nan)
     status = np.full(n_points, int(Status.OUT_OF_BOUNDS), np.int64)
     iterations = np.zeros(n_points, np.int64)
+    # the uncertainty from each match's own reference terms (the judge then measures again
+    # only the POIs that need the sensitivity pass or were repaired)
+    sigma = np.full((n_points, 3), np.nan)
+    sigma_plain = np.zeros(n_points, bool)
     todo = np.flatnonzero(inside)
     if active is not None:
         chosen = np.asarray(active, bool).reshape(-1)
@@ -334,7 +347,11 @@ def match_iter(
     for start in range(0, len(todo), batch):
         index = todo[start : start + batch]
         sub_params = np.ascontiguousarray(params_out[index])
-        z_b, s_b, i_b = fine.match(centers[index], sub_params, order, params)
+        sub_sigma = np.zeros((len(index), 4))
+        z_b, s_b, i_b = fine.match(centers[index], sub_params, order, params, sigma=sub_sigma)
+        plain = sub_sigma[:, 3] == 1.0
+        sigma[index[plain]] = sub_sigma[plain, :3]
+        sigma_plain[index[plain]] = True
         params_out[index] = sub_params
         zncc[index] = z_b
         status[index] = s_b
@@ -360,7 +377,8 @@ def match_iter(
         iterations=iterations,
         variance=np.full(n_points, np.nan),
         power=np.full(n_points, np.nan),
-        sigma=np.full((n_points, 3), np.nan),
+        sigma=sigma,
+        sigma_plain=sigma_plain,
         metadata={
             "volume_shape": list(reference.shape),
             "global_shift": [int(s) for s in shift],

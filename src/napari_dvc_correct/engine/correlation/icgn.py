@@ -31,6 +31,7 @@ from .._numba_setup import KERNEL_OPTIONS
 from ..fields.field import Status
 from .icgn_pass import sample_pass as _sample_pass
 from .icgn_reference import reference_terms, translation_h_inverse
+from .icgn_uncertainty import match_sigma
 from .shape_function import (
     PRODUCT_TABLE,
     QUAD_AXES,
@@ -119,12 +120,17 @@ def match_one(
     product_table,
     quad_axes,
     noise_fraction=0.0,
+    sigma_out=None,
 ):
     """Match one subvolume by IC-GN; ``p`` (3·nb) is the initial guess in and the result out.
 
     Returns ``(zncc, status, iterations)``. Kernels assume valid input: the reference subvolume
     lies inside the reference volume. ``noise_fraction`` > 0 adds the noise stop of
-    :func:`_noise_converged`.
+    :func:`_noise_converged`. ``sigma_out`` (4,) float64, optional: for a match that ends
+    ``CONVERGED`` or ``MAX_ITERATIONS`` on every voxel of its subvolume, ``sigma_out[:3]`` gets
+    the noise-free-``H`` uncertainty :func:`.icgn_uncertainty.subvolume_statistics` would
+    compute at this match (from the reference terms held here) and ``sigma_out[3]`` 1; else
+    ``sigma_out[3]`` stays 0.
     """
     m_par = 3 * nb
     edge = 2 * half + 1
@@ -174,6 +180,7 @@ def match_one(
     corner = np.empty(10)
     zncc = np.nan
     outside = np.zeros(count, np.bool_)
+    whole = True  # every voxel of the subvolume still in the sums
     for iteration in range(1, max_iterations + 1):
         sum_f, sum_ff, sum_gf, n_outside = _sample_pass(
             coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, p, nb, outside, sum_jf
@@ -181,6 +188,7 @@ def match_one(
         if n_outside > 0:
             # Part of the deformed subvolume left the volume: drop those voxels, rebuild the
             # reference-side terms on the rest and iterate again from the same warp.
+            whole = False
             kept = 0
             for i in range(count):
                 if not outside[i]:
@@ -243,12 +251,16 @@ def match_one(
             return zncc, _DIVERGED, iteration
         motion = np.sqrt(largest)
         if motion < tolerance:
+            if sigma_out is not None:
+                _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok)
             return zncc, _CONVERGED, iteration
         if noise_fraction > 0.0:
             stop, previous = _noise_converged(
                 dp, nb, h_inv, delta_g, zncc, count, previous, noise_fraction
             )
             if stop:
+                if sigma_out is not None:
+                    _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok)
                 return zncc, _CONVERGED, iteration
         if motion < STALL_FACTOR * shortest:
             shortest = motion
@@ -257,7 +269,17 @@ def match_one(
             since_shortest += 1
             if since_shortest >= STALL_ITERATIONS:
                 return zncc, _DIVERGED, iteration
+    if sigma_out is not None:
+        _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok)
     return zncc, _MAX_ITERATIONS, max_iterations
+
+
+@njit(**KERNEL_OPTIONS)
+def _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok):
+    if not whole:  # voxels were dropped: not the subvolume the statistics would gather
+        return
+    match_sigma(low, sum_j, sum_jg, delta_g, count, nb, zncc, ok, sigma_out[:3])
+    sigma_out[3] = 1.0
 
 
 class MatchInputs(NamedTuple):
@@ -346,3 +368,41 @@ def match_many(inputs, centers, params, zncc, status, iterations):
         zncc[i] = value
         status[i] = code
         iterations[i] = its
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def match_many_sigma(inputs, centers, params, zncc, status, iterations, sigma):
+    """:func:`match_many` that also measures each good match's noise-free-``H`` uncertainty
+    from its own reference terms (``match_one``'s ``sigma_out``): ``sigma`` (N, 4) float64 out,
+    ``sigma[:, :3]`` the uncertainty (voxels) where ``sigma[:, 3]`` is 1, as
+    :func:`.icgn_uncertainty.subvolume_statistics` without the sensitivity pass gives it."""
+    for i in prange(centers.shape[0]):
+        p = params[i].copy()
+        out = np.zeros(4)
+        value, code, its = match_one(
+            inputs.reference,
+            inputs.gradient,
+            inputs.coef_deformed,
+            inputs.mask,
+            inputs.use_mask,
+            centers[i, 0],
+            centers[i, 1],
+            centers[i, 2],
+            inputs.half,
+            inputs.nb,
+            p,
+            inputs.max_iterations,
+            inputs.tolerance,
+            inputs.min_std,
+            inputs.min_mask_fraction,
+            inputs.max_update,
+            inputs.product_table,
+            inputs.quad_axes,
+            inputs.noise_fraction,
+            out,
+        )
+        params[i, :] = p
+        zncc[i] = value
+        status[i] = code
+        iterations[i] = its
+        sigma[i, :] = out

@@ -71,6 +71,55 @@ def subvolume_moments(reference, gradient, mask, use_mask, centers, half, nb, va
         power[n] = sum_power / count
 
 
+@njit(**KERNEL_OPTIONS)
+def perpendicular_hessian(low, sum_j, sum_jg, count, ss_g, m_par):
+    """``H⊥ = H − ΣJ ΣJᵀ/n − ΣJg ΣJgᵀ/Σ(g − ḡ)²`` from the Cholesky factor ``low`` of ``H``
+    (:func:`.icgn_reference.reference_terms`); see :func:`subvolume_statistics`."""
+    h_perp = np.empty((m_par, m_par))
+    for r in range(m_par):
+        for c in range(r + 1):
+            v = 0.0
+            for k in range(c + 1):
+                v += low[r, k] * low[c, k]
+            v -= sum_j[r] * sum_j[c] / count + sum_jg[r] * sum_jg[c] / ss_g
+            h_perp[r, c] = v
+            h_perp[c, r] = v
+    return h_perp
+
+
+@njit(**KERNEL_OPTIONS)
+def residual_variance(ss_g, zncc, count, m_par):
+    """``σ_r² = 2 Σ(g − ḡ)² (1 − ZNCC) / (n − 3·nb − 2)``, per voxel (gray levels²)."""
+    return 2.0 * ss_g * max(1.0 - zncc, 0.0) / max(count - m_par - 2, 1)
+
+
+@njit(**KERNEL_OPTIONS)
+def plain_sigma(h_perp, residual, m_par, nb, out):
+    """``out[k] = sqrt(σ_r² (H⊥⁻¹)_kk)`` for the three translations (``inf`` where ``H⊥`` is
+    singular): the estimate where the reference's noise adds little to ``H``."""
+    ok_perp, low_perp = cholesky_solve_setup(h_perp, m_par)
+    h_inv = np.empty(3)
+    if ok_perp:
+        translation_h_inverse(low_perp, m_par, nb, h_inv)
+    for k in range(3):
+        out[k] = np.sqrt(residual * h_inv[k]) if ok_perp else np.inf
+
+
+@njit(**KERNEL_OPTIONS)
+def match_sigma(low, sum_j, sum_jg, delta_g, count, nb, zncc, ok, out):
+    """:func:`subvolume_statistics`' sigma of a POI not measured with the sensitivity pass,
+    from the reference terms IC-GN already holds (the same ``g``, ``∇G`` and voxels): ``out``
+    (3,) gets what that kernel would write, NaN where it writes NaN."""
+    m_par = 3 * nb
+    for k in range(3):
+        out[k] = np.nan
+    if count < m_par + 3 or not ok or delta_g == 0.0 or not np.isfinite(zncc):
+        return
+    ss_g = delta_g * delta_g
+    h_perp = perpendicular_hessian(low, sum_j, sum_jg, count, ss_g, m_par)
+    plain_sigma(h_perp, residual_variance(ss_g, zncc, count, m_par), m_par, nb, out)
+
+
 @njit(parallel=True, **KERNEL_OPTIONS)
 def subvolume_statistics(
     reference,
@@ -172,25 +221,11 @@ def subvolume_statistics(
         gradient_power[n] = power / count
         if not ok or delta_g == 0.0 or not np.isfinite(zncc[n]):
             continue
-        # H⊥ from the Cholesky factor
         ss_g = delta_g * delta_g
-        h_perp = np.empty((m_par, m_par))
-        for r in range(m_par):
-            for c in range(r + 1):
-                v = 0.0
-                for k in range(c + 1):
-                    v += low[r, k] * low[c, k]
-                v -= sum_j[r] * sum_j[c] / count + sum_jg[r] * sum_jg[c] / ss_g
-                h_perp[r, c] = v
-                h_perp[c, r] = v
-        residual = 2.0 * ss_g * max(1.0 - zncc[n], 0.0) / max(count - m_par - 2, 1)
+        h_perp = perpendicular_hessian(low, sum_j, sum_jg, count, ss_g, m_par)
+        residual = residual_variance(ss_g, zncc[n], count, m_par)
         if not sensitivity[n]:
-            ok_perp, low_perp = cholesky_solve_setup(h_perp, m_par)
-            h_inv = np.empty(3)
-            if ok_perp:
-                translation_h_inverse(low_perp, m_par, nb, h_inv)
-            for k in range(3):
-                sigma[n, k] = np.sqrt(residual * h_inv[k]) if ok_perp else np.inf
+            plain_sigma(h_perp, residual, m_par, nb, sigma[n])
             continue
         # A from the deformed volume's gradient at the warped voxels
         if nb == 4:

@@ -104,7 +104,11 @@ def measure_plain_sigma(fine, matched: MatchedGrid, order) -> None:
     For a tiled batch's first task, which holds its volumes: the judge (second task) then needs
     the volumes again only for POIs that are noisy at the whole run's noise or are repaired.
     """
-    good = np.flatnonzero(np.isin(matched.status, _GOOD))
+    good = np.isin(matched.status, _GOOD)
+    plain = good.copy()
+    if matched.sigma_plain is not None:  # measured by IC-GN already (the same numbers)
+        good &= ~matched.sigma_plain
+    good = np.flatnonzero(good)
     fine.statistics(
         matched.centers[good],
         matched.params[good],
@@ -114,8 +118,6 @@ def measure_plain_sigma(fine, matched: MatchedGrid, order) -> None:
         (None, None, matched.sigma),
         good,
     )
-    plain = np.zeros(len(matched.status), bool)
-    plain[good] = True
     matched.sigma_plain = plain
 
 

@@ -80,8 +80,11 @@ class PyramidLevel:
                 mask = bin_volume(mask.astype(np.float32), factor) >= 0.5
             prefiltered = None
         if std is None:  # else: the whole volume's, when these are a region of it (tiled)
-            # before the level's arrays exist: np.std makes a temporary copy of the volume
-            std = float(np.std(reference[mask] if mask is not None else reference))
+            # before the level's arrays exist: np.std makes a temporary copy of the volume;
+            # of float32 values (a reference of integers kept as it is gives the same std)
+            values = reference[mask] if mask is not None else reference
+            std = float(np.std(np.asarray(values, dtype=np.float32)))
+            del values
         prefiltered = Prefiltered() if prefiltered is None else prefiltered
         prefiltered.check(reference.shape)
         gradient = prefiltered.gradient
@@ -178,17 +181,32 @@ class PyramidLevel:
             noise_fraction=float(params.noise_tolerance),
         )
 
-    def match(self, centers, warps, order, params):
+    def match(self, centers, warps, order, params, sigma=None):
         """IC-GN at ``centers`` from ``warps`` (N, 3·nb), updated in place.
 
         ``params`` is the run's :class:`CorrelationParams`. Returns ``(zncc, status,
-        iterations)``.
+        iterations)``. ``sigma`` (N, 4) float64, optional, out: on the CPU, each good match's
+        noise-free-``H`` uncertainty from the match's own reference terms where ``sigma[:, 3]``
+        is 1 (:func:`.icgn.match_many_sigma`); left at 0 (not measured) on the GPU.
         """
         n = len(centers)
         zncc = np.full(n, np.nan)
         status = np.full(n, int(Status.NOT_COMPUTED), np.int64)
         iterations = np.zeros(n, np.int64)
         if n == 0:
+            return zncc, status, iterations
+        if sigma is not None:
+            sigma[:] = 0.0
+        if sigma is not None and self.device != "cuda":
+            icgn.match_many_sigma(
+                self.inputs(order, params),
+                np.ascontiguousarray(centers, dtype=np.int64),
+                warps,
+                zncc,
+                status,
+                iterations,
+                sigma,
+            )
             return zncc, status, iterations
         if self.device == "cuda":
             from ..cuda import match_many_cuda as kernel  # same arguments as icgn.match_many
