@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.correlation.params import CorrelationParams
 from ..io.formats import FORMATS
 
 #: Output suffix -> format when ``--out-format`` is not given (``.txt`` is not guessed).
@@ -256,7 +257,7 @@ def add_correction_field_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         help="odd subvolume edge (voxels) of the correction's DVC; default: the field's own "
-        "parameters, else 31 (spam and iDVC files do not record it)",
+        f"parameters, else {CorrelationParams.subvolume} (spam and iDVC files do not record it)",
     )
     group.add_argument(
         "--grid-step",
@@ -273,7 +274,6 @@ def prepare_correction_field(args, volume_shape):
     The field keeps its own grid unless ``--grid-step``, ``--roi``, ``--cylinder`` or
     ``--origin`` ask for another one (then it is interpolated onto it, with provenance).
     """
-    from ..engine.correlation.params import CorrelationParams
     from ..engine.correlation.placement import grid_for_region, restrict_to_region
     from ..engine.fields.scattered import from_grid, to_grid
     from . import _grid_options
@@ -284,7 +284,9 @@ def prepare_correction_field(args, volume_shape):
     subvolume = getattr(args, "subvolume", None)
     if subvolume is not None or not field.params:
         values = dict(field.params)
-        values["subvolume"] = subvolume or field.params.get("subvolume", 31)
+        values["subvolume"] = subvolume or field.params.get(
+            "subvolume", CorrelationParams.subvolume
+        )
         params = CorrelationParams.from_dict(values)
     if not (getattr(args, "grid_step", None) or _grid_options.wants_placement(args)):
         nodes = np.concatenate([np.asarray(field.origin), np.asarray(field.step)])

@@ -15,22 +15,31 @@ This module imports no engine code at import time (the CLI stays quick to start)
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 
-def _batch(text: str) -> tuple[int, int, int]:
+def _checked(option: str, **values):
+    """``values`` checked by :class:`..engine.run_options.RunOptions` (its checks, not a copy)."""
+    from ..engine.run_options import RunOptions
+
+    try:
+        return getattr(RunOptions(**values), next(iter(values)))
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{option}: {error}") from None
+
+
+def _shape_text(text: str, what: str) -> tuple[int, ...]:
     try:
         values = [int(v) for v in text.replace("x", ",").split(",") if v.strip()]
     except ValueError as error:
         raise argparse.ArgumentTypeError(
-            f"{text!r} is not a batch shape: give N or NZ,NY,NX POIs"
+            f"{text!r} is not a {what} shape: give N or NZ,NY,NX"
         ) from error
-    if len(values) == 1:
-        values = values * 3
-    if len(values) != 3 or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a batch shape: give N or NZ,NY,NX POIs")
-    return tuple(values)
+    return tuple(values * 3 if len(values) == 1 else values)
+
+
+def _batch(text: str) -> tuple[int, int, int]:
+    return _checked("--batch", batch_shape=_shape_text(text, "batch"))
 
 
 def _memory(text: str) -> int:
@@ -42,27 +51,20 @@ def _memory(text: str) -> int:
         raise argparse.ArgumentTypeError(
             f"{text!r} is not a memory size: use e.g. 2GB, 1.5GiB or 512MB"
         ) from error
-    if not 0 < value < 2**62:  # 1e400GB parses as inf
-        raise argparse.ArgumentTypeError(
-            f"--max-memory must be > 0 and a size a machine can have, got {text!r}"
-        )
-    return int(value)
+    return _checked("--max-memory", max_memory=value)
 
 
 def _existing_folder(text: str) -> str:
     """``--temp-dir``: an existing folder (a missing one is not made, with its parents)."""
-    if not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not an existing folder: create it first (nothing is made for you)"
-        )
-    return text
+    return _checked("--temp-dir", temp_dir=text)
 
 
 def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    return _checked("--workers", workers=value)
 
 
 def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,16 +115,26 @@ def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def wants_tiled(args: argparse.Namespace) -> bool:
-    """True when any of the large-volume options was given."""
-    return bool(
-        getattr(args, "tiled", False)
-        or getattr(args, "scheduler", None)
-        or getattr(args, "max_memory", None)
-        or getattr(args, "batch", None)
-        or getattr(args, "workers", None)
-        or getattr(args, "temp_dir", None)
+def run_options_from_args(args: argparse.Namespace):
+    """The :class:`..engine.run_options.RunOptions` of a command's arguments."""
+    from ..engine.run_options import RunOptions
+
+    return RunOptions(
+        tiled=bool(getattr(args, "tiled", False)),
+        # a command without --device (correct, series) runs its tiled batches on the CPU
+        device=getattr(args, "device", "cpu"),
+        max_memory=getattr(args, "max_memory", None),
+        workers=getattr(args, "workers", None),
+        scheduler=getattr(args, "scheduler", None) or None,
+        batch_shape=getattr(args, "batch", None),
+        block_shape=getattr(args, "block", None),
+        temp_dir=getattr(args, "temp_dir", None),
     )
+
+
+def wants_tiled(args: argparse.Namespace) -> bool:
+    """True when any of the large-volume options was given (``--block`` aside)."""
+    return run_options_from_args(args).replace(block_shape=None).out_of_core
 
 
 def _plan_reporter(args: argparse.Namespace, progress, label: str):
@@ -147,13 +159,7 @@ def _plan_reporter(args: argparse.Namespace, progress, label: str):
 
 def _run_options(args: argparse.Namespace) -> dict:
     """The keyword arguments every tiled run takes from the options of :func:`add_tiled_arguments`."""
-    return dict(
-        batch_shape=getattr(args, "batch", None),
-        max_memory=getattr(args, "max_memory", None),
-        workers=getattr(args, "workers", None),
-        scheduler=getattr(args, "scheduler", None) or None,
-        device=getattr(args, "device", "cpu"),  # chosen by each batch's worker ("auto": its GPU)
-    )
+    return run_options_from_args(args).tiled_keywords()
 
 
 def _lazy_inputs_and_reporter(args: argparse.Namespace, progress, label: str):
@@ -245,7 +251,7 @@ def run_tiled_correction(args: argparse.Namespace, field, params=None, options=N
         deformed,
         field,
         params,
-        temp_dir=getattr(args, "temp_dir", None),
+        temp_dir=run_options_from_args(args).temp_dir,
         **common,
         **(options or {}),
     )
@@ -283,7 +289,7 @@ def run_tiled_series(args: argparse.Namespace, params, progress=None, **options)
         volumes,
         params,
         mask=mask,
-        temp_dir=getattr(args, "temp_dir", None),
+        temp_dir=run_options_from_args(args).temp_dir,
         **_run_options(args),
         **options,
     )
@@ -291,19 +297,7 @@ def run_tiled_series(args: argparse.Namespace, params, progress=None, **options)
 
 
 def _block(text: str) -> tuple[int, int, int]:
-    try:
-        values = [int(v) for v in text.replace("x", ",").split(",") if v.strip()]
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a block shape: give N or NZ,NY,NX voxels"
-        ) from error
-    if len(values) == 1:
-        values = values * 3
-    if len(values) != 3 or min(values) < 1:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a block shape: give N or NZ,NY,NX voxels"
-        )
-    return tuple(values)
+    return _checked("--block", block_shape=_shape_text(text, "block"))
 
 
 def add_tiled_evaluation_arguments(parser: argparse.ArgumentParser) -> None:
@@ -344,4 +338,4 @@ def add_tiled_evaluation_arguments(parser: argparse.ArgumentParser) -> None:
 
 def wants_tiled_evaluation(args: argparse.Namespace) -> bool:
     """True when any of :func:`add_tiled_evaluation_arguments`' options was given."""
-    return wants_tiled(args) or bool(getattr(args, "block", None))
+    return run_options_from_args(args).out_of_core

@@ -10,6 +10,7 @@ import argparse
 import math
 import time
 
+from ..engine.correction.options import FRAMES, UPDATES
 from . import _field_formats, _grid_options
 from ._common import (
     ProgressBar,
@@ -28,9 +29,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "correct",
         help="self-correct a displacement field (the paper's strategy)",
         description="Self-correct the DVC displacement field of a pair: clean it, warp the "
-        "volumes with it, correlate again with the same parameters and update the field; "
-        "repeated while the mean gray residual falls. Writes the corrected field (.npz) and "
-        "prints the residual of every pass.",
+        "volumes with it, correlate again and update the field. The correcting matches reuse "
+        "the field's DVC parameters, or second order on a smaller subvolume where the field "
+        "bends inside a subvolume and that predicts a smaller error (the table says which). A "
+        "node keeps its correction only where its local gray residual does not rise by more "
+        "than the imaging noise explains. Passes repeat, up to --max-passes, while the last one "
+        "removed more than --min-improvement of the local residual above the noise floor, "
+        "still improved a share of the nodes above that floor, and moved enough nodes by "
+        "enough to change in another pass (which then matches again only near them; the "
+        "shares are in docs/method.md). Writes the "
+        "corrected field and prints every pass: order, subvolume, residual, and why it stopped.",
     )
     parser.add_argument(
         "reference", help="reference volume (TIFF, folder of TIFF slices, .npy, .npz)"
@@ -73,8 +81,8 @@ def _positive(text: str) -> float:
 def add_correction_options(parser: argparse.ArgumentParser) -> None:
     """Options of the self-correction (all optional: the DVC parameters are reused).
 
-    Defaults are those of :func:`~napari_dvc_correct.engine.correction.self_correction.correct_iter` and
-    :func:`~napari_dvc_correct.engine.correction.cleaning.clean`.
+    Defaults are those of :class:`~napari_dvc_correct.engine.correction.options.CorrectionOptions`
+    and :class:`~napari_dvc_correct.engine.correction.options.CleaningOptions`.
     """
     d = correction_defaults()
     group = parser.add_argument_group("self-correction")
@@ -82,28 +90,28 @@ def add_correction_options(parser: argparse.ArgumentParser) -> None:
         "--max-passes",
         type=int,
         default=d["max_passes"],
-        help=f"most correction passes (default {d['max_passes']})",
+        help="most correction passes (default %(default)s)",
     )
     group.add_argument(
         "--min-improvement",
         type=_nonnegative,
         default=d["min_improvement"],
-        help="stop when a pass removes less than this fraction of the residual above the "
-        f"imaging-noise floor (default {d['min_improvement']})",
+        help="stop when a pass removes at most this fraction of the local gray residual above "
+        "the imaging-noise floor (mean over the nodes; default %(default)s)",
     )
     group.add_argument(
         "--frame",
-        choices=("loaded", "reference"),
+        choices=FRAMES,
         default=d["frame"],
         help="warp the reference to the loaded state (paper) or pull the deformed volume back "
-        f"to the reference (default {d['frame']})",
+        "to the reference (default %(default)s)",
     )
     group.add_argument(
         "--update",
-        choices=("exact", "sum"),
+        choices=UPDATES,
         default=d["update"],
         help="compose the correction with the field (exact) or add it node by node (sum, "
-        f"paper); default {d['update']}",
+        "paper); default %(default)s",
     )
     add_cleaning_options(group, d)
 
@@ -115,14 +123,14 @@ def add_cleaning_options(group, defaults: dict | None = None) -> None:
         "--outlier-threshold",
         type=_positive,
         default=d["threshold"],
-        help=f"normalised median test threshold for cleaning (default {d['threshold']:g})",
+        help="normalised median test threshold for cleaning (default %(default)s)",
     )
     group.add_argument(
         "--smoothing",
         type=_nonnegative,
         default=d["smoothing"],
         help="Gaussian smoothing of the cleaned field, sigma in grid nodes (default "
-        f"{d['smoothing']:g}: none)",
+        "%(default)s: none)",
     )
 
 
@@ -137,21 +145,29 @@ def add_self_correct_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def correction_options_from_args(args) -> dict:
-    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.self_correction.correct_iter`."""
-    from ..engine.correction.options import CleaningOptions
+    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.self_correction.correct_iter`,
+    checked by the records (:class:`CorrectionOptions`, :class:`CleaningOptions`) before any
+    work, not after the correlation."""
+    from ..engine.correction.options import CleaningOptions, CorrectionOptions
 
-    if args.max_passes < 1:
-        raise ValueError(f"--max-passes must be >= 1, got {args.max_passes}")
-    try:  # checked before any work, not after the correlation
-        CleaningOptions(threshold=args.outlier_threshold, smoothing=args.smoothing)
+    try:
+        options = CorrectionOptions(
+            frame=args.frame,
+            update=args.update,
+            max_passes=args.max_passes,
+            min_improvement=args.min_improvement,
+        )
+    except ValueError as error:
+        raise ValueError(
+            f"--max-passes / --min-improvement / --frame / --update: {error}"
+        ) from None
+    try:
+        cleaning = CleaningOptions(threshold=args.outlier_threshold, smoothing=args.smoothing)
     except ValueError as error:
         raise ValueError(f"--smoothing / --outlier-threshold: {error}") from None
     return {
-        "frame": args.frame,
-        "update": args.update,
-        "max_passes": args.max_passes,
-        "min_improvement": args.min_improvement,
-        "clean_options": {"threshold": args.outlier_threshold, "smoothing": args.smoothing},
+        **options.as_dict(),
+        "clean_options": {"threshold": cleaning.threshold, "smoothing": cleaning.smoothing},
     }
 
 

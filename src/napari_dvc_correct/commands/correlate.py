@@ -7,6 +7,8 @@ import time
 
 import numpy as np
 
+from ..engine.correlation.params import MIN_SUBVOLUME
+from ..engine.run_options import DEVICES, RunOptions
 from . import _field_formats, _grid_options
 from ._common import (
     ProgressBar,
@@ -39,10 +41,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument(
         "--device",
-        choices=("auto", "cpu", "cuda"),
-        default="auto",
+        choices=DEVICES,
+        default=RunOptions.device,
         help="where IC-GN runs: auto = a CUDA GPU when numba sees one that works, else the CPU; "
-        "cuda without a usable GPU falls back to the CPU with a warning (default: auto)",
+        "cuda without a usable GPU falls back to the CPU with a warning (default: %(default)s)",
     )
     add_self_correct_argument(parser)
     add_tiled_arguments(parser)
@@ -57,24 +59,49 @@ def add_correlation_arguments(parser: argparse.ArgumentParser) -> None:
     d = correlation_defaults()
     group = parser.add_argument_group("DVC parameters")
     group.add_argument(
-        "--subvolume", type=int, default=d["subvolume"], help="odd subvolume edge (voxels, >= 5)"
+        "--subvolume",
+        type=int,
+        default=d["subvolume"],
+        help=f"odd subvolume edge (voxels, >= {MIN_SUBVOLUME}; default %(default)s)",
     )
-    group.add_argument("--step", type=int, default=d["step"], help="POI spacing (voxels)")
     group.add_argument(
-        "--order", type=int, choices=(1, 2), default=d["order"], help="shape function order"
+        "--step", type=int, default=d["step"], help="POI spacing (voxels; default %(default)s)"
+    )
+    group.add_argument(
+        "--order",
+        type=int,
+        choices=(1, 2),
+        default=d["order"],
+        help="shape function order: 1 affine, 2 quadratic (default %(default)s)",
     )
     group.add_argument(
         "--search",
         type=int,
         default=d["search_radius"],
-        help="search radius around the rigid shift (voxels)",
-    )
-    group.add_argument("--max-iterations", type=int, default=d["max_iterations"])
-    group.add_argument(
-        "--tolerance", type=float, default=d["tolerance"], help="convergence (voxels)"
+        help="search radius around the rigid shift (voxels; default: max(8, subvolume // 2); "
+        "radii beyond a few voxels search on a binned pyramid)",
     )
     group.add_argument(
-        "--min-zncc", type=float, default=d["min_zncc"], help="flag matches below this"
+        "--max-iterations",
+        type=int,
+        default=d["max_iterations"],
+        help="IC-GN iterations per POI at most (default %(default)s)",
+    )
+    group.add_argument(
+        "--tolerance",
+        type=float,
+        default=d["tolerance"],
+        help="convergence: largest move of the subvolume's corners in an iteration (voxels; "
+        "default %(default)s)",
+    )
+    group.add_argument(
+        "--min-zncc",
+        type=float,
+        default=d["min_zncc"],
+        help="a match is flagged LOW_ZNCC below this fraction of the ZNCC a perfect match "
+        "reaches at the scans' noise level (relative; on noise-free scans, and for the seeds "
+        "of the initial guess where that is not estimated, the ZNCC itself; default "
+        "%(default)s)",
     )
 
 

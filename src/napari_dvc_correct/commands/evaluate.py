@@ -10,6 +10,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..engine.evaluation.options import (
+    GRADIENT_METHODS,
+    MAX_PHASES,
+    RESIDUAL_MODES,
+    STRAIN_MEASURES,
+)
+from ..engine.evaluation.options import EvaluationOptions as E
 from ._common import UserError
 from ._field_formats import add_field_format_arguments, read_input_field
 from ._tiled_options import add_tiled_evaluation_arguments, wants_tiled_evaluation
@@ -41,20 +48,24 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     group = parser.add_argument_group("phases")
     group.add_argument(
         "--phases",
-        default="auto",
-        help="'auto' (multi-Otsu) or the N-1 gray thresholds T1,T2,... of N phases (default auto)",
+        default=E.phases,
+        help="'auto' (multi-Otsu) or the N-1 gray thresholds T1,T2,... of N phases (default "
+        "%(default)s)",
     )
     group.add_argument(
         "--phases-deformed",
-        default=None,
+        default=E.phases_deformed,
         help="thresholds of the deformed volume when they differ (default: as --phases)",
     )
     group.add_argument(
-        "--n-phases", type=int, default=2, help="number of phases for --phases auto (default 2)"
+        "--n-phases",
+        type=int,
+        default=E.n_phases,
+        help=f"number of phases for --phases auto, 2 to {MAX_PHASES} (default %(default)s)",
     )
     group.add_argument(
         "--phase-pair",
-        default=None,
+        default=E.phase_pair,
         help="the two phases A,B whose gray contrast is used in eq. 2 (default: most abundant)",
     )
     group.add_argument(
@@ -96,26 +107,34 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     group = parser.add_argument_group("residual and strain")
     group.add_argument(
         "--mode",
-        choices=("reference", "loaded"),
-        default="reference",
+        choices=RESIDUAL_MODES,
+        default=E.mode,
         help="residual |F(X+u)-G(X)| on reference voxels, or the paper's |F-G'| in the loaded "
-        "state (default reference)",
+        "state (default %(default)s)",
     )
     group.add_argument(
-        "--strain", choices=("small", "green-lagrange"), default="small", help="strain measure"
+        "--strain",
+        choices=STRAIN_MEASURES,
+        default=E.strain_measure,
+        help="strain measure (default %(default)s)",
     )
     group.add_argument(
         "--gradient",
-        choices=("central", "least-squares", "shape-function"),
-        default="central",
-        help="displacement gradient estimator on the grid (default central)",
+        choices=GRADIENT_METHODS,
+        default=E.strain_method,
+        help="displacement gradient estimator on the grid (default %(default)s)",
     )
     group.add_argument(
-        "--strain-window", type=int, default=5, help="least-squares window (odd, nodes)"
+        "--strain-window",
+        type=int,
+        default=E.strain_window,
+        help="least-squares window (odd, nodes; default %(default)s)",
     )
-    group.add_argument("--bins", type=int, default=10, help="equivalent-strain bins (default 10)")
     group.add_argument(
-        "--bin-by", default=None, help="bin every field by the strain of the field of this name"
+        "--bins", type=int, default=E.n_bins, help="equivalent-strain bins (default %(default)s)"
+    )
+    group.add_argument(
+        "--bin-by", default=E.bin_by, help="bin every field by the strain of the field of this name"
     )
     parser.add_argument("--no-volumes", action="store_true", help="do not write TIFF volumes")
     parser.add_argument("--out-dir", required=True, help="folder for the report (created)")
@@ -209,6 +228,20 @@ def run(args) -> int:
     phases = parse_thresholds(args.phases, "--phases")
     phases_deformed = parse_thresholds(args.phases_deformed, "--phases-deformed")
     pair = _phase_pair(args.phase_pair)
+    evaluation_options = E(  # checked before any file is read
+        phases=phases,
+        phases_deformed=phases_deformed,
+        n_phases=args.n_phases,
+        phase_pair=pair,
+        mode=args.mode,
+        strain_measure=args.strain,
+        strain_method=args.gradient,
+        strain_window=args.strain_window,
+        n_bins=args.bins,
+        bin_by=args.bin_by,
+        shared_background=not args.own_background,
+        gray_levels=not args.raw_gray_levels,
+    )
     names = _names(args)
     paths = [args.field, *args.compare]
     out_dir = check_output_dir(
@@ -243,21 +276,7 @@ def run(args) -> int:
     for k, path in enumerate(args.background_field):
         name = f"background {k + 1}: {Path(path).stem}"
         known[name], _ = ready_for_evaluation(read_input_field(args, path, sniff=True).field, name)
-    options = dict(
-        phases=phases,
-        phases_deformed=phases_deformed,
-        n_phases=args.n_phases,
-        phase_pair=pair,
-        mode=args.mode,
-        strain_measure=args.strain,
-        strain_method=args.gradient,
-        strain_window=args.strain_window,
-        n_bins=args.bins,
-        bin_by=args.bin_by,
-        shared_background=not args.own_background,
-        gray_levels=not args.raw_gray_levels,
-        background_fields=known,
-    )
+    options = dict(**evaluation_options.keywords(), background_fields=known)
     if region is not None:
         options["region"] = region
     inputs = {
@@ -344,7 +363,9 @@ def _evaluate_tiled(args, reference, deformed, fields, options, out_dir):
     from ..report import file_stem, unique_names
     from ..tiled.evaluation import evaluate_tiled_iter
     from ._common import ProgressBar, drive
+    from ._tiled_options import run_options_from_args
 
+    run = run_options_from_args(args)
     outputs = {}
     if not args.no_volumes:  # the names write_report gives them
         outputs = {
@@ -368,10 +389,10 @@ def _evaluate_tiled(args, reference, deformed, fields, options, out_dir):
         deformed,
         fields,
         outputs=outputs,
-        block_shape=args.block,
-        max_memory=args.max_memory,
-        workers=args.workers,
-        scheduler=args.scheduler or None,
+        block_shape=run.block_shape,
+        max_memory=run.max_memory,
+        workers=run.workers,
+        scheduler=run.scheduler,
         **options,
     )
     return drive(generator, _Reporter())

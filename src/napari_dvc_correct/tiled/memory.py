@@ -21,6 +21,7 @@ from ..engine.correlation.initial_guess import fft_search, pyramid_levels
 from ..engine.correlation.params import CorrelationParams
 from ..engine.correlation.pyramid import level_reach
 from ..engine.fields.field import grid_for_volume
+from ..engine.run_options import MAX_MEMORY_BYTES
 from ..io.sizes import available_memory  # noqa: F401  (re-exported: part of this API)
 
 #: Voxels read at a time by the whole-volume pass of :mod:`.tiled`.
@@ -107,7 +108,7 @@ def parse_memory(size) -> int:
             ) from error
     else:
         value = size
-    if not 0 < value < 2**62:  # "1e400GB" parses as inf
+    if not 0 < value < MAX_MEMORY_BYTES:  # "1e400GB" parses as inf
         raise ValueError(f"a memory size must be > 0 and a size a machine can have, got {size!r}")
     return int(value)
 
