@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..engine.evaluation.options import EvaluationOptions
 from ..engine.fields.field import DisplacementField
 
 #: Voxels sampled for the histogram and the automatic thresholds of a large volume.
@@ -165,7 +166,7 @@ def run_evaluation(
     deformed,
     fields: dict,
     thresholds,
-    mode: str = "reference",
+    mode: str = EvaluationOptions.mode,
     outputs: dict | None = None,
     max_memory: str | None = None,
     tiled: bool | None = None,
