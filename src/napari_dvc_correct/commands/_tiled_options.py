@@ -218,46 +218,6 @@ def run_tiled_points(args: argparse.Namespace, params, points, progress=None):
     return result
 
 
-def run_tiled_correction(args: argparse.Namespace, field, params=None, options=None, progress=None):
-    """Self-correct ``field`` of ``args.reference`` / ``args.deformed`` out of core; return it.
-
-    The volumes (and ``args.mask``) are read lazily; the warps and residuals run block by block
-    and every DVC pass batch by batch (:func:`napari_dvc_correct.tiled.correction.correct_tiled_iter`)
-    with ``--scheduler``, ``--max-memory``, ``--batch`` and ``--workers``. The estimated peak
-    memory is printed to stderr first (unless ``args.quiet``); a run over the limit is refused
-    before any work (:class:`MemoryBudgetError`, a ``ValueError``).
-
-    Parameters
-    ----------
-    args : argparse.Namespace
-        Parsed options, with those of :func:`add_tiled_arguments`.
-    field : DisplacementField or None
-        The field to correct (None: a tiled DVC runs first).
-    params : CorrelationParams, optional
-        DVC parameters (default: the field's).
-    options : dict, optional
-        Keyword arguments of the correction (``frame``, ``update``, ``max_passes``...).
-    progress : callable, optional
-        Called with every :class:`Progress` (default: the command's progress bar).
-    """
-    from ..tiled.correction import correct_tiled_iter
-    from ._common import drive
-
-    reference, deformed, reporter, common = _lazy_inputs_and_reporter(
-        args, progress, "tiled correction"
-    )
-    generator = correct_tiled_iter(
-        reference,
-        deformed,
-        field,
-        params,
-        temp_dir=run_options_from_args(args).temp_dir,
-        **common,
-        **(options or {}),
-    )
-    return drive(generator, reporter)
-
-
 def run_tiled_series(args: argparse.Namespace, params, progress=None, **options):
     """A scan series of ``args.volumes`` on a grid out of core; return its ``SeriesResult``.
 

@@ -13,7 +13,6 @@ import time
 from ..engine.correction.options import FRAMES, UPDATES
 from . import _field_formats, _grid_options
 from ._common import (
-    ProgressBar,
     check_output_path,
     check_side_file,
     command_inputs,
@@ -21,7 +20,7 @@ from ._common import (
     drive,
     warn,
 )
-from ._tiled_options import add_tiled_arguments, run_tiled_correction, wants_tiled
+from ._tiled_options import add_tiled_arguments
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -144,10 +143,9 @@ def add_self_correct_argument(parser: argparse.ArgumentParser) -> None:
     add_correction_options(parser)
 
 
-def correction_options_from_args(args) -> dict:
-    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.self_correction.correct_iter`,
-    checked by the records (:class:`CorrectionOptions`, :class:`CleaningOptions`) before any
-    work, not after the correlation."""
+def correction_records_from_args(args):
+    """``(CorrectionOptions, CleaningOptions)`` of the arguments, checked by the records before
+    any work, not after the correlation."""
     from ..engine.correction.options import CleaningOptions, CorrectionOptions
 
     try:
@@ -165,10 +163,14 @@ def correction_options_from_args(args) -> dict:
         cleaning = CleaningOptions(threshold=args.outlier_threshold, smoothing=args.smoothing)
     except ValueError as error:
         raise ValueError(f"--smoothing / --outlier-threshold: {error}") from None
-    return {
-        **options.as_dict(),
-        "clean_options": {"threshold": cleaning.threshold, "smoothing": cleaning.smoothing},
-    }
+    return options, cleaning
+
+
+def correction_options_from_args(args) -> dict:
+    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.self_correction.correct_iter`
+    (:func:`correction_records_from_args`)."""
+    options, cleaning = correction_records_from_args(args)
+    return {**options.as_dict(), "clean_options": cleaning.as_dict()}
 
 
 def pass_table(field) -> str:
@@ -212,32 +214,41 @@ def pass_table(field) -> str:
     return "\n".join(lines)
 
 
+def _correct(args, field, params=None, reference=None, deformed=None):
+    """The correction job of the pair in ``args`` (:func:`..jobs.correct.correct_job`), in
+    memory or out of core as the arguments ask; the volumes not given are loaded for it."""
+    from ..jobs.correct import correct_job
+    from ..jobs.volumes import load_volume
+    from ._tiled_options import _plan_reporter, run_options_from_args
+
+    run = run_options_from_args(args)
+    options, cleaning = correction_records_from_args(args)
+    reference = load_volume(args.reference, run) if reference is None else reference
+    deformed = load_volume(args.deformed, run) if deformed is None else deformed
+    mask_path = getattr(args, "mask", None)
+    mask = load_volume(mask_path, run) if mask_path else None
+    job = correct_job(
+        reference, deformed, field, params, options=options, cleaning=cleaning, mask=mask, run=run
+    )
+    # out of core, the plan's memory estimate is printed first
+    return drive(job, _plan_reporter(args, None, "tiled correction"))
+
+
 def apply_self_correction(args, field, reference, deformed):
     """Self-correct ``field`` of the pair with the options in ``args``; return the new field.
 
-    Used by ``correlate --self-correct``: call it after the correlation, before saving. Reads
-    ``args.mask`` (a path) if the parser has one; prints the per-pass table on stdout.
+    Used by ``correlate --self-correct``: call it after the correlation, before saving, with
+    the pair in memory (None out of core: opened lazily). Reads ``args.mask`` (a path) if the
+    parser has one; prints the per-pass table on stdout.
     """
-    from ..engine.correction.self_correction import correct_iter
-    from ..io.volumes import read_volume
-
-    options = correction_options_from_args(args)
-    if wants_tiled(args):  # out of core: lazily read volumes, blocks and batches on dask
-        corrected = run_tiled_correction(args, field, None, options)
-        print(pass_table(corrected))
-        return corrected
-    mask_path = getattr(args, "mask", None)
-    mask = read_volume(mask_path) if mask_path else None
-    bar = ProgressBar(getattr(args, "quiet", False))
-    corrected = drive(correct_iter(reference, deformed, field, mask=mask, **options), bar)
+    corrected = _correct(args, field, None, reference, deformed)
     print(pass_table(corrected))
     return corrected
 
 
 def run(args) -> int:
-    from ..engine.correction.self_correction import correct_iter
-    from ..engine.pair_checks import check_pair_and_fields
-    from ..io.volumes import read_volume
+    from ..jobs.volumes import load_volume
+    from ._tiled_options import run_options_from_args
 
     started = time.perf_counter()
     inputs = command_inputs(args)
@@ -245,29 +256,12 @@ def run(args) -> int:
     fmt = _field_formats.output_format(args, out)  # refuses a bad --out before any work
     if fmt not in ("vti", "vtu"):  # a field on points also writes a side file next to --out
         check_side_file(_field_formats.side_path(out, fmt), inputs, out)
-    options = correction_options_from_args(args)
-    if wants_tiled(args):  # out of core: the volumes are read lazily, block by block
-        from ..io.lazy import open_volume
-
-        shape = open_volume(args.reference).shape
-        imported, params = _field_formats.prepare_correction_field(args, shape)
-        print(f"field: {imported.describe()}")
-        warn(args, imported.note)
-        corrected = run_tiled_correction(args, imported.field, params, options)
-    else:
-        reference = read_volume(args.reference)
-        imported, params = _field_formats.prepare_correction_field(args, reference.shape)
-        field = imported.field
-        print(f"field: {imported.describe()}")
-        warn(args, imported.note)
-        deformed = read_volume(args.deformed)
-        mask = read_volume(args.mask) if args.mask else None
-        # one check for both frames: the loaded frame would otherwise drop an empty mask silently
-        check_pair_and_fields(reference, deformed, field, mask, check_finite=False)
-        bar = ProgressBar(args.quiet)
-        corrected = drive(
-            correct_iter(reference, deformed, field, params, mask=mask, **options), bar
-        )
+    correction_records_from_args(args)  # refuses bad options before any work
+    reference = load_volume(args.reference, run_options_from_args(args))
+    imported, params = _field_formats.prepare_correction_field(args, reference.shape)
+    print(f"field: {imported.describe()}")
+    warn(args, imported.note)
+    corrected = _correct(args, imported.field, params, reference)
     corrected.metadata["reference"] = str(args.reference)
     corrected.metadata["deformed"] = str(args.deformed)
     corrected.metadata["corrected_from"] = str(args.field)

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from ..engine.correction.options import CorrectionOptions
 from ..engine.fields.field import DisplacementField
+from ..engine.run_options import RunOptions
 from .regions_model import whole
 
 FRAMES = {  # the panel's default is CorrectionOptions.frame: the engine's measured best
@@ -46,18 +47,16 @@ def run_correction(
     into temporary Zarr arrays, removed at the end or on cancel), within ``max_memory``
     (``"4GB"``...; None = automatic). Returns a :class:`CorrectionResult`.
     """
-    options = (CorrectionOptions() if options is None else options).as_dict()
-    if tiled:
-        from ..tiled.correction import correct_tiled_iter
+    from ..jobs.correct import correct_job
+    from ..tiled.memory import parse_memory
 
-        corrected = yield from correct_tiled_iter(
-            reference, deformed, field, max_memory=max_memory, mask=mask, **options
-        )
-    else:
-        from ..engine.correction.self_correction import correct_iter
-
-        # the region as one array, made here in the worker
-        corrected = yield from correct_iter(reference, deformed, field, mask=whole(mask), **options)
+    # in memory, the region as one array, made here in the worker
+    limit = parse_memory(max_memory) if max_memory else None
+    run = RunOptions(tiled=bool(tiled), device="cpu", max_memory=limit)
+    mask = mask if run.out_of_core else whole(mask)
+    corrected = yield from correct_job(
+        reference, deformed, field, options=options, mask=mask, run=run
+    )
     for key in ("voxel_size", "offset", "reference_layer", "deformed_layer"):
         if key in field.metadata:
             corrected.metadata[key] = field.metadata[key]

@@ -482,6 +482,8 @@ def correlate(
     texture_std=None,
     grid_anchor=None,
     seeds=None,
+    active=None,
+    prefiltered=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -497,5 +499,7 @@ def correlate(
             texture_std=texture_std,
             grid_anchor=grid_anchor,
             seeds=seeds,
+            active=active,
+            prefiltered=prefiltered,
         )
     )
