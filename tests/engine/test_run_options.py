@@ -41,6 +41,7 @@ def test_a_temp_dir_asks_for_out_of_core(tmp_path):
 @pytest.mark.parametrize(
     "changes, message",
     [
+        ({"tiled": "cpu"}, "tiled must be True or False"),
         ({"device": "gpu"}, "device must be one of"),
         ({"max_memory": 0}, "max_memory must be > 0"),
         ({"max_memory": MAX_MEMORY_BYTES}, "max_memory must be > 0"),

@@ -310,38 +310,33 @@ def prepare_correction_field(args, volume_shape):
     return InputField(regridded, imported.points, imported.format, imported.note), params
 
 
-def run_points(args, params, out, started, tiled: bool = False) -> int:
+def run_points(args, params, out, started, run=None) -> int:
     """``--points FILE``: DVC at exactly those points, written in the output format.
 
-    With ``tiled`` the volumes are read lazily, only the regions the points need
-    (:func:`..tiled.points.correlate_points_tiled_iter`), with the large-volume options.
+    ``run`` (:class:`..engine.run_options.RunOptions`, default: in memory) out of core: the
+    volumes are read lazily, only the regions the points need
+    (:func:`..jobs.correlate.points_job`), with the large-volume options.
     """
     import time
 
+    from ..engine.run_options import RunOptions
+    from ..jobs.correlate import points_job
+    from ..jobs.volumes import load_volume
+    from ._common import ProgressBar, check_search, drive
     from ._grid_options import load_points
+    from ._tiled_options import _plan_reporter
 
     if getattr(args, "self_correct", False):
         raise ValueError("--points does not combine with --self-correct")
     check_points_output(output_format(args, out))  # before any work
-    from ..io.lazy import open_volume
-    from ._common import check_search
-
+    run = RunOptions() if run is None else run
     points = load_points(args.points)
-    check_search(params, open_volume(args.reference).shape)
-    if tiled:
-        from ._tiled_options import run_tiled_points
-
-        result = run_tiled_points(args, params, points)
-    else:
-        from ..engine.correlation.correlate_points import correlate_points
-        from ..io.volumes import read_volume
-
-        reference = read_volume(args.reference)
-        deformed = read_volume(args.deformed)
-        mask = read_volume(args.mask) if args.mask else None
-        result = correlate_points(
-            reference, deformed, points, params, mask=mask, device=getattr(args, "device", "auto")
-        )
+    reference = load_volume(args.reference, run)
+    check_search(params, reference.shape)
+    deformed = load_volume(args.deformed, run)
+    mask = load_volume(args.mask, run) if args.mask else None
+    job = points_job(reference, deformed, points, params, mask=mask, run=run)
+    result = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled points"))
     result.metadata["reference"] = str(args.reference)
     result.metadata["deformed"] = str(args.deformed)
     result.metadata["points_file"] = str(args.points)

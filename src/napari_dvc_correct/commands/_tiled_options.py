@@ -201,23 +201,6 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     return field
 
 
-def run_tiled_points(args: argparse.Namespace, params, points, progress=None):
-    """Correlate at ``points`` (N, 3) reading only the regions they need; return the
-    ScatteredField (:func:`napari_dvc_correct.tiled.points.correlate_points_tiled_iter`; the
-    guide field runs in batches of ``--batch`` POIs)."""
-    from ..tiled.points import correlate_points_tiled_iter
-    from ._common import drive
-
-    reference, deformed, reporter, common = _lazy_inputs_and_reporter(
-        args, progress, "tiled points"
-    )
-    run = correlate_points_tiled_iter(reference, deformed, points, params, **common)
-    result = drive(run, reporter)
-    result.metadata["reference"] = str(args.reference)
-    result.metadata["deformed"] = str(args.deformed)
-    return result
-
-
 def run_tiled_series(args: argparse.Namespace, params, progress=None, **options):
     """A scan series of ``args.volumes`` on a grid out of core; return its ``SeriesResult``.
 

@@ -18,7 +18,7 @@ from ._common import (
     correlation_defaults,
     drive,
 )
-from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
+from ._tiled_options import add_tiled_arguments
 from .correct import add_self_correct_argument
 
 __all__ = ["ProgressBar", "add_correlation_arguments", "check_output_path", "drive", "run"]
@@ -135,12 +135,14 @@ def summary(field, seconds: float) -> str:
 
 def run(args) -> int:
     from ..engine.backend import select_device
-    from ..engine.correlation.correlate import correlate_iter
     from ..engine.pair_checks import check_pair
-    from ..io.volumes import read_volume
+    from ..jobs.correlate import correlate_job
+    from ..jobs.volumes import load_volume
+    from ._tiled_options import _plan_reporter, run_options_from_args
 
     started = time.perf_counter()
     params = params_from_args(args)
+    run = run_options_from_args(args)
     out = check_output_path(args.out, suffixes=None, inputs=command_inputs(args))
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
     if getattr(args, "self_correct", False):
@@ -148,36 +150,26 @@ def run(args) -> int:
 
         correction_options_from_args(args)  # refuses bad correction options before any work
     if getattr(args, "points", None):
-        return _field_formats.run_points(args, params, out, started, wants_tiled(args))
-    if wants_tiled(args):
-        if _grid_options.wants_placement(args):
-            raise ValueError("--roi, --cylinder and --origin do not apply to tiled runs yet")
-        # large volumes: batches read lazily, on dask (CPU); see docs/scaling.md
-        from ..io.lazy import open_volume
-
-        check_search(params, open_volume(args.reference).shape)
-        field = run_tiled(args, params, ProgressBar(args.quiet).update)
-        reference = deformed = None
-    else:
-        reference = read_volume(args.reference)
-        deformed = read_volume(args.deformed)
-        mask = read_volume(args.mask) if args.mask else None
+        return _field_formats.run_points(args, params, out, started, run)
+    if run.out_of_core and _grid_options.wants_placement(args):
+        raise ValueError("--roi, --cylinder and --origin do not apply to tiled runs yet")
+    # out of core (docs/scaling.md) the volumes are opened lazily and read batch by batch
+    reference = load_volume(args.reference, run)
+    deformed = load_volume(args.deformed, run)
+    mask = load_volume(args.mask, run) if args.mask else None
+    if not run.out_of_core:  # the tiled run checks each region as it reads it
         check_pair(reference, deformed, mask, check_finite=False)  # read_volume did
-        check_search(params, reference.shape)
-        device = select_device(getattr(args, "device", "auto"))
-        print(f"device: {device.description}", flush=True)
-        bar = ProgressBar(args.quiet)
-        grid = _grid_options.grid_from_args(args, reference.shape, params)
-        field = drive(
-            correlate_iter(reference, deformed, params, mask=mask, grid=grid, device=device), bar
-        )
-        field = _grid_options.finish_grid_field(args, field, reference.shape)
-        field.metadata["reference"] = str(args.reference)
-        field.metadata["deformed"] = str(args.deformed)
+        print(f"device: {select_device(run.device, warn=False).description}", flush=True)
+    check_search(params, reference.shape)
+    grid = _grid_options.grid_from_args(args, reference.shape, params)
+    job = correlate_job(reference, deformed, params, mask=mask, grid=grid, run=run)
+    field = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled"))
+    field = _grid_options.finish_grid_field(args, field, reference.shape)
+    field.metadata["reference"] = str(args.reference)
+    field.metadata["deformed"] = str(args.deformed)
     if getattr(args, "self_correct", False):
         from .correct import apply_self_correction
 
-        # tiled runs (reference None) correct out of core too (apply_self_correction sees it)
         field = apply_self_correction(args, field, reference, deformed)
     _field_formats.write_output_field(args, field, out)
     print(summary(field, time.perf_counter() - started))

@@ -70,6 +70,8 @@ class RunOptions:
     temp_dir: str | None = None
 
     def __post_init__(self) -> None:
+        if not isinstance(self.tiled, bool):
+            raise ValueError(f"tiled must be True or False, got {self.tiled!r}")
         if self.device not in DEVICES:
             raise ValueError(f"device must be one of {DEVICES}, got {self.device!r}")
         if self.max_memory is not None:
