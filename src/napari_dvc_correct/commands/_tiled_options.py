@@ -1,13 +1,13 @@
 """Command-line options for volumes too large for memory (``--tiled`` and friends).
 
-The correlate, correct and series commands wire these in (correlate here)::
+The correlate, correct and series commands wire these in::
 
-    from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
+    from ._tiled_options import add_tiled_arguments, run_options_from_args
 
     add_tiled_arguments(parser)             # in add_parser
     ...
-    if wants_tiled(args):                   # in run, instead of read_volume + correlate_iter
-        field = run_tiled(args, params)
+    run = run_options_from_args(args)       # in run: a RunOptions for the job (..jobs), which
+                                            # goes out of core when run.out_of_core
 
 This module imports no engine code at import time (the CLI stays quick to start).
 """
@@ -191,11 +191,14 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     progress : callable, optional
         Called with every :class:`Progress` (default: the command's progress bar).
     """
-    from ..tiled import correlate_tiled_iter
+    from ..jobs.correlate import correlate_job
     from ._common import drive
 
+    run = run_options_from_args(args).replace(tiled=True)
     reference, deformed, reporter, common = _lazy_inputs_and_reporter(args, progress, "tiled")
-    field = drive(correlate_tiled_iter(reference, deformed, params, **common), reporter)
+    field = drive(
+        correlate_job(reference, deformed, params, mask=common["mask"], run=run), reporter
+    )
     field.metadata["reference"] = str(args.reference)
     field.metadata["deformed"] = str(args.deformed)
     return field

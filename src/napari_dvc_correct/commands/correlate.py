@@ -159,8 +159,9 @@ def run(args) -> int:
     mask = load_volume(args.mask, run) if args.mask else None
     if not run.out_of_core:  # the tiled run checks each region as it reads it
         check_pair(reference, deformed, mask, check_finite=False)  # read_volume did
-        print(f"device: {select_device(run.device, warn=False).description}", flush=True)
     check_search(params, reference.shape)
+    if not run.out_of_core:  # each batch's worker chooses its own
+        print(f"device: {select_device(run.device, warn=False).description}", flush=True)
     grid = _grid_options.grid_from_args(args, reference.shape, params)
     job = correlate_job(reference, deformed, params, mask=mask, grid=grid, run=run)
     field = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled"))
