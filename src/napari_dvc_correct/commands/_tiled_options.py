@@ -204,44 +204,6 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     return field
 
 
-def run_tiled_series(args: argparse.Namespace, params, progress=None, **options):
-    """A scan series of ``args.volumes`` on a grid out of core; return its ``SeriesResult``.
-
-    The states (and ``args.mask``) are read lazily; every pair is correlated batch by batch and
-    every correction and gray residual runs block by block
-    (:func:`napari_dvc_correct.tiled.series.series_tiled_iter`) with ``--scheduler``,
-    ``--max-memory``, ``--batch``, ``--workers`` and ``--temp-dir``. The plan (the estimated peak
-    memory of each kind of run) is printed to stderr first (unless ``args.quiet``); a series over
-    the limit is refused before any work (:class:`MemoryBudgetError`, a ``ValueError``).
-
-    Parameters
-    ----------
-    args : argparse.Namespace
-        Parsed options, with those of :func:`add_tiled_arguments`.
-    params : CorrelationParams
-    progress : callable, optional
-        Called with every :class:`Progress` (default: the command's progress bar).
-    **options
-        ``strategy``, ``correct_increments``, ``correct_total``, ``correction_options``,
-        ``grid`` of :func:`~napari_dvc_correct.tiled.series.series_tiled_iter`.
-    """
-    from ..io.lazy import open_volume
-    from ..tiled.series import series_tiled_iter
-    from ._common import drive
-
-    volumes = [open_volume(path) for path in args.volumes]
-    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
-    generator = series_tiled_iter(
-        volumes,
-        params,
-        mask=mask,
-        temp_dir=run_options_from_args(args).temp_dir,
-        **_run_options(args),
-        **options,
-    )
-    return drive(generator, _plan_reporter(args, progress, "tiled series"))
-
-
 def _block(text: str) -> tuple[int, int, int]:
     return _checked("--block", block_shape=_shape_text(text, "block"))
 

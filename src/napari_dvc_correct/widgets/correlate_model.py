@@ -254,27 +254,16 @@ def check_tiled(job_strategy: str, points, max_memory: str | None) -> str | None
 def run_series(job: CorrelationJob):
     """Total displacements ``U_0→k`` of a scan series (:func:`..engine.series.strategies.series_iter`;
     out of core, :func:`..tiled.series.series_tiled_iter`: every state read batch by batch)."""
-    if job.tiled:
-        from ..tiled.series import series_tiled_iter
+    from ..jobs.series import series_job
 
-        result = yield from series_tiled_iter(
-            job.volumes,
-            job.params,
-            strategy=job.strategy,
-            correct_total=job.correct_states,
-            mask=job.mask,
-            max_memory=job.max_memory,
-            device=job.device,
-        )
-        return result.totals
-    from ..engine.series.strategies import series_iter
-
-    result = yield from series_iter(
+    run = job.run_options()
+    result = yield from series_job(
         job.volumes,
         job.params,
         strategy=job.strategy,
         correct_total=job.correct_states,
-        mask=whole(job.mask),
+        mask=job.mask if run.out_of_core else whole(job.mask),  # in memory: one array
+        run=run,
     )
     return result.totals
 
