@@ -211,10 +211,10 @@ def ready_for_evaluation(field, name: str):
 
 
 def run(args) -> int:
-    from ..engine.evaluation.accuracy import evaluate_iter
     from ..engine.fields.absurd_nodes import flag_absurd_nodes
     from ..engine.pair_checks import check_pair_and_fields
-    from ..io.volumes import read_volume
+    from ..jobs.evaluate import evaluate_job
+    from ..jobs.volumes import load_volume
     from ..report import write_report
     from ._common import (
         ProgressBar,
@@ -224,6 +224,7 @@ def run(args) -> int:
         output_set,
         warn,
     )
+    from ._tiled_options import _plan_reporter, run_options_from_args
 
     phases = parse_thresholds(args.phases, "--phases")
     phases_deformed = parse_thresholds(args.phases_deformed, "--phases-deformed")
@@ -253,18 +254,14 @@ def run(args) -> int:
         name: read_input_field(args, path, sniff=k > 0).field
         for k, (name, path) in enumerate(zip(names, paths))
     }
-    if wants_tiled_evaluation(args):
-        from ..io.lazy import open_volume
-
-        reference = open_volume(args.reference)
-        deformed = open_volume(args.deformed)
-    else:
-        reference = read_volume(args.reference)
-        deformed = read_volume(args.deformed)
+    # out of core (--tiled, --block...) the volumes are opened lazily and read block by block
+    run = run_options_from_args(args)
+    reference = load_volume(args.reference, run)
+    deformed = load_volume(args.deformed, run)
     for name in loaded:  # a tool's few diverged nodes (|u| > the volume) are failed matches
         loaded[name], note = flag_absurd_nodes(loaded[name], reference.shape, f"field {name!r}")
         warn(args, note)
-    if not wants_tiled_evaluation(args):
+    if not run.out_of_core:  # the tiled run checks each block as it reads it
         check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
     region = _specimen_region(args, reference)
     fields = {}
@@ -276,7 +273,7 @@ def run(args) -> int:
     for k, path in enumerate(args.background_field):
         name = f"background {k + 1}: {Path(path).stem}"
         known[name], _ = ready_for_evaluation(read_input_field(args, path, sniff=True).field, name)
-    options = dict(**evaluation_options.keywords(), background_fields=known)
+    options = dict(background_fields=known)
     if region is not None:
         options["region"] = region
     inputs = {
@@ -287,14 +284,13 @@ def run(args) -> int:
             for name, path in zip(names, paths)
         },
     }
-    evaluation = None
-    if not wants_tiled_evaluation(args):
-        evaluation = drive(
-            evaluate_iter(reference, deformed, fields, **options), ProgressBar(args.quiet)
-        )
     with output_set(out_dir, REPORT_PATTERNS, {"command": "evaluate"}) as temp:
-        if evaluation is None:  # tiled: the volumes are written into the set as they are made
-            evaluation = _evaluate_tiled(args, reference, deformed, fields, options, temp)
+        # out of core the volumes are written into the set as they are made
+        job = evaluate_job(
+            reference, deformed, fields, evaluation_options, outputs=_outputs(args, fields, temp),
+            run=run, **options,
+        )  # fmt: skip
+        evaluation = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled"))
         files = write_report(evaluation, temp, inputs=inputs, volumes=not args.no_volumes)
     print(
         f"mean gray residual: mean of {evaluation.residual_text}; gray levels "
@@ -352,47 +348,18 @@ def _specimen_region(args, reference):
         raise UserError(f"the specimen region: {error}") from None
 
 
-def _evaluate_tiled(args, reference, deformed, fields, options, out_dir):
-    """The evaluation block by block (``--tiled``); the volumes go straight into ``out_dir``.
-
-    The estimated peak memory is printed before any work; a run over the budget is refused
-    with :class:`~napari_dvc_correct.tiled.memory.MemoryBudgetError` before anything is written.
-    """
-    import sys
-
+def _outputs(args, fields, out_dir) -> dict:
+    """Where an evaluation out of core writes its volumes as it makes them: the names
+    :func:`..report.write_report` gives them in ``out_dir`` (none with ``--no-volumes``)."""
     from ..report import file_stem, unique_names
-    from ..tiled.evaluation import evaluate_tiled_iter
-    from ._common import ProgressBar, drive
-    from ._tiled_options import run_options_from_args
 
-    run = run_options_from_args(args)
-    outputs = {}
-    if not args.no_volumes:  # the names write_report gives them
-        outputs = {
-            "labels_reference": out_dir / "labels_reference.tif",
-            "labels_deformed": out_dir / "labels_deformed.tif",
-        }
-        for name, stem in zip(fields, unique_names([file_stem(n) for n in fields])):
-            outputs["residual", name] = out_dir / f"residual_{stem}.tif"
-            outputs["labels_mapped", name] = out_dir / f"labels_mapped_{stem}.tif"
-    bar = ProgressBar(args.quiet)
-
-    class _Reporter:
-        @staticmethod
-        def update(report):
-            if report.stage == "plan" and not args.quiet:
-                print(f"tiled: {report.message}", file=sys.stderr, flush=True)
-            bar.update(report)
-
-    generator = evaluate_tiled_iter(
-        reference,
-        deformed,
-        fields,
-        outputs=outputs,
-        block_shape=run.block_shape,
-        max_memory=run.max_memory,
-        workers=run.workers,
-        scheduler=run.scheduler,
-        **options,
-    )
-    return drive(generator, _Reporter())
+    if args.no_volumes:
+        return {}
+    outputs = {
+        "labels_reference": out_dir / "labels_reference.tif",
+        "labels_deformed": out_dir / "labels_deformed.tif",
+    }
+    for name, stem in zip(fields, unique_names([file_stem(n) for n in fields])):
+        outputs["residual", name] = out_dir / f"residual_{stem}.tif"
+        outputs["labels_mapped", name] = out_dir / f"labels_mapped_{stem}.tif"
+    return outputs
