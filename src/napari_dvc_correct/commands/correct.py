@@ -238,8 +238,8 @@ def apply_self_correction(args, field, reference, deformed):
     """Self-correct ``field`` of the pair with the options in ``args``; return the new field.
 
     Used by ``correlate --self-correct``: call it after the correlation, before saving, with
-    the pair in memory (None out of core: opened lazily). Reads ``args.mask`` (a path) if the
-    parser has one; prints the per-pass table on stdout.
+    the pair the correlation used (read, or opened lazily out of core; None: loaded here).
+    Reads ``args.mask`` (a path) if the parser has one; prints the per-pass table on stdout.
     """
     corrected = _correct(args, field, None, reference, deformed)
     print(pass_table(corrected))
