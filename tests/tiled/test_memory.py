@@ -1,5 +1,7 @@
 """Regions and memory of tiled correlation: sizes in and out, halos, the peak estimate, the batch."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from napari_dvc_correct.tiled.memory import (
     PREFILTER_MARGIN,
     SHIFT_BLOCK_VOXELS,
     SPLINE_SUPPORT,
+    STRAIN_ALLOWANCE,
     MemoryBudgetError,
     available_memory,
     choose_batch_shape,
@@ -188,3 +191,61 @@ def test_refuses_when_not_even_one_poi_fits():
     assert "2 concurrent batch(es)" in str(info.value)
     # a bad input for the command line (ValueError), and a memory error for callers
     assert isinstance(info.value, ValueError) and isinstance(info.value, MemoryError)
+
+
+# --- the halo and the engine's pyramid ---------------------------------------------------------
+def _engine_levels(monkeypatch, params, size):
+    """Each pyramid level's subvolume half-size and the coarsest level's search radius, as the
+    engine's correlation uses them on a ``size``³ pair."""
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correlation import correlate as engine
+    from napari_dvc_correct.engine.progress import run_to_completion
+
+    halves, radii = {}, {}
+    build_level = engine._pyramid_level
+    search = engine.seed_guesses
+
+    def recording_level(lev, *args):
+        level = build_level(lev, *args)
+        halves[lev] = level.half
+        return level
+
+    def recording_search(level, centers, grid_shape, shift, radius, *args, **kwargs):
+        lev = int(round(math.log2(level.factor)))
+        halves[lev], radii[lev] = level.half, radius
+        return search(level, centers, grid_shape, shift, radius, *args, **kwargs)
+
+    monkeypatch.setattr(engine, "_pyramid_level", recording_level)
+    monkeypatch.setattr(engine, "seed_guesses", recording_search)
+    reference = synthetic.textured_volume((size,) * 3, feature_size=2.0, seed=2)
+    deformed = synthetic.deform_volume(reference, synthetic.translation((1.5, -2.0, 0.5)))
+    matched, fine = run_to_completion(engine.match_iter(reference, deformed, params))
+    halves[0] = fine.half
+    return matched.metadata["pyramid_levels"], halves, radii
+
+
+@pytest.mark.parametrize(
+    "subvolume, radius, size, levels",
+    [(15, 4, 40, 0), (19, 12, 48, 1), (21, None, 48, 1), (41, 20, 84, 2)],
+)
+def test_the_halo_covers_exactly_what_the_engine_reads(
+    monkeypatch, subvolume, radius, size, levels
+):
+    params = CorrelationParams(subvolume=subvolume, step=24, search_radius=radius)
+    engine_levels, halves, radii = _engine_levels(monkeypatch, params, size)
+    assert engine_levels == levels
+    assert sorted(halves) == list(range(levels + 1))
+    assert list(radii) == [levels]  # the integer search runs at the coarsest level only
+    reach_g, reach_f = halo(params, levels)
+    need_g, need_f = [], []
+    for lev, half in halves.items():
+        f = 2**lev
+        rounding = 0 if lev == 0 else 2 * f
+        margin = PREFILTER_MARGIN if lev == 0 else COARSE_PREFILTER_MARGIN
+        search = radii.get(lev, math.ceil(params.effective_search_radius / f) + (lev > 0))
+        need_g.append(f * (half + 1 + margin) + rounding)
+        strained = math.ceil(half * (1 + STRAIN_ALLOWANCE))
+        need_f.append(f * (strained + search + 1 + SPLINE_SUPPORT + margin) + rounding)
+    # the engine's subvolume and search at every level, as wide as the halo and no wider
+    assert reach_g == max(need_g)
+    assert reach_f == max(need_f)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.correlation.params import CorrelationParams
 from ..io.formats import FORMATS
 
 #: Output suffix -> format when ``--out-format`` is not given (``.txt`` is not guessed).
@@ -256,7 +257,7 @@ def add_correction_field_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         help="odd subvolume edge (voxels) of the correction's DVC; default: the field's own "
-        "parameters, else 31 (spam and iDVC files do not record it)",
+        f"parameters, else {CorrelationParams.subvolume} (spam and iDVC files do not record it)",
     )
     group.add_argument(
         "--grid-step",
@@ -273,7 +274,6 @@ def prepare_correction_field(args, volume_shape):
     The field keeps its own grid unless ``--grid-step``, ``--roi``, ``--cylinder`` or
     ``--origin`` ask for another one (then it is interpolated onto it, with provenance).
     """
-    from ..engine.correlation.params import CorrelationParams
     from ..engine.correlation.placement import grid_for_region, restrict_to_region
     from ..engine.fields.scattered import from_grid, to_grid
     from . import _grid_options
@@ -284,7 +284,9 @@ def prepare_correction_field(args, volume_shape):
     subvolume = getattr(args, "subvolume", None)
     if subvolume is not None or not field.params:
         values = dict(field.params)
-        values["subvolume"] = subvolume or field.params.get("subvolume", 31)
+        values["subvolume"] = subvolume or field.params.get(
+            "subvolume", CorrelationParams.subvolume
+        )
         params = CorrelationParams.from_dict(values)
     if not (getattr(args, "grid_step", None) or _grid_options.wants_placement(args)):
         nodes = np.concatenate([np.asarray(field.origin), np.asarray(field.step)])
@@ -308,38 +310,33 @@ def prepare_correction_field(args, volume_shape):
     return InputField(regridded, imported.points, imported.format, imported.note), params
 
 
-def run_points(args, params, out, started, tiled: bool = False) -> int:
+def run_points(args, params, out, started, run=None) -> int:
     """``--points FILE``: DVC at exactly those points, written in the output format.
 
-    With ``tiled`` the volumes are read lazily, only the regions the points need
-    (:func:`..tiled.points.correlate_points_tiled_iter`), with the large-volume options.
+    ``run`` (:class:`..engine.run_options.RunOptions`, default: in memory) out of core: the
+    volumes are read lazily, only the regions the points need
+    (:func:`..jobs.correlate.points_job`), with the large-volume options.
     """
     import time
 
+    from ..engine.run_options import RunOptions
+    from ..jobs.correlate import points_job
+    from ..jobs.volumes import load_volume
+    from ._common import ProgressBar, check_search, drive
     from ._grid_options import load_points
+    from ._tiled_options import _plan_reporter
 
     if getattr(args, "self_correct", False):
         raise ValueError("--points does not combine with --self-correct")
     check_points_output(output_format(args, out))  # before any work
-    from ..io.lazy import open_volume
-    from ._common import check_search
-
+    run = RunOptions() if run is None else run
     points = load_points(args.points)
-    check_search(params, open_volume(args.reference).shape)
-    if tiled:
-        from ._tiled_options import run_tiled_points
-
-        result = run_tiled_points(args, params, points)
-    else:
-        from ..engine.correlation.correlate_points import correlate_points
-        from ..io.volumes import read_volume
-
-        reference = read_volume(args.reference)
-        deformed = read_volume(args.deformed)
-        mask = read_volume(args.mask) if args.mask else None
-        result = correlate_points(
-            reference, deformed, points, params, mask=mask, device=getattr(args, "device", "auto")
-        )
+    reference = load_volume(args.reference, run)
+    check_search(params, reference.shape)
+    deformed = load_volume(args.deformed, run)
+    mask = load_volume(args.mask, run) if args.mask else None
+    job = points_job(reference, deformed, points, params, mask=mask, run=run)
+    result = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled points"))
     result.metadata["reference"] = str(args.reference)
     result.metadata["deformed"] = str(args.deformed)
     result.metadata["points_file"] = str(args.points)

@@ -1,13 +1,13 @@
 """Command-line options for volumes too large for memory (``--tiled`` and friends).
 
-The correlate, correct and series commands wire these in (correlate here)::
+The correlate, correct and series commands wire these in::
 
-    from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
+    from ._tiled_options import add_tiled_arguments, run_options_from_args
 
     add_tiled_arguments(parser)             # in add_parser
     ...
-    if wants_tiled(args):                   # in run, instead of read_volume + correlate_iter
-        field = run_tiled(args, params)
+    run = run_options_from_args(args)       # in run: a RunOptions for the job (..jobs), which
+                                            # goes out of core when run.out_of_core
 
 This module imports no engine code at import time (the CLI stays quick to start).
 """
@@ -15,22 +15,31 @@ This module imports no engine code at import time (the CLI stays quick to start)
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 
-def _batch(text: str) -> tuple[int, int, int]:
+def _checked(option: str, **values):
+    """``values`` checked by :class:`..engine.run_options.RunOptions` (its checks, not a copy)."""
+    from ..engine.run_options import RunOptions
+
+    try:
+        return getattr(RunOptions(**values), next(iter(values)))
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{option}: {error}") from None
+
+
+def _shape_text(text: str, what: str) -> tuple[int, ...]:
     try:
         values = [int(v) for v in text.replace("x", ",").split(",") if v.strip()]
     except ValueError as error:
         raise argparse.ArgumentTypeError(
-            f"{text!r} is not a batch shape: give N or NZ,NY,NX POIs"
+            f"{text!r} is not a {what} shape: give N or NZ,NY,NX"
         ) from error
-    if len(values) == 1:
-        values = values * 3
-    if len(values) != 3 or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a batch shape: give N or NZ,NY,NX POIs")
-    return tuple(values)
+    return tuple(values * 3 if len(values) == 1 else values)
+
+
+def _batch(text: str) -> tuple[int, int, int]:
+    return _checked("--batch", batch_shape=_shape_text(text, "batch"))
 
 
 def _memory(text: str) -> int:
@@ -42,27 +51,20 @@ def _memory(text: str) -> int:
         raise argparse.ArgumentTypeError(
             f"{text!r} is not a memory size: use e.g. 2GB, 1.5GiB or 512MB"
         ) from error
-    if not 0 < value < 2**62:  # 1e400GB parses as inf
-        raise argparse.ArgumentTypeError(
-            f"--max-memory must be > 0 and a size a machine can have, got {text!r}"
-        )
-    return int(value)
+    return _checked("--max-memory", max_memory=value)
 
 
 def _existing_folder(text: str) -> str:
     """``--temp-dir``: an existing folder (a missing one is not made, with its parents)."""
-    if not os.path.isdir(text):
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not an existing folder: create it first (nothing is made for you)"
-        )
-    return text
+    return _checked("--temp-dir", temp_dir=text)
 
 
 def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    return _checked("--workers", workers=value)
 
 
 def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,16 +115,26 @@ def add_tiled_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def wants_tiled(args: argparse.Namespace) -> bool:
-    """True when any of the large-volume options was given."""
-    return bool(
-        getattr(args, "tiled", False)
-        or getattr(args, "scheduler", None)
-        or getattr(args, "max_memory", None)
-        or getattr(args, "batch", None)
-        or getattr(args, "workers", None)
-        or getattr(args, "temp_dir", None)
+def run_options_from_args(args: argparse.Namespace):
+    """The :class:`..engine.run_options.RunOptions` of a command's arguments."""
+    from ..engine.run_options import RunOptions
+
+    return RunOptions(
+        tiled=bool(getattr(args, "tiled", False)),
+        # a command without --device (correct, series) runs its tiled batches on the CPU
+        device=getattr(args, "device", "cpu"),
+        max_memory=getattr(args, "max_memory", None),
+        workers=getattr(args, "workers", None),
+        scheduler=getattr(args, "scheduler", None) or None,
+        batch_shape=getattr(args, "batch", None),
+        block_shape=getattr(args, "block", None),
+        temp_dir=getattr(args, "temp_dir", None),
     )
+
+
+def wants_tiled(args: argparse.Namespace) -> bool:
+    """True when any of the large-volume options was given (``--block`` aside)."""
+    return run_options_from_args(args).replace(block_shape=None).out_of_core
 
 
 def _plan_reporter(args: argparse.Namespace, progress, label: str):
@@ -147,13 +159,7 @@ def _plan_reporter(args: argparse.Namespace, progress, label: str):
 
 def _run_options(args: argparse.Namespace) -> dict:
     """The keyword arguments every tiled run takes from the options of :func:`add_tiled_arguments`."""
-    return dict(
-        batch_shape=getattr(args, "batch", None),
-        max_memory=getattr(args, "max_memory", None),
-        workers=getattr(args, "workers", None),
-        scheduler=getattr(args, "scheduler", None) or None,
-        device=getattr(args, "device", "cpu"),  # chosen by each batch's worker ("auto": its GPU)
-    )
+    return run_options_from_args(args).tiled_keywords()
 
 
 def _lazy_inputs_and_reporter(args: argparse.Namespace, progress, label: str):
@@ -185,125 +191,21 @@ def run_tiled(args: argparse.Namespace, params, progress=None):
     progress : callable, optional
         Called with every :class:`Progress` (default: the command's progress bar).
     """
-    from ..tiled import correlate_tiled_iter
+    from ..jobs.correlate import correlate_job
     from ._common import drive
 
+    run = run_options_from_args(args).replace(tiled=True)
     reference, deformed, reporter, common = _lazy_inputs_and_reporter(args, progress, "tiled")
-    field = drive(correlate_tiled_iter(reference, deformed, params, **common), reporter)
+    field = drive(
+        correlate_job(reference, deformed, params, mask=common["mask"], run=run), reporter
+    )
     field.metadata["reference"] = str(args.reference)
     field.metadata["deformed"] = str(args.deformed)
     return field
 
 
-def run_tiled_points(args: argparse.Namespace, params, points, progress=None):
-    """Correlate at ``points`` (N, 3) reading only the regions they need; return the
-    ScatteredField (:func:`napari_dvc_correct.tiled.points.correlate_points_tiled_iter`; the
-    guide field runs in batches of ``--batch`` POIs)."""
-    from ..tiled.points import correlate_points_tiled_iter
-    from ._common import drive
-
-    reference, deformed, reporter, common = _lazy_inputs_and_reporter(
-        args, progress, "tiled points"
-    )
-    run = correlate_points_tiled_iter(reference, deformed, points, params, **common)
-    result = drive(run, reporter)
-    result.metadata["reference"] = str(args.reference)
-    result.metadata["deformed"] = str(args.deformed)
-    return result
-
-
-def run_tiled_correction(args: argparse.Namespace, field, params=None, options=None, progress=None):
-    """Self-correct ``field`` of ``args.reference`` / ``args.deformed`` out of core; return it.
-
-    The volumes (and ``args.mask``) are read lazily; the warps and residuals run block by block
-    and every DVC pass batch by batch (:func:`napari_dvc_correct.tiled.correction.correct_tiled_iter`)
-    with ``--scheduler``, ``--max-memory``, ``--batch`` and ``--workers``. The estimated peak
-    memory is printed to stderr first (unless ``args.quiet``); a run over the limit is refused
-    before any work (:class:`MemoryBudgetError`, a ``ValueError``).
-
-    Parameters
-    ----------
-    args : argparse.Namespace
-        Parsed options, with those of :func:`add_tiled_arguments`.
-    field : DisplacementField or None
-        The field to correct (None: a tiled DVC runs first).
-    params : CorrelationParams, optional
-        DVC parameters (default: the field's).
-    options : dict, optional
-        Keyword arguments of the correction (``frame``, ``update``, ``max_passes``...).
-    progress : callable, optional
-        Called with every :class:`Progress` (default: the command's progress bar).
-    """
-    from ..tiled.correction import correct_tiled_iter
-    from ._common import drive
-
-    reference, deformed, reporter, common = _lazy_inputs_and_reporter(
-        args, progress, "tiled correction"
-    )
-    generator = correct_tiled_iter(
-        reference,
-        deformed,
-        field,
-        params,
-        temp_dir=getattr(args, "temp_dir", None),
-        **common,
-        **(options or {}),
-    )
-    return drive(generator, reporter)
-
-
-def run_tiled_series(args: argparse.Namespace, params, progress=None, **options):
-    """A scan series of ``args.volumes`` on a grid out of core; return its ``SeriesResult``.
-
-    The states (and ``args.mask``) are read lazily; every pair is correlated batch by batch and
-    every correction and gray residual runs block by block
-    (:func:`napari_dvc_correct.tiled.series.series_tiled_iter`) with ``--scheduler``,
-    ``--max-memory``, ``--batch``, ``--workers`` and ``--temp-dir``. The plan (the estimated peak
-    memory of each kind of run) is printed to stderr first (unless ``args.quiet``); a series over
-    the limit is refused before any work (:class:`MemoryBudgetError`, a ``ValueError``).
-
-    Parameters
-    ----------
-    args : argparse.Namespace
-        Parsed options, with those of :func:`add_tiled_arguments`.
-    params : CorrelationParams
-    progress : callable, optional
-        Called with every :class:`Progress` (default: the command's progress bar).
-    **options
-        ``strategy``, ``correct_increments``, ``correct_total``, ``correction_options``,
-        ``grid`` of :func:`~napari_dvc_correct.tiled.series.series_tiled_iter`.
-    """
-    from ..io.lazy import open_volume
-    from ..tiled.series import series_tiled_iter
-    from ._common import drive
-
-    volumes = [open_volume(path) for path in args.volumes]
-    mask = open_volume(args.mask) if getattr(args, "mask", None) else None
-    generator = series_tiled_iter(
-        volumes,
-        params,
-        mask=mask,
-        temp_dir=getattr(args, "temp_dir", None),
-        **_run_options(args),
-        **options,
-    )
-    return drive(generator, _plan_reporter(args, progress, "tiled series"))
-
-
 def _block(text: str) -> tuple[int, int, int]:
-    try:
-        values = [int(v) for v in text.replace("x", ",").split(",") if v.strip()]
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a block shape: give N or NZ,NY,NX voxels"
-        ) from error
-    if len(values) == 1:
-        values = values * 3
-    if len(values) != 3 or min(values) < 1:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a block shape: give N or NZ,NY,NX voxels"
-        )
-    return tuple(values)
+    return _checked("--block", block_shape=_shape_text(text, "block"))
 
 
 def add_tiled_evaluation_arguments(parser: argparse.ArgumentParser) -> None:
@@ -344,4 +246,4 @@ def add_tiled_evaluation_arguments(parser: argparse.ArgumentParser) -> None:
 
 def wants_tiled_evaluation(args: argparse.Namespace) -> bool:
     """True when any of :func:`add_tiled_evaluation_arguments`' options was given."""
-    return wants_tiled(args) or bool(getattr(args, "block", None))
+    return run_options_from_args(args).out_of_core

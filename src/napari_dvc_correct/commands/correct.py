@@ -10,9 +10,9 @@ import argparse
 import math
 import time
 
+from ..engine.correction.options import FRAMES, UPDATES
 from . import _field_formats, _grid_options
 from ._common import (
-    ProgressBar,
     check_output_path,
     check_side_file,
     command_inputs,
@@ -20,7 +20,7 @@ from ._common import (
     drive,
     warn,
 )
-from ._tiled_options import add_tiled_arguments, run_tiled_correction, wants_tiled
+from ._tiled_options import add_tiled_arguments
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -28,9 +28,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "correct",
         help="self-correct a displacement field (the paper's strategy)",
         description="Self-correct the DVC displacement field of a pair: clean it, warp the "
-        "volumes with it, correlate again with the same parameters and update the field; "
-        "repeated while the mean gray residual falls. Writes the corrected field (.npz) and "
-        "prints the residual of every pass.",
+        "volumes with it, correlate again and update the field. The correcting matches reuse "
+        "the field's DVC parameters, or second order on a smaller subvolume where the field "
+        "bends inside a subvolume and that predicts a smaller error (the table says which). A "
+        "node keeps its correction only where its local gray residual does not rise by more "
+        "than the imaging noise explains. Passes repeat, up to --max-passes, while the last one "
+        "removed more than --min-improvement of the local residual above the noise floor, "
+        "still improved a share of the nodes above that floor, and moved enough nodes by "
+        "enough to change in another pass (which then matches again only near them; the "
+        "shares are in docs/method.md). Writes the "
+        "corrected field and prints every pass: order, subvolume, residual, and why it stopped.",
     )
     parser.add_argument(
         "reference", help="reference volume (TIFF, folder of TIFF slices, .npy, .npz)"
@@ -73,8 +80,8 @@ def _positive(text: str) -> float:
 def add_correction_options(parser: argparse.ArgumentParser) -> None:
     """Options of the self-correction (all optional: the DVC parameters are reused).
 
-    Defaults are those of :func:`~napari_dvc_correct.engine.correction.self_correction.correct_iter` and
-    :func:`~napari_dvc_correct.engine.correction.cleaning.clean`.
+    Defaults are those of :class:`~napari_dvc_correct.engine.correction.options.CorrectionOptions`
+    and :class:`~napari_dvc_correct.engine.correction.options.CleaningOptions`.
     """
     d = correction_defaults()
     group = parser.add_argument_group("self-correction")
@@ -82,28 +89,28 @@ def add_correction_options(parser: argparse.ArgumentParser) -> None:
         "--max-passes",
         type=int,
         default=d["max_passes"],
-        help=f"most correction passes (default {d['max_passes']})",
+        help="most correction passes (default %(default)s)",
     )
     group.add_argument(
         "--min-improvement",
         type=_nonnegative,
         default=d["min_improvement"],
-        help="stop when a pass removes less than this fraction of the residual above the "
-        f"imaging-noise floor (default {d['min_improvement']})",
+        help="stop when a pass removes at most this fraction of the local gray residual above "
+        "the imaging-noise floor (mean over the nodes; default %(default)s)",
     )
     group.add_argument(
         "--frame",
-        choices=("loaded", "reference"),
+        choices=FRAMES,
         default=d["frame"],
         help="warp the reference to the loaded state (paper) or pull the deformed volume back "
-        f"to the reference (default {d['frame']})",
+        "to the reference (default %(default)s)",
     )
     group.add_argument(
         "--update",
-        choices=("exact", "sum"),
+        choices=UPDATES,
         default=d["update"],
         help="compose the correction with the field (exact) or add it node by node (sum, "
-        f"paper); default {d['update']}",
+        "paper); default %(default)s",
     )
     add_cleaning_options(group, d)
 
@@ -115,14 +122,14 @@ def add_cleaning_options(group, defaults: dict | None = None) -> None:
         "--outlier-threshold",
         type=_positive,
         default=d["threshold"],
-        help=f"normalised median test threshold for cleaning (default {d['threshold']:g})",
+        help="normalised median test threshold for cleaning (default %(default)s)",
     )
     group.add_argument(
         "--smoothing",
         type=_nonnegative,
         default=d["smoothing"],
         help="Gaussian smoothing of the cleaned field, sigma in grid nodes (default "
-        f"{d['smoothing']:g}: none)",
+        "%(default)s: none)",
     )
 
 
@@ -136,23 +143,34 @@ def add_self_correct_argument(parser: argparse.ArgumentParser) -> None:
     add_correction_options(parser)
 
 
-def correction_options_from_args(args) -> dict:
-    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.self_correction.correct_iter`."""
-    from ..engine.correction.options import CleaningOptions
+def correction_records_from_args(args):
+    """``(CorrectionOptions, CleaningOptions)`` of the arguments, checked by the records before
+    any work, not after the correlation."""
+    from ..engine.correction.options import CleaningOptions, CorrectionOptions
 
-    if args.max_passes < 1:
-        raise ValueError(f"--max-passes must be >= 1, got {args.max_passes}")
-    try:  # checked before any work, not after the correlation
-        CleaningOptions(threshold=args.outlier_threshold, smoothing=args.smoothing)
+    try:
+        options = CorrectionOptions(
+            frame=args.frame,
+            update=args.update,
+            max_passes=args.max_passes,
+            min_improvement=args.min_improvement,
+        )
+    except ValueError as error:
+        raise ValueError(
+            f"--max-passes / --min-improvement / --frame / --update: {error}"
+        ) from None
+    try:
+        cleaning = CleaningOptions(threshold=args.outlier_threshold, smoothing=args.smoothing)
     except ValueError as error:
         raise ValueError(f"--smoothing / --outlier-threshold: {error}") from None
-    return {
-        "frame": args.frame,
-        "update": args.update,
-        "max_passes": args.max_passes,
-        "min_improvement": args.min_improvement,
-        "clean_options": {"threshold": args.outlier_threshold, "smoothing": args.smoothing},
-    }
+    return options, cleaning
+
+
+def correction_options_from_args(args) -> dict:
+    """Keyword arguments for :func:`napari_dvc_correct.engine.correction.self_correction.correct_iter`
+    (:func:`correction_records_from_args`)."""
+    options, cleaning = correction_records_from_args(args)
+    return {**options.as_dict(), "clean_options": cleaning.as_dict()}
 
 
 def pass_table(field) -> str:
@@ -196,32 +214,41 @@ def pass_table(field) -> str:
     return "\n".join(lines)
 
 
+def _correct(args, field, params=None, reference=None, deformed=None):
+    """The correction job of the pair in ``args`` (:func:`..jobs.correct.correct_job`), in
+    memory or out of core as the arguments ask; the volumes not given are loaded for it."""
+    from ..jobs.correct import correct_job
+    from ..jobs.volumes import load_volume
+    from ._tiled_options import _plan_reporter, run_options_from_args
+
+    run = run_options_from_args(args)
+    options, cleaning = correction_records_from_args(args)
+    reference = load_volume(args.reference, run) if reference is None else reference
+    deformed = load_volume(args.deformed, run) if deformed is None else deformed
+    mask_path = getattr(args, "mask", None)
+    mask = load_volume(mask_path, run) if mask_path else None
+    job = correct_job(
+        reference, deformed, field, params, options=options, cleaning=cleaning, mask=mask, run=run
+    )
+    # out of core, the plan's memory estimate is printed first
+    return drive(job, _plan_reporter(args, None, "tiled correction"))
+
+
 def apply_self_correction(args, field, reference, deformed):
     """Self-correct ``field`` of the pair with the options in ``args``; return the new field.
 
-    Used by ``correlate --self-correct``: call it after the correlation, before saving. Reads
-    ``args.mask`` (a path) if the parser has one; prints the per-pass table on stdout.
+    Used by ``correlate --self-correct``: call it after the correlation, before saving, with
+    the pair the correlation used (read, or opened lazily out of core; None: loaded here).
+    Reads ``args.mask`` (a path) if the parser has one; prints the per-pass table on stdout.
     """
-    from ..engine.correction.self_correction import correct_iter
-    from ..io.volumes import read_volume
-
-    options = correction_options_from_args(args)
-    if wants_tiled(args):  # out of core: lazily read volumes, blocks and batches on dask
-        corrected = run_tiled_correction(args, field, None, options)
-        print(pass_table(corrected))
-        return corrected
-    mask_path = getattr(args, "mask", None)
-    mask = read_volume(mask_path) if mask_path else None
-    bar = ProgressBar(getattr(args, "quiet", False))
-    corrected = drive(correct_iter(reference, deformed, field, mask=mask, **options), bar)
+    corrected = _correct(args, field, None, reference, deformed)
     print(pass_table(corrected))
     return corrected
 
 
 def run(args) -> int:
-    from ..engine.correction.self_correction import correct_iter
-    from ..engine.pair_checks import check_pair_and_fields
-    from ..io.volumes import read_volume
+    from ..jobs.volumes import load_volume
+    from ._tiled_options import run_options_from_args
 
     started = time.perf_counter()
     inputs = command_inputs(args)
@@ -229,29 +256,12 @@ def run(args) -> int:
     fmt = _field_formats.output_format(args, out)  # refuses a bad --out before any work
     if fmt not in ("vti", "vtu"):  # a field on points also writes a side file next to --out
         check_side_file(_field_formats.side_path(out, fmt), inputs, out)
-    options = correction_options_from_args(args)
-    if wants_tiled(args):  # out of core: the volumes are read lazily, block by block
-        from ..io.lazy import open_volume
-
-        shape = open_volume(args.reference).shape
-        imported, params = _field_formats.prepare_correction_field(args, shape)
-        print(f"field: {imported.describe()}")
-        warn(args, imported.note)
-        corrected = run_tiled_correction(args, imported.field, params, options)
-    else:
-        reference = read_volume(args.reference)
-        imported, params = _field_formats.prepare_correction_field(args, reference.shape)
-        field = imported.field
-        print(f"field: {imported.describe()}")
-        warn(args, imported.note)
-        deformed = read_volume(args.deformed)
-        mask = read_volume(args.mask) if args.mask else None
-        # one check for both frames: the loaded frame would otherwise drop an empty mask silently
-        check_pair_and_fields(reference, deformed, field, mask, check_finite=False)
-        bar = ProgressBar(args.quiet)
-        corrected = drive(
-            correct_iter(reference, deformed, field, params, mask=mask, **options), bar
-        )
+    correction_records_from_args(args)  # refuses bad options before any work
+    reference = load_volume(args.reference, run_options_from_args(args))
+    imported, params = _field_formats.prepare_correction_field(args, reference.shape)
+    print(f"field: {imported.describe()}")
+    warn(args, imported.note)
+    corrected = _correct(args, imported.field, params, reference)
     corrected.metadata["reference"] = str(args.reference)
     corrected.metadata["deformed"] = str(args.deformed)
     corrected.metadata["corrected_from"] = str(args.field)

@@ -7,6 +7,8 @@ import time
 
 import numpy as np
 
+from ..engine.correlation.params import MIN_SUBVOLUME
+from ..engine.run_options import DEVICES, RunOptions
 from . import _field_formats, _grid_options
 from ._common import (
     ProgressBar,
@@ -16,7 +18,7 @@ from ._common import (
     correlation_defaults,
     drive,
 )
-from ._tiled_options import add_tiled_arguments, run_tiled, wants_tiled
+from ._tiled_options import add_tiled_arguments
 from .correct import add_self_correct_argument
 
 __all__ = ["ProgressBar", "add_correlation_arguments", "check_output_path", "drive", "run"]
@@ -39,10 +41,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument(
         "--device",
-        choices=("auto", "cpu", "cuda"),
-        default="auto",
+        choices=DEVICES,
+        default=RunOptions.device,
         help="where IC-GN runs: auto = a CUDA GPU when numba sees one that works, else the CPU; "
-        "cuda without a usable GPU falls back to the CPU with a warning (default: auto)",
+        "cuda without a usable GPU falls back to the CPU with a warning (default: %(default)s)",
     )
     add_self_correct_argument(parser)
     add_tiled_arguments(parser)
@@ -57,24 +59,49 @@ def add_correlation_arguments(parser: argparse.ArgumentParser) -> None:
     d = correlation_defaults()
     group = parser.add_argument_group("DVC parameters")
     group.add_argument(
-        "--subvolume", type=int, default=d["subvolume"], help="odd subvolume edge (voxels, >= 5)"
+        "--subvolume",
+        type=int,
+        default=d["subvolume"],
+        help=f"odd subvolume edge (voxels, >= {MIN_SUBVOLUME}; default %(default)s)",
     )
-    group.add_argument("--step", type=int, default=d["step"], help="POI spacing (voxels)")
     group.add_argument(
-        "--order", type=int, choices=(1, 2), default=d["order"], help="shape function order"
+        "--step", type=int, default=d["step"], help="POI spacing (voxels; default %(default)s)"
+    )
+    group.add_argument(
+        "--order",
+        type=int,
+        choices=(1, 2),
+        default=d["order"],
+        help="shape function order: 1 affine, 2 quadratic (default %(default)s)",
     )
     group.add_argument(
         "--search",
         type=int,
         default=d["search_radius"],
-        help="search radius around the rigid shift (voxels)",
-    )
-    group.add_argument("--max-iterations", type=int, default=d["max_iterations"])
-    group.add_argument(
-        "--tolerance", type=float, default=d["tolerance"], help="convergence (voxels)"
+        help="search radius around the rigid shift (voxels; default: max(8, subvolume // 2); "
+        "radii beyond a few voxels search on a binned pyramid)",
     )
     group.add_argument(
-        "--min-zncc", type=float, default=d["min_zncc"], help="flag matches below this"
+        "--max-iterations",
+        type=int,
+        default=d["max_iterations"],
+        help="IC-GN iterations per POI at most (default %(default)s)",
+    )
+    group.add_argument(
+        "--tolerance",
+        type=float,
+        default=d["tolerance"],
+        help="convergence: largest move of the subvolume's corners in an iteration (voxels; "
+        "default %(default)s)",
+    )
+    group.add_argument(
+        "--min-zncc",
+        type=float,
+        default=d["min_zncc"],
+        help="a match is flagged LOW_ZNCC below this fraction of the ZNCC a perfect match "
+        "reaches at the scans' noise level (relative; on noise-free scans, and for the seeds "
+        "of the initial guess where that is not estimated, the ZNCC itself; default "
+        "%(default)s)",
     )
 
 
@@ -111,12 +138,14 @@ def summary(field, seconds: float) -> str:
 
 def run(args) -> int:
     from ..engine.backend import select_device
-    from ..engine.correlation.correlate import correlate_iter
     from ..engine.pair_checks import check_pair
-    from ..io.volumes import read_volume
+    from ..jobs.correlate import correlate_job
+    from ..jobs.volumes import load_volume
+    from ._tiled_options import _plan_reporter, run_options_from_args
 
     started = time.perf_counter()
     params = params_from_args(args)
+    run = run_options_from_args(args)
     out = check_output_path(args.out, suffixes=None, inputs=command_inputs(args))
     _field_formats.output_format(args, out)  # refuses a bad --out before any work
     if getattr(args, "self_correct", False):
@@ -124,36 +153,27 @@ def run(args) -> int:
 
         correction_options_from_args(args)  # refuses bad correction options before any work
     if getattr(args, "points", None):
-        return _field_formats.run_points(args, params, out, started, wants_tiled(args))
-    if wants_tiled(args):
-        if _grid_options.wants_placement(args):
-            raise ValueError("--roi, --cylinder and --origin do not apply to tiled runs yet")
-        # large volumes: batches read lazily, on dask (CPU); see docs/scaling.md
-        from ..io.lazy import open_volume
-
-        check_search(params, open_volume(args.reference).shape)
-        field = run_tiled(args, params, ProgressBar(args.quiet).update)
-        reference = deformed = None
-    else:
-        reference = read_volume(args.reference)
-        deformed = read_volume(args.deformed)
-        mask = read_volume(args.mask) if args.mask else None
+        return _field_formats.run_points(args, params, out, started, run)
+    if run.out_of_core and _grid_options.wants_placement(args):
+        raise ValueError("--roi, --cylinder and --origin do not apply to tiled runs yet")
+    # out of core (docs/scaling.md) the volumes are opened lazily and read batch by batch
+    reference = load_volume(args.reference, run)
+    deformed = load_volume(args.deformed, run)
+    mask = load_volume(args.mask, run) if args.mask else None
+    if not run.out_of_core:  # the tiled run checks each region as it reads it
         check_pair(reference, deformed, mask, check_finite=False)  # read_volume did
-        check_search(params, reference.shape)
-        device = select_device(getattr(args, "device", "auto"))
-        print(f"device: {device.description}", flush=True)
-        bar = ProgressBar(args.quiet)
-        grid = _grid_options.grid_from_args(args, reference.shape, params)
-        field = drive(
-            correlate_iter(reference, deformed, params, mask=mask, grid=grid, device=device), bar
-        )
-        field = _grid_options.finish_grid_field(args, field, reference.shape)
-        field.metadata["reference"] = str(args.reference)
-        field.metadata["deformed"] = str(args.deformed)
+    check_search(params, reference.shape)
+    if not run.out_of_core:  # each batch's worker chooses its own
+        print(f"device: {select_device(run.device, warn=False).description}", flush=True)
+    grid = _grid_options.grid_from_args(args, reference.shape, params)
+    job = correlate_job(reference, deformed, params, mask=mask, grid=grid, run=run)
+    field = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled"))
+    field = _grid_options.finish_grid_field(args, field, reference.shape)
+    field.metadata["reference"] = str(args.reference)
+    field.metadata["deformed"] = str(args.deformed)
     if getattr(args, "self_correct", False):
         from .correct import apply_self_correction
 
-        # tiled runs (reference None) correct out of core too (apply_self_correction sees it)
         field = apply_self_correction(args, field, reference, deformed)
     _field_formats.write_output_field(args, field, out)
     print(summary(field, time.perf_counter() - started))

@@ -10,6 +10,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..engine.evaluation.options import (
+    GRADIENT_METHODS,
+    MAX_PHASES,
+    RESIDUAL_MODES,
+    STRAIN_MEASURES,
+)
+from ..engine.evaluation.options import EvaluationOptions as E
 from ._common import UserError
 from ._field_formats import add_field_format_arguments, read_input_field
 from ._tiled_options import add_tiled_evaluation_arguments, wants_tiled_evaluation
@@ -41,20 +48,24 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     group = parser.add_argument_group("phases")
     group.add_argument(
         "--phases",
-        default="auto",
-        help="'auto' (multi-Otsu) or the N-1 gray thresholds T1,T2,... of N phases (default auto)",
+        default=E.phases,
+        help="'auto' (multi-Otsu) or the N-1 gray thresholds T1,T2,... of N phases (default "
+        "%(default)s)",
     )
     group.add_argument(
         "--phases-deformed",
-        default=None,
+        default=E.phases_deformed,
         help="thresholds of the deformed volume when they differ (default: as --phases)",
     )
     group.add_argument(
-        "--n-phases", type=int, default=2, help="number of phases for --phases auto (default 2)"
+        "--n-phases",
+        type=int,
+        default=E.n_phases,
+        help=f"number of phases for --phases auto, 2 to {MAX_PHASES} (default %(default)s)",
     )
     group.add_argument(
         "--phase-pair",
-        default=None,
+        default=E.phase_pair,
         help="the two phases A,B whose gray contrast is used in eq. 2 (default: most abundant)",
     )
     group.add_argument(
@@ -96,26 +107,34 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     group = parser.add_argument_group("residual and strain")
     group.add_argument(
         "--mode",
-        choices=("reference", "loaded"),
-        default="reference",
+        choices=RESIDUAL_MODES,
+        default=E.mode,
         help="residual |F(X+u)-G(X)| on reference voxels, or the paper's |F-G'| in the loaded "
-        "state (default reference)",
+        "state (default %(default)s)",
     )
     group.add_argument(
-        "--strain", choices=("small", "green-lagrange"), default="small", help="strain measure"
+        "--strain",
+        choices=STRAIN_MEASURES,
+        default=E.strain_measure,
+        help="strain measure (default %(default)s)",
     )
     group.add_argument(
         "--gradient",
-        choices=("central", "least-squares", "shape-function"),
-        default="central",
-        help="displacement gradient estimator on the grid (default central)",
+        choices=GRADIENT_METHODS,
+        default=E.strain_method,
+        help="displacement gradient estimator on the grid (default %(default)s)",
     )
     group.add_argument(
-        "--strain-window", type=int, default=5, help="least-squares window (odd, nodes)"
+        "--strain-window",
+        type=int,
+        default=E.strain_window,
+        help="least-squares window (odd, nodes; default %(default)s)",
     )
-    group.add_argument("--bins", type=int, default=10, help="equivalent-strain bins (default 10)")
     group.add_argument(
-        "--bin-by", default=None, help="bin every field by the strain of the field of this name"
+        "--bins", type=int, default=E.n_bins, help="equivalent-strain bins (default %(default)s)"
+    )
+    group.add_argument(
+        "--bin-by", default=E.bin_by, help="bin every field by the strain of the field of this name"
     )
     parser.add_argument("--no-volumes", action="store_true", help="do not write TIFF volumes")
     parser.add_argument("--out-dir", required=True, help="folder for the report (created)")
@@ -192,10 +211,10 @@ def ready_for_evaluation(field, name: str):
 
 
 def run(args) -> int:
-    from ..engine.evaluation.accuracy import evaluate_iter
     from ..engine.fields.absurd_nodes import flag_absurd_nodes
     from ..engine.pair_checks import check_pair_and_fields
-    from ..io.volumes import read_volume
+    from ..jobs.evaluate import evaluate_job
+    from ..jobs.volumes import load_volume
     from ..report import write_report
     from ._common import (
         ProgressBar,
@@ -205,45 +224,12 @@ def run(args) -> int:
         output_set,
         warn,
     )
+    from ._tiled_options import _plan_reporter, run_options_from_args
 
     phases = parse_thresholds(args.phases, "--phases")
     phases_deformed = parse_thresholds(args.phases_deformed, "--phases-deformed")
     pair = _phase_pair(args.phase_pair)
-    names = _names(args)
-    paths = [args.field, *args.compare]
-    out_dir = check_output_dir(
-        args.out_dir,
-        inputs=(*command_inputs(args), *paths, *args.background_field),
-        patterns=REPORT_PATTERNS,
-    )
-    loaded = {  # --format is --field's; the --compare fields' formats are sniffed
-        name: read_input_field(args, path, sniff=k > 0).field
-        for k, (name, path) in enumerate(zip(names, paths))
-    }
-    if wants_tiled_evaluation(args):
-        from ..io.lazy import open_volume
-
-        reference = open_volume(args.reference)
-        deformed = open_volume(args.deformed)
-    else:
-        reference = read_volume(args.reference)
-        deformed = read_volume(args.deformed)
-    for name in loaded:  # a tool's few diverged nodes (|u| > the volume) are failed matches
-        loaded[name], note = flag_absurd_nodes(loaded[name], reference.shape, f"field {name!r}")
-        warn(args, note)
-    if not wants_tiled_evaluation(args):
-        check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
-    region = _specimen_region(args, reference)
-    fields = {}
-    for name, field in loaded.items():
-        fields[name], note = ready_for_evaluation(field, name)
-        if note:
-            print(note)
-    known = dict(fields)
-    for k, path in enumerate(args.background_field):
-        name = f"background {k + 1}: {Path(path).stem}"
-        known[name], _ = ready_for_evaluation(read_input_field(args, path, sniff=True).field, name)
-    options = dict(
+    evaluation_options = E(  # checked before any file is read
         phases=phases,
         phases_deformed=phases_deformed,
         n_phases=args.n_phases,
@@ -256,8 +242,38 @@ def run(args) -> int:
         bin_by=args.bin_by,
         shared_background=not args.own_background,
         gray_levels=not args.raw_gray_levels,
-        background_fields=known,
     )
+    names = _names(args)
+    paths = [args.field, *args.compare]
+    out_dir = check_output_dir(
+        args.out_dir,
+        inputs=(*command_inputs(args), *paths, *args.background_field),
+        patterns=REPORT_PATTERNS,
+    )
+    loaded = {  # --format is --field's; the --compare fields' formats are sniffed
+        name: read_input_field(args, path, sniff=k > 0).field
+        for k, (name, path) in enumerate(zip(names, paths))
+    }
+    # out of core (--tiled, --block...) the volumes are opened lazily and read block by block
+    run = run_options_from_args(args)
+    reference = load_volume(args.reference, run)
+    deformed = load_volume(args.deformed, run)
+    for name in loaded:  # a tool's few diverged nodes (|u| > the volume) are failed matches
+        loaded[name], note = flag_absurd_nodes(loaded[name], reference.shape, f"field {name!r}")
+        warn(args, note)
+    if not run.out_of_core:  # the tiled run checks each block as it reads it
+        check_pair_and_fields(reference, deformed, loaded, check_finite=False)  # read_volume did
+    region = _specimen_region(args, reference)
+    fields = {}
+    for name, field in loaded.items():
+        fields[name], note = ready_for_evaluation(field, name)
+        if note:
+            print(note)
+    known = dict(fields)
+    for k, path in enumerate(args.background_field):
+        name = f"background {k + 1}: {Path(path).stem}"
+        known[name], _ = ready_for_evaluation(read_input_field(args, path, sniff=True).field, name)
+    options = dict(background_fields=known)
     if region is not None:
         options["region"] = region
     inputs = {
@@ -268,14 +284,13 @@ def run(args) -> int:
             for name, path in zip(names, paths)
         },
     }
-    evaluation = None
-    if not wants_tiled_evaluation(args):
-        evaluation = drive(
-            evaluate_iter(reference, deformed, fields, **options), ProgressBar(args.quiet)
-        )
     with output_set(out_dir, REPORT_PATTERNS, {"command": "evaluate"}) as temp:
-        if evaluation is None:  # tiled: the volumes are written into the set as they are made
-            evaluation = _evaluate_tiled(args, reference, deformed, fields, options, temp)
+        # out of core the volumes are written into the set as they are made
+        job = evaluate_job(
+            reference, deformed, fields, evaluation_options, outputs=_outputs(args, fields, temp),
+            run=run, **options,
+        )  # fmt: skip
+        evaluation = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled"))
         files = write_report(evaluation, temp, inputs=inputs, volumes=not args.no_volumes)
     print(
         f"mean gray residual: mean of {evaluation.residual_text}; gray levels "
@@ -333,45 +348,18 @@ def _specimen_region(args, reference):
         raise UserError(f"the specimen region: {error}") from None
 
 
-def _evaluate_tiled(args, reference, deformed, fields, options, out_dir):
-    """The evaluation block by block (``--tiled``); the volumes go straight into ``out_dir``.
-
-    The estimated peak memory is printed before any work; a run over the budget is refused
-    with :class:`~napari_dvc_correct.tiled.memory.MemoryBudgetError` before anything is written.
-    """
-    import sys
-
+def _outputs(args, fields, out_dir) -> dict:
+    """Where an evaluation out of core writes its volumes as it makes them: the names
+    :func:`..report.write_report` gives them in ``out_dir`` (none with ``--no-volumes``)."""
     from ..report import file_stem, unique_names
-    from ..tiled.evaluation import evaluate_tiled_iter
-    from ._common import ProgressBar, drive
 
-    outputs = {}
-    if not args.no_volumes:  # the names write_report gives them
-        outputs = {
-            "labels_reference": out_dir / "labels_reference.tif",
-            "labels_deformed": out_dir / "labels_deformed.tif",
-        }
-        for name, stem in zip(fields, unique_names([file_stem(n) for n in fields])):
-            outputs["residual", name] = out_dir / f"residual_{stem}.tif"
-            outputs["labels_mapped", name] = out_dir / f"labels_mapped_{stem}.tif"
-    bar = ProgressBar(args.quiet)
-
-    class _Reporter:
-        @staticmethod
-        def update(report):
-            if report.stage == "plan" and not args.quiet:
-                print(f"tiled: {report.message}", file=sys.stderr, flush=True)
-            bar.update(report)
-
-    generator = evaluate_tiled_iter(
-        reference,
-        deformed,
-        fields,
-        outputs=outputs,
-        block_shape=args.block,
-        max_memory=args.max_memory,
-        workers=args.workers,
-        scheduler=args.scheduler or None,
-        **options,
-    )
-    return drive(generator, _Reporter())
+    if args.no_volumes:
+        return {}
+    outputs = {
+        "labels_reference": out_dir / "labels_reference.tif",
+        "labels_deformed": out_dir / "labels_deformed.tif",
+    }
+    for name, stem in zip(fields, unique_names([file_stem(n) for n in fields])):
+        outputs["residual", name] = out_dir / f"residual_{stem}.tif"
+        outputs["labels_mapped", name] = out_dir / f"labels_mapped_{stem}.tif"
+    return outputs

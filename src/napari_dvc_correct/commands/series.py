@@ -152,8 +152,8 @@ def field_suffix(args, at_points: bool) -> str:
 
 def run(args) -> int:
     from ..engine.pair_checks import check_pair
-    from ..engine.series.strategies import series_iter
-    from ..io.volumes import read_volume
+    from ..jobs.series import series_job
+    from ..jobs.volumes import load_volume
     from . import _field_formats, _grid_options
     from ._common import (
         ProgressBar,
@@ -163,7 +163,7 @@ def run(args) -> int:
         drive,
         output_set,
     )
-    from ._tiled_options import run_tiled_series, wants_tiled
+    from ._tiled_options import _plan_reporter, run_options_from_args
     from .correct import correction_options_from_args
     from .correlate import params_from_args
 
@@ -175,7 +175,8 @@ def run(args) -> int:
     options = correction_options_from_args(args)
     at_points = bool(getattr(args, "points", None))
     suffix = field_suffix(args, at_points)
-    tiled = wants_tiled(args)
+    run = run_options_from_args(args)
+    tiled = run.out_of_core
     points = None
     if at_points:
         if args.self_correct:
@@ -208,25 +209,17 @@ def run(args) -> int:
         correct_total=correct_total,
         correction_options=options,
     )
-    if tiled:  # out of core: the states are read lazily, batch by batch (docs/scaling.md)
-        from ..io.lazy import open_volume
-
-        shape = tuple(open_volume(args.volumes[0]).shape)
-        check_search(params, shape)
-        grid = _grid_options.grid_from_args(args, shape, params)
-        result = run_tiled_series(
-            args, params, ProgressBar(args.quiet).update, grid=grid, **strategy
-        )
-    else:
-        volumes = [read_volume(path) for path in args.volumes]
-        mask = read_volume(args.mask) if args.mask else None
+    # out of core the states are opened lazily and read batch by batch (docs/scaling.md)
+    volumes = [load_volume(path, run) for path in args.volumes]
+    mask = load_volume(args.mask, run) if args.mask else None
+    if not tiled:  # the tiled run checks each region as it reads it
         for k in range(1, len(volumes)):
             check_pair(volumes[0], volumes[k], mask, check_finite=False)  # read_volume did
-        shape = volumes[0].shape
-        check_search(params, shape)
-        grid = None if at_points else _grid_options.grid_from_args(args, shape, params)
-        series = series_iter(volumes, params, mask=mask, grid=grid, points=points, **strategy)
-        result = drive(series, ProgressBar(args.quiet))
+    shape = tuple(volumes[0].shape)
+    check_search(params, shape)
+    grid = None if at_points else _grid_options.grid_from_args(args, shape, params)
+    job = series_job(volumes, params, mask=mask, grid=grid, points=points, run=run, **strategy)
+    result = drive(job, _plan_reporter(args, ProgressBar(args.quiet).update, "tiled series"))
 
     def placed(field):
         return field if at_points else _grid_options.finish_grid_field(args, field, shape)

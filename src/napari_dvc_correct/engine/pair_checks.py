@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .correlation.params import MIN_SUBVOLUME
 from .validation import validate_volume
-
-#: The smallest subvolume edge the correlation accepts (:class:`~.params.CorrelationParams`).
-MIN_SUBVOLUME = 5
 
 
 def largest_subvolume_advice(volume_shape) -> str:

@@ -37,6 +37,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from ..engine.correction.options import CorrectionOptions
 from ..engine.correction.self_correction import check_options, correct_volumes_iter, params_of
 from ..engine.correction.volumes import CorrectionVolumes
 from ..engine.correlation.params import CorrelationParams
@@ -54,6 +55,7 @@ from ..engine.fields.field import DisplacementField
 from ..engine.fields.field_spline import FieldSpline
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.progress import Progress, run_to_completion
+from ..engine.run_options import RunOptions
 from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, iter_blocks, open_volume
 from . import scheduling
@@ -383,16 +385,16 @@ def correct_tiled_iter(
     field: DisplacementField | None = None,
     params: CorrelationParams | None = None,
     *,
-    frame: str = "loaded",
-    update: str = "exact",
-    max_passes: int = 3,
-    min_improvement: float = 0.01,
+    frame: str = CorrectionOptions.frame,
+    update: str = CorrectionOptions.update,
+    max_passes: int = CorrectionOptions.max_passes,
+    min_improvement: float = CorrectionOptions.min_improvement,
     mask=None,
     clean_options: dict | None = None,
-    batch_shape=None,
-    max_memory: int | str | None = None,
-    workers: int | None = None,
-    scheduler=None,
+    batch_shape=RunOptions.batch_shape,
+    max_memory: int | str | None = RunOptions.max_memory,
+    workers: int | None = RunOptions.workers,
+    scheduler=RunOptions.scheduler,
     device="cpu",
     block_shape=CORRECTION_BLOCK,
     node_block: int = NODE_BLOCK,

@@ -63,6 +63,7 @@ from ..engine.evaluation.gray_levels import (
     fit_from_passes,
 )
 from ..engine.evaluation.local_accuracy import region_half
+from ..engine.evaluation.options import EvaluationOptions
 from ..engine.evaluation.phases import (
     NO_PHASE,
     OTSU_SAMPLES,
@@ -77,6 +78,7 @@ from ..engine.fields.field_spline import FieldSpline
 from ..engine.fields.warp import pull_back_block
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.progress import Progress, run_to_completion
+from ..engine.run_options import RunOptions
 from ..io.lazy import as_lazy, open_volume
 from ..io.lazy_outputs import create_output
 from . import scheduling
@@ -344,24 +346,24 @@ def evaluate_tiled_iter(
     deformed,
     fields,
     *,
-    phases="auto",
-    phases_deformed=None,
-    n_phases: int = 2,
-    phase_pair: tuple[int, int] | None = None,
-    mode: str = "reference",
-    strain_measure: str = "small",
-    strain_method: str = "central",
-    strain_window: int = 5,
-    n_bins: int = 10,
+    phases=EvaluationOptions.phases,
+    phases_deformed=EvaluationOptions.phases_deformed,
+    n_phases: int = EvaluationOptions.n_phases,
+    phase_pair: tuple[int, int] | None = EvaluationOptions.phase_pair,
+    mode: str = EvaluationOptions.mode,
+    strain_measure: str = EvaluationOptions.strain_measure,
+    strain_method: str = EvaluationOptions.strain_method,
+    strain_window: int = EvaluationOptions.strain_window,
+    n_bins: int = EvaluationOptions.n_bins,
     bin_edges=None,
-    shared_background: bool = True,
-    bin_by: str | None = None,
+    shared_background: bool = EvaluationOptions.shared_background,
+    bin_by: str | None = EvaluationOptions.bin_by,
     outputs: dict | None = None,
-    block_shape=None,
-    max_memory=None,
-    workers: int | None = None,
-    scheduler=None,
-    gray_levels=True,
+    block_shape=RunOptions.block_shape,
+    max_memory=RunOptions.max_memory,
+    workers: int | None = RunOptions.workers,
+    scheduler=RunOptions.scheduler,
+    gray_levels=EvaluationOptions.gray_levels,
     background_fields=None,
     pair=None,
     region=None,

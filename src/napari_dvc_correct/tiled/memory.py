@@ -19,7 +19,9 @@ import numpy as np
 
 from ..engine.correlation.initial_guess import fft_search, pyramid_levels
 from ..engine.correlation.params import CorrelationParams
+from ..engine.correlation.pyramid import level_reach
 from ..engine.fields.field import grid_for_volume
+from ..engine.run_options import MAX_MEMORY_BYTES
 from ..io.sizes import available_memory  # noqa: F401  (re-exported: part of this API)
 
 #: Voxels read at a time by the whole-volume pass of :mod:`.tiled`.
@@ -106,7 +108,7 @@ def parse_memory(size) -> int:
             ) from error
     else:
         value = size
-    if not 0 < value < 2**62:  # "1e400GB" parses as inf
+    if not 0 < value < MAX_MEMORY_BYTES:  # "1e400GB" parses as inf
         raise ValueError(f"a memory size must be > 0 and a size a machine can have, got {size!r}")
     return int(value)
 
@@ -121,15 +123,12 @@ def halo(params: CorrelationParams, levels: int) -> tuple[int, int]:
     """Voxels needed around the POI centres in ``G`` and around their displaced centres in ``F``.
 
     Covers every pyramid level up to ``levels`` (a level's needs, in its binned voxels, times its
-    factor, plus two factors for the rounding of binned centres).
+    factor, plus two factors for the rounding of binned centres). The level's subvolume and
+    search radius are the engine's (:func:`..engine.correlation.pyramid.level_reach`).
     """
-    half = params.half
-    radius = params.effective_search_radius
     reach_g, reach_f = 0, 0
     for lev in range(levels + 1):
-        f = 2**lev
-        half_l = half if lev == 0 else max(4, half // f)
-        radius_l = radius if lev == 0 else math.ceil(radius / f) + 1
+        f, half_l, radius_l = level_reach(params, lev)
         rounding = 0 if lev == 0 else 2 * f
         margin = PREFILTER_MARGIN if lev == 0 else COARSE_PREFILTER_MARGIN
         reach_g = max(reach_g, f * (half_l + 1 + margin) + rounding)

@@ -11,6 +11,7 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from .. import viewer_layers as V
+from ..engine.correction.options import CorrectionOptions
 from . import correct_model as model
 from ._base import EngineWidget, LayerCombo, follow_layers, pair_in_order
 from ._layer_kinds import is_scan
@@ -43,9 +44,12 @@ class CorrectWidget(EngineWidget):
         self.update_rule = QComboBox()
         for key, text in model.UPDATES.items():
             self.update_rule.addItem(text, key)
+        defaults = CorrectionOptions()
+        for combo, key in ((self.frame, defaults.frame), (self.update_rule, defaults.update)):
+            combo.setCurrentIndex(combo.findData(key))
         self.max_passes = QSpinBox()
-        self.max_passes.setRange(1, 10)
-        self.max_passes.setValue(3)
+        self.max_passes.setRange(1, max(10, defaults.max_passes))
+        self.max_passes.setValue(defaults.max_passes)
         self.form.addRow("Frame", self.frame)
         self.form.addRow("Update", self.update_rule)
         self.form.addRow("Passes (at most)", self.max_passes)
@@ -124,12 +128,13 @@ class CorrectWidget(EngineWidget):
         placement = layer_placement(layer) if layer is not None else None
         return self.region.mask(volume.shape, volume, placement)
 
-    def _options(self) -> dict:
-        return {
-            "frame": self.frame.currentData(),
-            "update": self.update_rule.currentData(),
-            "max_passes": self.max_passes.value(),
-        }
+    def _options(self) -> CorrectionOptions:
+        """The panel's :class:`CorrectionOptions` (what it does not show keeps its default)."""
+        return CorrectionOptions(
+            frame=self.frame.currentData(),
+            update=self.update_rule.currentData(),
+            max_passes=self.max_passes.value(),
+        )
 
     def prepare(self):
         choices = self.choices()
@@ -155,7 +160,7 @@ class CorrectWidget(EngineWidget):
                 mask=self._mask(pairs[0][0]),
                 tiled=tiled,
                 max_memory=memory,
-                **self._options(),
+                options=self._options(),
             )
         reference, deformed = self.reference.layer(), self.deformed.layer()
         if reference is None or deformed is None:
@@ -173,15 +178,13 @@ class CorrectWidget(EngineWidget):
         memory = check_tiled("pair", None, self.max_memory.text()) if tiled else None
         self.table.setRowCount(0)
         return model.run_correction(
-            g, f, chosen, mask=mask, tiled=tiled, max_memory=memory, **self._options()
+            g, f, chosen, options=self._options(), mask=mask, tiled=tiled, max_memory=memory
         )
 
     def settings(self) -> dict:
         """The panel's options, JSON-friendly (for a session file)."""
         return {
-            "frame": self.frame.currentData(),
-            "update": self.update_rule.currentData(),
-            "max_passes": self.max_passes.value(),
+            **self._options().as_dict(),
             "region": self.region.settings(),
             "tiled": self.tiled.isChecked(),
             "max_memory": self.max_memory.text(),

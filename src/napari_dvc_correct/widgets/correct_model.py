@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..engine.correction.options import CorrectionOptions
 from ..engine.fields.field import DisplacementField
+from ..engine.run_options import RunOptions
 from .regions_model import whole
 
-FRAMES = {  # the first entry is the panel's default: the engine's measured best (docs/method.md)
+FRAMES = {  # the panel's default is CorrectionOptions.frame: the engine's measured best
     "loaded": "warp G to the loaded state (paper, default)",
     "reference": "pull F back to the reference (no inversion)",
 }
@@ -31,9 +33,7 @@ def run_correction(
     deformed,
     field: DisplacementField,
     *,
-    frame: str = "loaded",
-    update: str = "exact",
-    max_passes: int = 3,
+    options: CorrectionOptions | None = None,
     mask=None,
     tiled: bool = False,
     max_memory: str | None = None,
@@ -41,23 +41,22 @@ def run_correction(
     """Generator for the panel's worker: the self-correction of ``field``, then its strain.
 
     The DVC parameters are those that produced ``field`` (the paper's point: no new
-    parameter). With ``tiled`` the correction runs out of core
+    parameter); ``options`` (:class:`CorrectionOptions`, default: its defaults) say how the
+    passes run. With ``tiled`` the correction runs out of core
     (:func:`..tiled.correction.correct_tiled_iter`: the volumes read and warped block by block
     into temporary Zarr arrays, removed at the end or on cancel), within ``max_memory``
     (``"4GB"``...; None = automatic). Returns a :class:`CorrectionResult`.
     """
-    options = {"frame": frame, "update": update, "max_passes": int(max_passes), "mask": mask}
-    if tiled:
-        from ..tiled.correction import correct_tiled_iter
+    from ..jobs.correct import correct_job
+    from ..tiled.memory import parse_memory
 
-        corrected = yield from correct_tiled_iter(
-            reference, deformed, field, max_memory=max_memory, **options
-        )
-    else:
-        from ..engine.correction.self_correction import correct_iter
-
-        options["mask"] = whole(mask)  # the region as one array, made here in the worker
-        corrected = yield from correct_iter(reference, deformed, field, **options)
+    # in memory, the region as one array, made here in the worker
+    limit = parse_memory(max_memory) if max_memory else None
+    run = RunOptions(tiled=bool(tiled), device="cpu", max_memory=limit)
+    mask = mask if run.out_of_core else whole(mask)
+    corrected = yield from correct_job(
+        reference, deformed, field, options=options, mask=mask, run=run
+    )
     for key in ("voxel_size", "offset", "reference_layer", "deformed_layer"):
         if key in field.metadata:
             corrected.metadata[key] = field.metadata[key]

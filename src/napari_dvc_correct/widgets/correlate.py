@@ -20,6 +20,8 @@ from qtpy.QtWidgets import (
 from .. import layers as L
 from .. import point_layers as P
 from .. import viewer_layers as V
+from ..engine.correlation.params import MIN_SUBVOLUME, CorrelationParams
+from ..engine.run_options import RunOptions
 from . import correlate_model as model
 from . import points_model, regions_model
 from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
@@ -65,23 +67,26 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         self.correct_states = QCheckBox("self-correct every state")
         self.form.addRow("", self.correct_states)
 
+        defaults = CorrelationParams()
         self.subvolume = QSpinBox()
-        self.subvolume.setRange(5, 401)
+        self.subvolume.setRange(MIN_SUBVOLUME, 401)
         self.subvolume.setSingleStep(2)
-        self.subvolume.setValue(31)
+        self.subvolume.setValue(defaults.subvolume)
         self.subvolume.setSuffix(" vx")
         self.subvolume.setToolTip("Subvolume edge 2M+1 (odd), voxels")
         self.step = QSpinBox()
         self.step.setRange(1, 400)
-        self.step.setValue(8)
+        self.step.setValue(defaults.step)
         self.step.setSuffix(" vx")
         self.step.setToolTip("Spacing of the points of interest, voxels")
         self.order = QComboBox()
         self.order.addItem("1st order (affine, 12 parameters)", 1)
         self.order.addItem("2nd order (quadratic, 30 parameters)", 2)
+        self.order.setCurrentIndex(self.order.findData(defaults.order))
         self.search_radius = QSpinBox()
         self.search_radius.setRange(0, 2000)
-        self.search_radius.setSpecialValueText("auto")
+        self.search_radius.setSpecialValueText("auto")  # 0: CorrelationParams' None
+        self.search_radius.setValue(defaults.search_radius or 0)
         self.search_radius.setSuffix(" vx")
         self.search_radius.setToolTip("Largest displacement to search for; 0 = auto")
         self.placement = QComboBox()
@@ -106,6 +111,7 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         self.device = QComboBox()
         for key, text in model.DEVICES.items():
             self.device.addItem(text, key)
+        self.device.setCurrentIndex(self.device.findData(RunOptions.device))
         self.device.setToolTip(
             "auto: a CUDA GPU when numba sees a working one, else the CPU (the run says which)"
         )

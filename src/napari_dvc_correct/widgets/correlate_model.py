@@ -19,7 +19,7 @@ from ..engine.fields.field import (
     Status,
     grid_for_volume,
 )
-from ..engine.progress import Progress
+from ..engine.run_options import RunOptions
 from ..tiled.memory import format_bytes
 from .regions_model import whole
 
@@ -88,7 +88,7 @@ class CorrelationJob:
     voxel_size: tuple = (1.0, 1.0, 1.0)
     offset: tuple = (0.0, 0.0, 0.0)
     names: list = field(default_factory=list)
-    device: str = "auto"
+    device: str = RunOptions.device
     unit: str | None = None
     kept: object = None
     points: np.ndarray | None = None
@@ -99,6 +99,13 @@ class CorrelationJob:
     @property
     def shape(self) -> tuple:
         return tuple(int(n) for n in self.volumes[0].shape)
+
+    def run_options(self) -> RunOptions:
+        """How the job runs: out of core (``tiled``) within ``max_memory``, IC-GN on ``device``."""
+        from ..tiled.memory import parse_memory
+
+        limit = parse_memory(self.max_memory) if self.max_memory else None
+        return RunOptions(tiled=bool(self.tiled), device=self.device, max_memory=limit)
 
 
 @dataclass
@@ -151,26 +158,15 @@ def run_grid_job(job: CorrelationJob):
     was self-corrected), each the total displacement from state 0, and the result's ``series``
     (state 0 first, as the 4-D layers show it).
     """
-    from ..engine.correlation.correlate import correlate_iter
+    from ..jobs.correlate import correlate_job
     from ..layers import series_fields
 
     results = []
-    if job.strategy == "pair" and job.tiled:
-        from ..tiled.correlate import correlate_tiled_iter
-
-        field = yield from correlate_tiled_iter(
-            job.volumes[0],
-            job.volumes[1],
-            job.params,
-            mask=job.mask,
-            max_memory=job.max_memory,
-            device=job.device,
-        )
-        field = _finish(field, job, job.names)
-        results.append(("uncorrected", field))
-    elif job.strategy == "pair":
-        field = yield from correlate_iter(
-            job.volumes[0], job.volumes[1], job.params, mask=whole(job.mask), device=job.device
+    if job.strategy == "pair":
+        run = job.run_options()
+        mask = job.mask if run.out_of_core else whole(job.mask)  # in memory: one array
+        field = yield from correlate_job(
+            job.volumes[0], job.volumes[1], job.params, mask=mask, run=run
         )
         field = _finish(field, job, job.names)
         results.append(("uncorrected", field))
@@ -196,36 +192,15 @@ def run_points_job(job: CorrelationJob):
     :class:`CorrelationResult` with one ``("points", ScatteredField)``; the field's metadata
     says where it belongs (voxel size, offset, layers).
     """
+    from ..jobs.correlate import points_job
     from .points_model import check_points
 
     params, points = job.params, np.asarray(job.points, dtype=np.float64)
     reference, deformed = job.volumes[0], job.volumes[1]
     check_points(points, job.shape, params.subvolume, job.points_layer)
-    if job.tiled:
-        from ..tiled.points import correlate_points_tiled_iter
-
-        result = yield from correlate_points_tiled_iter(
-            reference,
-            deformed,
-            points,
-            params,
-            mask=job.mask,
-            max_memory=job.max_memory,
-            device=job.device,
-        )
-    else:
-        from ..engine.correlation.correlate import correlate_iter
-        from ..engine.correlation.correlate_points import correlate_points, guide_grid
-
-        mask = whole(job.mask)
-        grid = guide_grid(reference.shape, points, params)  # as correlate_points' own guide
-        guide = yield from correlate_iter(
-            reference, deformed, params, mask=mask, grid=grid, device=job.device
-        )
-        yield Progress("IC-GN at the points", 0, len(points), f"{len(points)} points")
-        result = correlate_points(
-            reference, deformed, points, params, mask=mask, guide=guide, device=job.device
-        )
+    run = job.run_options()
+    mask = job.mask if run.out_of_core else whole(job.mask)  # in memory: one array
+    result = yield from points_job(reference, deformed, points, params, mask=mask, run=run)
     result.metadata.update(
         voxel_size=list(job.voxel_size),
         offset=list(job.offset),
@@ -279,27 +254,16 @@ def check_tiled(job_strategy: str, points, max_memory: str | None) -> str | None
 def run_series(job: CorrelationJob):
     """Total displacements ``U_0→k`` of a scan series (:func:`..engine.series.strategies.series_iter`;
     out of core, :func:`..tiled.series.series_tiled_iter`: every state read batch by batch)."""
-    if job.tiled:
-        from ..tiled.series import series_tiled_iter
+    from ..jobs.series import series_job
 
-        result = yield from series_tiled_iter(
-            job.volumes,
-            job.params,
-            strategy=job.strategy,
-            correct_total=job.correct_states,
-            mask=job.mask,
-            max_memory=job.max_memory,
-            device=job.device,
-        )
-        return result.totals
-    from ..engine.series.strategies import series_iter
-
-    result = yield from series_iter(
+    run = job.run_options()
+    result = yield from series_job(
         job.volumes,
         job.params,
         strategy=job.strategy,
         correct_total=job.correct_states,
-        mask=whole(job.mask),
+        mask=job.mask if run.out_of_core else whole(job.mask),  # in memory: one array
+        run=run,
     )
     return result.totals
 

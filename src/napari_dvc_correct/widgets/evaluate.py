@@ -23,6 +23,7 @@ from superqt.utils import GeneratorWorker
 
 from .. import layers as L
 from .. import viewer_layers as V
+from ..engine.evaluation.options import MAX_PHASES, EvaluationOptions
 from . import evaluate_model as model
 from ._base import (
     Debouncer,
@@ -75,6 +76,7 @@ class EvaluateWidget(EngineWidget):
         self.mode = QComboBox()
         for key, text in MODES.items():
             self.mode.addItem(text, key)
+        self.mode.setCurrentIndex(self.mode.findData(EvaluationOptions.mode))
         self.form.addRow("Residual", self.mode)
         self.add_out_of_core_row(
             "Reads the scans block by block and writes each residual to a temporary Zarr "
@@ -88,8 +90,8 @@ class EvaluateWidget(EngineWidget):
         self.controls.addWidget(self.region)
 
         self.n_phases = QSpinBox()
-        self.n_phases.setRange(2, 8)
-        self.n_phases.setValue(2)
+        self.n_phases.setRange(2, MAX_PHASES)
+        self.n_phases.setValue(EvaluationOptions.n_phases)
         self.auto_button = QPushButton("Auto (multi-Otsu)")
         row = QHBoxLayout()
         row.addWidget(self.n_phases)

@@ -6,7 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..engine.evaluation.options import EvaluationOptions
 from ..engine.fields.field import DisplacementField
+from ..engine.run_options import RunOptions
 
 #: Voxels sampled for the histogram and the automatic thresholds of a large volume.
 HISTOGRAM_SAMPLES = 1 << 21
@@ -165,7 +167,7 @@ def run_evaluation(
     deformed,
     fields: dict,
     thresholds,
-    mode: str = "reference",
+    mode: str = EvaluationOptions.mode,
     outputs: dict | None = None,
     max_memory: str | None = None,
     tiled: bool | None = None,
@@ -201,8 +203,6 @@ def run_evaluation(
     -------
     Evaluation
     """
-    from ..engine.evaluation.accuracy import evaluate_iter
-
     if not fields:
         raise ValueError("no displacement field to evaluate: run Correlate first")
     ready = {name: ready_for_evaluation(field) for name, field in fields.items()}
@@ -210,36 +210,25 @@ def run_evaluation(
         name: ready[name] if name in ready else ready_for_evaluation(field)
         for name, field in (background_fields or fields).items()
     }
-    out_of_core = outputs is not None or bool(tiled)
-    if region is not None and not out_of_core:
-        region = np.asarray(region) != 0  # read here, in the worker
-    if out_of_core:
-        from ..tiled.evaluation import evaluate_tiled_iter
-        from ..tiled.memory import parse_memory
+    from ..jobs.evaluate import evaluate_job
+    from ..tiled.memory import parse_memory
 
-        return (
-            yield from evaluate_tiled_iter(
-                reference,
-                deformed,
-                ready,
-                phases=[float(t) for t in thresholds],
-                mode=mode,
-                outputs={("residual", name): str(path) for name, path in (outputs or {}).items()},
-                max_memory=parse_memory(max_memory) if max_memory else None,
-                background_fields=candidates,
-                region=region,  # read block by block
-            )
-        )
+    limit = parse_memory(max_memory) if max_memory else None
+    run = RunOptions(tiled=outputs is not None or bool(tiled), max_memory=limit)
+    if region is not None and not run.out_of_core:
+        region = np.asarray(region) != 0  # read here, in the worker (out of core: by blocks)
+    options = EvaluationOptions(phases=[float(t) for t in thresholds], mode=mode)
+    outputs = {("residual", name): str(path) for name, path in (outputs or {}).items()}
     return (
-        yield from evaluate_iter(
+        yield from evaluate_job(
             reference,
             deformed,
             ready,
-            phases=[float(t) for t in thresholds],
-            mode=mode,
-            keep_volumes=True,
+            options,
             background_fields=candidates,
             region=region,
+            outputs=outputs,
+            run=run,
         )
     )
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..engine.correlation.params import CorrelationParams
+from ..engine.correlation.shape_function import n_monomials
 from ..engine.fields.field import grid_for_volume
 from ..io.lazy import VolumeBase, normalize_slices
 
@@ -292,8 +293,10 @@ def summed_volume(mask: np.ndarray) -> np.ndarray:
 
 
 def _needed(params: CorrelationParams) -> float:
-    """Mask voxels a subvolume needs for its POI to be measured (icgn.py's rule)."""
-    return max(params.min_mask_fraction * params.subvolume**3, 3 * 4 + 1)
+    """Mask voxels a subvolume needs for its POI to be measured (icgn.py's rule: the mask
+    fraction, and one voxel more than the shape function's parameters)."""
+    parameters = 3 * n_monomials(params.order)
+    return max(params.min_mask_fraction * params.subvolume**3, parameters + 1)
 
 
 def _box_sums_2d(table: np.ndarray, y0, y1, x0, x1) -> np.ndarray:

@@ -291,3 +291,21 @@ def test_an_integer_deformed_volume_is_read_as_it_is_with_the_float32_copys_fiel
     assert np.isin(as_is.status, [0, 1]).mean() > 0.9
     for name in ("u", "status", "zncc", "iterations", "uncertainty"):
         np.testing.assert_array_equal(getattr(as_is, name), getattr(copied, name))
+
+
+def test_the_blocking_form_takes_every_keyword_of_the_generator(speckle):
+    import inspect
+
+    keywords = set(inspect.signature(correlate_iter).parameters)
+    assert keywords == set(inspect.signature(correlate).parameters)
+    deformed = synthetic.deform_volume(speckle, synthetic.translation((0.5, -0.25, 0.75)))
+    params = CorrelationParams(subvolume=21, step=16)
+    whole = correlate(speckle, deformed, params)
+    active = np.zeros(whole.shape, bool)
+    active[0] = True
+    part = correlate(speckle, deformed, params, active=active)
+    assert np.all(part.status[~active] == Status.NOT_COMPUTED)
+    assert np.all(np.isnan(part.u[~active]))
+    good = active & (whole.status == Status.CONVERGED)
+    assert good.any()
+    np.testing.assert_allclose(part.u[good], whole.u[good], atol=0.02)

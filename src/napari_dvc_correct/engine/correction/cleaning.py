@@ -202,6 +202,9 @@ def masked_nodes(field: DisplacementField) -> np.ndarray:
 
 def _options(options: CleaningOptions | None, overrides: dict) -> CleaningOptions:
     options = CleaningOptions() if options is None else options
+    if "min_zncc" in overrides:  # the keyword's older name: the absolute floor
+        overrides = dict(overrides)
+        overrides["zncc_floor"] = overrides.pop("min_zncc")
     return options.replace(**overrides) if overrides else options
 
 
@@ -223,15 +226,15 @@ def detect_outliers(
     """
     options = _options(options, overrides)
     threshold, radius, epsilon = options.threshold, options.radius, options.epsilon
-    min_zncc, passes = options.min_zncc, options.passes
+    zncc_floor, passes = options.zncc_floor, options.passes
     masked = masked_nodes(field)
     finite = np.all(np.isfinite(field.u), axis=-1)
     good_status = np.isin(field.status, [int(s) for s in GOOD_STATUSES])
     filled = np.isin(field.provenance, [Provenance.REPLACED, Provenance.CORRECTED])
     failed = ~(good_status | filled) | ~finite
     low_zncc = np.zeros(field.shape, bool)
-    if min_zncc is not None:
-        low_zncc = ~failed & ~masked & ~(field.zncc >= float(min_zncc))
+    if zncc_floor is not None:
+        low_zncc = ~failed & ~masked & ~(field.zncc >= float(zncc_floor))
     median = np.zeros(field.shape, bool)
     residual = np.full(field.shape, np.nan)
     for _ in range(int(passes)):

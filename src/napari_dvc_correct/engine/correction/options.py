@@ -40,9 +40,11 @@ class CleaningOptions:
     radius, epsilon : int, float
         Median-test neighbourhood (nodes, >= 1) and noise level (voxels, >= 0), see
         :func:`.cleaning.normalized_median_test`.
-    min_zncc : float, optional
-        Also reject nodes whose ZNCC is below this (the matcher already flags ``LOW_ZNCC``
-        with its own noise-aware threshold).
+    zncc_floor : float, optional
+        Absolute ZNCC threshold: also reject nodes whose ZNCC is below this value. Not the
+        matcher's relative :attr:`.correlation.params.CorrelationParams.min_zncc` (a fraction of
+        the ZNCC a perfect match reaches at the scans' noise), with which the matcher already
+        flags ``LOW_ZNCC``. None: no such test.
     passes : int
         Times the median test is repeated with the rejected nodes left out of the
         neighbourhoods (a cluster of outliers can pass a single test), >= 1.
@@ -57,7 +59,7 @@ class CleaningOptions:
     threshold: float = 2.0
     radius: int = 1
     epsilon: float = 0.1
-    min_zncc: float | None = None
+    zncc_floor: float | None = None
     passes: int = 2
     fill_masked: bool = False
     smoothing: float = 0.0
@@ -69,6 +71,10 @@ class CleaningOptions:
             raise ValueError(f"radius must be >= 1 node, got {self.radius!r}")
         if not (_finite(self.epsilon) and self.epsilon >= 0):
             raise ValueError(f"epsilon must be >= 0 voxel, got {self.epsilon!r}")
+        if self.zncc_floor is not None and not (
+            _finite(self.zncc_floor) and -1.0 <= self.zncc_floor <= 1.0
+        ):
+            raise ValueError(f"zncc_floor must be a ZNCC in [-1, 1], got {self.zncc_floor!r}")
         if int(self.passes) < 1:
             raise ValueError(f"passes must be >= 1, got {self.passes!r}")
         if not (_finite(self.smoothing) and 0 <= self.smoothing <= MAX_SMOOTHING):
@@ -87,7 +93,7 @@ class CleaningOptions:
             "threshold": float(self.threshold),
             "radius": int(self.radius),
             "epsilon": float(self.epsilon),
-            "min_zncc": None if self.min_zncc is None else float(self.min_zncc),
+            "zncc_floor": None if self.zncc_floor is None else float(self.zncc_floor),
             "passes": int(self.passes),
             "fill_masked": bool(self.fill_masked),
             "smoothing": float(self.smoothing),

@@ -28,7 +28,7 @@ from .guided_repair import repair, search_seeds, seed_guesses
 from .initial_guess import global_shift, pyramid_levels
 from .match_judgement import MatchedGrid, judge_iter, match_statistics
 from .params import CorrelationParams
-from .pyramid import PyramidLevel, _pyramid_level
+from .pyramid import PyramidLevel, _pyramid_level, level_reach
 
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
@@ -156,10 +156,9 @@ def correlate_seeds(
     level = _pyramid_level(levels, reference, deformed, mask, params, device.kind, texture_std)
     level_centers = level.centers_from_fine(np.asarray(centers, np.int64).reshape(-1, 3))
     shift = np.rint(np.asarray(rigid_shift, np.float64)).astype(np.int64).reshape(3)
-    radius = params.effective_search_radius
-    coarse_radius = int(np.ceil(radius / 2**levels)) + (1 if levels else 0)
+    reach = level_reach(params, levels)
     seed_params, zncc, status = search_seeds(
-        level, level_centers, shift / 2**levels, coarse_radius, params.order, params
+        level, level_centers, shift / reach.factor, reach.search_radius, params.order, params
     )
     return seed_params, zncc, status, level_centers
 
@@ -207,7 +206,7 @@ def match_iter(
     grid_shape = tuple(int(n) for n in grid_shape)
     if min(grid_shape) < 1:
         raise ValueError(f"the POI grid is empty (shape {grid_shape})")
-    half = params.half
+    half = level_reach(params, 0).half
     centers, inside = _grid_centers(grid, reference.shape, half)
     n_points = len(centers)
     order = params.order
@@ -284,13 +283,13 @@ def match_iter(
             )
             level_centers = level.centers_from_fine(centers)
             if guess_params is None:
-                coarse_radius = int(np.ceil(radius / 2**lev)) + (1 if lev else 0)
+                reach = level_reach(params, lev)
                 guess_params = seed_guesses(
                     level,
                     level_centers,
                     grid_shape,
-                    shift / 2**lev,
-                    coarse_radius,
+                    shift / reach.factor,
+                    reach.search_radius,
                     order,
                     params,
                     anchor=grid_anchor,
@@ -501,6 +500,8 @@ def correlate(
     texture_std=None,
     grid_anchor=None,
     seeds=None,
+    active=None,
+    prefiltered=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -516,5 +517,7 @@ def correlate(
             texture_std=texture_std,
             grid_anchor=grid_anchor,
             seeds=seeds,
+            active=active,
+            prefiltered=prefiltered,
         )
     )

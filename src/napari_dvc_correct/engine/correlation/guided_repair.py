@@ -163,8 +163,11 @@ def repair(
 
     POIs are taken best first (highest ZNCC); each bad 26-neighbour is matched again with the
     popped POI's warp carried over to its position (``u + ∇u·Δ``). A new match replaces the old
-    one when it converges above its ZNCC threshold (``thresholds`` (N,), default
-    ``settings.min_zncc``); it then seeds its own neighbours.
+    one when it converges above its ZNCC threshold (``thresholds`` (N,): the noise-aware
+    ``min_zncc · ZNCC*`` of :func:`.noise.noise_aware_thresholds` at full resolution; default,
+    where ``ZNCC*`` is not estimated (the coarse levels of the initial guess),
+    ``settings.min_zncc`` itself, the ceiling of those thresholds); it then seeds its own
+    neighbours.
 
     The re-matches are computed ``batch`` at a time in one parallel call, ahead of the order in
     which they are read (:func:`_lookahead`); each depends only on its two POIs, so the result
@@ -364,6 +367,10 @@ def _search(level, centers, shift, radius, order):
 
 def judge_seeds(params, zncc, status, seed_shape, order, settings, testable=None, count=None):
     """Good seeds: converged above ``settings.min_zncc`` and not outliers among the seeds.
+
+    The seeds are matched at the coarsest pyramid level, before any noise estimate: there the
+    matcher's relative threshold ``min_zncc · ZNCC*`` (:class:`.params.CorrelationParams`) falls
+    back to ``min_zncc`` itself, its ceiling (``ZNCC* <= 1``).
 
     The median test (:func:`neighbour_outliers` on the seeds' sub-grid ``seed_shape``, C order)
     runs when ``count`` (default: the number of good seeds) reaches

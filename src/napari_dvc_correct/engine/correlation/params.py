@@ -7,6 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: The smallest subvolume edge (voxels): a 5³ subvolume still holds more voxels than the 30
+#: parameters of a second-order match.
+MIN_SUBVOLUME = 5
+
 
 @dataclass(frozen=True)
 class CorrelationParams:
@@ -35,9 +39,13 @@ class CorrelationParams:
         Subvolumes whose gray standard deviation is below this fraction of the volume's gray
         standard deviation are flagged ``LOW_TEXTURE`` and not matched.
     min_zncc : float
-        Matches that converge with a ZNCC below ``min_zncc`` times the ZNCC a perfect match
-        reaches at the scans' noise level are flagged ``LOW_ZNCC``
-        (:func:`.noise.noise_aware_thresholds`; on noise-free scans: below ``min_zncc``).
+        Relative ZNCC threshold: matches that converge with a ZNCC below ``min_zncc`` times
+        ``ZNCC*``, the ZNCC a perfect match reaches at the scans' noise level, are flagged
+        ``LOW_ZNCC`` (:func:`.noise.noise_aware_thresholds`). Where ``ZNCC*`` is not estimated
+        (the seeds and coarse levels of the initial guess, the reliability-guided repair, too
+        few matched points) and on noise-free scans (``ZNCC* = 1``) the threshold is
+        ``min_zncc`` itself. Not the cleaning's absolute
+        :attr:`.correction.options.CleaningOptions.zncc_floor`.
     batch_size : int
         POIs per progress batch.
     noise_tolerance : float
@@ -76,8 +84,10 @@ class CorrelationParams:
 
     def __post_init__(self) -> None:
         problems = []
-        if not isinstance(self.subvolume, (int, np.integer)) or self.subvolume < 5:
-            problems.append(f"subvolume must be an odd integer >= 5, got {self.subvolume!r}")
+        if not isinstance(self.subvolume, (int, np.integer)) or self.subvolume < MIN_SUBVOLUME:
+            problems.append(
+                f"subvolume must be an odd integer >= {MIN_SUBVOLUME}, got {self.subvolume!r}"
+            )
         elif self.subvolume % 2 == 0:
             problems.append(f"subvolume must be odd (2M+1), got {self.subvolume}")
         if not isinstance(self.step, (int, np.integer)) or self.step < 1:

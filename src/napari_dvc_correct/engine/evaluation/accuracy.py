@@ -44,6 +44,7 @@ from .local_accuracy import (  # noqa: F401 (part of this module's interface)
     local_mean_residual,
     region_half,
 )
+from .options import EvaluationOptions
 from .phases import PhaseStats, phase_table, phase_thresholds, segment_phases
 from .results import Evaluation, FieldEvaluation
 
@@ -176,14 +177,14 @@ def plan_evaluation(
     fields,
     volume_shape,
     *,
-    mode: str = "reference",
-    strain_measure: str = "small",
-    strain_method: str = "central",
-    strain_window: int = 5,
-    n_bins: int = 10,
+    mode: str = EvaluationOptions.mode,
+    strain_measure: str = EvaluationOptions.strain_measure,
+    strain_method: str = EvaluationOptions.strain_method,
+    strain_window: int = EvaluationOptions.strain_window,
+    n_bins: int = EvaluationOptions.n_bins,
     bin_edges=None,
-    shared_background: bool = True,
-    bin_by: str | None = None,
+    shared_background: bool = EvaluationOptions.shared_background,
+    bin_by: str | None = EvaluationOptions.bin_by,
 ) -> EvaluationPlan:
     """Check the fields against the volume shape; strains and strain-bin edges (no volume read).
 
@@ -193,8 +194,11 @@ def plan_evaluation(
     from .strain import equivalent_strain_field
 
     named = _named_fields(fields)
-    if mode not in ("reference", "loaded"):
-        raise ValueError(f"mode must be 'reference' or 'loaded', got {mode!r}")
+    EvaluationOptions(  # the options' checks, once
+        mode=mode, strain_measure=strain_measure, strain_method=strain_method,
+        strain_window=strain_window, n_bins=n_bins, bin_edges=bin_edges,
+        shared_background=shared_background, bin_by=bin_by,
+    )  # fmt: skip
     for name, item in named:
         check_field_fits(item, volume_shape, name=f"field {name!r}")
     strains = [
@@ -351,20 +355,20 @@ def evaluate_iter(
     deformed: np.ndarray,
     fields: DisplacementField | Mapping[str, DisplacementField] | Sequence[DisplacementField],
     *,
-    phases="auto",
-    phases_deformed=None,
-    n_phases: int = 2,
-    phase_pair: tuple[int, int] | None = None,
-    mode: str = "reference",
-    strain_measure: str = "small",
-    strain_method: str = "central",
-    strain_window: int = 5,
-    n_bins: int = 10,
+    phases=EvaluationOptions.phases,
+    phases_deformed=EvaluationOptions.phases_deformed,
+    n_phases: int = EvaluationOptions.n_phases,
+    phase_pair: tuple[int, int] | None = EvaluationOptions.phase_pair,
+    mode: str = EvaluationOptions.mode,
+    strain_measure: str = EvaluationOptions.strain_measure,
+    strain_method: str = EvaluationOptions.strain_method,
+    strain_window: int = EvaluationOptions.strain_window,
+    n_bins: int = EvaluationOptions.n_bins,
     bin_edges: Sequence[float] | None = None,
-    shared_background: bool = True,
-    bin_by: str | None = None,
+    shared_background: bool = EvaluationOptions.shared_background,
+    bin_by: str | None = EvaluationOptions.bin_by,
     keep_volumes: bool = True,
-    gray_levels: bool | GrayLevelMap = True,
+    gray_levels: bool | GrayLevelMap = EvaluationOptions.gray_levels,
     background_fields: Mapping[str, DisplacementField] | None = None,
     pair: PairStatistics | None = None,
     region: np.ndarray | None = None,

@@ -14,13 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..slabs import iter_slabs
+from .options import MAX_PHASES
 
 #: Most voxels fed to multi-Otsu (larger volumes are subsampled on a regular lattice).
 OTSU_SAMPLES = 1 << 22
 #: Histogram bins for multi-Otsu.
 OTSU_BINS = 256
-#: Most phases (multi-Otsu cost grows as ``OTSU_BINS ** (N - 1)``).
-MAX_PHASES = 8
 #: Label of voxels without a gray value (NaN) in :func:`label_phases`.
 NO_PHASE = 255
 

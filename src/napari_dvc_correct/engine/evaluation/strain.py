@@ -31,9 +31,7 @@ from numba import njit, prange
 
 from .._numba_setup import KERNEL_OPTIONS
 from ..fields.field import DisplacementField
-
-GRADIENT_METHODS = ("central", "least-squares", "shape-function")
-STRAIN_MEASURES = ("small", "green-lagrange")
+from .options import GRADIENT_METHODS, STRAIN_MEASURES
 
 
 # --- displacement gradient --------------------------------------------------------------------
