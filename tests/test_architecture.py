@@ -45,7 +45,15 @@ FORBIDDEN = {
     "io": {"tiled", "commands", "widgets", "report", "layers", "viewer_layers", "cli", "demo"},
     "tiled": {"commands", "widgets", "report", "layers", "viewer_layers", "cli", "demo"},
     "report": {"tiled", "commands", "widgets", "cli", "demo"},
-    "commands": {"widgets", "layers", "viewer_layers", "demo", "_reader", "_writer", "_sample_data"},
+    "commands": {
+        "widgets",
+        "layers",
+        "viewer_layers",
+        "demo",
+        "_reader",
+        "_writer",
+        "_sample_data",
+    },
 }
 
 
@@ -102,7 +110,9 @@ def _part(module: str) -> str:
 def test_the_scan_finds_the_package_and_its_arrows():
     graph = _graph()
     assert f"{PACKAGE}.engine.correlation.correlate" in graph
-    assert f"{PACKAGE}.engine.correlation.pyramid" in graph[f"{PACKAGE}.engine.correlation.correlate"]
+    assert (
+        f"{PACKAGE}.engine.correlation.pyramid" in graph[f"{PACKAGE}.engine.correlation.correlate"]
+    )
     assert f"{PACKAGE}.engine.correlation.icgn" in graph[f"{PACKAGE}.engine.correlation.pyramid"]
     assert f"{PACKAGE}.engine.fields.field" in graph[f"{PACKAGE}.io.npz"]
 

@@ -1,6 +1,6 @@
 """Tiled correlation: the same field as in memory, from lazy volumes, on threads or a cluster."""
 
-import time
+import threading
 
 import numpy as np
 import pytest
@@ -186,6 +186,7 @@ def test_cancel_during_the_seed_pass_stops_the_work(monkeypatch, pair):
 
     monkeypatch.setattr(tiled, "match_seeds", counted)
     monkeypatch.setattr(tiled, "match_batch", lambda *a: batches.append(a))
+    before = set(threading.enumerate())
     generator = correlate_tiled_iter(reference, deformed, PARAMS, batch_shape=(2, 2, 2), workers=1)
     for report in generator:
         if report.stage == "seeds":
@@ -193,7 +194,8 @@ def test_cancel_during_the_seed_pass_stops_the_work(monkeypatch, pair):
             break
     generator.close()  # returns once the task running now has finished
     assert 1 <= len(started) <= 3 and not batches
-    time.sleep(0.5)
+    # no thread that could start another task outlives the close, so the count is final
+    assert not [t for t in set(threading.enumerate()) - before if t.is_alive()]
     assert len(started) <= 3
 
 

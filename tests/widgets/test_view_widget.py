@@ -28,6 +28,14 @@ def _shear(scale: float = 1.0) -> DisplacementField:
     )
 
 
+def delivered(worker) -> list:
+    """A list that gets an entry once ``worker``'s ``finished`` signal reaches the main thread
+    (its ``yielded`` and ``returned`` signals, emitted before, have been handled by then)."""
+    done = []
+    worker.finished.connect(lambda: done.append(True))
+    return done
+
+
 def settle(qtbot, view) -> None:
     """Wait for the View panel's workers (quantity and profile) to finish."""
     qtbot.waitUntil(lambda: not view.busy, timeout=30_000)
@@ -143,7 +151,7 @@ def test_the_ui_stays_responsive_while_a_large_strain_computes(large_view, qtbot
     timer.setInterval(10)
     timer.timeout.connect(lambda: ticks.append(time.perf_counter()))
     timer.start()
-    qtbot.wait(50)
+    qtbot.waitUntil(lambda: len(ticks) >= 3, timeout=5000)  # the timer ticks
     called = time.perf_counter()
     worker = view.set_quantity("ε1")
     returned = time.perf_counter()
@@ -169,13 +177,14 @@ def test_the_last_choice_wins_and_switching_back_is_instant(large_view, qtbot):
     view, field = large_view
     viewer = view.viewer
     first = view.set_quantity("ε1")
+    first_delivered = delivered(first)
     second = view.set_quantity("εeq")  # before the first is done: it supersedes it
     assert first is not None and second is not None and first is not second
     assert "computing" in view.message.text()
     assert "|u| (uncorrected)" in viewer.layers  # the old quantity stays until the new is ready
     settle(qtbot, view)
     qtbot.waitUntil(lambda: first.is_running is False, timeout=30_000)
-    qtbot.wait(50)  # the first worker's queued signals, if any, are delivered
+    qtbot.waitUntil(lambda: bool(first_delivered), timeout=30_000)  # its late signals, handled
     (layer,) = L.quantity_layers(viewer)
     assert L.plugin_metadata(layer)["quantity"] == "εeq"
     assert layer.name == "εeq (uncorrected)"
@@ -194,11 +203,12 @@ def test_the_last_choice_wins_and_switching_back_is_instant(large_view, qtbot):
 def test_a_switch_during_a_computation_to_a_cached_quantity_wins(large_view, qtbot):
     view, field = large_view
     worker = view.set_quantity("εzx")
+    worker_delivered = delivered(worker)
     assert view.set_quantity("|u|") is None  # cached (what the layer showed first)
     (layer,) = L.quantity_layers(view.viewer)
     assert L.plugin_metadata(layer)["quantity"] == "|u|"
     qtbot.waitUntil(lambda: worker.is_running is False, timeout=30_000)
-    qtbot.wait(50)
+    qtbot.waitUntil(lambda: bool(worker_delivered), timeout=30_000)  # its late signals, handled
     assert L.plugin_metadata(layer)["quantity"] == "|u|"  # the late εzx did not come back
     np.testing.assert_array_equal(layer.data, L.quantity_values(field, "|u|"))
 
