@@ -1,4 +1,4 @@
-"""An error estimate in voxels per node, from the gray residual (issue 26).
+"""An error estimate in voxels per node, from the gray residual.
 
 The accuracy index of eq. 2 measures the gray mismatch in units of the phase contrast: any field
 with errors under a voxel scores above 0.99, so it cannot tell a field that is 0.5 voxel off in
