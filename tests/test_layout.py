@@ -8,8 +8,11 @@ with a pattern that is first shown to catch what it is meant to catch.
 
 from __future__ import annotations
 
+import importlib.util
 import re
 from pathlib import Path
+
+import pytest
 
 PACKAGE = "napari_dvc_correct"
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -57,3 +60,60 @@ def test_the_documentation_the_source_cites_exists():
         if not (REPOSITORY / "docs" / name).is_file()
     )
     assert not missing, missing
+
+
+# --- docs/design.md's module table is the code's -------------------------------------------------
+def _design_table_script():
+    spec = importlib.util.spec_from_file_location(
+        "make_design_table", REPOSITORY / "docs" / "make_design_table.py"
+    )
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script
+
+
+def _listed(page: str, script) -> set[str]:
+    between = page.split(script.BEGIN)[1].split(script.END)[0]
+    return set(re.findall(r"^\| `([^`]+\.py)` \|", between, flags=re.MULTILINE))
+
+
+def test_the_design_table_script_reads_docstrings(tmp_path):
+    script = _design_table_script()
+    package = tmp_path / "package"
+    (package / "sub").mkdir(parents=True)
+    (package / "__init__.py").write_text('"""The package."""\n')
+    (package / "sub" / "thing.py").write_text(
+        '"""Does :func:`.work` with ``a | b``, in two\nlines. Then more.\n\nDetails."""\n'
+    )
+    assert [p.relative_to(package).as_posix() for p in script.modules(package)] == [
+        "__init__.py",
+        "sub/thing.py",
+    ]
+    assert (
+        script.summary(package / "sub" / "thing.py") == "Does `.work` with `a \\| b`, in two lines."
+    )
+    table = script.table(package)
+    assert table.splitlines()[2:] == [
+        "| `__init__.py` | The package. |",
+        "| `sub/thing.py` | Does `.work` with `a \\| b`, in two lines. |",
+    ]
+    page = f"# Title\n{script.BEGIN}\nold rows\n{script.END}\nafter\n"
+    assert script.with_table(page, "NEW") == f"# Title\n{script.BEGIN}\nNEW\n{script.END}\nafter\n"
+    assert _listed(script.with_table(page, table), script) == {"__init__.py", "sub/thing.py"}
+    with pytest.raises(ValueError, match="marker"):
+        script.with_table("# no markers\n", table)
+    (package / "bare.py").write_text("x = 1\n")
+    with pytest.raises(ValueError, match="no module docstring"):
+        script.summary(package / "bare.py")
+
+
+def test_every_module_is_in_the_design_table():
+    script = _design_table_script()
+    page = (REPOSITORY / "docs" / "design.md").read_text(encoding="utf-8")
+    listed = _listed(page, script)
+    modules = {p.relative_to(ROOT).as_posix() for p in _sources()}
+    assert modules - listed == set(), "run python docs/make_design_table.py: modules missing"
+    assert listed - modules == set(), "run python docs/make_design_table.py: modules gone"
+    assert script.with_table(page, script.table()) == page, (
+        "docs/design.md's module table is not the docstrings': run python docs/make_design_table.py"
+    )
