@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.layers import plugin_metadata
-from napari_dvc_correct.widgets import EvaluateWidget
+from napari_dvc_correct.widgets.evaluate import EvaluateWidget
 
 
 def _dock(viewer):

@@ -12,7 +12,8 @@ import tifffile
 from napari_dvc_correct.engine.evaluation.strain import equivalent_strain_field
 from napari_dvc_correct.io.npz import load_field
 from napari_dvc_correct.layers import field_of
-from napari_dvc_correct.widgets import EvaluateWidget, ExportWidget
+from napari_dvc_correct.widgets import EvaluateWidget
+from napari_dvc_correct.widgets.export import ExportWidget
 
 
 def _dock(viewer):

@@ -10,7 +10,7 @@ import pytest
 from napari_dvc_correct import layers as L
 from napari_dvc_correct import viewer_layers as V
 from napari_dvc_correct.engine.fields.field import DisplacementField
-from napari_dvc_correct.widgets import ViewWidget
+from napari_dvc_correct.widgets.view import ViewWidget
 
 A = 0.02  # simple shear: u_x = A z, so εzx = A / 2, εeq = 2 (A/2) / sqrt(3)
 

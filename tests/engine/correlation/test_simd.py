@@ -3,15 +3,8 @@
 import numpy as np
 from numba import njit
 
-from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correlation.interpolation import sample_interior
 from napari_dvc_correct.engine.correlation.simd_taps import sample_interior_vector
-from napari_dvc_correct.engine.fields.field import DisplacementField
-from napari_dvc_correct.engine.fields.field_spline import FieldSpline
-from napari_dvc_correct.engine.fields.field_spline_kernels import (
-    _eval_one_any,
-    _eval_one_with_jacobian,
-)
 
 
 @njit
@@ -39,25 +32,3 @@ def test_bspline_value_equals_the_scalar_sample_to_float32_rounding():
     moved = _both_samplers(changed, np.array([[5.25, 6.5, 7.75]]))[0, 0]
     expected = (0.25**3 / 6) * (0.5**3 / 6) * (0.75**3 / 6)
     assert abs((moved - base) - expected) < 2e-5
-
-
-def test_field_value_and_jacobian_equal_the_scalar_spline():
-    rng = np.random.default_rng(1)
-    field = DisplacementField.zeros((4.0, 4.0, 4.0), (6.0, 7.0, 8.0), (5, 4, 6))
-    band = synthetic.shear_band((14.0, 14.0, 24.0), width=6.0, slip=3.0, shift=(1.0, -0.5, 2.0))
-    field.u[:] = synthetic.sample_displacement(band, field.points.reshape(5, 4, 6, 3))
-    spline = FieldSpline.from_field(field)
-    args = (spline.pad, spline.origin, spline.step, spline.trend_offset, spline.trend_matrix)
-    value, jacobian, reference = np.empty(3), np.empty((3, 3)), np.empty(3)
-    shifted = np.empty(3)
-    h = 1e-5
-    for point in rng.uniform(-6.0, 50.0, (300, 3)):  # inside, near and beyond the hull
-        _eval_one_with_jacobian(spline.extended, *args, *point, value, jacobian)
-        _eval_one_any(spline.coefficients, *args, *point, reference)
-        assert np.abs(value - reference).max() < 1e-12
-        for a in range(3):
-            step = np.zeros(3)
-            step[a] = h
-            _eval_one_any(spline.coefficients, *args, *(point + step), shifted)
-            _eval_one_any(spline.coefficients, *args, *(point - step), reference)
-            assert np.abs(jacobian[:, a] - (shifted - reference) / (2 * h)).max() < 1e-6
