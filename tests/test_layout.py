@@ -155,16 +155,11 @@ NOT_YET: dict[str, str] = {
     "engine/evaluation/accuracy_pair.py": "test_accuracy_pair.py runs it through evaluate_fields",
     "engine/fields/inverse_per_voxel.py": "test_inverse_per_voxel.py runs it through "
     "inverse_lattice.LatticeInverter and warp",
-    "io/formats/__init__.py": "reached through formats/test_*.py and test_real_files.py",
-    "io/formats/_common.py": "reached through the format modules' tests",
     "tiled/correction_blocks.py": "reached through tiled/test_correction.py",
     "tiled/node_residuals.py": "reached through tiled/test_correction.py",
     "tiled/seeds.py": "reached through tiled/test_correlate.py",
     "widgets/_plots.py": "reached through widgets/test_evaluate.py and test_view.py",
-    "widgets/correct_model.py": "reached through widgets/test_correct.py",
-    "widgets/export_model.py": "reached through widgets/test_export.py",
     "widgets/regions.py": "test_regions.py drives it through the Correlate panel",
-    "widgets/regions_model.py": "reached through widgets/test_regions.py",
     "widgets/session.py": "test_session.py drives it through the panels' session buttons",
 }
 
