@@ -152,8 +152,6 @@ NOT_YET: dict[str, str] = {
     "test_guided_repair.py and tiled/test_correlate.py (the per-level rule is being reworked)",
     "engine/correlation/simd.py": "its intrinsics are tested through their users: "
     "fields/test_field_spline_kernels.py and correlation/test_simd.py",
-    "tiled/correction_blocks.py": "reached through tiled/test_correction.py",
-    "tiled/node_residuals.py": "reached through tiled/test_correction.py",
     "widgets/regions.py": "test_regions.py drives it through the Correlate panel",
     "widgets/session.py": "test_session.py drives it through the panels' session buttons",
 }
