@@ -150,8 +150,6 @@ NOT_YET: dict[str, str] = {
     "engine/correlation/match_judgement.py": "reached through correlation/test_correlate.py",
     "engine/correlation/pyramid.py": "reached through correlation/test_correlate.py, "
     "test_guided_repair.py and tiled/test_correlate.py (the per-level rule is being reworked)",
-    "engine/correlation/simd.py": "its intrinsics are tested through their users: "
-    "fields/test_field_spline_kernels.py and correlation/test_simd.py",
     "widgets/regions.py": "test_regions.py drives it through the Correlate panel",
     "widgets/session.py": "test_session.py drives it through the panels' session buttons",
 }

@@ -4,6 +4,7 @@ import numpy as np
 from numba import njit
 
 from napari_dvc_correct.engine.correlation.interpolation import sample_interior
+from napari_dvc_correct.engine.correlation.simd import field_taps, field_taps_with_gradient
 from napari_dvc_correct.engine.correlation.simd_taps import sample_interior_vector
 
 
@@ -32,3 +33,33 @@ def test_bspline_value_equals_the_scalar_sample_to_float32_rounding():
     moved = _both_samplers(changed, np.array([[5.25, 6.5, 7.75]]))[0, 0]
     expected = (0.25**3 / 6) * (0.5**3 / 6) * (0.75**3 / 6)
     assert abs((moved - base) - expected) < 2e-5
+
+
+# --- the field spline's four-wide tap sums (simd.field_taps), against einsum ---------------------
+@njit
+def _field_sums(coefficients, z0, y0, x0, wz, wy, wx, dz, dy, dx):
+    _, nz, ny, nx = coefficients.shape
+    row, plane, component = np.uint64(nx), np.uint64(ny * nx), np.uint64(nz * ny * nx)
+    first = np.uint64((z0 * ny + y0) * nx + x0)
+    values = field_taps(coefficients, first, row, plane, component, wz, wy, wx)
+    both = field_taps_with_gradient(
+        coefficients, first, row, plane, component, wz, wy, wx, dz, dy, dx
+    )
+    return values, both
+
+
+def test_field_taps_are_the_weighted_sums_of_the_4x4x4_taps_of_each_component():
+    rng = np.random.default_rng(5)
+    coefficients = rng.standard_normal((3, 7, 8, 9))
+    wz, wy, wx, dz, dy, dx = (tuple(rng.uniform(-1, 1, 4)) for _ in range(6))
+    values, both = _field_sums(coefficients, 2, 1, 3, wz, wy, wx, dz, dy, dx)
+    taps = coefficients[:, 2:6, 1:5, 3:7]
+
+    def weighted(a, b, c):
+        return np.einsum("kabc,a,b,c->k", taps, np.array(a), np.array(b), np.array(c))
+
+    np.testing.assert_allclose(values, weighted(wz, wy, wx), rtol=1e-12)
+    np.testing.assert_allclose(both[:3], values, rtol=1e-12)
+    np.testing.assert_allclose(both[3:6], weighted(dz, wy, wx), rtol=1e-12)  # d/dz
+    np.testing.assert_allclose(both[6:9], weighted(wz, dy, wx), rtol=1e-12)  # d/dy
+    np.testing.assert_allclose(both[9:12], weighted(wz, wy, dx), rtol=1e-12)  # d/dx
