@@ -150,7 +150,6 @@ NOT_YET: dict[str, str] = {
     "engine/correlation/match_judgement.py": "reached through correlation/test_correlate.py",
     "engine/correlation/pyramid.py": "reached through correlation/test_correlate.py, "
     "test_guided_repair.py and tiled/test_correlate.py (the per-level rule is being reworked)",
-    "widgets/regions.py": "test_regions.py drives it through the Correlate panel",
 }
 
 

@@ -99,3 +99,38 @@ def test_a_region_over_a_lazy_scan_stays_lazy_in_the_panel(lazy_panel, pair48, q
     job = widget.job()
     assert isinstance(job.mask, model.ThresholdRegion) and job.kept is None
     np.testing.assert_array_equal(np.asarray(job.mask), model.threshold_mask(reference, 135.0))
+
+
+# --- the Region box alone ---------------------------------------------------------------------------
+def test_the_region_box_s_masks_are_the_model_s(make_napari_viewer):
+    from napari_dvc_correct.widgets import regions
+
+    box = regions.RegionBox(make_napari_viewer())
+    shape = (10, 21, 21)
+    box.set_volume(shape)  # defaults: full ranges, a centred cylinder of 0.45 the section
+    assert (box.z_to.value(), box.y_to.value(), box.x_to.value()) == (10, 21, 21)
+    assert (box.centre_y.value(), box.centre_x.value()) == (10.0, 10.0)
+    assert box.radius.value() == pytest.approx(0.45 * 21, abs=0.05)  # to a tenth of a voxel
+    box.set_kind("all")
+    assert box.mask(shape) is None  # the whole volume: no mask
+    box.set_kind("cylinder")
+    box.radius.setValue(5.0)
+    box.z_from.setValue(2)
+    box.z_to.setValue(8)
+    expected = model.cylinder_mask(shape, (10.0, 10.0), 5.0, z_range=(2, 8))
+    np.testing.assert_array_equal(np.asarray(box.mask(shape)), expected)
+    box.set_kind("box")
+    box.y_from.setValue(5)
+    box.y_to.setValue(15)
+    box.x_to.setValue(3)
+    np.testing.assert_array_equal(
+        np.asarray(box.mask(shape)), model.box_mask(shape, (2, 8), (5, 15), (0, 3))
+    )
+    box.x_from.setValue(3)  # an empty box is refused, the axis named
+    with pytest.raises(ValueError, match=r"the x range \(3, 3\) selects no voxel of the 21"):
+        box.mask(shape)
+    # the settings a session saves come back
+    saved = box.settings()
+    other = regions.RegionBox(box.viewer)
+    other.restore(saved)
+    assert other.settings() == saved and other.current_kind == "box"
