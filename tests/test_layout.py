@@ -147,7 +147,6 @@ NOT_YET: dict[str, str] = {
     "command-line argument code is being reworked around the option records",
     "commands/_grid_options.py": "reached through the correlate and correct commands' tests; "
     "the command-line argument code is being reworked around the option records",
-    "engine/correlation/match_judgement.py": "reached through correlation/test_correlate.py",
     "engine/correlation/pyramid.py": "reached through correlation/test_correlate.py, "
     "test_guided_repair.py and tiled/test_correlate.py (the per-level rule is being reworked)",
 }
