@@ -68,6 +68,18 @@ def test_the_documentation_the_source_cites_exists():
     assert not missing, missing
 
 
+def test_the_test_files_the_documentation_cites_exist():
+    cited = {
+        (page.name, name)
+        for page in (REPOSITORY / "docs").glob("*.md")
+        for name in re.findall(r"\btests/[\w/]+\.py\b", page.read_text(encoding="utf-8"))
+    }
+    assert cited, "the scan found no test file cited in docs/"
+    missing = sorted(f"docs/{page} cites {name}" for page, name in cited
+                     if not (REPOSITORY / name).is_file())  # fmt: skip
+    assert not missing, missing
+
+
 # --- docs/design.md's module table is the code's -------------------------------------------------
 def _design_table_script():
     spec = importlib.util.spec_from_file_location(
