@@ -149,7 +149,6 @@ CANNOT = {
     "engine/cuda/icgn.py": _SIMULATOR,
     "engine/cuda/sampling.py": _SIMULATOR,
     "engine/cuda/device_algebra.py": _SIMULATOR + " (device functions: callable only in a kernel)",
-    "engine/cuda/memory.py": _SIMULATOR + " (device copies need a device)",
 }
 
 #: Modules still tested only through other modules' tests, or whose test file does not import
