@@ -92,7 +92,7 @@ def test_plain_correlate_imports_only_what_it_uses_and_loads_each_kernel_once(tm
         from napari_dvc_correct import cli
         code = cli.main(["correlate", "ref.npy", "def.npy", "--subvolume", "19", "--step", "7",
                          "--search", "8", "--out", "f.npz", "--quiet"])
-        from napari_dvc_correct.engine import icgn
+        from napari_dvc_correct.engine.correlation import icgn
         from napari_dvc_correct.io.npz import load_field
         field = load_field("f.npz")
         print(json.dumps({
