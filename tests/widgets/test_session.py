@@ -160,18 +160,19 @@ def test_the_view_comes_back_as_it_was_saved(make_napari_viewer):
     viewer.add_image(np.random.default_rng(0).random((20, 30, 40)), name="G")
     viewer.dims.ndisplay = 3
     viewer.dims.set_current_step(0, 7)
-    viewer.camera.angles = (10.0, 20.0, 30.0)
-    viewer.camera.zoom = 2.5
+    camera = viewer.scene.camera if hasattr(viewer, "scene") else viewer.camera
+    camera.angles = (10.0, 20.0, 30.0)
+    camera.zoom = 2.5
     saved = session.view_state(viewer)
     assert saved["ndisplay"] == 3 and saved["current_step"][0] == 7
     assert saved["source"] is None  # no field on view
     viewer.dims.ndisplay = 2
     viewer.dims.set_current_step(0, 0)
-    viewer.camera.angles = (0.0, 0.0, 90.0)
-    viewer.camera.zoom = 1.0
+    camera.angles = (0.0, 0.0, 90.0)
+    camera.zoom = 1.0
     session.restore_view(viewer, saved)
     assert viewer.dims.ndisplay == 3 and viewer.dims.current_step[0] == 7
-    np.testing.assert_allclose(viewer.camera.angles, (10.0, 20.0, 30.0), atol=1e-6)
-    assert viewer.camera.zoom == pytest.approx(2.5)  # the same canvas: the same zoom
+    np.testing.assert_allclose(camera.angles, (10.0, 20.0, 30.0), atol=1e-6)
+    assert camera.zoom == pytest.approx(2.5)  # the same canvas: the same zoom
     session.restore_view(viewer, {})  # nothing saved: nothing changes
     assert viewer.dims.ndisplay == 3
