@@ -79,26 +79,6 @@ def test_show_quantity_switches_in_place_and_series_are_4d(field):
     assert viewer.dims.axis_labels == ("state", "z", "y", "x")
 
 
-def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(field):
-    viewer = ViewerModel()
-    viewer.add_image(np.zeros((3, 3, 3)), name="|u| (uncorrected)")  # the user's own layer
-    first = V.show_layers(viewer, L.field_layers(field, "uncorrected"))
-    assert len(first) == 2  # one quantity layer and the arrows
-    assert L.fields_in(viewer.layers) == {"uncorrected": field}
-    # the user's layer stays; ours got napari's numbered name
-    assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None
-    assert viewer.layers["|u| (uncorrected) [1]"] in first
-    count = len(viewer.layers)
-    other = field.copy()
-    second = V.show_layers(viewer, L.field_layers(other, "uncorrected"))
-    assert len(viewer.layers) == count
-    assert all(layer in viewer.layers for layer in second)
-    # updated in place (no new canvas visual, no garbage-collection pause), with the new field
-    assert all(new is old for new, old in zip(second, first))
-    assert L.fields_in(viewer.layers)["uncorrected"] is other
-    assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None  # the user's, as it was
-
-
 def test_dense_layers_use_the_voxel_size(field):
     residual = np.ones((8, 8, 8), np.float32)
     data, kwargs, kind = L.residual_layer(
@@ -108,14 +88,3 @@ def test_dense_layers_use_the_voxel_size(field):
     assert kwargs["name"] == "residual volume (corrected)" and kind == "image"
     labels, kwargs, kind = L.phase_layer(np.zeros((8, 8, 8), np.uint8), voxel_size=(2, 2, 2))
     assert kind == "labels" and kwargs["name"] == "phases"
-
-
-def test_show_layers_keeps_layers_that_share_a_metadata_dict():
-    viewer = ViewerModel()
-    meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
-    points = (np.zeros((2, 3)), {"name": "a", "metadata": meta}, "points")
-    image = (np.zeros((2, 2, 2)), {"name": "b", "metadata": meta}, "image")
-    V.show_layers(viewer, [points])
-    V.show_layers(viewer, [image])
-    assert [layer.name for layer in viewer.layers] == ["a", "b"]
-    assert L.find_layer(viewer, "a").name == "a" and L.find_layer(viewer, "b").name == "b"

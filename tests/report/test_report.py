@@ -7,32 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
-from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
-from napari_dvc_correct.engine.synthetic import (
-    add_noise,
-    deform_volume,
-    sample_displacement,
-    shear_band,
-    two_phase_volume,
-)
 from napari_dvc_correct.report import file_stem, unique_names, write_report
-from napari_dvc_correct.report.tables import write_csv
 
 SHAPE = (32, 32, 32)
-
-
-@pytest.fixture(scope="module")
-def evaluation():
-    clean = two_phase_volume(SHAPE, seed=1)
-    truth = shear_band(center=(16.0, 16.0, 16.0), width=4.0, slip=3.0)
-    reference = add_noise(clean, 3.0, seed=2)
-    deformed = add_noise(deform_volume(clean, truth), 3.0, seed=3)
-    origin, step, shape = grid_for_volume(SHAPE, 9, 4)
-    base = DisplacementField.zeros(origin, step, shape)
-    exact = base.replace(u=sample_displacement(truth, base.points).reshape((*shape, 3)))
-    rigid = base.replace(u=np.zeros_like(exact.u))  # ignores the band: a poor field
-    return evaluate_fields(reference, deformed, {"exact": exact, "no band": rigid}, n_bins=3)
 
 
 def read_csv(path):
@@ -127,18 +104,6 @@ def test_report_without_volumes(tmp_path, evaluation):
         write_report(evaluation, tmp_path / "missing" / "deeper")
 
 
-def test_failed_write_keeps_the_earlier_file(tmp_path):
-    target = tmp_path / "table.csv"
-    write_csv([{"a": 1, "b": 2.5}], target)
-    before = target.read_text()
-    with pytest.raises(KeyError):
-        write_csv([{"a": 1, "b": 2.5}, {"a": 2}], target)  # second row lacks "b"
-    assert target.read_text() == before == "a,b\n1,2.5\n"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
-    with pytest.raises(ValueError, match="no rows"):
-        write_csv([], target)
-
-
 def test_file_stems_and_lazy_matplotlib():
     assert file_stem("field 1") == "field_1"
     assert file_stem("corrected (pass 2)") == "corrected_pass_2"
@@ -148,23 +113,3 @@ def test_file_stems_and_lazy_matplotlib():
     code = "import sys, napari_dvc_correct.report; print('matplotlib' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.stdout.strip() == "False", result.stderr
-
-
-def test_report_colours_are_the_panel_s(evaluation, tmp_path, monkeypatch):
-    """Each field has one colour in the report and the Evaluate panel (first orange, then
-    blue), not matplotlib's default cycle (which made the report's the reverse)."""
-    from matplotlib.colors import to_hex
-
-    from napari_dvc_correct.report import plots
-
-    figures = []
-    monkeypatch.setattr(plots, "_save", lambda figure, path: figures.append(figure) or path)
-    plots.plot_accuracy_vs_strain(evaluation, tmp_path / "a.png")
-    plots.plot_residual_vs_strain(evaluation, tmp_path / "r.png")
-    accuracy, residual = (figure.axes[0] for figure in figures)
-    lines = [
-        to_hex(line.get_color()) for line in accuracy.lines if line.get_label() != "0.85 (paper)"
-    ]
-    assert lines[:2] == ["#f28e2b", "#4e9fde"]
-    bars = [to_hex(c.patches[0].get_facecolor()) for c in residual.containers]
-    assert bars[:2] == ["#f28e2b", "#4e9fde"]

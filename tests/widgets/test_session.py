@@ -135,3 +135,44 @@ def test_a_hand_edited_session_is_one_line_in_the_panel(make_napari_viewer, tmp_
         path.write_text(__import__("json").dumps(content))
         assert export.session(path, save=False) is None
         assert message in export.message.text()
+
+
+# --- what a session records of the viewer -----------------------------------------------------------
+def test_the_scans_are_the_user_s_images_with_their_placement():
+    from napari.components import ViewerModel
+
+    from napari_dvc_correct.layers import MARKER
+    from napari_dvc_correct.widgets import session
+
+    viewer = ViewerModel()
+    viewer.add_image(np.zeros((4, 5, 6)), name="G", scale=(2, 2, 2), translate=(1, 0, 0))
+    viewer.add_image(np.zeros((4, 5, 6)), name="|u| (f)", metadata={MARKER: {"kind": "quantity"}})
+    (entry,) = session.scan_entries(viewer)
+    assert entry["name"] == "G" and entry["path"] is None  # made in memory, not opened
+    assert entry["scale"] == [2.0, 2.0, 2.0] and entry["translate"] == [1.0, 0.0, 0.0]
+    assert session.session_fields(viewer) == {}
+
+
+def test_the_view_comes_back_as_it_was_saved(make_napari_viewer):
+    from napari_dvc_correct.widgets import session
+
+    viewer = make_napari_viewer()
+    viewer.add_image(np.random.default_rng(0).random((20, 30, 40)), name="G")
+    viewer.dims.ndisplay = 3
+    viewer.dims.set_current_step(0, 7)
+    camera = viewer.scene.camera if hasattr(viewer, "scene") else viewer.camera
+    camera.angles = (10.0, 20.0, 30.0)
+    camera.zoom = 2.5
+    saved = session.view_state(viewer)
+    assert saved["ndisplay"] == 3 and saved["current_step"][0] == 7
+    assert saved["source"] is None  # no field on view
+    viewer.dims.ndisplay = 2
+    viewer.dims.set_current_step(0, 0)
+    camera.angles = (0.0, 0.0, 90.0)
+    camera.zoom = 1.0
+    session.restore_view(viewer, saved)
+    assert viewer.dims.ndisplay == 3 and viewer.dims.current_step[0] == 7
+    np.testing.assert_allclose(camera.angles, (10.0, 20.0, 30.0), atol=1e-6)
+    assert camera.zoom == pytest.approx(2.5)  # the same canvas: the same zoom
+    session.restore_view(viewer, {})  # nothing saved: nothing changes
+    assert viewer.dims.ndisplay == 3

@@ -248,7 +248,7 @@ def make_pair(
     return np.ascontiguousarray(big[crop]), np.ascontiguousarray(deformed[crop])
 
 
-# --- specimens and fields like real CT tests (issue 10) --------------------------------------
+# --- specimens and fields like real CT tests -----------------------------------------------
 def concrete_specimen(
     shape,
     aggregate_contrast: float = 0.04,

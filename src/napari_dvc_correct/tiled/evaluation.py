@@ -1,4 +1,4 @@
-"""The accuracy evaluation of large volumes, block by block on Dask (issue 13).
+"""The accuracy evaluation of large volumes, block by block on Dask.
 
 :func:`evaluate_tiled_iter` computes the same :class:`..engine.evaluation.results.Evaluation` as
 :func:`..engine.evaluation.accuracy.evaluate_iter` — mean residuals, background residual (eq. 1), phases and

@@ -29,12 +29,14 @@ KINDS = {
 }
 
 
-def _z_slice(shape, z_range) -> slice:
+def _z_slice(shape, z_range, axis: str = "z") -> slice:
     nz = int(shape[0])
     low, high = (0, nz) if z_range is None else (int(z_range[0]), int(z_range[1]))
     low, high = max(0, low), min(nz, high)
     if high <= low:
-        raise ValueError(f"the z range {z_range} selects no slice of a volume of {nz} slices")
+        if axis == "z":
+            raise ValueError(f"the z range {z_range} selects no slice of a volume of {nz} slices")
+        raise ValueError(f"the {axis} range {z_range} selects no voxel of the {nz} along {axis}")
     return slice(low, high)
 
 
@@ -172,7 +174,7 @@ def box_region(shape, z_range=None, y_range=None, x_range=None) -> PrismRegion:
     """Voxels with ``z_range[0] <= z < z_range[1]`` (same for y, x); a range None = all."""
     shape = tuple(int(n) for n in shape)
     section = np.zeros(shape[1:], bool)
-    section[_z_slice((shape[1],), y_range), _z_slice((shape[2],), x_range)] = True
+    section[_z_slice((shape[1],), y_range, "y"), _z_slice((shape[2],), x_range, "x")] = True
     return PrismRegion(shape, section, z_range)
 
 

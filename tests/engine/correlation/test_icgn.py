@@ -91,48 +91,6 @@ def test_flat_subvolume_is_low_texture_and_noise_does_not_converge_confidently()
     assert zncc[1] < 0.3, (status[1], zncc[1])
 
 
-def test_warp_matrix_composition_matches_function_composition():
-    rng = np.random.default_rng(2)
-    p = rng.normal(0, 0.05, 30)
-    q = rng.normal(0, 0.05, 30)
-    mp = shape_function.warp_matrix(p, 10, shape_function.PRODUCT_TABLE, shape_function.QUAD_AXES)
-    mq = shape_function.warp_matrix(q, 10, shape_function.PRODUCT_TABLE, shape_function.QUAD_AXES)
-    composed = mp @ mq
-    point = np.array([0.3, -0.2, 0.1])
-
-    def apply(params, xi):
-        b = np.array(
-            [
-                1,
-                *xi,
-                xi[0] ** 2,
-                xi[1] ** 2,
-                xi[2] ** 2,
-                xi[0] * xi[1],
-                xi[1] * xi[2],
-                xi[0] * xi[2],
-            ]
-        )
-        return xi + params.reshape(3, 10) @ b
-
-    exact = apply(p, apply(q, point))
-    b = np.array(
-        [
-            1,
-            *point,
-            point[0] ** 2,
-            point[1] ** 2,
-            point[2] ** 2,
-            point[0] * point[1],
-            point[1] * point[2],
-            point[0] * point[2],
-        ]
-    )
-    approx = (composed @ b)[1:4]
-    # truncation at degree 2 only drops terms of degree 3 and 4 in small coordinates
-    assert np.max(np.abs(approx - exact)) < 1e-3
-
-
 # --- uncertainty and the noise stop, on CT-like noisy scans (issue 10) ------------------------
 SHIFT = np.array([0.37, -0.61, 0.23])
 

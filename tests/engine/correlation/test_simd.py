@@ -3,15 +3,9 @@
 import numpy as np
 from numba import njit
 
-from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correlation.interpolation import sample_interior
+from napari_dvc_correct.engine.correlation.simd import field_taps, field_taps_with_gradient
 from napari_dvc_correct.engine.correlation.simd_taps import sample_interior_vector
-from napari_dvc_correct.engine.fields.field import DisplacementField
-from napari_dvc_correct.engine.fields.field_spline import FieldSpline
-from napari_dvc_correct.engine.fields.field_spline_kernels import (
-    _eval_one_any,
-    _eval_one_with_jacobian,
-)
 
 
 @njit
@@ -41,23 +35,31 @@ def test_bspline_value_equals_the_scalar_sample_to_float32_rounding():
     assert abs((moved - base) - expected) < 2e-5
 
 
-def test_field_value_and_jacobian_equal_the_scalar_spline():
-    rng = np.random.default_rng(1)
-    field = DisplacementField.zeros((4.0, 4.0, 4.0), (6.0, 7.0, 8.0), (5, 4, 6))
-    band = synthetic.shear_band((14.0, 14.0, 24.0), width=6.0, slip=3.0, shift=(1.0, -0.5, 2.0))
-    field.u[:] = synthetic.sample_displacement(band, field.points.reshape(5, 4, 6, 3))
-    spline = FieldSpline.from_field(field)
-    args = (spline.pad, spline.origin, spline.step, spline.trend_offset, spline.trend_matrix)
-    value, jacobian, reference = np.empty(3), np.empty((3, 3)), np.empty(3)
-    shifted = np.empty(3)
-    h = 1e-5
-    for point in rng.uniform(-6.0, 50.0, (300, 3)):  # inside, near and beyond the hull
-        _eval_one_with_jacobian(spline.extended, *args, *point, value, jacobian)
-        _eval_one_any(spline.coefficients, *args, *point, reference)
-        assert np.abs(value - reference).max() < 1e-12
-        for a in range(3):
-            step = np.zeros(3)
-            step[a] = h
-            _eval_one_any(spline.coefficients, *args, *(point + step), shifted)
-            _eval_one_any(spline.coefficients, *args, *(point - step), reference)
-            assert np.abs(jacobian[:, a] - (shifted - reference) / (2 * h)).max() < 1e-6
+# --- the field spline's four-wide tap sums (simd.field_taps), against einsum ---------------------
+@njit
+def _field_sums(coefficients, z0, y0, x0, wz, wy, wx, dz, dy, dx):
+    _, nz, ny, nx = coefficients.shape
+    row, plane, component = np.uint64(nx), np.uint64(ny * nx), np.uint64(nz * ny * nx)
+    first = np.uint64((z0 * ny + y0) * nx + x0)
+    values = field_taps(coefficients, first, row, plane, component, wz, wy, wx)
+    both = field_taps_with_gradient(
+        coefficients, first, row, plane, component, wz, wy, wx, dz, dy, dx
+    )
+    return values, both
+
+
+def test_field_taps_are_the_weighted_sums_of_the_4x4x4_taps_of_each_component():
+    rng = np.random.default_rng(5)
+    coefficients = rng.standard_normal((3, 7, 8, 9))
+    wz, wy, wx, dz, dy, dx = (tuple(rng.uniform(-1, 1, 4)) for _ in range(6))
+    values, both = _field_sums(coefficients, 2, 1, 3, wz, wy, wx, dz, dy, dx)
+    taps = coefficients[:, 2:6, 1:5, 3:7]
+
+    def weighted(a, b, c):
+        return np.einsum("kabc,a,b,c->k", taps, np.array(a), np.array(b), np.array(c))
+
+    np.testing.assert_allclose(values, weighted(wz, wy, wx), rtol=1e-12)
+    np.testing.assert_allclose(both[:3], values, rtol=1e-12)
+    np.testing.assert_allclose(both[3:6], weighted(dz, wy, wx), rtol=1e-12)  # d/dz
+    np.testing.assert_allclose(both[6:9], weighted(wz, dy, wx), rtol=1e-12)  # d/dy
+    np.testing.assert_allclose(both[9:12], weighted(wz, wy, dx), rtol=1e-12)  # d/dx

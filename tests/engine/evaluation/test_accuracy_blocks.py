@@ -91,3 +91,36 @@ def test_lattice_samples_and_phase_totals_of_blocks_are_the_whole_volumes():
         PhaseTotals(3).add(volume, label_phases(volume, [300.0, 400.0])).check_nonempty(
             [300.0, 400.0]
         )
+
+
+# --- eq. 1 and the gradients, whole or by block ---------------------------------------------------
+def test_background_residual_is_eq_1_over_the_voxels_of_one_phase_in_both_states():
+    from napari_dvc_correct.engine.evaluation import accuracy_blocks
+
+    residual = np.array([1.0, 2.0, 3.0, 4.0, np.nan, 6.0]).reshape(1, 2, 3)
+    reference = np.array([0, 0, 1, 1, 1, 1], np.uint8).reshape(1, 2, 3)
+    mapped = np.array([0, 1, 1, 1, 1, 0], np.uint8).reshape(1, 2, 3)  # voxels 1 and 5 disagree
+    background = accuracy_blocks.background_residual(residual, reference, mapped)
+    # agreeing and finite: voxel 0 (phase 0, r = 1), voxels 2, 3 (phase 1, r = 3, 4)
+    assert background.mean == pytest.approx(8.0 / 3) and background.voxels == 3
+    assert background.per_phase == ((0, 1.0, 1), (1, 3.5, 2))
+    corrected = accuracy_blocks.corrected_residual(residual, background)
+    assert corrected.dtype == np.float32
+    np.testing.assert_allclose(corrected[0, 0], [1 - 8 / 3, 2 - 8 / 3, 3 - 8 / 3], rtol=1e-6)
+    with pytest.raises(ValueError, match="background residual is undefined"):
+        accuracy_blocks.background_residual(residual, reference, 1 - reference)
+    with pytest.raises(ValueError, match="must have the same shape"):
+        accuracy_blocks.background_residual(residual, reference[..., :2], mapped)
+
+
+def test_the_squared_gradient_of_a_block_with_its_halo_is_the_whole_volume_s():
+    from napari_dvc_correct.engine.evaluation import accuracy_blocks
+
+    z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float32) for n in (6, 7, 8)), indexing="ij")
+    volume = 2.0 * z - 3.0 * y + 0.5 * x  # |grad|² = 4 + 9 + 0.25 everywhere
+    np.testing.assert_allclose(accuracy_blocks.squared_gradient(volume), 13.25, rtol=1e-6)
+    ramp = (x**2).astype(np.float32)  # central differences: (2x)², one-sided at the faces
+    whole = accuracy_blocks.squared_gradient(ramp)
+    box = (slice(2, 4), slice(0, 7), slice(3, 6))
+    block = accuracy_blocks.halo_squared_gradient(lambda s: ramp[s], box, ramp.shape)
+    np.testing.assert_array_equal(block, whole[box])

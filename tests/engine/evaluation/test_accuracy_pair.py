@@ -121,3 +121,40 @@ def test_a_specimen_region_keeps_the_air_out_of_phases_r0_and_residuals():
     assert np.all(np.isnan(inside["f"].residual[~region]))
     assert inside["f"].voxels <= int(region.sum())
     assert inside.contrast < 0.2 * whole.contrast  # aggregates are 5 % brighter, not air
+
+
+# --- the pieces of the pair's measurement ------------------------------------------------------
+def test_background_sums_give_eq_1_per_phase_and_over_all():
+    from napari_dvc_correct.engine.evaluation import accuracy_pair
+
+    background = accuracy_pair.background_from_sums(
+        np.array([10.0, 0.0, 30.0]), np.array([5, 0, 10]), 2
+    )
+    assert background.mean == pytest.approx(40.0 / 15) and background.voxels == 15
+    assert background.per_phase[0] == (0, 2.0, 5) and background.per_phase[2] == (2, 3.0, 10)
+    assert np.isnan(background.per_phase[1][1])  # a phase never on both sides
+    empty = accuracy_pair.background_from_sums(np.zeros(2), np.zeros(2, int), 1)
+    assert empty.mean == np.inf and empty.voxels == 0
+
+
+def test_the_best_candidate_is_the_one_of_smallest_r0():
+    from napari_dvc_correct.engine.evaluation import accuracy_pair
+    from napari_dvc_correct.engine.evaluation.gray_levels import GrayLevelMap
+
+    identity = GrayLevelMap.identity()
+
+    def r0(value, voxels=10):
+        return accuracy_pair.background_from_sums(np.array([value * voxels]), np.array([voxels]), 0)
+
+    best = accuracy_pair.choose_best(
+        {"plain": (identity, r0(3.0)), "corrected": (identity, r0(2.0))}
+    )
+    assert best.measured_with == "corrected" and best.background.mean == pytest.approx(2.0)
+    assert best.candidates == {"plain": pytest.approx(3.0), "corrected": pytest.approx(2.0)}
+    assert best.to_dict()["background_residual"] == pytest.approx(2.0)
+    empty = accuracy_pair.background_from_sums(np.zeros(1), np.zeros(1, int), 0)
+    with pytest.raises(ValueError, match="background residual is undefined"):
+        accuracy_pair.choose_best({"only": (identity, empty)})
+    volume = np.arange(64**3, dtype=np.float32).reshape(64, 64, 64)
+    sample = accuracy_pair.lattice(volume)
+    assert sample.ndim == 1 and sample[0] == 0.0 and sample.size <= volume.size

@@ -82,3 +82,20 @@ def test_warp_forward_uses_the_fused_path_with_an_in_memory_sampler(case):
     assert np.array_equal(np.isnan(lazy), np.isnan(values))
     assert np.nanmax(np.abs(lazy - values)) < ROUNDING
     assert np.array_equal(lazy_hull, in_hull)
+
+
+# --- the interpolation weights between coarse nodes ---------------------------------------------
+def test_lagrange_weights_reproduce_polynomials_up_to_degree_five():
+    from napari_dvc_correct.engine.fields import inverse_per_voxel
+
+    nodes = np.arange(-2.0, 4.0)
+    np.testing.assert_array_equal(inverse_per_voxel.lagrange_weights(0.0), [0, 0, 1, 0, 0, 0])
+    for t in (0.1, 0.5, 0.93):
+        weights = np.asarray(inverse_per_voxel.lagrange_weights(t))
+        for degree in range(6):
+            assert weights @ nodes**degree == pytest.approx(t**degree, abs=1e-12)
+    # per voxel of an axis: the first of its six coarse nodes and its position in the cell
+    node, weight = inverse_per_voxel.axis_weights(3, 6, 4)  # voxels 3..8, a node every 4
+    assert node.tolist() == [0, 1, 1, 1, 1, 2]  # cells 0, 1, 1, 1, 1, 2 from the first (0)
+    np.testing.assert_allclose(weight[1], inverse_per_voxel.lagrange_weights(0.0))
+    np.testing.assert_allclose(weight[2], inverse_per_voxel.lagrange_weights(0.25))

@@ -1,9 +1,11 @@
-"""Our readers on files really written by spam, pyALDVC, CCPi/Bay ``dvc`` and OpenCorr (issue 27).
+"""Our readers on files really written by spam, pyALDVC, CCPi/Bay ``dvc`` and OpenCorr.
 
 The files and the known field of their test pair are in ``../shared/data/formats`` (see its
 README): ``u(X) = t + G (X - c)`` in (z, y, x) voxels, with G neither isotropic nor symmetric, so
 a reader that swaps axes, transposes the gradient or reads F as the displacement gradient fails.
-The tolerances are the errors the README measured for each tool, with a margin.
+The tolerances are the errors the README measured for each tool, with a margin. Every reader is
+met here: spam TSV, pyALDVC ``.npz``/``.mat``/CSV, CCPi ``.disp``, OpenCorr CSV (the plain
+table reader), and the napari reader that opens them all as field layers.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from napari_dvc_correct._reader import napari_get_reader
 from napari_dvc_correct.io.formats import read_field, read_points, sniff_format
 
 FORMATS = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "formats"
@@ -93,8 +96,65 @@ def test_ccpi_failures_and_rows_out_of_order():
                                   "al_foam4_1_fftcc_icgn1(gpu)_r30.csv"])  # fmt: skip
 def test_opencorr_tables_are_read_by_name(name):
     """OpenCorr's columns x,y,z,u,v,w (u along x); the GPU file adds a ``feature`` column."""
+    assert sniff_format(FORMATS / "opencorr" / name) == "table"
     points = read_points(FORMATS / "opencorr" / name)
     assert points.n_points == 5733
     assert np.allclose(points.points[0], [60.0, 35.0, 35.0])  # (z, y, x) of the first POI
     rows = np.genfromtxt(FORMATS / "opencorr" / name, delimiter=",", names=True, max_rows=3)
     assert np.allclose(points.u[:3], np.column_stack([rows["w"], rows["v"], rows["u"]]))
+
+
+# file, the grid each tool was asked for: shape, origin and step (z, y, x voxels), nodes failed
+ON_A_GRID = [
+    ("spam/reg_ldic/ref-def-ldic.tsv", (5, 5, 5), 8.0, 8.0, 0, 0.10),
+    ("spam/pixelsearch_ldic/ref-def-pixelSearch.tsv", (5, 5, 5), 8.0, 8.0, 0, 0.40),
+    ("pyaldvc/aldvc.npz", (5, 5, 5), 11.0, 6.0, 0, 0.03),
+    ("pyaldvc/aldvc.mat", (5, 5, 5), 11.0, 6.0, 0, 0.03),
+    ("pyaldvc/csv/aldvc_frame_01.csv", (5, 5, 5), 11.0, 6.0, 0, 0.03),
+    ("ccpi_dvc/snow48/snow48.disp", (5, 5, 5), 12.0, 6.0, 0, 0.03),
+    ("ccpi_dvc/snow48_edge/snow48_edge.disp", (5, 5, 5), 12.0, 6.0, 1, 0.05),
+]
+
+
+@pytest.mark.parametrize(("name", "shape", "origin", "step", "failed", "rms"), ON_A_GRID)
+def test_the_napari_reader_opens_real_fields_on_their_grid(name, shape, origin, step, failed, rms):
+    """File > Open of another tool's field: |u| and the vectors placed at the tool's own nodes
+    (scale = step, translate = origin), |u| the known field's there, a failed node left empty."""
+    reader = napari_get_reader(str(FORMATS / name))
+    assert reader is not None
+    (magnitude, image, kind), (vectors, _, vector_kind) = reader(str(FORMATS / name))
+    assert (kind, vector_kind) == ("image", "vectors")
+    assert magnitude.shape == shape
+    assert image["scale"] == (step,) * 3 and image["translate"] == (origin,) * 3
+    assert len(vectors) == np.prod(shape) - failed  # an arrow per usable node
+    exact, _ = truth()
+    nodes = origin + step * np.stack(np.indices(shape), -1).reshape(-1, 3)
+    expected = np.linalg.norm(exact(nodes), axis=1).reshape(shape)
+    assert int(np.isnan(magnitude).sum()) == failed
+    difference = (magnitude - expected)[~np.isnan(magnitude)]
+    assert np.sqrt(np.mean(difference**2)) < rms * np.sqrt(3), difference
+
+
+def test_the_napari_reader_refuses_the_repository_run_with_a_reason():
+    """CCPi's repository example has five points in one plane: claimed by suffix, then refused
+    with a message that says why no grid can be made."""
+    path = FORMATS / "ccpi_dvc/repo_dvc_test/completed_central_grid.disp"
+    reader = napari_get_reader(str(path))
+    assert reader is not None
+    with pytest.raises(ValueError, match="one plane or line"):
+        reader(str(path))
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "opencorr/al_foam4_1_fftcc_icgn1_r30_time.csv",  # OpenCorr's timings
+        "ccpi_dvc/snow48/snow48.stat",  # CCPi's run statistics
+        "ccpi_dvc/snow48/grid.roi",  # CCPi's input points, no displacement
+        "pyaldvc/aldvc_summary.json",  # pyALDVC's run summary
+    ],
+)
+def test_the_tools_other_files_are_not_taken_for_fields(name):
+    assert napari_get_reader(str(FORMATS / name)) is None
+    with pytest.raises(ValueError):
+        read_points(FORMATS / name)

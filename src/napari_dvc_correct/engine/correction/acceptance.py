@@ -1,4 +1,4 @@
-"""Local acceptance of a correction pass, judged against the imaging-noise floor (issue 10).
+"""Local acceptance of a correction pass, judged against the imaging-noise floor.
 
 A pass of the self-correction (:mod:`.self_correction`) proposes a new value at every node. Here each
 node's proposal is judged from the images alone: the reference-frame residual

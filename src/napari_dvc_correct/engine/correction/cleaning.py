@@ -1,4 +1,4 @@
-"""Field cleaning (SPEC §2, paper step b): find bad nodes, refill them from good neighbours.
+"""Field cleaning (paper step b): find bad nodes, refill them from good neighbours.
 
 * :func:`normalized_median_test` — the normalised median test of Westerweel & Scarano (2005),
   ``r0 = |u0 - um| / (rm + eps)`` with ``um`` the median of the neighbours and ``rm`` the median

@@ -1,4 +1,4 @@
-"""What a further correction pass can change, and when it can only confirm (issue 13).
+"""What a further correction pass can change, and when it can only confirm.
 
 Pass ``k + 1`` of the self-correction (:mod:`.self_correction`) matches the warped volume again. A
 correcting match can differ from pass ``k``'s only where the warped volume changed, that is near

@@ -1,4 +1,4 @@
-"""The self-correcting strategy of the DVC displacement field (SPEC §3, paper Fig. 3).
+"""The self-correcting strategy of the DVC displacement field (paper Fig. 3).
 
 Steps, with the DVC parameters of the first run reused unchanged (no new user parameter):
 
@@ -21,7 +21,7 @@ f) update the field:
      deformed positions);
    * ``update="sum"``: the paper's ``D' = D + ΔD`` at the same node.
 
-Beyond the paper (issue 10):
+Beyond the paper:
 
 * every pass is judged **locally and against the imaging noise**: the residual
   ``|F(X + D(X)) - G(X)|`` is averaged over each node's cell; a node keeps its corrected value
@@ -43,7 +43,7 @@ Beyond the paper (issue 10):
 * every pass is recorded as a :class:`CorrectionPass` in ``field.metadata["correction_passes"]``
   (as dicts, for JSON; :func:`correction_table` reads them back).
 
-One loop, two volume back-ends (issue 13): :func:`correct_volumes_iter` is the loop; every volume
+One loop, two volume back-ends: :func:`correct_volumes_iter` is the loop; every volume
 operation goes through a :class:`.volumes.CorrectionVolumes`, in memory for
 :func:`correct_iter` (:class:`.volumes.InMemoryVolumes`) or block by block from lazily
 read volumes for ``napari_dvc_correct.tiled.correction.correct_tiled_iter``.
@@ -196,7 +196,7 @@ def correct_iter(
             f"reference {reference.shape} and deformed {deformed.shape} volumes must have the "
             "same shape"
         )
-    # both frames: an empty or NaN mask, a field of other volumes or with absurd |u| (issue 12)
+    # both frames: an empty or NaN mask, a field of other volumes or with absurd |u|
     check_pair_and_fields(reference, deformed, {} if field is None else field, mask)
     if field is not None:  # a few |u| > the volume: failed matches, cleaned
         field, _ = flag_absurd_nodes(field, reference.shape)
@@ -234,7 +234,7 @@ def correct_volumes_iter(
     clean_options: dict | None = None,
     selective: bool = True,
 ) -> Generator[Progress, None, DisplacementField]:
-    """The correction loop of :func:`correct_iter` on any volume back-end (issue 13).
+    """The correction loop of :func:`correct_iter` on any volume back-end.
 
     ``volumes`` does every volume operation (:class:`.volumes.CorrectionVolumes`:
     in memory, or block by block from lazy volumes in ``napari_dvc_correct.tiled.correction``);

@@ -1,4 +1,4 @@
-"""The volume operations of the self-correction, behind one small interface (issue 13).
+"""The volume operations of the self-correction, behind one small interface.
 
 :func:`.self_correction.correct_volumes_iter` is the one correction loop (clean, judge, warp, correlate,
 compose, accept node by node, stop). Everything it does to the *volumes* goes through a

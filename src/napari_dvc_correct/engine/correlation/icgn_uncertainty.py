@@ -1,4 +1,4 @@
-"""Per-POI uncertainty of a match from the images alone (SPEC §7): the sandwich estimate.
+"""Per-POI uncertainty of a match from the images alone: the sandwich estimate.
 
 After IC-GN has converged, one more pass over each subvolume gives the gray variance of the
 reference subvolume and the standard deviation of the three translations, in voxels, from the

@@ -9,7 +9,7 @@
 - the background residual (eq. 1): per-phase sums and counts where the two states' phases agree;
 - the curves against strain (Figs. 10–11): residual sums and counts of every node's cell
   (:func:`.binning.cell_sums_block`);
-- the local residual (issue 10): residual sums and counts over every node's ``(2M + 1)^3`` box
+- the local residual: residual sums and counts over every node's ``(2M + 1)^3`` box
   (:func:`node_box_sums`, from an integral image of the block).
 
 A block's node and cell sums cover only the sub-grid the block touches (:class:`GridPart`), so a

@@ -1,4 +1,4 @@
-"""What an accuracy evaluation measures once per scan pair: the gray-level map and ``r0`` (issue 26).
+"""What an accuracy evaluation measures once per scan pair: the gray-level map and ``r0``.
 
 The background residual ``r0`` of eq. 1 estimates the imaging noise, and the gray-level map
 (:mod:`.gray_levels`) the brightness change between the scans: both belong to the pair of scans,

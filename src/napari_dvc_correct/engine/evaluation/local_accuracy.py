@@ -1,4 +1,4 @@
-"""Where a displacement field is wrong: the local residual and the local accuracy map (issue 10).
+"""Where a displacement field is wrong: the local residual and the local accuracy map.
 
 The accuracy index of the paper (eq. 2, :mod:`.accuracy`) is one number for a whole volume: a
 field can ruin a region and still score well, all the more if the ruined region's residual

@@ -1,4 +1,4 @@
-"""Gray residuals: how well a displacement field explains the pair (SPEC §5, paper eqs. 1-2).
+"""Gray residuals: how well a displacement field explains the pair (paper eqs. 1-2).
 
 ``r(X) = |F(X + u(X)) - G(X)|`` at every reference voxel (the pull-back, no inversion), or the
 paper's ``r(x) = |F(x) - G'(x)|`` at every voxel of the loaded state (the forward warp of
@@ -111,7 +111,7 @@ def gray_residual(
     deformed_coefficients: np.ndarray | None = None,
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
 ) -> np.ndarray:
-    """Gray residual volume of a displacement field (SPEC §5; paper's residual maps).
+    """Gray residual volume of a displacement field (the paper's residual maps).
 
     Parameters
     ----------

@@ -3,7 +3,7 @@
 Everything here works on the grid (no densification) and returns grid arrays, so a strain map
 overlays the volume in napari with the field's ``scale = step`` and ``translate = origin``.
 
-Conventions (see SPEC): axis order ``(z, y, x)``; the displacement gradient ``H[..., i, j]`` is
+Conventions: axis order ``(z, y, x)``; the displacement gradient ``H[..., i, j]`` is
 ``du_i / dX_j`` with ``i, j`` in (z, y, x) order, dimensionless (voxels per voxel); tensors are
 ``(..., 3, 3)`` in the same order. Nodes where the field is not usable
 (:attr:`DisplacementField.valid` is False) get NaN, and they never contribute to the gradient at

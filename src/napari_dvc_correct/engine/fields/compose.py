@@ -1,4 +1,4 @@
-"""Composition of displacement fields (displacement superposition, SPEC §3–4).
+"""Composition of displacement fields (displacement superposition).
 
 If material at ``X`` first moves by ``a(X)`` to ``y = X + a(X)`` and then by ``b(y)`` (a field
 measured at the positions reached by the first motion), the total Lagrangian displacement is

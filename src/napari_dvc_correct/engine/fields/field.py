@@ -1,6 +1,6 @@
 """The one data model: a displacement field on a regular grid of points of interest.
 
-Conventions (see SPEC): axis order ``(z, y, x)`` everywhere, vectors stored ``(..., 3)`` in the
+Conventions: axis order ``(z, y, x)`` everywhere, vectors stored ``(..., 3)`` in the
 same order, units are voxels of the reference volume. The displacement is Lagrangian: material at
 reference position ``X`` moves to ``x = X + u(X)``, so ``F(X + u(X)) ≈ G(X)``.
 

@@ -1,7 +1,7 @@
 """The cubic-spline field: a grid field evaluated anywhere (paper step c, densification).
 
 A :class:`~napari_dvc_correct.engine.fields.field.DisplacementField` lives on a coarse grid of points of
-interest. The self-correcting strategy (SPEC §3, paper Fig. 3) needs it at every voxel:
+interest. The self-correcting strategy (paper Fig. 3) needs it at every voxel:
 :class:`FieldSpline` is a cubic B-spline through the grid nodes, evaluated at any points
 (:meth:`FieldSpline.__call__`), separably on a voxel lattice (:meth:`FieldSpline.lattice`) and
 inverted (:meth:`FieldSpline.invert`, Newton steps with the spline's exact Jacobian);

@@ -1,4 +1,4 @@
-"""Volumes warped by a displacement field (paper step d, and the pull-back of SPEC §3).
+"""Volumes warped by a displacement field (paper step d, and the self-correction's pull-back).
 
 * :func:`pull_back` resamples the deformed volume into the reference frame,
   ``F~(X) = F(X + u(X))`` (no inversion needed);

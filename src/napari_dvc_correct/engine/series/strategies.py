@@ -1,4 +1,4 @@
-"""Scan series: the total and incremental strategies (SPEC §4, paper Fig. 2).
+"""Scan series: the total and incremental strategies (paper Fig. 2).
 
 * ``strategy="total"``: every state ``k`` is correlated with the first, ``U_0→k = DVC(V0, Vk)``.
   Robust against error accumulation, but decorrelates when the deformation grows large.

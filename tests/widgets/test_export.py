@@ -12,7 +12,8 @@ import tifffile
 from napari_dvc_correct.engine.evaluation.strain import equivalent_strain_field
 from napari_dvc_correct.io.npz import load_field
 from napari_dvc_correct.layers import field_of
-from napari_dvc_correct.widgets import EvaluateWidget, ExportWidget
+from napari_dvc_correct.widgets import EvaluateWidget
+from napari_dvc_correct.widgets.export import ExportWidget
 
 
 def _dock(viewer):
@@ -178,22 +179,3 @@ def test_points_result_in_every_point_format(points_panel, run_panel, tmp_path):
     reader.SetFileName(str(tmp_path / "pois.vtu"))
     reader.Update()
     assert reader.GetOutput().GetNumberOfPoints() == result.n_points
-
-
-def test_points_refuse_what_needs_a_grid(tmp_path):
-    """The model refuses grid formats and grid extras for a result at points, writing nothing."""
-    from napari_dvc_correct.engine.fields.scattered import ScatteredField
-    from napari_dvc_correct.widgets import export_model as model
-
-    points = ScatteredField(points=np.array([[10.0, 11.0, 12.5]]), u=np.array([[0.1, 0.2, 0.3]]))
-    cases = {
-        "x.vti": ({}, "no grid for .vti"),
-        "x.h5": ({}, "no grid for .h5"),
-        "x.csv": ({"strain_tiff": True}, "needs a grid field"),
-        "y.csv": ({"report": {"title": "r"}}, "come from Evaluate"),
-    }
-    for name, (options, message) in cases.items():
-        request = model.ExportRequest(field=points, path=tmp_path / name, **options)
-        with pytest.raises(ValueError, match=message):
-            list(model.run_export(request))
-    assert list(tmp_path.iterdir()) == []

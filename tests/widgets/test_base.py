@@ -39,7 +39,7 @@ def test_worker_error_is_one_line_and_not_reraised(qtbot, error):
     # pytest-qt fails the test if an exception escapes into the Qt event loop (the re-raise)
     with qtbot.waitSignal(worker.finished, timeout=30_000):
         worker.start()
-    qtbot.wait(50)
+    qtbot.waitUntil(lambda: widget.last_error is not None and not widget.running, timeout=5000)
     assert widget.last_error is not None and "\n" not in widget.last_error
     assert widget.stage_label.text() == "failed"
     assert widget.run_button.isEnabled() and not widget.running
@@ -99,5 +99,5 @@ def test_an_error_while_showing_the_result_is_one_line(qtbot):
     worker = widget.run(start=False)
     with qtbot.waitSignal(worker.finished, timeout=30_000):
         worker.start()
-    qtbot.wait(50)
+    qtbot.waitUntil(lambda: widget.last_error is not None, timeout=5000)
     assert widget.last_error == "KeyError: 'no layer for this result'"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.layers import plugin_metadata
-from napari_dvc_correct.widgets import EvaluateWidget
+from napari_dvc_correct.widgets.evaluate import EvaluateWidget
 
 
 def _dock(viewer):
@@ -61,7 +61,8 @@ def test_the_latest_thresholds_win(viewer_pair, qtbot):
     assert first is not None and second is not None and first is not second
     qtbot.waitUntil(lambda: not widget.phases_busy, timeout=10_000)
     qtbot.waitUntil(lambda: not first.is_running, timeout=10_000)
-    qtbot.wait(200)  # and the debounced call the slider triggered
+    # and the debounced call the slider triggered
+    qtbot.waitUntil(lambda: not widget._live.timer.isActive(), timeout=3000)
     qtbot.waitUntil(lambda: not widget.phases_busy, timeout=10_000)
     np.testing.assert_array_equal(
         viewer_pair.layers["phases"].data, np.where(reference >= 150.0, 2, 1)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -153,26 +152,6 @@ def test_mask_marks_outside_pois(viewer_pair, run_panel, small):
     assert outside.any() and (~outside).any()
     assert np.all(field.status[:, :, outside] == Status.MASKED)
     assert field.valid[:, :, ~outside].all()
-
-
-def test_clicked_poi_shows_its_values(correlated, placement):
-    viewer = correlated.viewer
-    field = field_of(viewer.layers["|u| (uncorrected)"])
-    scale, translate = placement(field)
-    world = np.asarray(translate) + np.array([2, 1, 3]) * np.asarray(scale)
-    values = correlated.inspect(world + 0.2)
-    assert values["index"] == (2, 1, 3)
-    np.testing.assert_allclose(values["u"], field.u[2, 1, 3])
-    text = correlated.poi_label.text()
-    assert "POI (2, 1, 3)" in text and "ZNCC" in text and "status" in text
-    assert "provenance" in text and "iterations" in text
-    assert correlated.inspect(np.asarray(translate) - 100 * np.asarray(scale)) is None
-    # a click on the canvas goes through the viewer's mouse callback
-    assert correlated._on_click in viewer.mouse_drag_callbacks
-    corner = np.asarray(translate) + np.array([0, 0, 1]) * np.asarray(scale)
-    click = SimpleNamespace(type="mouse_press", button=1, position=corner)
-    correlated._on_click(viewer, click)
-    assert "POI (0, 0, 1)" in correlated.poi_label.text()
 
 
 def test_ui_stays_responsive_during_a_run(viewer_pair, qtbot, small):

@@ -7,7 +7,7 @@ import numpy as np
 from napari_dvc_correct._sample_data import true_field
 from napari_dvc_correct.engine.fields.field import Provenance
 from napari_dvc_correct.layers import field_of
-from napari_dvc_correct.widgets import CorrectWidget
+from napari_dvc_correct.widgets.correct import CorrectWidget
 
 
 def _dock(viewer):

@@ -10,7 +10,7 @@ import pytest
 from napari_dvc_correct import layers as L
 from napari_dvc_correct import viewer_layers as V
 from napari_dvc_correct.engine.fields.field import DisplacementField
-from napari_dvc_correct.widgets import ViewWidget
+from napari_dvc_correct.widgets.view import ViewWidget
 
 A = 0.02  # simple shear: u_x = A z, so εzx = A / 2, εeq = 2 (A/2) / sqrt(3)
 
@@ -26,6 +26,14 @@ def _shear(scale: float = 1.0) -> DisplacementField:
         u=scale * u,
         metadata={"voxel_size": [1.0, 1.0, 1.0], "offset": [0.0, 0.0, 0.0]},
     )
+
+
+def delivered(worker) -> list:
+    """A list that gets an entry once ``worker``'s ``finished`` signal reaches the main thread
+    (its ``yielded`` and ``returned`` signals, emitted before, have been handled by then)."""
+    done = []
+    worker.finished.connect(lambda: done.append(True))
+    return done
 
 
 def settle(qtbot, view) -> None:
@@ -143,7 +151,7 @@ def test_the_ui_stays_responsive_while_a_large_strain_computes(large_view, qtbot
     timer.setInterval(10)
     timer.timeout.connect(lambda: ticks.append(time.perf_counter()))
     timer.start()
-    qtbot.wait(50)
+    qtbot.waitUntil(lambda: len(ticks) >= 3, timeout=5000)  # the timer ticks
     called = time.perf_counter()
     worker = view.set_quantity("ε1")
     returned = time.perf_counter()
@@ -169,13 +177,14 @@ def test_the_last_choice_wins_and_switching_back_is_instant(large_view, qtbot):
     view, field = large_view
     viewer = view.viewer
     first = view.set_quantity("ε1")
+    first_delivered = delivered(first)
     second = view.set_quantity("εeq")  # before the first is done: it supersedes it
     assert first is not None and second is not None and first is not second
     assert "computing" in view.message.text()
     assert "|u| (uncorrected)" in viewer.layers  # the old quantity stays until the new is ready
     settle(qtbot, view)
     qtbot.waitUntil(lambda: first.is_running is False, timeout=30_000)
-    qtbot.wait(50)  # the first worker's queued signals, if any, are delivered
+    qtbot.waitUntil(lambda: bool(first_delivered), timeout=30_000)  # its late signals, handled
     (layer,) = L.quantity_layers(viewer)
     assert L.plugin_metadata(layer)["quantity"] == "εeq"
     assert layer.name == "εeq (uncorrected)"
@@ -194,11 +203,12 @@ def test_the_last_choice_wins_and_switching_back_is_instant(large_view, qtbot):
 def test_a_switch_during_a_computation_to_a_cached_quantity_wins(large_view, qtbot):
     view, field = large_view
     worker = view.set_quantity("εzx")
+    worker_delivered = delivered(worker)
     assert view.set_quantity("|u|") is None  # cached (what the layer showed first)
     (layer,) = L.quantity_layers(view.viewer)
     assert L.plugin_metadata(layer)["quantity"] == "|u|"
     qtbot.waitUntil(lambda: worker.is_running is False, timeout=30_000)
-    qtbot.wait(50)
+    qtbot.waitUntil(lambda: bool(worker_delivered), timeout=30_000)  # its late signals, handled
     assert L.plugin_metadata(layer)["quantity"] == "|u|"  # the late εzx did not come back
     np.testing.assert_array_equal(layer.data, L.quantity_values(field, "|u|"))
 

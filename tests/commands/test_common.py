@@ -1,0 +1,66 @@
+"""What the subcommands share: outputs refused before any work, inputs gathered, progress shown."""
+
+from argparse import Namespace
+
+import pytest
+
+from napari_dvc_correct.commands import _common as C
+from napari_dvc_correct.engine.progress import Progress
+
+
+def test_an_output_file_is_refused_before_any_work(tmp_path):
+    field = tmp_path / "field.npz"
+    field.write_bytes(b"input")
+    assert C.check_output_path(str(tmp_path / "out.npz"), inputs=[str(field)]) == (
+        tmp_path / "out.npz"
+    )
+    with pytest.raises(ValueError, match="is a folder: give a file name"):
+        C.check_output_path(str(tmp_path))
+    with pytest.raises(ValueError, match="must end with .npz"):
+        C.check_output_path(str(tmp_path / "out.csv"))
+    with pytest.raises(FileNotFoundError, match="output folder does not exist"):
+        C.check_output_path(str(tmp_path / "nowhere" / "out.npz"))
+    with pytest.raises(ValueError, match="is also an input"):
+        C.check_output_path(str(field), inputs=[None, str(field)])
+    assert not [p for p in tmp_path.iterdir() if p.name != "field.npz"]  # the probe is gone
+
+
+def test_side_files_and_output_folders_never_replace_an_input(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    scan = data / "G.tif"
+    scan.write_bytes(b"scan")
+    with pytest.raises(ValueError, match="which is the input"):
+        C.check_side_file(scan, [str(scan)], tmp_path / "G.npz")
+    with pytest.raises(ValueError, match="which is a folder"):
+        C.check_side_file(data, [], tmp_path / "x.npz")
+    assert C.check_side_file(tmp_path / "out_points.csv", [str(scan)], tmp_path / "out.npz")
+    with pytest.raises(ValueError, match="holds the input"):
+        C.check_output_dir(str(data), inputs=[str(scan)])
+    assert C.check_output_dir(str(tmp_path / "results"), inputs=[str(scan)]) == (
+        tmp_path / "results"
+    )
+
+
+def test_every_input_option_is_an_input():
+    args = Namespace(reference="G.tif", deformed="F.tif", field=None, mask="m.tif",
+                     volumes=["a.tif", "b.tif"], points="p.csv", out="o.npz")  # fmt: skip
+    assert C.command_inputs(args) == ["G.tif", "F.tif", "a.tif", "b.tif", "m.tif", "p.csv"]
+
+
+def test_drive_returns_the_result_and_the_bar_draws_each_stage(capsys):
+    def work():
+        yield Progress("IC-GN", 1, 2, "half")
+        yield Progress("IC-GN", 2, 2, "all")
+        return 42
+
+    assert C.drive(work(), C.ProgressBar()) == 42
+    lines = capsys.readouterr().err.splitlines()  # not a terminal: a line per stage and at the end
+    assert lines == [
+        f"{'IC-GN':>14} [{'#' * 15}{'.' * 15}] half",
+        f"{'IC-GN':>14} [{'#' * 30}] all",
+    ]
+    assert C.drive(work(), C.ProgressBar(quiet=True)) == 42
+    assert capsys.readouterr().err == ""
+    C.warn(Namespace(command="correct"), "the mask is empty")
+    assert capsys.readouterr().err == "napari-dvc-correct correct: warning: the mask is empty\n"

@@ -1,0 +1,65 @@
+"""The self-correction's volume operations in memory, on a pair related by a known translation."""
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correction import volumes as V
+from napari_dvc_correct.engine.fields.field import DisplacementField
+from napari_dvc_correct.engine.progress import run_to_completion
+
+SHAPE = (32, 32, 32)
+SHIFT = (1.5, -1.0, 0.5)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    reference = synthetic.textured_volume(SHAPE, feature_size=3.0, seed=4) * 100.0
+    deformed = synthetic.deform_volume(reference, synthetic.translation(SHIFT))
+    return reference, deformed
+
+
+def _uniform(u) -> DisplacementField:
+    zero = DisplacementField.zeros((4.0, 4.0, 4.0), (6.0, 6.0, 6.0), (5, 5, 5))
+    return zero.replace(u=np.broadcast_to(u, zero.u.shape).copy())
+
+
+@pytest.mark.parametrize("frame", ["reference", "loaded"])
+def test_the_true_field_aligns_the_pair_and_a_wrong_one_does_not(pair, frame):
+    reference, deformed = pair
+    volumes = V.InMemoryVolumes(reference, deformed, frame)
+    volumes.gray_levels = None  # raw gray levels
+    moved, residual = run_to_completion(volumes.align(_uniform(SHIFT)))
+    _, wrong = run_to_completion(volumes.align(_uniform((0.0, 0.0, 0.0))))
+    assert moved.dtype == np.float32 and moved.shape == SHAPE and np.isfinite(moved).all()
+    scale = float(np.std(reference))
+    assert residual < 0.05 * scale < wrong  # the true field explains the pair
+    g, f, mask = run_to_completion(volumes.matching_pair(moved, _uniform(SHIFT)))
+    if frame == "reference":  # (G, F~): F pulled back onto G
+        assert g is volumes.reference and f is moved
+        inner = (slice(6, -6),) * 3
+        assert np.abs(moved - reference)[inner].mean() < 0.05 * scale
+    else:  # (G', F): G pushed forward onto F
+        assert g is moved and f is volumes.deformed
+    assert mask is None
+
+
+def test_a_mask_travels_with_the_loaded_frame(pair):
+    reference, deformed = pair
+    mask = np.zeros(SHAPE, bool)
+    mask[8:24, 8:24, 8:24] = True
+    volumes = V.InMemoryVolumes(reference, deformed, "loaded", mask=mask)
+    shift = (3.0, 0.0, 0.0)
+    _, _, moved_mask = run_to_completion(volumes.matching_pair(None, _uniform(shift)))
+    expected = np.zeros(SHAPE, bool)
+    expected[11:27, 8:24, 8:24] = True  # the material moved 3 voxels along z
+    np.testing.assert_array_equal(moved_mask, expected)
+
+
+def test_unfinite_voxels_take_the_fill_and_the_hull_mean_skips_them():
+    volume = np.array([1.0, np.nan, np.inf, 4.0])
+    np.testing.assert_array_equal(V._finite_or_fill(volume, 2.5), [1.0, 2.5, 2.5, 4.0])
+    assert V._finite_or_fill(np.ones(3), 0.0).dtype == np.float32
+    difference = np.array([[1.0, np.nan], [3.0, 5.0]])
+    assert V._hull_mean(difference, (slice(0, 2), slice(0, 1))) == 2.0
+    assert np.isnan(V._hull_mean(difference, (slice(0, 1), slice(1, 2))))

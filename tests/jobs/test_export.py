@@ -1,0 +1,57 @@
+"""The export job (jobs/export.py), shared by the Export panel and ``export``: what it writes,
+with known values, and what it refuses."""
+
+import json
+
+import numpy as np
+import pytest
+
+from napari_dvc_correct.engine.fields.field import DisplacementField
+from napari_dvc_correct.engine.fields.scattered import ScatteredField
+from napari_dvc_correct.engine.progress import run_to_completion
+from napari_dvc_correct.io.formats import read_field
+from napari_dvc_correct.jobs.export import ExportRequest, check_request, provenance, run_export
+
+
+def _field():
+    field = DisplacementField.zeros((10.0, 10.0, 10.0), (5.0, 5.0, 5.0), (3, 4, 5))
+    z, y, x = np.meshgrid(*(np.arange(n) for n in field.shape), indexing="ij")
+    field.u[..., 0] = 0.25 * z
+    field.u[..., 1] = -0.5 + 0.1 * y
+    field.u[..., 2] = 0.01 * x * y
+    return field
+
+
+def test_a_csv_export_reads_back_with_its_values_and_a_provenance_side_file(tmp_path):
+    field = _field()
+    request = ExportRequest(field=field, path=tmp_path / "out.csv", source="my field")
+    written = run_to_completion(run_export(request))
+    assert (tmp_path / "out.csv") in [p for p in written]
+    side = tmp_path / "out_provenance.json"
+    assert side.is_file() and json.loads(side.read_text())["source"] == "my field"
+    back = read_field(tmp_path / "out.csv")
+    assert back.shape == field.shape
+    np.testing.assert_allclose(back.origin, field.origin)
+    np.testing.assert_allclose(back.step, field.step)
+    np.testing.assert_allclose(back.u, field.u, atol=1e-6)
+
+
+def test_the_native_file_keeps_the_provenance_inside_and_no_side_file(tmp_path):
+    request = ExportRequest(field=_field(), path=tmp_path / "out.dvcfield", source="a")
+    run_to_completion(run_export(request))
+    assert not (tmp_path / "out_provenance.json").exists()
+    back = read_field(tmp_path / "out.dvcfield")
+    assert back.metadata["provenance"]["source"] == "a"
+
+
+def test_points_refuse_a_grid_format_and_a_strain_tiff(tmp_path):
+    points = ScatteredField(points=np.array([[5.0, 6.0, 7.0], [9.0, 9.0, 9.0]]), u=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="no grid"):
+        check_request(ExportRequest(field=points, path=tmp_path / "p.vti"))
+    with pytest.raises(ValueError, match="needs a grid field"):
+        check_request(ExportRequest(field=points, path=tmp_path / "p.csv", strain_tiff=True))
+    check_request(ExportRequest(field=_field(), path=tmp_path / "g.vti"))  # a grid passes
+
+
+def test_provenance_names_the_source():
+    assert provenance(_field(), "state 2")["source"] == "state 2"

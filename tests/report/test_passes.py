@@ -1,0 +1,46 @@
+"""The self-correction passes in words and rows: one wording for every front end."""
+
+from napari_dvc_correct.engine.fields.field import DisplacementField
+from napari_dvc_correct.report import passes
+
+
+def test_orders_and_subvolumes_in_words():
+    assert [passes.order_text(k) for k in (0, 1, 2)] == ["—", "first", "second"]
+    assert passes.subvolume_text(15) == "15³" and passes.subvolume_text(0) == "—"
+
+
+def test_a_field_whose_passes_changed_method(changed_method_field):
+    field, method = changed_method_field
+    assert passes.first_run_parameters(field) == (1, 21)
+    assert passes.changed_parameters(field)
+    assert passes.method_lines(field) == [f"passes 1–2: {method}"]
+    rows = passes.pass_rows(field)
+    assert [row["pass"] for row in rows] == [0, 1, 2]
+    assert [(row["order"], row["subvolume"], row["applied"]) for row in rows] == [
+        ("—", "—", "—"),
+        ("second", "15³", "yes"),
+        ("second", "15³", "yes"),
+    ]
+    assert [row["mean_gray_residual"] for row in rows] == [3.0, 2.5, 2.0]
+    assert rows[1]["accepted_nodes"] == 20 and rows[1]["refused_nodes"] == 7
+
+
+def test_an_uncorrected_field_has_no_words():
+    field = DisplacementField.zeros((8, 8, 8), (4, 4, 4), (2, 2, 2))
+    assert passes.pass_rows(field) == [] and passes.method_lines(field) == []
+    assert not passes.changed_parameters(field)
+    assert passes.gray_level_line(field) == "" and passes.flag_line(field) == ""
+
+
+def test_gray_levels_and_flags_in_words():
+    field = DisplacementField.zeros((8, 8, 8), (4, 4, 4), (2, 2, 2))
+    field.metadata["gray_levels"] = {"description": "contrast 1.02, offset -3"}
+    field.metadata["correction"] = {
+        "flagged_after": 5, "discontinuity_nodes": 2, "shielded_nodes": 4,
+    }  # fmt: skip
+    assert passes.gray_level_line(field).startswith(
+        "gray levels of the loaded scan mapped onto the reference's: contrast 1.02, offset -3"
+    )
+    text = passes.flag_line(field)
+    assert "3 nodes whose residual" in text and "2 along a discontinuity" in text
+    assert text.endswith("; 4 nodes near it kept their values")

@@ -1,0 +1,52 @@
+"""Layers put into a viewer: ours replaced or updated in place, the user's left alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from napari.components import ViewerModel
+
+from napari_dvc_correct import layers as L
+from napari_dvc_correct import viewer_layers as V
+from napari_dvc_correct.engine.fields.field import DisplacementField, Status
+
+
+@pytest.fixture
+def field() -> DisplacementField:
+    shape = (4, 5, 6)
+    rng = np.random.default_rng(3)
+    u = rng.normal(0, 2.0, (*shape, 3))
+    status = np.zeros(shape, np.uint8)
+    status[1, 2, 3] = Status.DIVERGED
+    return DisplacementField(origin=(5.0, 6.0, 7.0), step=(4.0, 3.0, 2.0), u=u, status=status)
+
+
+def test_field_layers_carry_the_field_and_show_layers_replaces_only_its_own(field):
+    viewer = ViewerModel()
+    viewer.add_image(np.zeros((3, 3, 3)), name="|u| (uncorrected)")  # the user's own layer
+    first = V.show_layers(viewer, L.field_layers(field, "uncorrected"))
+    assert len(first) == 2  # one quantity layer and the arrows
+    assert L.fields_in(viewer.layers) == {"uncorrected": field}
+    # the user's layer stays; ours got napari's numbered name
+    assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None
+    assert viewer.layers["|u| (uncorrected) [1]"] in first
+    count = len(viewer.layers)
+    other = field.copy()
+    second = V.show_layers(viewer, L.field_layers(other, "uncorrected"))
+    assert len(viewer.layers) == count
+    assert all(layer in viewer.layers for layer in second)
+    # updated in place (no new canvas visual, no garbage-collection pause), with the new field
+    assert all(new is old for new, old in zip(second, first))
+    assert L.fields_in(viewer.layers)["uncorrected"] is other
+    assert L.plugin_metadata(viewer.layers["|u| (uncorrected)"]) is None  # the user's, as it was
+
+
+def test_show_layers_keeps_layers_that_share_a_metadata_dict():
+    viewer = ViewerModel()
+    meta = {L.MARKER: {"kind": "preview", "source": "preview"}}
+    points = (np.zeros((2, 3)), {"name": "a", "metadata": meta}, "points")
+    image = (np.zeros((2, 2, 2)), {"name": "b", "metadata": meta}, "image")
+    V.show_layers(viewer, [points])
+    V.show_layers(viewer, [image])
+    assert [layer.name for layer in viewer.layers] == ["a", "b"]
+    assert L.find_layer(viewer, "a").name == "a" and L.find_layer(viewer, "b").name == "b"

@@ -1,0 +1,41 @@
+"""The Self-correct panel without Qt: the per-pass rows and the messages, from a field's records."""
+
+from napari_dvc_correct.engine.fields.field import DisplacementField
+from napari_dvc_correct.widgets import correct_model as model
+
+
+def test_pass_rows_and_the_changed_method(changed_method_field):
+    field, method = changed_method_field
+    assert model.pass_rows(field) == [
+        ("0 (input)", "—", "—", "3.000", "—", "0 %"),
+        ("1", "second", "15³", "2.500", "yes", "25 %"),
+        ("2", "second", "15³", "2.000", "yes", "25 %"),
+    ]
+    assert model.method_message(field) == (
+        f"Correcting matches changed from your first order, 21³: passes 1–2: {method}."
+    )
+    field.params = {"order": 2, "subvolume": 15}
+    assert model.method_message(field).startswith(
+        "Correcting matches as you chose (second order, 15³): "
+    )
+
+
+def test_the_summary_says_before_after_why_it_stopped_and_in_which_frame():
+    field = DisplacementField.zeros((8.0, 8.0, 8.0), (4.0, 4.0, 4.0), (2, 2, 2))
+    assert model.pass_rows(field) == [] and model.method_message(field) == ""
+    field.metadata["correction"] = {
+        "mean_gray_residual_before": 4.0, "mean_gray_residual_after": 2.5,
+        "passes_applied": 2, "stop_reason": "the residual stopped falling", "frame": "reference",
+    }  # fmt: skip
+    assert model.residual_frame(field) == "|F(X + u) − G(X)|, reference frame, raw gray levels"
+    assert model.summary_message(field) == (
+        "Mean gray residual (|F(X + u) − G(X)|, reference frame, raw gray levels) 4.000 → 2.500 "
+        "(2 pass(es) applied). Stopped: the residual stopped falling."
+    )
+    field.metadata["correction"]["frame"] = "loaded"
+    field.metadata["gray_levels"] = {"description": "G ≈ 2·F"}
+    assert model.residual_frame(field) == "|map(F) − G'|, loaded frame, reference gray levels"
+    assert model.summary_message(field).endswith(
+        "Gray levels of the loaded scan mapped onto the reference's: G ≈ 2·F; residuals are in "
+        "the reference's gray levels."
+    )

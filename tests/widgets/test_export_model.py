@@ -1,0 +1,25 @@
+"""The Export panel without Qt: what a request writes, and what it refuses before writing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+def test_points_refuse_what_needs_a_grid(tmp_path):
+    """The model refuses grid formats and grid extras for a result at points, writing nothing."""
+    from napari_dvc_correct.engine.fields.scattered import ScatteredField
+    from napari_dvc_correct.widgets import export_model as model
+
+    points = ScatteredField(points=np.array([[10.0, 11.0, 12.5]]), u=np.array([[0.1, 0.2, 0.3]]))
+    cases = {
+        "x.vti": ({}, "no grid for .vti"),
+        "x.h5": ({}, "no grid for .h5"),
+        "x.csv": ({"strain_tiff": True}, "needs a grid field"),
+        "y.csv": ({"report": {"title": "r"}}, "come from Evaluate"),
+    }
+    for name, (options, message) in cases.items():
+        request = model.ExportRequest(field=points, path=tmp_path / name, **options)
+        with pytest.raises(ValueError, match=message):
+            list(model.run_export(request))
+    assert list(tmp_path.iterdir()) == []
