@@ -29,7 +29,13 @@ def pair():
 
 def test_the_judge_marks_flat_pois_and_keeps_good_matches(pair):
     matched, fine = run_to_completion(match_iter(*pair, PARAMS))
-    assert isinstance(matched, J.MatchedGrid) and np.isnan(matched.sigma).all()
+    assert isinstance(matched, J.MatchedGrid)
+    # the match measures its own noise-free uncertainty where it says so (sigma_plain); the
+    # others wait for the judge
+    measured = np.isfinite(matched.sigma).all(axis=1)
+    if matched.sigma_plain is not None:
+        assert np.array_equal(measured, matched.sigma_plain)
+    assert not measured[matched.status != Status.CONVERGED].any()
     estimates = matched.noise_estimates()
     assert 0 < estimates.size < len(matched.centers)  # the textured, matched POIs only
     field, thresholds = run_to_completion(J.judge_iter(matched, fine, PARAMS))
