@@ -238,6 +238,8 @@ def test_masked_nodes_come_back_untouched(smooth_case, frame):
             [Provenance.CORRECTED, Provenance.REPLACED, Provenance.MEASURED],
         )
     )
+    # flagged shares count the nodes the user asked to measure, not those outside the mask
+    assert corrected.metadata["correction"]["measured_nodes"] == int(np.count_nonzero(~masked))
 
 
 # --- the fault case of issue 10: a pass must never make good nodes worse --------------------------

@@ -509,6 +509,8 @@ def _correction_loop(
         "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
+        # the nodes the user asked to measure (inside their mask): flagged fractions count these
+        "measured_nodes": int(np.count_nonzero(~masked)),
         "discontinuity_nodes": int(cracked.sum()),
         "shielded_nodes": int(shielded.sum()),
         "stop_reason": stop,
