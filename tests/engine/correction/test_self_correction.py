@@ -242,6 +242,27 @@ def test_masked_nodes_come_back_untouched(smooth_case, frame):
     assert corrected.metadata["correction"]["measured_nodes"] == int(np.count_nonzero(~masked))
 
 
+def test_a_measured_node_whose_correcting_match_is_masked_stays_measured():
+    # a 4-voxel shift along x carries the read points X + D(X) of the nodes at the mask's edge
+    # to correcting nodes with less than half their subvolume in the material: that match says
+    # nothing about the node, which keeps its measured value and status (not MASKED)
+    shape = (36, 36, 48)
+    shift = (0.4, -0.3, 4.2)
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=5), shape, synthetic.translation(shift)
+    )
+    mask = np.zeros(shape, bool)
+    mask[:, :, :30] = True
+    params = CorrelationParams(subvolume=13, step=4)
+    measured = correlate(reference, deformed, params, mask=mask)
+    kept = measured.status != Status.MASKED
+    corrected = correct(reference, deformed, measured, params, mask=mask, max_passes=1)
+    assert not np.any(corrected.status[kept] == Status.MASKED)
+    assert np.all(corrected.status[~kept] == Status.MASKED)
+    error = np.linalg.norm(corrected.u[kept] - np.asarray(shift), axis=-1)
+    assert error.max() < 0.05
+
+
 # --- the fault case of issue 10: a pass must never make good nodes worse --------------------------
 FAULT_SHIFT = np.array([1.25, -0.6, 2.4])
 
