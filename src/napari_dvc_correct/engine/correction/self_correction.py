@@ -370,10 +370,13 @@ def _correction_loop(
         )
         # a good node whose correcting match failed keeps its value and its status: a failed
         # (or smaller, noisier) correcting match says nothing about the node's own error. So
-        # does a correcting match that came out MASKED at a node the first run measured (the
-        # match read at X + D(X) next to the mask's edge): the node stays measured, not masked
-        # (on the intact real rock 125 of 5 579 measured nodes turned MASKED this way)
+        # does a correcting match that came out MASKED at a node the first run measured with
+        # the mask (the match read at X + D(X) next to the mask's edge): the node stays
+        # measured (on the intact real rock 125 of 5 579 measured nodes turned MASKED this way).
+        # A mask given to the correction only is news about the nodes: there MASKED stands
         failed_match = _good(current) & ~_good(candidate) & ~masked
+        if not field.metadata.get("masked", False):
+            failed_match &= candidate.status != Status.MASKED
         refuse = (
             unsupported_updates(delta, read_points)
             | unsupported_by_noise.reshape(-1)
