@@ -11,8 +11,15 @@ explains the images, with a judge that is not ours:
   the mean ``|G - a F~ - b|`` over the voxels where the field is defined, as a fraction of the
   zero field's;
 * **ZNCC**: the median ZNCC of the nodes with a good status;
-* **flagged**: nodes without a good status (all nodes, and the nodes inside the specimen: air
-  nodes are ``LOW_TEXTURE`` by design), and ``DISCONTINUITY`` nodes;
+* **the specimen mask**: as a user gives it (the Regions panel's threshold with holes filled,
+  the command line's ``--mask``): the scan smoothed over 2 voxels, thresholded half-way between
+  air and rock, holes filled slice by slice; both runs get it (``--no-mask``: none). Nodes whose
+  subvolume lies mostly in the air are then ``MASKED``: the user said there is nothing to
+  measure there, so they are not counted as flagged. A flagged fraction is the share of the
+  *measured* nodes (not ``MASKED``) without a good status: what the user must distrust of what
+  they asked for;
+* **flagged**: nodes without a good status, of the measured nodes and of the nodes whose
+  centre is inside the specimen, and ``DISCONTINUITY`` nodes;
 * **where the flags are**: the crack is taken as the 2 % of the specimen's voxels the plain
   field explains worst (after the gray-level line); a flagged node is "at the crack" when such a
   voxel lies within its subvolume's half-width;
@@ -47,7 +54,9 @@ def judge_residual(reference, deformed, field: DisplacementField):
     line."""
     as_given = field.copy()
     as_given.status[np.all(np.isfinite(field.u), axis=-1)] = int(Status.CONVERGED)
-    moved, _ = moved_and_residual(reference, deformed, clean(as_given))
+    # masked nodes (air, outside the user's mask) are filled from their neighbours, as a user's
+    # exported, densified field is
+    moved, _ = moved_and_residual(reference, deformed, clean(as_given, fill_masked=True))
     ok = np.isfinite(moved)
     design = np.column_stack([moved[ok], np.ones(int(ok.sum()))])
     line, *_ = np.linalg.lstsq(design, reference[ok], rcond=None)
@@ -57,10 +66,12 @@ def judge_residual(reference, deformed, field: DisplacementField):
 
 
 def specimen_of(reference: np.ndarray) -> np.ndarray:
-    """The specimen (not the air around it): above the mid-gray between air and material."""
+    """The specimen (not the air around it): above the mid-gray between air and material,
+    closed pores filled slice by slice (as the Regions panel's threshold with holes filled)."""
     smooth = ndimage.gaussian_filter(reference, 2.0)
     low, high = np.percentile(smooth, [2, 98])
-    return smooth > 0.5 * (low + high)
+    solid = smooth > 0.5 * (low + high)
+    return np.stack([ndimage.binary_fill_holes(plane) for plane in solid])
 
 
 def good(field: DisplacementField) -> np.ndarray:
@@ -77,16 +88,18 @@ def load_crop(name: str):
     return data["reference"].astype(np.float32), data["deformed"].astype(np.float32)
 
 
-def run(name: str, params: CorrelationParams) -> None:
+def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
     crop = load_crop(name)
     if crop is None:
         return
     reference, deformed = crop
+    specimen = specimen_of(reference)
+    mask = specimen if use_mask else None
     started = time.perf_counter()
-    plain = correlate(reference, deformed, params)
+    plain = correlate(reference, deformed, params, mask=mask)
     plain_seconds = time.perf_counter() - started
     started = time.perf_counter()
-    corrected = correct(reference, deformed, plain, params)
+    corrected = correct(reference, deformed, plain, params, mask=mask)
     correction_seconds = time.perf_counter() - started
 
     zero = plain.copy()
@@ -96,7 +109,6 @@ def run(name: str, params: CorrelationParams) -> None:
     plain_residual, plain_map = judge_residual(reference, deformed, plain)
     corrected_residual, _ = judge_residual(reference, deformed, corrected)
 
-    specimen = specimen_of(reference)
     crack = np.zeros(reference.shape, bool)
     inside = specimen & np.isfinite(plain_map)
     crack[inside] = plain_map[inside] > np.percentile(plain_map[inside], 98.0)
@@ -106,7 +118,11 @@ def run(name: str, params: CorrelationParams) -> None:
     node_in_specimen = specimen[tuple(nodes.T)].reshape(plain.shape)
     node_at_crack = near_crack[tuple(nodes.T)].reshape(plain.shape)
 
-    print(f"\n## {name} ({plain.n_points} nodes, subvolume {params.subvolume}, step {params.step})")
+    measured = plain.status != int(Status.MASKED)
+    print(
+        f"\n## {name} ({plain.n_points} nodes, {int(measured.sum())} measured, subvolume "
+        f"{params.subvolume}, step {params.step}, specimen mask: {'yes' if use_mask else 'no'})"
+    )
     gray = corrected.metadata.get("gray_levels", {}).get("description", "")
     print(f"gray-level map of the correction: {gray}")
     print(f"correction: {corrected.metadata['correction']['stop_reason']}")
@@ -118,7 +134,7 @@ def run(name: str, params: CorrelationParams) -> None:
             f"within the noise), {record['improved_nodes']} improved above the floor"
         )
     print(
-        "| field | residual / zero field's | median ZNCC (good) | flagged (all) | "
+        "| field | residual / zero field's | median ZNCC (good) | flagged (measured) | "
         "flagged (specimen) | of the flagged: at the crack | DISCONTINUITY | seconds |"
     )
     print("|---|---|---|---|---|---|---|---|")
@@ -126,13 +142,13 @@ def run(name: str, params: CorrelationParams) -> None:
         ("plain", plain, plain_residual, plain_seconds),
         ("corrected", corrected, corrected_residual, plain_seconds + correction_seconds),
     ):
-        flagged = ~good(field)
+        flagged = ~good(field) & measured
         in_specimen = flagged & node_in_specimen
         at_crack = float(np.mean(node_at_crack[flagged])) if flagged.any() else float("nan")
         zncc = float(np.median(field.zncc[good(field)])) if good(field).any() else float("nan")
         print(
-            f"| {label} | {residual / zero_residual:.4f} ({residual:.3f} gray levels) | "
-            f"{zncc:.4f} | {flagged.mean():.1%} | "
+            f"| {label} | {residual / zero_residual:.5f} ({residual:.4f} gray levels) | "
+            f"{zncc:.4f} | {flagged.sum() / max(1, measured.sum()):.1%} | "
             f"{in_specimen.sum() / max(1, node_in_specimen.sum()):.1%} | {at_crack:.0%} | "
             f"{int(np.sum(field.status == int(Status.DISCONTINUITY)))} | {seconds:.1f} |"
         )
@@ -150,10 +166,13 @@ def main() -> None:
     parser.add_argument("crops", nargs="*", default=["upper", "lower"])
     parser.add_argument("--subvolume", type=int, default=21)
     parser.add_argument("--step", type=int, default=8)
+    parser.add_argument(
+        "--no-mask", action="store_true", help="run without the specimen mask a user would give"
+    )
     args = parser.parse_args()
     params = CorrelationParams(subvolume=args.subvolume, step=args.step)
     for name in args.crops:
-        run(name, params)
+        run(name, params, use_mask=not args.no_mask)
 
 
 if __name__ == "__main__":

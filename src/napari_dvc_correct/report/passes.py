@@ -120,6 +120,9 @@ def flag_line(field: DisplacementField) -> str:
         f"flagged after the passes: {flagged - crack} nodes whose residual no small error "
         f"explains (outlier replaced), {crack} along a discontinuity (a crack: discontinuity)"
     )
+    measured = info.get("measured_nodes")
+    if measured:  # masked nodes (outside the user's region) are not measured, not flagged
+        text += f"; {flagged / measured:.1%} of the {measured} measured nodes"
     if shielded:
         text += f"; {shielded} nodes near it kept their values"
     return text

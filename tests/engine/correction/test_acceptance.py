@@ -1,8 +1,14 @@
 """The decision rules of engine/correction/acceptance.py on small fields with known answers."""
 
 import numpy as np
+import pytest
 
-from napari_dvc_correct.engine.correction.acceptance import MEASURED_REACH, unsupported_updates
+from napari_dvc_correct.engine.correction.acceptance import (
+    MEASURED_REACH,
+    NOISE_Z,
+    Judge,
+    unsupported_updates,
+)
 from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
 
 
@@ -115,3 +121,46 @@ def prefilter_of(volume):
     from napari_dvc_correct.engine.correlation.interpolation import prefilter
 
     return prefilter(np.asarray(volume, np.float32))
+
+
+class _KnownResiduals:
+    """A judge's volume access with known per-node numbers: cell residual means, the noise
+    floor of eq. 1 and the mean gray gradient."""
+
+    def __init__(self, local, floor, gradient):
+        self.local, self.floor, self.gradient = local, floor, gradient
+
+    def local_means(self, field, halves):
+        return (self.local, self.local), self.floor
+
+    def gradient_means(self, field, half):
+        return np.full(self.local.shape, self.gradient)
+
+
+def _judged(floor, excess, gradient=4.0):
+    """Judge a 3 x 3 x 3 grid (step 6: 7³ cells) whose centre node's residual exceeds the floor
+    by ``excess`` gray levels; the others sit on the floor. Returns (flagged centre, tolerance)."""
+    field = DisplacementField.zeros((10.0,) * 3, (6.0,) * 3, (3, 3, 3))
+    local = np.full(field.shape, floor)
+    local[1, 1, 1] += excess
+    judge = Judge(
+        None, None, None, field.step, 10, residuals=_KnownResiduals(local, floor, gradient)
+    )
+    local = judge.local(field)
+    return bool(judge.unexplained(field, local)[1, 1, 1]), judge.tolerance
+
+
+def test_a_flag_needs_an_excess_above_both_a_voxel_s_error_and_the_noise_scatter():
+    # a 7³ cell holds 343 / 8 independent noise samples: noise alone scatters its mean residual
+    # by sqrt(2) sqrt(pi/2 - 1) / sqrt(343 / 8) = 0.163 of the floor; NOISE_Z = 2 of that
+    spread = np.sqrt(2.0) * np.sqrt(np.pi / 2 - 1) / np.sqrt(343 / 8)
+    # heavy noise (floor 30 gray levels): a 1-voxel error explains 0.5 x 4 = 2 gray levels, the
+    # noise scatters the cell mean by up to 2 x 0.163 x 30 = 9.8
+    flagged, tolerance = _judged(floor=30.0, excess=5.0)
+    assert tolerance == pytest.approx(NOISE_Z * spread * 30.0, rel=1e-9)
+    assert not flagged  # within the noise's scatter: no more wrong than the others
+    assert _judged(floor=30.0, excess=2.0 + tolerance + 0.1)[0]
+    assert not _judged(floor=30.0, excess=2.0 + tolerance - 0.1)[0]
+    # clean scans (floor 1): the noise term is 0.33 and the voxel's error decides, as before
+    assert _judged(floor=1.0, excess=2.5)[0]
+    assert not _judged(floor=1.0, excess=1.9)[0]

@@ -238,6 +238,31 @@ def test_masked_nodes_come_back_untouched(smooth_case, frame):
             [Provenance.CORRECTED, Provenance.REPLACED, Provenance.MEASURED],
         )
     )
+    # flagged shares count the nodes the user asked to measure, not those outside the mask
+    assert corrected.metadata["correction"]["measured_nodes"] == int(np.count_nonzero(~masked))
+
+
+def test_a_measured_node_whose_correcting_match_is_masked_stays_measured():
+    # a 2.3-voxel shift along x carries the read points X + D(X) of the nodes at the mask's
+    # edge to correcting nodes with less than half their subvolume in the material (measured:
+    # 25 of the 150 measured nodes): that match says nothing about the node, which keeps its
+    # measured value and status (not MASKED)
+    shape = (36, 36, 48)
+    shift = (0.4, -0.3, 2.3)
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=5), shape, synthetic.translation(shift)
+    )
+    mask = np.zeros(shape, bool)
+    mask[:, :, :31] = True
+    params = CorrelationParams(subvolume=13, step=4)
+    measured = correlate(reference, deformed, params, mask=mask)
+    kept = measured.status != Status.MASKED
+    corrected = correct(reference, deformed, measured, params, mask=mask, max_passes=1)
+    assert correction_table(corrected)[1].failed_match_nodes > 0  # the case is met
+    assert not np.any(corrected.status[kept] == Status.MASKED)
+    assert np.all(corrected.status[~kept] == Status.MASKED)
+    error = np.linalg.norm(corrected.u[kept] - np.asarray(shift), axis=-1)
+    assert error.max() < 0.05
 
 
 # --- the fault case of issue 10: a pass must never make good nodes worse --------------------------
