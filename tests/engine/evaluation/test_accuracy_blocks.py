@@ -113,14 +113,18 @@ def test_background_residual_is_eq_1_over_the_voxels_of_one_phase_in_both_states
         accuracy_blocks.background_residual(residual, reference[..., :2], mapped)
 
 
-def test_the_squared_gradient_of_a_block_with_its_halo_is_the_whole_volume_s():
+def test_the_gradient_of_a_block_with_its_halo_is_the_whole_volume_s():
     from napari_dvc_correct.engine.evaluation import accuracy_blocks
 
     z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float32) for n in (6, 7, 8)), indexing="ij")
-    volume = 2.0 * z - 3.0 * y + 0.5 * x  # |grad|² = 4 + 9 + 0.25 everywhere
-    np.testing.assert_allclose(accuracy_blocks.squared_gradient(volume), 13.25, rtol=1e-6)
-    ramp = (x**2).astype(np.float32)  # central differences: (2x)², one-sided at the faces
-    whole = accuracy_blocks.squared_gradient(ramp)
+    volume = 2.0 * z - 3.0 * y + 0.5 * x  # grad = (2, -3, 0.5) everywhere, faces included
+    components = accuracy_blocks.gradient_components(volume)
+    assert components.shape == (3, 6, 7, 8)
+    for axis, slope in enumerate((2.0, -3.0, 0.5)):
+        np.testing.assert_allclose(components[axis], slope, rtol=1e-6)
+    ramp = (x**2).astype(np.float32)  # central differences: 2x, one-sided at the faces
+    whole = accuracy_blocks.gradient_components(ramp)
+    np.testing.assert_allclose(whole[2][:, :, 1:-1], 2.0 * x[:, :, 1:-1], rtol=1e-6)
     box = (slice(2, 4), slice(0, 7), slice(3, 6))
-    block = accuracy_blocks.halo_squared_gradient(lambda s: ramp[s], box, ramp.shape)
-    np.testing.assert_array_equal(block, whole[box])
+    block = accuracy_blocks.halo_gradient(lambda s: ramp[s], box, ramp.shape)
+    np.testing.assert_array_equal(block, whole[(slice(None), *box)])
