@@ -41,3 +41,18 @@ def test_coarse_levels_bin_the_subvolume_and_the_radius(
 def test_a_negative_level_is_refused():
     with pytest.raises(ValueError, match="level must be >= 0"):
         level_reach(CorrelationParams(), -1)
+
+
+def test_the_search_window_s_memory_is_that_of_the_coarsest_level_s_reach():
+    from napari_dvc_correct.engine.correlation.pyramid import search_window_bytes
+
+    # no pyramid (radius 4 at full resolution): a 21³ subvolume searched ±4 spans 29 voxels
+    flat = CorrelationParams(subvolume=21, step=8, search_radius=4)
+    assert search_window_bytes(flat, (64, 64, 64)) == 64 * 29**3
+    # radius 20 on a 41³ subvolume: two levels (factor 4): half max(4, 20 // 4) = 5,
+    # radius ceil(20 / 4) + 1 = 6, span 2·5 + 1 + 2·6 = 23 binned voxels
+    deep = CorrelationParams(subvolume=41, step=8, search_radius=20)
+    assert search_window_bytes(deep, (256, 256, 256)) == 64 * 23**3
+    # a larger radius never needs less
+    wider = CorrelationParams(subvolume=41, step=8, search_radius=60)
+    assert search_window_bytes(wider, (256, 256, 256)) >= search_window_bytes(deep, (256,) * 3)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..fields.field import Status
 from . import icgn, icgn_reference, icgn_uncertainty, shape_function
-from .initial_guess import bin_volume
+from .initial_guess import bin_volume, pyramid_levels
 from .interpolation import prefilter
 from .params import CorrelationParams
 
@@ -91,6 +91,20 @@ def level_reach(params: CorrelationParams, lev: int) -> LevelReach:
         return LevelReach(1, params.half, radius)
     factor = 2**lev
     return LevelReach(factor, max(4, params.half // factor), math.ceil(radius / factor) + 1)
+
+
+def search_window_bytes(params: CorrelationParams, volume_shape) -> int:
+    """Peak memory of the largest per-POI search window of the FFT search, bytes.
+
+    The window is searched at the coarsest pyramid level (:func:`.initial_guess.pyramid_levels`),
+    whose subvolume and search radius are :func:`level_reach`'s: edge ``2 M_L + 1 + 2 R_L``
+    binned voxels, about 64 bytes per voxel (the window, its spectrum, the ZNCC and the box sums
+    in float64); at least one POI is searched at a time.
+    """
+    levels = pyramid_levels(params.effective_search_radius, params.subvolume, volume_shape)
+    reach = level_reach(params, levels)
+    span = 2 * reach.half + 1 + 2 * reach.search_radius
+    return 64 * span**3
 
 
 @dataclass
