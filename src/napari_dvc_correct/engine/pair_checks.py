@@ -121,7 +121,7 @@ def check_search_radius(params, volume_shape, available_bytes: int | None = None
         displacement in this pair is that large), or one POI's search window needs more than
         ``available_bytes``.
     """
-    from .correlation.pyramid import search_window_bytes
+    from .correlation.pyramid_rule import search_window_bytes
 
     radius = int(params.effective_search_radius)
     largest = max(int(n) for n in volume_shape)
