@@ -200,3 +200,17 @@ def test_no_two_modules_import_each_other():
         if (ROOT.parent / Path(*name.split(".")) / "__init__.py").exists():
             graph[name] = {t for t in graph[name] if not t.startswith(name + ".")}
     assert _cycles(graph) == []
+
+
+#: The longest a source file may grow: past it, a module holds two things (split it by what
+#: each part is, as engine/correlation/pyramid.py was split from correlate.py).
+MAX_LINES = 600
+
+
+def test_no_source_file_is_longer_than_a_reader_can_hold():
+    long = {
+        str(path.relative_to(ROOT)): n
+        for path in ROOT.rglob("*.py")
+        if (n := len(path.read_text().splitlines())) > MAX_LINES
+    }
+    assert not long, f"split these (lines): {long}"

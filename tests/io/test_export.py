@@ -187,18 +187,6 @@ def test_failed_export_leaves_the_old_file(field, tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.vti"]
 
 
-def test_report_json_and_markdown(tmp_path):
-    report = {
-        "title": "accuracy",
-        "accuracy index": np.float64(0.93),
-        "phases": {"mean gray": [100.0, 170.0]},
-    }
-    data = json.loads(export.export_report(report, tmp_path / "r.json").read_text())
-    assert data["accuracy index"] == pytest.approx(0.93)
-    text = export.export_report(report, tmp_path / "r.md").read_text()
-    assert "# accuracy" in text and "| accuracy index | 0.93 |" in text and "## phases" in text
-
-
 def test_the_uncertainty_travels_to_csv_vtk_and_tiff(field, tmp_path):
     sigma = np.random.default_rng(7).uniform(0.01, 0.2, (*field.shape, 3))
     sigma[0, 0, 0] = np.nan  # a node without a measured value

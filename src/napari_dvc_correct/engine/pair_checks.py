@@ -121,7 +121,7 @@ def check_search_radius(params, volume_shape, available_bytes: int | None = None
         displacement in this pair is that large), or one POI's search window needs more than
         ``available_bytes``.
     """
-    from .correlation.initial_guess import search_window_bytes
+    from .correlation.pyramid_rule import search_window_bytes
 
     radius = int(params.effective_search_radius)
     largest = max(int(n) for n in volume_shape)
@@ -130,7 +130,7 @@ def check_search_radius(params, volume_shape, available_bytes: int | None = None
             f"search radius {radius} voxels is larger than the volume {tuple(volume_shape)}: no "
             f"displacement of this pair is that large; use a search radius of at most {largest}"
         )
-    need = search_window_bytes(radius, int(params.subvolume), volume_shape)
+    need = search_window_bytes(params, volume_shape)
     if available_bytes is not None and need > available_bytes:
         raise ValueError(
             f"search radius {radius} voxels needs about {need / 2**30:.1f} GiB for one "

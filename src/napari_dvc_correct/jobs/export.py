@@ -156,7 +156,7 @@ def evaluation_report_files(request: ExportRequest, stem: Path) -> list[Path]:
 
 def run_export(request: ExportRequest):
     """Write everything the request asks for; yields Progress per file, returns the paths."""
-    from ..io import export
+    from ..io import export, report_file
 
     check_request(request)
     points = is_points(request.field)
@@ -180,7 +180,7 @@ def run_export(request: ExportRequest):
     if points or suffix not in WITH_METADATA:  # (the points' .npz has no room for it either)
         side = stem.parent / f"{stem.name}_provenance.json"
         report = {"title": "DVC field provenance", **origin, "metadata": field.metadata}
-        jobs.append(("provenance", lambda: [export.export_report(report, side)]))
+        jobs.append(("provenance", lambda: [report_file.export_report(report, side)]))
     if request.strain_tiff and request.equivalent_strain is not None:
         placement = {
             "scale": np.asarray(request.field.step) * np.asarray(request.voxel_size),
@@ -220,7 +220,9 @@ def run_export(request: ExportRequest):
             (
                 "report",
                 lambda: [
-                    export.export_report(request.report, stem.parent / f"{stem.name}_report.json")
+                    report_file.export_report(
+                        request.report, stem.parent / f"{stem.name}_report.json"
+                    )
                 ],
             )
         )

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..engine.correlation.initial_guess import fft_search, pyramid_levels
 from ..engine.correlation.params import CorrelationParams
-from ..engine.correlation.pyramid import level_reach
+from ..engine.correlation.pyramid_rule import level_reach
 from ..engine.fields.field import grid_for_volume
 from ..engine.run_options import MAX_MEMORY_BYTES
 from ..io.sizes import available_memory  # noqa: F401  (re-exported: part of this API)

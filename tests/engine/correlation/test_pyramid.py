@@ -1,43 +1,34 @@
-"""The per-level rule of the image pyramid (subvolume half-size and search radius)."""
+"""The arrays of one pyramid level (engine/correlation/pyramid.py), against known answers."""
 
-import math
-
+import numpy as np
 import pytest
 
-from napari_dvc_correct.engine.correlation.params import CorrelationParams
-from napari_dvc_correct.engine.correlation.pyramid import level_reach
+from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correlation.initial_guess import bin_volume
+from napari_dvc_correct.engine.correlation.interpolation import prefilter
+from napari_dvc_correct.engine.correlation.pyramid import Prefiltered, PyramidLevel
 
 
-def test_level_zero_keeps_the_run_s_subvolume_and_radius():
-    params = CorrelationParams(subvolume=31, search_radius=23)
-    assert level_reach(params, 0) == (1, 15, 23)
-    # no radius given: max(8, M)
-    assert level_reach(CorrelationParams(subvolume=21), 0).search_radius == 10
-    assert level_reach(CorrelationParams(subvolume=9), 0).search_radius == 8
+@pytest.fixture(scope="module")
+def volume():
+    return synthetic.textured_volume((24, 24, 24), 2.0, seed=4).astype(np.float32)
 
 
-@pytest.mark.parametrize(
-    "subvolume, radius, lev, half, coarse_radius",
-    [
-        (31, 15, 1, 7, 9),  # 15 // 2, ceil(15 / 2) + 1
-        (31, 40, 2, 4, 11),  # 15 // 4 = 3 -> at least 4; ceil(40 / 4) + 1
-        (41, 20, 2, 5, 6),
-        (65, 64, 3, 4, 9),
-    ],
-)
-def test_coarse_levels_bin_the_subvolume_and_the_radius(
-    subvolume, radius, lev, half, coarse_radius
-):
-    reach = level_reach(CorrelationParams(subvolume=subvolume, search_radius=radius), lev)
-    assert reach.factor == 2**lev
-    assert reach.half == half
-    assert reach.search_radius == coarse_radius
-    # the binned search still covers the run's radius
-    assert reach.factor * (reach.search_radius - 1) >= radius
-    assert reach.half == max(4, (subvolume // 2) // 2**lev)
-    assert reach.search_radius == math.ceil(radius / 2**lev) + 1
+def test_a_coarse_level_holds_the_binned_volumes_and_their_std(volume):
+    level = PyramidLevel.build(2, volume, volume, None, 5, 0.0)
+    binned = bin_volume(volume, 2)
+    assert level.factor == 2 and level.half == 5
+    np.testing.assert_allclose(level.reference, binned)
+    np.testing.assert_allclose(level.coef_deformed, prefilter(binned), rtol=1e-5, atol=1e-4)
+    assert level.gradient.shape == (3, *binned.shape)
+    assert not level.reference.flags.writeable  # one array type for the kernels
+    assert level.min_std == pytest.approx(0.0)
 
 
-def test_a_negative_level_is_refused():
-    with pytest.raises(ValueError, match="level must be >= 0"):
-        level_reach(CorrelationParams(), -1)
+def test_prefiltered_arrays_are_used_as_given_and_checked_against_the_volumes(volume):
+    coefficients = prefilter(volume)
+    level = PyramidLevel.build(1, volume, volume, None, 5, 0.0,
+                               prefiltered=Prefiltered(coef_deformed=coefficients))  # fmt: skip
+    assert level.coef_deformed is coefficients
+    with pytest.raises(ValueError, match="do not fit"):
+        Prefiltered(coef_deformed=coefficients[:-1]).check(volume.shape)

@@ -28,7 +28,8 @@ from .guided_repair import repair, search_seeds, seed_guesses
 from .initial_guess import global_shift, pyramid_levels
 from .match_judgement import MatchedGrid, judge_iter, match_statistics
 from .params import CorrelationParams
-from .pyramid import PyramidLevel, _pyramid_level, level_reach
+from .pyramid import PyramidLevel, _pyramid_level
+from .pyramid_rule import level_reach
 
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 

@@ -58,19 +58,6 @@ def pyramid_levels(search_radius: int, subvolume: int, volume_shape, max_coarse_
     return levels
 
 
-def search_window_bytes(search_radius: int, subvolume: int, volume_shape) -> int:
-    """Peak memory of the largest per-POI search window of :func:`fft_search`, bytes.
-
-    The window is searched at the coarsest pyramid level (:func:`pyramid_levels`): edge
-    ``subvolume / 2**L + 2 * ceil(R / 2**L)`` voxels, about 64 bytes per voxel (the window, its
-    spectrum, the ZNCC and the box sums in float64); at least one POI is searched at a time.
-    """
-    levels = pyramid_levels(search_radius, subvolume, volume_shape)
-    radius = int(np.ceil(search_radius / 2**levels)) + (1 if levels else 0)
-    span = (subvolume // 2**levels) + 2 * radius
-    return 64 * span**3
-
-
 def global_shift(reference: np.ndarray, deformed: np.ndarray, max_size: int = 96) -> np.ndarray:
     """Rigid translation ``t`` (z, y, x voxels, integers) with ``F(X + t) ≈ G(X)``.
 

@@ -6,7 +6,6 @@ from the run's parameters by one rule, :func:`level_reach`, which the tiled back
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -17,6 +16,7 @@ from . import icgn, icgn_reference, icgn_uncertainty, shape_function
 from .initial_guess import bin_volume
 from .interpolation import prefilter
 from .params import CorrelationParams
+from .pyramid_rule import level_reach
 
 
 def _read_only(volume: np.ndarray) -> np.ndarray:
@@ -51,46 +51,6 @@ class Prefiltered(NamedTuple):
             raise ValueError(f"gradient {self.gradient.shape} does not fit volumes {shape}")
         if self.coef_deformed is not None and tuple(self.coef_deformed.shape) != shape:
             raise ValueError(f"coefficients {self.coef_deformed.shape} do not fit volumes {shape}")
-
-
-class LevelReach(NamedTuple):
-    """What a subvolume spans at one pyramid level, in that level's (binned) voxels.
-
-    Attributes
-    ----------
-    factor : int
-        Binning factor ``2**lev``.
-    half : int
-        Subvolume half-size ``M`` at the level.
-    search_radius : int
-        Radius of the integer (FFT) search around the shift carried to the level.
-    """
-
-    factor: int
-    half: int
-    search_radius: int
-
-
-def level_reach(params: CorrelationParams, lev: int) -> LevelReach:
-    """Subvolume half-size and search radius of pyramid level ``lev`` for ``params``.
-
-    Level 0 keeps the run's half-size ``M`` and search radius ``R``. A coarse level of factor
-    ``f = 2**lev`` uses ``max(4, M // f)`` (at least a 9-voxel subvolume) and
-    ``ceil(R / f) + 1`` (one binned voxel more for the rounding of the carried shift).
-
-    Raises
-    ------
-    ValueError
-        For a negative level.
-    """
-    lev = int(lev)
-    if lev < 0:
-        raise ValueError(f"a pyramid level must be >= 0, got {lev}")
-    radius = params.effective_search_radius
-    if lev == 0:
-        return LevelReach(1, params.half, radius)
-    factor = 2**lev
-    return LevelReach(factor, max(4, params.half // factor), math.ceil(radius / factor) + 1)
 
 
 @dataclass
