@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from qtpy.QtWidgets import QApplication
 
-from napari_dvc_correct import layers as L
+from napari_dvc_correct import viewer_layers as V
 from napari_dvc_correct.demo import make_viewer
 
 IMAGES = Path(__file__).resolve().parent / "images"
@@ -137,7 +137,7 @@ def main() -> None:
     hidden = [x for x in viewer.layers if x.visible and x.name not in ("reference", "phases")]
     for layer in hidden:
         layer.visible = False
-    L.text_overlay(viewer).visible = False
+    V.text_overlay(viewer).visible = False
     viewer.layers.selection.active = phases
     shot(viewer, "evaluate.png")
     phases.visible = False
