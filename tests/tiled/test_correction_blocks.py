@@ -20,7 +20,7 @@ def test_block_statistics_add_up_to_the_whole_volume_s():
     volume[2, 3, 4] = np.nan
     volume[10, 1, 1] = np.inf
     lazy = ArrayVolume(volume)
-    parts = [B._statistics_block(lazy, 4, box) for box in _blocks(volume.shape, (5, 6, 7))]
+    parts = [B.statistics_block(lazy, 4, box) for box in _blocks(volume.shape, (5, 6, 7))]
     samples = np.concatenate([p[0] for p in parts])
     whole = volume[::4, ::4, ::4].ravel()
     np.testing.assert_array_equal(np.sort(samples), np.sort(whole))  # the same lattice
@@ -31,7 +31,7 @@ def test_block_statistics_add_up_to_the_whole_volume_s():
 
 def test_the_mask_reads_as_zero_or_one():
     mask = ArrayVolume(np.array([[[0, 3, -1, 0]]], np.int16))
-    nonzero = B._NonZero(mask)
+    nonzero = B.NonZero(mask)
     assert nonzero.shape == (1, 1, 4) and nonzero.dtype == np.float32
     region = (slice(0, 1), slice(0, 1), slice(1, 4))
     np.testing.assert_array_equal(nonzero.read_region(region), [[[1.0, 1.0, 0.0]]])

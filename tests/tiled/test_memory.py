@@ -202,7 +202,7 @@ def _engine_levels(monkeypatch, params, size):
     from napari_dvc_correct.engine.progress import run_to_completion
 
     halves, radii = {}, {}
-    build_level = engine._pyramid_level
+    build_level = engine.build_level
     search = engine.seed_guesses
 
     def recording_level(lev, *args):
@@ -215,7 +215,7 @@ def _engine_levels(monkeypatch, params, size):
         halves[lev], radii[lev] = level.half, radius
         return search(level, centers, grid_shape, shift, radius, *args, **kwargs)
 
-    monkeypatch.setattr(engine, "_pyramid_level", recording_level)
+    monkeypatch.setattr(engine, "build_level", recording_level)
     monkeypatch.setattr(engine, "seed_guesses", recording_search)
     reference = synthetic.textured_volume((size,) * 3, feature_size=2.0, seed=2)
     deformed = synthetic.deform_volume(reference, synthetic.translation((1.5, -2.0, 0.5)))

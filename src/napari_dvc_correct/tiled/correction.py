@@ -60,10 +60,10 @@ from ..io.atomic import scratch_dir
 from ..io.lazy import as_lazy, iter_blocks, open_volume
 from . import scheduling
 from .correction_blocks import (
-    _gray_sums_block,
-    _statistics_block,
-    _warp_residual_block,
+    gray_sums_block,
+    statistics_block,
     warp_mask_iter,
+    warp_residual_block,
 )
 from .correlate import correlate_tiled_iter
 from .memory import (
@@ -217,7 +217,7 @@ class TiledVolumes(CorrectionVolumes):
         found = {}
         for name, volume in (("reference", self.reference), ("deformed", self.deformed)):
             parts = yield from self._tasks(
-                _statistics_block, [volume, stride], regions, f"statistics ({name})"
+                statistics_block, [volume, stride], regions, f"statistics ({name})"
             )
             bad = sum(part[3] for part in parts)
             if bad:
@@ -272,7 +272,7 @@ class TiledVolumes(CorrectionVolumes):
             path,
             self.shape,
             1,
-            _warp_residual_block,
+            warp_residual_block,
             [self.reference, self.deformed, spline],
             [self.frame, float(fill), hull, self._gray()],
             run=(self.block_shape, self._where, self.workers),
@@ -310,7 +310,7 @@ class TiledVolumes(CorrectionVolumes):
 
         def sums_with(previous):
             parts = yield from self._tasks(
-                _gray_sums_block,
+                gray_sums_block,
                 [self.reference, self.deformed, spline, DEFAULT_CELL, previous],
                 blocks,
                 "gray levels",

@@ -26,7 +26,7 @@ from .volumes import LazySampler, _forward_values, write_iter
 
 
 # --- block tasks (run on workers) ----------------------------------------------------------------
-class _NonZero:
+class NonZero:
     """A lazy volume read as 0/1 (``!= 0``): the material mask as the engine sees it."""
 
     def __init__(self, volume):
@@ -38,7 +38,7 @@ class _NonZero:
         return (self.volume.read_region(slices) != 0).astype(np.float32)
 
 
-def _statistics_block(volume, stride, region):
+def statistics_block(volume, stride, region):
     """The voxels of ``region`` on the lattice multi-Otsu samples, the sum and count of its
     finite values and how many are not finite."""
     block = volume.read_region(region)
@@ -47,14 +47,14 @@ def _statistics_block(volume, stride, region):
     return lattice_sample(block, region, stride), total, int(finite.sum()), int((~finite).sum())
 
 
-def _gray_sums_block(reference, deformed, spline, gray_cell, previous, block):
+def gray_sums_block(reference, deformed, spline, gray_cell, previous, block):
     """The gray-level map's cell sums of one block (:func:`..engine.evaluation.gray_levels.block_sums`)."""
     moved = pull_back_block(LazySampler(deformed), spline, block)
     g = reference.read_region(block)
     return block_sums(g, moved, block, reference.shape, gray_cell, previous)
 
 
-def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, hull, gray):
+def warp_residual_block(out, reference, deformed, spline, block, frame, fill, hull, gray):
     """The moved volume of one block (written) and the sum and count of its gray residual
     (with the gray-level map ``gray``: ``|map(F) - G'|`` or ``|map(F~) - G|``)."""
     if frame == "loaded":
@@ -84,7 +84,7 @@ def _warp_residual_block(out, reference, deformed, spline, block, frame, fill, h
     return float(np.sum(difference, dtype=np.float64)), int(difference.size)
 
 
-def _warp_mask_block(out, mask, spline, block):
+def warp_mask_block(out, mask, spline, block):
     values = _forward_values(
         mask, spline, block, "extrapolate", INVERT_MAX_ITERATIONS, INVERT_TOLERANCE
     )
@@ -119,8 +119,8 @@ def warp_mask_iter(mask, field: DisplacementField, path, *, run) -> Generator[Pr
         path,
         tuple(int(n) for n in mask.shape),
         1,
-        _warp_mask_block,
-        [_NonZero(mask), FieldSpline.from_field(field)],
+        warp_mask_block,
+        [NonZero(mask), FieldSpline.from_field(field)],
         [],
         run=run,
         metadata={"quantity": "the mask warped to the loaded state"},

@@ -9,7 +9,7 @@ from ..fields.compose import compose
 from ..fields.field import GOOD_STATUSES, DisplacementField, Provenance
 
 
-def _update(current: DisplacementField, delta: DisplacementField, frame: str, update: str):
+def updated_field(current: DisplacementField, delta: DisplacementField, frame: str, update: str):
     if update == "sum":
         return compose(current, delta, mode="sum")
     if frame == "reference":
@@ -17,25 +17,25 @@ def _update(current: DisplacementField, delta: DisplacementField, frame: str, up
     return compose(current, delta)
 
 
-def _zeros(grid) -> DisplacementField:
+def zero_start(grid) -> DisplacementField:
     """The zero start of a correcting DVC on ``grid`` (origin, step, shape)."""
     zero = DisplacementField.zeros(*grid)
     zero.gradient = np.zeros((*grid[2], 3, 3))
     return zero
 
 
-def _read_points(current: DisplacementField, frame: str, update: str) -> np.ndarray:
+def update_read_points(current: DisplacementField, frame: str, update: str) -> np.ndarray:
     """Where each node's update reads ``ΔD``: ``X + D(X)`` (loaded frame, exact), else ``X``."""
     if frame == "loaded" and update == "exact":
         return current.points + current.u.reshape(-1, 3)
     return current.points
 
 
-def _good(field: DisplacementField) -> np.ndarray:
+def good_nodes(field: DisplacementField) -> np.ndarray:
     return np.isin(field.status, [int(s) for s in GOOD_STATUSES])
 
 
-def _nearest(delta: DisplacementField, read_points: np.ndarray, shape) -> tuple:
+def nearest_match(delta: DisplacementField, read_points: np.ndarray, shape) -> tuple:
     """Index into ``delta``'s grid of the node nearest to each read point (``shape``: the
     corrected field's grid)."""
     index = np.rint((read_points - np.asarray(delta.origin)) / np.asarray(delta.step))
@@ -45,15 +45,15 @@ def _nearest(delta: DisplacementField, read_points: np.ndarray, shape) -> tuple:
     )
 
 
-def _correction_sigma(delta: DisplacementField, read_points: np.ndarray, shape) -> np.ndarray:
+def correction_sigma(delta: DisplacementField, read_points: np.ndarray, shape) -> np.ndarray:
     """Uncertainty (voxels, norm over the 3 components) of each node's correcting match; NaN
     where unknown (an interpolated match, or a field without uncertainties)."""
     if delta.uncertainty is None:
         return np.full(shape, np.nan)
-    return np.linalg.norm(delta.uncertainty[_nearest(delta, read_points, shape)], axis=-1)
+    return np.linalg.norm(delta.uncertainty[nearest_match(delta, read_points, shape)], axis=-1)
 
 
-def _finish_pass(
+def finish_pass(
     candidate: DisplacementField,
     delta: DisplacementField,
     input_field: DisplacementField,
@@ -67,7 +67,7 @@ def _finish_pass(
     that match failed or was masked (its value interpolated from the neighbours' by the
     cleaning) are ``REPLACED``, the others ``CORRECTED``.
     """
-    nearest = _nearest(delta, read_points, candidate.shape)
+    nearest = nearest_match(delta, read_points, candidate.shape)
     candidate.zncc = delta.zncc[nearest].copy()
     candidate.status = delta.status[nearest].copy()
     candidate.iterations = delta.iterations[nearest].copy()

@@ -77,12 +77,12 @@ from .cleaning import clean, masked_nodes
 from .options import CorrectionOptions
 from .pass_method import correction_grid, pass_method
 from .pass_update import (
-    _correction_sigma,
-    _finish_pass,
-    _good,
-    _read_points,
-    _update,
-    _zeros,
+    correction_sigma,
+    finish_pass,
+    good_nodes,
+    update_read_points,
+    updated_field,
+    zero_start,
 )
 from .record import CHANGE_THRESHOLD, CorrectionPass, correction_table
 from .rematch_region import applied_change, changed_nodes, reuse, select
@@ -316,7 +316,7 @@ def _correction_loop(
     stages = {"setup_s": passes[0].seconds}
     for number in range(1, int(max_passes) + 1):
         pass_started = time.perf_counter()
-        read_points = _read_points(current, frame, update)
+        read_points = update_read_points(current, frame, update)
         pass_grid = (
             grid
             if update == "sum"
@@ -337,7 +337,7 @@ def _correction_loop(
         t1 = time.perf_counter()
         delta = yield from forward_progress(
             volumes.correlate(
-                pass_params, pair, grid=pass_grid, initial=_zeros(pass_grid), active=active
+                pass_params, pair, grid=pass_grid, initial=zero_start(pass_grid), active=active
             ),
             f"correction pass {number}",
         )
@@ -358,15 +358,15 @@ def _correction_loop(
             passes.append(_failed_pass(number, converged, pass_started, passes[-1]))
             stop = "the correcting field could not be cleaned"
             break
-        candidate = _finish_pass(
-            _update(current, delta, frame, update), delta, field, masked, read_points
+        candidate = finish_pass(
+            updated_field(current, delta, frame, update), delta, field, masked, read_points
         )
         yield Progress("residual", 0, 1, f"local acceptance of pass {number}")
         floor_before = judge.floor
         # a correction is applied in proportion to its support above the correcting match's
         # own noise; one the noise alone explains is not applied (the node keeps its value)
         candidate, unsupported_by_noise = shrink_to_support(
-            current, candidate, _correction_sigma(delta, read_points, current.shape)
+            current, candidate, correction_sigma(delta, read_points, current.shape)
         )
         # a good node whose correcting match failed keeps its value and its status: a failed
         # (or smaller, noisier) correcting match says nothing about the node's own error. So
@@ -374,7 +374,7 @@ def _correction_loop(
         # the mask (the match read at X + D(X) next to the mask's edge): the node stays
         # measured (on the intact real rock 125 of 5 579 measured nodes turned MASKED this way).
         # A mask given to the correction only is news about the nodes: there MASKED stands
-        failed_match = _good(current) & ~_good(candidate) & ~masked
+        failed_match = good_nodes(current) & ~good_nodes(candidate) & ~masked
         if not field.metadata.get("masked", False):
             failed_match &= candidate.status != Status.MASKED
         refuse = (
@@ -491,7 +491,7 @@ def _correction_loop(
     result = current.copy()
     # a crack's nodes keep their own measurement where they had one (the motion of the side
     # their centre is on), flagged: refilled from both sides it would smear the jump
-    measured_crack = cracked & _good(field) & (field.provenance == Provenance.MEASURED)
+    measured_crack = cracked & good_nodes(field) & (field.provenance == Provenance.MEASURED)
     kept = masked | measured_crack
     result.u[kept] = field.u[kept]
     if result.gradient is not None and field.gradient is not None:

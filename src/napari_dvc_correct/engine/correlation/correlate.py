@@ -28,7 +28,7 @@ from .guided_repair import repair, search_seeds, seed_guesses
 from .initial_guess import global_shift, pyramid_levels
 from .match_judgement import MatchedGrid, judge_iter, match_statistics
 from .params import CorrelationParams
-from .pyramid import PyramidLevel, _pyramid_level
+from .pyramid import PyramidLevel, build_level
 from .pyramid_rule import level_reach
 
 _GOOD = np.array([int(s) for s in GOOD_STATUSES])
@@ -154,7 +154,7 @@ def correlate_seeds(
     """
     device = select_device(device)
     reference, deformed, mask = validate_pair(reference, deformed, params, mask)
-    level = _pyramid_level(levels, reference, deformed, mask, params, device.kind, texture_std)
+    level = build_level(levels, reference, deformed, mask, params, device.kind, texture_std)
     level_centers = level.centers_from_fine(np.asarray(centers, np.int64).reshape(-1, 3))
     shift = np.rint(np.asarray(rigid_shift, np.float64)).astype(np.int64).reshape(3)
     reach = level_reach(params, levels)
@@ -278,9 +278,7 @@ def match_iter(
             level = (
                 fine
                 if lev == 0
-                else _pyramid_level(
-                    lev, reference, deformed, mask, params, device.kind, texture_std
-                )
+                else build_level(lev, reference, deformed, mask, params, device.kind, texture_std)
             )
             level_centers = level.centers_from_fine(centers)
             if guess_params is None:

@@ -225,7 +225,7 @@ class PyramidLevel:
         return zncc, status, iterations
 
 
-def _pyramid_level(lev, reference, deformed, mask, params, device_kind, texture_std):
+def build_level(lev, reference, deformed, mask, params, device_kind, texture_std):
     """:class:`PyramidLevel` ``lev`` (factor ``2**lev``) as :func:`correlate_iter` builds it."""
     reach = level_reach(params, lev)
     return PyramidLevel.build(
