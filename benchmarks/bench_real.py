@@ -144,12 +144,12 @@ def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
     ):
         flagged = ~good(field) & measured
         in_specimen = flagged & node_in_specimen
-        at_crack = float(np.mean(node_at_crack[flagged])) if flagged.any() else float("nan")
+        at_crack = f"{np.mean(node_at_crack[flagged]):.0%}" if flagged.any() else "— (none flagged)"
         zncc = float(np.median(field.zncc[good(field)])) if good(field).any() else float("nan")
         print(
             f"| {label} | {residual / zero_residual:.5f} ({residual:.4f} gray levels) | "
             f"{zncc:.4f} | {flagged.sum() / max(1, measured.sum()):.1%} | "
-            f"{in_specimen.sum() / max(1, node_in_specimen.sum()):.1%} | {at_crack:.0%} | "
+            f"{in_specimen.sum() / max(1, node_in_specimen.sum()):.1%} | {at_crack} | "
             f"{int(np.sum(field.status == int(Status.DISCONTINUITY)))} | {seconds:.1f} |"
         )
     timings = plain.metadata.get("timings", {})
