@@ -402,8 +402,7 @@ def likely_text(summary: dict) -> str:
     """The shares of nodes likely and possibly above :data:`LIKELY_BAD`, with what they mean."""
     return (
         f"{100 * summary['likely_bad']:.0f} % of nodes likely > {LIKELY_BAD:g} voxel "
-        f"(P ≥ ½), {100 * summary['possibly_bad']:.0f} % possibly (P ≥ 16 %: the estimate plus "
-        "its noise's σ above it)"
+        f"(P ≥ ½), {100 * summary['possibly_bad']:.0f} % possibly (P ≥ 16 %)"
     )
 
 
