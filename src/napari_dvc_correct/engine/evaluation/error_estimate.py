@@ -38,6 +38,7 @@ flat region) the resolution is infinite. Measured against true errors in
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,7 +51,7 @@ LIKELY_BAD = 0.5
 #: *possibly* above it where it is at least :data:`POSSIBLY` (the estimate plus one standard
 #: deviation of its noise reaches the limit: a one-sided 84 % upper bound).
 LIKELY = 0.5
-POSSIBLY = 0.1587
+POSSIBLY = 0.5 * math.erfc(1.0 / math.sqrt(2.0))  # 1 − Φ(1) = 0.1587
 
 #: The texture's part of each gradient product is kept above this share of the measured one.
 MIN_TEXTURE_SHARE = 0.05
