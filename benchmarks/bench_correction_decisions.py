@@ -11,9 +11,12 @@ within 0.002 voxel.
 Variants (``--variant``):
 
 * ``tolerance:K``: the correcting matches stop at ``K`` times the first run's IC-GN tolerance
-  (the passes start from an almost-right field, so a looser stop should cost little accuracy).
+  (the passes start from an almost-right field, so a looser stop should cost little accuracy);
+* ``sweeps:K``: the local acceptance re-checks the mixed field at most ``K`` times per pass
+  (each re-check is a whole pull-back of ``F``) instead of
+  :data:`~napari_dvc_correct.engine.correction.acceptance.ACCEPTANCE_SWEEPS`.
 
-    python benchmarks/bench_correction_decisions.py [--variant tolerance:5] [case ...]
+    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1] [case ...]
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_correction_cases  # noqa: E402
 import bench_pipeline  # noqa: E402
 
-from napari_dvc_correct.engine.correction import self_correction  # noqa: E402
+from napari_dvc_correct.engine.correction import acceptance, self_correction  # noqa: E402
 from napari_dvc_correct.engine.correlation.correlate import correlate  # noqa: E402
 from napari_dvc_correct.engine.correlation.params import CorrelationParams  # noqa: E402
 
@@ -50,27 +53,31 @@ def make(case: str):
 
 
 class Variant:
-    """Swaps the correction's pass parameters for the variant's while active."""
+    """Swaps the correction's pass parameters or acceptance sweeps for the variant's while
+    active."""
 
     def __init__(self, spec: str):
         kind, _, value = spec.partition(":")
-        if kind != "tolerance" or not value:
-            raise ValueError(f"unknown variant {spec!r} (known: tolerance:K)")
-        self.factor = float(value)
-        self.original = self_correction.pass_method
+        if kind not in ("tolerance", "sweeps") or not value:
+            raise ValueError(f"unknown variant {spec!r} (known: tolerance:K, sweeps:K)")
+        self.kind, self.value = kind, float(value)
+        self.original = (self_correction.pass_method, acceptance.ACCEPTANCE_SWEEPS)
 
     def __enter__(self):
-        original, factor = self.original, self.factor
+        original, factor = self.original[0], self.value
 
         def pass_method(field, params):
             chosen, method = original(field, params)
             return chosen.replace(tolerance=chosen.tolerance * factor), method
 
-        self_correction.pass_method = pass_method
+        if self.kind == "tolerance":
+            self_correction.pass_method = pass_method
+        else:
+            acceptance.ACCEPTANCE_SWEEPS = int(self.value)
         return self
 
     def __exit__(self, *exc):
-        self_correction.pass_method = self.original
+        self_correction.pass_method, acceptance.ACCEPTANCE_SWEEPS = self.original
 
 
 def _passes(field) -> list[tuple[int, int]]:
