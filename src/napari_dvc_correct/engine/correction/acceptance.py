@@ -405,10 +405,9 @@ def noise_only_corrections(
     (:data:`NOISE_REGION_NODES`) it can: where the corrections hold no more energy than their
     matches' uncertainties let noise give them (``Σ|c|²`` at most :data:`NOISE_Z` spreads above
     ``Σσ²``; the noise energy of ``n`` nodes spreads by ``sqrt(2 / 3n) Σσ²``) *and* the field's
-    own bend over the correcting
-    subvolume stays below the node's ``σ`` everywhere in that neighbourhood (no shape-function
-    bias the noise would let a match find), the region holds only noise, and its measured nodes
-    keep their values. Nodes whose value is not a measurement (refilled, interpolated) are not
+    own bend over the correcting subvolume stays below the node's ``σ`` everywhere in that
+    neighbourhood (no shape-function bias the noise would let a match find), the region holds
+    only noise, and its measured nodes keep their values. Nodes whose value is not a measurement (refilled, interpolated) are not
     judged here: their correcting match is the first measurement they get.
 
     Parameters

@@ -95,9 +95,9 @@ def node_bend(field: DisplacementField, half: int) -> np.ndarray:
     finite (nothing to tell the bend from).
     """
     u = _smoothed_departure(field)
-    bend = np.zeros(field.shape)
     if u is None:
         return np.full(field.shape, np.nan)
+    bend = np.zeros(field.shape)
     for axis in range(3):
         n = u.shape[axis]
         if n < 3:
