@@ -9,10 +9,16 @@ from napari_dvc_correct.engine.correction.pass_method import (
     correction_grid,
     correction_params,
     field_curvature,
+    nothing_to_correct,
     pass_order,
 )
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
-from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
+from napari_dvc_correct.engine.fields.field import (
+    DisplacementField,
+    Provenance,
+    Status,
+    grid_for_volume,
+)
 
 
 def test_second_order_passes_where_the_field_bends_inside_a_subvolume():
@@ -116,3 +122,50 @@ def test_the_node_bend_is_the_quadratic_term_a_first_order_subvolume_leaves():
     assert np.allclose(node_bend(field, params.half), 0.0, atol=1e-12)
     field.u[0, 0, 0, 0] = np.nan
     assert np.isnan(node_bend(field, params.half)).all()
+
+
+def _measured_affine_field():
+    """A field every node of which is its own converged match (affine: no bend)."""
+    params = CorrelationParams(subvolume=21, step=6)
+    origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
+    field = DisplacementField.zeros(origin, step, shape)
+    points = field.points.reshape(*shape, 3)
+    gradient = np.array([[0.02, 0.01, 0.0], [0.0, -0.015, 0.01], [0.01, 0.0, 0.02]])
+    field.u[:] = synthetic.sample_displacement(synthetic.affine(gradient, (32,) * 3), points)
+    field.params = params.to_dict()  # measured with these parameters ...
+    field.uncertainty = np.full((*shape, 3), 0.01)  # ... by our matcher, which says how well
+    return field, params, np.zeros(shape, bool)
+
+
+def test_a_pass_is_not_run_where_it_could_only_remeasure_the_first_runs_values():
+    field, params, masked = _measured_affine_field()
+    reason = nothing_to_correct(field, params, masked)
+    assert reason.startswith("no pass run") and f"{field.n_points} measured nodes" in reason
+
+
+def test_a_pass_runs_where_a_node_is_not_its_own_match_or_the_field_bends():
+    field, params, masked = _measured_affine_field()
+    replaced = field.copy()
+    replaced.provenance[2, 3, 4] = Provenance.REPLACED  # the cleaning refilled one node
+    assert nothing_to_correct(replaced, params, masked) == ""
+    failed = field.copy()
+    failed.status[1, 1, 1] = Status.MAX_ITERATIONS  # a match that did not converge
+    assert nothing_to_correct(failed, params, masked) == ""
+    # ... but a failed node outside the user's mask is not the correction's business
+    outside = masked.copy()
+    outside[1, 1, 1] = True
+    assert nothing_to_correct(failed, params, outside) != ""
+    # u_z = a x^2 bends a subvolume of half-size M by a M^2: 0.02 voxel runs a pass, 0.005 not
+    points = field.points.reshape(*field.shape, 3)
+    for bend, runs in ((0.02, True), (0.005, False)):
+        bent = field.copy()
+        bent.u[..., 0] += bend / params.half**2 * (points[..., 2] - 32.0) ** 2
+        assert (nothing_to_correct(bent, params, masked) == "") is runs
+    # a field our matcher did not measure with these parameters: a pass is its first match
+    foreign = field.copy()
+    foreign.uncertainty = None
+    assert nothing_to_correct(foreign, params, masked) == ""
+    assert nothing_to_correct(field, params.replace(subvolume=15), masked) == ""
+    thin = field.copy()
+    thin.u[:] = np.nan  # no bend can be told from non-finite nodes: a pass runs
+    assert nothing_to_correct(thin, params, masked) == ""

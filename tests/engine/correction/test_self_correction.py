@@ -227,7 +227,10 @@ def test_masked_nodes_come_back_untouched(smooth_case, frame):
     measured = correlate(reference, deformed, params, mask=mask)
     masked = measured.provenance == Provenance.MASKED
     assert masked.any() and not masked.all()
+    wrong = tuple(np.argwhere(~masked)[np.count_nonzero(~masked) // 2])
+    measured.u[wrong] += (0.0, 1.5, 0.0)  # something for the pass to correct
     corrected = correct(reference, deformed, measured, frame=frame, mask=mask, max_passes=1)
+    assert len(correction_table(corrected)) == 2  # a pass ran
     assert np.all(corrected.provenance[masked] == Provenance.MASKED)
     assert np.array_equal(corrected.u[masked], measured.u[masked], equal_nan=True)
     error = np.linalg.norm(corrected.u - perfect.u, axis=-1)[~masked]
@@ -257,6 +260,9 @@ def test_a_measured_node_whose_correcting_match_is_masked_stays_measured():
     params = CorrelationParams(subvolume=13, step=4)
     measured = correlate(reference, deformed, params, mask=mask)
     kept = measured.status != Status.MASKED
+    # one wrong node for the pass to correct (a translation alone has nothing to correct, and
+    # no pass would run)
+    measured.u[4, 4, 3] += (0.0, 0.0, 1.5)
     corrected = correct(reference, deformed, measured, params, mask=mask, max_passes=1)
     assert correction_table(corrected)[1].failed_match_nodes > 0  # the case is met
     assert not np.any(corrected.status[kept] == Status.MASKED)

@@ -13,7 +13,8 @@ import numpy as np
 from scipy import ndimage
 
 from ..correlation.params import CorrelationParams
-from ..fields.field import DisplacementField
+from ..fields.field import DisplacementField, Provenance, Status
+from .acceptance import MIN_USEFUL_CHANGE
 
 #: A first-order field whose curvature bends a subvolume by more than this (voxels, see
 #: :func:`field_curvature`) is corrected with second-order matches.
@@ -108,6 +109,57 @@ def node_bend(field: DisplacementField, half: int) -> np.ndarray:
         second = np.take(second, index, axis=axis)
         bend = np.maximum(bend, np.max(np.abs(second), axis=-1))
     return 0.5 * bend * float(half) ** 2
+
+
+def nothing_to_correct(
+    field: DisplacementField, params: CorrelationParams, masked: np.ndarray
+) -> str:
+    """Why a correcting pass could only re-measure ``field`` (``""`` where it could correct).
+
+    A correcting pass re-matches each node on the same images that gave its value, with the
+    subvolume warped by the field densified between the nodes. It can correct a node only where
+    the node's value is not its own converged match (the cleaning or the residual check replaced
+    it, its match failed), or where the field bends across the subvolume by more than an affine
+    shape function follows (:func:`node_bend`). Where neither holds at any measured node
+    (``~masked``), that is every node its own converged match and no bend of
+    :data:`.acceptance.MIN_USEFUL_CHANGE` (the matcher's own accuracy on clean scans) anywhere,
+    a pass re-measures the first run's values and noise: it costs a whole correlation and
+    :func:`.acceptance.noise_only_corrections` refuses what it finds. The bend is not weighed
+    against the match's uncertainty: on a coarse grid (4³ nodes across a shear band) the
+    smoothed bend reads far less than what a pass still corrects (measured: 0.023 voxel of bend
+    against 0.064 of uncertainty, and a pass took the error from 0.117 to 0.106 voxel). Grids
+    with fewer than 3 nodes along an axis show no bend along it: there a pass runs. So does a
+    field that is not our own matcher's with ``params`` (no match uncertainty recorded, other
+    parameters, another DVC program's field brought in: a pass is its first measurement here).
+    Returns the reason in words for the stop record (``""``: run the passes).
+    """
+    measured = ~np.asarray(masked, bool).reshape(field.shape)
+    if not measured.any() or min(field.shape) < 3 or not _measured_with(field, params):
+        return ""
+    own = (field.status == Status.CONVERGED) & (field.provenance == Provenance.MEASURED)
+    if not own[measured].all():
+        return ""
+    bend = node_bend(field, params.half)
+    bent = ~(bend <= MIN_USEFUL_CHANGE)  # NaN (an unknown bend) counts as bent
+    if bent[measured].any():
+        return ""
+    return (
+        f"no pass run: every one of the {int(measured.sum())} measured nodes is its own converged "
+        f"match and the field bends no {params.subvolume}³ subvolume by more than "
+        f"{MIN_USEFUL_CHANGE:g} voxel (largest bend {float(np.max(bend[measured])):.2g}): a pass "
+        "could only re-measure the first run's values and noise"
+    )
+
+
+def _measured_with(field: DisplacementField, params: CorrelationParams) -> bool:
+    """Whether ``field`` holds our matcher's own matches with ``params`` (it recorded them and
+    each match's uncertainty)."""
+    if field.uncertainty is None or not field.params:
+        return False
+    try:
+        return CorrelationParams.from_dict(field.params) == params
+    except (TypeError, ValueError):
+        return False
 
 
 def predicted_scatter(field: DisplacementField, subvolume: int, pass_subvolume: int) -> float:

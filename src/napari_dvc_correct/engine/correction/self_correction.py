@@ -76,7 +76,7 @@ from .acceptance import (
 )
 from .cleaning import clean, masked_nodes
 from .options import CorrectionOptions
-from .pass_method import correction_grid, node_bend, pass_method
+from .pass_method import correction_grid, node_bend, nothing_to_correct, pass_method
 from .pass_update import (
     correction_sigma,
     finish_pass,
@@ -313,9 +313,12 @@ def _correction_loop(
     residual_before = residual
     unmasked = max(1, int(np.count_nonzero(~masked)))
     stop = f"max_passes ({int(max_passes)}) reached"
+    nothing = nothing_to_correct(current, params, masked)
+    stop = nothing or stop
+    pass_grid = grid
     previous_raw, next_pass = None, None
     stages = {"setup_s": passes[0].seconds}
-    for number in range(1, int(max_passes) + 1):
+    for number in range(1, 1 if nothing else int(max_passes) + 1):
         pass_started = time.perf_counter()
         read_points = update_read_points(current, frame, update)
         pass_grid = (
