@@ -116,6 +116,7 @@ def test_the_map_travels_as_metadata(texture):
     fitted = fit_gray_levels(texture, 0.5 * texture + 3.0, cell=32, noise=noise)
     back = GrayLevelMap.from_dict(fitted.to_dict())
     assert back.fit == "errors in variables" and back.noise == noise
+    assert "fit: errors in variables" in back.describe()
     old = {k: v for k, v in fitted.to_dict().items() if k not in ("fit", "noise")}
     assert GrayLevelMap.from_dict(old).fit == "least squares"
 

@@ -320,10 +320,13 @@ class GrayLevelMap:
         """One line for panels and reports."""
         sign = "+" if self.offset >= 0 else "−"
         text = f"G ≈ {self.contrast:.3g}·F {sign} {abs(self.offset):.4g}"
+        notes = []
         if self.is_local:
             lo, hi = np.nanmin(self.local_contrast), np.nanmax(self.local_contrast)
-            text += f" (local, {self.cell}-voxel cells: contrast {lo:.3g}–{hi:.3g})"
-        return text
+            notes.append(f"local, {self.cell}-voxel cells: contrast {lo:.3g}–{hi:.3g}")
+        if self.fit != "least squares" and not self.is_identity:
+            notes.append(f"fit: {self.fit}")  # the scans' noise taken out
+        return text + (f" ({'; '.join(notes)})" if notes else "")
 
     def to_dict(self) -> dict:
         """JSON-ready (``metadata["gray_levels"]``)."""
