@@ -239,7 +239,7 @@ def _measure_pair(
 ):
     """:func:`..engine.evaluation.accuracy_pair.measure_pair` block by block (generator): for every
     candidate two passes fit its map, one more measures its ``r0``. ``noises``: the scans' noise
-    variances (:func:`..engine.evaluation.gray_noise.scan_noises`) for the Deming fit."""
+    variances (:func:`..engine.evaluation.gray_noise.scan_noises`) for the map's fit."""
     import dask
 
     measured = {}
