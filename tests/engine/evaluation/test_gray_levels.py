@@ -231,3 +231,19 @@ def test_slopes_of_the_fits_on_known_moments():
     assert unknown.fit == "least squares" and unknown.contrast == pytest.approx(cov / vf)
     with pytest.raises(ValueError, match="fit must be one of"):
         map_from_sums(sums, (8, 8, 8), 0, noise=noise, fit="orthogonal")
+
+
+def test_a_noise_estimate_the_residual_does_not_show_is_not_taken_out(texture):
+    # identical clean scans: whatever a noise estimator reads in the texture, the least-squares
+    # residual is zero, so no noise is taken out and the map is the identity
+    for moved_noise in (0.0, 5.0, 500.0):
+        noise = PairNoise(reference=moved_noise, moved=moved_noise)
+        fitted = fit_gray_levels(texture, texture.copy(), cell=32, noise=noise)
+        assert fitted.contrast == pytest.approx(1.0, abs=1e-6)
+        assert np.max(np.abs(fitted.local_contrast - 1.0)) < 1e-6
+    # noise only in the moved scan, over-estimated 4x (taken whole: 1 / (1 - 3 * 0.09) = 1.37):
+    # cut to what the residual shows, which here is that noise itself
+    sigma = 0.3 * float(np.std(texture))
+    noisy = synthetic.add_noise(texture, sigma, seed=3)
+    fitted = fit_gray_levels(texture, noisy, cell=0, noise=PairNoise(0.0, 4 * sigma**2))
+    assert fitted.contrast == pytest.approx(1.0, abs=0.015)

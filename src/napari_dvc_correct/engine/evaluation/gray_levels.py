@@ -196,8 +196,14 @@ def _slope(vf, cov, vg, fit: str, noise: PairNoise | None):
         return deming_slope(vf, cov, vg, np.inf)
     if fit == "deming":
         return deming_slope(vf, cov, vg, noise.ratio)
-    # errors in variables: least squares on the texture of F~, its noise taken out
-    texture = np.maximum(vf - noise.moved, MIN_RELIABILITY * vf)
+    # errors in variables: least squares on the texture of F~, its noise taken out. F~'s noise
+    # shows in least squares' residual variance at least as a² σ² (a its slope): a noise
+    # estimate above that (texture read as noise on a clean scan) is cut to it
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plain = np.where(vf > 0, cov / np.where(vf > 0, vf, 1.0), 0.0)
+        spread = np.maximum(vg - cov * plain, 0.0)
+        moved = np.where(plain != 0, np.minimum(noise.moved, spread / (plain * plain)), 0.0)
+    texture = np.maximum(vf - moved, MIN_RELIABILITY * vf)
     return np.where(texture > 0, cov / np.where(texture > 0, texture, 1.0), 1.0)
 
 
