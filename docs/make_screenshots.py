@@ -140,6 +140,13 @@ def main() -> None:
     V.text_overlay(viewer).visible = False
     viewer.layers.selection.active = phases
     shot(viewer, "evaluate.png")
+    # the summary's lines per field: error estimate, its resolution, likely/possibly > 0.5
+    bar = evaluate.summary_box.verticalScrollBar()
+    bar.setValue(bar.maximum())
+    settle()
+    shot(viewer, "evaluate-error-estimate.png")
+    print(evaluate.summary.text())
+    bar.setValue(0)
     phases.visible = False
 
     # the gray residual of each field, same colour range, toggled before/after

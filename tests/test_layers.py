@@ -88,3 +88,23 @@ def test_dense_layers_use_the_voxel_size(field):
     assert kwargs["name"] == "residual volume (corrected)" and kind == "image"
     labels, kwargs, kind = L.phase_layer(np.zeros((8, 8, 8), np.uint8), voxel_size=(2, 2, 2))
     assert kind == "labels" and kwargs["name"] == "phases"
+
+
+def test_the_error_estimate_s_caption_gives_its_resolution_and_bounds(field):
+    """After Evaluate the field offers its error estimate and the residual's resolution; the
+    caption of either says the resolution, the share of nodes below it and how many are likely
+    and possibly above 0.5 voxel."""
+    from napari_dvc_correct.engine.evaluation.error_estimate import attach_estimate
+
+    estimate = np.full(field.shape, 0.05)  # 120 nodes, resolution 0.1 (σ 0.058)
+    estimate[0] = 0.48  # 30 nodes possibly > 0.5, not likely
+    estimate[1, 0] = 0.7  # 6 nodes likely
+    attach_estimate(field, estimate, np.full(field.shape, 0.1))
+    assert {"error estimate", "error resolution"} <= set(L.available_quantities(field))
+    layer = Layer.create(*L.quantity_layer(field, "f", "error resolution"))
+    np.testing.assert_allclose(layer.data[field.valid], 0.1, rtol=1e-6)
+    L.show_quantity(layer, "error estimate")
+    text = L.caption(layer)
+    assert text.startswith("error estimate [vx]") and "a bound, not a rank" in text
+    assert "Resolution 0.100 voxel (median); 70 % of nodes below it" in text
+    assert "5 % of nodes likely > 0.5 voxel (P ≥ ½), 30 % possibly (P ≥ 16 %" in text

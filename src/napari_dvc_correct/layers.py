@@ -459,7 +459,32 @@ def caption(layer) -> str:
     entry = plugin_metadata(layer) or {}
     quantity = entry.get("quantity", "")
     what = QUANTITIES.get(quantity, ("", ""))[0]
-    return f"{quantity} [{entry.get('unit', '')}]: {what} — {entry.get('source', '')} field"
+    text = f"{quantity} [{entry.get('unit', '')}]: {what} — {entry.get('source', '')} field"
+    if quantity in ("error estimate", "error resolution"):
+        text += error_caption(entry.get("field"))
+    return text
+
+
+def error_caption(field) -> str:
+    """What a caption of the error estimate adds: the resolution's median, the share of nodes
+    whose estimate is a bound and the share likely above 0.5 voxel ("" without an estimate)."""
+    from .engine.evaluation.error_estimate import (
+        error_summary,
+        estimate_of,
+        likely_text,
+        resolution_of,
+    )
+
+    estimate = None if field is None else estimate_of(field)
+    resolution = None if field is None else resolution_of(field)
+    if estimate is None or resolution is None:
+        return ""
+    summary = error_summary(estimate, resolution=resolution)
+    return (
+        f". Resolution {summary['resolution']:.3f} voxel (median); "
+        f"{100 * summary['below_resolution']:.0f} % of nodes below it (there the estimate is a "
+        f"bound); {likely_text(summary)}"
+    )
 
 
 def colorbar_title(layer) -> str:

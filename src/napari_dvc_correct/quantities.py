@@ -69,7 +69,15 @@ QUANTITIES = {
     "ZNCC": ("zero-normalised cross-correlation", "zncc"),
     "status": ("matching status of each POI", "status"),
     "uncertainty": ("displacement uncertainty", "magnitude"),
-    "error estimate": ("estimated displacement error (Evaluate)", "magnitude"),
+    "error estimate": (
+        "estimated displacement error (Evaluate); where not above the error resolution it is "
+        "a bound, not a rank",
+        "magnitude",
+    ),
+    "error resolution": (
+        "the error estimate's resolution (Evaluate): errors below it do not show in the residual",
+        "magnitude",
+    ),
     "residual": ("gray residual |F(X + u) − G(X)|", "residual"),
 }
 #: What a new field layer shows.
@@ -92,14 +100,16 @@ def field_uncertainty(field: DisplacementField) -> np.ndarray | None:
 
 def available_quantities(field: DisplacementField, residual: bool = False) -> list[str]:
     """The keys of :data:`QUANTITIES` that ``field`` can show (``residual`` once evaluated)."""
-    from .engine.evaluation.error_estimate import estimate_of
+    from .engine.evaluation.error_estimate import estimate_of, resolution_of
 
-    optional = ("uncertainty", "error estimate", "residual")
+    optional = ("uncertainty", "error estimate", "error resolution", "residual")
     keys = [key for key in QUANTITIES if key not in optional]
     if field_uncertainty(field) is not None:
         keys.append("uncertainty")
     if estimate_of(field) is not None:
         keys.append("error estimate")
+    if resolution_of(field) is not None:
+        keys.append("error resolution")
     if residual:
         keys.append("residual")
     return keys
@@ -184,6 +194,13 @@ def quantity_values(
         values = estimate_of(field)
         if values is None:
             raise ValueError("this field has no error estimate: run Evaluate on it first")
+        values = values * float(np.mean(vs))
+    elif quantity == "error resolution":
+        from .engine.evaluation.error_estimate import resolution_of
+
+        values = resolution_of(field)
+        if values is None:
+            raise ValueError("this field has no error resolution: run Evaluate on it first")
         values = values * float(np.mean(vs))
     elif kind in _DISPLACEMENT_KINDS:
         u = field.u * vs

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -248,3 +249,81 @@ def test_real_files_of_other_tools_convert_with_their_values(name, reader, fmt, 
     good = original.valid & back.valid
     assert good.sum() >= 0.9 * original.valid.sum()
     np.testing.assert_allclose(back.u[good], original.u[good], rtol=1e-5, atol=1e-4)
+
+
+def _evaluated_field() -> DisplacementField:
+    """:func:`known_field` with an evaluation's error estimate and resolution on it (a node
+    without texture: infinite resolution, written as undefined)."""
+    from napari_dvc_correct.engine.evaluation.error_estimate import attach_estimate
+
+    field = known_field()
+    rng = np.random.default_rng(11)
+    estimate = rng.uniform(0.0, 1.0, field.shape)
+    resolution = rng.uniform(0.05, 0.3, field.shape)
+    estimate[0, 1, 2] = np.nan
+    resolution[0, 1, 2] = np.inf
+    attach_estimate(field, estimate, resolution, background_residual=2.5)
+    return field
+
+
+def _evaluation_read_back(fmt, path):
+    """(error_estimate, error_resolution) on the grid as the exported file holds them."""
+    from napari_dvc_correct.engine.evaluation.error_estimate import estimate_of, resolution_of
+
+    field = known_field()
+    if fmt in ("dvcfield", "npz"):
+        back = load_field(path)
+        return estimate_of(back), resolution_of(back)
+    if fmt == "hdf5":
+        with h5py.File(path, "r") as h5:
+            return h5["grid/error_estimate"][()], h5["grid/error_resolution"][()]
+    if fmt in ("vti", "vtk", "vtu"):
+        name = {"vti": "vtkXMLImageDataReader", "vtk": "vtkStructuredPointsReader"}
+        data = _vtk(name.get(fmt, "vtkXMLUnstructuredGridReader"), path).GetPointData()
+        return tuple(
+            vtk_to_numpy(data.GetArray(key)).reshape(field.shape)  # x fastest: C order
+            for key in ("error_estimate", "error_resolution")
+        )
+    if fmt == "tiff":
+        stem = path.with_suffix("")
+        return tuple(
+            tifffile.imread(stem.parent / f"{stem.name}_{key}.tif")
+            for key in ("error_estimate", "error_resolution")
+        )
+    if fmt == "csv":
+        with open(path, newline="") as stream:
+            rows = list(csv.DictReader(stream))
+        index = {
+            (round(float(r["z"])), round(float(r["y"])), round(float(r["x"]))): r for r in rows
+        }
+        values = np.full((2, *field.shape), np.nan)
+        for n, point in enumerate(field.points):
+            row = index[tuple(int(round(v)) for v in point)]
+            k = np.unravel_index(n, field.shape)
+            values[(0, *k)] = float(row["error_estimate"])
+            values[(1, *k)] = float(row["error_resolution"])
+        return values[0], values[1]
+    # spam, idvc, aldvc hold the field only: the side file keeps the evaluation's metadata
+    side = json.loads(path.with_name(path.stem + "_provenance.json").read_text())
+    entry = side["metadata"]["error_estimate"]
+    as_array = [np.asarray(entry[k], dtype=float) for k in ("voxels", "resolution_voxels")]
+    return tuple(as_array)
+
+
+@pytest.mark.parametrize("fmt", list(EXPORT_FORMATS))
+def test_the_error_estimate_and_its_resolution_round_trip_in_every_format(fmt, tmp_path):
+    """An evaluated field exported in each format: its per-node error estimate and the
+    residual's resolution come back node by node (NaN where undefined; an infinite resolution,
+    a node without texture, as undefined)."""
+    from napari_dvc_correct.engine.evaluation.error_estimate import estimate_of, resolution_of
+
+    field = _evaluated_field()
+    source = tmp_path / "evaluated.dvcfield"
+    save_field(field, source)
+    out = tmp_path / "out" / "converted"
+    out.parent.mkdir()
+    assert main(["export", str(source), str(out), "--format", fmt, "--quiet"]) == 0
+    estimate, resolution = _evaluation_read_back(fmt, out.with_name(out.name + EXPORT_FORMATS[fmt]))
+    np.testing.assert_allclose(estimate, estimate_of(field), atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(resolution, resolution_of(field), atol=1e-6, equal_nan=True)
+    assert np.isnan(resolution[0, 1, 2]) and np.isfinite(resolution).sum() == field.n_points - 1

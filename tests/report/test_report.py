@@ -113,3 +113,30 @@ def test_file_stems_and_lazy_matplotlib():
     code = "import sys, napari_dvc_correct.report; print('matplotlib' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.stdout.strip() == "False", result.stderr
+
+
+def test_the_report_gives_the_error_estimate_s_resolution_and_marks_bounds(tmp_path, evaluation):
+    """summary.csv: the resolution, whether median and 95th percentile are bounds and their
+    bound, the shares likely and possibly > 0.5 voxel; report.md shows a bound as "< x"; the
+    resolution is written on the grid beside the estimate."""
+
+    import tifffile
+
+    from napari_dvc_correct.engine.evaluation.error_estimate import bounded_text
+
+    files = write_report(evaluation, tmp_path)
+    assert any(p.name == "error_resolution_exact.tif" for p in files["volumes"])
+    grid = tifffile.imread(tmp_path / "error_resolution_exact.tif")
+    np.testing.assert_allclose(grid, evaluation["exact"].error_resolution, rtol=1e-6)
+    with open(tmp_path / "summary.csv", newline="") as stream:
+        rows = {row["field"]: row for row in csv.DictReader(stream)}
+    text = (tmp_path / "report.md").read_text(encoding="utf-8")
+    for item in evaluation.fields:
+        row, error = rows[item.name], item.error
+        assert float(row["error_resolution"]) == pytest.approx(error["resolution"], rel=1e-5)
+        assert float(row["possibly_bad_fraction"]) == pytest.approx(error["possibly_bad"])
+        assert row["error_median_is_bound"] == ("yes" if error["median_is_bound"] else "no")
+        assert float(row["error_median_bound"]) == pytest.approx(error["median_bound"], rel=1e-5)
+        assert f"| {bounded_text(error, 'median')} |" in text
+    assert rows["exact"]["error_median_is_bound"] == "yes"  # the exact field: nothing resolved
+    assert "< " in text and "P(error > 0.5) ≥ ½" in text

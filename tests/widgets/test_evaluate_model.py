@@ -69,3 +69,30 @@ def test_temporary_folders_go_when_nothing_reads_them():
     assert two.is_dir()
     folders.remove_all()
     assert not two.exists() and folders.folders == []
+
+
+def test_the_summary_marks_bounds_and_the_field_carries_the_resolution():
+    """A noisy pair evaluated with the exact (zero) field: the residual resolves no error, so
+    the median is shown as a bound ("< x", x the median resolution), the lines say what
+    "likely" means, and the estimate left on the field carries its resolution."""
+    from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+    from napari_dvc_correct.engine.evaluation.error_estimate import resolution_of
+    from napari_dvc_correct.engine.fields.field import DisplacementField
+    from napari_dvc_correct.engine.synthetic import add_noise, two_phase_volume
+
+    volume = two_phase_volume((32, 32, 32), seed=2)
+    field = DisplacementField.zeros((8.0, 8.0, 8.0), (8.0, 8.0, 8.0), (3, 3, 3))
+    evaluation = evaluate_fields(
+        add_noise(volume, 3.0, seed=1), add_noise(volume, 3.0, seed=2), {"zero": field}
+    )
+    item = evaluation["zero"]
+    error = item.error
+    assert error["below_resolution"] >= 0.5 and error["median_is_bound"]
+    (line,) = model.field_lines(item)
+    assert f"error estimate median < {error['median_bound']:.3f} voxel" in line
+    assert "likely > 0.5 voxel (P ≥ ½)" in line and "possibly (P ≥ 16 %" in line
+    assert f"resolution {error['resolution']:.3f} voxel (median)" in line
+    report = model.evaluation_report(evaluation)["field: zero"]
+    assert report["residual's resolution, median (voxels)"] == pytest.approx(error["resolution"])
+    model.attach_estimate(field, item, evaluation)
+    np.testing.assert_allclose(resolution_of(field), item.error_resolution, atol=1e-6)

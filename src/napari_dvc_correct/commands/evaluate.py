@@ -211,6 +211,7 @@ def ready_for_evaluation(field, name: str):
 
 
 def run(args) -> int:
+    from ..engine.evaluation.error_estimate import bounded_text, likely_text
     from ..engine.fields.absurd_nodes import flag_absurd_nodes
     from ..engine.pair_checks import check_pair_and_fields
     from ..jobs.evaluate import evaluate_job
@@ -308,8 +309,9 @@ def run(args) -> int:
             f"{item.name}: mean residual {item.mean_residual:.3f}, background "
             f"{item.background_used:.3f}, accuracy index {item.accuracy:.4f}, "
             f"local accuracy index {item.local_accuracy_index:.4f}, error estimate median "
-            f"{error['median']:.3f} voxel (95 % {error['p95']:.3f}, "
-            f"{100 * error['likely_bad']:.0f} % of nodes likely > 0.5 voxel), measured nodes "
+            f"{bounded_text(error, 'median')} voxel (95 % {bounded_text(error, 'p95')}, "
+            f"{likely_text(error)}; resolution {error['resolution']:.3f} voxel, "
+            f"{100 * error['below_resolution']:.0f} % of nodes below it), measured nodes "
             f"{item.measured_nodes}/{item.field.n_points}"
         )
     count = sum(len(paths) for paths in files.values())

@@ -102,17 +102,21 @@ def _check_extra(
 
 def _with_uncertainty(field: DisplacementField, extra: dict) -> dict:
     """``extra`` plus the per-node uncertainty ``uncertainty_uz/uy/ux`` and the evaluation's
-    ``error_estimate`` (voxels), where the field has them."""
-    from ..engine.evaluation.error_estimate import estimate_of
-
+    ``error_estimate`` and ``error_resolution`` (voxels), where the field has them."""
     own = {}
     if field.uncertainty is not None:
         sigma = np.asarray(field.uncertainty, np.float32)
         own = {f"uncertainty_{axis}": sigma[..., k] for k, axis in enumerate(("uz", "uy", "ux"))}
-    estimate = estimate_of(field)  # left by an accuracy evaluation (voxels)
-    if estimate is not None:
-        own["error_estimate"] = estimate.astype(np.float32)
-    return {**extra, **own}
+    return {**extra, **own, **_evaluation_arrays(field)}
+
+
+def _evaluation_arrays(field: DisplacementField) -> dict:
+    """The error estimate an accuracy evaluation left on ``field`` and the residual's resolution
+    there (voxels, float32 on the grid; below the resolution the estimate is a bound)."""
+    from ..engine.evaluation.error_estimate import estimate_of, resolution_of
+
+    arrays = {"error_estimate": estimate_of(field), "error_resolution": resolution_of(field)}
+    return {k: v.astype(np.float32) for k, v in arrays.items() if v is not None}
 
 
 def _voxel_size(voxel_size) -> np.ndarray:
@@ -138,12 +142,12 @@ def export_hdf5(
     ``iterations``, ``provenance``, ``gradient`` and ``uncertainty`` (if any), ``points`` (N, 3)
     and ``displacement`` (N, 3); attributes ``origin``, ``step``, ``voxel_size`` (z, y, x), ``params`` and ``metadata``
     (JSON), ``status_names`` and ``provenance_names``. Group ``/grid`` holds the ``extra`` arrays
-    (grid shape), group ``/volumes`` the ``volumes`` (dense, e.g. the gray residual).
+    and an evaluation's ``error_estimate``/``error_resolution`` (grid shape), group ``/volumes`` the ``volumes`` (dense, e.g. the gray residual).
     """
     import h5py
 
     field = unusable_as_nan(field)  # a failed node: NaN and its status, as in every export
-    extra = _check_extra(field, extra)
+    extra = {**_check_extra(field, extra), **_evaluation_arrays(field)}
     vs = _voxel_size(voxel_size)
     path = Path(path)
     with atomic_path(path) as temp:
@@ -276,7 +280,8 @@ def export_vtk_points(field, path: str | os.PathLike, *, voxel_size=None) -> Pat
 
     Point coordinates and the ``displacement`` vector ``(ux, uy, uz)`` are in physical units
     (``voxel_size`` per axis z, y, x; default voxels), x, y, z order; point data also hold
-    ``magnitude``, ``zncc``, ``status``, ``iterations`` and ``provenance``.
+    ``magnitude``, ``zncc``, ``status``, ``iterations``, ``provenance`` and a grid field's
+    ``error_estimate``/``error_resolution`` (voxels) where an evaluation left them.
     """
     from pyevtk.hl import pointsToVTK
 
@@ -297,6 +302,9 @@ def export_vtk_points(field, path: str | os.PathLike, *, voxel_size=None) -> Pat
         "iterations": np.ascontiguousarray(points.iterations),
         "provenance": np.ascontiguousarray(points.provenance),
     }
+    if not isinstance(field, ScatteredField):  # a grid's nodes in C order, as ``from_grid``'s
+        for name, values in _evaluation_arrays(field).items():
+            data[name] = np.ascontiguousarray(values.reshape(-1))
     with atomic_path(path) as temp:
         stem = str(temp)[: -len(".vtu")]
         written = pointsToVTK(stem, *(np.ascontiguousarray(xyz[:, c]) for c in range(3)), data=data)

@@ -61,8 +61,8 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
     Files: ``labels_reference.tif``, ``labels_deformed.tif`` (uint8 phases),
     ``residual_<field>.tif`` (float32 voxels, NaN where undefined), ``labels_mapped_<field>.tif``
     (phases of the other state brought over by the field, 255 where undefined) and
-    ``equivalent_strain_<field>.tif`` and ``error_estimate_<field>.tif`` (voxels; float32 on
-    the POI grid, with ``scale = step`` and
+    ``equivalent_strain_<field>.tif``, ``error_estimate_<field>.tif`` and
+    ``error_resolution_<field>.tif`` (voxels; float32 on the POI grid, with ``scale = step`` and
     ``translate = origin`` in its description so it overlays the volume).
     """
     from ..io.export import export_volume_tiff
@@ -93,6 +93,14 @@ def write_volumes(evaluation: Evaluation, out_dir: str | os.PathLike) -> list[Pa
         grids = [("equivalent_strain", item.equivalent_strain, "equivalent strain (grid)")]
         if item.error_estimate is not None:
             grids.append(("error_estimate", item.error_estimate, "error estimate (voxels, grid)"))
+        if item.error_resolution is not None:
+            grids.append(
+                (
+                    "error_resolution",
+                    item.error_resolution,
+                    "the error estimate's resolution (voxels, grid): a bound below it",
+                )
+            )
         for prefix, values, quantity in grids:
             target = out_dir / f"{prefix}_{stem}.tif"
             export_volume_tiff(

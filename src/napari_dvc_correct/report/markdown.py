@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..engine.evaluation.error_estimate import bounded_text
 from ..engine.evaluation.results import Evaluation
 from ..io.atomic import atomic_path
 from .passes import first_run_parameters, method_lines, order_text, pass_rows, subvolume_text
@@ -175,6 +176,9 @@ def render_markdown(
     )
 
     summary = summary_rows(evaluation)
+    for row, item in zip(summary, evaluation.fields):  # '< bound' where below the resolution
+        for key in ("median", "p95"):
+            row[f"error_{key}"] = bounded_text(item.error, key)
     parts.append(
         "## Summary\n\n"
         + markdown_table(
@@ -188,8 +192,10 @@ def render_markdown(
                 "accuracy_index": "Accuracy index p (eq. 2)",
                 "error_median": "Error estimate, median (voxels)",
                 "error_p95": "95th percentile",
-                "likely_bad_fraction": "Share of nodes likely > 0.5 voxel",
-                "below_resolution_fraction": "Share below the residual's resolution (a bound)",
+                "likely_bad_fraction": "Share of nodes likely > 0.5 voxel (P ≥ ½)",
+                "possibly_bad_fraction": "Share possibly > 0.5 voxel (P ≥ 16 %)",
+                "error_resolution": "Residual's resolution, median (voxels)",
+                "below_resolution_fraction": "Share below the resolution (a bound: <)",
                 "max_equivalent_strain": "Max equivalent strain",
                 "valid_nodes": "Measured nodes",
                 "nodes": "Nodes",
@@ -204,6 +210,14 @@ def render_markdown(
         f"above the noise. The paper takes p = 0.85 as acceptable. Highest p: **{best.name}** "
         f"({best.accuracy:.3f}). The index uses {shared} background r̄0 "
         "(see docs/evaluation.md)."
+    )
+    parts.append(
+        "The error estimate is in voxels per node, from the gray residual around the node. "
+        "Below the residual's resolution (its noise, per node) it is a bound, not a rank: a "
+        "median or 95th percentile shown as `< x` means at least half (95 %) of the nodes are "
+        "below it, and x is the median (95th percentile) of max(estimate, resolution). A node "
+        "is *likely* > 0.5 voxel where P(error > 0.5) ≥ ½ and *possibly* where P ≥ 16 %, "
+        "with the estimate's noise σ = resolution/√3 (docs/evaluation.md)."
     )
     parts.append(_phase_section(evaluation))
     corrections = _correction_section(evaluation)

@@ -35,7 +35,11 @@ COLUMNS = (
     "meaningful",
     "error_median",
     "error_p95",
+    "error_median_shown",
+    "error_p95_shown",
+    "error_resolution",
     "likely_bad",
+    "possibly_bad",
 )
 _STATE = re.compile(r"^\s*state\s+\d+\s*", re.IGNORECASE)
 
@@ -111,9 +115,14 @@ def series_rows(results, loads=None, deformed: str | None = None) -> list[dict]:
     list of dict
         Keys :data:`COLUMNS`: ``state`` (1, 2, ... in order), ``tick``, ``load`` (NaN when not
         given), ``field`` (:func:`curve_name`), ``mean_residual`` (gray levels), ``accuracy``
-        (p), ``meaningful``, ``error_median``/``error_p95`` (voxel) and ``likely_bad``
-        (share of nodes likely off by more than 0.5 voxel).
+        (p), ``meaningful``, ``error_median``/``error_p95`` (voxel), the same as shown
+        (``error_median_shown``/``error_p95_shown``: ``"< x"`` where the residual's resolution
+        bounds them), ``error_resolution`` (its median, voxel), ``likely_bad`` and
+        ``possibly_bad`` (shares of nodes off by more than 0.5 voxel with a probability of at
+        least ½ and 16 %: :func:`..engine.evaluation.error_estimate.error_summary`).
     """
+    from ..engine.evaluation.error_estimate import bounded_text
+
     loads = parse_loads(loads, len(results)) if loads is not None else None
     rows = []
     for position, (label, evaluation) in enumerate(results, start=1):
@@ -130,7 +139,11 @@ def series_rows(results, loads=None, deformed: str | None = None) -> list[dict]:
                     "meaningful": bool(item.meaningful),
                     "error_median": float(error["median"]),
                     "error_p95": float(error["p95"]),
+                    "error_median_shown": bounded_text(error, "median"),
+                    "error_p95_shown": bounded_text(error, "p95"),
+                    "error_resolution": float(error["resolution"]),
                     "likely_bad": float(error["likely_bad"]),
+                    "possibly_bad": float(error["possibly_bad"]),
                 }
             )
     return rows
@@ -225,7 +238,8 @@ def series_markdown(rows: list[dict], image: str | None = None) -> str:
     if image:
         lines += [f"![series]({image})", ""]
     lines += [
-        "| state | load | field | mean residual | p | error median (voxel) | 95 % | > 0.5 voxel |",
+        "| state | load | field | mean residual | p | error median (voxel) | 95 % "
+        "| likely > 0.5 voxel (P ≥ ½) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
@@ -234,10 +248,15 @@ def series_markdown(rows: list[dict], image: str | None = None) -> str:
         tick = row["tick"].replace("|", "\\|")
         lines.append(
             f"| {tick} | {load} | {row['field'].replace('|', chr(92) + '|')} | "
-            f"{row['mean_residual']:.3f} | {p} | {row['error_median']:.3f} | "
-            f"{row['error_p95']:.3f} | {100 * row['likely_bad']:.0f} % |"
+            f"{row['mean_residual']:.3f} | {p} | {_shown(row, 'error_median')} | "
+            f"{_shown(row, 'error_p95')} | {100 * row['likely_bad']:.0f} % |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _shown(row: dict, key: str) -> str:
+    """The error estimate's value as shown (``"< x"`` below the resolution), else its number."""
+    return row.get(f"{key}_shown") or f"{row[key]:.3f}"
 
 
 def write_series_report(

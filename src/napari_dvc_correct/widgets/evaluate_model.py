@@ -316,7 +316,9 @@ def evaluation_report(evaluation) -> dict:
             "nodes": int(item.field.n_points),
             "error estimate median (voxels)": error["median"],
             "error estimate 95th percentile (voxels)": error["p95"],
-            "share of nodes likely > 0.5 voxel": error["likely_bad"],
+            "share of nodes likely > 0.5 voxel (P >= 1/2)": error["likely_bad"],
+            "share of nodes possibly > 0.5 voxel (P >= 16 %)": error["possibly_bad"],
+            "residual's resolution, median (voxels)": error["resolution"],
             "share of nodes below the residual's resolution": error["below_resolution"],
             "voxels": int(item.voxels),
             "mean residual per strain bin": [float(v) for v in item.bins.mean_residual],
@@ -334,6 +336,7 @@ def attach_estimate(field, item, evaluation) -> None:
     attach(
         field,
         item.error_estimate,
+        item.error_resolution,
         background_residual=float(evaluation.pair.background.mean),
         residual=evaluation.residual_text,
         gray_levels=evaluation.gray_levels.describe(),
@@ -343,7 +346,7 @@ def attach_estimate(field, item, evaluation) -> None:
 def field_lines(item) -> list[str]:
     """The dock's lines for one field: a warning first when most nodes were not measured, then
     the mean residual, p and the error estimate."""
-    from ..engine.evaluation.error_estimate import LIKELY_BAD
+    from ..engine.evaluation.error_estimate import bounded_text, likely_text
 
     lines = []
     nodes = int(item.field.n_points)
@@ -356,12 +359,11 @@ def field_lines(item) -> list[str]:
     p = f"{item.accuracy:.4f}" if item.meaningful else f"({item.accuracy:.4f}, not meaningful)"
     lines.append(
         f"{item.name}: mean residual {item.mean_residual:.2f}, accuracy index p = {p}; error "
-        f"estimate median "
-        f"{error['median']:.3f} voxel, 95 % {error['p95']:.3f}, "
-        f"{100 * error['likely_bad']:.0f} % of nodes likely > {LIKELY_BAD:g} voxel"
+        f"estimate median {bounded_text(error, 'median')} voxel, 95 % "
+        f"{bounded_text(error, 'p95')}, {likely_text(error)}"
         + (
-            f", {100 * error['below_resolution']:.0f} % below the residual's resolution "
-            f"({error['resolution']:.3f} voxel, median: a bound there)"
+            f"; resolution {error['resolution']:.3f} voxel (median), "
+            f"{100 * error['below_resolution']:.0f} % of nodes below it (a bound there: '<')"
             if np.isfinite(error["below_resolution"])
             else ""
         )

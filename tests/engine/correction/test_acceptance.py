@@ -164,3 +164,54 @@ def test_a_flag_needs_an_excess_above_both_a_voxel_s_error_and_the_noise_scatter
     # clean scans (floor 1): the noise term is 0.33 and the voxel's error decides, as before
     assert _judged(floor=1.0, excess=2.5)[0]
     assert not _judged(floor=1.0, excess=1.9)[0]
+
+
+def _noise_case(shape=(6, 6, 6), sigma=0.3, seed=0):
+    """A measured field, a pass whose corrections are pure matching noise of uncertainty
+    ``sigma`` (norm) at every node, and that uncertainty."""
+    current = _delta(shape=shape)
+    current.provenance[:] = Provenance.MEASURED
+    candidate = current.copy()
+    rng = np.random.default_rng(seed)
+    candidate.u += rng.normal(0.0, sigma / np.sqrt(3.0), current.u.shape)
+    return current, candidate, np.full(shape, sigma)
+
+
+def test_a_region_whose_corrections_are_only_noise_keeps_its_values():
+    from napari_dvc_correct.engine.correction.acceptance import noise_only_corrections
+
+    current, candidate, sigma = _noise_case()
+    flat = np.zeros(current.shape)
+    refused = noise_only_corrections(current, candidate, sigma, flat)
+    # the pooled energy of 27 noise corrections scatters around Σσ² by sqrt(2 / 81) of it: a
+    # region stands NOISE_Z such spreads above it by chance in about 2 % of the draws
+    assert refused.mean() > 0.9
+    # the same nodes corrected by 3σ in a coherent patch: not noise, not refused there
+    patch = (slice(1, 5), slice(1, 5), slice(1, 5))
+    candidate.u[patch + (0,)] += 3.0 * sigma[patch]
+    refused = noise_only_corrections(current, candidate, sigma, flat)
+    assert not refused[patch].any()
+
+
+def test_a_bend_above_the_noise_or_a_refilled_value_opens_a_noise_region():
+    from napari_dvc_correct.engine.correction.acceptance import noise_only_corrections
+
+    current, candidate, sigma = _noise_case()
+    candidate.u = current.u.copy()  # no correction at all: Σ|c|² = 0 <= Σσ² everywhere
+    bend = np.zeros(current.shape)
+    bend[3, 3, 3] = 1.5 * sigma[3, 3, 3]  # a shape-function bias the noise lets a match see
+    current.provenance[0, 0, 0] = Provenance.REPLACED  # a refilled value: no measurement yet
+    current.status[0, 5, 0] = Status.LOW_ZNCC
+    refused = noise_only_corrections(current, candidate, sigma, bend)
+    near = np.zeros(current.shape, bool)
+    near[2:5, 2:5, 2:5] = True  # the bent node and its 26 neighbours
+    assert not refused[near].any()
+    assert not refused[0, 0, 0] and not refused[0, 5, 0]
+    others = ~near
+    others[0, 0, 0] = others[0, 5, 0] = False
+    assert refused[others].all()
+    # an unknown uncertainty (an interpolated correcting match) is never judged here, nor is
+    # any node where the bend is unknown
+    sigma[5, 5, 5] = np.nan
+    assert not noise_only_corrections(current, candidate, sigma, bend)[5, 5, 5]
+    assert not noise_only_corrections(current, candidate, sigma, np.full(bend.shape, np.nan)).any()

@@ -92,3 +92,27 @@ def test_noise_keeps_the_first_runs_subvolume_where_a_smaller_one_would_scatter_
     field.uncertainty = np.full((*shape, 3), 0.2)
     chosen, why = pass_method(field, params)
     assert chosen == params and "predicted errors" in why
+
+
+def test_the_node_bend_is_the_quadratic_term_a_first_order_subvolume_leaves():
+    from napari_dvc_correct.engine.correction.pass_method import node_bend
+
+    params = CorrelationParams(subvolume=21, step=6)
+    shape = (5, 5, 16)
+    field = DisplacementField.zeros((10.0, 10.0, 10.0), (6.0, 6.0, 6.0), shape)
+    x = field.points[:, 2].reshape(shape)
+    curvature = 0.004  # u_z = c (x - x0)² / 2: u'' = c, a bend of c M² / 2 at every node
+    field.u[..., 0] = 0.5 * curvature * (x - 55.0) ** 2
+    bend = node_bend(field, params.half)
+    assert bend.shape == shape
+    expected = 0.5 * curvature * params.half**2
+    # the one-node Gaussian smoothing keeps a quadratic's second difference four nodes away
+    # from the faces it reflects at
+    inner = bend[..., 4:-4]
+    assert np.allclose(inner, expected, rtol=0.01)
+    assert bend.max() <= expected * 1.01  # the faces bend no more than the field does
+    # an affine field bends nothing; a field with a NaN node tells nothing
+    field.u[..., 0] = 0.01 * x
+    assert np.allclose(node_bend(field, params.half), 0.0, atol=1e-12)
+    field.u[0, 0, 0, 0] = np.nan
+    assert np.isnan(node_bend(field, params.half)).all()

@@ -11,6 +11,7 @@ from napari_dvc_correct.engine.correction.rematch_region import (
     reuse,
     select,
     spline_reach,
+    spline_tail,
 )
 from napari_dvc_correct.engine.fields.field import DisplacementField, Status
 from napari_dvc_correct.engine.fields.field_spline import FieldSpline
@@ -30,6 +31,26 @@ def test_the_spline_tail_is_the_field_splines_response_to_one_node():
     for d in (1, 2, 3):
         beyond = response[np.abs(x - 60.0) >= 4.0 * d]
         assert SPLINE_TAIL[d] * 0.95 <= beyond.max() <= SPLINE_TAIL[d] * 1.05, d
+
+
+def test_the_spline_tail_is_computed_on_first_use_not_on_import():
+    import subprocess
+    import sys
+
+    module = "napari_dvc_correct.engine.correction.rematch_region"
+    code = (
+        f"import {module} as m; assert m.spline_tail.cache_info().currsize == 0; "
+        "m.spline_reach(0.5, 0.01); assert m.spline_tail.cache_info().currsize == 1"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    # the module's constant of before is the same array, read-only
+    assert SPLINE_TAIL is spline_tail()
+    assert not SPLINE_TAIL.flags.writeable
+    with pytest.raises(AttributeError):
+        from napari_dvc_correct.engine.correction import rematch_region
+
+        rematch_region.NO_SUCH_NAME  # noqa: B018
 
 
 def test_the_spline_reach_is_where_the_largest_change_falls_below_the_tolerance():

@@ -515,6 +515,36 @@ def test_a_gray_level_change_neither_flags_nor_moves_a_right_field():
     assert corrected.metadata["gray_levels"]["contrast"] == pytest.approx(2.5, rel=0.02)
 
 
+@pytest.mark.parametrize("seed", [3, 7])
+def test_a_pass_does_not_make_a_heavy_noise_translation_worse(seed):
+    # noise 0.8 x the texture's std on both scans, 15³ subvolumes: the plain field is 0.24-0.26
+    # voxel off, all of it matching noise, and nothing bends it. A pass re-measured that noise on
+    # the same images and re-applied it: seed 3 went 0.257 -> 0.304, seed 7 0.235 -> 0.259
+    shift = (1.3, -0.7, 0.6)
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.two_phase_volume(s, seed=seed),
+        (44,) * 3,
+        synthetic.translation(shift),
+        margin=8,
+    )
+    sigma = 0.8 * float(np.std(reference))
+    reference = synthetic.add_noise(reference, sigma, seed=1)
+    deformed = synthetic.add_noise(deformed, sigma, seed=2)
+    params = CorrelationParams(subvolume=15, step=5)
+    measured = correlate(reference, deformed, params)
+    corrected = correct(reference, deformed, measured, params)
+
+    def rmse(field):
+        error = np.linalg.norm(field.displacement - np.asarray(shift), axis=1)
+        return float(np.sqrt(np.nanmean(error**2)))
+
+    # no worse than the plain field by more than a hundredth of a voxel (a twentieth of its
+    # noise): the pass may still improve a node or two, but not re-apply the noise
+    assert rmse(corrected) <= rmse(measured) + 0.01
+    last = correction_table(corrected)[-1]
+    assert last.noise_refused_nodes >= 0.8 * last.judged_nodes  # refused as noise, and said so
+
+
 # --- the real loaded pair of ../shared/data/real-rock (issue 25) --------------------------------
 REAL_ROCK = Path(__file__).resolve().parents[4] / "shared" / "data" / "real-rock"
 

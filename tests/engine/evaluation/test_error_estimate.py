@@ -11,10 +11,15 @@ from napari_dvc_correct.engine.evaluation.accuracy_blocks import gradient_compon
 from napari_dvc_correct.engine.evaluation.error_estimate import (
     MOMENTS,
     ErrorMoments,
+    attach_estimate,
+    bounded_text,
     error_estimate,
     error_summary,
+    estimate_of,
     moment_volumes,
+    probability_above,
     residual_error,
+    resolution_of,
 )
 from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
 from napari_dvc_correct.engine.synthetic import (
@@ -112,6 +117,54 @@ def test_error_summary_counts_bounds_and_undefined_nodes():
     assert np.isnan(error_summary(np.array([0.1]))["below_resolution"])
 
 
+def test_the_probability_of_an_error_above_the_limit_uses_the_estimate_s_noise():
+    """σ = resolution / √3: at the limit P = ½, one σ above 0.841, one σ below 0.159; without a
+    finite resolution the estimate decides alone; an undefined node counts as bad."""
+    resolution = np.sqrt(3.0) * 0.1  # σ = 0.1
+    estimate = np.array([0.5, 0.6, 0.4, 0.2, np.nan, 0.7, 0.3])
+    limits = np.array([resolution] * 5 + [np.inf, np.nan])
+    p = probability_above(estimate, limits, 0.5)
+    np.testing.assert_allclose(p[:4], [0.5, 0.841345, 0.158655, 0.001350], atol=1e-6)
+    assert p[4] == 1.0 and p[5] == 1.0 and p[6] == 0.0
+    np.testing.assert_array_equal(probability_above([0.4, 0.6]), [0.0, 1.0])
+
+
+def test_the_summary_says_likely_possibly_and_where_its_numbers_are_bounds():
+    """Likely: P ≥ ½ (the estimate above 0.5); possibly: P ≥ 16 % (the estimate plus σ above
+    0.5). Median and 95th percentile are bounds when half (95 %) of the nodes are below the
+    resolution, the bound being the median of max(estimate, resolution)."""
+    sigma = 0.05
+    resolution = np.full(6, np.sqrt(3.0) * sigma)  # 0.0866
+    estimate = np.array([0.0, 0.0, 0.0, 0.44, 0.46, 0.52])
+    summary = error_summary(estimate, resolution=resolution)
+    assert summary["likely_bad"] == pytest.approx(1 / 6)  # 0.52
+    assert summary["possibly_bad"] == pytest.approx(2 / 6)  # 0.46 + 0.05 > 0.5, 0.44 not
+    assert summary["below_resolution"] == 0.5 and summary["median_is_bound"]
+    assert not summary["p95_is_bound"]
+    assert summary["median_bound"] == pytest.approx((0.0866 + 0.44) / 2, abs=1e-4)
+    assert bounded_text(summary, "median") == f"< {summary['median_bound']:.3f}"
+    assert bounded_text(summary, "p95") == "0.520"
+    quiet = error_summary(np.zeros(20), resolution=np.full(20, 0.12))
+    assert bounded_text(quiet, "median") == "< 0.120" == bounded_text(quiet, "p95")
+    assert quiet["likely_bad"] == quiet["possibly_bad"] == 0.0
+
+
+def test_the_estimate_and_its_resolution_ride_on_the_field():
+    field = DisplacementField.zeros((0, 0, 0), (5, 5, 5), (1, 2, 2))
+    estimate = np.array([[[0.1, np.nan], [0.3, 0.4]]])
+    resolution = np.array([[[0.05, 0.2], [np.inf, 0.1]]])
+    assert estimate_of(field) is None and resolution_of(field) is None
+    attach_estimate(field, estimate, resolution, background_residual=2.0)
+    np.testing.assert_allclose(estimate_of(field), estimate, equal_nan=True)
+    expected = np.where(np.isfinite(resolution), resolution, np.nan)  # no texture: undefined
+    np.testing.assert_allclose(resolution_of(field), expected, equal_nan=True)
+    import json
+
+    json.dumps(field.metadata, allow_nan=False)  # JSON-ready as it is
+    with pytest.raises(ValueError, match="resolution .* is not on the field's grid"):
+        attach_estimate(field, estimate, resolution[..., :1])
+
+
 def test_the_noise_of_the_match_sets_the_level_below_the_resolution():
     """An exact field measured by a match with noise uncertainty 0.04 voxel per component: the
     residual resolves nothing, the estimate is the match's noise error (0.04 √3)."""
@@ -169,3 +222,32 @@ def test_the_estimate_follows_imposed_errors_on_ct_texture(ct_pair):
     assert result["band"].error["below_resolution"] > 0.3  # most nodes far from the band
     plain = raw["uniform"].error_estimate[inside]
     assert np.median(plain) == pytest.approx(np.median(estimate["uniform"]), rel=0.1)
+
+
+def test_independent_node_errors_are_read_through_the_window_s_mean(ct_pair):
+    """Random node errors (0.6 voxel rms, independent from node to node): the densified field
+    between nodes averages them, so a window of one grid step holds about a third of each
+    node's error. The estimate follows that window mean (within 25 % at the median), not the
+    node's own error: why imposed random errors read at a fraction of their truth."""
+    from napari_dvc_correct.engine.evaluation.error_estimate import error_region_half
+    from napari_dvc_correct.engine.fields.field_spline import densify
+
+    reference, deformed, base, exact = ct_pair
+    errors = np.random.default_rng(4).normal(0.0, 0.6 / np.sqrt(3), exact.shape)
+    field = base.replace(u=(exact + errors).reshape((*base.shape, 3)))
+    item = evaluate_fields(reference, deformed, {"random": field}, keep_volumes=False)["random"]
+    half = error_region_half(base)
+    dense = densify(base.replace(u=errors.reshape((*base.shape, 3))), shape=SHAPE, dtype=float)
+    window = np.stack(
+        [ndimage.uniform_filter(dense[..., c], 2 * half + 1, mode="nearest") for c in range(3)],
+        axis=-1,
+    )
+    nodes = np.round(base.points).astype(int)
+    windowed = np.linalg.norm(window[nodes[:, 0], nodes[:, 1], nodes[:, 2]], axis=1)
+    r = np.hypot(base.points[:, 1] - 27.5, base.points[:, 2] - 27.5)
+    inside = r < 0.46 * SHAPE[1] - 5
+    truth = np.linalg.norm(errors, axis=1)[inside]
+    windowed, estimate = windowed[inside], item.error_estimate.reshape(-1)[inside]
+    assert 0.25 < np.median(windowed) / np.median(truth) < 0.42  # what the window holds: 0.33
+    assert np.median(estimate) == pytest.approx(np.median(windowed), rel=0.25)  # 1.10
+    assert np.median(estimate) < 0.6 * np.median(truth)

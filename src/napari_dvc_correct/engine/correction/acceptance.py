@@ -74,6 +74,11 @@ CRACK_SHIELD_NODES = 2
 #: correcting match above zero (:func:`shrink_to_support`).
 SUPPORT_Z = 0.5
 
+#: Half-width (nodes) of the neighbourhood over which :func:`noise_only_corrections` pools a
+#: pass's corrections against their matches' noise: the node and the 26 around it, whose
+#: subvolumes overlap its own at the usual steps (a half to a third of the subvolume).
+NOISE_REGION_NODES = 1
+
 #: How far (grid steps of the correcting field) beyond its outermost good measured nodes a node's
 #: update may read it. Further out the spline extrapolates the correcting field linearly: on the
 #: shear band of docs/method.md (17-voxel displacements, step 5) updates read 0-6 voxels beyond the
@@ -385,6 +390,59 @@ def shrink_to_support(current: DisplacementField, candidate: DisplacementField, 
             candidate.gradient - current.gradient
         )
     return shrunk, known & (factor <= 0.0)
+
+
+def noise_only_corrections(
+    current: DisplacementField, candidate: DisplacementField, sigma, bend
+) -> np.ndarray:
+    """Measured nodes where a pass has nothing to correct that the noise lets it see.
+
+    A correcting match re-measures a node on the same images that gave its value, so its noise
+    is not news: under heavy noise a pass re-applies the matching noise (the correction of a node
+    is then no smaller than its own error, and points the wrong way as often as not) and makes
+    a field that needed nothing worse. Node by node :func:`shrink_to_support` cannot tell such a
+    correction from a real one of the same size. Pooled over the node's neighbourhood
+    (:data:`NOISE_REGION_NODES`) it can: where the corrections hold no more energy than their
+    matches' uncertainties let noise give them (``Σ|c|²`` at most :data:`NOISE_Z` spreads above
+    ``Σσ²``; the noise energy of ``n`` nodes spreads by ``sqrt(2 / 3n) Σσ²``) *and* the field's
+    own bend over the correcting subvolume stays below the node's ``σ`` everywhere in that
+    neighbourhood (no shape-function bias the noise would let a match find), the region holds
+    only noise, and its measured nodes keep their values. Nodes whose value is not a measurement (refilled, interpolated) are not
+    judged here: their correcting match is the first measurement they get.
+
+    Parameters
+    ----------
+    current, candidate : DisplacementField
+        The field before the pass and its proposed update (same grid), before any shrink.
+    sigma : ndarray, shape ``current.shape``
+        Uncertainty of each node's correcting match (voxels, norm; NaN: unknown).
+    bend : ndarray, shape ``current.shape``
+        What an affine shape function on the correcting subvolume leaves of ``current``'s
+        curvature at each node (voxels, :func:`.pass_method.node_bend`; NaN: unknown, and
+        then no node near it is refused).
+
+    Returns
+    -------
+    ndarray of bool, ``current.shape``
+        Nodes to refuse: their correction is the noise's.
+    """
+    change = np.asarray(candidate.u, dtype=np.float64) - current.u
+    energy = np.sum(change**2, axis=-1)
+    sigma = np.asarray(sigma, dtype=np.float64).reshape(energy.shape)
+    known = np.isfinite(sigma) & np.isfinite(energy)
+    size = 2 * NOISE_REGION_NODES + 1
+    pooled = ndimage.uniform_filter(np.where(known, energy, 0.0), size, mode="constant")
+    noise = ndimage.uniform_filter(np.where(known, sigma**2, 0.0), size, mode="constant")
+    count = ndimage.uniform_filter(known.astype(np.float64), size, mode="constant") * size**3
+    # pure noise scatters the pooled energy of n nodes (3 components each) around Σσ² by
+    # sqrt(2 / 3n) of it: a region shows a correction only NOISE_Z such deviations above
+    margin = 1.0 + NOISE_Z * np.sqrt(2.0 / (3.0 * np.maximum(count, 1.0)))
+    bend = np.asarray(bend, dtype=np.float64)
+    bend = np.where(np.isfinite(bend), bend, np.inf)  # an unknown bend may be any: not judged
+    bent = ndimage.maximum_filter(bend, size, mode="nearest")
+    measured = np.isin(current.status, [int(s) for s in GOOD_STATUSES])
+    measured &= np.isin(current.provenance, [Provenance.MEASURED, Provenance.CORRECTED])
+    return known & measured & (pooled <= margin * noise) & ~(bent > sigma)
 
 
 def unsupported_updates(delta: DisplacementField, read_points: np.ndarray) -> np.ndarray:

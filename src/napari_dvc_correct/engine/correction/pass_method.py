@@ -49,18 +49,9 @@ def field_curvature(field: DisplacementField, half: int) -> float:
     cannot follow. Returns the 90th percentile over the interior nodes of the largest such term
     (any component, any axis), 0 for grids too small to tell.
     """
-    u = np.asarray(field.u, dtype=np.float64)
-    if not np.all(np.isfinite(u)):
+    u = _smoothed_departure(field)
+    if u is None:
         return 0.0
-    # the affine trend has no curvature: remove it so the smoothing's border handling cannot
-    # bend it
-    points = field.points
-    design = np.column_stack([np.ones(len(points)), points])
-    coefficients, *_ = np.linalg.lstsq(design, u.reshape(-1, 3), rcond=None)
-    u = u - (design @ coefficients).reshape(u.shape)
-    # one node of Gaussian smoothing first: the matching noise of the nodes (a few hundredths of
-    # a voxel, independent from node to node) would otherwise read as curvature
-    u = np.stack([ndimage.gaussian_filter(u[..., c], 1.0, mode="nearest") for c in range(3)], -1)
     # nodes next to the grid's border are bent by the smoothing's border handling
     u = u[tuple(slice(1, -1) if n >= 5 else slice(None) for n in u.shape[:3])]
     terms = []
@@ -74,6 +65,49 @@ def field_curvature(field: DisplacementField, half: int) -> float:
     values = np.concatenate(terms)
     values = values[np.isfinite(values)]
     return float(0.5 * np.percentile(values, 90.0) * half**2) if values.size else 0.0
+
+
+def _smoothed_departure(field: DisplacementField) -> np.ndarray | None:
+    """The node displacements less their affine trend, smoothed over one node (None where some
+    node is not finite): what :func:`field_curvature` and :func:`node_bend` take second
+    differences of."""
+    u = np.asarray(field.u, dtype=np.float64)
+    if not np.all(np.isfinite(u)):
+        return None
+    # the affine trend has no curvature: remove it so the smoothing's border handling cannot
+    # bend it
+    points = field.points
+    design = np.column_stack([np.ones(len(points)), points])
+    coefficients, *_ = np.linalg.lstsq(design, u.reshape(-1, 3), rcond=None)
+    u = u - (design @ coefficients).reshape(u.shape)
+    # one node of Gaussian smoothing first: the matching noise of the nodes (a few hundredths of
+    # a voxel, independent from node to node) would otherwise read as curvature
+    return np.stack([ndimage.gaussian_filter(u[..., c], 1.0, mode="nearest") for c in range(3)], -1)
+
+
+def node_bend(field: DisplacementField, half: int) -> np.ndarray:
+    """:func:`field_curvature` node by node: the bend ``|u''| M^2 / 2`` (voxels) that an affine
+    shape function on a subvolume of half-size ``M`` leaves at each node, the largest over the
+    components and axes, shape ``field.shape``.
+
+    Second differences are centred; a face node takes its inner neighbour's along that axis,
+    and an axis with fewer than 3 nodes counts no bend. NaN everywhere where some node is not
+    finite (nothing to tell the bend from).
+    """
+    u = _smoothed_departure(field)
+    if u is None:
+        return np.full(field.shape, np.nan)
+    bend = np.zeros(field.shape)
+    for axis in range(3):
+        n = u.shape[axis]
+        if n < 3:
+            continue
+        second = np.diff(u, n=2, axis=axis) / float(field.step[axis]) ** 2
+        # centred at nodes 1 .. n-2; the face nodes take their inner neighbour's
+        index = np.clip(np.arange(n) - 1, 0, n - 3)
+        second = np.take(second, index, axis=axis)
+        bend = np.maximum(bend, np.max(np.abs(second), axis=-1))
+    return 0.5 * bend * float(half) ** 2
 
 
 def predicted_scatter(field: DisplacementField, subvolume: int, pass_subvolume: int) -> float:

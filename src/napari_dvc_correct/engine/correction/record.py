@@ -63,7 +63,8 @@ class CorrectionPass:
         and status).
     noise_refused_nodes : int
         Of the refused nodes, those whose correction the correcting match's own noise explains
-        (:func:`.acceptance.shrink_to_support`).
+        (:func:`.acceptance.shrink_to_support`), or whose whole neighbourhood holds only noise
+        (:func:`.acceptance.noise_only_corrections`).
     order, subvolume : int
         Shape-function order and subvolume edge (voxels) of the pass's correcting matches
         (0 for pass 0 and for records of older files).

@@ -4,7 +4,7 @@ Pass ``k + 1`` of the self-correction (:mod:`.self_correction`) matches the warp
 correcting match can differ from pass ``k``'s only where the warped volume changed, that is near
 the nodes whose value pass ``k`` changed: the dense field is a cubic B-spline through the node
 values, whose response to one node's change decays by about ``2 - sqrt(3) = 0.27`` per grid step
-(:data:`SPLINE_TAIL`). So:
+(:func:`spline_tail`). So:
 
 * the **changed nodes** are those whose change in pass ``k`` is large enough that the next pass
   could still improve their region above the noise floor (:func:`changed_nodes`); where fewer
@@ -24,6 +24,7 @@ not run. Positions in voxels, axes (z, y, x).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,18 +48,32 @@ def _cardinal_tail(max_steps: int = 12) -> np.ndarray:
     return np.array([eta[x >= d].max() for d in range(max_steps + 1)])
 
 
-#: ``SPLINE_TAIL[d]``: the largest response of the cubic-spline interpolant, ``d`` or more grid
-#: steps from a node, to a unit change of that node (1, 0.137, 0.037, 0.0098, 0.0026...).
-SPLINE_TAIL = _cardinal_tail()
+@functools.cache
+def spline_tail() -> np.ndarray:
+    """``spline_tail()[d]``: the largest response of the cubic-spline interpolant, ``d`` or more
+    grid steps from a node, to a unit change of that node (1, 0.137, 0.037, 0.0098, 0.0026...).
+
+    Computed on first use, not on import (about 15 ms of every process that imports the
+    correction); read-only."""
+    tail = _cardinal_tail()
+    tail.flags.writeable = False
+    return tail
+
+
+def __getattr__(name: str):
+    if name == "SPLINE_TAIL":  # the module constant of before, now computed on first use
+        return spline_tail()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def spline_reach(max_change: float, tolerance: float) -> int:
     """Fewest grid steps ``S >= 1`` beyond which a node change of ``max_change`` voxels moves
-    the dense field by at most ``tolerance`` voxels (:data:`SPLINE_TAIL`)."""
+    the dense field by at most ``tolerance`` voxels (:func:`spline_tail`)."""
     if not np.isfinite(max_change) or max_change <= 0:
         return 1
-    within = np.flatnonzero(max_change * SPLINE_TAIL <= tolerance)
-    return int(max(1, within[0])) if within.size else len(SPLINE_TAIL) - 1
+    tail = spline_tail()
+    within = np.flatnonzero(max_change * tail <= tolerance)
+    return int(max(1, within[0])) if within.size else len(tail) - 1
 
 
 @dataclass(frozen=True)

@@ -70,12 +70,13 @@ from .acceptance import (
     crack_shield,
     flag_and_refill,
     mix_fields,
+    noise_only_corrections,
     shrink_to_support,
     unsupported_updates,
 )
 from .cleaning import clean, masked_nodes
 from .options import CorrectionOptions
-from .pass_method import correction_grid, pass_method
+from .pass_method import correction_grid, node_bend, pass_method
 from .pass_update import (
     correction_sigma,
     finish_pass,
@@ -365,9 +366,15 @@ def _correction_loop(
         floor_before = judge.floor
         # a correction is applied in proportion to its support above the correcting match's
         # own noise; one the noise alone explains is not applied (the node keeps its value)
-        candidate, unsupported_by_noise = shrink_to_support(
-            current, candidate, correction_sigma(delta, read_points, current.shape)
+        sigma = correction_sigma(delta, read_points, current.shape)
+        # ... and not at all where the node's whole neighbourhood holds nothing but noise: no
+        # correction above its matches' noise, no bend a match could find (a pass there would
+        # re-apply the noise of the images that gave the values)
+        noise_only = noise_only_corrections(
+            current, candidate, sigma, node_bend(current, pass_params.half)
         )
+        candidate, unsupported_by_noise = shrink_to_support(current, candidate, sigma)
+        unsupported_by_noise |= noise_only
         # a good node whose correcting match failed keeps its value and its status: a failed
         # (or smaller, noisier) correcting match says nothing about the node's own error. So
         # does a correcting match that came out MASKED at a node the first run measured with

@@ -38,12 +38,20 @@ flat region) the resolution is infinite. Measured against true errors in
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-#: Nodes whose estimated error exceeds this many voxels are counted as likely bad.
+#: Nodes whose error is likely above this many voxels are counted as likely bad
+#: (:func:`probability_above`).
 LIKELY_BAD = 0.5
+
+#: A node is *likely* above :data:`LIKELY_BAD` where the probability is at least this, and
+#: *possibly* above it where it is at least :data:`POSSIBLY` (the estimate plus one standard
+#: deviation of its noise reaches the limit: a one-sided 84 % upper bound).
+LIKELY = 0.5
+POSSIBLY = 0.5 * math.erfc(1.0 / math.sqrt(2.0))  # 1 − Φ(1) = 0.1587
 
 #: The texture's part of each gradient product is kept above this share of the measured one.
 MIN_TEXTURE_SHARE = 0.05
@@ -293,14 +301,53 @@ def error_estimate(
     return estimate, residual.resolution
 
 
+def probability_above(estimate, resolution=None, limit: float = LIKELY_BAD) -> np.ndarray:
+    """Probability that each node's error exceeds ``limit`` voxels, given its estimate and the
+    residual's resolution there.
+
+    The estimate's noise along the error's direction is taken as Gaussian with the standard
+    deviation ``resolution / √3`` (the resolution ``√tr C`` is the norm of the three
+    components' noise): ``P = Φ((estimate − limit) / (resolution / √3))``. ``P ≥ ½`` is the
+    estimate above ``limit``; ``P ≥ 0.16`` the estimate plus one standard deviation above it
+    (a one-sided 84 % upper bound). Where the resolution is not finite or not given the
+    estimate decides alone (1 above ``limit``, 0 below); a NaN estimate gives 1 (its region is
+    not explained at all).
+
+    Parameters
+    ----------
+    estimate, resolution : ndarray, same shape
+        :func:`error_estimate`'s (voxels).
+    limit : float
+        Voxels.
+    """
+    from scipy.special import ndtr
+
+    values = np.asarray(estimate, dtype=np.float64)
+    sigma = (
+        np.full(values.shape, np.nan)
+        if resolution is None
+        else np.asarray(resolution, dtype=np.float64) / np.sqrt(3.0)
+    )
+    known = np.isfinite(values) & np.isfinite(sigma) & (sigma > 0)
+    z = np.where(known, (np.where(known, values, 0.0) - limit) / np.where(known, sigma, 1.0), 0.0)
+    gauss = ndtr(z)
+    step = np.where(np.isnan(values), 1.0, (np.nan_to_num(values, nan=np.inf) > limit) * 1.0)
+    return np.where(known, gauss, step)
+
+
 def error_summary(estimate, nodes=None, resolution=None) -> dict:
-    """Median, 95th percentile and share of nodes above :data:`LIKELY_BAD` (over ``nodes``, a
-    boolean grid mask, default all; NaN nodes count as likely bad: their region is not
-    explained at all).
+    """Median, 95th percentile and the shares of nodes likely and possibly above
+    :data:`LIKELY_BAD` (:func:`probability_above` at least :data:`LIKELY` / :data:`POSSIBLY`),
+    over ``nodes`` (a boolean grid mask, default all; NaN nodes count as likely bad: their
+    region is not explained at all).
 
     With ``resolution`` (:func:`error_estimate`'s, same grid) also ``resolution`` (its median)
     and ``below_resolution``, the share of nodes whose estimate is not above it: there the
     residual cannot see the error and the estimate is a bound (NaN without ``resolution``).
+    ``median_bound`` and ``p95_bound`` are the median and 95th percentile of
+    ``max(estimate, resolution)``, what the nodes' errors are known to be under; the median
+    (the 95th percentile) is itself only a bound when at least half (95 %) of the nodes are
+    below the resolution: ``median_is_bound``, ``p95_is_bound`` (:func:`bounded_text`).
     """
     values = np.asarray(estimate, dtype=np.float64)
     limit = None if resolution is None else np.asarray(resolution, dtype=np.float64)
@@ -308,41 +355,78 @@ def error_summary(estimate, nodes=None, resolution=None) -> dict:
         values = values[np.asarray(nodes, bool)]
         limit = None if limit is None else limit[np.asarray(nodes, bool)]
     values = values.ravel()
-    summary = {"resolution": float("nan"), "below_resolution": float("nan")}
+    nan = float("nan")
+    summary = {
+        "resolution": nan,
+        "below_resolution": nan,
+        "median_bound": nan,
+        "p95_bound": nan,
+        "median_is_bound": False,
+        "p95_is_bound": False,
+    }
     if values.size == 0:
-        return {"median": float("nan"), "p95": float("nan"), "likely_bad": float("nan"), **summary}
+        empty = {"median": nan, "p95": nan, "likely_bad": nan, "possibly_bad": nan}
+        return {**empty, **summary}
     filled = np.where(np.isfinite(values), values, np.inf)
+    probability = probability_above(values, None if limit is None else limit.ravel())
     if limit is not None:
         limit = np.where(np.isnan(limit.ravel()), np.inf, limit.ravel())
+        below = float(np.mean(filled <= limit))
+        upper = np.maximum(filled, limit)
         summary = {
             "resolution": float(np.median(limit)),
-            "below_resolution": float(np.mean(filled <= limit)),
+            "below_resolution": below,
+            "median_bound": float(np.median(upper)),
+            "p95_bound": float(np.percentile(upper, 95.0, method="higher")),
+            "median_is_bound": below >= 0.5,
+            "p95_is_bound": below >= 0.95,
         }
     with np.errstate(invalid="ignore"):  # inf - inf between two undefined nodes
         return {
             "median": float(np.median(filled)),
             "p95": float(np.percentile(filled, 95.0, method="higher")),
-            "likely_bad": float(np.mean(filled > LIKELY_BAD)),
+            "likely_bad": float(np.mean(probability >= LIKELY)),
+            "possibly_bad": float(np.mean(probability >= POSSIBLY)),
             **summary,
         }
+
+
+def bounded_text(summary: dict, key: str, digits: int = 3) -> str:
+    """``summary[key]`` (``"median"`` or ``"p95"`` of :func:`error_summary`) as text: the value,
+    or ``"< bound"`` where the residual cannot resolve it (``"< 0.120"``)."""
+    if summary.get(f"{key}_is_bound"):
+        return f"< {summary[f'{key}_bound']:.{digits}f}"
+    return f"{summary[key]:.{digits}f}"
+
+
+def likely_text(summary: dict) -> str:
+    """The shares of nodes likely and possibly above :data:`LIKELY_BAD`, with what they mean."""
+    return (
+        f"{100 * summary['likely_bad']:.0f} % of nodes likely > {LIKELY_BAD:g} voxel "
+        f"(P ≥ ½), {100 * summary['possibly_bad']:.0f} % possibly (P ≥ 16 %)"
+    )
 
 
 #: Key of ``field.metadata`` where an evaluation leaves its estimate (View, exports).
 METADATA_KEY = "error_estimate"
 
 
-def attach_estimate(field, estimate, **info) -> None:
-    """Keep ``estimate`` (voxels, the field's grid) in ``field.metadata["error_estimate"]``
-    (JSON-ready: NaN as None), with ``info`` (e.g. the pair's r0, the residual's frame), so the
-    View panel shows it and every export writes it as a per-node column."""
-    values = np.asarray(estimate, dtype=np.float64)
+def attach_estimate(field, estimate, resolution=None, **info) -> None:
+    """Keep ``estimate`` and the residual's ``resolution`` (voxels, the field's grid) in
+    ``field.metadata["error_estimate"]`` (JSON-ready: NaN as None, an infinite resolution as
+    None too), with ``info`` (e.g. the pair's r0, the residual's frame), so the View panel
+    shows them and every export writes them as per-node columns."""
+    entry = {"voxels": _grid_list(field, estimate, "estimate")}
+    if resolution is not None:
+        entry["resolution_voxels"] = _grid_list(field, resolution, "resolution")
+    field.metadata[METADATA_KEY] = {**entry, **{k: v for k, v in info.items()}}
+
+
+def _grid_list(field, values, what: str) -> list:
+    values = np.asarray(values, dtype=np.float64)
     if values.shape != tuple(field.shape):
-        raise ValueError(f"estimate {values.shape} is not on the field's grid {field.shape}")
-    as_list = np.where(np.isfinite(values), np.round(values, 6), np.nan).tolist()
-    field.metadata[METADATA_KEY] = {
-        "voxels": _none_for_nan(as_list),
-        **{k: v for k, v in info.items()},
-    }
+        raise ValueError(f"{what} {values.shape} is not on the field's grid {field.shape}")
+    return _none_for_nan(np.where(np.isfinite(values), np.round(values, 6), np.nan).tolist())
 
 
 def _none_for_nan(values):
@@ -354,8 +438,18 @@ def _none_for_nan(values):
 def estimate_of(field) -> np.ndarray | None:
     """The estimate an evaluation left on ``field`` (voxels, ``field.shape``; NaN where
     undefined), or None."""
+    return _metadata_grid(field, "voxels")
+
+
+def resolution_of(field) -> np.ndarray | None:
+    """The residual's resolution an evaluation left on ``field`` next to its estimate (voxels,
+    ``field.shape``; NaN where undefined or without texture), or None."""
+    return _metadata_grid(field, "resolution_voxels")
+
+
+def _metadata_grid(field, key: str) -> np.ndarray | None:
     entry = (getattr(field, "metadata", None) or {}).get(METADATA_KEY)
-    if not isinstance(entry, dict) or "voxels" not in entry:
+    if not isinstance(entry, dict) or key not in entry:
         return None
-    values = np.asarray(entry["voxels"], dtype=np.float64)  # None -> NaN
+    values = np.asarray(entry[key], dtype=np.float64)  # None -> NaN
     return values if values.shape == tuple(field.shape) else None
