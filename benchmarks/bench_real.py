@@ -9,7 +9,10 @@ explains the images, with a judge that is not ours:
   them (nodes without a value filled in from their neighbours), a least-squares gray-level
   line ``G ≈ a F~ + b`` fitted over the whole crop (global, unlike the correction's local map),
   the mean ``|G - a F~ - b|`` over the voxels where the field is defined, as a fraction of the
-  zero field's;
+  zero field's; the same with an errors-in-variables line (``a = cov / (var F~ - σ²(F~))``, the
+  loaded scan's noise measured as the correction's map measures it, :mod:`.gray_noise`) in the
+  column "EIV line": the judge's least-squares line is diluted by that noise and stays so that
+  the numbers compare with earlier runs;
 * **ZNCC**: the median ZNCC of the nodes with a good status;
 * **the specimen mask**: as a user gives it (the Regions panel's threshold with holes filled,
   the command line's ``--mask``): the scan smoothed over 2 voxels, thresholded half-way between
@@ -42,6 +45,7 @@ from napari_dvc_correct.engine.correction.cleaning import clean
 from napari_dvc_correct.engine.correction.self_correction import correct
 from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.evaluation.gray_noise import pair_noise, scan_noises
 from napari_dvc_correct.engine.evaluation.residual import moved_and_residual
 from napari_dvc_correct.engine.fields.field import GOOD_STATUSES, DisplacementField, Status
 
@@ -51,7 +55,8 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-rock"
 def judge_residual(reference, deformed, field: DisplacementField):
     """Independent residual: pull-back with the field's grid values as they are (only the
     nodes without a value filled in, whatever the statuses say), global least-squares gray
-    line."""
+    line. Returns the mean residual, the residual volume and the mean residual with a global
+    errors-in-variables line instead."""
     as_given = field.copy()
     as_given.status[np.all(np.isfinite(field.u), axis=-1)] = int(Status.CONVERGED)
     # masked nodes (air, outside the user's mask) are filled from their neighbours, as a user's
@@ -62,7 +67,11 @@ def judge_residual(reference, deformed, field: DisplacementField):
     line, *_ = np.linalg.lstsq(design, reference[ok], rcond=None)
     residual = np.full(reference.shape, np.nan, np.float32)
     residual[ok] = np.abs(reference[ok] - design @ line)
-    return float(np.nanmean(residual)), residual
+    noise = pair_noise(*scan_noises(reference, deformed), field.displacement)
+    f, g = moved[ok].astype(np.float64), reference[ok].astype(np.float64)
+    slope = np.mean((f - f.mean()) * (g - g.mean())) / (np.var(f) - noise.moved)
+    eiv = float(np.mean(np.abs(g - g.mean() - slope * (f - f.mean()))))
+    return float(np.nanmean(residual)), residual, eiv
 
 
 def specimen_of(reference: np.ndarray) -> np.ndarray:
@@ -105,9 +114,9 @@ def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
     zero = plain.copy()
     zero.u[:] = 0.0
     zero.status[:] = int(Status.CONVERGED)
-    zero_residual, _ = judge_residual(reference, deformed, zero)
-    plain_residual, plain_map = judge_residual(reference, deformed, plain)
-    corrected_residual, _ = judge_residual(reference, deformed, corrected)
+    zero_residual, _, zero_eiv = judge_residual(reference, deformed, zero)
+    plain_residual, plain_map, plain_eiv = judge_residual(reference, deformed, plain)
+    corrected_residual, _, corrected_eiv = judge_residual(reference, deformed, corrected)
 
     crack = np.zeros(reference.shape, bool)
     inside = specimen & np.isfinite(plain_map)
@@ -134,21 +143,25 @@ def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
             f"within the noise), {record['improved_nodes']} improved above the floor"
         )
     print(
-        "| field | residual / zero field's | median ZNCC (good) | flagged (measured) | "
-        "flagged (specimen) | of the flagged: at the crack | DISCONTINUITY | seconds |"
+        "| field | residual / zero field's | EIV line: residual / zero field's | median ZNCC "
+        "(good) | flagged (measured) | flagged (specimen) | of the flagged: at the crack | "
+        "DISCONTINUITY | seconds |"
     )
-    print("|---|---|---|---|---|---|---|---|")
-    for label, field, residual, seconds in (
-        ("plain", plain, plain_residual, plain_seconds),
-        ("corrected", corrected, corrected_residual, plain_seconds + correction_seconds),
-    ):
+    print("|---|---|---|---|---|---|---|---|---|")
+    for label, field, residual, eiv, seconds in (
+        ("plain", plain, plain_residual, plain_eiv, plain_seconds),
+        (
+            "corrected", corrected, corrected_residual, corrected_eiv,
+            plain_seconds + correction_seconds,
+        ),
+    ):  # fmt: skip
         flagged = ~good(field) & measured
         in_specimen = flagged & node_in_specimen
         at_crack = f"{np.mean(node_at_crack[flagged]):.0%}" if flagged.any() else "— (none flagged)"
         zncc = float(np.median(field.zncc[good(field)])) if good(field).any() else float("nan")
         print(
             f"| {label} | {residual / zero_residual:.5f} ({residual:.4f} gray levels) | "
-            f"{zncc:.4f} | {flagged.sum() / max(1, measured.sum()):.1%} | "
+            f"{eiv / zero_eiv:.5f} ({eiv:.4f}) | {zncc:.4f} | {flagged.sum() / max(1, measured.sum()):.1%} | "
             f"{in_specimen.sum() / max(1, node_in_specimen.sum()):.1%} | {at_crack} | "
             f"{int(np.sum(field.status == int(Status.DISCONTINUITY)))} | {seconds:.1f} |"
         )

@@ -49,6 +49,7 @@ from ..engine.evaluation.gray_levels import (
     fit_from_passes,
     start_map,
 )
+from ..engine.evaluation.gray_noise import pair_noise, scan_noises
 from ..engine.evaluation.phases import otsu_stride, otsu_thresholds
 from ..engine.fields.absurd_nodes import flag_absurd_nodes
 from ..engine.fields.field import DisplacementField
@@ -322,7 +323,12 @@ class TiledVolumes(CorrectionVolumes):
 
         # the robust start from the scans' lattice samples (the statistics pass's), as in memory
         start = start_map(*stats.samples)
-        self.gray_levels = yield from fit_from_passes(sums_with, start, self.shape, DEFAULT_CELL)
+        # each scan's noise on its central block, as in memory
+        noises = scan_noises(self.reference, self.deformed, read=lambda v, box: v.read_region(box))
+        noise = pair_noise(*noises, field.displacement)
+        self.gray_levels = yield from fit_from_passes(
+            sums_with, start, self.shape, DEFAULT_CELL, noise=noise
+        )
         return self.gray_levels
 
     def residuals(self):

@@ -62,6 +62,7 @@ from ..engine.evaluation.gray_levels import (
     cells_shape,
     fit_from_passes,
 )
+from ..engine.evaluation.gray_noise import pair_noise, scan_noises
 from ..engine.evaluation.local_accuracy import region_half
 from ..engine.evaluation.options import EvaluationOptions
 from ..engine.evaluation.phases import (
@@ -233,9 +234,12 @@ def _pair_background_block(reference, deformed, spline, block, thresholds, gray,
     return same_phase_block(g, moved, labels, thresholds[1], gray, block)
 
 
-def _measure_pair(volumes, candidates, blocks, shape, thresholds, fit, start, run, region=None):
+def _measure_pair(
+    volumes, candidates, blocks, shape, thresholds, fit, start, run, region=None, noises=None
+):
     """:func:`..engine.evaluation.accuracy_pair.measure_pair` block by block (generator): for every
-    candidate two passes fit its map, one more measures its ``r0``."""
+    candidate two passes fit its map, one more measures its ``r0``. ``noises``: the scans' noise
+    variances (:func:`..engine.evaluation.gray_noise.scan_noises`) for the map's fit."""
     import dask
 
     measured = {}
@@ -257,7 +261,8 @@ def _measure_pair(volumes, candidates, blocks, shape, thresholds, fit, start, ru
         if isinstance(fit, GrayLevelMap):
             gray = fit
         elif fit:
-            gray = yield from fit_from_passes(sums_with, start, shape, DEFAULT_CELL)
+            noise = None if noises is None else pair_noise(*noises, field.displacement)
+            gray = yield from fit_from_passes(sums_with, start, shape, DEFAULT_CELL, noise=noise)
         else:
             gray = GrayLevelMap.identity(shape)
         task = dask.delayed(_pair_background_block, pure=False)
@@ -510,9 +515,10 @@ strain_window, n_bins, bin_edges, shared_background, bin_by, gray_levels, backgr
                 np.concatenate([item[1][2] for item in scanned]),
             )
             moved_thresholds = (thresholds[0], thresholds[0] if mapped_levels else thresholds[1])
+            noises = scan_noises(reference, deformed, read=lambda v, box: v.read_region(box))
             pair = yield from _measure_pair(
                 volumes, candidates, blocks, shape, moved_thresholds, gray_levels, start, run,
-                region_task,
+                region_task, noises,
             )  # fmt: skip
         mapping = None if pair.gray_levels.is_identity else pair.gray_levels
 

@@ -63,3 +63,21 @@ def test_unfinite_voxels_take_the_fill_and_the_hull_mean_skips_them():
     difference = np.array([[1.0, np.nan], [3.0, 5.0]])
     assert V._hull_mean(difference, (slice(0, 2), slice(0, 1))) == 2.0
     assert np.isnan(V._hull_mean(difference, (slice(0, 1), slice(1, 2))))
+
+
+def test_the_gray_level_map_is_not_diluted_by_the_scans_noise():
+    # an unchanged CT-like pair, noise of 5 % of the gray range on both scans, and the loaded
+    # scan 0.85x darker: least squares would read the contrast ~10 % short
+    shape, shift = (48, 48, 48), (0.4, -1.3, 0.25)
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.concrete_ct_volume(s, seed=8), shape, synthetic.translation(shift), 12
+    )
+    sigma = synthetic.ct_noise_sigma(reference, 0.05)
+    reference = synthetic.add_noise(reference, sigma, seed=1)
+    deformed = synthetic.add_noise(deformed, sigma, seed=2) * 0.85 + 0.1
+    volumes = V.InMemoryVolumes(reference, deformed, "reference")
+    zero = DisplacementField.zeros((6.0, 6.0, 6.0), (6.0, 6.0, 6.0), (7, 7, 7))
+    gray = run_to_completion(volumes.fit_gray_levels(zero.replace(u=zero.u + np.array(shift))))
+    assert gray.fit == "errors in variables" and volumes.gray_levels is gray
+    assert 0.85 * gray.contrast == pytest.approx(1.0, abs=0.015)  # least squares: 0.966
+    assert gray.noise.moved == pytest.approx(0.565 * (0.85 * sigma) ** 2, rel=0.1)

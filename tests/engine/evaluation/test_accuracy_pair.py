@@ -158,3 +158,15 @@ def test_the_best_candidate_is_the_one_of_smallest_r0():
     volume = np.arange(64**3, dtype=np.float32).reshape(64, 64, 64)
     sample = accuracy_pair.lattice(volume)
     assert sample.ndim == 1 and sample[0] == 0.0 and sample.size <= volume.size
+
+
+def test_the_pairs_map_keeps_the_full_contrast_under_noise(pair):
+    """Least squares of G on the noisy moved scan reads a smaller contrast; the pair's map
+    takes the loaded scan's measured noise out (errors in variables)."""
+    reference, deformed, exact = pair
+    louder = add_noise(deformed, 12.0, seed=5)  # the loaded scan far noisier than the reference
+    result = evaluate_fields(reference, louder, {"exact": exact}, keep_volumes=False)
+    gray = result.pair.gray_levels
+    assert gray.fit == "errors in variables"
+    assert gray.contrast == pytest.approx(1.0, abs=0.03)  # least squares: 0.88
+    assert result.pair.to_dict()["gray_levels"]["fit"] == "errors in variables"

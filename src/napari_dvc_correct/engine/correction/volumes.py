@@ -33,6 +33,7 @@ from ..correlation.interpolation import prefilter
 from ..correlation.params import CorrelationParams
 from ..correlation.pyramid import Prefiltered
 from ..evaluation.gray_levels import GrayLevelMap, fit_gray_levels, start_map
+from ..evaluation.gray_noise import pair_noise, scan_noises
 from ..evaluation.phases import otsu_stride
 from ..fields import warp
 from ..fields.field import DisplacementField
@@ -180,7 +181,9 @@ class InMemoryVolumes(CorrectionVolumes):
         # the first guess from the raw scans' lattice, as the tiled back-end's statistics pass
         lattice = (slice(None, None, otsu_stride(self.shape)),) * 3
         start = start_map(self.reference[lattice], self.deformed[lattice])
-        self.gray_levels = fit_gray_levels(self.reference, moved, start=start)
+        # errors in both scans: each scan's own noise, F's as the pull-back keeps it
+        noise = pair_noise(*scan_noises(self.reference, self.deformed), field.displacement)
+        self.gray_levels = fit_gray_levels(self.reference, moved, start=start, noise=noise)
         self._fitted_with = (field, moved)  # the residuals' first pull-back (same field)
         return self.gray_levels
         yield

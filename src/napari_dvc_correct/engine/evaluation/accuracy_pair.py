@@ -31,6 +31,7 @@ from .gray_levels import (
     fit_from_passes,
     start_map,
 )
+from .gray_noise import pair_noise, scan_noises
 from .phase_sums import residual_phase_sums
 from .phases import otsu_stride
 
@@ -173,6 +174,7 @@ def measure_pair(
     coefficients = prefilter(deformed) if deformed_coefficients is None else deformed_coefficients
     shape = tuple(int(n) for n in reference.shape)
     start = pair_start_map(lattice(reference), lattice(deformed))
+    noises = scan_noises(reference, deformed) if fit_map and gray_levels is None else None
     measured = {}
     for name, field in candidates.items():
         moved = warp.pull_back(
@@ -195,7 +197,8 @@ def measure_pair(
         if gray_levels is not None:
             gray = gray_levels
         elif fit_map:
-            gray = run_to_completion(fit_from_passes(sums_with, start, shape, cell))
+            noise = pair_noise(*noises, field.displacement)
+            gray = run_to_completion(fit_from_passes(sums_with, start, shape, cell, noise=noise))
         else:
             gray = GrayLevelMap.identity(shape)
         same_sums, same_counts, largest = 0.0, 0, -1

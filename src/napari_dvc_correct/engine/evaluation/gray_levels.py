@@ -9,9 +9,14 @@ volume; this module is that correction:
 
     ``G(X) ≈ contrast(X) · F~(X) + offset(X)``,  ``F~(X) = F(X + u(X))``,
 
-fitted by least squares over the voxels where both are defined, first over the whole pair, then
-in cells of :data:`DEFAULT_CELL` voxels whose sums are smoothed over the neighbouring cells and
-shrunk towards the global line (a smooth local map: beam hardening, drifts of the source). The
+fitted over the voxels where both are defined, first over the whole pair, then in cells of
+:data:`DEFAULT_CELL` voxels whose sums are smoothed over the neighbouring cells and shrunk
+towards the global line (a smooth local map: beam hardening, drifts of the source). Both scans
+are noisy, so least squares of ``G`` on ``F~`` would be diluted by ``F~``'s noise (an unchanged
+CT pair at 5 % noise reads a contrast of 0.90, the transformed texture shrinks in every
+residual): the lines are fitted with errors in variables, ``F~``'s noise variance (each scan's
+own, measured by :mod:`.gray_noise`) taken out of its variance (:data:`FITS` says why not
+Deming). The
 fit starts from the scans' medians and interquartile ranges (:func:`start_map`) and leaves out,
 twice, the voxels the last map explains worst (cracks, voids that opened: they must stay in the
 residual, not bend the map). The map is a property of the scan pair: it is
@@ -35,6 +40,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..progress import run_to_completion
+from .gray_noise import PairNoise
 
 #: Edge of a cell of the local map (voxels): a few subvolumes, far larger than a crack's width.
 DEFAULT_CELL = 32
@@ -51,6 +57,25 @@ TRIM_RMS = 3.0
 
 #: Smallest volume edge (voxels) for a local map: below two cells per axis it is the global line.
 MIN_CELLS = 2
+
+#: How a map's lines can be fitted, from the same sums:
+#:
+#: * ``"errors in variables"``: least squares of ``G`` on ``F~`` with ``F~``'s measured noise
+#:   variance taken out of its variance, ``a = cov / (var(F~) - σ²(F~))``: not diluted by the
+#:   loaded scan's noise, and, as least squares, deaf to whatever ``F~`` does not explain in ``G``
+#:   (``G``'s noise, a field's errors, a gray change the map does not model);
+#: * ``"deming"``: errors in both with the ratio of the two noises (the reduced major axis where
+#:   it is unknown): unbiased on a pair that only differs by noise, but every variance of ``G``
+#:   that ``F~`` does not explain is read as noise split by that ratio and tilts the line
+#:   (measured: a contrast ramp read 2.3 instead of 0.85 on CT texture);
+#: * ``"least squares"``: of ``G`` on ``F~``, diluted by ``F~``'s noise (an unchanged CT pair at
+#:   5 % noise: 0.90), the best *prediction* of ``G`` from ``F~``.
+FITS = ("errors in variables", "deming", "least squares")
+#: The fit of every map unless a caller asks for another.
+FIT = "errors in variables"
+#: The errors-in-variables fit never counts less than this share of ``F~``'s variance as texture
+#: (a cell of air or flat material is mostly noise: its slope must not blow up).
+MIN_RELIABILITY = 0.1
 
 _SUMS = ("n", "f", "g", "ff", "fg", "gg")
 
@@ -135,19 +160,67 @@ def block_sums(
     return CellSums(*sums)
 
 
-def _line(n, f, g, ff, fg, gg, prior=None):
-    """Least-squares ``g ≈ a f + b`` from sums, optionally pulled towards ``prior = (a0, w, v0)``
-    (the contrast ``a0`` weighted as ``w`` voxels of variance ``v0``). Returns ``a, b, rms``."""
+def _moments(n, f, g, ff, fg, gg):
+    """Means and centred second moments per voxel ``(mf, mg, vf, cov, vg)`` of sums."""
     n = np.maximum(n, 1e-300)
     mf, mg = f / n, g / n
     vf = np.maximum(ff / n - mf * mf, 0.0)
     vg = np.maximum(gg / n - mg * mg, 0.0)
-    cov = fg / n - mf * mg
-    if prior is None:
-        a = np.where(vf > 0, cov / np.where(vf > 0, vf, 1.0), 1.0)
-    else:
-        a0, weight, v0 = prior
-        a = (n * cov + weight * v0 * a0) / (n * vf + weight * v0)
+    return mf, mg, vf, fg / n - mf * mg, vg
+
+
+def deming_slope(vf, cov, vg, ratio):
+    """Slope of ``g ≈ a f + b`` with noise in both (Deming regression) from centred moments.
+
+    ``ratio`` is ``δ = var(noise of g) / var(noise of f)``: ``inf`` gives ordinary least squares
+    of ``g`` on ``f`` (f exact), 0 the reverse regression (g exact), ``vg / vf`` the reduced major
+    axis. Where ``f`` and ``g`` do not co-vary the slope is undefined: 1 is returned there.
+    """
+    vf, cov, vg = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (vf, cov, vg)))
+    if np.isinf(ratio):
+        return np.where(vf > 0, cov / np.where(vf > 0, vf, 1.0), 1.0)
+    d = vg - ratio * vf
+    root = np.sqrt(d * d + 4.0 * ratio * cov * cov)
+    # the two forms are equal; each is the stable one on its side of d = 0
+    upper = root - d
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.where(
+            d < 0, 2.0 * ratio * cov / np.where(upper > 0, upper, 1.0), (d + root) / (2.0 * cov)
+        )
+    return np.where(np.isfinite(slope) & (cov != 0), slope, 1.0)
+
+
+def _slope(vf, cov, vg, fit: str, noise: PairNoise | None):
+    """Slope of ``g ≈ a f + b`` from centred moments per voxel, by ``fit`` (see :data:`FITS`)."""
+    if fit == "least squares" or noise is None:
+        return deming_slope(vf, cov, vg, np.inf)
+    if fit == "deming":
+        return deming_slope(vf, cov, vg, noise.ratio)
+    # errors in variables: least squares on the texture of F~, its noise taken out. F~'s noise
+    # shows in least squares' residual variance at least as a² σ² (a its slope): a noise
+    # estimate above that (texture read as noise on a clean scan) is cut to it
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plain = np.where(vf > 0, cov / np.where(vf > 0, vf, 1.0), 0.0)
+        spread = np.maximum(vg - cov * plain, 0.0)
+        moved = np.where(plain != 0, np.minimum(noise.moved, spread / (plain * plain)), 0.0)
+    texture = np.maximum(vf - moved, MIN_RELIABILITY * vf)
+    return np.where(texture > 0, cov / np.where(texture > 0, texture, 1.0), 1.0)
+
+
+def _line(n, f, g, ff, fg, gg, prior=None, fit="least squares", noise=None):
+    """``g ≈ a f + b`` from sums (``fit`` and ``noise`` as :func:`map_from_sums`), optionally
+    pulled towards a prior line: ``prior = (weight, (vf0, cov0, vg0))`` adds ``weight`` voxels
+    of the prior's centred moments to each cell's (the slope of those moments alone is the
+    prior's). Returns ``a, b, rms`` (rms: of ``g - a f - b``)."""
+    mf, mg, vf, cov, vg = _moments(n, f, g, ff, fg, gg)
+    fit_vf, fit_cov, fit_vg = vf, cov, vg
+    if prior is not None:
+        weight, (vf0, cov0, vg0) = prior
+        total = np.maximum(n, 0.0) + weight
+        fit_vf = (n * vf + weight * vf0) / total
+        fit_cov = (n * cov + weight * cov0) / total
+        fit_vg = (n * vg + weight * vg0) / total
+    a = _slope(fit_vf, fit_cov, fit_vg, fit, noise)
     b = mg - a * mf
     rms = np.sqrt(np.maximum(vg - 2 * a * cov + a * a * vf, 0.0))
     return a, b, rms
@@ -171,6 +244,11 @@ class GrayLevelMap:
         ``(nz, ny, nx)`` of the volumes the map was fitted on.
     fitted_voxels : int
         Voxels of the final fit (after trimming).
+    fit : str
+        How the lines were fitted (:data:`FITS`): ``"least squares"`` where the scans' noise was
+        unknown (and for maps written before the other fits).
+    noise : PairNoise, optional
+        The scans' noise the fit took out (gray levels², :mod:`.gray_noise`).
     """
 
     contrast: float = 1.0
@@ -181,6 +259,8 @@ class GrayLevelMap:
     local_offset: np.ndarray | None = None
     volume_shape: tuple = (0, 0, 0)
     fitted_voxels: int = 0
+    fit: str = "least squares"
+    noise: PairNoise | None = None
 
     @classmethod
     def identity(cls, volume_shape=(0, 0, 0)) -> GrayLevelMap:
@@ -246,10 +326,13 @@ class GrayLevelMap:
         """One line for panels and reports."""
         sign = "+" if self.offset >= 0 else "−"
         text = f"G ≈ {self.contrast:.3g}·F {sign} {abs(self.offset):.4g}"
+        notes = []
         if self.is_local:
             lo, hi = np.nanmin(self.local_contrast), np.nanmax(self.local_contrast)
-            text += f" (local, {self.cell}-voxel cells: contrast {lo:.3g}–{hi:.3g})"
-        return text
+            notes.append(f"local, {self.cell}-voxel cells: contrast {lo:.3g}–{hi:.3g}")
+        if self.fit != "least squares" and not self.is_identity:
+            notes.append(f"fit: {self.fit}")  # the scans' noise taken out
+        return text + (f" ({'; '.join(notes)})" if notes else "")
 
     def to_dict(self) -> dict:
         """JSON-ready (``metadata["gray_levels"]``)."""
@@ -267,6 +350,8 @@ class GrayLevelMap:
             else np.round(self.local_offset, 4).tolist(),
             "volume_shape": [int(n) for n in self.volume_shape],
             "fitted_voxels": int(self.fitted_voxels),
+            "fit": self.fit,
+            "noise": None if self.noise is None else self.noise.to_dict(),
             "description": self.describe(),
         }
 
@@ -285,6 +370,8 @@ class GrayLevelMap:
             local_offset=None if local_o is None else np.asarray(local_o, np.float64),
             volume_shape=tuple(int(n) for n in values.get("volume_shape", (0, 0, 0))),
             fitted_voxels=int(values.get("fitted_voxels", 0)),
+            fit=str(values.get("fit", "least squares")),  # maps written before the other fits
+            noise=PairNoise.from_dict(values.get("noise")),
         )
 
 
@@ -294,13 +381,28 @@ def _along(weights: np.ndarray, axis: int) -> np.ndarray:
     return weights.reshape(shape)
 
 
-def map_from_sums(sums: CellSums, volume_shape, cell: int) -> GrayLevelMap:
+def map_from_sums(
+    sums: CellSums,
+    volume_shape,
+    cell: int,
+    *,
+    noise: PairNoise | None = None,
+    fit: str | None = None,
+) -> GrayLevelMap:
     """The gray-level map of per-cell sums (see the module): global line, then the smooth local
-    one where the volume holds at least :data:`MIN_CELLS` cells along every axis."""
+    one where the volume holds at least :data:`MIN_CELLS` cells along every axis.
+
+    ``fit`` is one of :data:`FITS` (default :data:`FIT`); ``noise`` the scans' noise
+    (:func:`.gray_noise.pair_noise`): without it every fit is least squares."""
+    fit = FIT if fit is None else fit
+    if fit not in FITS:
+        raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
+    if noise is None:
+        fit = "least squares"
     n, f, g, ff, fg, gg = sums.total()
     if n < 2:
         return GrayLevelMap.identity(volume_shape)
-    a, b, rms = (float(v) for v in _line(n, f, g, ff, fg, gg))
+    a, b, rms = (float(v) for v in _line(n, f, g, ff, fg, gg, fit=fit, noise=noise))
     if not (np.isfinite(a) and np.isfinite(b)):
         return GrayLevelMap.identity(volume_shape)
     shape = tuple(int(s) for s in volume_shape)
@@ -311,11 +413,11 @@ def map_from_sums(sums: CellSums, volume_shape, cell: int) -> GrayLevelMap:
             name: ndimage.gaussian_filter(getattr(sums, name), CELL_SMOOTHING, mode="nearest")
             for name in _SUMS
         }
-        vf = max(ff / n - (f / n) ** 2, 0.0)
         weight = PRIOR_FRACTION * float(cell) ** 3
+        prior = (weight, tuple(float(v) for v in _moments(n, f, g, ff, fg, gg)[2:]))
         local_c, local_o, _ = _line(
             smooth["n"], smooth["f"], smooth["g"], smooth["ff"], smooth["fg"], smooth["gg"],
-            prior=(a, weight, vf),
+            prior=prior, fit=fit, noise=noise,
         )  # fmt: skip
         empty = smooth["n"] < 1.0
         local_c[empty], local_o[empty] = a, b
@@ -328,6 +430,8 @@ def map_from_sums(sums: CellSums, volume_shape, cell: int) -> GrayLevelMap:
         local_offset=local_o,
         volume_shape=shape,
         fitted_voxels=int(n),
+        fit=fit,
+        noise=noise,
     )
 
 
@@ -356,15 +460,24 @@ def start_map(reference_sample: np.ndarray, deformed_sample: np.ndarray) -> Gray
     )
 
 
-def fit_from_passes(sums_with, start: GrayLevelMap, shape, cell: int = DEFAULT_CELL):
+def fit_from_passes(
+    sums_with,
+    start: GrayLevelMap,
+    shape,
+    cell: int = DEFAULT_CELL,
+    *,
+    noise: PairNoise | None = None,
+    fit: str | None = None,
+):
     """The gray-level map from passes over the blocks (as :func:`fit_gray_levels`:
-    least squares trimmed by the previous map, twice). ``sums_with(previous)`` returns the
-    :class:`CellSums` of the whole volume with the voxels ``previous`` explains worst left out
-    (a generator: yields progress, returns the sums)."""
+    a fit trimmed by the previous map, twice; ``noise`` and ``fit`` as
+    :func:`map_from_sums`). ``sums_with(previous)`` returns the :class:`CellSums` of the whole
+    volume with the voxels ``previous`` explains worst left out (a generator: yields progress,
+    returns the sums)."""
     previous = start
     for _ in range(2):
         sums = yield from sums_with(previous)
-        fitted = map_from_sums(sums, shape, cell)
+        fitted = map_from_sums(sums, shape, cell, noise=noise, fit=fit)
         if fitted.fitted_voxels < 2 or not np.isfinite(fitted.rms):
             return fitted if previous.is_identity else previous
         previous = fitted
@@ -378,6 +491,8 @@ def fit_gray_levels(
     cell: int = DEFAULT_CELL,
     slab: int = 32,
     start: GrayLevelMap | None = None,
+    noise: PairNoise | None = None,
+    fit: str | None = None,
 ) -> GrayLevelMap:
     """Fit ``G ≈ contrast(X) · F~ + offset(X)`` on two whole volumes (see the module).
 
@@ -392,6 +507,11 @@ def fit_gray_levels(
         Edge of the local map's cells (voxels); 0: the global line only.
     start : GrayLevelMap, optional
         The first guess (:func:`start_map`); default: from the two volumes' lattice samples.
+    noise : PairNoise, optional
+        The noise of ``G`` and of ``F~`` (:func:`.gray_noise.pair_noise`); None: least squares
+        (the scans' noise unknown).
+    fit : str, optional
+        One of :data:`FITS`; default :data:`FIT`.
 
     Returns
     -------
@@ -418,4 +538,4 @@ def fit_gray_levels(
         yield  # a generator without progress: the arrays are at hand
 
     start = start_map(reference[lattice], moved[lattice]) if start is None else start
-    return run_to_completion(fit_from_passes(sums_with, start, shape, cell))
+    return run_to_completion(fit_from_passes(sums_with, start, shape, cell, noise=noise, fit=fit))
