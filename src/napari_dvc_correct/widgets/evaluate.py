@@ -116,6 +116,7 @@ class EvaluateWidget(EngineWidget):
         self.summary_box.setWidgetResizable(True)
         self.summary_box.setFrameShape(QFrame.Shape.NoFrame)
         self.summary_box.setMaximumHeight(190)
+        self.summary_box.setMinimumHeight(120)  # about seven lines: both fields of a pair
         self.body.addWidget(self.summary_box)
         self.body.addWidget(self.curves)
         # a series: residual, p and error estimate against the load state (hidden for a pair)
