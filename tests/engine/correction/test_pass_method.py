@@ -21,13 +21,22 @@ from napari_dvc_correct.engine.fields.field import (
 )
 
 
-def test_second_order_passes_where_the_field_bends_inside_a_subvolume():
+def _measured_affine_field():
+    """A field every node of which is its own converged match (affine: no bend)."""
     params = CorrelationParams(subvolume=21, step=6)
     origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
     field = DisplacementField.zeros(origin, step, shape)
     points = field.points.reshape(*shape, 3)
     gradient = np.array([[0.02, 0.01, 0.0], [0.0, -0.015, 0.01], [0.01, 0.0, 0.02]])
     field.u[:] = synthetic.sample_displacement(synthetic.affine(gradient, (32,) * 3), points)
+    field.params = params.to_dict()  # measured with these parameters ...
+    field.uncertainty = np.full((*shape, 3), 0.01)  # ... by our matcher, which says how well
+    return field, params, np.zeros(shape, bool)
+
+
+def test_second_order_passes_where_the_field_bends_inside_a_subvolume():
+    field, params, _ = _measured_affine_field()
+    points = field.points.reshape(*field.shape, 3)
     assert field_curvature(field, params.half) < 1e-9
     assert pass_order(field, params) == 1
     # u_z = a x^2: u'' = 2a, so a first-order subvolume misses a M^2 (0.2 voxel here)
@@ -122,19 +131,6 @@ def test_the_node_bend_is_the_quadratic_term_a_first_order_subvolume_leaves():
     assert np.allclose(node_bend(field, params.half), 0.0, atol=1e-12)
     field.u[0, 0, 0, 0] = np.nan
     assert np.isnan(node_bend(field, params.half)).all()
-
-
-def _measured_affine_field():
-    """A field every node of which is its own converged match (affine: no bend)."""
-    params = CorrelationParams(subvolume=21, step=6)
-    origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
-    field = DisplacementField.zeros(origin, step, shape)
-    points = field.points.reshape(*shape, 3)
-    gradient = np.array([[0.02, 0.01, 0.0], [0.0, -0.015, 0.01], [0.01, 0.0, 0.02]])
-    field.u[:] = synthetic.sample_displacement(synthetic.affine(gradient, (32,) * 3), points)
-    field.params = params.to_dict()  # measured with these parameters ...
-    field.uncertainty = np.full((*shape, 3), 0.01)  # ... by our matcher, which says how well
-    return field, params, np.zeros(shape, bool)
 
 
 def test_a_pass_is_not_run_where_it_could_only_remeasure_the_first_runs_values():
