@@ -54,6 +54,19 @@ def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_pat
     assert corrected.metadata["corrected_from"] == str(field_path)
     error = corrected.displacement[corrected.valid.reshape(-1)] - SHIFT
     assert np.sqrt(np.mean(error**2)) < 0.05
+    # the regularised estimate runs by default and says what it did
+    assert corrected.metadata["correction"]["noise_fit"]["eligible_nodes"] >= 0
+    assert "regularised: " in printed
+
+
+def test_correct_can_switch_the_regularised_estimate_off(tmp_path):
+    from napari_dvc_correct.cli import build_parser
+    from napari_dvc_correct.commands.correct import correction_records_from_args
+
+    base = ["correct", "g.npy", "f.npy", "--field", "d.npz", "--out", str(tmp_path / "o.npz")]
+    for extra, expected in (([], True), (["--no-noise-fit"], False), (["--noise-fit"], True)):
+        options, _ = correction_records_from_args(build_parser().parse_args(base + extra))
+        assert options.noise_fit is expected
 
 
 def test_correct_refuses_bad_input_and_writes_nothing(volumes, tmp_path, capsys):
