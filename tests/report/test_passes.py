@@ -83,3 +83,5 @@ def test_the_regularised_nodes_in_words():
     }
     line = passes.noise_fit_line(field)
     assert "169 nodes" in line and "3³" in line and "187 tested" in line and "x0.14" in line
+    field.metadata["correction"]["noise_fit"]["not_run"] = "the field carries no uncertainty"
+    assert passes.noise_fit_line(field) == "regularised: no node (the field carries no uncertainty)"

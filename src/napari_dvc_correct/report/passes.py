@@ -134,6 +134,8 @@ def noise_fit_line(field: DisplacementField) -> str:
     info = (field.metadata.get("correction") or {}).get("noise_fit")
     if not info:
         return ""
+    if info.get("not_run"):
+        return f"regularised: no node ({info['not_run']})"
     text = (
         f"regularised: {info['fitted_nodes']} nodes took the least-squares affine fit over "
         f"their {info['neighbourhood_nodes']}³ neighbourhood, where it held only matching noise "

@@ -171,3 +171,11 @@ def test_masked_nodes_without_values_leave_the_interior_to_the_fit():
     assert np.isnan(fit.field.u[outer]).all()
     # without the filled field the bend is unknown everywhere: nothing is fitted
     assert not regularise(field, SUBVOLUME, SUBVOLUME).fitted.any()
+
+
+def test_a_field_without_uncertainties_is_left_alone_and_says_why():
+    field, _ = _field(_translation, 0)
+    field.uncertainty = None
+    fit = regularise(field, SUBVOLUME, SUBVOLUME)
+    assert not fit.fitted.any() and np.array_equal(fit.field.u, field.u)
+    assert fit.summary()["not_run"] == "the field carries no match uncertainty"

@@ -87,6 +87,8 @@ class NoiseFit:
     chi2: np.ndarray
     variance_ratio: np.ndarray
     curvature: np.ndarray
+    #: Why no node was tested at all ("" where the tests ran).
+    reason: str = ""
 
     def summary(self) -> dict:
         """JSON-ready counts and the fitted nodes (flat C-order indices of the grid)."""
@@ -100,6 +102,7 @@ class NoiseFit:
             "fitted_nodes": int(fitted.sum()),
             "median_variance_ratio": float(np.median(ratio)) if ratio.size else None,
             "fitted": [int(i) for i in np.flatnonzero(fitted)],
+            "not_run": self.reason,
         }
 
 
@@ -146,7 +149,12 @@ def regularise(
     more than the node's uncertainty anywhere in its neighbourhood (:func:`.pass_method.node_bend`,
     the test of :func:`.acceptance.noise_only_corrections`), measured on ``filled`` (the same
     field with its masked or failed nodes filled in: the bend needs every node; default
-    ``field``)."""
+    ``field``). A field without uncertainties is returned unchanged, with the reason."""
+    if field.uncertainty is None:  # a field from elsewhere: nothing says what its noise is
+        nothing = np.zeros(field.shape, bool)
+        nan = np.full(field.shape, np.nan)
+        reason = "the field carries no match uncertainty"
+        return NoiseFit(field.copy(), nothing, nothing.copy(), nan, nan.copy(), nan.copy(), reason)
     edges = np.where(field.provenance == Provenance.CORRECTED, pass_subvolume, subvolume)
     bend = node_bend(field if filled is None else filled, int(subvolume) // 2)
     return fit_noise_regions(field, edges, usable, bend=bend)

@@ -127,7 +127,7 @@ class CorrectionOptions:
     update: str = "exact"
     max_passes: int = 3
     min_improvement: float = 0.01
-    noise_fit: bool = True
+    noise_fit: bool = False
 
     def __post_init__(self) -> None:
         if self.frame not in FRAMES:

@@ -512,10 +512,11 @@ def _correction_loop(
         result.gradient[kept] = field.gradient[kept]
     result.provenance[measured_crack] = Provenance.MEASURED
     fitted = None
-    if noise_fit and result.uncertainty is not None:  # where the data say "noise": a GLS fit
-        usable = ~(masked | shielded | cracked | unexplained)
+    if noise_fit:  # where the data say "noise": a GLS fit
+        usable, t0 = ~(masked | shielded | cracked | unexplained), time.perf_counter()
         fitted = regularise(result, params.subvolume, pass_params.subvolume, usable, current)
         result = fitted.field
+        _add_stages(stages, None, noise_fit_s=time.perf_counter() - t0)
     result.metadata["correction_passes"] = [p.to_dict() for p in passes]
     result.metadata["gray_levels"] = gray_levels.to_dict()
     result.metadata["correction"] = {
