@@ -14,9 +14,20 @@ node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   covariances, ``Δu = H_t⁻¹ (cov(g, s) − a cov(G, s) / v)``, ``a = cov(g, G)``,
   ``v = var G − σ²``, ``H_t = cov(g, g) − a aᵀ / v − σ²/2 I`` (central differences of the noise
   add ``σ²/2`` per component, which would shrink ``Δu`` by the share of noise in the gradient).
-  Its noise has covariance ``C = 2σ²/n H_t⁻¹ (H_t + σ²/2 I) H_t⁻¹`` over ``n`` voxels: ``√tr C``
-  is the node's **resolution** (errors below it do not show in the residual) and the resolved
-  error is ``e_r = √max(|Δu|² − tr C, 0)``.
+  That step is taken with an **instrument**: the noise of ``G``'s gradient pairs with itself in
+  ``cov(g, g)`` and makes the step noisy where the noise is a large share of the gradient
+  (faint CT texture). The step uses ``w = (g + h)/2`` instead of ``g`` on the left of every
+  covariance, ``h`` the gradient of ``G`` smoothed by a Gaussian of :data:`INSTRUMENT_SIGMA`
+  voxel (:func:`smoothed_gradient`, the same texture with less noise):
+  ``Δu = A⁻¹ (cov(w, s) − a_w (cov(G, s) + σ²) / v)``, ``A = cov(w, g) − a_w aᵀ / v − p σ² I``
+  with ``a_w = cov(w, G)`` and ``p = (1/2 + c)/2`` the noise's pairing of ``w`` with ``g`` at a
+  voxel (``c``: :func:`instrument_noise_pairing`; ``w`` and ``s`` do not pair: the derivative
+  kernels are odd). Its noise has covariance ``C = 2σ²/n A⁻¹ W A⁻ᵀ``, ``W = cov(w, w) −
+  a_w a_wᵀ / v``, over ``n`` voxels: ``√tr C`` is the node's **resolution** (errors below it
+  do not show in the residual) and the resolved error is ``e_r = √max(|Δu|² − tr C, 0)``.
+  (With ``w = g`` this is the plain step ``H_t⁻¹ (cov(g, s) − …)``, ``H_t = cov(g, g) − a aᵀ/v
+  − σ²/2 I``; the instrument lowers the resolution by 10–17 % on CT texture at 3–5 % noise,
+  ``docs/evaluation.md``.)
 - **a residual the linear model does not explain.** Beyond the linear range (errors of a few
   voxels, a crack, the texture changed) the moved texture no longer matches the reference's
   (its contrast ``k = 1 + (cov(G, s) + σ²)/v`` against it falls below
@@ -201,7 +212,7 @@ class ErrorMoments:
     ----------
     count : ndarray, shape (nz, ny, nx), int64
         Voxels with a defined residual in each node's window.
-    means : ndarray, shape (20, nz, ny, nx), float64
+    means : ndarray, shape (len(MOMENTS), nz, ny, nx), float64
         Their means, in :data:`MOMENTS`'s order (NaN where ``count`` is 0).
     """
 
@@ -210,7 +221,7 @@ class ErrorMoments:
 
     @classmethod
     def from_sums(cls, sums: np.ndarray, count: np.ndarray) -> ErrorMoments:
-        """From the window sums ``(20, nz, ny, nx)`` and the voxel count."""
+        """From the window sums ``(len(MOMENTS), nz, ny, nx)`` and the voxel count."""
         count = np.asarray(count, np.int64)
         with np.errstate(invalid="ignore", divide="ignore"):
             means = np.where(count > 0, sums / np.maximum(count, 1), np.nan)
@@ -220,7 +231,8 @@ class ErrorMoments:
         return self.means[MOMENTS.index(name)]
 
     def covariance(self, a: str, b: str) -> np.ndarray:
-        """``<a b> - <a><b>`` over each window (``a``, ``b`` among ``s, G, gz, gy, gx``)."""
+        """``<a b> - <a><b>`` over each window (``a``, ``b`` among ``s, G, gz, gy, gx, hz, hy,
+        hx``)."""
         key = a + b if a + b in MOMENTS else b + a
         return self.mean(key) - self.mean(a) * self.mean(b)
 
