@@ -274,8 +274,8 @@ def residual_error(
     Parameters
     ----------
     moments : ErrorMoments
-        Window means of the signed residual, the gray value and its gradient
-        (:func:`moment_volumes`).
+        Window means of the signed residual, the gray value, its gradient and its smoothed
+        gradient, and their products (:func:`moment_volumes`).
     background : float
         ``r0`` of the scan pair (eq. 1), gray levels: the residual's noise has variance
         ``π r0² / 2`` (``2σ²`` for two scans of noise ``σ``).
@@ -319,8 +319,7 @@ def residual_error(
     w_t = np.maximum(w - 0.5 * sigma2, MIN_TEXTURE_SHARE * w)  # texture's part (noise out)
     textured = np.all(w_t > 1e-12 * max(1.0, sigma2), axis=-1) & defined
     safe = np.where(textured[..., None], w_t, 1.0)
-    coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # Δu in the eigenbasis
-    shift = np.einsum("...ij,...j->...i", v, coordinates)
+    coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # plain Δu in the eigenbasis
     # the step with the instrument w = (g + h)/2 (see the module): its sensitivity, the
     # noise's pairings of w with g taken out (σ²/2 for central differences, c σ² for h)
     smooth = ("hz", "hy", "hx")
@@ -358,7 +357,7 @@ def residual_error(
     shift = np.einsum("...ij,...j->...i", inverse, b_w)
     covariance = inverse @ spread @ np.swapaxes(inverse, -1, -2)
     variance = total / n * np.trace(covariance, axis1=-2, axis2=-1) / contrast**2
-    textured = solvable & (variance >= 0)
+    textured = solvable & np.isfinite(variance)
     variance = np.where(textured, variance, 0.0)
     resolution = np.where(textured, np.sqrt(variance), np.inf)
     squared = np.sum(shift * shift, axis=-1)
