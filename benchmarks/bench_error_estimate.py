@@ -203,6 +203,10 @@ def measure(estimate, truth, inside, resolution, windowed, match_sigma=None):
     )  # fmt: skip
 
 
+def _number(value):
+    return "—" if np.isnan(value) else f"{value:.3f}"
+
+
 def percent(value):
     return "—" if np.isnan(value) else f"{100 * value:.0f} %"
 
@@ -275,7 +279,7 @@ def main(quick=False):
             f"{m['estimated_median']:.3f} | {m['ratio']:.2f} | {m['rho']:.2f} | "
             f"{percent(m['caught'])} / {percent(m['caught_possibly'])} ({m['n_bad']}) | "
             f"{percent(m['false'])} / {percent(m['false_possibly'])} | {m['resolution']:.3f} | "
-            f"{percent(m['below'])} | {m['match_sigma']:.3f} | {p:.4f} |"
+            f"{percent(m['below'])} | {_number(m['match_sigma'])} | {p:.4f} |"
         )
     return rows
 
