@@ -14,7 +14,9 @@ flags as likely (P >= 1/2) and possibly (P >= 16 %) above 0.5 voxel
 ratio of the medians (estimate / truth), the share of nodes below the residual's resolution
 (there the estimate is a bound, not a rank) and the median of the *window's* true error: the
 densified error field averaged over each node's window (what a window's residual can see at
-best; independent node errors average out in it).
+best; independent node errors average out in it) and, for our DVC's fields, the median of
+the match's recorded noise uncertainty ``|σ_u|`` that the estimate adds below the resolution
+(a corrected field's record decides its reading there).
 
     python benchmarks/bench_error_estimate.py            # all cases, a table on stdout
     python benchmarks/bench_error_estimate.py --quick    # one texture, fewer fields
@@ -39,6 +41,7 @@ from napari_dvc_correct.engine.evaluation.error_estimate import (
     LIKELY,
     POSSIBLY,
     error_region_half,
+    noise_error,
     probability_above,
 )
 from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
@@ -175,7 +178,7 @@ def window_truth(base, error, half):
     return np.linalg.norm(mean[nodes[:, 0], nodes[:, 1], nodes[:, 2]], axis=1).reshape(base.shape)
 
 
-def measure(estimate, truth, inside, resolution, windowed):
+def measure(estimate, truth, inside, resolution, windowed, match_sigma=None):
     e, t, limit = estimate[inside], truth[inside], resolution[inside]
     keep = np.isfinite(e)
     constant = np.ptp(t[keep]) == 0 if keep.any() else True
@@ -196,7 +199,12 @@ def measure(estimate, truth, inside, resolution, windowed):
         true_median=float(np.median(t)), estimated_median=float(np.median(e)),
         window_median=float(np.median(windowed[inside])) if windowed is not None else np.nan,
         resolution=float(np.median(np.where(np.isnan(limit), np.inf, limit))),
+        match_sigma=np.nan if match_sigma is None else float(np.median(match_sigma[inside])),
     )  # fmt: skip
+
+
+def _number(value):
+    return "—" if np.isnan(value) else f"{value:.3f}"
 
 
 def percent(value):
@@ -255,22 +263,23 @@ def main(quick=False):
                 inside,
                 item.error_resolution,
                 windows.get(item.name),
+                noise_error(item.field) if item.field.uncertainty is not None else None,
             )
             rows.append((label, item.name, numbers, item.accuracy))
         print(f"{label}: r0 {result.pair.background.mean:.4g}, {seconds:.1f} s", flush=True)
     print(
         "| texture | field | true median | window's true median | estimated median | ratio "
         "| Spearman | caught likely / possibly (of) | false flags likely / possibly "
-        "| resolution (median) | below resolution | p |"
+        "| resolution (median) | below resolution | match uncertainty (median) | p |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for label, name, m, p in rows:
         print(
             f"| {label} | {name} | {m['true_median']:.3f} | {m['window_median']:.3f} | "
             f"{m['estimated_median']:.3f} | {m['ratio']:.2f} | {m['rho']:.2f} | "
             f"{percent(m['caught'])} / {percent(m['caught_possibly'])} ({m['n_bad']}) | "
             f"{percent(m['false'])} / {percent(m['false_possibly'])} | {m['resolution']:.3f} | "
-            f"{percent(m['below'])} | {p:.4f} |"
+            f"{percent(m['below'])} | {_number(m['match_sigma'])} | {p:.4f} |"
         )
     return rows
 
