@@ -3,17 +3,20 @@
 Imposed-field cases: a known affine field ``u`` makes the deformed scan from a larger pattern
 (our 5th-order spline, or scipy's ``map_coordinates`` of order 1 or 3: another interpolator
 than the evaluation's), independent noise on both scans; the evaluated fields are ``u`` itself
-plus an error: small random errors everywhere (0.02-0.05 voxel, a corrected field), a smooth
-error of 0.2-1 voxel in a band (a field that missed a shear band), a uniform 0.3 voxel, and a
-field measured by our DVC (subvolume 15, step 5: errors at the noise level, with the match's
-noise uncertainty). Per field: the Spearman rank correlation of the estimate with the true
+plus an error: random errors independent from node to node (0.02-0.2 voxel; 0.02 is what a
+corrected field holds), a smooth error of 0.2-1 voxel in a band (a field that missed a shear
+band; a narrow 0.6-voxel band puts many nodes at 0.5-0.6), a uniform 0.3 and 1.0 voxel, and
+the field measured by our DVC (subvolume 15, step 5: errors at the noise level, with the
+match's noise uncertainty) and that field corrected by our self-correction. Per field: the Spearman rank correlation of the estimate with the true
 error at the nodes, the share of the nodes truly more than 0.5 voxel off that the estimate
 flags as likely (P >= 1/2) and possibly (P >= 16 %) above 0.5 voxel
 (``error_estimate.probability_above``), the share of the others it flags (false flags), the
 ratio of the medians (estimate / truth), the share of nodes below the residual's resolution
 (there the estimate is a bound, not a rank) and the median of the *window's* true error: the
 densified error field averaged over each node's window (what a window's residual can see at
-best; independent node errors average out in it).
+best; independent node errors average out in it) and, for our DVC's fields, the median of
+the match's recorded noise uncertainty ``|σ_u|`` that the estimate adds below the resolution
+(a corrected field's record decides its reading there).
 
     python benchmarks/bench_error_estimate.py            # all cases, a table on stdout
     python benchmarks/bench_error_estimate.py --quick    # one texture, fewer fields
@@ -30,6 +33,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.stats import spearmanr
 
+from napari_dvc_correct.engine.correction.self_correction import correct
 from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
 from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
@@ -37,6 +41,7 @@ from napari_dvc_correct.engine.evaluation.error_estimate import (
     LIKELY,
     POSSIBLY,
     error_region_half,
+    noise_error,
     probability_above,
 )
 from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
@@ -102,6 +107,13 @@ def textures():
         True,
     )
     yield (
+        "concrete CT seed 21, 4 % noise, cubic warp",
+        lambda s: concrete_ct_volume(s, aggregate_fraction=0.35, seed=21),
+        ("share", 0.04),
+        3,
+        True,
+    )
+    yield (
         "speckle 1.5, sigma 4, cubic warp",
         lambda s: 200.0 * textured_volume(s, 1.5, seed=7),
         ("sigma", 4.0),
@@ -117,6 +129,7 @@ def cases(quick):
         ("exact", lambda p: np.zeros(p.shape)),
         ("0.02 random", lambda p: rng.normal(0, 0.02 / np.sqrt(3), p.shape)),
         ("0.05 random", lambda p: rng.normal(0, 0.05 / np.sqrt(3), p.shape)),
+        ("0.2 random", lambda p: rng.normal(0, 0.2 / np.sqrt(3), p.shape)),
     ]
     amplitudes = (0.5, 1.0) if quick else (0.2, 0.5, 1.0)
     for a in amplitudes:
@@ -126,11 +139,24 @@ def cases(quick):
                 lambda p, a=a: band_error(p, a) + rng.normal(0, 0.05 / np.sqrt(3), p.shape),
             )
         )
+    # a narrow band whose many nodes lie just above 0.5 voxel (0.5-0.6 at the band's edges)
+    fields.append(
+        (
+            "band 0.6 narrow + 0.05 random",
+            lambda p: band_error(p, 0.6, width=8.0) + rng.normal(0, 0.05 / np.sqrt(3), p.shape),
+        )
+    )
     if not quick:
         fields.append(
             (
                 "uniform 0.3",
                 lambda p: np.tile(np.array([0.3, 0.0, 0.0]), (len(p), 1)),
+            )
+        )
+        fields.append(
+            (
+                "uniform 1.0",
+                lambda p: np.tile(np.array([0.0, 0.6, 0.8]), (len(p), 1)),
             )
         )
     return fields
@@ -152,7 +178,7 @@ def window_truth(base, error, half):
     return np.linalg.norm(mean[nodes[:, 0], nodes[:, 1], nodes[:, 2]], axis=1).reshape(base.shape)
 
 
-def measure(estimate, truth, inside, resolution, windowed):
+def measure(estimate, truth, inside, resolution, windowed, match_sigma=None):
     e, t, limit = estimate[inside], truth[inside], resolution[inside]
     keep = np.isfinite(e)
     constant = np.ptp(t[keep]) == 0 if keep.any() else True
@@ -173,7 +199,12 @@ def measure(estimate, truth, inside, resolution, windowed):
         true_median=float(np.median(t)), estimated_median=float(np.median(e)),
         window_median=float(np.median(windowed[inside])) if windowed is not None else np.nan,
         resolution=float(np.median(np.where(np.isnan(limit), np.inf, limit))),
+        match_sigma=np.nan if match_sigma is None else float(np.median(match_sigma[inside])),
     )  # fmt: skip
+
+
+def _number(value):
+    return "—" if np.isnan(value) else f"{value:.3f}"
 
 
 def percent(value):
@@ -204,11 +235,19 @@ def main(quick=False):
             windows[name] = window_truth(base, e, error_region_half(base))
         if not quick:
             measured = dvc_field(reference, deformed)
-            fields["DVC (with its uncertainty)"] = measured
-            error = measured.u.reshape(-1, 3) - sample_displacement(truth_function, measured.points)
-            truths["DVC (with its uncertainty)"] = np.linalg.norm(error, axis=1).reshape(
-                measured.shape
+            corrected = correct(
+                reference,
+                deformed,
+                measured,
+                CorrelationParams(subvolume=SUBVOLUME, step=STEP),
             )
+            for name, item in (
+                ("DVC (with its uncertainty)", measured),
+                ("DVC corrected", corrected),
+            ):
+                fields[name] = item
+                error = item.u.reshape(-1, 3) - sample_displacement(truth_function, item.points)
+                truths[name] = np.linalg.norm(error, axis=1).reshape(item.shape)
         started = time.perf_counter()
         result = evaluate_fields(reference, deformed, fields, keep_volumes=False)
         seconds = time.perf_counter() - started
@@ -224,22 +263,23 @@ def main(quick=False):
                 inside,
                 item.error_resolution,
                 windows.get(item.name),
+                noise_error(item.field) if item.field.uncertainty is not None else None,
             )
             rows.append((label, item.name, numbers, item.accuracy))
         print(f"{label}: r0 {result.pair.background.mean:.4g}, {seconds:.1f} s", flush=True)
     print(
         "| texture | field | true median | window's true median | estimated median | ratio "
         "| Spearman | caught likely / possibly (of) | false flags likely / possibly "
-        "| resolution (median) | below resolution | p |"
+        "| resolution (median) | below resolution | match uncertainty (median) | p |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for label, name, m, p in rows:
         print(
             f"| {label} | {name} | {m['true_median']:.3f} | {m['window_median']:.3f} | "
             f"{m['estimated_median']:.3f} | {m['ratio']:.2f} | {m['rho']:.2f} | "
             f"{percent(m['caught'])} / {percent(m['caught_possibly'])} ({m['n_bad']}) | "
             f"{percent(m['false'])} / {percent(m['false_possibly'])} | {m['resolution']:.3f} | "
-            f"{percent(m['below'])} | {p:.4f} |"
+            f"{percent(m['below'])} | {_number(m['match_sigma'])} | {p:.4f} |"
         )
     return rows
 

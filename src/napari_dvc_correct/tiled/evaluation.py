@@ -304,7 +304,11 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs, region=
     sampler = LazySampler(other)  # a callable, and a one-pass pull-back (reference mode)
     own_volume = reference if mode == "reference" else deformed
     gradient = halo_gradient(
-        own_volume.read_region, block, own_volume.shape, None if mode == "reference" else mapping
+        own_volume.read_region,
+        block,
+        own_volume.shape,
+        None if mode == "reference" else mapping,
+        instrument=True,
     )
 
     totals = []

@@ -102,11 +102,11 @@ def test_an_error_beyond_the_linear_range_is_not_missed():
     """A 4-voxel error on a fine texture (correlation length about 2 voxels): the texture no
     longer matches, one linear step cannot say how far, and the residual's excess does: the
     estimate is above 1.5 voxels (a lower bound: a texture that no longer matches at all reads
-    about twice its correlation length), where the plain step reports under a voxel."""
+    about twice its correlation length), where the plain step falls far short (about a voxel)."""
     moments, r0 = _window_moments((4.0, 0.0, 0.0), size=1.0)
     result = residual_error(moments, r0)
     assert result.unexplained[0, 0, 0]
-    assert np.linalg.norm(result.shift[0, 0, 0]) < 1.0
+    assert np.linalg.norm(result.shift[0, 0, 0]) < 2.0
     assert result.resolved[0, 0, 0] > 1.5
 
 
@@ -219,7 +219,10 @@ def test_the_estimate_follows_imposed_errors_on_ct_texture(ct_pair):
     assert np.mean(estimate["band"][truth["band"] < 0.25] > 0.5) <= 0.02
     assert spearmanr(estimate["band"], truth["band"]).statistic >= 0.8
     assert 0.7 < np.median(estimate["uniform"]) / 0.3 < 1.3
-    assert result["band"].error["below_resolution"] > 0.3  # most nodes far from the band
+    # nodes far from the band (truly under 0.05 voxel): mostly below the resolution (a bound)
+    far = truth["band"] < 0.05
+    resolution = result["band"].error_resolution[inside]
+    assert far.sum() > 20 and np.mean(~(estimate["band"][far] > resolution[far])) > 0.5
     plain = raw["uniform"].error_estimate[inside]
     assert np.median(plain) == pytest.approx(np.median(estimate["uniform"]), rel=0.1)
 
@@ -251,3 +254,143 @@ def test_independent_node_errors_are_read_through_the_window_s_mean(ct_pair):
     assert 0.25 < np.median(windowed) / np.median(truth) < 0.42  # what the window holds: 0.33
     assert np.median(estimate) == pytest.approx(np.median(windowed), rel=0.25)  # 1.10
     assert np.median(estimate) < 0.6 * np.median(truth)
+
+
+def test_the_instrument_s_noise_pairing_is_what_white_noise_shows():
+    """``c = E[h_i g_i] / σ²`` of white noise (the pairing the step takes out) against the mean
+    over a noise volume, and 0 across components and with the noise itself."""
+    from napari_dvc_correct.engine.evaluation.accuracy_blocks import gradient_components
+    from napari_dvc_correct.engine.evaluation.error_estimate import (
+        instrument_noise_pairing,
+        smoothed_gradient,
+    )
+
+    noise = np.random.default_rng(5).normal(0.0, 3.0, (72, 72, 72))
+    h, g = smoothed_gradient(noise), gradient_components(noise)
+    inner = (slice(None), *(slice(4, -4),) * 3)
+    h, g, n = h[inner].astype(np.float64), g[inner].astype(np.float64), noise[inner[1:]]
+    c = instrument_noise_pairing()
+    assert 0.02 < c < 0.06  # a Gaussian of 1 voxel keeps little of the noise's finest scale
+    assert np.mean(h[0] * g[0]) / 9.0 == pytest.approx(c, rel=0.1)
+    assert np.mean(h[0] * g[1]) / 9.0 == pytest.approx(0.0, abs=0.1 * c)
+    assert np.mean(h[2] * n) / 9.0 == pytest.approx(0.0, abs=0.1 * c)
+
+
+def _inside(base):
+    r = np.hypot(base.points[:, 1] - 27.5, base.points[:, 2] - 27.5).reshape(base.shape)
+    return r < 0.46 * SHAPE[1] - 5  # the specimen (a cylinder in air)
+
+
+def test_exact_and_uniform_errors_read_their_known_answers(ct_pair):
+    """The exact field reads about 0, within its stated resolution; fields off by a uniform
+    0.3 and 1.0 voxel read 0.3 and 1.0 within 20 % (median over the specimen's nodes)."""
+    reference, deformed, base, exact = ct_pair
+    n = len(base.points)
+    errors = {
+        "exact": np.zeros((n, 3)),
+        "0.3": np.tile([0.3, 0.0, 0.0], (n, 1)),
+        "1.0": np.tile([0.0, 0.6, 0.8], (n, 1)),
+    }
+    fields = {k: base.replace(u=(exact + e).reshape((*base.shape, 3))) for k, e in errors.items()}
+    result = evaluate_fields(reference, deformed, fields, keep_volumes=False)
+    inside = _inside(base)
+    zero = result["exact"]
+    below = ~(zero.error_estimate[inside] > zero.error_resolution[inside])
+    assert np.mean(below) >= 0.8 and np.median(zero.error_estimate[inside]) == 0.0
+    ratio = zero.error_estimate[inside] / zero.error_resolution[inside]
+    ratio = zero.error_estimate[inside] / zero.error_resolution[inside]
+    assert np.mean(ratio <= 1.5) >= 0.95 and np.all(ratio < 2.5)  # 1.7 % above 1.5, max 2.1
+    assert 0.05 < np.median(zero.error_resolution[inside]) < 0.2  # 3 % noise, 11³ windows
+    for name, value in (("0.3", 0.3), ("1.0", 1.0)):
+        assert np.median(result[name].error_estimate[inside]) == pytest.approx(value, rel=0.2)
+
+
+def test_a_held_out_band_on_trilinear_warped_ct_is_ranked_and_caught():
+    """Held out from the choice of the estimator: another CT texture and seed, 4 % noise, the
+    deformed scan made by trilinear interpolation (not our B-spline), a 1-voxel band plus
+    0.05-voxel random node errors. The issue's lines: rank correlation ≥ 0.6, ≥ 80 % of the
+    nodes truly > 0.5 voxel likely above it, the median within a factor 2 of the truth's; and
+    almost no node truly under 0.25 voxel flagged likely (measured: 98 % caught, 2 of 163 nodes
+    under 0.25 flagged, Spearman 0.85, median ratio 1.01)."""
+    from scipy.stats import spearmanr
+
+    from napari_dvc_correct.engine.evaluation.error_estimate import LIKELY, probability_above
+
+    shift = np.array([1.3, -0.7, 2.2])
+    margin = 6
+    big = concrete_ct_volume(tuple(n + 2 * margin for n in SHAPE), aggregate_fraction=0.3, seed=17)
+    grid = np.indices(big.shape, dtype=np.float64) - shift.reshape(3, 1, 1, 1)
+    moved = ndimage.map_coordinates(big.astype(np.float64), grid, order=1, mode="mirror")
+    crop = tuple(slice(margin, margin + n) for n in SHAPE)
+    reference = np.ascontiguousarray(big[crop], np.float32)
+    deformed = np.ascontiguousarray(moved[crop], np.float32)
+    sigma = ct_noise_sigma(reference, 0.04)
+    reference, deformed = add_noise(reference, sigma, seed=3), add_noise(deformed, sigma, seed=4)
+    origin, step, shape = grid_for_volume(SHAPE, 15, 5)
+    base = DisplacementField.zeros(origin, step, shape, params={"subvolume": 15})
+    points = base.points
+    d = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
+    error = np.exp(-0.5 * ((points[:, 2] - 28.0) / (12.0 / 2.355)) ** 2)[:, None] * d
+    error += np.random.default_rng(6).normal(0.0, 0.05 / np.sqrt(3), error.shape)
+    field = base.replace(u=(shift + error).reshape((*shape, 3)))
+    item = evaluate_fields(reference, deformed, {"band": field}, keep_volumes=False)["band"]
+    inside = _inside(base)
+    truth = np.linalg.norm(error, axis=1).reshape(shape)[inside]
+    estimate, resolution = item.error_estimate[inside], item.error_resolution[inside]
+    likely = probability_above(estimate, resolution) >= LIKELY
+    bad = truth > 0.5
+    assert bad.sum() > 20 and np.mean(likely[bad]) >= 0.8
+    assert (truth < 0.25).sum() > 100 and np.mean(likely[truth < 0.25]) <= 0.03
+    assert spearmanr(estimate, truth).statistic >= 0.6
+    assert 0.5 < np.median(estimate) / np.median(truth) < 2.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the correction records a corrected node's uncertainty as the quadrature sum of the "
+    "input's and the correcting match's (√2 × for a re-measurement on the same images); the "
+    "record of a re-measurement (branch noise-fit) makes this pass: remove this marker with it",
+)
+def test_a_corrected_field_reads_its_true_error_as_the_plain_one_does():
+    """Our DVC's field and the same field self-corrected, on faint CT texture with 3 % noise and
+    an affine field (benchmarks/bench_error_estimate.py's first pair). A correcting match
+    re-measures a node on the same images with the same subvolume: a corrected node's error is
+    no larger than the plain match's, nor is the noise its record must carry (not √2 × it, as if
+    the two matches' noises were independent). The estimate adds that record where the residual
+    cannot resolve the error, so it reads the corrected field's median as it reads the plain
+    one's (1.09 here; 1.48 with the quadrature record)."""
+    from napari_dvc_correct.engine.correction.self_correction import correct
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+    from napari_dvc_correct.engine.evaluation.error_estimate import noise_error
+    from napari_dvc_correct.engine.synthetic import affine
+
+    shape = (64, 64, 64)
+    gradient = np.array([[-0.01, 0.004, 0.0], [0.0, 0.006, 0.003], [0.002, 0.0, 0.008]])
+    truth = affine(gradient, center=np.array(shape) / 2.0, shift=(1.3, -0.7, 2.2))
+    pattern = lambda s: concrete_ct_volume(s, aggregate_fraction=0.4, seed=3)  # noqa: E731
+    reference, deformed = make_pair(pattern, shape, truth, 12)
+    sigma = ct_noise_sigma(reference, 0.03)
+    reference, deformed = add_noise(reference, sigma, seed=11), add_noise(deformed, sigma, seed=12)
+    params = CorrelationParams(subvolume=15, step=5)
+    plain = correlate(reference, deformed, params)
+    corrected = correct(reference, deformed, plain, params)
+    passes = corrected.metadata["correction_passes"]
+    assert any(p["accepted_nodes"] > 0 for p in passes[1:])  # the case is met: a pass applied
+    result = evaluate_fields(
+        reference, deformed, {"plain": plain, "corrected": corrected}, keep_volumes=False
+    )
+    points = plain.points
+    inside = np.hypot(points[:, 1] - 31.5, points[:, 2] - 31.5) < 0.46 * 64 - 5  # the specimen
+    exact = sample_displacement(truth, points)
+    true = {
+        item.name: np.linalg.norm(item.field.displacement - exact, axis=1)[inside]
+        for item in result.fields
+    }
+    sigma_u = {name: noise_error(result[name].field).reshape(-1)[inside] for name in true}
+    assert np.median(true["corrected"]) < 1.1 * np.median(true["plain"])
+    assert np.median(sigma_u["corrected"]) < 1.15 * np.median(sigma_u["plain"])
+    for name in ("plain", "corrected"):
+        estimate = result[name].error_estimate.reshape(-1)[inside]
+        ratio = np.median(estimate) / np.median(true[name])
+        assert 0.6 < ratio < 1.35, (name, ratio)

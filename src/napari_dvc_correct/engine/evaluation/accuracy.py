@@ -516,7 +516,11 @@ def evaluate_iter(
         mapped = np.empty(own.shape, np.uint8) if keep_volumes else None
         for z, box in slab_boxes(own.shape):
             gradient = halo_gradient(  # whole-volume central differences
-                own.__getitem__, box, own.shape, None if mode == "reference" else mapping
+                own.__getitem__,
+                box,
+                own.shape,
+                None if mode == "reference" else mapping,
+                instrument=True,
             )
             block, _, block_residual, block_mapped = field_block(
                 own[z], sampler, spline, box, mode, other_thresholds,

@@ -142,19 +142,33 @@ def gradient_components(block: np.ndarray) -> np.ndarray:
     return out
 
 
-def halo_gradient(read_region, box, shape, gray_levels=None) -> np.ndarray:
+def halo_gradient(
+    read_region, box, shape, gray_levels=None, instrument: bool = False
+) -> np.ndarray:
     """:func:`gradient_components` of the block ``box`` read with a one-voxel halo, so that any
     cutting of the volume into blocks gives the whole volume's central differences.
 
     ``read_region(slices)`` returns the voxels of a region of the state the residual lives on;
-    ``gray_levels`` (a map, or None) is applied to them first (the loaded state, mapped).
+    ``gray_levels`` (a map, or None) is applied to them first (the loaded state, mapped). With
+    ``instrument``, the block is read with a halo of
+    :data:`.error_estimate.INSTRUMENT_RADIUS` voxels and the result holds 6 components: the
+    central differences, then the smoothed gradient (:func:`.error_estimate.smoothed_gradient`),
+    both the whole volume's.
     """
-    grown = tuple(slice(max(0, s.start - 1), min(int(n), s.stop + 1)) for s, n in zip(box, shape))
+    from .error_estimate import INSTRUMENT_RADIUS, smoothed_gradient
+
+    reach = max(1, INSTRUMENT_RADIUS) if instrument else 1
+    grown = tuple(
+        slice(max(0, s.start - reach), min(int(n), s.stop + reach)) for s, n in zip(box, shape)
+    )
     values = np.asarray(read_region(grown), dtype=np.float32)
     if gray_levels is not None:
         values = gray_levels.apply(values, grown)
     inner = tuple(slice(s.start - g.start, s.stop - g.start) for s, g in zip(box, grown))
-    return gradient_components(values)[(slice(None), *inner)]
+    gradient = gradient_components(values)[(slice(None), *inner)]
+    if not instrument:
+        return gradient
+    return np.concatenate([gradient, smoothed_gradient(values)[(slice(None), *inner)]])
 
 
 # --- one block of one field -----------------------------------------------------------------------
@@ -227,10 +241,10 @@ def field_block(
     error_half : int, optional
         Half-size of the boxes of the error estimate (:func:`.error_estimate.error_region_half`;
         default ``half``).
-    gradient : ndarray, shape (3, *box_shape(box)), optional
-        ``grad own`` of the block (:func:`halo_gradient`; default: from the block alone,
-        one-sided at its faces), with the signed residual the error estimate's moments
-        (:func:`.error_estimate.moment_volumes`).
+    gradient : ndarray, shape (3 or 6, *box_shape(box)), optional
+        ``grad own`` of the block, and its smoothed gradient (:func:`halo_gradient` with
+        ``instrument``; default: from the block alone, one-sided at its faces), with the signed
+        residual the error estimate's moments (:func:`.error_estimate.moment_volumes`).
     region_block : ndarray of bool, shape box_shape(box), optional
         The specimen region at the block's voxels: outside it the residual is undefined (NaN)
         and takes no part in any number.

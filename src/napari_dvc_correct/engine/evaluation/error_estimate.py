@@ -14,9 +14,20 @@ node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   covariances, ``Δu = H_t⁻¹ (cov(g, s) − a cov(G, s) / v)``, ``a = cov(g, G)``,
   ``v = var G − σ²``, ``H_t = cov(g, g) − a aᵀ / v − σ²/2 I`` (central differences of the noise
   add ``σ²/2`` per component, which would shrink ``Δu`` by the share of noise in the gradient).
-  Its noise has covariance ``C = 2σ²/n H_t⁻¹ (H_t + σ²/2 I) H_t⁻¹`` over ``n`` voxels: ``√tr C``
-  is the node's **resolution** (errors below it do not show in the residual) and the resolved
-  error is ``e_r = √max(|Δu|² − tr C, 0)``.
+  That step is taken with an **instrument**: the noise of ``G``'s gradient pairs with itself in
+  ``cov(g, g)`` and makes the step noisy where the noise is a large share of the gradient
+  (faint CT texture). The step uses ``w = (g + h)/2`` instead of ``g`` on the left of every
+  covariance, ``h`` the gradient of ``G`` smoothed by a Gaussian of :data:`INSTRUMENT_SIGMA`
+  voxel (:func:`smoothed_gradient`, the same texture with less noise):
+  ``Δu = A⁻¹ (cov(w, s) − a_w (cov(G, s) + σ²) / v)``, ``A = cov(w, g) − a_w aᵀ / v − p σ² I``
+  with ``a_w = cov(w, G)`` and ``p = (1/2 + c)/2`` the noise's pairing of ``w`` with ``g`` at a
+  voxel (``c``: :func:`instrument_noise_pairing`; ``w`` and ``s`` do not pair: the derivative
+  kernels are odd). Its noise has covariance ``C = 2σ²/n A⁻¹ W A⁻ᵀ``, ``W = cov(w, w) −
+  a_w a_wᵀ / v``, over ``n`` voxels: ``√tr C`` is the node's **resolution** (errors below it
+  do not show in the residual) and the resolved error is ``e_r = √max(|Δu|² − tr C, 0)``.
+  (With ``w = g`` this is the plain step ``H_t⁻¹ (cov(g, s) − …)``, ``H_t = cov(g, g) − a aᵀ/v
+  − σ²/2 I``; the instrument lowers the resolution by 10–17 % on CT texture at 3–5 % noise,
+  ``docs/evaluation.md``.)
 - **a residual the linear model does not explain.** Beyond the linear range (errors of a few
   voxels, a crack, the texture changed) the moved texture no longer matches the reference's
   (its contrast ``k = 1 + (cov(G, s) + σ²)/v`` against it falls below
@@ -38,6 +49,7 @@ flat region) the resolution is infinite. Measured against true errors in
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -70,13 +82,27 @@ MATCHED_CONTRAST = 0.5
 #: reach before it counts as an error beyond the linear range.
 UNEXPLAINED_SIGMAS = 4.0
 
+#: Standard deviation (voxels) of the Gaussian whose derivative gives the smoothed gradient
+#: ``h`` of the state, the instrument of the step (see :func:`residual_error`), and the
+#: truncation of its kernel in standard deviations: the kernel reaches
+#: :data:`INSTRUMENT_RADIUS` voxels, the halo a block reads for it.
+INSTRUMENT_SIGMA = 1.0
+INSTRUMENT_TRUNCATE = 3.0
+INSTRUMENT_RADIUS = int(INSTRUMENT_TRUNCATE * INSTRUMENT_SIGMA + 0.5)
+
 #: Order of the moments gathered per node (:class:`ErrorMoments`): the signed residual ``s``, the
-#: state's gray value ``G`` and its gradient ``g = (gz, gy, gx)``, then their products.
+#: state's gray value ``G``, its gradient ``g = (gz, gy, gx)`` and its smoothed gradient
+#: ``h = (hz, hy, hx)``, then their products.
 MOMENTS = (
     "s", "G", "gz", "gy", "gx",
     "gzgz", "gzgy", "gzgx", "gygy", "gygx", "gxgx",
     "gzG", "gyG", "gxG", "GG",
     "gzs", "gys", "gxs", "Gs", "ss",
+    "hz", "hy", "hx",
+    "hzgz", "hzgy", "hzgx", "hygz", "hygy", "hygx", "hxgz", "hxgy", "hxgx",
+    "hzhz", "hzhy", "hzhx", "hyhy", "hyhx", "hxhx",
+    "hzG", "hyG", "hxG",
+    "hzs", "hys", "hxs",
 )  # fmt: skip
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -100,10 +126,41 @@ def noise_sigma(background: float) -> float:
     return float(background) * np.sqrt(np.pi) / 2.0
 
 
+def smoothed_gradient(values: np.ndarray) -> np.ndarray:
+    """``h``: the gradient of ``values`` smoothed by a Gaussian of :data:`INSTRUMENT_SIGMA`
+    voxels (its derivative, components ``(z, y, x)``, float32; the volume's edges repeated).
+    A voxel's value depends on the voxels within :data:`INSTRUMENT_RADIUS` only, so a block read
+    with that halo gives the whole volume's values."""
+    from scipy import ndimage
+
+    values = np.asarray(values, dtype=np.float64)
+    out = np.zeros((3, *values.shape), np.float32)
+    for axis in range(3):
+        order = [0, 0, 0]
+        order[axis] = 1
+        out[axis] = ndimage.gaussian_filter(
+            values, INSTRUMENT_SIGMA, order=order, mode="nearest", truncate=INSTRUMENT_TRUNCATE
+        )
+    return out
+
+
+@functools.cache
+def instrument_noise_pairing() -> float:
+    """``E[h_i g_i] / σ²`` for white noise of variance ``σ²``: the pairing of the noise's
+    smoothed gradient with its central difference at the same voxel (the same noise in both;
+    0 across components)."""
+    n = 4 * INSTRUMENT_RADIUS + 3
+    impulse = np.zeros((n, n, n))
+    impulse[n // 2, n // 2, n // 2] = 1.0
+    smoothed = smoothed_gradient(impulse)[0].astype(np.float64)
+    central = np.gradient(impulse, axis=0)
+    return float(np.sum(smoothed * central))
+
+
 def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray):
     """The voxel quantities whose window means make :class:`ErrorMoments`, one at a time in
     :data:`MOMENTS`'s order (a generator of float32 arrays, NaN where ``signed`` is: a block
-    holds one product at a time, not twenty).
+    holds one product at a time, not forty).
 
     Parameters
     ----------
@@ -111,14 +168,20 @@ def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray):
         Signed residual ``s`` (gray levels; NaN where undefined).
     own : ndarray, shape (nz, ny, nx)
         The state the residual lives on, ``G`` (gray levels).
-    gradient : ndarray, shape (3, nz, ny, nx)
-        Its gradient, components ``(z, y, x)`` (gray levels per voxel).
+    gradient : ndarray, shape (3 or 6, nz, ny, nx)
+        Its gradient ``g``, components ``(z, y, x)`` (gray levels per voxel), then (6
+        components) its smoothed gradient ``h`` (:func:`smoothed_gradient`, read with a halo:
+        :func:`.accuracy_blocks.halo_gradient`); with 3, ``h`` is taken from ``own`` alone.
     """
     s = np.asarray(signed, np.float32)
     valid = np.isfinite(s)
     nan = np.float32(np.nan)
     gray = np.where(valid, np.asarray(own, np.float32), nan)
-    g = np.where(valid[None], np.asarray(gradient, np.float32), nan)
+    gradient = np.asarray(gradient, np.float32)
+    if gradient.shape[0] == 3:
+        gradient = np.concatenate([gradient, smoothed_gradient(own)])
+    g = np.where(valid[None], gradient[:3], nan)
+    h = np.where(valid[None], gradient[3:6], nan)
     yield from (s, gray, g[0], g[1], g[2])
     for i, j in _PAIRS:
         yield g[i] * g[j]
@@ -129,6 +192,16 @@ def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray):
         yield g[i] * s
     yield gray * s
     yield s * s
+    yield from (h[0], h[1], h[2])
+    for i in range(3):
+        for j in range(3):
+            yield h[i] * g[j]
+    for i, j in _PAIRS:
+        yield h[i] * h[j]
+    for i in range(3):
+        yield h[i] * gray
+    for i in range(3):
+        yield h[i] * s
 
 
 @dataclass(frozen=True)
@@ -139,7 +212,7 @@ class ErrorMoments:
     ----------
     count : ndarray, shape (nz, ny, nx), int64
         Voxels with a defined residual in each node's window.
-    means : ndarray, shape (20, nz, ny, nx), float64
+    means : ndarray, shape (len(MOMENTS), nz, ny, nx), float64
         Their means, in :data:`MOMENTS`'s order (NaN where ``count`` is 0).
     """
 
@@ -148,7 +221,7 @@ class ErrorMoments:
 
     @classmethod
     def from_sums(cls, sums: np.ndarray, count: np.ndarray) -> ErrorMoments:
-        """From the window sums ``(20, nz, ny, nx)`` and the voxel count."""
+        """From the window sums ``(len(MOMENTS), nz, ny, nx)`` and the voxel count."""
         count = np.asarray(count, np.int64)
         with np.errstate(invalid="ignore", divide="ignore"):
             means = np.where(count > 0, sums / np.maximum(count, 1), np.nan)
@@ -158,7 +231,8 @@ class ErrorMoments:
         return self.means[MOMENTS.index(name)]
 
     def covariance(self, a: str, b: str) -> np.ndarray:
-        """``<a b> - <a><b>`` over each window (``a``, ``b`` among ``s, G, gz, gy, gx``)."""
+        """``<a b> - <a><b>`` over each window (``a``, ``b`` among ``s, G, gz, gy, gx, hz, hy,
+        hx``)."""
         key = a + b if a + b in MOMENTS else b + a
         return self.mean(key) - self.mean(a) * self.mean(b)
 
@@ -200,8 +274,8 @@ def residual_error(
     Parameters
     ----------
     moments : ErrorMoments
-        Window means of the signed residual, the gray value and its gradient
-        (:func:`moment_volumes`).
+        Window means of the signed residual, the gray value, its gradient and its smoothed
+        gradient, and their products (:func:`moment_volumes`).
     background : float
         ``r0`` of the scan pair (eq. 1), gray levels: the residual's noise has variance
         ``π r0² / 2`` (``2σ²`` for two scans of noise ``σ``).
@@ -245,10 +319,46 @@ def residual_error(
     w_t = np.maximum(w - 0.5 * sigma2, MIN_TEXTURE_SHARE * w)  # texture's part (noise out)
     textured = np.all(w_t > 1e-12 * max(1.0, sigma2), axis=-1) & defined
     safe = np.where(textured[..., None], w_t, 1.0)
-    coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # Δu in the eigenbasis
-    shift = np.einsum("...ij,...j->...i", v, coordinates)
-    variance = total / n * np.sum(np.where(textured[..., None], w / safe**2, 0.0), -1)
-    variance = variance / contrast**2
+    coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # plain Δu in the eigenbasis
+    # the step with the instrument w = (g + h)/2 (see the module): its sensitivity, the
+    # noise's pairings of w with g taken out (σ²/2 for central differences, c σ² for h)
+    smooth = ("hz", "hy", "hx")
+    pairing = 0.5 * sigma2 * (0.5 + instrument_noise_pairing())
+    sensitivity = np.empty(h.shape)
+    spread = np.empty(h.shape)
+    for i in range(3):
+        for j in range(3):
+            sensitivity[..., i, j] = 0.5 * (h[..., i, j] + cov(smooth[i], axes[j]))
+            spread[..., i, j] = 0.25 * (
+                h[..., i, j]
+                + cov(axes[i], smooth[j])
+                + cov(smooth[i], axes[j])
+                + cov(smooth[i], smooth[j])
+            )
+        sensitivity[..., i, i] -= pairing
+    a_w = 0.5 * (a + np.stack([cov(k, "G") for k in smooth], axis=-1))
+    b_w = 0.5 * (b + np.stack([cov(k, "s") for k in smooth], axis=-1))
+    sensitivity -= (
+        a_w[..., :, None]
+        * a[..., None, :]
+        / safe_gray[..., None, None]
+        * contrasted[..., None, None]
+    )
+    spread -= (
+        a_w[..., :, None]
+        * a_w[..., None, :]
+        / safe_gray[..., None, None]
+        * contrasted[..., None, None]
+    )
+    b_w = (b_w - a_w * lift[..., None]) / contrast[..., None]
+    determinant = np.linalg.det(np.where(textured[..., None, None], sensitivity, 0.0))
+    solvable = textured & (np.abs(determinant) > 0)
+    inverse = np.linalg.inv(np.where(solvable[..., None, None], sensitivity, np.eye(3)))
+    shift = np.einsum("...ij,...j->...i", inverse, b_w)
+    covariance = inverse @ spread @ np.swapaxes(inverse, -1, -2)
+    variance = total / n * np.trace(covariance, axis1=-2, axis2=-1) / contrast**2
+    textured = solvable & np.isfinite(variance)
+    variance = np.where(textured, variance, 0.0)
     resolution = np.where(textured, np.sqrt(variance), np.inf)
     squared = np.sum(shift * shift, axis=-1)
     resolved = np.sqrt(np.maximum(squared - variance, 0.0))
