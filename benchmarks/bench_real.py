@@ -28,7 +28,8 @@ explains the images, with a judge that is not ours:
   voxel lies within its subvolume's half-width;
 * **seconds** per stage (the plain run's and the correction's own timings).
 
-Run: ``python benchmarks/bench_real.py [--subvolume 21] [--step 8] [upper] [lower]``. The machine
+Run: ``python benchmarks/bench_real.py [--subvolume 21] [--step 8] [--compare-noise-fit] [upper]
+[lower]``. The machine
 is shared (2 cores): compare seconds within one run only, and say the load.
 """
 
@@ -97,7 +98,9 @@ def load_crop(name: str):
     return data["reference"].astype(np.float32), data["deformed"].astype(np.float32)
 
 
-def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
+def run(
+    name: str, params: CorrelationParams, use_mask: bool = True, compare_fit: bool = False
+) -> None:
     crop = load_crop(name)
     if crop is None:
         return
@@ -110,6 +113,9 @@ def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
     started = time.perf_counter()
     corrected = correct(reference, deformed, plain, params, mask=mask)
     correction_seconds = time.perf_counter() - started
+    unfitted = None
+    if compare_fit:  # the same correction without the regularised estimate
+        unfitted = correct(reference, deformed, plain, params, mask=mask, noise_fit=False)
 
     zero = plain.copy()
     zero.u[:] = 0.0
@@ -117,6 +123,16 @@ def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
     zero_residual, _, zero_eiv = judge_residual(reference, deformed, zero)
     plain_residual, plain_map, plain_eiv = judge_residual(reference, deformed, plain)
     corrected_residual, _, corrected_eiv = judge_residual(reference, deformed, corrected)
+    rows = [
+        ("plain", plain, plain_residual, plain_eiv, plain_seconds),
+        (
+            "corrected", corrected, corrected_residual, corrected_eiv,
+            plain_seconds + correction_seconds,
+        ),
+    ]  # fmt: skip
+    if unfitted is not None:
+        residual, _, eiv = judge_residual(reference, deformed, unfitted)
+        rows.append(("corrected, no noise fit", unfitted, residual, eiv, float("nan")))
 
     crack = np.zeros(reference.shape, bool)
     inside = specimen & np.isfinite(plain_map)
@@ -148,13 +164,7 @@ def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
         "DISCONTINUITY | seconds |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
-    for label, field, residual, eiv, seconds in (
-        ("plain", plain, plain_residual, plain_eiv, plain_seconds),
-        (
-            "corrected", corrected, corrected_residual, corrected_eiv,
-            plain_seconds + correction_seconds,
-        ),
-    ):  # fmt: skip
+    for label, field, residual, eiv, seconds in rows:
         flagged = ~good(field) & measured
         in_specimen = flagged & node_in_specimen
         at_crack = f"{np.mean(node_at_crack[flagged]):.0%}" if flagged.any() else "— (none flagged)"
@@ -172,6 +182,12 @@ def run(name: str, params: CorrelationParams, use_mask: bool = True) -> None:
         + ", ".join(f"{k} {v:.1f}" for k, v in timings.items() if isinstance(v, float))
     )
     print("correction stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
+    fit = corrected.metadata["correction"].get("noise_fit")
+    if fit:
+        print(
+            f"noise fit: {fit['fitted_nodes']} of {fit['eligible_nodes']} eligible nodes fitted "
+            f"(median variance ratio {fit['median_variance_ratio']})"
+        )
 
 
 def main() -> None:
@@ -182,10 +198,15 @@ def main() -> None:
     parser.add_argument(
         "--no-mask", action="store_true", help="run without the specimen mask a user would give"
     )
+    parser.add_argument(
+        "--compare-noise-fit",
+        action="store_true",
+        help="also correct without the regularised estimate (one more correction per crop)",
+    )
     args = parser.parse_args()
     params = CorrelationParams(subvolume=args.subvolume, step=args.step)
     for name in args.crops:
-        run(name, params, use_mask=not args.no_mask)
+        run(name, params, use_mask=not args.no_mask, compare_fit=args.compare_noise_fit)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,9 @@ CORRELATION = {
     "tolerance": "tolerance",
     "min_zncc": "min_zncc",
 }
-CORRECTION = {name: name for name in ("frame", "update", "max_passes", "min_improvement")}
+CORRECTION = {
+    name: name for name in ("frame", "update", "max_passes", "min_improvement", "noise_fit")
+}
 CLEANING = {"outlier_threshold": "threshold", "smoothing": "smoothing"}
 EVALUATION = {
     "phases": "phases",
@@ -164,6 +166,7 @@ def test_the_panels_start_from_the_records(make_napari_viewer):
     assert correct.frame.currentData() == options.frame
     assert correct.update_rule.currentData() == options.update
     assert correct.max_passes.value() == options.max_passes
+    assert correct.noise_fit.isChecked() == options.noise_fit
     assert correct._options() == options
     settings = correct.settings()  # a session saves the record whole
     assert {k: settings[k] for k in options.as_dict()} == options.as_dict()

@@ -54,6 +54,34 @@ def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_pat
     assert corrected.metadata["corrected_from"] == str(field_path)
     error = corrected.displacement[corrected.valid.reshape(-1)] - SHIFT
     assert np.sqrt(np.mean(error**2)) < 0.05
+    # the regularised estimate is off by default
+    assert corrected.metadata["correction"]["noise_fit"] is None
+    assert "regularised: " not in printed
+
+
+def test_correct_with_the_regularised_estimate_says_what_it_did(volumes, tmp_path, capsys):
+    field_path = tmp_path / "field.npz"
+    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    out = tmp_path / "corrected.npz"
+    args = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out)]
+    assert main([*args, "--max-passes", "1", "--noise-fit", "--quiet"]) == 0
+    record = load_field(out).metadata["correction"]["noise_fit"]
+    assert record["fitted_nodes"] == len(record["fitted"])
+    printed = capsys.readouterr().out
+    if record["not_run"]:  # a field file without the matches' uncertainties
+        assert f"regularised: no node ({record['not_run']})" in printed
+    else:
+        assert f"regularised: {record['fitted_nodes']} nodes" in printed
+
+
+def test_correct_can_switch_the_regularised_estimate_on_and_off(tmp_path):
+    from napari_dvc_correct.cli import build_parser
+    from napari_dvc_correct.commands.correct import correction_records_from_args
+
+    base = ["correct", "g.npy", "f.npy", "--field", "d.npz", "--out", str(tmp_path / "o.npz")]
+    for extra, expected in (([], False), (["--no-noise-fit"], False), (["--noise-fit"], True)):
+        options, _ = correction_records_from_args(build_parser().parse_args(base + extra))
+        assert options.noise_fit is expected
 
 
 def test_correct_refuses_bad_input_and_writes_nothing(volumes, tmp_path, capsys):

@@ -65,3 +65,23 @@ def test_a_record_without_the_measured_count_says_no_share():
     line = passes.flag_line(_corrected(flagged_after=3, discontinuity_nodes=0))
     assert line.startswith("flagged after the passes: 3 nodes") and "measured" not in line
     assert passes.flag_line(DisplacementField.zeros((0.0,) * 3, (5,) * 3, (2, 2, 2))) == ""
+
+
+def test_the_regularised_nodes_in_words():
+    field = DisplacementField.zeros((0.0, 0.0, 0.0), (5.0, 5.0, 5.0), (2, 2, 2))
+    assert passes.noise_fit_line(field) == ""
+    field.metadata["correction"] = {"noise_fit": None}  # switched off
+    assert passes.noise_fit_line(field) == ""
+    field.metadata["correction"] = {
+        "noise_fit": {
+            "neighbourhood_nodes": 3,
+            "eligible_nodes": 187,
+            "fitted_nodes": 169,
+            "median_variance_ratio": 0.14,
+            "fitted": [],
+        }
+    }
+    line = passes.noise_fit_line(field)
+    assert "169 nodes" in line and "3³" in line and "187 tested" in line and "x0.14" in line
+    field.metadata["correction"]["noise_fit"]["not_run"] = "the field carries no uncertainty"
+    assert passes.noise_fit_line(field) == "regularised: no node (the field carries no uncertainty)"

@@ -112,6 +112,14 @@ def add_correction_options(parser: argparse.ArgumentParser) -> None:
         help="compose the correction with the field (exact) or add it node by node (sum, "
         "paper); default %(default)s",
     )
+    group.add_argument(
+        "--noise-fit",
+        action=argparse.BooleanOptionalAction,
+        default=d["noise_fit"],
+        help="after the passes, replace a node by the generalised-least-squares affine fit over "
+        "its 3x3x3 neighbourhood where a chi-square test says that neighbourhood holds only "
+        "matching noise (default %(default)s)",
+    )
     add_cleaning_options(group, d)
 
 
@@ -154,6 +162,7 @@ def correction_records_from_args(args):
             update=args.update,
             max_passes=args.max_passes,
             min_improvement=args.min_improvement,
+            noise_fit=args.noise_fit,
         )
     except ValueError as error:
         raise ValueError(
@@ -181,6 +190,7 @@ def pass_table(field) -> str:
         flag_line,
         gray_level_line,
         method_lines,
+        noise_fit_line,
         order_text,
         subvolume_text,
     )
@@ -208,7 +218,8 @@ def pass_table(field) -> str:
             f"{subvolume_text(params['subvolume'])} subvolume"
         )
     lines.extend(f"correcting matches, {line}" for line in method_lines(field))
-    lines.extend(line for line in (gray_level_line(field), flag_line(field)) if line)
+    for line in (gray_level_line(field), flag_line(field), noise_fit_line(field)):
+        lines.extend([line] if line else [])
     if table and table[-1].stop:
         lines.append(f"stopped: {table[-1].stop}")
     return "\n".join(lines)

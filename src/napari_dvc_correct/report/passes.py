@@ -126,3 +126,21 @@ def flag_line(field: DisplacementField) -> str:
     if shielded:
         text += f"; {shielded} nodes near it kept their values"
     return text
+
+
+def noise_fit_line(field: DisplacementField) -> str:
+    """Where the correction replaced nodes by the fit over their noise-only neighbourhoods, in
+    words ("" where it did not run)."""
+    info = (field.metadata.get("correction") or {}).get("noise_fit")
+    if not info:
+        return ""
+    if info.get("not_run"):
+        return f"regularised: no node ({info['not_run']})"
+    text = (
+        f"regularised: {info['fitted_nodes']} nodes took the least-squares affine fit over "
+        f"their {info['neighbourhood_nodes']}³ neighbourhood, where it held only matching noise "
+        f"({info['eligible_nodes']} tested)"
+    )
+    if info.get("median_variance_ratio") is not None:
+        text += f"; their variance x{info['median_variance_ratio']:.2f} (median)"
+    return text

@@ -406,6 +406,7 @@ def correct_tiled_iter(
     node_block: int = NODE_BLOCK,
     temp_dir=None,
     selective: bool = True,
+    noise_fit: bool = CorrectionOptions.noise_fit,
 ) -> Generator[Progress, None, DisplacementField]:
     """Self-correct a field of two lazily read volumes, batch by batch; yields progress.
 
@@ -413,7 +414,7 @@ def correct_tiled_iter(
     ----------
     reference, deformed : LazyVolume, path or array, shape (nz, ny, nx)
         ``G`` and ``F`` (:func:`..io.lazy.as_lazy`: TIFF, Zarr, OME-Zarr, .npy, slices...).
-    field, params, frame, update, max_passes, min_improvement, clean_options, selective
+    field, params, frame, update, max_passes, min_improvement, clean_options, selective, noise_fit
         As :func:`..engine.correction.self_correction.correct_iter` (``field`` None: a tiled DVC runs first).
     mask : LazyVolume, path or array, optional
         Reference-space material mask (non-zero = inside).
@@ -486,6 +487,7 @@ def correct_tiled_iter(
             min_improvement=min_improvement,
             clean_options=clean_options,
             selective=selective,
+            noise_fit=noise_fit,
         )
     finally:
         volumes.close()  # the temporary arrays, also on error or cancel (idempotent)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from qtpy.QtWidgets import (
+    QCheckBox,
     QComboBox,
     QSpinBox,
     QTableWidget,
@@ -53,6 +54,13 @@ class CorrectWidget(EngineWidget):
         self.form.addRow("Frame", self.frame)
         self.form.addRow("Update", self.update_rule)
         self.form.addRow("Passes (at most)", self.max_passes)
+        self.noise_fit = QCheckBox("fit noise-only regions")
+        self.noise_fit.setChecked(defaults.noise_fit)
+        self.noise_fit.setToolTip(
+            "after the passes, replace a node by the least-squares affine fit over its 3x3x3 "
+            "neighbourhood where a chi-square test says the neighbourhood holds only matching noise"
+        )
+        self.form.addRow("Regularise", self.noise_fit)
         self.add_out_of_core_row(
             "Warps and correlates block by block through temporary Zarr arrays, for scans "
             "larger than memory or opened lazily (Dask/Zarr; then ticked by itself). A pair or each "
@@ -134,6 +142,7 @@ class CorrectWidget(EngineWidget):
             frame=self.frame.currentData(),
             update=self.update_rule.currentData(),
             max_passes=self.max_passes.value(),
+            noise_fit=self.noise_fit.isChecked(),
         )
 
     def prepare(self):
@@ -196,6 +205,7 @@ class CorrectWidget(EngineWidget):
             if index >= 0:
                 combo.setCurrentIndex(index)
         self.max_passes.setValue(int(settings.get("max_passes", self.max_passes.value())))
+        self.noise_fit.setChecked(bool(settings.get("noise_fit", self.noise_fit.isChecked())))
         self.tiled.setChecked(bool(settings.get("tiled", self.tiled.isChecked())))
         self.max_memory.setText(str(settings.get("max_memory", "")))
         if "region" in settings:

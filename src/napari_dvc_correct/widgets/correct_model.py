@@ -142,9 +142,9 @@ def summary_message(field: DisplacementField) -> str:
     method = method_message(field)
     if method:
         text += " " + method
-    from ..report.passes import flag_line, gray_level_line
+    from ..report.passes import flag_line, gray_level_line, noise_fit_line
 
-    for line in (gray_level_line(field), flag_line(field)):
+    for line in (gray_level_line(field), flag_line(field), noise_fit_line(field)):
         if line:
             text += " " + line[0].upper() + line[1:] + "."
     return text

@@ -7,6 +7,7 @@ from napari_dvc_correct.engine.correction.acceptance import (
     MEASURED_REACH,
     NOISE_Z,
     Judge,
+    mix_fields,
     unsupported_updates,
 )
 from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
@@ -215,3 +216,14 @@ def test_a_bend_above_the_noise_or_a_refilled_value_opens_a_noise_region():
     sigma[5, 5, 5] = np.nan
     assert not noise_only_corrections(current, candidate, sigma, bend)[5, 5, 5]
     assert not noise_only_corrections(current, candidate, sigma, np.full(bend.shape, np.nan)).any()
+
+
+def test_a_refused_node_keeps_its_own_uncertainty():
+    current = DisplacementField.zeros((0.0, 0.0, 0.0), (5.0, 5.0, 5.0), (3, 3, 3))
+    current.uncertainty = np.full((3, 3, 3, 3), 0.2)
+    candidate = current.replace(u=current.u + 0.1, uncertainty=np.full((3, 3, 3, 3), 0.03))
+    accept = np.zeros((3, 3, 3), bool)
+    accept[0] = True
+    mixed = mix_fields(current, candidate, accept)
+    assert np.all(mixed.uncertainty[0] == 0.03) and np.all(mixed.uncertainty[1:] == 0.2)
+    assert np.all(mixed.u[1:] == 0.0)

@@ -81,3 +81,20 @@ def test_the_correction_s_uncertainty_is_its_nearest_match_s():
     assert np.isnan(P.correction_sigma(delta, reads, GRID[2])).all()  # none measured
     delta.uncertainty = np.broadcast_to([0.03, 0.04, 0.0], (*GRID[2], 3)).copy()
     np.testing.assert_allclose(P.correction_sigma(delta, reads, GRID[2]), 0.05)
+
+
+def test_a_corrected_node_s_uncertainty_is_its_correcting_match_s_not_a_sum():
+    # a correcting match re-measures the node on the same images: its noise replaces the node's
+    current, delta = _current(), _delta()
+    current.uncertainty = np.full((*GRID[2], 3), 0.2)
+    delta.uncertainty = np.full((*GRID[2], 3), 0.03)
+    delta.provenance[1, 1, 1] = Provenance.REPLACED
+    masked = np.zeros(GRID[2], bool)
+    masked[3, 4, 5] = True
+    candidate = P.updated_field(current, delta, "loaded", "exact")
+    np.testing.assert_allclose(candidate.uncertainty[0, 0, 0], np.hypot(0.2, 0.03))  # composed
+    reads = P.update_read_points(current, "loaded", "exact")
+    done = P.finish_pass(candidate, delta, current, masked, reads)
+    np.testing.assert_allclose(done.uncertainty[0, 0, 0], 0.03)
+    assert np.isnan(done.uncertainty[1, 1, 1]).all()  # interpolated: nothing measured
+    np.testing.assert_allclose(done.uncertainty[3, 4, 5], 0.2)  # masked: kept

@@ -345,12 +345,6 @@ def test_a_held_out_band_on_trilinear_warped_ct_is_ranked_and_caught():
     assert 0.5 < np.median(estimate) / np.median(truth) < 2.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the correction records a corrected node's uncertainty as the quadrature sum of the "
-    "input's and the correcting match's (√2 × for a re-measurement on the same images); the "
-    "record of a re-measurement (branch noise-fit) makes this pass: remove this marker with it",
-)
 def test_a_corrected_field_reads_its_true_error_as_the_plain_one_does():
     """Our DVC's field and the same field self-corrected, on faint CT texture with 3 % noise and
     an affine field (benchmarks/bench_error_estimate.py's first pair). A correcting match

@@ -344,6 +344,11 @@ def mix_fields(current: DisplacementField, candidate: DisplacementField, accept:
     mixed.u[keep] = current.u[keep]
     for name in ("zncc", "status", "iterations", "provenance"):
         getattr(mixed, name)[keep] = getattr(current, name)[keep]
+    if mixed.uncertainty is not None:
+        if current.uncertainty is not None:
+            mixed.uncertainty[keep] = current.uncertainty[keep]
+        else:
+            mixed.uncertainty = None
     if mixed.gradient is not None:
         if current.gradient is not None:
             mixed.gradient[keep] = current.gradient[keep]

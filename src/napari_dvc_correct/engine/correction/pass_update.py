@@ -65,7 +65,8 @@ def finish_pass(
     A node's correcting match is the node of ``delta`` nearest to where its update reads ``ΔD``
     (``read_points``: its displaced position in the loaded frame, itself otherwise). Nodes where
     that match failed or was masked (its value interpolated from the neighbours' by the
-    cleaning) are ``REPLACED``, the others ``CORRECTED``.
+    cleaning) are ``REPLACED``, the others ``CORRECTED``. A corrected node's uncertainty is
+    its correcting match's (NaN where ``REPLACED``).
     """
     nearest = nearest_match(delta, read_points, candidate.shape)
     candidate.zncc = delta.zncc[nearest].copy()
@@ -76,4 +77,13 @@ def finish_pass(
     candidate.provenance[interpolated] = Provenance.REPLACED
     candidate.provenance[masked] = Provenance.MASKED
     candidate.status[masked] = input_field.status[masked]
+    if delta.uncertainty is not None:
+        # a correcting match re-measures the node on the same images: its noise replaces the
+        # node's, it does not add to it (the composition's quadrature sum is for independent
+        # increments); an interpolated match measured nothing
+        uncertainty = delta.uncertainty[nearest].copy()
+        uncertainty[interpolated] = np.nan
+        if input_field.uncertainty is not None:
+            uncertainty[masked] = input_field.uncertainty[masked]
+        candidate.uncertainty = uncertainty
     return candidate

@@ -75,6 +75,7 @@ from .acceptance import (
     unsupported_updates,
 )
 from .cleaning import clean, masked_nodes
+from .noise_fit import regularise
 from .options import CorrectionOptions
 from .pass_method import correction_grid, node_bend, nothing_to_correct, pass_method
 from .pass_update import (
@@ -131,6 +132,7 @@ def correct_iter(
     mask: np.ndarray | None = None,
     clean_options: dict | None = None,
     selective: bool = True,
+    noise_fit: bool = CorrectionOptions.noise_fit,
 ) -> Generator[Progress, None, DisplacementField]:
     """Self-correct a DVC displacement field, yielding progress; returns the corrected field.
 
@@ -166,6 +168,9 @@ def correct_iter(
         judge only the nodes that can change (:mod:`.rematch_region`; default). False: every pass
         matches and judges every node (the reference the selective passes are tested against).
         Either way a pass runs only if some node's change can still matter.
+    noise_fit : bool
+        After the passes, take the GLS affine fit over a node's neighbourhood where that holds
+        only matching noise (:mod:`.noise_fit`, ``metadata["correction"]["noise_fit"]``).
 
     Yields
     ------
@@ -203,11 +208,8 @@ def correct_iter(
         field, _ = flag_absurd_nodes(field, reference.shape)
     volumes = InMemoryVolumes(reference, deformed, frame, mask)
     options = dict(update=update, max_passes=max_passes, min_improvement=min_improvement)
-    return (
-        yield from correct_volumes_iter(
-            volumes, field, params, **options, clean_options=clean_options, selective=selective
-        )
-    )
+    options.update(clean_options=clean_options, selective=selective, noise_fit=noise_fit)
+    return (yield from correct_volumes_iter(volumes, field, params, **options))
 
 
 def check_options(frame, update, max_passes, min_improvement) -> None:
@@ -234,6 +236,7 @@ def correct_volumes_iter(
     min_improvement: float = CorrectionOptions.min_improvement,
     clean_options: dict | None = None,
     selective: bool = True,
+    noise_fit: bool = CorrectionOptions.noise_fit,
 ) -> Generator[Progress, None, DisplacementField]:
     """The correction loop of :func:`correct_iter` on any volume back-end.
 
@@ -248,7 +251,7 @@ def correct_volumes_iter(
         return (
             yield from _correction_loop(
                 volumes, field, params_of(field, params), update, max_passes, min_improvement,
-                clean_options, selective,
+                clean_options, selective, noise_fit,
             )
         )  # fmt: skip
     finally:
@@ -256,7 +259,8 @@ def correct_volumes_iter(
 
 
 def _correction_loop(
-    volumes, field, params, update, max_passes, min_improvement, clean_options, selective
+    volumes, field, params, update, max_passes, min_improvement, clean_options, selective,
+    noise_fit,
 ):  # fmt: skip
     frame = volumes.frame
     clean_options = dict(clean_options or {})
@@ -507,6 +511,12 @@ def _correction_loop(
     if result.gradient is not None and field.gradient is not None:
         result.gradient[kept] = field.gradient[kept]
     result.provenance[measured_crack] = Provenance.MEASURED
+    fitted = None
+    if noise_fit:  # where the data say "noise": a GLS fit
+        usable, t0 = ~(masked | shielded | cracked | unexplained), time.perf_counter()
+        fitted = regularise(result, params.subvolume, pass_params.subvolume, usable, current)
+        result = fitted.field
+        _add_stages(stages, None, noise_fit_s=time.perf_counter() - t0)
     result.metadata["correction_passes"] = [p.to_dict() for p in passes]
     result.metadata["gray_levels"] = gray_levels.to_dict()
     result.metadata["correction"] = {
@@ -529,6 +539,7 @@ def _correction_loop(
         "discontinuity_nodes": int(cracked.sum()),
         "shielded_nodes": int(shielded.sum()),
         "stop_reason": stop,
+        "noise_fit": None if fitted is None else fitted.summary(),
         "selective": bool(selective),
         "stages": stages,
         "seconds": time.perf_counter() - started,
