@@ -32,6 +32,9 @@ def volumes(tmp_path_factory):
 def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_path, capsys):
     field_path = tmp_path / "field.npz"
     assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    wrong = load_field(field_path)
+    wrong.u[1, 1, 1] += (0.0, 1.5, 0.0)  # one wrong node: something for a pass to correct
+    save_field(wrong, field_path)
     out = tmp_path / "corrected.npz"
     code = main(
         ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out),
@@ -82,6 +85,23 @@ def test_correct_can_switch_the_regularised_estimate_on_and_off(tmp_path):
     for extra, expected in (([], False), (["--no-noise-fit"], False), (["--noise-fit"], True)):
         options, _ = correction_records_from_args(build_parser().parse_args(base + extra))
         assert options.noise_fit is expected
+
+
+def test_correct_reads_the_match_uncertainties_of_our_own_field_file(volumes, tmp_path):
+    """A field written by ``correlate`` keeps its matches' uncertainties through ``correct``'s
+    reader: on a clean translation, where every node is its own converged match, the correction
+    knows it and runs no pass (a pass could only re-measure the same images)."""
+    field_path = tmp_path / "field.npz"
+    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    written = load_field(field_path)
+    assert written.uncertainty is not None
+    out = tmp_path / "corrected.npz"
+    args = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out)]
+    assert main([*args, "--quiet"]) == 0
+    corrected = load_field(out)
+    assert corrected.metadata["correction"]["stop_reason"].startswith("no pass run")
+    np.testing.assert_allclose(corrected.uncertainty, written.uncertainty)
+    np.testing.assert_allclose(corrected.u, written.u)
 
 
 def test_correct_refuses_bad_input_and_writes_nothing(volumes, tmp_path, capsys):

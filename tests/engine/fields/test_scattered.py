@@ -117,3 +117,29 @@ def test_scattered_field_validates_its_shapes():
         ScatteredField(np.zeros((3, 2)), np.zeros((3, 3)))
     with pytest.raises(ValueError, match="u must"):
         ScatteredField(np.zeros((3, 3)), np.zeros((2, 3)))
+
+
+def test_match_uncertainties_go_through_points_and_back_to_a_grid():
+    field = grid_field()
+    field.uncertainty = np.random.default_rng(3).uniform(0.01, 0.1, size=(*field.shape, 3))
+    scattered = from_grid(field)
+    np.testing.assert_array_equal(scattered.uncertainty, field.uncertainty.reshape(-1, 3))
+    order = np.random.default_rng(4).permutation(scattered.n_points)
+    shuffled = ScatteredField(
+        scattered.points[order], scattered.u[order], uncertainty=scattered.uncertainty[order]
+    )
+    np.testing.assert_array_equal(to_grid(shuffled).uncertainty, field.uncertainty)
+    # on another grid: a node on a point keeps its match's uncertainty, an interpolated one has
+    # none (it is no match)
+    other = to_grid(scattered, grid=(field.origin, (1.5, 4.0, 5.0), (7, 5, 6)))
+    on_point = other.provenance == Provenance.MEASURED
+    assert on_point.sum() == 4 * 5 * 6 and (~on_point).sum() == 3 * 5 * 6
+    np.testing.assert_array_equal(other.uncertainty[::2], field.uncertainty)
+    assert np.all(np.isnan(other.uncertainty[~on_point]))
+    # sampled at points: a point on a node keeps the node's, the others have none
+    sampled = sample_field(field, np.vstack([field.points[:3], field.points[:3] + 0.5]))
+    np.testing.assert_array_equal(sampled.uncertainty[:3], field.uncertainty.reshape(-1, 3)[:3])
+    assert np.all(np.isnan(sampled.uncertainty[3:]))
+    with pytest.raises(ValueError, match="uncertainty"):
+        ScatteredField(scattered.points, scattered.u, uncertainty=np.zeros((2, 3)))
+    assert ScatteredField(scattered.points, scattered.u).uncertainty is None

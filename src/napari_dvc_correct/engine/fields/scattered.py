@@ -54,6 +54,9 @@ class ScatteredField:
         :class:`.field.Provenance` codes.
     gradient : ndarray, shape (N, 3, 3), optional
         Displacement gradient ``du_i/dX_j`` (z, y, x order).
+    uncertainty : ndarray, shape (N, 3), optional
+        Each point's match uncertainty (standard deviation of ``(uz, uy, ux)``, voxels; NaN
+        where unknown), as :class:`.field.DisplacementField` records it.
     params, metadata : dict
         As in :class:`.field.DisplacementField`; ``metadata["source"]`` names the file format
         a field was read from.
@@ -68,6 +71,7 @@ class ScatteredField:
     gradient: np.ndarray | None = None
     params: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
+    uncertainty: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64)
@@ -95,6 +99,12 @@ class ScatteredField:
         for name in ("zncc", "status", "iterations", "provenance"):
             if len(getattr(self, name)) != n:
                 raise ValueError(f"{name} must have {n} entries, got {len(getattr(self, name))}")
+        if self.uncertainty is not None:
+            self.uncertainty = np.asarray(self.uncertainty, dtype=np.float64)
+            if self.uncertainty.shape != (n, 3):
+                raise ValueError(
+                    f"uncertainty must have shape ({n}, 3), got {self.uncertainty.shape}"
+                )
         if self.gradient is not None:
             self.gradient = np.asarray(self.gradient, dtype=np.float64)
             if self.gradient.shape != (n, 3, 3):
@@ -139,6 +149,9 @@ def from_grid(grid_field: DisplacementField) -> ScatteredField:
         gradient=None if grid_field.gradient is None else grid_field.gradient.reshape(n, 3, 3),
         params=copy.deepcopy(grid_field.params),
         metadata=copy.deepcopy(grid_field.metadata),
+        uncertainty=None
+        if grid_field.uncertainty is None
+        else grid_field.uncertainty.reshape(n, 3).copy(),
     )
 
 
@@ -242,7 +255,7 @@ def to_grid(scattered: ScatteredField, grid=None, tolerance: float = 1e-6) -> Di
         if exact is not None:
             origin, step, shape, index = exact
             order = np.argsort(index)
-            g = scattered.gradient
+            g, sigma = scattered.gradient, scattered.uncertainty
             metadata["scattered"] = {"n_points": scattered.n_points, "interpolated": 0}
             return DisplacementField(
                 origin=origin,
@@ -255,6 +268,7 @@ def to_grid(scattered: ScatteredField, grid=None, tolerance: float = 1e-6) -> Di
                 gradient=None if g is None else g[order].reshape(*shape, 3, 3),
                 params=copy.deepcopy(scattered.params),
                 metadata=metadata,
+                uncertainty=None if sigma is None else sigma[order].reshape(*shape, 3),
             )
         grid = default_grid(scattered.points)
     origin, step, shape = grid
@@ -278,6 +292,11 @@ def to_grid(scattered: ScatteredField, grid=None, tolerance: float = 1e-6) -> Di
     status[on_point] = scattered.status[source]
     iterations[on_point] = scattered.iterations[source]
     provenance[on_point] = scattered.provenance[source]
+    # a node on a point keeps its match's uncertainty; an interpolated node has none (NaN)
+    uncertainty = None
+    if scattered.uncertainty is not None:
+        uncertainty = np.full((n_nodes, 3), np.nan)
+        uncertainty[on_point] = scattered.uncertainty[source]
     todo = ~on_point
     if todo.any() and usable.sum() >= 4:
         known = scattered.points[usable]
@@ -313,6 +332,7 @@ def to_grid(scattered: ScatteredField, grid=None, tolerance: float = 1e-6) -> Di
         provenance=provenance.reshape(shape),
         params=copy.deepcopy(scattered.params),
         metadata=metadata,
+        uncertainty=None if uncertainty is None else uncertainty.reshape(*shape, 3),
     )
 
 
@@ -394,6 +414,11 @@ def sample_field(
         gradient[on_node] = grid_field.gradient.reshape(-1, 3, 3)[flat[on_node]]
         gradient[missing] = np.nan
     metadata: dict[str, Any] = copy.deepcopy(grid_field.metadata)
+    uncertainty = None
+    if grid_field.uncertainty is not None:  # a match's own where a point sits on its node
+        uncertainty = np.full((len(points), 3), np.nan)
+        uncertainty[on_node] = grid_field.uncertainty.reshape(-1, 3)[flat[on_node]]
+        uncertainty[missing] = np.nan
     metadata["sampled_from_grid"] = {
         "origin": list(grid_field.origin),
         "step": list(grid_field.step),
@@ -409,4 +434,5 @@ def sample_field(
         gradient=gradient,
         params=copy.deepcopy(grid_field.params),
         metadata=metadata,
+        uncertainty=uncertainty,
     )
