@@ -195,6 +195,70 @@ def select(
     return Selection(matched, judged, int(changed.sum()), int(reach), float(tolerance))
 
 
+def first_selection(
+    correctable: np.ndarray, read_points: np.ndarray, pass_grid, half: int
+) -> Selection | None:
+    """The matched and judged nodes of the first pass: near the nodes it can correct.
+
+    Where a node's value is its own converged match and the field does not bend its subvolume
+    (:func:`.pass_method.correctable_nodes` is False), a correcting match re-measures it on the
+    same images and finds no motion but their noise, which the acceptance refuses
+    (:func:`.acceptance.noise_only_corrections`). Its subvolume is warped by the field
+    densified around it, so a match can find more only where its subvolume reaches a correctable
+    node: the matched nodes are the pass-grid nodes within ``ceil(half / step) + 1`` steps (per
+    axis) of a correctable node's read point, as :func:`select` finds them for a change; the
+    judged nodes are those whose nearest correcting match (where their update reads ``ΔD``) is
+    one of them. The other nodes keep their value; the other matches are
+    :func:`remeasurement`'s. ``None`` where every pass-grid node is matched (or none is
+    correctable: the caller runs no pass then).
+
+    Parameters
+    ----------
+    correctable : ndarray of bool, the field's grid shape
+    read_points : ndarray (n, 3)
+        Where each node's update reads ``ΔD`` (voxels, C order of the field's grid).
+    pass_grid : (origin, step, shape)
+        The pass's correcting grid.
+    half : int
+        Half-size of the correcting subvolume (voxels).
+    """
+    correctable = np.asarray(correctable, bool)
+    if not correctable.any():
+        return None
+    no_change = np.zeros(correctable.shape)
+    selection = select(
+        correctable, no_change, read_points, read_points, pass_grid, pass_grid, half, 1.0
+    )
+    if selection.matched.all():
+        return None
+    _, _, shape = pass_grid
+    reads = np.clip(_lattice_index(read_points, pass_grid), 0, np.asarray(shape) - 1)
+    judged = selection.judged & selection.matched[tuple(reads.T)].reshape(correctable.shape)
+    return Selection(selection.matched, judged, selection.changed, selection.reach, 0.0)
+
+
+def remeasurement(
+    delta: DisplacementField, field: DisplacementField, read_points: np.ndarray
+) -> DisplacementField:
+    """What the first pass's correcting matches find where they cannot correct
+    (:func:`first_selection`): no motion.
+
+    On ``delta``'s grid: zero displacement and gradient, unknown uncertainty (NaN: the
+    acceptance neither shrinks nor pools by it), and at each correcting node that some node of
+    ``field`` reads its update at (``read_points``, (n, 3) voxels), that node's own match quality
+    (ZNCC, status, iterations): a re-measurement of a node is its own match.
+    """
+    zero = DisplacementField.zeros(delta.origin, delta.step, delta.shape)
+    zero.gradient = np.zeros((*delta.shape, 3, 3))
+    zero.uncertainty = np.full((*delta.shape, 3), np.nan)
+    reads = _lattice_index(read_points, (delta.origin, delta.step, delta.shape))
+    inside = np.all((reads >= 0) & (reads < np.asarray(delta.shape)), axis=1)
+    target = tuple(reads[inside].T)
+    for name in ("zncc", "status", "iterations"):
+        getattr(zero, name)[target] = getattr(field, name).reshape(-1)[inside]
+    return zero
+
+
 def applied_change(
     field: DisplacementField, change: np.ndarray, points: np.ndarray, loaded: bool
 ) -> np.ndarray:

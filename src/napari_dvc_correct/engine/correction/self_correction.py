@@ -76,7 +76,13 @@ from .acceptance import (
 )
 from .cleaning import clean, masked_nodes
 from .options import CorrectionOptions
-from .pass_method import correction_grid, node_bend, nothing_to_correct, pass_method
+from .pass_method import (
+    correctable_nodes,
+    correction_grid,
+    node_bend,
+    nothing_to_correct,
+    pass_method,
+)
 from .pass_update import (
     correction_sigma,
     finish_pass,
@@ -86,7 +92,14 @@ from .pass_update import (
     zero_start,
 )
 from .record import CHANGE_THRESHOLD, CorrectionPass, correction_table
-from .rematch_region import applied_change, changed_nodes, reuse, select
+from .rematch_region import (
+    applied_change,
+    changed_nodes,
+    first_selection,
+    remeasurement,
+    reuse,
+    select,
+)
 from .volumes import CorrectionVolumes, InMemoryVolumes
 
 __all__ = ["CorrectionPass", "correct", "correct_iter", "correct_volumes_iter", "correction_table"]
@@ -335,6 +348,11 @@ def _correction_loop(
                 pass_params.half, tolerance,
             )  # fmt: skip
             selection = selection if not selection.matched.all() else None
+        elif selective:  # the first pass matches only near the nodes it can correct
+            selection = first_selection(
+                correctable_nodes(current, params, masked), read_points, pass_grid,
+                pass_params.half,
+            )  # fmt: skip
         active = None if selection is None else selection.matched
         t0 = time.perf_counter()
         pair = yield from volumes.matching_pair(moved, current)
@@ -348,7 +366,9 @@ def _correction_loop(
         volumes.release(pair[2])
         _add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
         t0 = time.perf_counter()
-        if selection is not None:
+        if selection is not None and previous_raw is None:
+            delta = reuse(delta, remeasurement(delta, current, read_points), selection.matched)
+        elif selection is not None:
             reused = delta.points.reshape(*delta.shape, 3)[~selection.matched]
             loaded = frame == "loaded" and update == "exact"
             taken = applied_change(current, change_vectors, reused, loaded)
