@@ -18,12 +18,16 @@ Variants (``--variant``):
   :data:`~napari_dvc_correct.engine.correction.acceptance.ACCEPTANCE_SWEEPS`;
 * ``first:all``: the first pass matches and judges every node, as before the first pass was
   selective (:func:`~napari_dvc_correct.engine.correction.rematch_region.first_selection`): the
-  variant is then the *dearer* one, the default's former behaviour.
+  variant is then the *dearer* one, the default's former behaviour;
+* ``contract:off``: the stop rule takes each pass's node changes as what the next pass can still
+  remove, without the passes' measured contraction
+  (:func:`~napari_dvc_correct.engine.correction.rematch_region.expected_change`): the former
+  behaviour, dearer.
 
 ``--seed S`` makes the 64³ cases with seed ``S`` (default 4, as ``bench_correction_cases.py``)
 and the 100³ bands with seed ``S - 4`` (default 0, as ``bench_pipeline.py``).
 
-    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1|first:all]
+    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1|first:all|contract:off]
         [--seed 4] [case ...]
 """
 
@@ -41,7 +45,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_correction_cases  # noqa: E402
 import bench_pipeline  # noqa: E402
 
-from napari_dvc_correct.engine.correction import acceptance, self_correction  # noqa: E402
+from napari_dvc_correct.engine.correction import (  # noqa: E402
+    acceptance,
+    rematch_region,
+    self_correction,
+)
 from napari_dvc_correct.engine.correlation.correlate import correlate  # noqa: E402
 from napari_dvc_correct.engine.correlation.params import CorrelationParams  # noqa: E402
 
@@ -66,15 +74,19 @@ class Variant:
 
     def __init__(self, spec: str):
         kind, _, value = spec.partition(":")
-        known = {"tolerance", "sweeps", "first"}
-        if kind not in known or not value or (kind == "first" and value != "all"):
-            raise ValueError(f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all)")
+        words = {"first": "all", "contract": "off"}
+        known = {"tolerance", "sweeps", *words}
+        if kind not in known or not value or words.get(kind, value) != value:
+            raise ValueError(
+                f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, contract:off)"
+            )
         self.kind = kind
-        self.value = float(value) if kind != "first" else 0.0
+        self.value = 0.0 if kind in words else float(value)
         self.original = (
             self_correction.pass_method,
             acceptance.ACCEPTANCE_SWEEPS,
             self_correction.first_selection,
+            rematch_region.expected_change,
         )
 
     def __enter__(self):
@@ -88,8 +100,10 @@ class Variant:
             self_correction.pass_method = pass_method
         elif self.kind == "sweeps":
             acceptance.ACCEPTANCE_SWEEPS = int(self.value)
-        else:
+        elif self.kind == "first":
             self_correction.first_selection = lambda *args, **kwargs: None
+        else:
+            rematch_region.expected_change = lambda change, *args: np.nan_to_num(change)
         return self
 
     def __exit__(self, *exc):
@@ -97,6 +111,7 @@ class Variant:
             self_correction.pass_method,
             acceptance.ACCEPTANCE_SWEEPS,
             self_correction.first_selection,
+            rematch_region.expected_change,
         ) = self.original
 
 

@@ -30,9 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..correlation.params import CorrelationParams
 from ..fields.field import DisplacementField
 from ..fields.field_spline import FieldSpline
 from .acceptance import MIN_USEFUL_CHANGE
+from .pass_method import correctable_nodes
 
 
 def _cardinal_tail(max_steps: int = 12) -> np.ndarray:
@@ -124,6 +126,79 @@ def changed_nodes(change: np.ndarray, useful: np.ndarray, region_tolerance: floa
     return changed, tolerance
 
 
+def expected_change(change: np.ndarray, previous: np.ndarray | None, measured: np.ndarray):
+    """The change the next pass is expected to make at each node (voxels, ``change``'s shape).
+
+    :func:`changed_nodes` bounds the error a pass leaves by the change it made. The passes
+    contract: where two passes ran, the next one moves the nodes by about the last pass's
+    change times the ratio of the last two passes' changes (root-mean-square over the
+    ``measured`` nodes, at most 1), so that is what it can still remove. After one pass (no
+    ``previous``) or where the previous pass changed nothing, ``change`` itself.
+
+    Parameters
+    ----------
+    change, previous : ndarray, the grid's shape
+        The node changes of the last pass and of the one before it (voxels; NaN: none).
+    measured : ndarray of bool, the grid's shape
+        The nodes the ratio is taken over.
+    """
+    change = np.nan_to_num(np.asarray(change, np.float64), nan=0.0)
+    if previous is None:
+        return change
+    previous = np.nan_to_num(np.asarray(previous, np.float64), nan=0.0)
+    before = float(np.sum(previous[measured] ** 2))
+    if before <= 0.0:
+        return change
+    ratio = np.sqrt(float(np.sum(change[measured] ** 2)) / before)
+    return change * min(1.0, ratio)
+
+
+def only_confirms(
+    number: int,
+    change: np.ndarray,
+    previous: np.ndarray | None,
+    useful: np.ndarray,
+    region_tolerance: float,
+    measured: np.ndarray,
+    min_fraction: float,
+) -> tuple[str, np.ndarray, float]:
+    """Why pass ``number + 1`` could only confirm pass ``number`` (``""``: it could improve),
+    and :func:`changed_nodes` of the ``measured`` nodes (mask and tolerance).
+
+    Fewer than ``min_fraction`` of the ``measured`` nodes moved by enough to improve above the
+    noise floor in another pass (:func:`changed_nodes` of ``change``, pass ``number``'s node
+    changes in voxels), or would at the rate the passes contract (:func:`expected_change`, with
+    ``previous``, the changes of pass ``number - 1``). ``useful`` and ``region_tolerance``
+    as :func:`changed_nodes` takes them.
+    """
+    measured = np.asarray(measured, bool)
+    tolerance = region_tolerance
+    least = min_fraction * max(1, int(measured.sum()))
+    changed, bound = changed_nodes(change, useful, tolerance)
+    changed &= measured
+    if changed.sum() < least:
+        return (
+            f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
+            f"above the noise floor in another pass (about {bound:.3g} voxel): it could "
+            "only confirm",
+            changed,
+            bound,
+        )
+    expected = expected_change(change, previous, measured)
+    likely = changed_nodes(expected, useful, tolerance)[0] & measured
+    if likely.sum() < least:
+        size = float(np.sum(np.nan_to_num(change[measured]) ** 2))
+        ratio = np.sqrt(np.sum(expected[measured] ** 2) / size) if size > 0 else 0.0
+        return (
+            f"pass {number} moved the nodes {ratio:.2g} times as far as pass {number - 1}: "
+            f"at that rate only {int(likely.sum())} nodes would move by enough to improve "
+            "above the noise floor in another pass",
+            changed,
+            bound,
+        )
+    return "", changed, bound
+
+
 def _lattice_index(points: np.ndarray, grid) -> np.ndarray:
     origin, step, _ = grid
     index = (np.asarray(points, np.float64).reshape(-1, 3) - np.asarray(origin)) / np.asarray(step)
@@ -196,7 +271,12 @@ def select(
 
 
 def first_selection(
-    correctable: np.ndarray, read_points: np.ndarray, pass_grid, half: int
+    field: DisplacementField,
+    params: CorrelationParams,
+    masked: np.ndarray,
+    read_points: np.ndarray,
+    pass_grid,
+    half: int,
 ) -> Selection | None:
     """The matched and judged nodes of the first pass: near the nodes it can correct.
 
@@ -214,7 +294,12 @@ def first_selection(
 
     Parameters
     ----------
-    correctable : ndarray of bool, the field's grid shape
+    field : DisplacementField
+        The field the pass corrects.
+    params : CorrelationParams
+        The first run's parameters (:func:`.pass_method.correctable_nodes`).
+    masked : ndarray of bool, the field's grid shape
+        Nodes outside the user's mask.
     read_points : ndarray (n, 3)
         Where each node's update reads ``ΔD`` (voxels, C order of the field's grid).
     pass_grid : (origin, step, shape)
@@ -222,7 +307,7 @@ def first_selection(
     half : int
         Half-size of the correcting subvolume (voxels).
     """
-    correctable = np.asarray(correctable, bool)
+    correctable = correctable_nodes(field, params, masked)
     if not correctable.any():
         return None
     no_change = np.zeros(correctable.shape)

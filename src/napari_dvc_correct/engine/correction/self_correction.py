@@ -76,13 +76,7 @@ from .acceptance import (
 )
 from .cleaning import clean, masked_nodes
 from .options import CorrectionOptions
-from .pass_method import (
-    correctable_nodes,
-    correction_grid,
-    node_bend,
-    nothing_to_correct,
-    pass_method,
-)
+from .pass_method import correction_grid, node_bend, nothing_to_correct, pass_method
 from .pass_update import (
     correction_sigma,
     finish_pass,
@@ -94,8 +88,8 @@ from .pass_update import (
 from .record import CHANGE_THRESHOLD, CorrectionPass, correction_table
 from .rematch_region import (
     applied_change,
-    changed_nodes,
     first_selection,
+    only_confirms,
     remeasurement,
     reuse,
     select,
@@ -350,9 +344,8 @@ def _correction_loop(
             selection = selection if not selection.matched.all() else None
         elif selective:  # the first pass matches only near the nodes it can correct
             selection = first_selection(
-                correctable_nodes(current, params, masked), read_points, pass_grid,
-                pass_params.half,
-            )  # fmt: skip
+                current, params, masked, read_points, pass_grid, pass_params.half
+            )
         active = None if selection is None else selection.matched
         t0 = time.perf_counter()
         pair = yield from volumes.matching_pair(moved, current)
@@ -482,16 +475,13 @@ def _correction_loop(
         volumes.release(moved)
         current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
         # a further pass can change only what this one moved by enough (pass_reach)
-        changed, tolerance = changed_nodes(
-            node_change, judge.useful(current), judge.region_tolerance
-        )
-        changed &= ~masked
-        if number < max_passes and changed.sum() < MIN_CHANGED_FRACTION * unmasked:
-            stop = (
-                f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
-                f"above the noise floor in another pass (about {tolerance:.3g} voxel): it could "
-                "only confirm"
-            )
+        # ... and only what it moved by enough, at the rate the passes contract
+        confirm, changed, tolerance = only_confirms(
+            number, node_change, None if next_pass is None else next_pass[1],
+            judge.useful(current), judge.region_tolerance, ~masked, MIN_CHANGED_FRACTION,
+        )  # fmt: skip
+        if number < max_passes and confirm:
+            stop = confirm
             break
         if record.improved_nodes < MIN_IMPROVED_FRACTION * unmasked:
             stop = (
