@@ -19,7 +19,12 @@ values, whose response to one node's change decays by about ``2 - sqrt(3) = 0.27
   the tolerance (its correction was already applied or refused).
 
 Where no node changed by enough, or too few to matter, the next pass can only confirm, and does
-not run. Positions in voxels, axes (z, y, x).
+not run; after two passes, "enough" is what the next pass is expected to move a node at the rate
+the last two passes contracted (:func:`expected_change`, :func:`only_confirms`).
+
+The first pass has no previous one: it matches only near the nodes it can correct rather than
+re-measure (:func:`first_selection`, from :func:`.pass_method.correctable_nodes`), and its other
+matches find no motion (:func:`remeasurement`). Positions in voxels, axes (z, y, x).
 """
 
 from __future__ import annotations

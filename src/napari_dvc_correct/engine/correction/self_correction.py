@@ -32,10 +32,11 @@ Beyond the paper:
   the noise allows, not while the global mean falls (under noise it barely moves), and only
   while enough nodes moved by enough to improve in another pass (:mod:`.rematch_region`; a pass
   that could only confirm is not run); the reason the loop stopped is recorded;
-* after the first pass, a pass matches again only near the nodes the previous one changed
-  (the subvolume's half-width plus the spline's reach) and judges only the nodes whose update
-  can differ; the other matches are the previous pass's, less what it applied, and the other
-  nodes keep their value (``selective=False`` matches and judges every node);
+* the first pass matches only near the nodes it can correct (not their own converged match, or
+  bent), a later pass only near the nodes the previous one changed (the subvolume's half-width
+  plus the spline's reach), and each judges only the nodes whose update can differ; the other
+  matches are "no motion" or the previous pass's less what it applied, and the other nodes keep
+  their value (``selective=False`` matches and judges every node);
 * the correcting matches use the second-order shape function when the field bends inside a
   subvolume (:func:`pass_order`, chosen from the data, no user parameter);
 * nodes whose local residual only an error of more than a voxel explains are flagged
@@ -169,8 +170,8 @@ def correct_iter(
         Keyword arguments for :func:`.cleaning.clean` (threshold, radius, epsilon, smoothing...),
         used on ``D`` and on every ``ΔD``.
     selective : bool
-        After the first pass, match again only near the nodes the previous pass changed and
-        judge only the nodes that can change (:mod:`.rematch_region`; default). False: every pass
+        Match only near the nodes a pass can correct (the first) or the previous pass changed,
+        and judge only the nodes that can change (:mod:`.rematch_region`; default). False: every pass
         matches and judges every node (the reference the selective passes are tested against).
         Either way a pass runs only if some node's change can still matter.
 
