@@ -22,17 +22,12 @@ Variants (``--variant``):
 * ``contract:off``: the stop rule takes each pass's node changes as what the next pass can still
   remove, without the passes' measured contraction
   (:func:`~napari_dvc_correct.engine.correction.rematch_region.expected_change`): the former
-  behaviour, dearer;
-* ``bend:fixed``: a node's bend makes the first pass (and any pass at all) worth running above
-  :data:`~napari_dvc_correct.engine.correction.acceptance.MIN_USEFUL_CHANGE` whatever the noise,
-  instead of above the least change the residual shows above the noise floor
-  (:func:`~napari_dvc_correct.engine.correction.rematch_region.useful_changes`): the former
   behaviour, dearer.
 
 ``--seed S`` makes the 64³ cases with seed ``S`` (default 4, as ``bench_correction_cases.py``)
 and the 100³ bands with seed ``S - 4`` (default 0, as ``bench_pipeline.py``).
 
-    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1|first:all|contract:off|bend:fixed]
+    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1|first:all|contract:off]
         [--seed 4] [case ...]
 """
 
@@ -79,12 +74,11 @@ class Variant:
 
     def __init__(self, spec: str):
         kind, _, value = spec.partition(":")
-        words = {"first": "all", "contract": "off", "bend": "fixed"}
+        words = {"first": "all", "contract": "off"}
         known = {"tolerance", "sweeps", *words}
         if kind not in known or not value or words.get(kind, value) != value:
             raise ValueError(
-                f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, contract:off, "
-                "bend:fixed)"
+                f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, contract:off)"
             )
         self.kind = kind
         self.value = 0.0 if kind in words else float(value)
@@ -93,7 +87,6 @@ class Variant:
             acceptance.ACCEPTANCE_SWEEPS,
             self_correction.first_selection,
             rematch_region.expected_change,
-            self_correction.useful_changes,
         )
 
     def __enter__(self):
@@ -109,10 +102,8 @@ class Variant:
             acceptance.ACCEPTANCE_SWEEPS = int(self.value)
         elif self.kind == "first":
             self_correction.first_selection = lambda *args, **kwargs: None
-        elif self.kind == "contract":
-            rematch_region.expected_change = lambda change, *args: np.nan_to_num(change)
         else:
-            self_correction.useful_changes = lambda *args: acceptance.MIN_USEFUL_CHANGE
+            rematch_region.expected_change = lambda change, *args: np.nan_to_num(change)
         return self
 
     def __exit__(self, *exc):
@@ -121,7 +112,6 @@ class Variant:
             acceptance.ACCEPTANCE_SWEEPS,
             self_correction.first_selection,
             rematch_region.expected_change,
-            self_correction.useful_changes,
         ) = self.original
 
 

@@ -16,7 +16,6 @@ from napari_dvc_correct.engine.correction.rematch_region import (
     select,
     spline_reach,
     spline_tail,
-    useful_changes,
 )
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
 from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
@@ -242,10 +241,3 @@ def test_another_pass_only_confirms_where_too_few_nodes_would_still_move_enough(
     change[:5] = 0.005
     stop = only_confirms(1, change, None, useful, 0.0, measured, 0.01)[0]
     assert stop.startswith("only 0 nodes moved in pass 1")
-
-
-def test_the_useful_change_grows_with_the_noise_over_the_gradient():
-    useful = np.array([0.1, 0.2, 0.0, np.nan])  # gray levels a 0.01-voxel change explains
-    bound = useful_changes(useful, 0.1)
-    assert bound[:2] == pytest.approx([0.02, 0.015]) and np.isinf(bound[2:]).all()
-    assert useful_changes(useful[:2], 0.0) == pytest.approx([MIN_USEFUL_CHANGE] * 2)

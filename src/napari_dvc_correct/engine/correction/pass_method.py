@@ -112,10 +112,7 @@ def node_bend(field: DisplacementField, half: int) -> np.ndarray:
 
 
 def nothing_to_correct(
-    field: DisplacementField,
-    params: CorrelationParams,
-    masked: np.ndarray,
-    useful_change=MIN_USEFUL_CHANGE,
+    field: DisplacementField, params: CorrelationParams, masked: np.ndarray
 ) -> str:
     """Why a correcting pass could only re-measure ``field`` (``""`` where it could correct).
 
@@ -134,38 +131,29 @@ def nothing_to_correct(
     with fewer than 3 nodes along an axis show no bend along it: there a pass runs. So does a
     field that is not our own matcher's with ``params`` (no match uncertainty recorded, other
     parameters, another DVC program's field brought in: a pass is its first measurement here).
-    ``useful_change`` (voxels, a number or one per node) raises that least bend where the noise
-    hides a smaller improvement (:func:`.rematch_region.useful_changes`: the least change whose
-    removal the residual shows above the noise floor). Returns the reason in words for the stop
-    record (``""``: run the passes).
+    Returns the reason in words for the stop record (``""``: run the passes).
     """
     measured = ~np.asarray(masked, bool).reshape(field.shape)
-    if not measured.any() or correctable_nodes(field, params, masked, useful_change).any():
+    if not measured.any() or correctable_nodes(field, params, masked).any():
         return ""
     bend = node_bend(field, params.half)
-    least = float(np.min(np.broadcast_to(useful_change, field.shape)[measured]))
     return (
         f"no pass run: every one of the {int(measured.sum())} measured nodes is its own converged "
-        f"match and the field bends no {params.subvolume}³ subvolume by more than a pass could "
-        f"improve above the noise (at least {least:.2g} voxel; largest bend "
-        f"{float(np.max(bend[measured])):.2g}): a pass could only re-measure the first run's "
-        "values and noise"
+        f"match and the field bends no {params.subvolume}³ subvolume by more than "
+        f"{MIN_USEFUL_CHANGE:g} voxel (largest bend {float(np.max(bend[measured])):.2g}): a pass "
+        "could only re-measure the first run's values and noise"
     )
 
 
 def correctable_nodes(
-    field: DisplacementField,
-    params: CorrelationParams,
-    masked: np.ndarray,
-    useful_change=MIN_USEFUL_CHANGE,
+    field: DisplacementField, params: CorrelationParams, masked: np.ndarray
 ) -> np.ndarray:
     """The measured nodes a correcting pass can correct, not only re-measure (bool, the grid's
     shape): :func:`nothing_to_correct` node by node.
 
     A node (not ``masked``) whose value is not its own converged match, or where the field bends
     a subvolume of the first run (``params.half``) by more than
-    ``useful_change`` (:func:`node_bend`; NaN counts as bent; voxels, a number or one per node,
-    default :data:`.acceptance.MIN_USEFUL_CHANGE`, see :func:`nothing_to_correct`). Every measured
+    :data:`.acceptance.MIN_USEFUL_CHANGE` (:func:`node_bend`; NaN counts as bent). Every measured
     node where ``field`` is not our matcher's own with ``params``, or where the grid has fewer
     than 3 nodes along an axis (no bend can be told there).
     """
@@ -173,7 +161,7 @@ def correctable_nodes(
     if min(field.shape) < 3 or not _measured_with(field, params):
         return measured
     own = (field.status == Status.CONVERGED) & (field.provenance == Provenance.MEASURED)
-    bent = ~(node_bend(field, params.half) <= useful_change)  # NaN: unknown, counts as bent
+    bent = ~(node_bend(field, params.half) <= MIN_USEFUL_CHANGE)  # NaN: unknown, counts as bent
     return measured & (~own | bent)
 
 

@@ -123,19 +123,12 @@ def changed_nodes(change: np.ndarray, useful: np.ndarray, region_tolerance: floa
     in the next pass. Returns that mask and the median of that bound over the changed nodes
     (voxels; ``MIN_USEFUL_CHANGE`` if none).
     """
-    bound = useful_changes(useful, region_tolerance)
+    useful = np.nan_to_num(np.asarray(useful, np.float64), nan=0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = np.where(useful > 0, MIN_USEFUL_CHANGE * (1.0 + region_tolerance / useful), np.inf)
     changed = np.nan_to_num(change, nan=0.0) > bound
     tolerance = float(np.median(bound[changed])) if changed.any() else MIN_USEFUL_CHANGE
     return changed, tolerance
-
-
-def useful_changes(useful: np.ndarray, region_tolerance: float) -> np.ndarray:
-    """Per node, the least change (voxels) whose removal can improve the node's region above the
-    noise floor: ``MIN_USEFUL_CHANGE (1 + region_tolerance / useful)`` (:func:`changed_nodes`;
-    inf where ``useful`` is 0: no gradient, nothing a change could show)."""
-    useful = np.nan_to_num(np.asarray(useful, np.float64), nan=0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(useful > 0, MIN_USEFUL_CHANGE * (1.0 + region_tolerance / useful), np.inf)
 
 
 def expected_change(change: np.ndarray, previous: np.ndarray | None, measured: np.ndarray):
@@ -289,7 +282,6 @@ def first_selection(
     read_points: np.ndarray,
     pass_grid,
     half: int,
-    useful_change=MIN_USEFUL_CHANGE,
 ) -> Selection | None:
     """The matched and judged nodes of the first pass: near the nodes it can correct.
 
@@ -319,10 +311,8 @@ def first_selection(
         The pass's correcting grid.
     half : int
         Half-size of the correcting subvolume (voxels).
-    useful_change : float or ndarray, the field's grid shape
-        The least bend a pass can improve above the noise (:func:`useful_changes`).
     """
-    correctable = correctable_nodes(field, params, masked, useful_change)
+    correctable = correctable_nodes(field, params, masked)
     if not correctable.any():
         return None
     no_change = np.zeros(correctable.shape)

@@ -94,7 +94,6 @@ from .rematch_region import (
     remeasurement,
     reuse,
     select,
-    useful_changes,
 )
 from .volumes import CorrectionVolumes, InMemoryVolumes
 
@@ -321,9 +320,9 @@ def _correction_loop(
     pass_params, method = pass_method(current, params)
     residual_before = residual
     unmasked = max(1, int(np.count_nonzero(~masked)))
-    bound = useful_changes(judge.useful(current), judge.region_tolerance)  # what can improve
-    nothing = nothing_to_correct(current, params, masked, bound)
-    stop = nothing or f"max_passes ({int(max_passes)}) reached"
+    stop = f"max_passes ({int(max_passes)}) reached"
+    nothing = nothing_to_correct(current, params, masked)
+    stop = nothing or stop
     pass_grid = grid
     previous_raw, next_pass = None, None
     stages = {"setup_s": passes[0].seconds}
@@ -346,7 +345,7 @@ def _correction_loop(
             selection = selection if not selection.matched.all() else None
         elif selective:  # the first pass matches only near the nodes it can correct
             selection = first_selection(
-                current, params, masked, read_points, pass_grid, pass_params.half, bound
+                current, params, masked, read_points, pass_grid, pass_params.half
             )
         active = None if selection is None else selection.matched
         t0 = time.perf_counter()
