@@ -5,7 +5,8 @@ flags) and its field, or not. This runs both on the cases of ``bench_correction_
 (64³) and the two shear bands of ``bench_pipeline.py`` (100³), from the same plain field, and
 prints per case: the largest node difference of the final fields (voxels), the nodes whose
 status or provenance differ, each pass's accepted / improved node counts, the RMSE against the
-truth and the seconds of each. A variant passes when no decision differs and the fields agree
+truth, the flagged nodes and the CPU seconds of each (``time.process_time``: run with
+NUMBA_NUM_THREADS=1 for single-thread figures). A variant passes when no decision differs and the fields agree
 within 0.002 voxel.
 
 Variants (``--variant``):
@@ -14,9 +15,20 @@ Variants (``--variant``):
   (the passes start from an almost-right field, so a looser stop should cost little accuracy);
 * ``sweeps:K``: the local acceptance re-checks the mixed field at most ``K`` times per pass
   (each re-check is a whole pull-back of ``F``) instead of
-  :data:`~napari_dvc_correct.engine.correction.acceptance.ACCEPTANCE_SWEEPS`.
+  :data:`~napari_dvc_correct.engine.correction.acceptance.ACCEPTANCE_SWEEPS`;
+* ``first:all``: the first pass matches and judges every node, as before the first pass was
+  selective (:func:`~napari_dvc_correct.engine.correction.rematch_region.first_selection`): the
+  variant is then the *dearer* one, the default's former behaviour;
+* ``contract:off``: the stop rule takes each pass's node changes as what the next pass can still
+  remove, without the passes' measured contraction
+  (:func:`~napari_dvc_correct.engine.correction.rematch_region.expected_change`): the former
+  behaviour, dearer.
 
-    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1] [case ...]
+``--seed S`` makes the 64³ cases with seed ``S`` (default 4, as ``bench_correction_cases.py``)
+and the 100³ bands with seed ``S - 4`` (default 0, as ``bench_pipeline.py``).
+
+    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1|first:all|contract:off]
+        [--seed 4] [case ...]
 """
 
 from __future__ import annotations
@@ -33,7 +45,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_correction_cases  # noqa: E402
 import bench_pipeline  # noqa: E402
 
-from napari_dvc_correct.engine.correction import acceptance, self_correction  # noqa: E402
+from napari_dvc_correct.engine.correction import (  # noqa: E402
+    acceptance,
+    rematch_region,
+    self_correction,
+)
 from napari_dvc_correct.engine.correlation.correlate import correlate  # noqa: E402
 from napari_dvc_correct.engine.correlation.params import CorrelationParams  # noqa: E402
 
@@ -43,12 +59,12 @@ LARGE = ["shear band", "noisy band"]
 FIELD_TOLERANCE = 0.002  # voxel
 
 
-def make(case: str):
+def make(case: str, seed: int = 4):
     """``(reference, deformed, truth, params)`` of a case of either benchmark."""
     if case in LARGE:
-        reference, deformed, truth = bench_pipeline.make_case(case, 100)
+        reference, deformed, truth = bench_pipeline.make_case(case, 100, seed=seed - 4)
         return reference, deformed, truth, CorrelationParams(subvolume=21, step=8)
-    reference, deformed, truth, params, _ = bench_correction_cases.make_case(case)
+    reference, deformed, truth, params, _ = bench_correction_cases.make_case(case, seed=seed)
     return reference, deformed, truth, params
 
 
@@ -58,10 +74,20 @@ class Variant:
 
     def __init__(self, spec: str):
         kind, _, value = spec.partition(":")
-        if kind not in ("tolerance", "sweeps") or not value:
-            raise ValueError(f"unknown variant {spec!r} (known: tolerance:K, sweeps:K)")
-        self.kind, self.value = kind, float(value)
-        self.original = (self_correction.pass_method, acceptance.ACCEPTANCE_SWEEPS)
+        words = {"first": "all", "contract": "off"}
+        known = {"tolerance", "sweeps", *words}
+        if kind not in known or not value or words.get(kind, value) != value:
+            raise ValueError(
+                f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, contract:off)"
+            )
+        self.kind = kind
+        self.value = 0.0 if kind in words else float(value)
+        self.original = (
+            self_correction.pass_method,
+            acceptance.ACCEPTANCE_SWEEPS,
+            self_correction.first_selection,
+            rematch_region.expected_change,
+        )
 
     def __enter__(self):
         original, factor = self.original[0], self.value
@@ -72,12 +98,21 @@ class Variant:
 
         if self.kind == "tolerance":
             self_correction.pass_method = pass_method
-        else:
+        elif self.kind == "sweeps":
             acceptance.ACCEPTANCE_SWEEPS = int(self.value)
+        elif self.kind == "first":
+            self_correction.first_selection = lambda *args, **kwargs: None
+        else:
+            rematch_region.expected_change = lambda change, *args: np.nan_to_num(change)
         return self
 
     def __exit__(self, *exc):
-        self_correction.pass_method, acceptance.ACCEPTANCE_SWEEPS = self.original
+        (
+            self_correction.pass_method,
+            acceptance.ACCEPTANCE_SWEEPS,
+            self_correction.first_selection,
+            rematch_region.expected_change,
+        ) = self.original
 
 
 def _passes(field) -> list[tuple[int, int]]:
@@ -91,16 +126,20 @@ def _rmse(field, truth) -> float:
     return float(np.sqrt(np.mean(error[np.isfinite(error)] ** 2)))
 
 
-def compare(case: str, variant: Variant) -> bool:
-    reference, deformed, truth, params = make(case)
+def _flagged(field) -> int:
+    return int(field.metadata["correction"]["flagged_after"])
+
+
+def compare(case: str, variant: Variant, seed: int = 4) -> bool:
+    reference, deformed, truth, params = make(case, seed)
     plain = correlate(reference, deformed, params)
-    started = time.perf_counter()
+    started = time.process_time()
     default = self_correction.correct(reference, deformed, plain, params)
-    default_s = time.perf_counter() - started
+    default_s = time.process_time() - started
     with variant:
-        started = time.perf_counter()
+        started = time.process_time()
         cheaper = self_correction.correct(reference, deformed, plain, params)
-        cheaper_s = time.perf_counter() - started
+        cheaper_s = time.process_time() - started
     difference = np.linalg.norm(default.u - cheaper.u, axis=-1)
     both = np.isfinite(difference)
     largest = float(difference[both].max()) if both.any() else 0.0
@@ -119,6 +158,7 @@ def compare(case: str, variant: Variant) -> bool:
     print(
         f"| {case} | {largest:.5f} | {status} / {provenance} | {_passes(default)} | "
         f"{_passes(cheaper)} | {_rmse(default, truth):.4f} / {_rmse(cheaper, truth):.4f} | "
+        f"{_flagged(default)} / {_flagged(cheaper)} | "
         f"{default_s:.2f} / {cheaper_s:.2f} | {'same' if same else 'DIFFERENT'} |",
         flush=True,
     )
@@ -129,16 +169,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("cases", nargs="*", default=SMALL + LARGE)
     parser.add_argument("--variant", default="tolerance:5")
+    parser.add_argument("--seed", type=int, default=4)
     args = parser.parse_args()
     variant = Variant(args.variant)
-    print(f"variant {args.variant}")
+    print(f"variant {args.variant}, seed {args.seed}")
     print(
         "| case | max node difference (voxel) | status / provenance differ | passes: accepted, "
-        "improved (default) | (variant) | RMSE default / variant | seconds default / variant "
-        "| decisions |"
+        "improved (default) | (variant) | RMSE default / variant | flagged default / variant "
+        "| CPU seconds default / variant | decisions |"
     )
-    print("|---|---|---|---|---|---|---|---|")
-    results = [compare(case, variant) for case in args.cases]
+    print("|---|---|---|---|---|---|---|---|---|")
+    results = [compare(case, variant, args.seed) for case in args.cases]
     print(f"{sum(results)} of {len(results)} cases decide the same")
 
 

@@ -6,9 +6,11 @@ import pytest
 from napari_dvc_correct.engine import synthetic
 from napari_dvc_correct.engine.correction.pass_method import (
     MIN_PASS_SUBVOLUME,
+    correctable_nodes,
     correction_grid,
     correction_params,
     field_curvature,
+    node_bend,
     nothing_to_correct,
     pass_order,
 )
@@ -165,3 +167,30 @@ def test_a_pass_runs_where_a_node_is_not_its_own_match_or_the_field_bends():
     thin = field.copy()
     thin.u[:] = np.nan  # no bend can be told from non-finite nodes: a pass runs
     assert nothing_to_correct(thin, params, masked) == ""
+
+
+def test_the_correctable_nodes_are_those_not_their_own_match_or_bent_and_measured():
+    field, params, masked = _measured_affine_field()
+    assert not correctable_nodes(field, params, masked).any()  # nothing_to_correct's field
+    replaced = field.copy()
+    replaced.provenance[2, 3, 4] = Provenance.REPLACED
+    replaced.status[5, 5, 5] = Status.MAX_ITERATIONS
+    found = correctable_nodes(replaced, params, masked)
+    assert found.sum() == 2 and found[2, 3, 4] and found[5, 5, 5]
+    outside = masked.copy()
+    outside[5, 5, 5] = True  # the user's mask: not the correction's business
+    assert correctable_nodes(replaced, params, outside).sum() == 1
+    # a bump of 0.05 voxel in one corner bends only the nodes near it (one-node smoothing)
+    points = field.points.reshape(*field.shape, 3)
+    bumped = field.copy()
+    corner = np.array([10.0, 10.0, 10.0])
+    weight = np.exp(-np.sum((points - corner) ** 2, axis=-1) / (2 * 6.0**2))
+    bumped.u[..., 2] += 0.5 * weight
+    found = correctable_nodes(bumped, params, masked)
+    bend = node_bend(bumped, params.half)
+    assert np.array_equal(found, bend > 0.01)
+    assert 0 < found.sum() < 0.5 * found.size and found[0, 0, 0] and not found[-1, -1, -1]
+    # a field our matcher did not measure with these parameters: every measured node
+    foreign = field.copy()
+    foreign.uncertainty = None
+    assert np.array_equal(correctable_nodes(foreign, params, outside), ~outside)

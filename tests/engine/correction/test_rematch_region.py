@@ -8,12 +8,17 @@ from napari_dvc_correct.engine.correction.rematch_region import (
     SPLINE_TAIL,
     applied_change,
     changed_nodes,
+    expected_change,
+    first_selection,
+    only_confirms,
+    remeasurement,
     reuse,
     select,
     spline_reach,
     spline_tail,
 )
-from napari_dvc_correct.engine.fields.field import DisplacementField, Status
+from napari_dvc_correct.engine.correlation.params import CorrelationParams
+from napari_dvc_correct.engine.fields.field import DisplacementField, Provenance, Status
 from napari_dvc_correct.engine.fields.field_spline import FieldSpline
 
 
@@ -146,3 +151,93 @@ def test_the_applied_change_is_read_at_the_reference_position(loaded):
     value = applied_change(field, change, y, loaded)[0, 2]
     # loaded frame: the reference position of y is X = y - 4 voxels, index 1 in x
     assert value == pytest.approx(0.01 if loaded else 0.02, abs=1e-9)
+
+
+def _own_matches(shift=(0.0, 0.0, 6.0)):
+    """A translated field on a 15³ grid (step 6, subvolume 11), every node its own converged
+    match with these parameters."""
+    params = CorrelationParams(subvolume=11, step=6)
+    field = DisplacementField.zeros((10.0, 10.0, 10.0), (6.0,) * 3, (15, 15, 15))
+    field.u[:] = shift
+    field.params = params.to_dict()
+    field.uncertainty = np.full((15, 15, 15, 3), 0.01)
+    return field, params, np.zeros(field.shape, bool)
+
+
+def test_the_first_pass_matches_and_judges_only_near_the_nodes_it_can_correct():
+    field, params, masked = _own_matches()
+    grid = (field.origin, field.step, field.shape)
+    reads = field.points + field.u.reshape(-1, 3)  # one step further along x
+    assert first_selection(field, params, masked, reads, grid, params.half) is None  # nothing
+    field.provenance[7, 7, 5] = Provenance.REPLACED  # the cleaning refilled one node
+    selection = first_selection(field, params, masked, reads, grid, params.half)
+    # its read point is node (7, 7, 6); a subvolume (half 5 < one step) and the spline's
+    # reach (one step) around it: the 5³ block of pass-grid nodes around that node
+    expected = np.zeros(field.shape, bool)
+    expected[5:10, 5:10, 4:9] = True
+    assert np.array_equal(selection.matched, expected)
+    # judged: the nodes whose update reads a matched correcting node (one step behind them)
+    judged = np.zeros(field.shape, bool)
+    judged[5:10, 5:10, 3:8] = True
+    assert np.array_equal(selection.judged, judged) and selection.judged[7, 7, 5]
+    # a node outside the user's mask is not corrected: no pass to run there
+    masked[7, 7, 5] = True
+    assert first_selection(field, params, masked, reads, grid, params.half) is None
+    # every node correctable: every node matched, no selection
+    field.uncertainty = None  # not our matcher's field: a pass is its first measurement
+    assert first_selection(field, params, masked, reads, grid, params.half) is None
+
+
+def test_the_remeasurement_of_a_node_is_no_motion_with_its_own_match_quality():
+    field, _, _ = _own_matches()
+    field.zncc[:] = 0.9
+    field.zncc[7, 7, 5] = 0.5
+    field.iterations[:] = 3
+    delta = DisplacementField.zeros(field.origin, field.step, field.shape)
+    delta.u[:] = 1.0
+    reads = field.points + field.u.reshape(-1, 3)
+    zero = remeasurement(delta, field, reads)
+    assert np.all(zero.u == 0.0) and np.all(zero.gradient == 0.0)
+    assert np.isnan(zero.uncertainty).all()
+    assert zero.zncc[7, 7, 6] == pytest.approx(0.5)  # node (7, 7, 5) reads it, one step on
+    assert np.all(zero.iterations[:, :, 1:] == 3)
+    # a correcting node no update reads carries no quality of any node
+    assert np.isnan(zero.zncc[:, :, 0]).all() and np.all(zero.iterations[:, :, 0] == 0)
+    # where a pass matched only some nodes, reuse completes them with this
+    matched = np.zeros(field.shape, bool)
+    matched[7, 7, 6] = True
+    merged = reuse(delta, zero, matched)
+    assert np.all(merged.u[7, 7, 6] == 1.0) and np.all(merged.u[~matched] == 0.0)
+
+
+def test_the_expected_change_follows_the_contraction_of_the_last_two_passes():
+    measured = np.ones(4, bool)
+    change = np.array([0.04, 0.02, 0.0, 0.01])
+    assert np.array_equal(expected_change(change, None, measured), change)  # one pass only
+    assert np.array_equal(expected_change(change, np.zeros(4), measured), change)
+    previous = 10.0 * change  # the passes contract by 10: the next moves a tenth as far
+    assert np.allclose(expected_change(change, previous, measured), 0.1 * change)
+    # never more than the change itself; unmeasured nodes do not count in the ratio
+    assert np.allclose(expected_change(change, 0.5 * change, measured), change)
+    measured[0] = False
+    previous = np.array([100.0, 0.2, 0.0, 0.1])
+    assert np.allclose(expected_change(change, previous, measured), 0.1 * change)
+
+
+def test_another_pass_only_confirms_where_too_few_nodes_would_still_move_enough():
+    measured = np.ones(100, bool)
+    useful = np.full(100, 0.5 * MIN_USEFUL_CHANGE * 20.0)  # clean scans: bound 0.01 voxel
+    change = np.full(100, 0.005)
+    change[:5] = 0.05  # 5 % of the nodes moved by five times the bound
+    stop, changed, bound = only_confirms(1, change, None, useful, 0.0, measured, 0.01)
+    assert stop == "" and changed.sum() == 5 and bound == pytest.approx(0.01)
+    # the pass before moved them 20 times as far: the next would move them 0.0025
+    stop, changed, _ = only_confirms(2, change, 20.0 * change, useful, 0.0, measured, 0.01)
+    assert changed.sum() == 5  # the changed nodes (for the next selection) are unchanged
+    assert "0.05 times as far as pass 1" in stop and "only 0 nodes" in stop
+    # ... 4 times as far: 0.0125 > 0.01, another pass may still improve them
+    assert only_confirms(2, change, 4.0 * change, useful, 0.0, measured, 0.01)[0] == ""
+    # too few (under 1 %) moved by enough at all
+    change[:5] = 0.005
+    stop = only_confirms(1, change, None, useful, 0.0, measured, 0.01)[0]
+    assert stop.startswith("only 0 nodes moved in pass 1")

@@ -413,14 +413,18 @@ def test_selective_passes_match_fewer_nodes_and_agree_with_matching_all(bump_cas
     assert len(every) == len(some) == 4  # pass 0 and three passes, both ways
     n = measured.n_points  # 12^3; the correcting grid is the field's here
     assert all(p.matched_nodes == n for p in every[1:])
-    assert some[1].matched_nodes == n  # the first pass matches every node
+    # the first pass matches only near the nodes it can correct (the bump bends its corner;
+    # far from it every node is its own converged match of an unbent field: measured 1588)
+    assert some[1].matched_nodes < n
     # later passes match only near the nodes the pass before moved (measured: 1715, 1459)
     assert some[3].matched_nodes < some[2].matched_nodes < n
     assert some[3].matched_nodes < 0.9 * n
-    # and give the field of matching every node within a few thousandths of a voxel (measured:
-    # max 0.002, rms 1.2e-4), far below the corrected field's error (RMSE 0.053)
+    # and give the field of matching every node within the matcher's accuracy on clean scans
+    # (measured: max 0.007 at nodes far from the bump, whose re-measurement a full first pass
+    # applies in pass 1 and the selective one in pass 2; rms 2e-4), far below the corrected
+    # field's error (RMSE 0.054 both)
     difference = np.linalg.norm(selective.u - full.u, axis=-1)
-    assert difference.max() < 5e-3 and np.sqrt(np.mean(difference**2)) < 5e-4
+    assert difference.max() < 0.01 and np.sqrt(np.mean(difference**2)) < 5e-4
 
     def rmse(field):
         error = np.linalg.norm(field.u - _bump(field.points.reshape(*field.shape, 3)), axis=-1)
@@ -431,8 +435,11 @@ def test_selective_passes_match_fewer_nodes_and_agree_with_matching_all(bump_cas
     # the same decisions within a few nodes (measured: 5 of 1728 before the support shrink;
     # 29 since: a reused match carries its own pass's uncertainty into shrink_to_support, and
     # nodes whose correction the noise explains are refused, not kept; the fields agree above)
+    # (a node a selective pass leaves unjudged is not accepted: measured 162 in pass 1, whose
+    # full form accepts 135 more nodes, all re-measurements)
     for a, b in zip(every[1:], some[1:]):
-        assert abs(a.accepted_nodes - b.accepted_nodes) <= 0.02 * n, (a, b)
+        unjudged = a.judged_nodes - b.judged_nodes
+        assert abs(a.accepted_nodes - b.accepted_nodes) <= 0.02 * n + unjudged, (a, b)
         assert abs(a.improved_nodes - b.improved_nodes) <= 5, (a, b)
     assert some[-1].stop == every[-1].stop == "max_passes (3) reached"
 

@@ -134,21 +134,35 @@ def nothing_to_correct(
     Returns the reason in words for the stop record (``""``: run the passes).
     """
     measured = ~np.asarray(masked, bool).reshape(field.shape)
-    if not measured.any() or min(field.shape) < 3 or not _measured_with(field, params):
-        return ""
-    own = (field.status == Status.CONVERGED) & (field.provenance == Provenance.MEASURED)
-    if not own[measured].all():
+    if not measured.any() or correctable_nodes(field, params, masked).any():
         return ""
     bend = node_bend(field, params.half)
-    bent = ~(bend <= MIN_USEFUL_CHANGE)  # NaN (an unknown bend) counts as bent
-    if bent[measured].any():
-        return ""
     return (
         f"no pass run: every one of the {int(measured.sum())} measured nodes is its own converged "
         f"match and the field bends no {params.subvolume}³ subvolume by more than "
         f"{MIN_USEFUL_CHANGE:g} voxel (largest bend {float(np.max(bend[measured])):.2g}): a pass "
         "could only re-measure the first run's values and noise"
     )
+
+
+def correctable_nodes(
+    field: DisplacementField, params: CorrelationParams, masked: np.ndarray
+) -> np.ndarray:
+    """The measured nodes a correcting pass can correct, not only re-measure (bool, the grid's
+    shape): :func:`nothing_to_correct` node by node.
+
+    A node (not ``masked``) whose value is not its own converged match, or where the field bends
+    a subvolume of the first run (``params.half``) by more than
+    :data:`.acceptance.MIN_USEFUL_CHANGE` (:func:`node_bend`; NaN counts as bent). Every measured
+    node where ``field`` is not our matcher's own with ``params``, or where the grid has fewer
+    than 3 nodes along an axis (no bend can be told there).
+    """
+    measured = ~np.asarray(masked, bool).reshape(field.shape)
+    if min(field.shape) < 3 or not _measured_with(field, params):
+        return measured
+    own = (field.status == Status.CONVERGED) & (field.provenance == Provenance.MEASURED)
+    bent = ~(node_bend(field, params.half) <= MIN_USEFUL_CHANGE)  # NaN: unknown, counts as bent
+    return measured & (~own | bent)
 
 
 def _measured_with(field: DisplacementField, params: CorrelationParams) -> bool:

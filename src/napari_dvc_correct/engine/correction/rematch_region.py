@@ -19,7 +19,12 @@ values, whose response to one node's change decays by about ``2 - sqrt(3) = 0.27
   the tolerance (its correction was already applied or refused).
 
 Where no node changed by enough, or too few to matter, the next pass can only confirm, and does
-not run. Positions in voxels, axes (z, y, x).
+not run; after two passes, "enough" is what the next pass is expected to move a node at the rate
+the last two passes contracted (:func:`expected_change`, :func:`only_confirms`).
+
+The first pass has no previous one: it matches only near the nodes it can correct rather than
+re-measure (:func:`first_selection`, from :func:`.pass_method.correctable_nodes`), and its other
+matches find no motion (:func:`remeasurement`). Positions in voxels, axes (z, y, x).
 """
 
 from __future__ import annotations
@@ -30,9 +35,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..correlation.params import CorrelationParams
 from ..fields.field import DisplacementField
 from ..fields.field_spline import FieldSpline
 from .acceptance import MIN_USEFUL_CHANGE
+from .pass_method import correctable_nodes
 
 
 def _cardinal_tail(max_steps: int = 12) -> np.ndarray:
@@ -124,6 +131,79 @@ def changed_nodes(change: np.ndarray, useful: np.ndarray, region_tolerance: floa
     return changed, tolerance
 
 
+def expected_change(change: np.ndarray, previous: np.ndarray | None, measured: np.ndarray):
+    """The change the next pass is expected to make at each node (voxels, ``change``'s shape).
+
+    :func:`changed_nodes` bounds the error a pass leaves by the change it made. The passes
+    contract: where two passes ran, the next one moves the nodes by about the last pass's
+    change times the ratio of the last two passes' changes (root-mean-square over the
+    ``measured`` nodes, at most 1), so that is what it can still remove. After one pass (no
+    ``previous``) or where the previous pass changed nothing, ``change`` itself.
+
+    Parameters
+    ----------
+    change, previous : ndarray, the grid's shape
+        The node changes of the last pass and of the one before it (voxels; NaN: none).
+    measured : ndarray of bool, the grid's shape
+        The nodes the ratio is taken over.
+    """
+    change = np.nan_to_num(np.asarray(change, np.float64), nan=0.0)
+    if previous is None:
+        return change
+    previous = np.nan_to_num(np.asarray(previous, np.float64), nan=0.0)
+    before = float(np.sum(previous[measured] ** 2))
+    if before <= 0.0:
+        return change
+    ratio = np.sqrt(float(np.sum(change[measured] ** 2)) / before)
+    return change * min(1.0, ratio)
+
+
+def only_confirms(
+    number: int,
+    change: np.ndarray,
+    previous: np.ndarray | None,
+    useful: np.ndarray,
+    region_tolerance: float,
+    measured: np.ndarray,
+    min_fraction: float,
+) -> tuple[str, np.ndarray, float]:
+    """Why pass ``number + 1`` could only confirm pass ``number`` (``""``: it could improve),
+    and :func:`changed_nodes` of the ``measured`` nodes (mask and tolerance).
+
+    Fewer than ``min_fraction`` of the ``measured`` nodes moved by enough to improve above the
+    noise floor in another pass (:func:`changed_nodes` of ``change``, pass ``number``'s node
+    changes in voxels), or would at the rate the passes contract (:func:`expected_change`, with
+    ``previous``, the changes of pass ``number - 1``). ``useful`` and ``region_tolerance``
+    as :func:`changed_nodes` takes them.
+    """
+    measured = np.asarray(measured, bool)
+    tolerance = region_tolerance
+    least = min_fraction * max(1, int(measured.sum()))
+    changed, bound = changed_nodes(change, useful, tolerance)
+    changed &= measured
+    if changed.sum() < least:
+        return (
+            f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
+            f"above the noise floor in another pass (about {bound:.3g} voxel): it could "
+            "only confirm",
+            changed,
+            bound,
+        )
+    expected = expected_change(change, previous, measured)
+    likely = changed_nodes(expected, useful, tolerance)[0] & measured
+    if likely.sum() < least:
+        size = float(np.sum(np.nan_to_num(change[measured]) ** 2))
+        ratio = np.sqrt(np.sum(expected[measured] ** 2) / size) if size > 0 else 0.0
+        return (
+            f"pass {number} moved the nodes {ratio:.2g} times as far as pass {number - 1}: "
+            f"at that rate only {int(likely.sum())} nodes would move by enough to improve "
+            "above the noise floor in another pass",
+            changed,
+            bound,
+        )
+    return "", changed, bound
+
+
 def _lattice_index(points: np.ndarray, grid) -> np.ndarray:
     origin, step, _ = grid
     index = (np.asarray(points, np.float64).reshape(-1, 3) - np.asarray(origin)) / np.asarray(step)
@@ -193,6 +273,80 @@ def select(
     reads = np.clip(_lattice_index(read_points, pass_grid), 0, np.asarray(shape) - 1)
     judged = near_matched[tuple(reads.T)].reshape(changed.shape)
     return Selection(matched, judged, int(changed.sum()), int(reach), float(tolerance))
+
+
+def first_selection(
+    field: DisplacementField,
+    params: CorrelationParams,
+    masked: np.ndarray,
+    read_points: np.ndarray,
+    pass_grid,
+    half: int,
+) -> Selection | None:
+    """The matched and judged nodes of the first pass: near the nodes it can correct.
+
+    Where a node's value is its own converged match and the field does not bend its subvolume
+    (:func:`.pass_method.correctable_nodes` is False), a correcting match re-measures it on the
+    same images and finds no motion but their noise, which the acceptance refuses
+    (:func:`.acceptance.noise_only_corrections`). Its subvolume is warped by the field
+    densified around it, so a match can find more only where its subvolume reaches a correctable
+    node: the matched nodes are the pass-grid nodes within ``ceil(half / step) + 1`` steps (per
+    axis) of a correctable node's read point, as :func:`select` finds them for a change; the
+    judged nodes are those whose nearest correcting match (where their update reads ``ΔD``) is
+    one of them. The other nodes keep their value; the other matches are
+    :func:`remeasurement`'s. ``None`` where every pass-grid node is matched (or none is
+    correctable: the caller runs no pass then).
+
+    Parameters
+    ----------
+    field : DisplacementField
+        The field the pass corrects.
+    params : CorrelationParams
+        The first run's parameters (:func:`.pass_method.correctable_nodes`).
+    masked : ndarray of bool, the field's grid shape
+        Nodes outside the user's mask.
+    read_points : ndarray (n, 3)
+        Where each node's update reads ``ΔD`` (voxels, C order of the field's grid).
+    pass_grid : (origin, step, shape)
+        The pass's correcting grid.
+    half : int
+        Half-size of the correcting subvolume (voxels).
+    """
+    correctable = correctable_nodes(field, params, masked)
+    if not correctable.any():
+        return None
+    no_change = np.zeros(correctable.shape)
+    selection = select(
+        correctable, no_change, read_points, read_points, pass_grid, pass_grid, half, 1.0
+    )
+    if selection.matched.all():
+        return None
+    _, _, shape = pass_grid
+    reads = np.clip(_lattice_index(read_points, pass_grid), 0, np.asarray(shape) - 1)
+    judged = selection.judged & selection.matched[tuple(reads.T)].reshape(correctable.shape)
+    return Selection(selection.matched, judged, selection.changed, selection.reach, 0.0)
+
+
+def remeasurement(
+    delta: DisplacementField, field: DisplacementField, read_points: np.ndarray
+) -> DisplacementField:
+    """What the first pass's correcting matches find where they cannot correct
+    (:func:`first_selection`): no motion.
+
+    On ``delta``'s grid: zero displacement and gradient, unknown uncertainty (NaN: the
+    acceptance neither shrinks nor pools by it), and at each correcting node that some node of
+    ``field`` reads its update at (``read_points``, (n, 3) voxels), that node's own match quality
+    (ZNCC, status, iterations): a re-measurement of a node is its own match.
+    """
+    zero = DisplacementField.zeros(delta.origin, delta.step, delta.shape)
+    zero.gradient = np.zeros((*delta.shape, 3, 3))
+    zero.uncertainty = np.full((*delta.shape, 3), np.nan)
+    reads = _lattice_index(read_points, (delta.origin, delta.step, delta.shape))
+    inside = np.all((reads >= 0) & (reads < np.asarray(delta.shape)), axis=1)
+    target = tuple(reads[inside].T)
+    for name in ("zncc", "status", "iterations"):
+        getattr(zero, name)[target] = getattr(field, name).reshape(-1)[inside]
+    return zero
 
 
 def applied_change(

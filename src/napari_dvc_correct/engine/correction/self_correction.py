@@ -32,10 +32,11 @@ Beyond the paper:
   the noise allows, not while the global mean falls (under noise it barely moves), and only
   while enough nodes moved by enough to improve in another pass (:mod:`.rematch_region`; a pass
   that could only confirm is not run); the reason the loop stopped is recorded;
-* after the first pass, a pass matches again only near the nodes the previous one changed
-  (the subvolume's half-width plus the spline's reach) and judges only the nodes whose update
-  can differ; the other matches are the previous pass's, less what it applied, and the other
-  nodes keep their value (``selective=False`` matches and judges every node);
+* the first pass matches only near the nodes it can correct (not their own converged match, or
+  bent), a later pass only near the nodes the previous one changed (the subvolume's half-width
+  plus the spline's reach), and each judges only the nodes whose update can differ; the other
+  matches are "no motion" or the previous pass's less what it applied, and the other nodes keep
+  their value (``selective=False`` matches and judges every node);
 * the correcting matches use the second-order shape function when the field bends inside a
   subvolume (:func:`pass_order`, chosen from the data, no user parameter);
 * nodes whose local residual only an error of more than a voxel explains are flagged
@@ -87,7 +88,14 @@ from .pass_update import (
     zero_start,
 )
 from .record import CHANGE_THRESHOLD, CorrectionPass, correction_table
-from .rematch_region import applied_change, changed_nodes, reuse, select
+from .rematch_region import (
+    applied_change,
+    first_selection,
+    only_confirms,
+    remeasurement,
+    reuse,
+    select,
+)
 from .volumes import CorrectionVolumes, InMemoryVolumes
 
 __all__ = ["CorrectionPass", "correct", "correct_iter", "correct_volumes_iter", "correction_table"]
@@ -164,8 +172,8 @@ def correct_iter(
         Keyword arguments for :func:`.cleaning.clean` (threshold, radius, epsilon, smoothing...),
         used on ``D`` and on every ``ΔD``.
     selective : bool
-        After the first pass, match again only near the nodes the previous pass changed and
-        judge only the nodes that can change (:mod:`.rematch_region`; default). False: every pass
+        Match only near the nodes a pass can correct (the first) or the previous pass changed,
+        and judge only the nodes that can change (:mod:`.rematch_region`; default). False: every pass
         matches and judges every node (the reference the selective passes are tested against).
         Either way a pass runs only if some node's change can still matter.
     noise_fit : bool
@@ -339,6 +347,10 @@ def _correction_loop(
                 pass_params.half, tolerance,
             )  # fmt: skip
             selection = selection if not selection.matched.all() else None
+        elif selective:  # the first pass matches only near the nodes it can correct
+            selection = first_selection(
+                current, params, masked, read_points, pass_grid, pass_params.half
+            )
         active = None if selection is None else selection.matched
         t0 = time.perf_counter()
         pair = yield from volumes.matching_pair(moved, current)
@@ -352,7 +364,9 @@ def _correction_loop(
         volumes.release(pair[2])
         _add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
         t0 = time.perf_counter()
-        if selection is not None:
+        if selection is not None and previous_raw is None:
+            delta = reuse(delta, remeasurement(delta, current, read_points), selection.matched)
+        elif selection is not None:
             reused = delta.points.reshape(*delta.shape, 3)[~selection.matched]
             loaded = frame == "loaded" and update == "exact"
             taken = applied_change(current, change_vectors, reused, loaded)
@@ -466,16 +480,13 @@ def _correction_loop(
         volumes.release(moved)
         current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
         # a further pass can change only what this one moved by enough (pass_reach)
-        changed, tolerance = changed_nodes(
-            node_change, judge.useful(current), judge.region_tolerance
-        )
-        changed &= ~masked
-        if number < max_passes and changed.sum() < MIN_CHANGED_FRACTION * unmasked:
-            stop = (
-                f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
-                f"above the noise floor in another pass (about {tolerance:.3g} voxel): it could "
-                "only confirm"
-            )
+        # ... and only what it moved by enough, at the rate the passes contract
+        confirm, changed, tolerance = only_confirms(
+            number, node_change, None if next_pass is None else next_pass[1],
+            judge.useful(current), judge.region_tolerance, ~masked, MIN_CHANGED_FRACTION,
+        )  # fmt: skip
+        if number < max_passes and confirm:
+            stop = confirm
             break
         if record.improved_nodes < MIN_IMPROVED_FRACTION * unmasked:
             stop = (
