@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 
 from ..fields.field import DisplacementField
@@ -132,3 +133,39 @@ def correction_table(field: DisplacementField) -> list[CorrectionPass]:
         entry if isinstance(entry, CorrectionPass) else CorrectionPass.from_dict(entry)
         for entry in field.metadata.get("correction_passes", [])
     ]
+
+
+def add_stages(stages: dict, delta, **seconds) -> None:
+    """Add wall times to ``stages`` (with the correcting DVC's IC-GN and statistics)."""
+    for key, value in seconds.items():
+        stages[key] = stages.get(key, 0.0) + float(value)
+    timings = {} if delta is None else delta.metadata.get("timings", {})
+    timings = timings.get("task_s", timings)  # a tiled run sums its batches' stages there
+    for key, name in (("icgn_s", "correcting_icgn_s"), ("noise_s", "correcting_statistics_s")):
+        stages[name] = stages.get(name, 0.0) + float(timings.get(key, 0.0))
+    if "uncertainty_s" in timings:
+        stages["correcting_statistics_s"] += float(timings["uncertainty_s"])
+
+
+def failed_pass(
+    number: int, converged: float, started: float, previous: CorrectionPass
+) -> CorrectionPass:
+    """The record of a pass whose correcting field could not be used (cleaning failed):
+    nothing applied, the previous residuals carried."""
+    return CorrectionPass(
+        number=number,
+        mean_gray_residual=float("nan"),
+        noise_floor=previous.noise_floor,
+        residual_before=previous.mean_gray_residual,
+        local_residual_before=previous.local_residual_after,
+        local_residual_after=float("nan"),
+        accepted=False,
+        accepted_nodes=0,
+        rejected_nodes=0,
+        improved_nodes=0,
+        fraction_changed=0.0,
+        mean_change=0.0,
+        max_change=0.0,
+        converged_fraction=converged,
+        seconds=time.perf_counter() - started,
+    )

@@ -87,7 +87,13 @@ from .pass_update import (
     updated_field,
     zero_start,
 )
-from .record import CHANGE_THRESHOLD, CorrectionPass, correction_table
+from .record import (
+    CHANGE_THRESHOLD,
+    CorrectionPass,
+    add_stages,
+    correction_table,
+    failed_pass,
+)
 from .rematch_region import (
     applied_change,
     first_selection,
@@ -362,7 +368,7 @@ def _correction_loop(
             f"correction pass {number}",
         )
         volumes.release(pair[2])
-        _add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
+        add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
         t0 = time.perf_counter()
         if selection is not None and previous_raw is None:
             delta = reuse(delta, remeasurement(delta, current, read_points), selection.matched)
@@ -377,7 +383,7 @@ def _correction_loop(
         try:
             delta = clean(delta, **clean_options)
         except ValueError:
-            passes.append(_failed_pass(number, converged, pass_started, passes[-1]))
+            passes.append(failed_pass(number, converged, pass_started, passes[-1]))
             stop = "the correcting field could not be cleaned"
             break
         candidate = finish_pass(
@@ -421,10 +427,10 @@ def _correction_loop(
         n_accepted = int(np.count_nonzero(accept))
         applied = n_accepted > 0
         t1 = time.perf_counter()
-        _add_stages(stages, None, acceptance_s=t1 - t0)
+        add_stages(stages, None, acceptance_s=t1 - t0)
         if applied:
             mixed_moved, mixed_residual = yield from volumes.align(mixed)
-            _add_stages(stages, None, warp_s=time.perf_counter() - t1)
+            add_stages(stages, None, warp_s=time.perf_counter() - t1)
         else:
             mixed, mixed_moved, mixed_residual, local_mixed = (
                 current,
@@ -527,7 +533,7 @@ def _correction_loop(
         usable, t0 = ~(masked | shielded | cracked | unexplained), time.perf_counter()
         fitted = regularise(result, params.subvolume, pass_params.subvolume, usable, current)
         result = fitted.field
-        _add_stages(stages, None, noise_fit_s=time.perf_counter() - t0)
+        add_stages(stages, None, noise_fit_s=time.perf_counter() - t0)
     result.metadata["correction_passes"] = [p.to_dict() for p in passes]
     result.metadata["gray_levels"] = gray_levels.to_dict()
     result.metadata["correction"] = {
@@ -559,43 +565,9 @@ def _correction_loop(
     return result
 
 
-def _add_stages(stages: dict, delta, **seconds) -> None:
-    """Add wall times to ``stages`` (with the correcting DVC's IC-GN and statistics)."""
-    for key, value in seconds.items():
-        stages[key] = stages.get(key, 0.0) + float(value)
-    timings = {} if delta is None else delta.metadata.get("timings", {})
-    timings = timings.get("task_s", timings)  # a tiled run sums its batches' stages there
-    for key, name in (("icgn_s", "correcting_icgn_s"), ("noise_s", "correcting_statistics_s")):
-        stages[name] = stages.get(name, 0.0) + float(timings.get(key, 0.0))
-    if "uncertainty_s" in timings:
-        stages["correcting_statistics_s"] += float(timings["uncertainty_s"])
-
-
 def _mean(values: np.ndarray) -> float:
     finite = np.isfinite(values)
     return float(np.mean(values[finite])) if finite.any() else float("nan")
-
-
-def _failed_pass(
-    number: int, converged: float, started: float, previous: CorrectionPass
-) -> CorrectionPass:
-    return CorrectionPass(
-        number=number,
-        mean_gray_residual=float("nan"),
-        noise_floor=previous.noise_floor,
-        residual_before=previous.mean_gray_residual,
-        local_residual_before=previous.local_residual_after,
-        local_residual_after=float("nan"),
-        accepted=False,
-        accepted_nodes=0,
-        rejected_nodes=0,
-        improved_nodes=0,
-        fraction_changed=0.0,
-        mean_change=0.0,
-        max_change=0.0,
-        converged_fraction=converged,
-        seconds=time.perf_counter() - started,
-    )
 
 
 def correct(
