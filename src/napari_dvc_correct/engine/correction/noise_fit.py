@@ -31,7 +31,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage
 
 from ..fields.field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from .pass_method import node_bend
@@ -304,6 +304,8 @@ def fit_noise_regions(
         )
         own_chi2 += residual[:, centre] ** 2 / own_variance
     dof = 3 * (present.sum(axis=1) - 4)
+    from scipy import stats  # here: scipy.stats takes 0.3 s to import (every correction's start-up)
+
     passes = chi2 <= stats.chi2.ppf(1.0 - CHI2_LEVEL, dof)
     passes &= own_chi2 <= stats.chi2.ppf(1.0 - CHI2_LEVEL, 3)
     passes &= curvature <= stats.chi2.ppf(1.0 - CHI2_LEVEL, 3 * len(pairs))
