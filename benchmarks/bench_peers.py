@@ -151,7 +151,7 @@ def real_row(al_dvc, name: str, repeat: int) -> dict | None:
     zero = plain.copy()
     zero.u[:] = 0.0
     zero.status[:] = int(Status.CONVERGED)
-    zero_residual, _ = bench_real.judge_residual(reference, deformed, zero)
+    zero_residual = bench_real.judge_residual(reference, deformed, zero)[0]
     judged = lambda field: bench_real.judge_residual(reference, deformed, field)[0] / zero_residual  # noqa: E731
     row = {
         "case": f"real rock, {name} crop",
