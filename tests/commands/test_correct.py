@@ -29,12 +29,20 @@ def volumes(tmp_path_factory):
     return paths
 
 
-def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_path, capsys):
+def correlated_field_file(volumes, tmp_path, one_wrong_node: bool = False):
+    """``correlate`` of states 0 and 1 written to ``field.npz``; with ``one_wrong_node`` one node
+    is moved 1.5 voxel off (a translation alone has nothing a pass could correct)."""
     field_path = tmp_path / "field.npz"
     assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
-    wrong = load_field(field_path)
-    wrong.u[1, 1, 1] += (0.0, 1.5, 0.0)  # one wrong node: something for a pass to correct
-    save_field(wrong, field_path)
+    if one_wrong_node:
+        wrong = load_field(field_path)
+        wrong.u[1, 1, 1] += (0.0, 1.5, 0.0)
+        save_field(wrong, field_path)
+    return field_path
+
+
+def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_path, capsys):
+    field_path = correlated_field_file(volumes, tmp_path, one_wrong_node=True)
     out = tmp_path / "corrected.npz"
     code = main(
         ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out),
@@ -63,8 +71,7 @@ def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_pat
 
 
 def test_correct_with_the_regularised_estimate_says_what_it_did(volumes, tmp_path, capsys):
-    field_path = tmp_path / "field.npz"
-    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    field_path = correlated_field_file(volumes, tmp_path)
     out = tmp_path / "corrected.npz"
     args = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out)]
     assert main([*args, "--max-passes", "1", "--noise-fit", "--quiet"]) == 0
@@ -91,8 +98,7 @@ def test_correct_reads_the_match_uncertainties_of_our_own_field_file(volumes, tm
     """A field written by ``correlate`` keeps its matches' uncertainties through ``correct``'s
     reader: on a clean translation, where every node is its own converged match, the correction
     knows it and runs no pass (a pass could only re-measure the same images)."""
-    field_path = tmp_path / "field.npz"
-    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    field_path = correlated_field_file(volumes, tmp_path)
     written = load_field(field_path)
     assert written.uncertainty is not None
     out = tmp_path / "corrected.npz"
@@ -135,11 +141,7 @@ def test_correlate_self_correct(volumes, tmp_path, capsys):
 
 
 def test_correct_prints_the_method_of_its_passes(volumes, tmp_path, capsys):
-    field_path = tmp_path / "field.npz"
-    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
-    wrong = load_field(field_path)
-    wrong.u[1, 1, 1] += (0.0, 1.5, 0.0)  # one wrong node: something for a pass to correct
-    save_field(wrong, field_path)
+    field_path = correlated_field_file(volumes, tmp_path, one_wrong_node=True)
     capsys.readouterr()
     out = tmp_path / "corrected.npz"
     args = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out)]
@@ -151,8 +153,7 @@ def test_correct_prints_the_method_of_its_passes(volumes, tmp_path, capsys):
 
 
 def test_correct_tiled_gives_the_in_memory_field(volumes, tmp_path, capsys):
-    field_path = tmp_path / "field.npz"
-    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    field_path = correlated_field_file(volumes, tmp_path)
     common = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--max-passes", "2"]
     assert main([*common, "--out", str(tmp_path / "a.npz"), "--quiet"]) == 0
     capsys.readouterr()
@@ -169,8 +170,7 @@ def test_correct_tiled_gives_the_in_memory_field(volumes, tmp_path, capsys):
 
 
 def test_correct_tiled_refuses_a_run_over_max_memory_and_writes_nothing(volumes, tmp_path, capsys):
-    field_path = tmp_path / "field.npz"
-    assert main(["correlate", volumes[0], volumes[1], "--out", str(field_path), *DVC]) == 0
+    field_path = correlated_field_file(volumes, tmp_path)
     out = tmp_path / "corrected.npz"
     args = ["correct", volumes[0], volumes[1], "--field", str(field_path), "--out", str(out)]
     assert main([*args, "--max-memory", "1MB", "--quiet"]) == 2
