@@ -227,11 +227,14 @@ def test_the_estimate_follows_imposed_errors_on_ct_texture(ct_pair):
     assert np.median(plain) == pytest.approx(np.median(estimate["uniform"]), rel=0.1)
 
 
-def test_independent_node_errors_are_read_through_the_window_s_mean(ct_pair):
+def test_independent_node_errors_are_read_at_the_node_not_through_the_window(ct_pair):
     """Random node errors (0.6 voxel rms, independent from node to node): the densified field
     between nodes averages them, so a window of one grid step holds about a third of each
-    node's error. The estimate follows that window mean (within 25 % at the median), not the
-    node's own error: why imposed random errors read at a fraction of their truth."""
+    node's error (the residual's part follows that window mean within 25 %). The estimate reads
+    the node's own error through the node's departure from its neighbourhood: its median
+    within 0.8-1.4 of the truth's and ranked (measured: 1.09, Spearman 0.72)."""
+    from scipy.stats import spearmanr
+
     from napari_dvc_correct.engine.evaluation.error_estimate import error_region_half
     from napari_dvc_correct.engine.fields.field_spline import densify
 
@@ -252,8 +255,16 @@ def test_independent_node_errors_are_read_through_the_window_s_mean(ct_pair):
     truth = np.linalg.norm(errors, axis=1)[inside]
     windowed, estimate = windowed[inside], item.error_estimate.reshape(-1)[inside]
     assert 0.25 < np.median(windowed) / np.median(truth) < 0.42  # what the window holds: 0.33
-    assert np.median(estimate) == pytest.approx(np.median(windowed), rel=0.25)  # 1.10
-    assert np.median(estimate) < 0.6 * np.median(truth)
+    resolved = np.sqrt(np.maximum(estimate**2 - _roughness(field)[inside] ** 2, 0.0))
+    assert np.median(resolved) == pytest.approx(np.median(windowed), rel=0.25)
+    assert 0.8 < np.median(estimate) / np.median(truth) < 1.4
+    assert spearmanr(estimate, truth).statistic >= 0.6
+
+
+def _roughness(field):
+    from napari_dvc_correct.engine.evaluation.node_roughness import node_roughness
+
+    return node_roughness(field.u).reshape(-1)
 
 
 def test_the_instrument_s_noise_pairing_is_what_white_noise_shows():

@@ -36,9 +36,13 @@ node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   more than :data:`UNEXPLAINED_SIGMAS` of its noise (``2√2 σ²/√n``), the error that explains
   ``V`` with the error's direction random against the texture, ``√(3 V / tr H_t)``, is taken if
   larger.
-- **the noise of the match.** ``e = √(e_r² + |σ_u|²)`` with ``|σ_u|`` the noise-based uncertainty
-  of the match (``field.uncertainty``) where the field has it: below the resolution the residual
-  cannot rank the nodes, and the error of a match is then its noise error.
+- **the error at the node.** ``e = √(e_r² + max(|σ_u|, d)²)`` with ``|σ_u|`` the noise-based
+  uncertainty of the match (``field.uncertainty``) where the field has it, and ``d`` the node's
+  deviation from the leave-one-out quadratic fit of its neighbours
+  (:func:`.node_roughness.node_roughness`): the window holds about a third of an error confined
+  to one node, below its noise on faint texture, and the field's own shape shows it. Below the
+  resolution the residual cannot rank the nodes; a match's error is then its noise error or its
+  departure from its neighbourhood, the larger.
 
 ``σ`` is the scans' noise, from the pair's ``r0`` (eq. 1: the residual's noise has variance
 ``π r0²/2``), half of it each scan's. Where the window has no texture (``H_t`` near 0: air, a
@@ -400,14 +404,18 @@ def error_estimate(
     Returns
     -------
     estimate : ndarray, shape field.shape
-        ``√(e_r² + |σ_u|²)`` (:func:`residual_error`, :func:`noise_error`); NaN where the node's
-        window has no defined residual.
+        ``√(e_r² + max(|σ_u|, d)²)`` (:func:`residual_error`, :func:`noise_error`,
+        :func:`.node_roughness.node_roughness`); NaN where the node's window has no defined
+        residual.
     resolution : ndarray, shape field.shape
         The noise of the residual's estimate: where ``estimate`` is not above it, the residual
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
+    from .node_roughness import node_roughness
+
     residual = residual_error(moments, background, own_share)
-    estimate = np.sqrt(residual.resolved**2 + noise_error(field) ** 2)
+    node = np.maximum(noise_error(field), np.nan_to_num(node_roughness(field.u), nan=0.0))
+    estimate = np.sqrt(residual.resolved**2 + node**2)
     return estimate, residual.resolution
 
 
