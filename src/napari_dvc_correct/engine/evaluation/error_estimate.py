@@ -59,6 +59,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .node_roughness import node_roughness
+
 #: Nodes whose error is likely above this many voxels are counted as likely bad
 #: (:func:`probability_above`).
 LIKELY_BAD = 0.5
@@ -411,8 +413,6 @@ def error_estimate(
         The noise of the residual's estimate: where ``estimate`` is not above it, the residual
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
-    from .node_roughness import node_roughness
-
     residual = residual_error(moments, background, own_share)
     node = np.maximum(noise_error(field), np.nan_to_num(node_roughness(field.u), nan=0.0))
     estimate = np.sqrt(residual.resolved**2 + node**2)
