@@ -95,27 +95,10 @@ def node_bend(field: DisplacementField, half: int) -> np.ndarray:
     and an axis with fewer than 3 nodes counts no bend. NaN everywhere where some node is not
     finite (nothing to tell the bend from).
     """
-    second = node_second_differences(field)
-    if second is None:
-        return np.full(field.shape, np.nan)
-    bend = np.zeros(field.shape)
-    for values in second:
-        bend = np.maximum(bend, np.max(np.abs(values), axis=-1))
-    return 0.5 * bend * float(half) ** 2
-
-
-def node_second_differences(field: DisplacementField) -> list | None:
-    """The smoothed field's second derivatives at the nodes (voxels / voxel², signed), one
-    array of shape ``field.shape + (3,)`` (the components) per grid axis with at least 3 nodes.
-
-    What :func:`node_bend` takes the size of: second differences of :func:`_smoothed_departure`
-    over the step squared, centred; a face node takes its inner neighbour's along that axis.
-    None where some node is not finite.
-    """
     u = _smoothed_departure(field)
     if u is None:
-        return None
-    result = []
+        return np.full(field.shape, np.nan)
+    bend = np.zeros(field.shape)
     for axis in range(3):
         n = u.shape[axis]
         if n < 3:
@@ -123,8 +106,9 @@ def node_second_differences(field: DisplacementField) -> list | None:
         second = np.diff(u, n=2, axis=axis) / float(field.step[axis]) ** 2
         # centred at nodes 1 .. n-2; the face nodes take their inner neighbour's
         index = np.clip(np.arange(n) - 1, 0, n - 3)
-        result.append(np.take(second, index, axis=axis))
-    return result
+        second = np.take(second, index, axis=axis)
+        bend = np.maximum(bend, np.max(np.abs(second), axis=-1))
+    return 0.5 * bend * float(half) ** 2
 
 
 def nothing_to_correct(

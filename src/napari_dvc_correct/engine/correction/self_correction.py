@@ -79,7 +79,6 @@ from .cleaning import clean, masked_nodes
 from .noise_fit import regularise
 from .options import CorrectionOptions
 from .pass_method import correction_grid, node_bend, nothing_to_correct, pass_method
-from .pass_regions import correlate_regions, grid_choice, pass_regions
 from .pass_update import (
     correction_sigma,
     finish_pass,
@@ -329,9 +328,6 @@ def _correction_loop(
     ]
     grid = (current.origin, current.step, current.shape)
     pass_params, method = pass_method(current, params)
-    regions = pass_regions(current, params, pass_params)  # each node's way, by predicted error
-    method = method if regions is None else f"{method}; {regions.describe()}"
-    reach_half = pass_params.half if regions is None else regions.largest_half
     residual_before = residual
     unmasked = max(1, int(np.count_nonzero(~masked)))
     stop = f"max_passes ({int(max_passes)}) reached"
@@ -354,21 +350,23 @@ def _correction_loop(
             selection = select(
                 changed, last_change, read_points, read_points, pass_grid,
                 (previous_raw.origin, previous_raw.step, previous_raw.shape),
-                reach_half, tolerance,
+                pass_params.half, tolerance,
             )  # fmt: skip
             selection = selection if not selection.matched.all() else None
         elif selective:  # the first pass matches only near the nodes it can correct
-            selection = first_selection(current, params, masked, read_points, pass_grid, reach_half)
+            selection = first_selection(
+                current, params, masked, read_points, pass_grid, pass_params.half
+            )
         active = None if selection is None else selection.matched
         t0 = time.perf_counter()
         pair = yield from volumes.matching_pair(moved, current)
         t1 = time.perf_counter()
-        choice = None if regions is None else grid_choice(
-            regions, read_points, pass_grid, volumes.shape
-        )  # fmt: skip
-
-        run = _runner(volumes, pair, pass_grid, f"correction pass {number}")
-        delta = yield from correlate_regions(run, regions, choice, pass_params, active)
+        delta = yield from forward_progress(
+            volumes.correlate(
+                pass_params, pair, grid=pass_grid, initial=zero_start(pass_grid), active=active
+            ),
+            f"correction pass {number}",
+        )
         volumes.release(pair[2])
         add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
         t0 = time.perf_counter()
@@ -399,8 +397,9 @@ def _correction_loop(
         # ... and not at all where the node's whole neighbourhood holds nothing but noise: no
         # correction above its matches' noise, no bend a match could find (a pass there would
         # re-apply the noise of the images that gave the values)
-        bend = node_bend(current, pass_params.half) if regions is None else regions.bend(current)
-        noise_only = noise_only_corrections(current, candidate, sigma, bend)
+        noise_only = noise_only_corrections(
+            current, candidate, sigma, node_bend(current, pass_params.half)
+        )
         candidate, unsupported_by_noise = shrink_to_support(current, candidate, sigma)
         unsupported_by_noise |= noise_only
         # a good node whose correcting match failed keeps its value and its status: a failed
@@ -549,7 +548,6 @@ def _correction_loop(
         "pass_order": int(pass_params.order),
         "pass_subvolume": int(pass_params.subvolume),
         "pass_method": method,
-        "pass_regions": None if regions is None else regions.counts(),
         "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),
@@ -565,13 +563,6 @@ def _correction_loop(
     }
     yield Progress("done", 1, 1, f"mean gray residual {residual_before:.4g} -> {residual:.4g}")
     return result
-
-
-def _runner(volumes, pair, grid, label):
-    """``run(params, active)``: a pass's correcting DVC on ``grid``, from zero."""
-    return lambda p, nodes: forward_progress(
-        volumes.correlate(p, pair, grid=grid, initial=zero_start(grid), active=nodes), label
-    )
 
 
 def _mean(values: np.ndarray) -> float:
