@@ -54,6 +54,38 @@ def test_inpainting_is_exact_for_affine_fields_small_and_large_holes():
     assert np.abs(filled - truth).max() < 1e-3
 
 
+def test_columns_at_once_equal_scipy_cg_column_by_column_to_the_bit():
+    from scipy import sparse
+    from scipy.sparse import linalg as sparse_linalg
+
+    rng = np.random.default_rng(3)
+    known = np.ones((16, 16, 16), bool)
+    known[2:14, 3:13, 2:15] = False
+    values = rng.normal(size=(16, 16, 16, 4))
+    matrix, rhs = cleaning._thin_plate_system(values, ~known, STEP)
+    normal = (matrix.T @ matrix).tocsc()
+    normal_rhs = matrix.T @ rhs
+    normal_rhs[:, 2] = 0.0  # a zero right-hand side: returned as it is
+    start = rng.normal(size=normal_rhs.shape)
+    start[:, 1] = 0.0  # a zero start
+    diagonal = normal.diagonal()
+    jacobi = sparse_linalg.LinearOperator(normal.shape, matvec=lambda x: x / diagonal)
+    for rtol, iterations in ((1e-10, 2000), (1e-6, 2000), (1e-10, 7)):  # converged, early, cut
+        expected = np.stack(
+            [
+                sparse_linalg.cg(
+                    normal, normal_rhs[:, c], x0=start[:, c], rtol=rtol, maxiter=iterations,
+                    M=jacobi,
+                )[0]
+                for c in range(4)
+            ],
+            axis=1,
+        )  # fmt: skip
+        result = cleaning.jacobi_cg(normal, normal_rhs, start, rtol, iterations)
+        assert np.array_equal(result, expected)
+    assert isinstance(normal, sparse.csc_matrix)
+
+
 def test_inpainting_needs_something_known():
     with pytest.raises(ValueError, match="no node"):
         cleaning.inpaint(np.full((3, 3, 3), np.nan), np.zeros((3, 3, 3), bool))
