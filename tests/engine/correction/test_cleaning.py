@@ -147,6 +147,39 @@ def test_clean_replaces_failed_and_outlying_nodes_and_records_provenance():
     assert np.abs(filled.u[0] - truth[0]).max() < 0.2
 
 
+@pytest.mark.parametrize("fill_masked", [False, True])
+def test_clean_fills_u_and_the_gradient_in_one_solve_as_in_two(fill_masked):
+    rng = np.random.default_rng(4)
+    field = _grid_field(SMOOTH)
+    field.gradient = rng.normal(0.0, 0.01, (*SHAPE, 3, 3))
+    known = _holes()
+    field.status[~known] = Status.DIVERGED
+    field.u[~known] = np.nan
+    field.gradient[~known] = np.nan
+    field.status[0] = Status.MASKED
+    cleaned = cleaning.clean(field, fill_masked=fill_masked)
+    keep = known.copy()
+    keep[0] = False
+    flat = field.gradient.reshape(*SHAPE, 9)
+    u = cleaning.inpaint(field.u, keep, STEP)
+    gradient = cleaning.inpaint(flat, keep, STEP)
+    if not fill_masked:
+        u[0], gradient[0] = field.u[0], flat[0]
+    assert np.array_equal(cleaned.u, u, equal_nan=True)
+    assert np.array_equal(cleaned.gradient.reshape(*SHAPE, 9), gradient, equal_nan=True)
+    assert cleaned.u.flags.c_contiguous and cleaned.gradient.flags.c_contiguous
+    # a gradient missing where u is known: filled from its own known nodes
+    field.gradient[5, 5, 5] = np.nan
+    cleaned = cleaning.clean(field, fill_masked=fill_masked)
+    keep_gradient = keep.copy()
+    keep_gradient[5, 5, 5] = False
+    gradient = cleaning.inpaint(flat, keep_gradient, STEP)
+    if not fill_masked:
+        gradient[0] = flat[0]
+    assert np.array_equal(cleaned.gradient.reshape(*SHAPE, 9), gradient, equal_nan=True)
+    assert np.isfinite(cleaned.gradient[5, 5, 5]).all()
+
+
 def test_clean_of_a_field_with_nothing_usable_fails_loudly():
     field = _grid_field(SMOOTH)
     field.status[:] = Status.DIVERGED

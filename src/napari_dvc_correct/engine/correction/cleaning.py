@@ -508,8 +508,16 @@ def clean(
         )
     fill = rejected | (report.masked if fill_masked else np.zeros_like(rejected))
     result = field.copy()
+    flat = None if field.gradient is None else field.gradient.reshape(*field.shape, 9)
+    together = None  # u and the gradient filled in one solve where they are known at the same nodes
+    if fill.any() and flat is not None:
+        known_u = keep & np.all(np.isfinite(field.u), axis=-1)
+        if np.array_equal(known_u, keep & np.all(np.isfinite(flat), axis=-1)):
+            together = inpaint(np.concatenate([field.u, flat], axis=-1), keep, field.step)
     if fill.any():
-        result.u = inpaint(field.u, keep, field.step)
+        result.u = (
+            inpaint(field.u, keep, field.step) if together is None else together[..., :3].copy()
+        )
         if not fill_masked:
             result.u[report.masked] = field.u[report.masked]
     if smoothing > 0:
@@ -521,8 +529,11 @@ def clean(
     good_status = np.isin(field.status, [int(s) for s in GOOD_STATUSES])
     result.status[rejected & good_status] = Status.OUTLIER_REPLACED
     if result.gradient is not None and fill.any():
-        flat = field.gradient.reshape(*field.shape, 9)
-        gradient = inpaint(flat, keep & np.all(np.isfinite(flat), axis=-1), field.step)
+        gradient = (
+            inpaint(flat, keep & np.all(np.isfinite(flat), axis=-1), field.step)
+            if together is None
+            else together[..., 3:].copy()
+        )
         if not fill_masked:
             gradient[report.masked] = flat[report.masked]
         result.gradient = gradient.reshape(*field.shape, 3, 3)
