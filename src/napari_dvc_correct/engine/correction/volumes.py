@@ -201,7 +201,7 @@ class InMemoryVolumes(CorrectionVolumes):
         noise = pair_noise(*scan_noises(self.reference, self.deformed), field.displacement)
         self.gray_levels = fit_gray_levels(self.reference, moved, start=start, noise=noise)
         self._fitted_with = (field, moved)  # the residuals' first pull-back (same field)
-        self._noise_hint = noise_hint(field)  # the field being corrected: the correcting runs'
+        self._noise_hint = noise_hint(field)  # for the correcting runs, from the field corrected
         return self.gray_levels
         yield
 
