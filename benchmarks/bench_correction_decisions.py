@@ -22,12 +22,19 @@ Variants (``--variant``):
 * ``contract:off``: the stop rule takes each pass's node changes as what the next pass can still
   remove, without the passes' measured contraction
   (:func:`~napari_dvc_correct.engine.correction.rematch_region.expected_change`): the former
-  behaviour, dearer.
+  behaviour, dearer;
+* ``hint:off``: the correcting runs get no noise hint
+  (:func:`~napari_dvc_correct.engine.correction.volumes.noise_hint`), so the judge measures every
+  noisy node's uncertainty in a second pass over its subvolume: the former behaviour, dearer;
+* ``cg:columns``: the inpainting's conjugate gradients run column by column with
+  ``scipy.sparse.linalg.cg`` (the former behaviour; only grids with more than
+  :data:`~napari_dvc_correct.engine.correction.cleaning.DIRECT_SOLVE_LIMIT` nodes to fill use them).
 
 ``--seed S`` makes the 64³ cases with seed ``S`` (default 4, as ``bench_correction_cases.py``)
 and the 100³ bands with seed ``S - 4`` (default 0, as ``bench_pipeline.py``).
 
-    python benchmarks/bench_correction_decisions.py [--variant tolerance:5|sweeps:1|first:all|contract:off]
+    python benchmarks/bench_correction_decisions.py
+        [--variant tolerance:5|sweeps:1|first:all|contract:off|hint:off|cg:columns]
         [--seed 4] [case ...]
 """
 
@@ -47,8 +54,10 @@ import bench_pipeline  # noqa: E402
 
 from napari_dvc_correct.engine.correction import (  # noqa: E402
     acceptance,
+    cleaning,
     rematch_region,
     self_correction,
+    volumes,
 )
 from napari_dvc_correct.engine.correlation.correlate import correlate  # noqa: E402
 from napari_dvc_correct.engine.correlation.params import CorrelationParams  # noqa: E402
@@ -74,11 +83,12 @@ class Variant:
 
     def __init__(self, spec: str):
         kind, _, value = spec.partition(":")
-        words = {"first": "all", "contract": "off"}
+        words = {"first": "all", "contract": "off", "hint": "off", "cg": "columns"}
         known = {"tolerance", "sweeps", *words}
         if kind not in known or not value or words.get(kind, value) != value:
             raise ValueError(
-                f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, contract:off)"
+                f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, "
+                "contract:off, hint:off, cg:columns)"
             )
         self.kind = kind
         self.value = 0.0 if kind in words else float(value)
@@ -87,6 +97,8 @@ class Variant:
             acceptance.ACCEPTANCE_SWEEPS,
             self_correction.first_selection,
             rematch_region.expected_change,
+            volumes.noise_hint,
+            cleaning.jacobi_cg,
         )
 
     def __enter__(self):
@@ -102,6 +114,10 @@ class Variant:
             acceptance.ACCEPTANCE_SWEEPS = int(self.value)
         elif self.kind == "first":
             self_correction.first_selection = lambda *args, **kwargs: None
+        elif self.kind == "hint":
+            volumes.noise_hint = lambda field: None
+        elif self.kind == "cg":
+            cleaning.jacobi_cg = _cg_by_column
         else:
             rematch_region.expected_change = lambda change, *args: np.nan_to_num(change)
         return self
@@ -112,7 +128,24 @@ class Variant:
             acceptance.ACCEPTANCE_SWEEPS,
             self_correction.first_selection,
             rematch_region.expected_change,
+            volumes.noise_hint,
+            cleaning.jacobi_cg,
         ) = self.original
+
+
+def _cg_by_column(normal, rhs, start, rtol, max_iterations):
+    """The inpainting's former solve: ``scipy.sparse.linalg.cg`` once per column."""
+    from scipy.sparse import linalg as sparse_linalg
+
+    diagonal = normal.diagonal()
+    jacobi = sparse_linalg.LinearOperator(normal.shape, matvec=lambda x: x / diagonal)
+    columns = [
+        sparse_linalg.cg(
+            normal, rhs[:, c], x0=start[:, c], rtol=rtol, maxiter=max_iterations, M=jacobi
+        )[0]
+        for c in range(rhs.shape[1])
+    ]
+    return np.stack(columns, axis=1)
 
 
 def _passes(field) -> list[tuple[int, int]]:

@@ -54,6 +54,38 @@ def test_inpainting_is_exact_for_affine_fields_small_and_large_holes():
     assert np.abs(filled - truth).max() < 1e-3
 
 
+def test_columns_at_once_equal_scipy_cg_column_by_column_to_the_bit():
+    from scipy import sparse
+    from scipy.sparse import linalg as sparse_linalg
+
+    rng = np.random.default_rng(3)
+    known = np.ones((16, 16, 16), bool)
+    known[2:14, 3:13, 2:15] = False
+    values = rng.normal(size=(16, 16, 16, 4))
+    matrix, rhs = cleaning._thin_plate_system(values, ~known, STEP)
+    normal = (matrix.T @ matrix).tocsc()
+    normal_rhs = matrix.T @ rhs
+    normal_rhs[:, 2] = 0.0  # a zero right-hand side: returned as it is
+    start = rng.normal(size=normal_rhs.shape)
+    start[:, 1] = 0.0  # a zero start
+    diagonal = normal.diagonal()
+    jacobi = sparse_linalg.LinearOperator(normal.shape, matvec=lambda x: x / diagonal)
+    for rtol, iterations in ((1e-10, 2000), (1e-6, 2000), (1e-10, 7)):  # converged, early, cut
+        expected = np.stack(
+            [
+                sparse_linalg.cg(
+                    normal, normal_rhs[:, c], x0=start[:, c], rtol=rtol, maxiter=iterations,
+                    M=jacobi,
+                )[0]
+                for c in range(4)
+            ],
+            axis=1,
+        )  # fmt: skip
+        result = cleaning.jacobi_cg(normal, normal_rhs, start, rtol, iterations)
+        assert np.array_equal(result, expected)
+    assert isinstance(normal, sparse.csc_matrix)
+
+
 def test_inpainting_needs_something_known():
     with pytest.raises(ValueError, match="no node"):
         cleaning.inpaint(np.full((3, 3, 3), np.nan), np.zeros((3, 3, 3), bool))
@@ -113,6 +145,39 @@ def test_clean_replaces_failed_and_outlying_nodes_and_records_provenance():
     assert np.all(np.isfinite(filled.u))
     assert np.all(filled.provenance[0] == Provenance.MASKED)
     assert np.abs(filled.u[0] - truth[0]).max() < 0.2
+
+
+@pytest.mark.parametrize("fill_masked", [False, True])
+def test_clean_fills_u_and_the_gradient_in_one_solve_as_in_two(fill_masked):
+    rng = np.random.default_rng(4)
+    field = _grid_field(SMOOTH)
+    field.gradient = rng.normal(0.0, 0.01, (*SHAPE, 3, 3))
+    known = _holes()
+    field.status[~known] = Status.DIVERGED
+    field.u[~known] = np.nan
+    field.gradient[~known] = np.nan
+    field.status[0] = Status.MASKED
+    cleaned = cleaning.clean(field, fill_masked=fill_masked)
+    keep = known.copy()
+    keep[0] = False
+    flat = field.gradient.reshape(*SHAPE, 9)
+    u = cleaning.inpaint(field.u, keep, STEP)
+    gradient = cleaning.inpaint(flat, keep, STEP)
+    if not fill_masked:
+        u[0], gradient[0] = field.u[0], flat[0]
+    assert np.array_equal(cleaned.u, u, equal_nan=True)
+    assert np.array_equal(cleaned.gradient.reshape(*SHAPE, 9), gradient, equal_nan=True)
+    assert cleaned.u.flags.c_contiguous and cleaned.gradient.flags.c_contiguous
+    # a gradient missing where u is known: filled from its own known nodes
+    field.gradient[5, 5, 5] = np.nan
+    cleaned = cleaning.clean(field, fill_masked=fill_masked)
+    keep_gradient = keep.copy()
+    keep_gradient[5, 5, 5] = False
+    gradient = cleaning.inpaint(flat, keep_gradient, STEP)
+    if not fill_masked:
+        gradient[0] = flat[0]
+    assert np.array_equal(cleaned.gradient.reshape(*SHAPE, 9), gradient, equal_nan=True)
+    assert np.isfinite(cleaned.gradient[5, 5, 5]).all()
 
 
 def test_clean_of_a_field_with_nothing_usable_fails_loudly():

@@ -81,3 +81,15 @@ def test_the_gray_level_map_is_not_diluted_by_the_scans_noise():
     assert gray.fit == "errors in variables" and volumes.gray_levels is gray
     assert 0.85 * gray.contrast == pytest.approx(1.0, abs=0.015)  # least squares: 0.966
     assert gray.noise.moved == pytest.approx(0.565 * (0.85 * sigma) ** 2, rel=0.1)
+
+
+def test_the_correcting_runs_noise_hint_is_half_the_input_fields_noise_variance():
+    from napari_dvc_correct.engine.correction.volumes import NOISE_HINT_FRACTION, noise_hint
+    from napari_dvc_correct.engine.fields.field import DisplacementField
+
+    field = DisplacementField.zeros((0.0, 0.0, 0.0), (4.0, 4.0, 4.0), (3, 3, 3))
+    assert noise_hint(field) is None  # another program's field: no estimate, no hint
+    field.metadata["noise"] = {"sigma": 2.0}
+    assert noise_hint(field) == NOISE_HINT_FRACTION * 4.0 == 2.0
+    field.metadata["noise"] = {"sigma": 0.0}
+    assert noise_hint(field) is None

@@ -88,6 +88,31 @@ def test_the_matchs_own_sigma_equals_the_statistics_pass(order):
     assert np.all(np.isfinite(expected[:3])) and np.all(expected[:3] > 0)
     np.testing.assert_array_equal(sigma[:3, :3], expected[:3])
 
+    # POIs whose gradient power is below noise_power: the sensitivity pass, from the same terms
+    noisy = synthetic.add_noise(deformed, 0.03, seed=2).astype(np.float32)
+    level = PyramidLevel.build(
+        1, reference.astype(np.float32), noisy, None, params.half, 0.0, "cpu"
+    )  # fmt: skip
+    for noise_power in (0.0, 1e30):
+        sigma = np.zeros((len(centers), 4))
+        matched = warps.copy()
+        zncc, status, _ = level.match(
+            centers, matched, order, params, sigma=sigma, noise_power=noise_power
+        )
+        kind = 1.0 if noise_power == 0.0 else 2.0
+        assert np.all(sigma[:3, 3] == kind) and sigma[3, 3] == 0.0
+        expected = np.empty((len(centers), 3))
+        icgn_uncertainty.subvolume_statistics(
+            level.reference, level.gradient, level.coef_deformed, level.mask, False, centers,
+            params.half, nb, matched, zncc, np.full(len(centers), kind == 2.0),
+            np.empty(len(centers)), np.empty(len(centers)), expected,
+        )  # fmt: skip
+        assert np.all(np.isfinite(expected[:3])) and np.all(expected[:3] > 0)
+        np.testing.assert_array_equal(sigma[:3, :3], expected[:3])
+        if kind == 1.0:
+            plain = sigma[:3, :3].copy()
+    assert np.abs(sigma[:3, :3] / plain - 1.0).max() > 1e-2  # the sensitivity pass counted
+
 
 def test_a_field_is_the_same_whether_icgn_or_the_judge_measures_sigma(monkeypatch):
     """Letting IC-GN measure the noise-free sigma changes nothing in the field."""
@@ -105,7 +130,7 @@ def test_a_field_is_the_same_whether_icgn_or_the_judge_measures_sigma(monkeypatc
     fast = correlate(reference, deformed, params)
     original = pyramid.PyramidLevel.match
 
-    def without_sigma(self, centers, warps, order, params, sigma=None):
+    def without_sigma(self, centers, warps, order, params, sigma=None, noise_power=0.0):
         return original(self, centers, warps, order, params)
 
     monkeypatch.setattr(pyramid.PyramidLevel, "match", without_sigma)
@@ -113,3 +138,42 @@ def test_a_field_is_the_same_whether_icgn_or_the_judge_measures_sigma(monkeypatc
     for name in ("u", "zncc", "status", "iterations", "uncertainty"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
     assert np.isfinite(fast.uncertainty).any()
+
+
+def test_a_noise_hint_changes_no_number_right_or_wrong(monkeypatch):
+    """The hint only moves the sensitivity pass into IC-GN's call: the field is the same with
+    no hint, a right one, one that calls every POI noisy and one that calls none; with a right
+    hint the judge's own pass measures fewer POIs."""
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correlation import pyramid
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+
+    truth = synthetic.shear_band((24.0,) * 3, width=6.0, slip=2.0, shift=(0.5, -0.7, 1.2))
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=5), (48,) * 3, truth, margin=8
+    )
+    reference = synthetic.add_noise(reference, 0.03, seed=2)
+    deformed = synthetic.add_noise(deformed, 0.03, seed=1)
+    measured = []
+    original = pyramid.PyramidLevel.statistics
+
+    def counting(self, centers, *args):
+        measured.append(len(centers))
+        return original(self, centers, *args)
+
+    monkeypatch.setattr(pyramid.PyramidLevel, "statistics", counting)
+    params = CorrelationParams(subvolume=15, step=6, order=2)
+    plain = correlate(reference, deformed, params)
+    variance = plain.metadata["noise"]["sigma"] ** 2
+    assert variance > 0
+    for hint in (variance, 1e9, 1e-9):
+        field = correlate(reference, deformed, params, noise_hint=hint)
+        for name in ("u", "zncc", "status", "iterations", "uncertainty"):
+            np.testing.assert_array_equal(
+                getattr(field, name), getattr(plain, name), err_msg=f"{name}, hint {hint}"
+            )
+    assert np.isfinite(plain.uncertainty).any()
+    no_hint, right, everywhere, nowhere = measured
+    assert no_hint > 0 and right < no_hint  # the hint moved the pass (here all of it)
+    assert nowhere == no_hint and everywhere <= no_hint

@@ -307,6 +307,66 @@ def _thin_plate_system(values, unknown, step):
     return matrix, np.concatenate(rhs, axis=0)
 
 
+def jacobi_cg(normal, rhs: np.ndarray, start: np.ndarray, rtol: float, max_iterations: int):
+    """Conjugate gradients with the Jacobi preconditioner on every column of ``rhs`` at once.
+
+    Each column follows exactly the iteration of ``scipy.sparse.linalg.cg`` (same start,
+    preconditioner ``x / diag(normal)``, stop when ``‖r‖ < rtol ‖b‖``, at most
+    ``max_iterations``), so each column's result is the one that function returns, to the bit
+    (tested); the columns share each product with ``normal`` (one sparse product with several
+    vectors instead of one per column, and one Python loop instead of one per column).
+
+    Parameters
+    ----------
+    normal : scipy.sparse matrix, shape (n, n), CSC
+        Symmetric positive definite.
+    rhs, start : ndarray, shape (n, C) float64
+        Right-hand sides and starting points.
+    rtol : float
+    max_iterations : int
+
+    Returns
+    -------
+    ndarray, shape (n, C) float64
+    """
+    b = np.ascontiguousarray(np.asarray(rhs, dtype=np.float64).T)  # (C, n): rows contiguous
+    out = np.array(np.asarray(start, dtype=np.float64).T, order="C")
+    diagonal = normal.diagonal()
+    limit = np.array([rtol * float(np.linalg.norm(row)) for row in b])
+    out[limit == 0.0] = b[limit == 0.0]  # a zero right-hand side: cg returns it
+    columns = np.flatnonzero(limit > 0.0)  # the columns still iterating, in rows of x, r, p
+    x, b, limit = out[columns], b[columns], limit[columns]
+    r = b.copy()
+    moved = np.flatnonzero([row.any() for row in x])
+    if moved.size:
+        r[moved] = b[moved] - (normal @ x[moved].T).T
+    p = None
+    rho_prev = None
+    for _ in range(max_iterations):
+        going = np.array([not np.linalg.norm(row) < bound for row, bound in zip(r, limit)])
+        if not going.all():  # columns done: keep their result, iterate on the others
+            out[columns[~going]] = x[~going]
+            columns, x, r, limit = columns[going], x[going], r[going], limit[going]
+            if p is not None:
+                p, rho_prev = p[going], rho_prev[going]
+        if not columns.size:
+            break
+        z = r / diagonal
+        rho = np.array([np.dot(row, zrow) for row, zrow in zip(r, z)])
+        if p is not None:
+            p *= (rho / rho_prev)[:, None]
+            p += z
+        else:
+            p = z
+        q = np.ascontiguousarray((normal @ np.ascontiguousarray(p.T)).T)  # rows contiguous, as cg's
+        alpha = rho / np.array([np.dot(prow, qrow) for prow, qrow in zip(p, q)])
+        x += alpha[:, None] * p
+        r -= alpha[:, None] * q
+        rho_prev = rho
+    out[columns] = x
+    return np.ascontiguousarray(out.T)
+
+
 def inpaint(
     values: np.ndarray,
     known: np.ndarray,
@@ -376,20 +436,7 @@ def inpaint(
     else:
         _, nearest = ndimage.distance_transform_edt(unknown, return_indices=True)
         start = values[tuple(nearest)][unknown]
-        diagonal = normal.diagonal()
-        preconditioner = sparse_linalg.LinearOperator(
-            normal.shape, matvec=lambda x: x / diagonal, dtype=np.float64
-        )
-        solution = np.empty_like(start)
-        for c in range(values.shape[-1]):
-            solution[:, c], _ = sparse_linalg.cg(
-                normal,
-                normal_rhs[:, c],
-                x0=start[:, c],
-                rtol=1e-10,
-                maxiter=max_iterations,
-                M=preconditioner,
-            )
+        solution = jacobi_cg(normal, normal_rhs, start, 1e-10, max_iterations)
     result[unknown] = solution
     return result[..., 0] if scalar else result
 
@@ -461,8 +508,16 @@ def clean(
         )
     fill = rejected | (report.masked if fill_masked else np.zeros_like(rejected))
     result = field.copy()
+    flat = None if field.gradient is None else field.gradient.reshape(*field.shape, 9)
+    together = None  # u and the gradient filled in one solve where they are known at the same nodes
+    if fill.any() and flat is not None:
+        known_u = keep & np.all(np.isfinite(field.u), axis=-1)
+        if np.array_equal(known_u, keep & np.all(np.isfinite(flat), axis=-1)):
+            together = inpaint(np.concatenate([field.u, flat], axis=-1), keep, field.step)
     if fill.any():
-        result.u = inpaint(field.u, keep, field.step)
+        result.u = (
+            inpaint(field.u, keep, field.step) if together is None else together[..., :3].copy()
+        )
         if not fill_masked:
             result.u[report.masked] = field.u[report.masked]
     if smoothing > 0:
@@ -474,8 +529,11 @@ def clean(
     good_status = np.isin(field.status, [int(s) for s in GOOD_STATUSES])
     result.status[rejected & good_status] = Status.OUTLIER_REPLACED
     if result.gradient is not None and fill.any():
-        flat = field.gradient.reshape(*field.shape, 9)
-        gradient = inpaint(flat, keep & np.all(np.isfinite(flat), axis=-1), field.step)
+        gradient = (
+            inpaint(flat, keep & np.all(np.isfinite(flat), axis=-1), field.step)
+            if together is None
+            else together[..., 3:].copy()
+        )
         if not fill_masked:
             gradient[report.masked] = flat[report.masked]
         result.gradient = gradient.reshape(*field.shape, 3, 3)

@@ -27,6 +27,7 @@ from . import shape_function
 from .guided_repair import repair, search_seeds, seed_guesses
 from .initial_guess import global_shift, pyramid_levels
 from .match_judgement import MatchedGrid, judge_iter, match_statistics
+from .noise import NOISE_GRADIENT_GAIN, SENSITIVITY_FRACTION
 from .params import CorrelationParams
 from .pyramid import PyramidLevel, build_level
 from .pyramid_rule import level_reach
@@ -179,6 +180,7 @@ def match_iter(
     seeds=None,
     active=None,
     prefiltered=None,
+    noise_hint=None,
 ) -> Generator[Progress, None, tuple[MatchedGrid, PyramidLevel]]:
     """The first half of :func:`correlate_iter` (same parameters): the POIs matched, not judged.
 
@@ -336,6 +338,14 @@ def match_iter(
     # only the POIs that need the sensitivity pass or were repaired)
     sigma = np.full((n_points, 3), np.nan)
     sigma_plain = np.zeros(n_points, bool)
+    sigma_sensitive = np.zeros(n_points, bool)
+    # POIs expected noisy at the hinted noise get the sensitivity pass in the same kernel call
+    # (the judge's rule, match_judgement.judge_iter, with the hint for the run's noise)
+    noise_power = (
+        0.0
+        if noise_hint is None
+        else 3.0 * NOISE_GRADIENT_GAIN * float(noise_hint) / SENSITIVITY_FRACTION
+    )
     todo = np.flatnonzero(inside)
     if active is not None:
         chosen = np.asarray(active, bool).reshape(-1)
@@ -346,10 +356,14 @@ def match_iter(
         index = todo[start : start + batch]
         sub_params = np.ascontiguousarray(params_out[index])
         sub_sigma = np.zeros((len(index), 4))
-        z_b, s_b, i_b = fine.match(centers[index], sub_params, order, params, sigma=sub_sigma)
+        z_b, s_b, i_b = fine.match(
+            centers[index], sub_params, order, params, sigma=sub_sigma, noise_power=noise_power
+        )
         plain = sub_sigma[:, 3] == 1.0
-        sigma[index[plain]] = sub_sigma[plain, :3]
+        sensitive = sub_sigma[:, 3] == 2.0
+        sigma[index[plain | sensitive]] = sub_sigma[plain | sensitive, :3]
         sigma_plain[index[plain]] = True
+        sigma_sensitive[index[sensitive]] = True
         params_out[index] = sub_params
         zncc[index] = z_b
         status[index] = s_b
@@ -377,6 +391,7 @@ def match_iter(
         power=np.full(n_points, np.nan),
         sigma=sigma,
         sigma_plain=sigma_plain,
+        sigma_sensitive=sigma_sensitive,
         metadata={
             "volume_shape": list(reference.shape),
             "global_shift": [int(s) for s in shift],
@@ -407,6 +422,7 @@ def correlate_iter(
     seeds=None,
     active=None,
     prefiltered=None,
+    noise_hint=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -449,6 +465,13 @@ def correlate_iter(
     prefiltered : Prefiltered, optional
         ``∇G`` and/or ``F``'s coefficients already computed for exactly these volumes (the
         self-correction's unchanged volume, computed once for all passes). Default: computed.
+    noise_hint : float, optional
+        The imaging noise variance (gray levels²) expected of this pair, e.g. from an earlier
+        run on the same scans: the POIs that are noisy at it get the sensitivity pass of their
+        uncertainty in the IC-GN kernel's call, from the terms IC-GN holds, instead of in a
+        second pass over their subvolumes. It changes no result: the judge still decides each
+        POI's noisiness at the run's own noise and measures again where the hint guessed wrong.
+        Default: none (the second pass for every noisy POI).
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.
@@ -479,6 +502,7 @@ def correlate_iter(
         seeds=seeds,
         active=active,
         prefiltered=prefiltered,
+        noise_hint=noise_hint,
     )
     field, _ = yield from judge_iter(matched, fine, params)
     return field
@@ -501,6 +525,7 @@ def correlate(
     seeds=None,
     active=None,
     prefiltered=None,
+    noise_hint=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -518,5 +543,6 @@ def correlate(
             seeds=seeds,
             active=active,
             prefiltered=prefiltered,
+            noise_hint=noise_hint,
         )
     )

@@ -31,7 +31,7 @@ from .._numba_setup import KERNEL_OPTIONS
 from ..fields.field import Status
 from .icgn_pass import sample_pass as _sample_pass
 from .icgn_reference import reference_terms, translation_h_inverse
-from .icgn_uncertainty import match_sigma
+from .icgn_uncertainty import match_sigma, sandwich_sigma
 from .shape_function import (
     PRODUCT_TABLE,
     QUAD_AXES,
@@ -121,6 +121,7 @@ def match_one(
     quad_axes,
     noise_fraction=0.0,
     sigma_out=None,
+    noise_power=0.0,
 ):
     """Match one subvolume by IC-GN; ``p`` (3·nb) is the initial guess in and the result out.
 
@@ -130,7 +131,10 @@ def match_one(
     ``CONVERGED`` or ``MAX_ITERATIONS`` on every voxel of its subvolume, ``sigma_out[:3]`` gets
     the noise-free-``H`` uncertainty :func:`.icgn_uncertainty.subvolume_statistics` would
     compute at this match (from the reference terms held here) and ``sigma_out[3]`` 1; else
-    ``sigma_out[3]`` stays 0.
+    ``sigma_out[3]`` stays 0. Where the subvolume's gradient power (``Σ|∇G|²/n``, from ``H``)
+    is below ``noise_power`` (gray²/voxel²; 0: nowhere), the POI is expected to be noisy and
+    ``sigma_out[:3]`` gets instead what that kernel computes with the sensitivity pass
+    (:func:`.icgn_uncertainty.sandwich_sigma` at the final ``p``), and ``sigma_out[3]`` 2.
     """
     m_par = 3 * nb
     edge = 2 * half + 1
@@ -252,7 +256,10 @@ def match_one(
         motion = np.sqrt(largest)
         if motion < tolerance:
             if sigma_out is not None:
-                _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok)
+                _sigma_into(
+                    sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok,
+                    noise_power, coef_deformed, g, grad, xi, mean_g, cz, cy, cx, p,
+                )  # fmt: skip
             return zncc, _CONVERGED, iteration
         if noise_fraction > 0.0:
             stop, previous = _noise_converged(
@@ -260,7 +267,10 @@ def match_one(
             )
             if stop:
                 if sigma_out is not None:
-                    _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok)
+                    _sigma_into(
+                        sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok,
+                        noise_power, coef_deformed, g, grad, xi, mean_g, cz, cy, cx, p,
+                    )  # fmt: skip
                 return zncc, _CONVERGED, iteration
         if motion < STALL_FACTOR * shortest:
             shortest = motion
@@ -270,14 +280,35 @@ def match_one(
             if since_shortest >= STALL_ITERATIONS:
                 return zncc, _DIVERGED, iteration
     if sigma_out is not None:
-        _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok)
+        _sigma_into(
+            sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok,
+            noise_power, coef_deformed, g, grad, xi, mean_g, cz, cy, cx, p,
+        )  # fmt: skip
     return zncc, _MAX_ITERATIONS, max_iterations
 
 
 @njit(**KERNEL_OPTIONS)
-def _sigma_into(sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok):
+def _sigma_into(
+    sigma_out, whole, low, sum_j, sum_jg, delta_g, count, nb, zncc, ok,
+    noise_power, coef_deformed, g, grad, xi, mean_g, cz, cy, cx, p,
+):  # fmt: skip
     if not whole:  # voxels were dropped: not the subvolume the statistics would gather
         return
+    if noise_power > 0.0:
+        power = 0.0  # Σ|∇G|² from H's translation diagonal, as the statistics kernel
+        for k in range(3):
+            for j in range(k * nb + 1):
+                power += low[k * nb, j] * low[k * nb, j]
+        if power / count < noise_power:
+            for k in range(3):
+                sigma_out[k] = np.nan
+            if count >= 3 * nb + 3 and ok and delta_g != 0.0 and np.isfinite(zncc):
+                sandwich_sigma(
+                    coef_deformed, g, grad, xi, count, mean_g, delta_g, low, sum_j, sum_jg,
+                    cz, cy, cx, p, nb, zncc, sigma_out[:3],
+                )  # fmt: skip
+            sigma_out[3] = 2.0
+            return
     match_sigma(low, sum_j, sum_jg, delta_g, count, nb, zncc, ok, sigma_out[:3])
     sigma_out[3] = 1.0
 
@@ -371,11 +402,12 @@ def match_many(inputs, centers, params, zncc, status, iterations):
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
-def match_many_sigma(inputs, centers, params, zncc, status, iterations, sigma):
-    """:func:`match_many` that also measures each good match's noise-free-``H`` uncertainty
-    from its own reference terms (``match_one``'s ``sigma_out``): ``sigma`` (N, 4) float64 out,
-    ``sigma[:, :3]`` the uncertainty (voxels) where ``sigma[:, 3]`` is 1, as
-    :func:`.icgn_uncertainty.subvolume_statistics` without the sensitivity pass gives it."""
+def match_many_sigma(inputs, centers, params, zncc, status, iterations, sigma, noise_power):
+    """:func:`match_many` that also measures each good match's uncertainty from its own
+    reference terms (``match_one``'s ``sigma_out``): ``sigma`` (N, 4) float64 out,
+    ``sigma[:, :3]`` the uncertainty (voxels) as :func:`.icgn_uncertainty.subvolume_statistics`
+    gives it, without the sensitivity pass where ``sigma[:, 3]`` is 1 and with it where 2 (the
+    POIs whose gradient power is below ``noise_power``, gray²/voxel²; 0 for none)."""
     for i in prange(centers.shape[0]):
         p = params[i].copy()
         out = np.zeros(4)
@@ -400,6 +432,7 @@ def match_many_sigma(inputs, centers, params, zncc, status, iterations, sigma):
             inputs.quad_axes,
             inputs.noise_fraction,
             out,
+            noise_power,
         )
         params[i, :] = p
         zncc[i] = value

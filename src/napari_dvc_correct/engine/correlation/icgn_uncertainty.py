@@ -221,49 +221,70 @@ def subvolume_statistics(
         gradient_power[n] = power / count
         if not ok or delta_g == 0.0 or not np.isfinite(zncc[n]):
             continue
-        ss_g = delta_g * delta_g
-        h_perp = perpendicular_hessian(low, sum_j, sum_jg, count, ss_g, m_par)
-        residual = residual_variance(ss_g, zncc[n], count, m_par)
         if not sensitivity[n]:
-            plain_sigma(h_perp, residual, m_par, nb, sigma[n])
+            ss_g = delta_g * delta_g
+            h_perp = perpendicular_hessian(low, sum_j, sum_jg, count, ss_g, m_par)
+            plain_sigma(h_perp, residual_variance(ss_g, zncc[n], count, m_par), m_par, nb, sigma[n])
             continue
-        # A from the deformed volume's gradient at the warped voxels
-        if nb == 4:
-            cross, sum_jf, sum_jfg, used, sum_f, sum_ff = affine_sensitivity_sums(
-                coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, params[n]
+        sandwich_sigma(
+            coef_deformed, g, grad, xi, count, mean_g, delta_g, low, sum_j, sum_jg, cz, cy, cx,
+            params[n], nb, zncc[n], sigma[n],
+        )  # fmt: skip
+
+
+@njit(**KERNEL_OPTIONS)
+def sandwich_sigma(
+    coef_deformed, g, grad, xi, count, mean_g, delta_g, low, sum_j, sum_jg, cz, cy, cx, p, nb,
+    zncc, out,
+):  # fmt: skip
+    """:func:`subvolume_statistics`' sigma of a noisy POI (the sensitivity ``A`` measured from
+    the deformed volume at the warp ``p``), from the subvolume and reference terms already at
+    hand (IC-GN's, or the statistics kernel's own): ``out`` (3,) gets the standard deviations,
+    ``inf`` where ``A`` is singular; it is left as it is where that kernel writes NaN (fewer than
+    ``3·nb + 3`` voxels of the warped subvolume inside ``F``, or no gray variance there). The
+    caller has checked ``count ≥ 3·nb + 3``, ``H``'s factorisation, ``delta_g > 0`` and a finite
+    ``zncc``."""
+    m_par = 3 * nb
+    ss_g = delta_g * delta_g
+    h_perp = perpendicular_hessian(low, sum_j, sum_jg, count, ss_g, m_par)
+    residual = residual_variance(ss_g, zncc, count, m_par)
+    # A from the deformed volume's gradient at the warped voxels
+    if nb == 4:
+        cross, sum_jf, sum_jfg, used, sum_f, sum_ff = affine_sensitivity_sums(
+            coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, p
+        )
+    elif nb == 10:
+        cross, sum_jf, sum_jfg, used, sum_f, sum_ff = quadratic_sensitivity_sums(
+            coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, p
+        )
+    else:
+        cross, sum_jf, sum_jfg, used, sum_f, sum_ff = sensitivity_sums(
+            coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, p, nb
+        )
+    if used < m_par + 3:
+        return
+    ss_f = sum_ff - sum_f * sum_f / used
+    if not (ss_f > 0.0):
+        return
+    ratio = delta_g / np.sqrt(ss_f)
+    identity = np.eye(m_par)
+    for r in range(m_par):
+        for c in range(m_par):
+            cross[r, c] = ratio * (
+                cross[r, c] - sum_j[r] * sum_jf[c] / count - sum_jg[r] * sum_jfg[c] / ss_g
             )
-        elif nb == 10:
-            cross, sum_jf, sum_jfg, used, sum_f, sum_ff = quadratic_sensitivity_sums(
-                coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, params[n]
-            )
-        else:
-            cross, sum_jf, sum_jfg, used, sum_f, sum_ff = sensitivity_sums(
-                coef_deformed, g, grad, xi, count, mean_g, cz, cy, cx, params[n], nb
-            )
-        if used < m_par + 3:
-            continue
-        ss_f = sum_ff - sum_f * sum_f / used
-        if not (ss_f > 0.0):
-            continue
-        ratio = delta_g / np.sqrt(ss_f)
-        identity = np.eye(m_par)
+    inverse = compose_inverse(identity, cross, m_par)
+    # Cov Φ = σ_r² (H⊥ + sym A) / 2: see subvolume_statistics
+    for r in range(m_par):
+        for c in range(m_par):
+            h_perp[r, c] = 0.5 * h_perp[r, c] + 0.25 * (cross[r, c] + cross[c, r])
+    for k in range(3):
+        row = k * nb
+        quad = 0.0
         for r in range(m_par):
+            t = 0.0
             for c in range(m_par):
-                cross[r, c] = ratio * (
-                    cross[r, c] - sum_j[r] * sum_jf[c] / count - sum_jg[r] * sum_jfg[c] / ss_g
-                )
-        inverse = compose_inverse(identity, cross, m_par)
-        # Cov Φ = σ_r² (H⊥ + sym A) / 2: see the docstring
-        for r in range(m_par):
-            for c in range(m_par):
-                h_perp[r, c] = 0.5 * h_perp[r, c] + 0.25 * (cross[r, c] + cross[c, r])
-        for k in range(3):
-            row = k * nb
-            quad = 0.0
-            for r in range(m_par):
-                t = 0.0
-                for c in range(m_par):
-                    t += h_perp[r, c] * inverse[row, c]
-                quad += inverse[row, r] * t
-            value = np.sqrt(residual * max(quad, 0.0))
-            sigma[n, k] = value if np.isfinite(value) else np.inf
+                t += h_perp[r, c] * inverse[row, c]
+            quad += inverse[row, r] * t
+        value = np.sqrt(residual * max(quad, 0.0))
+        out[k] = value if np.isfinite(value) else np.inf

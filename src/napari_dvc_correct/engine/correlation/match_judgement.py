@@ -65,6 +65,10 @@ class MatchedGrid:
         POIs whose ``sigma`` already holds the noise-free-``H`` estimate (``σ_r² (H⊥⁻¹)_kk``) at
         their current match; :func:`judge_iter` keeps it where that estimate is the one it
         would make (the POI is not noisy at the run's noise and was not repaired).
+    sigma_sensitive : ndarray of bool, shape (N,), optional
+        POIs whose ``sigma`` already holds the estimate with the sensitivity pass at their
+        current match (IC-GN's kernel, given a noise hint); kept where the POI is noisy at the
+        run's noise and was not repaired.
     metadata : dict
         The field's metadata so far (volume shape, global shift, pyramid levels, timings...).
     started : float
@@ -84,6 +88,7 @@ class MatchedGrid:
     metadata: dict = field(default_factory=dict)
     started: float = 0.0
     sigma_plain: np.ndarray | None = None
+    sigma_sensitive: np.ndarray | None = None
 
     def noise_estimates(self, index=None) -> np.ndarray:
         """:func:`.noise.noise_estimates` of the POIs at ``index`` (default all)."""
@@ -119,6 +124,7 @@ def measure_plain_sigma(fine, matched: MatchedGrid, order) -> None:
         good,
     )
     matched.sigma_plain = plain
+    matched.sigma_sensitive = None  # overwritten by the plain estimate above
 
 
 def judge_iter(
@@ -191,7 +197,11 @@ def judge_iter(
     measured = np.isin(status, np.r_[_GOOD, [int(Status.LOW_ZNCC)]])
     if matched.sigma_plain is not None:  # already measured as this judge would: keep it
         sigma[matched.sigma_plain & ~measured] = np.nan  # e.g. found textureless since
-        measured &= ~(matched.sigma_plain & ~noisy & ~repaired)
+        kept = matched.sigma_plain & ~noisy
+        if matched.sigma_sensitive is not None:
+            sigma[matched.sigma_sensitive & ~measured] = np.nan
+            kept |= matched.sigma_sensitive & noisy
+        measured &= ~(kept & ~repaired)
     measured = np.flatnonzero(measured)
     stats = (None, None, sigma)  # variance and power: match_statistics'
     fine.statistics(

@@ -183,13 +183,14 @@ class PyramidLevel:
             noise_fraction=float(params.noise_tolerance),
         )
 
-    def match(self, centers, warps, order, params, sigma=None):
+    def match(self, centers, warps, order, params, sigma=None, noise_power=0.0):
         """IC-GN at ``centers`` from ``warps`` (N, 3·nb), updated in place.
 
         ``params`` is the run's :class:`CorrelationParams`. Returns ``(zncc, status,
         iterations)``. ``sigma`` (N, 4) float64, optional, out: on the CPU, each good match's
-        noise-free-``H`` uncertainty from the match's own reference terms where ``sigma[:, 3]``
-        is 1 (:func:`.icgn.match_many_sigma`); left at 0 (not measured) on the GPU.
+        uncertainty from the match's own reference terms, noise-free-``H`` where ``sigma[:, 3]``
+        is 1, with the sensitivity pass where it is 2 (the POIs whose gradient power is below
+        ``noise_power``) (:func:`.icgn.match_many_sigma`); left at 0 (not measured) on the GPU.
         """
         n = len(centers)
         zncc = np.full(n, np.nan)
@@ -208,6 +209,7 @@ class PyramidLevel:
                 status,
                 iterations,
                 sigma,
+                float(noise_power),
             )
             return zncc, status, iterations
         if self.device == "cuda":
