@@ -10,11 +10,15 @@
   The engine's own stage times come from the field file (``prefilter_s`` includes loading, or
   compiling, the first kernel and numba's one-off set-up).
 
+``--self-correct`` adds that option to ``correlate``. Two counts that do not depend on the machine's
+load are given for the warm ``correlate``: the modules it imports (``python -X importtime``) and the
+numba kernels it loads from the cache (``NUMBA_DEBUG_CACHE=1``: one load per kernel and signature).
+
 Each figure is the best of ``--repeat`` runs (the cold run once). ``--checkout`` runs the same
 commands against other source trees (their ``src`` folders first on ``PYTHONPATH``), alternating
 between them, for A/B comparisons on a shared machine.
 
-    python benchmarks/bench_startup.py [--size 48] [--repeat 5] [--no-cold]
+    python benchmarks/bench_startup.py [--size 48] [--repeat 5] [--no-cold] [--self-correct]
                                        [--checkout /path/a --checkout /path/b] [--json out.json]
 """
 
@@ -86,7 +90,35 @@ def _stage_times(field_path: Path, env: dict) -> dict:
     return json.loads(out.stdout)
 
 
-def measure(checkouts: list[Path], size: int, repeat: int, cold: bool) -> dict:
+def _counts(command: list[str], env: dict, cwd: Path) -> dict:
+    """Modules imported and numba kernels loaded from the cache by one run of ``command``."""
+    imports = subprocess.run(
+        [command[0], "-X", "importtime", *command[1:]],
+        env=env,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    modules = sum(
+        1
+        for line in imports.stderr.splitlines()
+        if line.startswith("import time:") and "self [us]" not in line
+    )
+    loads = subprocess.run(
+        command, env={**env, "NUMBA_DEBUG_CACHE": "1"}, cwd=cwd, capture_output=True, text=True
+    )
+    lines = (loads.stdout + loads.stderr).splitlines()
+    return {
+        "modules_imported": modules,
+        "kernels_loaded": sum("[cache] data loaded" in line for line in lines),
+        "kernels_compiled": sum("[cache] data saved" in line for line in lines),
+    }
+
+
+def measure(
+    checkouts: list[Path], size: int, repeat: int, cold: bool, self_correct: bool = False
+) -> dict:
     py = sys.executable
     results = {
         str(c): {"warm_correlate_s": [], "help_s": [], "import_engine_s": []} for c in checkouts
@@ -98,6 +130,7 @@ def measure(checkouts: list[Path], size: int, repeat: int, cold: bool) -> dict:
         out = folder / "field.npz"
         correlate = [py, "-m", "napari_dvc_correct.cli", "correlate", str(ref), str(dfm)]
         correlate += ["--subvolume", "15", "--step", "8", "--quiet", "--out", str(out)]
+        correlate += ["--self-correct"] if self_correct else []
         for checkout in checkouts:  # the first run fills the cache: cold (else a warm-up)
             env = _environment(checkout, caches[checkout])
             seconds = _wall(correlate, env, folder)
@@ -120,6 +153,9 @@ def measure(checkouts: list[Path], size: int, repeat: int, cold: bool) -> dict:
                 )
                 entry["warm_correlate_s"].append(_wall(correlate, env, folder))
                 entry["warm_stages"] = _stage_times(out, env)
+        for checkout in checkouts:
+            env = _environment(checkout, caches[checkout])
+            results[str(checkout)].update(_counts(correlate, env, folder))
     for entry in results.values():
         for key in ("help_s", "import_engine_s", "warm_correlate_s"):
             entry[key] = min(entry[key])
@@ -141,11 +177,14 @@ def main() -> None:
         type=Path,
         help="source tree to measure (repeatable; default: this one)",
     )
+    parser.add_argument(
+        "--self-correct", action="store_true", help="time `correlate --self-correct`"
+    )
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     checkouts = [c.resolve() for c in (args.checkout or [ROOT])]
     load = os.getloadavg()
-    results = measure(checkouts, args.size, args.repeat, not args.no_cold)
+    results = measure(checkouts, args.size, args.repeat, not args.no_cold, args.self_correct)
     print(f"load average before: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; {os.cpu_count()} CPUs")
     for checkout, entry in results.items():
         print(f"{checkout}:")
@@ -158,6 +197,11 @@ def main() -> None:
             f"  correlate, warm cache {entry['warm_correlate_s']:.3f} s (engine total "
             f"{stages['total_s']:.3f} s, prefilter + first kernel {stages['prefilter_s']:.3f} s, "
             f"IC-GN {stages['icgn_s']:.3f} s)"
+        )
+        print(
+            f"  warm correlate: {entry['modules_imported']} modules imported, "
+            f"{entry['kernels_loaded']} kernels loaded from the cache "
+            f"({entry['kernels_compiled']} compiled)"
         )
     if args.json:
         args.json.write_text(json.dumps({"load": load, "results": results}, indent=2))

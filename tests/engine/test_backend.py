@@ -67,3 +67,60 @@ def test_command_line_prints_the_device(tmp_path, capsys, monkeypatch):
     field = load_field(out)
     assert field.metadata["device"].startswith("CPU")
     assert np.allclose(field.u[field.valid], [0.3, -0.5, 0.2], atol=0.02)
+
+
+def _no_driver_files(monkeypatch):
+    real_exists = backend.os.path.exists
+    monkeypatch.setattr(
+        backend.os.path, "exists", lambda p: False if p == "/proc/driver/nvidia" else real_exists(p)
+    )
+    monkeypatch.setattr(backend, "_device_nodes", lambda: [])
+    monkeypatch.delenv("NUMBA_CUDA_DRIVER", raising=False)
+    backend._nvidia_driver_present.cache_clear()
+
+
+def test_driver_check_opens_the_library_numba_would_and_starts_no_process(monkeypatch):
+    import ctypes
+    import subprocess
+
+    _no_driver_files(monkeypatch)
+    opened = []
+
+    def fake_cdll(name):
+        opened.append(name)
+        if name != "libcuda.so":
+            raise OSError(f"{name}: cannot open shared object file")
+        return object()
+
+    def no_process(*args, **kwargs):
+        raise AssertionError("the driver check started a process")
+
+    monkeypatch.setattr(ctypes, "CDLL", fake_cdll)
+    monkeypatch.setattr(subprocess, "Popen", no_process)
+    try:
+        assert backend._nvidia_driver_present()
+        assert opened == ["libcuda.so.1", "libcuda.so"]
+        backend._nvidia_driver_present.cache_clear()
+        opened.clear()
+        monkeypatch.setattr(ctypes, "CDLL", lambda name: fake_cdll("absent " + name))
+        assert not backend._nvidia_driver_present()
+        opened[:] = [name.removeprefix("absent ") for name in opened]
+        assert opened == list(backend.DRIVER_LIBRARIES)
+        backend._nvidia_driver_present.cache_clear()
+        monkeypatch.setenv("NUMBA_CUDA_DRIVER", "/opt/driver/libcuda.so")
+        monkeypatch.setattr(ctypes, "CDLL", lambda name: name == "/opt/driver/libcuda.so" or 1 / 0)
+        assert backend._nvidia_driver_present()
+    finally:
+        backend._nvidia_driver_present.cache_clear()
+
+
+def test_device_nodes_are_numbered_nvidia_files(monkeypatch):
+    names = ["nvidia0", "nvidia12", "nvidiactl", "nvidia-uvm", "nvidia", "null"]
+    monkeypatch.setattr(backend.os, "listdir", lambda path: names)
+    assert backend._device_nodes() == ["nvidia0", "nvidia12"]
+
+    def missing(path):
+        raise FileNotFoundError(path)
+
+    monkeypatch.setattr(backend.os, "listdir", missing)
+    assert backend._device_nodes() == []

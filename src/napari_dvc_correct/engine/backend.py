@@ -50,15 +50,37 @@ def cpu_description() -> str:
     return f"CPU (numba, {numba.get_num_threads()} threads)"
 
 
+#: Where numba.cuda looks for the driver library, after ``NUMBA_CUDA_DRIVER``.
+DRIVER_LIBRARIES = ("libcuda.so.1", "libcuda.so", "nvcuda.dll")
+
+
 @functools.cache
 def _nvidia_driver_present() -> bool:
-    """Cheap check for an NVIDIA driver: its device nodes, its /proc entry or libcuda."""
-    import ctypes.util
-    import glob
+    """Cheap check for an NVIDIA driver: its device nodes, its /proc entry, or a driver library
+    the dynamic loader opens (as numba.cuda will; ``ctypes.util.find_library`` would start
+    ``ldconfig`` and a compiler, about 20 ms of every CPU run)."""
+    import ctypes
 
-    if os.path.exists("/proc/driver/nvidia") or glob.glob("/dev/nvidia[0-9]*"):
+    if os.path.exists("/proc/driver/nvidia") or _device_nodes():
         return True
-    return ctypes.util.find_library("cuda") is not None
+    for name in (os.environ.get("NUMBA_CUDA_DRIVER"), *DRIVER_LIBRARIES):
+        if not name:
+            continue
+        try:
+            ctypes.CDLL(name)
+        except OSError:
+            continue
+        return True
+    return False
+
+
+def _device_nodes() -> list[str]:
+    """``/dev/nvidia0``, ``/dev/nvidia1``, ... (none where there is no ``/dev``)."""
+    try:
+        names = os.listdir("/dev")
+    except OSError:
+        return []
+    return [name for name in names if name.startswith("nvidia") and name[6:].isdigit()]
 
 
 def probe_cuda() -> tuple[bool, str]:
