@@ -127,6 +127,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchMatch:
             grid_anchor=job.grid_anchor,
             seeds=job.seeds,
             active=job.active,
+            noise_hint=0.0,  # measure_plain_sigma below keeps the noise-free estimate only
         )
     )
     # the noise-free uncertainty while the volumes are here: a clean batch's judge reads nothing

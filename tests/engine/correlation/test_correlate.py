@@ -309,3 +309,59 @@ def test_the_blocking_form_takes_every_keyword_of_the_generator(speckle):
     good = active & (whole.status == Status.CONVERGED)
     assert good.any()
     np.testing.assert_allclose(part.u[good], whole.u[good], atol=0.02)
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_without_a_hint_a_spread_first_batch_hints_the_rest_and_changes_no_number(
+    monkeypatch, seed
+):
+    """With no noise hint, the first IC-GN batch is every k-th POI of the grid and its median
+    noise estimate tells the other batches which POIs get the sensitivity pass in IC-GN's call:
+    the field equals the one with that pass left to the judge (hint 0), and the judge measures
+    fewer POIs."""
+    from napari_dvc_correct.engine.correlation import pyramid
+    from napari_dvc_correct.engine.correlation.correlate import _noise_power
+    from napari_dvc_correct.engine.correlation.noise import noise_estimates
+
+    truth = synthetic.shear_band((24.0,) * 3, width=6.0, slip=2.0, shift=(0.5, -0.7, 1.2))
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.textured_volume(s, 2.0, seed=seed), (48,) * 3, truth, margin=8
+    )
+    reference = synthetic.add_noise(reference, 0.03, seed=seed + 1)
+    deformed = synthetic.add_noise(deformed, 0.03, seed=seed + 2)
+    calls, measured = [], []
+    match, statistics = pyramid.PyramidLevel.match, pyramid.PyramidLevel.statistics
+
+    def recording_match(self, centers, warps, order, params, sigma=None, noise_power=0.0):
+        result = match(self, centers, warps, order, params, sigma=sigma, noise_power=noise_power)
+        if sigma is not None:
+            calls.append((centers.copy(), result, noise_power))
+        return result
+
+    def counting(self, centers, *args):
+        measured.append(len(centers))
+        return statistics(self, centers, *args)
+
+    monkeypatch.setattr(pyramid.PyramidLevel, "match", recording_match)
+    monkeypatch.setattr(pyramid.PyramidLevel, "statistics", counting)
+    params = CorrelationParams(subvolume=15, step=6, batch_size=40)
+    hinted = correlate(reference, deformed, params)
+    hinted_calls, hinted_measured = calls[:], measured[:]
+    calls.clear()
+    measured.clear()
+    judged = correlate(reference, deformed, params, noise_hint=0.0)
+    for name in ("u", "zncc", "status", "iterations", "uncertainty", "gradient"):
+        np.testing.assert_array_equal(getattr(hinted, name), getattr(judged, name), err_msg=name)
+    assert np.isfinite(hinted.uncertainty).any()
+    # the first batch: at most one batch, spread over the whole grid's depth; no hint yet
+    centers, (zncc, status, _), power = hinted_calls[0]
+    assert len(centers) <= 40 and power == 0.0
+    assert np.ptp(centers[:, 0]) >= 0.8 * np.ptp(hinted.points.reshape(-1, 3)[:, 0])
+    # the others: the judge's rule at the first batch's median noise estimate
+    level = pyramid.PyramidLevel.build(1, reference, deformed, None, 7, params.min_texture)
+    variance, gradient_power = np.full(len(centers), np.nan), np.full(len(centers), np.nan)
+    level.moments(centers, 1, (variance, gradient_power), slice(None))
+    expected = _noise_power(np.median(noise_estimates(variance, zncc, status)))
+    assert expected > 0 and all(call[2] == expected for call in hinted_calls[1:])
+    assert all(call[2] == 0.0 for call in calls)  # hint 0: none expected noisy
+    assert sum(hinted_measured) < sum(measured)

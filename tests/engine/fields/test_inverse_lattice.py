@@ -181,3 +181,36 @@ def test_invalid_arguments_are_refused():
         spline.invert_lattice(BOX, accuracy=0.0)
     with pytest.raises(ValueError, match="accuracy"):
         spline.invert_lattice(BOX, outside_accuracy=-1.0)
+
+
+@pytest.mark.parametrize("stride", [1, 4])
+def test_the_coarse_stage_in_one_kernel_equals_its_three_kernels_one_by_one(stride):
+    """``_coarse_stage`` (one cache load) gives what the Newton, check and combine kernels
+    give called in turn, bit for bit."""
+    from napari_dvc_correct.engine.fields import inverse_lattice as lattice
+
+    spline = _spline(
+        synthetic.shear_band((24.0, 26.0, 28.0), width=4.0, slip=3.0, shift=(0.4, -0.8, 1.1))
+    )
+    box = (slice(5, 40), slice(0, 52), slice(3, 50))
+    inverter = LatticeInverter(spline, box, accuracy=ACCURACY, stride=stride)
+    first_node = inverter.starts // stride - lattice.BELOW
+    v = np.empty_like(inverter.v)
+    ok = np.empty_like(inverter.node_ok)
+    gain = np.empty(ok.shape)
+    fail = np.zeros_like(inverter.fail)
+    lattice._coarse_inverse(inverter.args, first_node, stride, 50, inverter.polish, v, ok, gain)
+    if stride > 1:
+        bad = np.empty(tuple(n + 1 for n in fail.shape), np.int64)
+        limits = (
+            ACCURACY / lattice.CHECK_SAFETY,
+            OUTSIDE_RELAXATION * ACCURACY / lattice.CHECK_SAFETY,
+        )
+        lattice._check_points(
+            inverter.args, spline.grid_shape, first_node, stride, *limits, v, gain, bad
+        )
+        lattice._combine(ok, gain, bad, fail)
+        assert fail.any() and not fail.all()  # the band's cells fall back to Newton
+    np.testing.assert_array_equal(inverter.v, v)
+    np.testing.assert_array_equal(inverter.node_ok, ok)
+    np.testing.assert_array_equal(inverter.fail, fail)

@@ -99,3 +99,38 @@ def test_lagrange_weights_reproduce_polynomials_up_to_degree_five():
     assert node.tolist() == [0, 1, 1, 1, 1, 2]  # cells 0, 1, 1, 1, 1, 2 from the first (0)
     np.testing.assert_allclose(weight[1], inverse_per_voxel.lagrange_weights(0.0))
     np.testing.assert_allclose(weight[2], inverse_per_voxel.lagrange_weights(0.25))
+
+
+@pytest.mark.parametrize("start, count, stride", [(0, 57, 4), (3, 6, 4), (13, 40, 5), (7, 1, 3)])
+def test_axis_weights_and_phase_table_equal_the_kernels_sums_bit_for_bit(start, count, stride):
+    """The weights are computed with NumPy (no kernel to load): the same numbers as the
+    compiled :func:`lagrange_weights` gives voxel by voxel."""
+    from numba import njit
+
+    from napari_dvc_correct.engine.fields import inverse_per_voxel
+
+    @njit
+    def compiled(start, count, stride):  # the weights as a kernel computes them
+        node = np.empty(count, np.int64)
+        weight = np.empty((count, 6))
+        table = np.empty((stride, 6))
+        for i in range(count):
+            cell = (start + i) // stride
+            node[i] = cell - start // stride
+            w = inverse_per_voxel.lagrange_weights((start + i - cell * stride) / stride)
+            for k in range(6):
+                weight[i, k] = w[k]
+        for p in range(stride):
+            w = inverse_per_voxel.lagrange_weights(p / stride)
+            for k in range(6):
+                table[p, k] = w[k]
+        return node, weight, table
+
+    node, weight, table = compiled(start, count, stride)
+    got_node, got_weight = inverse_per_voxel.axis_weights(start, count, stride)
+    phase, got_table = inverse_per_voxel.phase_table(start, count, stride)
+    np.testing.assert_array_equal(got_node, node)
+    np.testing.assert_array_equal(got_weight, weight)
+    np.testing.assert_array_equal(got_table, table)
+    np.testing.assert_array_equal(phase, (start + np.arange(count)) % stride)
+    assert got_weight.shape == (count, 6) and got_weight.flags.c_contiguous

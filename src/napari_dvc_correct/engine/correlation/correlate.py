@@ -26,8 +26,8 @@ from ..validation import validate_volume
 from . import shape_function
 from .guided_repair import repair, search_seeds, seed_guesses
 from .initial_guess import global_shift, pyramid_levels
-from .match_judgement import MatchedGrid, judge_iter, match_statistics
-from .noise import NOISE_GRADIENT_GAIN, SENSITIVITY_FRACTION
+from .match_judgement import MatchedGrid, judge_iter
+from .noise import NOISE_GRADIENT_GAIN, SENSITIVITY_FRACTION, noise_estimates
 from .params import CorrelationParams
 from .pyramid import PyramidLevel, build_level
 from .pyramid_rule import level_reach
@@ -184,8 +184,8 @@ def match_iter(
 ) -> Generator[Progress, None, tuple[MatchedGrid, PyramidLevel]]:
     """The first half of :func:`correlate_iter` (same parameters): the POIs matched, not judged.
 
-    Prefilter, initial guess and full-resolution IC-GN, then each POI's subvolume statistics
-    (:func:`.match_judgement.match_statistics`); :func:`.match_judgement.judge_iter` does the rest. :mod:`..tiled`
+    Prefilter, initial guess, each POI's subvolume moments (the noise estimate's ingredients) and
+    full-resolution IC-GN; :func:`.match_judgement.judge_iter` does the rest. :mod:`..tiled`
     runs the two halves as separate tasks, with the whole run's noise estimate in between.
 
     Returns
@@ -339,21 +339,33 @@ def match_iter(
     sigma = np.full((n_points, 3), np.nan)
     sigma_plain = np.zeros(n_points, bool)
     sigma_sensitive = np.zeros(n_points, bool)
-    # POIs expected noisy at the hinted noise get the sensitivity pass in the same kernel call
-    # (the judge's rule, match_judgement.judge_iter, with the hint for the run's noise)
-    noise_power = (
-        0.0
-        if noise_hint is None
-        else 3.0 * NOISE_GRADIENT_GAIN * float(noise_hint) / SENSITIVITY_FRACTION
-    )
     todo = np.flatnonzero(inside)
     if active is not None:
         chosen = np.asarray(active, bool).reshape(-1)
         todo = todo[chosen[todo]]
         status[~chosen] = int(Status.NOT_COMPUTED)
+    # the noise estimates' ingredients (variance and gradient power): from the reference alone, so
+    # measured before IC-GN, for the noise hint of a first sample of POIs
+    t_noise = time.perf_counter()
+    variance = np.full(n_points, np.nan)
+    power = np.full(n_points, np.nan)
+    fine.moments(centers[todo], order, (variance, power), todo)
+    noise_seconds = time.perf_counter() - t_noise
     batch = params.batch_size
-    for start in range(0, len(todo), batch):
-        index = todo[start : start + batch]
+    # without a hint, the first batch is a sample spread over the grid (every k-th POI) and
+    # the rest take the hint of its median noise estimate, as the judge estimates the noise
+    sampled = noise_hint is None and device.kind == "cpu" and len(todo) > batch
+    if sampled:
+        first = np.zeros(len(todo), bool)
+        first[:: -(-len(todo) // batch)] = True
+        todo_order = np.concatenate([todo[first], todo[~first]])
+    else:
+        todo_order = todo
+    # POIs expected noisy at the hinted noise get the sensitivity pass in the same kernel call
+    # (the judge's rule, match_judgement.judge_iter, with the hint for the run's noise)
+    noise_power = 0.0 if noise_hint is None else _noise_power(noise_hint)
+    for start in range(0, len(todo_order), batch):
+        index = todo_order[start : start + batch]
         sub_params = np.ascontiguousarray(params_out[index])
         sub_sigma = np.zeros((len(index), 4))
         z_b, s_b, i_b = fine.match(
@@ -368,17 +380,19 @@ def match_iter(
         zncc[index] = z_b
         status[index] = s_b
         iterations[index] = i_b
+        if sampled and start == 0:
+            estimates = noise_estimates(variance[index], z_b, s_b)
+            if estimates.size:
+                noise_power = _noise_power(float(np.median(estimates)))
         yield Progress(
             "IC-GN",
             min(start + batch, len(todo)),
             len(todo),
             f"matched {min(start + batch, len(todo))} of {len(todo)} POIs",
         )
-    timings["icgn_s"] = time.perf_counter() - t0
+    timings["icgn_s"] = time.perf_counter() - t0 - noise_seconds
     timings["voxel_iterations"] = int(iterations.sum()) * params.subvolume**3
-
-    # the noise estimates' ingredients (judge.match_statistics)
-    t0 = time.perf_counter()
+    timings["noise_s"] = noise_seconds
     matched = MatchedGrid(
         grid=(origin, step, grid_shape),
         centers=centers,
@@ -387,8 +401,8 @@ def match_iter(
         zncc=zncc,
         status=status,
         iterations=iterations,
-        variance=np.full(n_points, np.nan),
-        power=np.full(n_points, np.nan),
+        variance=variance,
+        power=power,
         sigma=sigma,
         sigma_plain=sigma_plain,
         sigma_sensitive=sigma_sensitive,
@@ -402,9 +416,13 @@ def match_iter(
         },
         started=start_time,
     )
-    match_statistics(fine, matched, order)
-    timings["noise_s"] = time.perf_counter() - t0
     return matched, fine
+
+
+def _noise_power(noise_variance: float) -> float:
+    """The gradient power (gray²/voxel²) below which a POI is noisy at ``noise_variance``
+    (the judge's rule, :func:`.match_judgement.judge_iter`), for IC-GN's kernel."""
+    return 3.0 * NOISE_GRADIENT_GAIN * float(noise_variance) / SENSITIVITY_FRACTION
 
 
 def correlate_iter(
@@ -471,7 +489,9 @@ def correlate_iter(
         uncertainty in the IC-GN kernel's call, from the terms IC-GN holds, instead of in a
         second pass over their subvolumes. It changes no result: the judge still decides each
         POI's noisiness at the run's own noise and measures again where the hint guessed wrong.
-        Default: none (the second pass for every noisy POI).
+        0: no POI is expected noisy. Default: on the CPU, the median noise estimate of a first
+        batch of POIs spread over the grid (:func:`.noise.noise_estimates`, as the judge
+        estimates the run's noise), for the other POIs.
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.

@@ -96,13 +96,6 @@ class MatchedGrid:
         return noise_estimates(self.variance[index], self.zncc[index], self.status[index])
 
 
-def match_statistics(fine, matched: MatchedGrid, order) -> None:
-    """Fill ``matched``'s variance and power from ``fine`` (plain sums; the noise estimate's
-    ingredients). The uncertainty is measured once, by :func:`judge_iter`."""
-    todo = matched.todo
-    fine.moments(matched.centers[todo], order, (matched.variance, matched.power), todo)
-
-
 def measure_plain_sigma(fine, matched: MatchedGrid, order) -> None:
     """Measure ``sigma`` from ``H⊥`` alone (no sensitivity pass) for the POIs good so far.
 
@@ -203,7 +196,7 @@ def judge_iter(
             kept |= matched.sigma_sensitive & noisy
         measured &= ~(kept & ~repaired)
     measured = np.flatnonzero(measured)
-    stats = (None, None, sigma)  # variance and power: match_statistics'
+    stats = (None, None, sigma)  # variance and power: measured by match_iter
     fine.statistics(
         centers[measured],
         params_out[measured],

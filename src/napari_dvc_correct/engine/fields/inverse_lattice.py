@@ -325,6 +325,19 @@ def _combine(ok, gain, bad, fail):
                 fail[a, b, d] = failed
 
 
+@njit(**KERNEL_OPTIONS)
+def _coarse_stage(
+    spline, grid_shape, first_node, stride, max_iterations, tolerance, limit, outside_limit,
+    v, ok, gain, bad, fail,
+):  # fmt: skip
+    """:func:`_coarse_inverse`, then (``stride`` > 1) :func:`_check_points` and :func:`_combine`:
+    one compiled entry, so one cache load per process instead of three."""
+    _coarse_inverse(spline, first_node, stride, max_iterations, tolerance, v, ok, gain)
+    if stride > 1:
+        _check_points(spline, grid_shape, first_node, stride, limit, outside_limit, v, gain, bad)
+        _combine(ok, gain, bad, fail)
+
+
 class LatticeInverter:
     """The coarse stage of :func:`invert_lattice` for a box, then its voxels plane range by range.
 
@@ -388,15 +401,13 @@ class LatticeInverter:
         # the nodes to a step of polish_step, like the voxels of failed cells: errors below
         # accuracy / 10, and the check sees them (they enter the interpolated guesses)
         iterations = (self.max_iterations, self.polish)
-        _coarse_inverse(self.args, first_node, stride, *iterations, self.v, self.node_ok, gain)
         self.fail = np.zeros(tuple(int(n) for n in cells), np.bool_)
-        if stride > 1:
-            bad = np.empty(tuple(int(n) for n in cells + 1), np.int64)
-            limits = (float(accuracy) / CHECK_SAFETY, float(outside_accuracy) / CHECK_SAFETY)
-            _check_points(
-                self.args, spline.grid_shape, first_node, stride, *limits, self.v, gain, bad
-            )
-            _combine(self.node_ok, gain, bad, self.fail)
+        bad = np.empty(tuple(int(n) for n in cells + 1) if stride > 1 else (0, 0, 0), np.int64)
+        limits = (float(accuracy) / CHECK_SAFETY, float(outside_accuracy) / CHECK_SAFETY)
+        _coarse_stage(
+            self.args, spline.grid_shape, first_node, stride, *iterations, *limits,
+            self.v, self.node_ok, gain, bad, self.fail,
+        )  # fmt: skip
         # the fill kernels read v component by component (their loops vectorise)
         self.v_planes = np.ascontiguousarray(np.moveaxis(self.v, -1, 0))
         x_start, x_count = int(self.starts[2]), int(self.counts[2])

@@ -56,20 +56,16 @@ def lagrange_weights(t):
     )
 
 
-@njit(**KERNEL_OPTIONS)
 def axis_weights(start, count, stride):
-    """Per voxel of one box axis: first of its 6 coarse nodes (box-local) and their weights."""
-    first_cell = start // stride
-    node = np.empty(count, np.int64)
-    weight = np.empty((count, TAPS))
-    for i in range(count):
-        cell = (start + i) // stride
-        t = (start + i - cell * stride) / stride
-        node[i] = cell - first_cell
-        w = lagrange_weights(t)
-        for k in range(TAPS):
-            weight[i, k] = w[k]
-    return node, weight
+    """Per voxel of one box axis: first of its 6 coarse nodes (box-local) and their weights.
+
+    NumPy, not a kernel (one cache load fewer per process): the same operations as the kernels'
+    :func:`lagrange_weights`, element by element, so the same numbers bit for bit."""
+    voxel = np.arange(int(start), int(start) + int(count), dtype=np.int64)
+    cell = voxel // stride
+    t = (voxel - cell * stride) / stride
+    weight = np.stack(lagrange_weights.py_func(t), axis=1) if count else np.empty((0, TAPS))
+    return cell - int(start) // stride, np.ascontiguousarray(weight)
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
@@ -100,19 +96,13 @@ def solve(spline, z, y, x, max_iterations, tolerance, position, value, jacobian)
     )
 
 
-@njit(**KERNEL_OPTIONS)
 def phase_table(start, count, stride):
     """Per voxel of the box's x axis its phase ``(start + d) % stride``, and per phase the 6
-    weights of :func:`lagrange_weights` (those of :func:`axis_weights`, the same numbers)."""
-    phase = np.empty(count, np.int64)
-    for d in range(count):
-        phase[d] = (start + d) % stride
-    table = np.empty((stride, TAPS))
-    for p in range(stride):
-        w = lagrange_weights(p / stride)
-        for k in range(TAPS):
-            table[p, k] = w[k]
-    return phase, table
+    weights of :func:`lagrange_weights` (those of :func:`axis_weights`, the same numbers; NumPy,
+    as :func:`axis_weights`)."""
+    phase = np.arange(int(start), int(start) + int(count), dtype=np.int64) % stride
+    table = np.stack(lagrange_weights.py_func(np.arange(stride, dtype=np.int64) / stride), axis=1)
+    return phase, np.ascontiguousarray(table)
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
