@@ -170,19 +170,25 @@ def dvc_field(reference, deformed):
     return correlate(reference, deformed, CorrelationParams(subvolume=SUBVOLUME, step=STEP))
 
 
+def noisy_pair(make, truth, order, kind, noise, seeds):
+    """The reference and the deformed scan of ``truth`` (warped with a 5th-order spline, or with
+    scipy's ``order`` where it is not 5), each with its own noise: ``noise`` as a share of the
+    texture's contrast (``kind == "share"``) or as a gray-level σ."""
+    if order == 5:
+        reference, deformed = make_pair(make, SHAPE, truth, 12)
+    else:
+        reference, deformed = make_pair_with(make, SHAPE, truth, order)
+    sigma = ct_noise_sigma(reference, noise) if kind == "share" else noise
+    return add_noise(reference, sigma, seed=seeds[0]), add_noise(deformed, sigma, seed=seeds[1])
+
+
 def band_fields(make, kind, noise, order, fields, truths):
     """Our DVC's field, plain and corrected, of a pair whose true field is a narrow shear band
     (half-width 4 voxels, slip 2.8: narrower than a subvolume) on a rotation, bending and a
     translation: a true field that is not smooth at the grid's scale, which the plain field
     misses at the band's core (0-13 nodes truly more than 0.5 voxel off, by texture)."""
     truth = band_rotation_bending((SHAPE[0] / 2,) * 3, 4.0, 2.8)
-    if order == 5:
-        reference, deformed = make_pair(make, SHAPE, truth, 12)
-    else:
-        reference, deformed = make_pair_with(make, SHAPE, truth, order)
-    sigma = ct_noise_sigma(reference, noise) if kind == "share" else noise
-    reference = add_noise(reference, sigma, seed=21)
-    deformed = add_noise(deformed, sigma, seed=22)
+    reference, deformed = noisy_pair(make, truth, order, kind, noise, seeds=(21, 22))
     params = CorrelationParams(subvolume=SUBVOLUME, step=STEP)
     measured = dvc_field(reference, deformed)
     corrected = correct(reference, deformed, measured, params)
@@ -241,13 +247,7 @@ def main(quick=False):
     truth_function = affine(gradient, center=np.array(SHAPE) / 2.0, shift=(1.3, -0.7, 2.2))
     rows = []
     for label, make, (kind, noise), order, cylinder in list(textures())[: 1 if quick else None]:
-        if order == 5:
-            reference, deformed = make_pair(make, SHAPE, truth_function, 12)
-        else:
-            reference, deformed = make_pair_with(make, SHAPE, truth_function, order)
-        sigma = ct_noise_sigma(reference, noise) if kind == "share" else noise
-        reference = add_noise(reference, sigma, seed=11)
-        deformed = add_noise(deformed, sigma, seed=12)
+        reference, deformed = noisy_pair(make, truth_function, order, kind, noise, seeds=(11, 12))
         origin, step, shape = grid_for_volume(SHAPE, SUBVOLUME, STEP)
         base = DisplacementField.zeros(origin, step, shape, params={"subvolume": SUBVOLUME})
         points = base.points
