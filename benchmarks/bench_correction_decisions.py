@@ -77,6 +77,17 @@ def make(case: str, seed: int = 4):
     return reference, deformed, truth, params
 
 
+# What a variant may replace, restored after its run: (module, attribute).
+PATCHED = (
+    (self_correction, "pass_method"),
+    (acceptance, "ACCEPTANCE_SWEEPS"),
+    (self_correction, "first_selection"),
+    (rematch_region, "expected_change"),
+    (volumes, "noise_hint"),
+    (cleaning, "jacobi_cg"),
+)
+
+
 class Variant:
     """Swaps the correction's pass parameters or acceptance sweeps for the variant's while
     active."""
@@ -92,17 +103,10 @@ class Variant:
             )
         self.kind = kind
         self.value = 0.0 if kind in words else float(value)
-        self.original = (
-            self_correction.pass_method,
-            acceptance.ACCEPTANCE_SWEEPS,
-            self_correction.first_selection,
-            rematch_region.expected_change,
-            volumes.noise_hint,
-            cleaning.jacobi_cg,
-        )
+        self.original = [getattr(module, name) for module, name in PATCHED]
 
     def __enter__(self):
-        original, factor = self.original[0], self.value
+        original, factor = self_correction.pass_method, self.value
 
         def pass_method(field, params):
             chosen, method = original(field, params)
@@ -123,14 +127,8 @@ class Variant:
         return self
 
     def __exit__(self, *exc):
-        (
-            self_correction.pass_method,
-            acceptance.ACCEPTANCE_SWEEPS,
-            self_correction.first_selection,
-            rematch_region.expected_change,
-            volumes.noise_hint,
-            cleaning.jacobi_cg,
-        ) = self.original
+        for (module, name), value in zip(PATCHED, self.original):
+            setattr(module, name, value)
 
 
 def _cg_by_column(normal, rhs, start, rtol, max_iterations):
