@@ -312,15 +312,10 @@ class GrayLevelMap:
             return (np.float32(self.contrast) * moved + np.float32(self.offset)).astype(
                 np.float32, copy=False
             )
-        out = np.empty(moved.shape, np.float32)
-        # slab by slab along z: the coefficients of a slab at a time
-        z0 = region[0].start
-        for start in range(0, moved.shape[0], 16):
-            stop = min(start + 16, moved.shape[0])
-            sub = (slice(z0 + start, z0 + stop), region[1], region[2])
-            a, b = self.coefficients(sub)
-            out[start:stop] = a * moved[start:stop] + b
-        return out
+        # the coefficients of :meth:`coefficients` voxel by voxel, in one compiled pass
+        from .gray_map_apply import apply_local_map
+
+        return apply_local_map(self.local_contrast, self.local_offset, self.cell, moved, region)
 
     def describe(self) -> str:
         """One line for panels and reports."""
