@@ -109,13 +109,28 @@ def main() -> None:
             _stage_table(stats, time.process_time() - started)
             stats.sort_stats("tottime").print_stats(args.top)
         arrays = {key: getattr(field, key) for key in ARRAYS}
+        # the recorded residuals and noise floor of every pass, and the gray-level map
+        arrays["passes"] = np.array(
+            [
+                (p.mean_gray_residual, p.noise_floor, p.local_residual_before,
+                 p.local_residual_after, p.accepted_nodes, p.improved_nodes)
+                for p in correction_table(field)
+            ]
+        )  # fmt: skip
+        gray = field.metadata["gray_levels"]
+        arrays["gray_levels"] = np.concatenate(
+            [np.ravel(gray.get(k) if gray.get(k) is not None else np.nan)
+             for k in ("contrast", "offset", "rms", "local_contrast", "local_offset")]
+        )  # fmt: skip
         if args.save:
             args.save.mkdir(parents=True, exist_ok=True)
             np.savez(args.save / f"{name.replace(':', '_')}.npz", **arrays)
         if args.compare:
             saved = np.load(args.compare / f"{name.replace(':', '_')}.npz")
             same = {
-                key: bool(np.array_equal(saved[key], arrays[key], equal_nan=True)) for key in ARRAYS
+                key: bool(np.array_equal(saved[key], arrays[key], equal_nan=True))
+                for key in arrays
+                if key in saved
             }
             print(f"  identical to {args.compare}: {all(same.values())} {same}")
 

@@ -1,13 +1,17 @@
-"""A local gray-level map applied to a block of voxels in one compiled pass.
+"""The gray-level map's whole-volume passes, compiled: applying a local map, and the per-cell
+sums it is fitted from.
 
-:meth:`.gray_levels.GrayLevelMap.apply` maps the loaded scan's gray levels into the reference's,
-``contrast(X) · F + offset(X)`` with ``contrast`` and ``offset`` interpolated trilinearly from the
-map's cell centres. Done with NumPy, each voxel's coefficients take six whole-block float64
-arrays (two takes and a blend per axis) before the float32 product; the correction applies the
-map to every pull-back and forward warp of the volume. Here the same arithmetic runs voxel by
-voxel: the blends along ``z`` then ``y`` on the small cell-sized arrays, the blend along ``x``
-per voxel, the coefficients rounded to float32 and ``a · F + b`` in float32, so every value
-equals NumPy's to the bit (tested).
+* :func:`apply_local_map`: :meth:`.gray_levels.GrayLevelMap.apply` maps the loaded scan's gray
+  levels into the reference's, ``contrast(X) · F + offset(X)`` with ``contrast`` and ``offset``
+  interpolated trilinearly from the map's cell centres. Done with NumPy, each voxel's
+  coefficients take six whole-block float64 arrays (two takes and a blend per axis) before the
+  float32 product; the correction applies the map to every pull-back and forward warp of the
+  volume. Here the same arithmetic runs voxel by voxel: the blends along ``z`` then ``y`` on the
+  small cell-sized arrays, the blend along ``x`` per voxel, the coefficients rounded to float32
+  and ``a · F + b`` in float32, so every value equals NumPy's to the bit (tested).
+* :func:`cell_sums`: the sums ``1, f, g, f², fg, g²`` per cell of :func:`.gray_levels.block_sums`
+  in one pass over the block, voxel by voxel in C order as ``np.bincount`` adds its weights, so
+  every sum equals NumPy's to the bit (tested), without the block's float64 copies.
 """
 
 from __future__ import annotations
@@ -93,3 +97,57 @@ def apply_local_map(
     if moved.size:
         _apply_planes(contrast, offset, *blends, moved, out)
     return out
+
+
+@njit(**KERNEL_OPTIONS)
+def _cell_sums(reference, moved, mapped, trim, limit, iz, iy, ix, n, f, g, ff, fg, gg):
+    """Add each voxel's ``1, f, g, f², fg, g²`` to its cell's sums (in place), in C order; the
+    voxels where ``f`` or ``g`` is not finite, or (``trim``) where ``|mapped - g| > limit``, are
+    left out."""
+    for a in range(reference.shape[0]):
+        for b in range(reference.shape[1]):
+            for d in range(reference.shape[2]):
+                gv = np.float64(reference[a, b, d])
+                fv = np.float64(moved[a, b, d])
+                if not (np.isfinite(fv) and np.isfinite(gv)):
+                    continue
+                if trim and not abs(np.float64(mapped[a, b, d]) - gv) <= limit:
+                    continue
+                k = iz[a]
+                j = iy[b]
+                i = ix[d]
+                n[k, j, i] += 1.0
+                f[k, j, i] += fv
+                g[k, j, i] += gv
+                ff[k, j, i] += fv * fv
+                fg[k, j, i] += fv * gv
+                gg[k, j, i] += gv * gv
+
+
+def cell_sums(reference, moved, mapped, limit: float, cell_index, cells_shape):
+    """Per-cell sums ``(n, f, g, ff, fg, gg)`` (float64 arrays of ``cells_shape``) of a block.
+
+    Parameters
+    ----------
+    reference, moved : ndarray, shape (bz, by, bx)
+        ``G`` and ``F~`` on the block (any real dtype; taken as float64).
+    mapped : ndarray, same shape, or None
+        The previous map applied to ``moved`` (float32): voxels with ``|mapped - G| > limit``
+        are left out. None: no trimming.
+    limit : float
+    cell_index : tuple of 3 int arrays
+        The cell of each voxel along z, y and x (block lengths).
+    cells_shape : tuple of 3 ints
+    """
+    reference = np.ascontiguousarray(reference)
+    moved = np.ascontiguousarray(moved)
+    if reference.dtype.kind != "f":
+        reference = reference.astype(np.float64)
+    if moved.dtype.kind != "f":
+        moved = moved.astype(np.float64)
+    trim = mapped is not None
+    mapped = np.ascontiguousarray(mapped) if trim else np.zeros((1, 1, 1), np.float32)
+    sums = tuple(np.zeros(tuple(int(c) for c in cells_shape)) for _ in range(6))
+    index = tuple(np.ascontiguousarray(i, dtype=np.int64) for i in cell_index)
+    _cell_sums(reference, moved, mapped, trim, float(limit), *index, *sums)
+    return sums
