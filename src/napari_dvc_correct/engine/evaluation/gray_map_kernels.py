@@ -17,7 +17,7 @@ sums it is fitted from.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from .._numba_setup import KERNEL_OPTIONS
 
@@ -33,7 +33,7 @@ def axis_blend(start: int, stop: int, cell: int, n_cells: int):
     return low.astype(np.int64), high.astype(np.int64), 1.0 - weight, weight
 
 
-@njit(parallel=True, **KERNEL_OPTIONS)
+@njit(**KERNEL_OPTIONS)  # serial: a parallel kernel's cache load (~50 ms) costs more than it saves
 def _apply_planes(contrast, offset, z_blend, y_blend, x_blend, moved, out):
     """``out = float32(c) · moved + float32(o)`` with ``c`` and ``o`` the cell-centre arrays
     ``contrast`` and ``offset`` blended along z, then y, then x (``*_blend``: low, high,
@@ -43,7 +43,7 @@ def _apply_planes(contrast, offset, z_blend, y_blend, x_blend, moved, out):
     xl, xh, x0, x1 = x_blend
     cy, cx = contrast.shape[1], contrast.shape[2]
     ny, nx = yl.shape[0], xl.shape[0]
-    for a in prange(zl.shape[0]):
+    for a in range(zl.shape[0]):
         plane_c = np.empty((cy, cx))
         plane_o = np.empty((cy, cx))
         for j in range(cy):
