@@ -56,6 +56,30 @@ def test_a_mask_travels_with_the_loaded_frame(pair):
     np.testing.assert_array_equal(moved_mask, expected)
 
 
+def test_the_warped_mask_reuses_the_aligned_fields_inverse_and_equals_a_fresh_warp(pair):
+    from napari_dvc_correct.engine.fields import warp
+
+    reference, deformed = pair
+    rng = np.random.default_rng(0)
+    mask = np.zeros(SHAPE, bool)
+    mask[5:27, 7:25, 6:28] = True
+    field = _uniform(SHIFT)
+    field.u += rng.normal(0.0, 0.4, field.u.shape)  # a bent field: cells solved voxel by voxel
+    expected = warp.warp_forward(mask, field, cval=0.0) > 0.5
+    volumes = V.InMemoryVolumes(reference, deformed, "loaded", mask=mask)
+    moved, _ = run_to_completion(volumes.align(field))
+    assert volumes._inverse is not None  # kept for the mask
+    moved_alone, _ = warp.warp_forward_with_residual(reference, deformed, field)
+    moved_alone[~np.isfinite(moved_alone)] = volumes.fill
+    np.testing.assert_array_equal(moved, moved_alone)  # the shared stage changes nothing
+    _, _, warped = run_to_completion(volumes.matching_pair(moved, field))
+    np.testing.assert_array_equal(warped, expected)
+    assert volumes._inverse is None  # used once
+    other = field.replace(u=field.u + 0.25)  # another field: its own inverse
+    _, _, warped = run_to_completion(volumes.matching_pair(moved, other))
+    np.testing.assert_array_equal(warped, warp.warp_forward(mask, other, cval=0.0) > 0.5)
+
+
 def test_unfinite_voxels_take_the_fill_and_the_hull_mean_skips_them():
     volume = np.array([1.0, np.nan, np.inf, 4.0])
     np.testing.assert_array_equal(V._finite_or_fill(volume, 2.5), [1.0, 2.5, 2.5, 4.0])

@@ -153,6 +153,7 @@ class InMemoryVolumes(CorrectionVolumes):
         self._coef_deformed = None
         self._fitted_with = None
         self._noise_hint = None
+        self._inverse = None  # (field, its u, the forward warp's coarse stage) of align
         if frame == "reference":
             self.coefficients = prefilter(self.deformed)
             self.fill = float(np.mean(self.deformed))
@@ -217,10 +218,14 @@ class InMemoryVolumes(CorrectionVolumes):
                 np.abs(mapped - self.reference), spline.hull_slices(self.reference.shape)
             )
         else:
+            # with a mask, the next pass warps it with this field: the inverse's coarse stage
+            # is kept for it
+            inverter = None if self.mask is None else warp.forward_inverter(spline, self.shape)
             moved, residual = warp.warp_forward_with_residual(
                 self.reference, self.deformed, spline, coefficients=self.coefficients,
-                gray_levels=gray,
+                gray_levels=gray, inverter=inverter,
             )  # fmt: skip
+            self._inverse = None if inverter is None else (field, field.u.copy(), inverter)
         return _finite_or_fill(moved, self.fill), residual
         yield  # a generator without progress: the arrays are at hand
 
@@ -229,9 +234,13 @@ class InMemoryVolumes(CorrectionVolumes):
             return self.reference, moved, self.mask
         mask = None
         if self.mask is not None:
-            warped = warp.warp_forward(
-                self.mask, field, coefficients=self.mask_coefficients, cval=0.0
-            )
+            kept, self._inverse = self._inverse, None
+            if kept is not None and kept[0] is field and np.array_equal(kept[1], field.u):
+                inverter = kept[2]  # the last aligned field's: the coarse stage done once
+            else:
+                inverter = warp.forward_inverter(FieldSpline.from_field(field), self.shape)
+            # as warp.warp_forward(mask, field, cval=0) > 0.5: undefined voxels are outside
+            warped, _ = inverter.warp(self.mask_coefficients)
             mask = warped > 0.5
             if not mask.any():
                 mask = None

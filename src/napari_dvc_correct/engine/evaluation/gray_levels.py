@@ -40,6 +40,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..progress import run_to_completion
+from .gray_map_kernels import apply_local_map, cell_sums
 from .gray_noise import PairNoise
 
 #: Edge of a cell of the local map (voxels): a few subvolumes, far larger than a crack's width.
@@ -113,18 +114,14 @@ def cells_shape(volume_shape, cell: int) -> tuple[int, int, int]:
     return tuple(max(1, int(np.ceil(int(n) / cell))) for n in volume_shape)
 
 
-def _cell_index(region, volume_shape, cell: int) -> np.ndarray:
-    """Flat cell index of every voxel of ``region`` (a tuple of 3 slices of the volume)."""
+def _axis_cells(region, volume_shape, cell: int) -> list[np.ndarray]:
+    """Per axis, the cell index of every voxel of ``region`` (a tuple of 3 slices)."""
     shape = cells_shape(volume_shape, cell)
     parts = []
     for axis, s in enumerate(region):
         index = np.arange(s.start, s.stop) // cell if cell else np.zeros(s.stop - s.start, int)
         parts.append(np.minimum(index, shape[axis] - 1))
-    return (
-        parts[0][:, None, None] * (shape[1] * shape[2])
-        + parts[1][None, :, None] * shape[2]
-        + parts[2][None, None, :]
-    )
+    return parts
 
 
 def block_sums(
@@ -140,24 +137,12 @@ def block_sums(
     Voxels where either value is not finite are left out; with ``previous`` (the first fit), so
     are the voxels whose residual under it exceeds :data:`TRIM_RMS` times its RMS.
     """
-    g = np.asarray(reference_block, dtype=np.float64)
-    f = np.asarray(moved_block, dtype=np.float64)
-    keep = np.isfinite(f) & np.isfinite(g)
-    if previous is not None:
-        residual = np.abs(previous.apply(moved_block, region) - g)
-        keep &= residual <= TRIM_RMS * previous.rms
-    index = _cell_index(region, volume_shape, cell)[keep]
-    f, g = f[keep], g[keep]
     shape = cells_shape(volume_shape, cell)
-    size = int(np.prod(shape))
-    values = (None, f, g, f * f, f * g, g * g)
-    sums = [
-        np.bincount(index, weights=v, minlength=size).reshape(shape)
-        if v is not None
-        else np.bincount(index, minlength=size).astype(np.float64).reshape(shape)
-        for v in values
-    ]
-    return CellSums(*sums)
+    index = _axis_cells(region, volume_shape, cell)
+    mapped, limit = None, 0.0
+    if previous is not None:
+        mapped, limit = previous.apply(moved_block, region), TRIM_RMS * previous.rms
+    return CellSums(*cell_sums(reference_block, moved_block, mapped, limit, index, shape))
 
 
 def _moments(n, f, g, ff, fg, gg):
@@ -312,15 +297,8 @@ class GrayLevelMap:
             return (np.float32(self.contrast) * moved + np.float32(self.offset)).astype(
                 np.float32, copy=False
             )
-        out = np.empty(moved.shape, np.float32)
-        # slab by slab along z: the coefficients of a slab at a time
-        z0 = region[0].start
-        for start in range(0, moved.shape[0], 16):
-            stop = min(start + 16, moved.shape[0])
-            sub = (slice(z0 + start, z0 + stop), region[1], region[2])
-            a, b = self.coefficients(sub)
-            out[start:stop] = a * moved[start:stop] + b
-        return out
+        # the coefficients of :meth:`coefficients` voxel by voxel, in one compiled pass
+        return apply_local_map(self.local_contrast, self.local_offset, self.cell, moved, region)
 
     def describe(self) -> str:
         """One line for panels and reports."""

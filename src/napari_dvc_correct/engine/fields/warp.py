@@ -101,6 +101,7 @@ def warp_forward_block(
     tolerance: float = INVERT_TOLERANCE,
     accuracy: float | None = INVERSE_ACCURACY,
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
+    inverter: LatticeInverter | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``G(X)`` with ``X + u(X) = x`` at every loaded-state voxel ``x`` of ``box``.
 
@@ -112,7 +113,8 @@ def warp_forward_block(
     a :class:`SplineSampler` and ``accuracy`` set, the whole box is sampled as its positions are
     made (:meth:`.inverse_lattice.LatticeInverter.warp`; the same values to float32 rounding); a
     sampler with a ``warp_forward(inverter)`` method (``tiled.volumes.LazySampler``) does it
-    itself.
+    itself. ``inverter``: the coarse stage already built for this spline and box (with these
+    settings; :func:`forward_inverter`), to warp another volume with the same field.
 
     Returns
     -------
@@ -125,7 +127,8 @@ def warp_forward_block(
     values = np.empty(shape, np.float32)
     in_hull = np.empty(shape, np.bool_)
     if accuracy is not None:
-        inverter = LatticeInverter(spline, box, max_iterations, tolerance, accuracy)
+        if inverter is None:
+            inverter = LatticeInverter(spline, box, max_iterations, tolerance, accuracy)
         if isinstance(sample_reference, SplineSampler):
             return inverter.warp(sample_reference.coefficients)
         own = getattr(sample_reference, "warp_forward", None)  # e.g. tiled.volumes.LazySampler
@@ -313,6 +316,7 @@ def warp_forward_with_residual(
     chunk_voxels: int = DEFAULT_CHUNK_VOXELS,
     accuracy: float | None = INVERSE_ACCURACY,
     gray_levels=None,
+    inverter: LatticeInverter | None = None,
 ) -> tuple[np.ndarray, float]:
     """:func:`warp_forward` (field extrapolated) and the loaded-state mean gray residual at once.
 
@@ -320,6 +324,8 @@ def warp_forward_with_residual(
     ``|F - G'|`` where the reference position lies in the grid's hull, i.e.
     ``residual.mean_gray_residual(reference, deformed, field, "loaded")``; with ``gray_levels``
     (a :class:`.gray_levels.GrayLevelMap`) the mean of ``|map(F) - G'|`` (reference gray levels).
+    ``inverter``: :func:`forward_inverter` of ``field`` and this shape, built by the caller to warp
+    another volume (a mask) with the same inverse.
 
     Returns
     -------
@@ -333,8 +339,9 @@ def warp_forward_with_residual(
     spline = as_field_spline(field)
     sampler = spline_sampler(coefficients)
     result, in_hull = warp_forward_block(
-        sampler, spline, whole_box(shape), max_iterations, tolerance, accuracy, chunk_voxels
-    )
+        sampler, spline, whole_box(shape), max_iterations, tolerance, accuracy, chunk_voxels,
+        inverter,
+    )  # fmt: skip
     total, count = 0.0, 0
     for z in iter_slabs(shape, chunk_voxels):
         values = result[z]
@@ -347,3 +354,13 @@ def warp_forward_with_residual(
         count += int(difference.size)
         values[~defined] = cval
     return result, (total / count if count else float("nan"))
+
+
+def forward_inverter(spline: FieldSpline, shape) -> LatticeInverter:
+    """The coarse stage of the whole-volume forward warp by ``spline`` with the default settings
+    (what :func:`warp_forward` and :func:`warp_forward_with_residual` build), to be shared by
+    several volumes warped with the same field (its :meth:`~.LatticeInverter.warp`)."""
+    return LatticeInverter(
+        spline, whole_box(check_shape(shape)), INVERT_MAX_ITERATIONS, INVERT_TOLERANCE,
+        INVERSE_ACCURACY,
+    )  # fmt: skip
