@@ -73,9 +73,8 @@ def _z_pass(value, deriv_y, deriv_x_value_y, virtual, out, iz):
 def _window_gradient(coefficients, z0, y0, x0, nz_out, ny_out, nx_out, out, out_z):
     """:func:`gradient_volume` on the window of ``nz_out × ny_out × nx_out`` voxels from
     ``(z0, y0, x0)`` into planes ``out_z … out_z + nz_out - 1`` of ``out`` (3, ·, ny_out, nx_out)
-    float32:
-    per virtual plane ``z0 - 1 … z0 + nz_out`` (mirrored) an x- and a y-pass, then the z-pass
-    over a ring of three planes. Sums in float64; every voxel's value does not depend on the
+    float32: per virtual plane ``z0 - 1 … z0 + nz_out`` (mirrored) an x- and a y-pass, then the
+    z-pass over a ring of three planes. Sums in float64; a voxel's value does not depend on the
     window."""
     nz, ny, nx = coefficients.shape
     rows = np.empty(ny_out + 2, np.int64)
