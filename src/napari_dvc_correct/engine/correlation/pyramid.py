@@ -18,6 +18,13 @@ from .interpolation import prefilter
 from .params import CorrelationParams
 from .pyramid_rule import level_reach
 
+#: From this many voxels a CPU level keeps ``G``'s B-spline coefficients (4 bytes per voxel)
+#: instead of ``∇G`` (12), and the kernels compute each subvolume's ``∇G`` from them
+#: (:func:`.icgn_reference.gradient_source`; the same values bit for bit). Below, where memory
+#: is not short, the stored ``∇G`` saves that work: each voxel's gradient is read by every
+#: subvolume over it (about 18 at subvolume 21, step 8).
+GRADIENT_ON_DEMAND_FROM = 2**24
+
 
 def _read_only(volume: np.ndarray) -> np.ndarray:
     """A read-only view: the kernels then see one array type whether the volume came from a
@@ -60,7 +67,7 @@ class PyramidLevel:
     factor: int
     reference: np.ndarray
     deformed: np.ndarray
-    gradient: np.ndarray
+    gradient: np.ndarray  # ∇G (3, nz, ny, nx), or G's coefficients (1, nz, ny, nx): see build
     coef_deformed: np.ndarray
     mask: np.ndarray
     use_mask: bool
@@ -74,7 +81,12 @@ class PyramidLevel:
         prefiltered=None,
     ):  # fmt: skip
         """The level of binning ``factor``; ``prefiltered`` (:class:`Prefiltered`, factor 1 only)
-        gives ``∇G`` and ``F``'s coefficients already computed for these volumes."""
+        gives ``∇G`` and ``F``'s coefficients already computed for these volumes.
+
+        On the CPU a level of at least :data:`GRADIENT_ON_DEMAND_FROM` voxels holds, as
+        ``gradient``, ``G``'s B-spline coefficients with a leading axis of one (1, nz, ny, nx)
+        rather than ``∇G`` (3, nz, ny, nx); the kernels compute each subvolume's ``∇G`` from them.
+        """
         if factor > 1:
             reference = bin_volume(reference, factor)
             deformed = bin_volume(deformed, factor)
@@ -91,7 +103,12 @@ class PyramidLevel:
         prefiltered.check(reference.shape)
         gradient = prefiltered.gradient
         if gradient is None:
-            gradient = icgn_reference.gradient_volume(prefilter(reference))
+            coefficients = prefilter(reference)
+            if device != "cuda" and reference.size >= GRADIENT_ON_DEMAND_FROM:
+                gradient = coefficients[None]
+            else:
+                gradient = icgn_reference.gradient_volume(coefficients)
+            del coefficients
         coef_deformed = prefiltered.coef_deformed
         if coef_deformed is None:
             coef_deformed = prefilter(deformed)
