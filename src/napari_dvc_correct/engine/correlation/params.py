@@ -64,6 +64,10 @@ class CorrelationParams:
     repair_attempts_out_of_bounds : int
         The same for a POI whose deformed subvolume left the volume (its guess may be wrong, but
         it is usually at the border for good).
+    window : float or None
+        Gaussian weights over the subvolume at full resolution: a voxel at ``ξ`` from the POI
+        counts ``exp(−|ξ|² / (2 window²))`` in the match (standard deviation in voxels;
+        :mod:`.icgn_weighted`). None (default): every voxel of the subvolume counts the same.
     """
 
     subvolume: int = 31
@@ -81,6 +85,7 @@ class CorrelationParams:
     median_test_min_pois: int = 9
     repair_attempts: int = 3
     repair_attempts_out_of_bounds: int = 1
+    window: float | None = None
 
     def __post_init__(self) -> None:
         problems = []
@@ -118,6 +123,15 @@ class CorrelationParams:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 0:
                 problems.append(f"{name} must be an integer >= 0, got {value!r}")
+        if self.window is not None and not (
+            isinstance(self.window, (int, float, np.integer, np.floating))
+            and np.isfinite(self.window)
+            and self.window > 0
+        ):
+            problems.append(
+                f"window must be None (no weights) or a standard deviation > 0 voxels, "
+                f"got {self.window!r}"
+            )
         if problems:
             raise ValueError("; ".join(problems))
 
@@ -125,6 +139,14 @@ class CorrelationParams:
     def half(self) -> int:
         """Subvolume half-size ``M`` in voxels."""
         return self.subvolume // 2
+
+    def subvolume_weights(self) -> np.ndarray | None:
+        """The subvolume's weights, shape ``(subvolume,)*3`` (None where :attr:`window` is)."""
+        if self.window is None:
+            return None
+        from .icgn_weighted import gaussian_window
+
+        return gaussian_window(self.half, float(self.window))
 
     @property
     def effective_search_radius(self) -> int:
