@@ -32,8 +32,9 @@ from .icgn import STALL_FACTOR, STALL_ITERATIONS, _noise_converged
 from .icgn_pass import _affine_samples, _affine_sums, _quadratic_samples, _quadratic_sums
 from .icgn_reference import translation_h_inverse
 from .icgn_weighted_uncertainty import (
+    gradient_sums,
     scaled_hessian,
-    squared_weight_terms,
+    weighted_power,
     weighted_sigma,
     weighted_sigma_at,
 )
@@ -113,20 +114,12 @@ def weighted_terms(g, grad, xi, w, count, nb):
         mean_g += w[i] * g[i]
     mean_g /= total
     ss_g = 0.0
-    sum_j = np.zeros(m_par)
-    sum_jg = np.zeros(m_par)
-    b = np.empty(10)
     root = np.empty(count)
     for i in range(count):
         dg = g[i] - mean_g
         ss_g += w[i] * dg * dg
         root[i] = np.sqrt(w[i])
-        monomials(np.float64(xi[i, 0]), np.float64(xi[i, 1]), np.float64(xi[i, 2]), nb, b)
-        for k in range(3):
-            gk = w[i] * np.float64(grad[i, k])
-            for j in range(nb):
-                sum_j[k * nb + j] += gk * b[j]
-                sum_jg[k * nb + j] += gk * b[j] * dg
+    sum_j, sum_jg = gradient_sums(g, grad, xi, w, count, nb, mean_g)
     ok, low = cholesky_solve_setup(scaled_hessian(g, grad, xi, root, count, nb), m_par)
     return mean_g, np.sqrt(ss_g), ok, low, sum_j, sum_jg, total
 
@@ -404,7 +397,7 @@ def weighted_statistics(
             continue
         mean_g, delta_g, ok, low, sum_j, sum_jg, total = weighted_terms(g, grad, xi, w, count, nb)
         variance[n] = delta_g * delta_g / total
-        gradient_power[n] = squared_weight_terms(g, grad, xi, w, count, nb, mean_g)[5]
+        gradient_power[n] = weighted_power(grad, w, count)
         if not ok or delta_g == 0.0 or not np.isfinite(zncc[n]):
             continue
         weighted_sigma_at(

@@ -23,7 +23,9 @@ from numba import njit
 from .._numba_setup import KERNEL_OPTIONS
 from .icgn_reference import (
     _QUADRATIC_INDEX,
+    _QUADRATIC_POWERS,
     _QUADRATIC_PRODUCT,
+    _fold_moments,
     add_to_rows,
     affine_terms,
     fold_quartic_row,
@@ -138,34 +140,70 @@ def weighted_sensitivity_sums(coef, g, grad, xi, w, count, mean_g, cz, cy, cx, p
 
 
 @njit(**KERNEL_OPTIONS)
+def gradient_sums(g, grad, xi, scale, count, nb, mean_g):
+    """``Σ s J`` and ``Σ s J (g − ḡ)`` (``J = ∇G ⊗ b``, ``s`` per voxel, (count,)): the six
+    quantities ``s g_k`` and ``s g_k (g − ḡ)`` summed along each x-row times ``1, x, x²`` and
+    folded into the ten second-order monomials once per row (voxels in (z, y, x) row order)."""
+    m_par = 3 * nb
+    linear = np.zeros((6, 10))
+    rows = np.zeros((3, 6))
+    values = np.empty(6)
+    zp = np.empty(5)
+    yp = np.empty(5)
+    current_z = np.float64(xi[0, 0]) if count else 0.0
+    current_y = np.float64(xi[0, 1]) if count else 0.0
+    for i in range(count + 1):
+        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
+            _fold_moments(linear, rows, _QUADRATIC_POWERS, current_z, current_y, zp, yp)
+            rows[:] = 0.0
+            if i == count:
+                break
+            current_z = np.float64(xi[i, 0])
+            current_y = np.float64(xi[i, 1])
+        dg = g[i] - mean_g
+        for k in range(3):
+            v = scale[i] * np.float64(grad[i, k])
+            values[k] = v
+            values[3 + k] = v * dg
+        add_to_rows(rows, values, np.float64(xi[i, 2]))
+    sum_j = np.empty(m_par)
+    sum_jg = np.empty(m_par)
+    for k in range(3):
+        for j in range(nb):
+            sum_j[k * nb + j] = linear[k, j]
+            sum_jg[k * nb + j] = linear[3 + k, j]
+    return sum_j, sum_jg
+
+
+@njit(**KERNEL_OPTIONS)
+def weighted_power(grad, w, count):
+    """The weighted gradient power ``Σ w |∇G|² / Σ w`` (gray²/voxel²)."""
+    total = 0.0
+    power = 0.0
+    for i in range(count):
+        total += w[i]
+        for k in range(3):
+            power += w[i] * np.float64(grad[i, k]) ** 2
+    return power / total
+
+
+@njit(**KERNEL_OPTIONS)
 def squared_weight_terms(g, grad, xi, w, count, nb, mean_g):
     """``W₂ = Σ w²``, ``Σ w² (g − ḡ)``, ``Σ w² (g − ḡ)²``, ``Σ w² J``, ``Σ w² J (g − ḡ)`` and
     the weighted gradient power ``Σ w |∇G|² / Σ w``."""
-    m_par = 3 * nb
-    total = 0.0
     total2 = 0.0
     w2d = 0.0
     w2dd = 0.0
-    power = 0.0
-    s2j = np.zeros(m_par)
-    s2jd = np.zeros(m_par)
-    b = np.empty(10)
+    squared = np.empty(count)
     for i in range(count):
-        weight = w[i]
-        weight2 = weight * weight
+        weight2 = w[i] * w[i]
         dg = g[i] - mean_g
-        total += weight
+        squared[i] = weight2
         total2 += weight2
         w2d += weight2 * dg
         w2dd += weight2 * dg * dg
-        monomials(np.float64(xi[i, 0]), np.float64(xi[i, 1]), np.float64(xi[i, 2]), nb, b)
-        for k in range(3):
-            gk = np.float64(grad[i, k])
-            power += weight * gk * gk
-            for j in range(nb):
-                s2j[k * nb + j] += weight2 * gk * b[j]
-                s2jd[k * nb + j] += weight2 * gk * b[j] * dg
-    return total2, w2d, w2dd, s2j, s2jd, power / total
+    s2j, s2jd = gradient_sums(g, grad, xi, squared, count, nb, mean_g)
+    return total2, w2d, w2dd, s2j, s2jd, weighted_power(grad, w, count)
 
 
 @njit(**KERNEL_OPTIONS)
@@ -178,8 +216,7 @@ def weighted_sigma(
     ``(uz, uy, ux)`` (voxels; NaN where they cannot be told, ``inf`` where ``A`` is singular),
     ``out[3]`` 1, or 2 where the weighted gradient power is below ``noise_power`` (then with the
     sensitivity pass). See :func:`weighted_sigma_at`."""
-    total2, w2d, w2dd, s2j, s2jd, power = squared_weight_terms(g, grad, xi, w, count, nb, mean_g)
-    sensitive = noise_power > 0.0 and power < noise_power
+    sensitive = noise_power > 0.0 and weighted_power(grad, w, count) < noise_power
     weighted_sigma_at(
         coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, low, sum_j, sum_jg, total,
         zncc, p, cz, cy, cx, sensitive, out[:3],
