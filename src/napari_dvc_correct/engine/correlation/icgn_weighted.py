@@ -1,9 +1,9 @@
 """IC-GN on weighted subvolumes: each voxel of a subvolume counts with a weight ``w(ξ) ≥ 0``.
 
-A Gaussian window (:func:`gaussian_window`) keeps most of the noise averaging of a large box while
-it follows a field that bends inside it like a smaller one: the weighted least-squares fit of a
-shape function reads the field through an equivalent kernel whose far voxels count little
-(Gaussian-weighted ZNSSD; Yuan, Pan et al. 2014 for 2-D DIC). Everything of :mod:`.icgn` is
+A Gaussian window (:func:`.params.gaussian_window`) keeps more of the noise averaging of a box
+than a smaller box while it follows a field that bends inside it with less bias: the weighted
+least-squares fit of a shape function reads the field through an equivalent kernel whose far
+voxels count little (Gaussian-weighted ZNSSD; Yuan, Pan et al. 2014 for 2-D DIC). Everything of :mod:`.icgn` is
 weighted:
 
 * means and norms: ``ḡ = Σ w g / W``, ``Δg² = Σ w (g − ḡ)²`` (``W = Σ w``), the same for ``f``;
@@ -38,6 +38,7 @@ from .icgn_weighted_uncertainty import (
     weighted_sigma,
     weighted_sigma_at,
 )
+from .params import gaussian_window  # noqa: F401  (the weights of CorrelationParams.window)
 from .shape_function import (
     cholesky_solve,
     cholesky_solve_setup,
@@ -54,29 +55,6 @@ _MASKED = int(Status.MASKED)
 _MAX_ITERATIONS = int(Status.MAX_ITERATIONS)
 _OUT_OF_BOUNDS = int(Status.OUT_OF_BOUNDS)
 _SINGULAR = int(Status.SINGULAR)
-
-
-def gaussian_window(half: int, std: float) -> np.ndarray:
-    """Gaussian weights ``exp(−|ξ|² / (2 std²))`` over the box ``[−half, half]³``.
-
-    Parameters
-    ----------
-    half : int
-        Box half-size ``M`` (voxels; edge ``2M + 1``).
-    std : float
-        Standard deviation of the window (voxels), > 0.
-
-    Returns
-    -------
-    ndarray (2M + 1, 2M + 1, 2M + 1) float64, axes (z, y, x), 1 at the centre.
-    """
-    if not (np.isfinite(std) and std > 0):
-        raise ValueError(f"the window's standard deviation must be > 0 voxels, got {std!r}")
-    if int(half) < 1:
-        raise ValueError(f"the box half-size must be >= 1 voxel, got {half!r}")
-    r = np.arange(-int(half), int(half) + 1, dtype=np.float64)
-    r2 = r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2
-    return np.exp(-r2 / (2.0 * float(std) ** 2))
 
 
 def check_weights(weights, half: int) -> np.ndarray:

@@ -12,6 +12,29 @@ import numpy as np
 MIN_SUBVOLUME = 5
 
 
+def gaussian_window(half: int, std: float) -> np.ndarray:
+    """Gaussian weights ``exp(−|ξ|² / (2 std²))`` over the box ``[−half, half]³``.
+
+    Parameters
+    ----------
+    half : int
+        Box half-size ``M`` (voxels; edge ``2M + 1``).
+    std : float
+        Standard deviation of the window (voxels), > 0.
+
+    Returns
+    -------
+    ndarray (2M + 1, 2M + 1, 2M + 1) float64, axes (z, y, x), 1 at the centre.
+    """
+    if not (np.isfinite(std) and std > 0):
+        raise ValueError(f"the window's standard deviation must be > 0 voxels, got {std!r}")
+    if int(half) < 1:
+        raise ValueError(f"the box half-size must be >= 1 voxel, got {half!r}")
+    r = np.arange(-int(half), int(half) + 1, dtype=np.float64)
+    r2 = r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2
+    return np.exp(-r2 / (2.0 * float(std) ** 2))
+
+
 @dataclass(frozen=True)
 class CorrelationParams:
     """Parameters of local subvolume DVC. The self-correction reuses them unchanged.
@@ -144,8 +167,6 @@ class CorrelationParams:
         """The subvolume's weights, shape ``(subvolume,)*3`` (None where :attr:`window` is)."""
         if self.window is None:
             return None
-        from .icgn_weighted import gaussian_window
-
         return gaussian_window(self.half, float(self.window))
 
     @property
