@@ -29,12 +29,15 @@ Variants (``--variant``):
 * ``cg:columns``: the inpainting's conjugate gradients run column by column with
   ``scipy.sparse.linalg.cg`` (the former behaviour; only grids with more than
   :data:`~napari_dvc_correct.engine.correction.cleaning.DIRECT_SOLVE_LIMIT` nodes to fill use them).
+* ``window:off``: the second-order correcting matches on a uniform subvolume, without the Gaussian
+  window the default chooses (:func:`~napari_dvc_correct.engine.correction.pass_method.pass_window`):
+  the former behaviour.
 
 ``--seed S`` makes the 64³ cases with seed ``S`` (default 4, as ``bench_correction_cases.py``)
 and the 100³ bands with seed ``S - 4`` (default 0, as ``bench_pipeline.py``).
 
     python benchmarks/bench_correction_decisions.py
-        [--variant tolerance:5|sweeps:1|first:all|contract:off|hint:off|cg:columns]
+        [--variant tolerance:5|sweeps:1|first:all|contract:off|hint:off|cg:columns|window:off]
         [--seed 4] [case ...]
 """
 
@@ -94,12 +97,12 @@ class Variant:
 
     def __init__(self, spec: str):
         kind, _, value = spec.partition(":")
-        words = {"first": "all", "contract": "off", "hint": "off", "cg": "columns"}
+        words = {"first": "all", "contract": "off", "hint": "off", "cg": "columns", "window": "off"}
         known = {"tolerance", "sweeps", *words}
         if kind not in known or not value or words.get(kind, value) != value:
             raise ValueError(
                 f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, "
-                "contract:off, hint:off, cg:columns)"
+                "contract:off, hint:off, cg:columns, window:off)"
             )
         self.kind = kind
         self.value = 0.0 if kind in words else float(value)
@@ -112,8 +115,14 @@ class Variant:
             chosen, method = original(field, params)
             return chosen.replace(tolerance=chosen.tolerance * factor), method
 
+        def uniform(field, params):
+            chosen, method = original(field, params)
+            return chosen.replace(window=None), method
+
         if self.kind == "tolerance":
             self_correction.pass_method = pass_method
+        elif self.kind == "window":
+            self_correction.pass_method = uniform
         elif self.kind == "sweeps":
             acceptance.ACCEPTANCE_SWEEPS = int(self.value)
         elif self.kind == "first":

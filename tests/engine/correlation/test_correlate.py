@@ -367,14 +367,14 @@ def test_without_a_hint_a_spread_first_batch_hints_the_rest_and_changes_no_numbe
     assert sum(hinted_measured) < sum(measured)
 
 
-@pytest.mark.parametrize("order", [1, 2])
+@pytest.mark.parametrize(("order", "window"), [(1, None), (2, None), (2, 4.0)])
 def test_a_large_volumes_gradient_on_demand_gives_the_same_field_to_the_last_bit(
-    monkeypatch, order
+    monkeypatch, order, window
 ):
     """From :data:`.pyramid.GRADIENT_ON_DEMAND_FROM` voxels the fine level keeps ``G``'s
     coefficients instead of ``∇G`` (a third of the memory); every kernel then computes its
     subvolumes' gradient: the field is the same bit for bit (noisy POIs, masked voxels, a
-    region the reference lacks that fails and is repaired)."""
+    region the reference lacks that fails and is repaired), weighted subvolumes included."""
     from scipy import ndimage
 
     from napari_dvc_correct.engine.correlation import pyramid
@@ -389,7 +389,9 @@ def test_a_large_volumes_gradient_on_demand_gives_the_same_field_to_the_last_bit
     reference[:9] = 0.0  # a region the reference lacks: failed matches and their repair
     mask = np.ones(reference.shape, bool)
     mask[:, :, 28:] = False
-    params = CorrelationParams(subvolume=13 if order == 1 else 15, step=5, order=order)
+    params = CorrelationParams(
+        subvolume=13 if order == 1 else 15, step=5, order=order, window=window
+    )
     fields = []
     for threshold in (2**40, 0):
         monkeypatch.setattr(pyramid, "GRADIENT_ON_DEMAND_FROM", threshold)

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..fields.field import Status
-from . import icgn, icgn_reference, icgn_uncertainty, shape_function
+from . import icgn, icgn_reference, icgn_uncertainty, icgn_weighted, shape_function
 from .initial_guess import bin_volume
 from .interpolation import prefilter
 from .params import CorrelationParams
@@ -74,19 +74,25 @@ class PyramidLevel:
     half: int
     min_std: float
     device: str = "cpu"  # "cuda": IC-GN runs on the GPU (engine.cuda)
+    #: weights of the subvolume's voxels, (edge³,) float64 (:mod:`.icgn_weighted`, on the CPU
+    #: whatever ``device``); None: unweighted
+    weights: np.ndarray | None = None
 
     @classmethod
     def build(
         cls, factor, reference, deformed, mask, half, min_texture, device="cpu", std=None,
-        prefiltered=None,
+        prefiltered=None, weights=None,
     ):  # fmt: skip
         """The level of binning ``factor``; ``prefiltered`` (:class:`Prefiltered`, factor 1 only)
-        gives ``∇G`` and ``F``'s coefficients already computed for these volumes.
+        gives ``∇G`` and ``F``'s coefficients already computed for these volumes; ``weights``
+        (``(2·half + 1,)*3``, optional) weigh the subvolumes' voxels (:mod:`.icgn_weighted`).
 
         On the CPU a level of at least :data:`GRADIENT_ON_DEMAND_FROM` voxels holds, as
         ``gradient``, ``G``'s B-spline coefficients with a leading axis of one (1, nz, ny, nx)
         rather than ``∇G`` (3, nz, ny, nx); the kernels compute each subvolume's ``∇G`` from them.
         """
+        if weights is not None:
+            weights = icgn_weighted.check_weights(weights, half)
         if factor > 1:
             reference = bin_volume(reference, factor)
             deformed = bin_volume(deformed, factor)
@@ -123,6 +129,7 @@ class PyramidLevel:
             half=half,
             min_std=min_texture * std,
             device=device,
+            weights=weights,
         )
 
     def centers_from_fine(self, centers):
@@ -143,12 +150,16 @@ class PyramidLevel:
         var = np.empty(len(centers))
         power = np.empty(len(centers))
         sig = np.empty((len(centers), 3))
-        icgn_uncertainty.subvolume_statistics(
+        kernel, weighted = icgn_uncertainty.subvolume_statistics, ()
+        if self.weights is not None:
+            kernel, weighted = icgn_weighted.weighted_statistics, (self.weights,)
+        kernel(
             self.reference,
             self.gradient,
             self.coef_deformed,
             self.mask,
             self.use_mask,
+            *weighted,
             np.ascontiguousarray(centers, dtype=np.int64),
             self.half,
             shape_function.n_monomials(order),
@@ -168,11 +179,15 @@ class PyramidLevel:
         var = np.full(len(centers), np.nan)
         power = np.full(len(centers), np.nan)
         if len(centers):
-            icgn_uncertainty.subvolume_moments(
+            kernel, weighted = icgn_uncertainty.subvolume_moments, ()
+            if self.weights is not None:
+                kernel, weighted = icgn_weighted.weighted_moments, (self.weights,)
+            kernel(
                 self.reference,
                 self.gradient,
                 self.mask,
                 self.use_mask,
+                *weighted,
                 np.ascontiguousarray(centers, dtype=np.int64),
                 self.half,
                 shape_function.n_monomials(order),
@@ -217,6 +232,19 @@ class PyramidLevel:
             return zncc, status, iterations
         if sigma is not None:
             sigma[:] = 0.0
+        if self.weights is not None:
+            icgn_weighted.match_many_weighted(
+                self.inputs(order, params),
+                self.weights,
+                np.ascontiguousarray(centers, dtype=np.int64),
+                warps,
+                zncc,
+                status,
+                iterations,
+                np.zeros((n, 4)) if sigma is None else sigma,
+                float(noise_power),
+            )
+            return zncc, status, iterations
         if sigma is not None and self.device != "cuda":
             icgn.match_many_sigma(
                 self.inputs(order, params),
