@@ -11,7 +11,8 @@ inside the specimen's cylinder count):
   slip 2.8, full width about subvolume / 2.5) with the same rotation, translation and bending;
   without / with 6 % noise.
 * ``narrow_heavy``: the narrow band with noise of 0.8 x the texture's standard deviation.
-* ``gray``: the narrow band with the loaded scan's contrast x0.85 and an offset, mild noise.
+* ``gray``: the narrow band with the loaded scan's contrast x0.85 and an offset, mild noise;
+  ``gray:C`` with the contrast ``C`` instead (e.g. ``gray:0.7``, ``gray:1.2``).
 * ``translation`` / ``affine``: good texture, exact answers; the correction must leave them alone.
 * ``fault``: the fault case of issue 10 (the first 13 z-slices of the reference set to 0).
 
@@ -44,6 +45,9 @@ def make_case(case: str, seed: int = 4):
     """``(reference, deformed, truth, params, node_selector)`` of a named case."""
     params, select = PARAMS, None
     noisy = False
+    contrast = 0.85
+    if case.startswith("gray:"):
+        case, contrast = "gray", float(case.partition(":")[2])
     if case == "weak":
         truth = synthetic.band_rotation_bending((CENTER,) * 3, 10.0, 7.0, compression=0.02)
         pattern = lambda s: synthetic.concrete_specimen(s, seed=seed)  # noqa: E731
@@ -65,7 +69,7 @@ def make_case(case: str, seed: int = 4):
             reference = synthetic.add_noise(reference, sigma, seed=1)
             deformed = synthetic.add_noise(deformed, sigma, seed=2)
             if case == "gray":
-                deformed = 0.85 * deformed + 0.2 * float(np.mean(deformed))
+                deformed = contrast * deformed + 0.2 * float(np.mean(deformed))
             return reference, deformed, truth, params, select
     elif case == "translation":
         truth = synthetic.translation((1.3, -2.6, 0.7))

@@ -29,6 +29,9 @@ Variants (``--variant``):
 * ``cg:columns``: the inpainting's conjugate gradients run column by column with
   ``scipy.sparse.linalg.cg`` (the former behaviour; only grids with more than
   :data:`~napari_dvc_correct.engine.correction.cleaning.DIRECT_SOLVE_LIMIT` nodes to fill use them);
+* ``window:off``: the second-order correcting matches on a uniform subvolume, without the Gaussian
+  window the default chooses (:func:`~napari_dvc_correct.engine.correction.pass_method.pass_window`):
+  the former behaviour;
 * ``gray:once``: the gray-level map is fitted with one trimmed pass over the volumes (trimmed by
   the lattice's first guess) instead of two (the second trimmed by the first fit): one whole-
   volume pass of per-cell sums less, a map that differs by more than the last bits.
@@ -37,7 +40,8 @@ Variants (``--variant``):
 and the 100³ bands with seed ``S - 4`` (default 0, as ``bench_pipeline.py``).
 
     python benchmarks/bench_correction_decisions.py
-        [--variant tolerance:5|sweeps:1|first:all|contract:off|hint:off|cg:columns|gray:once]
+        [--variant tolerance:5|sweeps:1|first:all|contract:off|hint:off|cg:columns|window:off|
+                   gray:once]
         [--seed 4] [case ...]
 """
 
@@ -99,12 +103,13 @@ class Variant:
 
     def __init__(self, spec: str):
         kind, _, value = spec.partition(":")
-        words = {"first": "all", "contract": "off", "hint": "off", "cg": "columns", "gray": "once"}
+        words = {"first": "all", "contract": "off", "hint": "off", "cg": "columns", "window": "off"}
+        words["gray"] = "once"
         known = {"tolerance", "sweeps", *words}
         if kind not in known or not value or words.get(kind, value) != value:
             raise ValueError(
                 f"unknown variant {spec!r} (known: tolerance:K, sweeps:K, first:all, "
-                "contract:off, hint:off, cg:columns, gray:once)"
+                "contract:off, hint:off, cg:columns, window:off, gray:once)"
             )
         self.kind = kind
         self.value = 0.0 if kind in words else float(value)
@@ -117,8 +122,14 @@ class Variant:
             chosen, method = original(field, params)
             return chosen.replace(tolerance=chosen.tolerance * factor), method
 
+        def uniform(field, params):
+            chosen, method = original(field, params)
+            return chosen.replace(window=None), method
+
         if self.kind == "tolerance":
             self_correction.pass_method = pass_method
+        elif self.kind == "window":
+            self_correction.pass_method = uniform
         elif self.kind == "sweeps":
             acceptance.ACCEPTANCE_SWEEPS = int(self.value)
         elif self.kind == "first":

@@ -4,9 +4,11 @@ A ``--size``³ uint16 pair (smoothed random texture, the deformed scan shifted b
 and re-noised) is held by the caller, as a user's arrays are; ``correlate_iter`` then runs with
 a thread sampling the process's resident memory (``/proc/self/statm``) every 2 ms. Printed: the
 peak RSS of the process, the peak above the RSS before the call, the pair's own size, and the
-largest RSS seen in each stage (the stage a ``Progress`` record last named).
+largest RSS seen in each stage (the stage a ``Progress`` record last named). ``--self-correct``
+then self-corrects the field in memory (``correct_iter``), sampled the same way (its stages are
+printed with a ``correct:`` prefix, and its peak apart).
 
-    python benchmarks/bench_memory.py [--size 384] [--subvolume 21] [--step 24]
+    python benchmarks/bench_memory.py [--size 384] [--subvolume 21] [--step 24] [--self-correct]
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=384)
     parser.add_argument("--subvolume", type=int, default=21)
     parser.add_argument("--step", type=int, default=24)
+    parser.add_argument("--self-correct", action="store_true")
     args = parser.parse_args()
     from napari_dvc_correct.engine.correlation.correlate import correlate_iter
     from napari_dvc_correct.engine.correlation.params import CorrelationParams
@@ -93,6 +96,34 @@ def main() -> None:
         print(f"  {stage}: {value / gib:.2f} GiB")
     statuses = dict(zip(*np.unique(field.status, return_counts=True)))
     print("statuses", {int(k): int(v) for k, v in statuses.items()})
+    if args.self_correct:
+        _self_correct(reference, deformed, field, base)
+
+
+def _self_correct(reference, deformed, field, base) -> None:
+    from napari_dvc_correct.engine.correction.self_correction import correct_iter
+
+    sampler = Sampler()
+    sampler.stage = "correct: start"
+    sampler.start()
+    started, cpu = time.perf_counter(), time.process_time()
+    run = correct_iter(reference, deformed, field)
+    try:
+        while True:
+            sampler.stage = f"correct: {next(run).stage}"
+    except StopIteration as stop:
+        corrected = stop.value
+    wall, cpu = time.perf_counter() - started, time.process_time() - cpu
+    sampler.running = False
+    sampler.join()
+    gib = 2**30
+    peak = max(sampler.peaks.values())
+    passes = len(corrected.metadata.get("correction_passes", [])) - 1  # the first is the input's
+    print(f"self-correction: wall {wall:.1f} s, cpu {cpu:.1f} s, correcting passes {passes}, peak RSS "
+          f"{peak / gib:.2f} GiB, {(peak - base) / gib:.2f} GiB above the RSS before the plain "
+          f"call, load {os.getloadavg()[0]:.1f}")  # fmt: skip
+    for stage, value in sampler.peaks.items():
+        print(f"  {stage}: {value / gib:.2f} GiB")
 
 
 if __name__ == "__main__":

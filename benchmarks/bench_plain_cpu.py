@@ -9,7 +9,9 @@ OPENBLAS_NUM_THREADS=1``: ``time.process_time`` of the whole ``correlate`` call,
 ``--repeat``, and the engine's own stage timings of that best run. ``--save DIR`` writes each
 field's arrays; ``--compare DIR`` says whether ``u``, ``uncertainty``, ``status``, ``zncc``,
 ``iterations`` and ``gradient`` equal the saved ones bit for bit. Compare one checkout with
-another (``PYTHONPATH=/other/src``) in the same minutes and say the load.
+another (``PYTHONPATH=/other/src``) in the same minutes and say the load. ``--on-demand``
+computes each subvolume's ``∇G`` from ``G``'s coefficients at every size (as large volumes do:
+``pyramid.GRADIENT_ON_DEMAND_FROM``), to measure what that costs and that it changes nothing.
 
     NUMBA_NUM_THREADS=1 python benchmarks/bench_plain_cpu.py upper lower noisy_band [--repeat 3]
 """
@@ -50,7 +52,12 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--save", type=Path)
     parser.add_argument("--compare", type=Path)
+    parser.add_argument("--on-demand", action="store_true")
     args = parser.parse_args()
+    if args.on_demand:
+        from napari_dvc_correct.engine.correlation import pyramid
+
+        pyramid.GRADIENT_ON_DEMAND_FROM = 0
     params = CorrelationParams(subvolume=21, step=8)
     for name in args.cases:
         data = load_case(name)

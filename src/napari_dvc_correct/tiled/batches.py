@@ -163,6 +163,7 @@ class _RegionLevel:
                 job.params.min_texture,
                 select_device(job.device).kind,
                 std=None if job.texture_std is None else job.texture_std[1],
+                weights=job.params.subvolume_weights(),
             )
             self._timings["judge_prefilter_s"] = time.perf_counter() - started
         return self._level

@@ -105,8 +105,9 @@ def match_group(group: PointGroup, reference, deformed, mask=None) -> PointMatch
     params = group.params
     g, f, m = validate_pair(g, f, params, m)
     level = PyramidLevel.build(
-        1, g, f, m, params.half, params.min_texture, select_device(group.device).kind, std=group.std
-    )
+        1, g, f, m, params.half, params.min_texture, select_device(group.device).kind, std=group.std,
+        weights=params.subvolume_weights(),
+    )  # fmt: skip
     centers = group.centers - group.region_low
     zncc, status, iterations = level.match(centers, trial, params.order, params)
     variance = matched_variance(level, centers, trial, zncc, status, params.order)

@@ -194,3 +194,43 @@ def test_the_correctable_nodes_are_those_not_their_own_match_or_bent_and_measure
     foreign = field.copy()
     foreign.uncertainty = None
     assert np.array_equal(correctable_nodes(foreign, params, outside), ~outside)
+
+
+def test_the_window_geometry_of_a_uniform_box():
+    """Uniform box: the second moment ``M (M + 1) / 3`` and, first order, the scatter of a mean
+    of ``n`` voxels ``1 / √n``; a Gaussian window on the box has less of the one and more of the
+    other, and second order scatters more than first."""
+    from napari_dvc_correct.engine.correction.pass_method import window_geometry
+
+    m2, noise = window_geometry(7, None, 1)
+    assert m2 == pytest.approx(7 * 8 / 3) and noise == pytest.approx(15**-1.5)
+    m2_second, noise_second = window_geometry(7, None)
+    assert m2_second == pytest.approx(m2) and noise_second > 1.5 * noise
+    m2_window, noise_window = window_geometry(7, 4.0)
+    assert m2_window < m2 and noise_window > noise_second
+    assert window_geometry(7, 100.0)[1] == pytest.approx(noise_second, rel=1e-3)
+
+
+def test_a_window_where_the_bias_dominates_and_none_where_the_noise_does():
+    """The second-order correcting matches get a Gaussian window where the field's bend predicts
+    more error than the noise; none where the noise predicts more, or is not known."""
+    from napari_dvc_correct.engine.correction.pass_method import pass_method
+
+    params = CorrelationParams(subvolume=21, step=6)
+    origin, step, shape = grid_for_volume((64, 64, 64), 21, 6)
+    field = DisplacementField.zeros(origin, step, shape)
+    points = field.points.reshape(*shape, 3)
+    field.u[..., 0] += 0.004 * (points[..., 2] - 32.0) ** 2  # bends a subvolume by 0.4 voxel
+    field.uncertainty = np.full((*shape, 3), 0.01)
+    chosen, why = pass_method(field, params)
+    assert (chosen.order, chosen.subvolume) == (2, 15) and chosen.window is not None
+    assert f"Gaussian window of std {chosen.window:g}" in why
+    cleaner = field.copy()
+    cleaner.uncertainty = np.full((*shape, 3), 0.002)
+    assert pass_method(cleaner, params)[0].window < chosen.window  # less noise: narrower
+    field.uncertainty = np.full((*shape, 3), 0.03)  # the noise dominates: uniform
+    chosen, why = pass_method(field, params)
+    assert (chosen.order, chosen.subvolume, chosen.window) == (2, 15, None)
+    assert "window" not in why
+    field.uncertainty = None  # no uncertainty to weigh the noise by: uniform
+    assert pass_method(field, params)[0].window is None

@@ -365,3 +365,42 @@ def test_without_a_hint_a_spread_first_batch_hints_the_rest_and_changes_no_numbe
     assert expected > 0 and all(call[2] == expected for call in hinted_calls[1:])
     assert all(call[2] == 0.0 for call in calls)  # hint 0: none expected noisy
     assert sum(hinted_measured) < sum(measured)
+
+
+@pytest.mark.parametrize(("order", "window"), [(1, None), (2, None), (2, 4.0)])
+def test_a_large_volumes_gradient_on_demand_gives_the_same_field_to_the_last_bit(
+    monkeypatch, order, window
+):
+    """From :data:`.pyramid.GRADIENT_ON_DEMAND_FROM` voxels the fine level keeps ``G``'s
+    coefficients instead of ``∇G`` (a third of the memory); every kernel then computes its
+    subvolumes' gradient: the field is the same bit for bit (noisy POIs, masked voxels, a
+    region the reference lacks that fails and is repaired), weighted subvolumes included."""
+    from scipy import ndimage
+
+    from napari_dvc_correct.engine.correlation import pyramid
+    from napari_dvc_correct.engine.correlation.correlate import match_iter
+
+    rng = np.random.default_rng(1)
+    volume = ndimage.gaussian_filter(rng.standard_normal((52, 48, 44)), 1.5)
+    volume = (20 + 200 * (volume - volume.min()) / np.ptp(volume)).astype(np.float32)
+    truth = synthetic.shear_band((26.0, 24.0, 22.0), width=6.0, slip=1.5, shift=(0.6, -1.3, 0.4))
+    deformed = synthetic.add_noise(synthetic.deform_volume(volume, truth), 1.5, seed=2)
+    reference = volume.copy()
+    reference[:9] = 0.0  # a region the reference lacks: failed matches and their repair
+    mask = np.ones(reference.shape, bool)
+    mask[:, :, 28:] = False
+    params = CorrelationParams(
+        subvolume=13 if order == 1 else 15, step=5, order=order, window=window
+    )
+    fields = []
+    for threshold in (2**40, 0):
+        monkeypatch.setattr(pyramid, "GRADIENT_ON_DEMAND_FROM", threshold)
+        _, fine = run_to_completion(match_iter(reference, deformed, params, mask=mask))
+        assert fine.gradient.shape[0] == (3 if threshold else 1)
+        fields.append(correlate(reference, deformed, params, mask=mask))
+    stored, on_demand = fields
+    statuses = set(np.unique(stored.status).tolist())
+    assert {int(Status.CONVERGED), int(Status.MASKED)} <= statuses and len(statuses) >= 3
+    assert np.isfinite(stored.uncertainty).any()
+    for name in ("u", "status", "zncc", "iterations", "uncertainty", "gradient"):
+        np.testing.assert_array_equal(getattr(stored, name), getattr(on_demand, name), name)

@@ -108,3 +108,32 @@ def test_gradient_volume_is_the_stencil_and_the_interpolants_derivative(shape):
             numeric = (up - down) / (2 * h)
             inner = gradient[axis][tuple(slice(1, n - 1) for n in shape)].reshape(-1)
             np.testing.assert_allclose(inner, numeric, atol=1e-3 * np.abs(numeric).max())
+
+
+@pytest.mark.parametrize("shape", [(13, 9, 11), (7, 7, 7), (5, 12, 6)])
+def test_a_subvolumes_gradient_equals_the_volumes_bit_for_bit(shape):
+    """Every subvolume's ``∇G`` computed alone, at the faces (mirrored taps) and inside, is the
+    whole volume's there to the last bit; ``gradient_source`` reads either form."""
+    from napari_dvc_correct.engine.correlation.interpolation import prefilter
+
+    rng = np.random.default_rng(3)
+    volume = (1000.0 * rng.random(shape)).astype(np.uint16)
+    coefficients = prefilter(volume)
+    whole = icgn_reference.gradient_volume(coefficients)
+    for half in (1, 2):
+        for cz in range(half, shape[0] - half):
+            for cy in range(half, shape[1] - half):
+                for cx in range(half, shape[2] - half):
+                    window = (slice(None),) + tuple(
+                        slice(c - half, c + half + 1) for c in (cz, cy, cx)
+                    )
+                    block = icgn_reference.subvolume_gradient(coefficients, cz, cy, cx, half)
+                    assert block.dtype == np.float32
+                    np.testing.assert_array_equal(
+                        block.view(np.uint32), whole[window].view(np.uint32)
+                    )
+    source, *offsets = icgn_reference.gradient_source(whole, 3, 3, 3, 2)
+    assert source is whole and offsets == [0, 0, 0]
+    source, *offsets = icgn_reference.gradient_source(coefficients[None], 2, 4, 2, 2)
+    assert offsets == [0, 2, 0]
+    np.testing.assert_array_equal(source, whole[:, 0:5, 2:7, 0:5])

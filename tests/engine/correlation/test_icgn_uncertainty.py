@@ -177,3 +177,40 @@ def test_a_noise_hint_changes_no_number_right_or_wrong(monkeypatch):
     no_hint, right, everywhere, nowhere = measured
     assert no_hint > 0 and right < no_hint  # the hint moved the pass (here all of it)
     assert nowhere == no_hint and everywhere <= no_hint
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_moments_and_statistics_from_gs_coefficients_equal_those_from_its_gradient(order):
+    """Given ``G``'s coefficients (1, nz, ny, nx) instead of ``∇G``, both kernels compute each
+    subvolume's gradient themselves: the same numbers to the last bit, masked voxels, the
+    sensitivity pass and POIs at the volume's faces included."""
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correlation import icgn_reference, shape_function
+
+    reference = synthetic.textured_volume((26, 24, 22), 2.0, seed=6).astype(np.float32)
+    deformed = synthetic.add_noise(
+        synthetic.deform_volume(reference, synthetic.translation((0.3, 0.2, -0.4))), 0.03, seed=1
+    ).astype(np.float32)
+    coefficients = prefilter(reference)
+    mask = np.random.default_rng(4).random(reference.shape) > 0.1
+    nb = shape_function.n_monomials(order)
+    half = 4
+    centers = np.array([[4, 4, 4], [13, 12, 11], [21, 19, 17], [8, 15, 6]], np.int64)
+    n = len(centers)
+    warps = np.zeros((n, 3 * nb))
+    warps[:, 0], warps[:, nb], warps[:, 2 * nb] = 0.3, 0.2, -0.4
+    results = []
+    for gradient in (icgn_reference.gradient_volume(coefficients), coefficients[None]):
+        moments = (np.empty(n), np.empty(n))
+        icgn_uncertainty.subvolume_moments(
+            reference, gradient, mask, True, centers, half, nb, *moments
+        )
+        full = (np.empty(n), np.empty(n), np.empty((n, 3)))
+        icgn_uncertainty.subvolume_statistics(
+            reference, gradient, prefilter(deformed), mask, True, centers, half, nb, warps,
+            np.full(n, 0.9), np.array([True, False, True, False]), *full,
+        )  # fmt: skip
+        results.append((*moments, *full))
+    for a, b in zip(*results):
+        assert np.isfinite(a).all()
+        np.testing.assert_array_equal(a, b)

@@ -32,3 +32,19 @@ def test_prefiltered_arrays_are_used_as_given_and_checked_against_the_volumes(vo
     assert level.coef_deformed is coefficients
     with pytest.raises(ValueError, match="do not fit"):
         Prefiltered(coef_deformed=coefficients[:-1]).check(volume.shape)
+
+
+def test_a_large_cpu_level_holds_gs_coefficients_and_a_gpu_level_its_gradient(volume, monkeypatch):
+    """From ``GRADIENT_ON_DEMAND_FROM`` voxels a CPU level keeps ``G``'s coefficients (1, …)
+    in place of ``∇G`` (3, …); the GPU's kernels read ``∇G``, so a CUDA level keeps it."""
+    from napari_dvc_correct.engine.correlation import icgn_reference, pyramid
+
+    coefficients = prefilter(volume)
+    small = PyramidLevel.build(1, volume, volume, None, 5, 0.0)
+    np.testing.assert_array_equal(small.gradient, icgn_reference.gradient_volume(coefficients))
+    monkeypatch.setattr(pyramid, "GRADIENT_ON_DEMAND_FROM", volume.size)
+    large = PyramidLevel.build(1, volume, volume, None, 5, 0.0)
+    assert large.gradient.shape == (1, *volume.shape)
+    np.testing.assert_array_equal(large.gradient[0], coefficients)
+    on_gpu = PyramidLevel.build(1, volume, volume, None, 5, 0.0, device="cuda")
+    np.testing.assert_array_equal(on_gpu.gradient, small.gradient)

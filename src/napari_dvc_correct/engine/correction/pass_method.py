@@ -9,6 +9,8 @@ parameters are reused unchanged. Displacements in voxels, axes (z, y, x).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import ndimage
 
@@ -39,6 +41,72 @@ SECOND_ORDER_BIAS = 0.5
 
 #: Smallest subvolume edge of a correcting match (voxels).
 MIN_PASS_SUBVOLUME = 11
+
+#: Standard deviations (voxels) of the Gaussian windows weighed for the second-order correcting
+#: matches on their subvolume (:func:`pass_window`); the uniform subvolume is weighed with them.
+WINDOW_STDS = (2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 6.0, 7.0, 8.0)
+
+
+@functools.lru_cache(maxsize=64)
+def window_geometry(half: int, std: float | None, order: int = 2) -> tuple[float, float]:
+    """What a window does to a match of ``order`` on ``(2·half + 1)³``: ``(m2, noise)``.
+
+    ``m2 = Σ w ξz² / Σ w``, the window's second moment along an axis (voxels²): the bias a field
+    that bends inside the subvolume leaves grows with it (for the uniform box it is
+    ``M (M + 1) / 3``, the ``M²`` of :func:`predicted_error`). ``noise = ‖k‖``, the norm of the
+    equivalent kernel ``k = W X (Xᵀ W X)⁻¹ e₀`` of a weighted least-squares fit of the shape
+    function's monomials ``X`` (``W = diag w``): the translation's scatter per unit of per-voxel
+    noise where the texture is even (the noise through ``Σ w²`` and the fit). ``std`` None: the
+    uniform subvolume.
+    """
+    r = np.arange(-half, half + 1, dtype=np.float64)
+    z, y, x = (a.ravel() for a in np.meshgrid(r, r, r, indexing="ij"))
+    columns = [np.ones_like(z), z, y, x]
+    if order == 2:
+        columns += [z * z, y * y, x * x, z * y, y * x, z * x]
+    design = np.stack(columns, 1)
+    w = np.ones_like(z) if std is None else np.exp(-(z * z + y * y + x * x) / (2.0 * std**2))
+    normal = design.T @ (w[:, None] * design)
+    kernel = w * (design @ np.linalg.solve(normal, np.eye(len(normal))[0]))
+    return float(np.sum(w * z * z) / np.sum(w)), float(np.sqrt(np.sum(kernel * kernel)))
+
+
+def pass_window(
+    field: DisplacementField, bend: float, subvolume: int, pass_subvolume: int
+) -> tuple[float | None, float, float]:
+    """Gaussian window of the second-order correcting matches on ``pass_subvolume``³, chosen by
+    predicted error: ``(std or None, its predicted error, the uniform subvolume's)``.
+
+    For the uniform subvolume and each window of :data:`WINDOW_STDS`: the bias
+    (:data:`SECOND_ORDER_BIAS` × the bend, falling as the square of the subvolume, as in
+    :func:`predicted_error`) in proportion to the window's second moment, and the scatter from
+    the first run's median uncertainty carried through the fits' equivalent kernels
+    (:func:`window_geometry`: the second-order fit under the window against the first run's
+    first-order one on ``subvolume``³); the predicted error is the root of the sum of squares.
+    A window narrows the match to less bias at more scatter, so it is used only where the
+    uniform subvolume's predicted bias is the larger part of its error (never where the noise
+    already dominates: on the noisy concrete of docs/method.md every window measured worse; nor
+    for a field that carries no uncertainty to weigh the noise by), and
+    then the one of least predicted error wins (None where that is the uniform subvolume). The
+    box is not enlarged: larger boxes under a window measured worse (their far voxels read the
+    misfit of the densified field between the nodes, docs/method.md).
+    """
+    half = pass_subvolume // 2
+    bias = SECOND_ORDER_BIAS * bend * (pass_subvolume / subvolume) ** 2
+    sigma = predicted_scatter(field, subvolume, subvolume) / SECOND_ORDER_NOISE_GAIN
+    m2_box, noise_box = window_geometry(half, None)
+    _, noise_first = window_geometry(subvolume // 2, None, 1)
+    scatter = sigma * noise_box / noise_first
+    uniform = float(np.hypot(bias, scatter))
+    best, best_error = None, uniform
+    if not (bias > scatter > 0.0):  # noise-dominated, or no uncertainty to weigh it by
+        return best, best_error, uniform
+    for std in WINDOW_STDS:
+        m2, noise = window_geometry(half, float(std))
+        error = float(np.hypot(bias * m2 / m2_box, scatter * noise / noise_box))
+        if error < best_error:
+            best, best_error = float(std), error
+    return best, best_error, uniform
 
 
 def field_curvature(field: DisplacementField, half: int) -> float:
@@ -258,10 +326,19 @@ def pass_method(
             f"subvolume by {bend:.2g} voxel, but on these scans' noise the predicted errors are "
             f"{listed} voxel"
         )
-    return params.replace(order=2, subvolume=subvolume), (
-        f"second order on {subvolume}³ instead of first order on {params.subvolume}³: the field "
-        f"bends a {params.subvolume}³ subvolume by {bend:.2g} voxel (> {CURVATURE_VOXELS:g}), more "
-        f"than an affine shape function can follow (predicted errors: {listed} voxel)"
+    window, window_error, _ = (None, 0.0, 0.0)
+    if subvolume == smaller:
+        window, window_error, _ = pass_window(field, bend, params.subvolume, subvolume)
+    weighted = (
+        ""
+        if window is None
+        else f", weighted by a Gaussian window of std {window:g} voxels (predicted {window_error:.2g})"
+    )
+    return params.replace(order=2, subvolume=subvolume, window=window), (
+        f"second order on {subvolume}³{weighted} instead of first order on {params.subvolume}³: "
+        f"the field bends a {params.subvolume}³ subvolume by {bend:.2g} voxel "
+        f"(> {CURVATURE_VOXELS:g}), more than an affine shape function can follow (predicted "
+        f"errors: {listed} voxel)"
     )
 
 

@@ -232,6 +232,7 @@ def match_iter(
             device.kind,
             std=None if texture_std is None else texture_std[1],
             prefiltered=prefiltered,
+            weights=params.subvolume_weights(),
         )
         timings["prefilter_s"] = time.perf_counter() - started
         yield Progress("prefilter", 1, 1, "volumes prefiltered")

@@ -200,8 +200,9 @@ def correlate_points(
     order = params.order
     trial = starting_warps(guide, centers[inside], order)
     level = PyramidLevel.build(
-        1, reference, deformed, mask, params.half, params.min_texture, device.kind
-    )
+        1, reference, deformed, mask, params.half, params.min_texture, device.kind,
+        weights=params.subvolume_weights(),
+    )  # fmt: skip
     zncc_i, status_i, iterations_i = level.match(centers[inside], trial, order, params)
     variance = matched_variance(level, centers[inside], trial, zncc_i, status_i, order)
     matches = PointMatches(trial, zncc_i, status_i, iterations_i, variance)

@@ -30,7 +30,7 @@ from numba import njit, prange
 from .._numba_setup import KERNEL_OPTIONS
 from ..fields.field import Status
 from .icgn_pass import sample_pass as _sample_pass
-from .icgn_reference import reference_terms, translation_h_inverse
+from .icgn_reference import gradient_source, reference_terms, translation_h_inverse
 from .icgn_uncertainty import match_sigma, sandwich_sigma
 from .shape_function import (
     PRODUCT_TABLE,
@@ -144,6 +144,7 @@ def match_one(
     g = np.empty(n_total, np.float32)
     grad = np.empty((n_total, 3), np.float32)
     xi = np.empty((n_total, 3), np.float32)
+    source, oz, oy, ox = gradient_source(gradient, cz, cy, cx, half)
     count = 0
     for dz in range(-half, half + 1):
         z = cz + dz
@@ -154,9 +155,9 @@ def match_one(
                 if use_mask and not mask[z, y, x]:
                     continue
                 g[count] = reference[z, y, x]
-                grad[count, 0] = gradient[0, z, y, x]
-                grad[count, 1] = gradient[1, z, y, x]
-                grad[count, 2] = gradient[2, z, y, x]
+                grad[count, 0] = source[0, z - oz, y - oy, x - ox]
+                grad[count, 1] = source[1, z - oz, y - oy, x - ox]
+                grad[count, 2] = source[2, z - oz, y - oy, x - ox]
                 xi[count, 0] = dz
                 xi[count, 1] = dy
                 xi[count, 2] = dx
@@ -324,7 +325,9 @@ class MatchInputs(NamedTuple):
     reference : ndarray (nz, ny, nx) float32
         Reference gray values G.
     gradient : ndarray (3, nz, ny, nx) float32
-        Gradient of G's B-spline interpolant, ``(d/dz, d/dy, d/dx)``, gray levels per voxel.
+        Gradient of G's B-spline interpolant, ``(d/dz, d/dy, d/dx)``, gray levels per voxel; or
+        (CPU kernels) G's B-spline coefficients (1, nz, ny, nx), from which each subvolume's
+        gradient is computed (:func:`.icgn_reference.gradient_source`).
     coef_deformed : ndarray (nz, ny, nx) float32
         B-spline coefficients of F.
     mask : ndarray of bool (nz, ny, nx), or any bool array when ``use_mask`` is False

@@ -19,43 +19,83 @@ GRADIENT_PLANES_PER_TASK = 8
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def _mirrored_neighbours(n):
-    """Indices of voxel ``i - 1`` and ``i + 1`` along an axis of ``n`` voxels, mirrored."""
-    below = np.empty(n, np.int64)
-    above = np.empty(n, np.int64)
-    for i in range(n):
-        below[i] = _mirror(i - 1, n)
-        above[i] = _mirror(i + 1, n)
-    return below, above
+def _plane_terms(coefficients, plane, rows, x0, x_below, x_above, value_x, deriv_x, value_yx,
+                 deriv_y, deriv_x_value_y):  # fmt: skip
+    """One coefficient plane's x- then y-passes over a window: ``s_y s_x c``, ``d_y s_x c`` and
+    ``s_y d_x c``.
+
+    ``s = (1, 4, 1) / 6`` and ``d = (-1, 0, 1) / 2`` are the cubic B-spline's value and
+    derivative weights at integer positions (taps ``i - 1, i, i + 1``). The window's ``n`` rows
+    ``y0 … y0 + n - 1`` and ``m`` columns ``x0 … x0 + m - 1``: ``rows`` (n + 2,) holds the
+    coefficient row of each virtual row ``y0 - 1 … y0 + n`` and ``x_below``, ``x_above`` (m,) the
+    columns ``x - 1`` and ``x + 1``, mirrored at the volume's faces. ``value_x`` and ``deriv_x``
+    (n + 2, m) are scratch; the three outputs are (n, m).
+    """
+    n_rows, m = value_x.shape
+    for r in range(n_rows):
+        row = coefficients[plane, rows[r]]
+        for j in range(m):
+            left = np.float64(row[x_below[j]])
+            right = np.float64(row[x_above[j]])
+            value_x[r, j] = (left + 4.0 * np.float64(row[x0 + j]) + right) / 6.0
+            deriv_x[r, j] = 0.5 * (right - left)
+    for r in range(n_rows - 2):
+        for j in range(m):
+            value_yx[r, j] = (value_x[r, j] + 4.0 * value_x[r + 1, j] + value_x[r + 2, j]) / 6.0
+            deriv_y[r, j] = 0.5 * (value_x[r + 2, j] - value_x[r, j])
+            deriv_x_value_y[r, j] = (
+                deriv_x[r, j] + 4.0 * deriv_x[r + 1, j] + deriv_x[r + 2, j]
+            ) / 6.0
 
 
 @njit(inline="always", **KERNEL_OPTIONS)
-def _plane_terms(coefficients, plane, y_below, y_above, x_below, x_above, value_x, deriv_x,
-                 value_yx, deriv_y, deriv_x_value_y):  # fmt: skip
-    """One coefficient plane's x- then y-passes: ``s_y s_x c``, ``d_y s_x c`` and ``s_y d_x c``.
+def _z_pass(value, deriv_y, deriv_x_value_y, virtual, out, iz):
+    """The z-pass of output plane ``iz`` from the ring of three planes' terms (slot ``v % 3``
+    holds virtual plane ``v``; ``virtual`` is the one above ``iz``)."""
+    low = (virtual - 2) % 3
+    mid = (virtual - 1) % 3
+    high = virtual % 3
+    n, m = value.shape[1], value.shape[2]
+    for r in range(n):
+        for j in range(m):
+            out[0, iz, r, j] = 0.5 * (value[high, r, j] - value[low, r, j])
+            out[1, iz, r, j] = (
+                deriv_y[low, r, j] + 4.0 * deriv_y[mid, r, j] + deriv_y[high, r, j]
+            ) / 6.0
+            out[2, iz, r, j] = (
+                deriv_x_value_y[low, r, j]
+                + 4.0 * deriv_x_value_y[mid, r, j]
+                + deriv_x_value_y[high, r, j]
+            ) / 6.0
 
-    ``s = (1, 4, 1) / 6`` and ``d = (-1, 0, 1) / 2`` are the cubic B-spline's value and
-    derivative weights at integer positions (taps ``i - 1, i, i + 1``).
-    """
-    ny, nx = value_x.shape
-    for iy in range(ny):
-        row = coefficients[plane, iy]
-        for ix in range(nx):
-            left = np.float64(row[x_below[ix]])
-            right = np.float64(row[x_above[ix]])
-            value_x[iy, ix] = (left + 4.0 * np.float64(row[ix]) + right) / 6.0
-            deriv_x[iy, ix] = 0.5 * (right - left)
-    for iy in range(ny):
-        below = y_below[iy]
-        above = y_above[iy]
-        for ix in range(nx):
-            value_yx[iy, ix] = (
-                value_x[below, ix] + 4.0 * value_x[iy, ix] + value_x[above, ix]
-            ) / 6.0
-            deriv_y[iy, ix] = 0.5 * (value_x[above, ix] - value_x[below, ix])
-            deriv_x_value_y[iy, ix] = (
-                deriv_x[below, ix] + 4.0 * deriv_x[iy, ix] + deriv_x[above, ix]
-            ) / 6.0
+
+@njit(**KERNEL_OPTIONS)
+def _window_gradient(coefficients, z0, y0, x0, nz_out, ny_out, nx_out, out, out_z):
+    """:func:`gradient_volume` on the window of ``nz_out × ny_out × nx_out`` voxels from
+    ``(z0, y0, x0)`` into planes ``out_z … out_z + nz_out - 1`` of ``out`` (3, ·, ny_out, nx_out)
+    float32: per virtual plane ``z0 - 1 … z0 + nz_out`` (mirrored) an x- and a y-pass, then the
+    z-pass over a ring of three planes. Sums in float64; a voxel's value does not depend on the
+    window."""
+    nz, ny, nx = coefficients.shape
+    rows = np.empty(ny_out + 2, np.int64)
+    for r in range(ny_out + 2):
+        rows[r] = _mirror(y0 - 1 + r, ny)
+    x_below = np.empty(nx_out, np.int64)
+    x_above = np.empty(nx_out, np.int64)
+    for j in range(nx_out):
+        x_below[j] = _mirror(x0 + j - 1, nx)
+        x_above[j] = _mirror(x0 + j + 1, nx)
+    value_x = np.empty((ny_out + 2, nx_out))
+    deriv_x = np.empty((ny_out + 2, nx_out))
+    value = np.empty((3, ny_out, nx_out))
+    deriv_y = np.empty((3, ny_out, nx_out))
+    deriv_x_value_y = np.empty((3, ny_out, nx_out))
+    for virtual in range(nz_out + 2):
+        slot = virtual % 3
+        _plane_terms(coefficients, _mirror(z0 - 1 + virtual, nz), rows, x0, x_below, x_above,
+                     value_x, deriv_x, value[slot], deriv_y[slot], deriv_x_value_y[slot])  # fmt: skip
+        if virtual >= 2:
+            _z_pass(value, deriv_y, deriv_x_value_y, virtual, out, out_z + virtual - 2)
 
 
 @njit(parallel=True, **KERNEL_OPTIONS)
@@ -64,50 +104,44 @@ def gradient_volume(coefficients):
 
     At integer positions the cubic B-spline weights are ``(1, 4, 1) / 6`` and the derivative
     weights ``(-1, 0, 1) / 2``, so the gradient is a 3×3×3 stencil on the coefficients (mirrored
-    taps), applied here separably: per coefficient plane an x- and a y-pass, then the
-    z-pass over three consecutive planes (a ring of three planes per task of
+    taps), applied here separably (:func:`_window_gradient`, one task per
     :data:`GRADIENT_PLANES_PER_TASK` output planes). Sums in float64.
     """
     nz, ny, nx = coefficients.shape
     out = np.empty((3, nz, ny, nx), np.float32)
-    z_below, z_above = _mirrored_neighbours(nz)
-    y_below, y_above = _mirrored_neighbours(ny)
-    x_below, x_above = _mirrored_neighbours(nx)
     per_task = GRADIENT_PLANES_PER_TASK
     n_tasks = (nz + per_task - 1) // per_task
     for task in prange(n_tasks):
         z0 = task * per_task
         z1 = min(nz, z0 + per_task)
-        value_x = np.empty((ny, nx))
-        deriv_x = np.empty((ny, nx))
-        # ring of three planes: slot (plane index + 1) % 3 holds plane z_below / z / z_above terms
-        value = np.empty((3, ny, nx))
-        deriv_y = np.empty((3, ny, nx))
-        deriv_x_value_y = np.empty((3, ny, nx))
-        for virtual in range(z0 - 1, z0 + 1):
-            plane = z_below[z0] if virtual < z0 else virtual
-            slot = (virtual + 3) % 3
-            _plane_terms(coefficients, plane, y_below, y_above, x_below, x_above, value_x,
-                         deriv_x, value[slot], deriv_y[slot], deriv_x_value_y[slot])  # fmt: skip
-        for iz in range(z0, z1):
-            slot = (iz + 1 + 3) % 3
-            _plane_terms(coefficients, z_above[iz], y_below, y_above, x_below, x_above, value_x,
-                         deriv_x, value[slot], deriv_y[slot], deriv_x_value_y[slot])  # fmt: skip
-            low = (iz - 1 + 3) % 3
-            mid = iz % 3
-            high = (iz + 1) % 3
-            for iy in range(ny):
-                for ix in range(nx):
-                    out[0, iz, iy, ix] = 0.5 * (value[high, iy, ix] - value[low, iy, ix])
-                    out[1, iz, iy, ix] = (
-                        deriv_y[low, iy, ix] + 4.0 * deriv_y[mid, iy, ix] + deriv_y[high, iy, ix]
-                    ) / 6.0
-                    out[2, iz, iy, ix] = (
-                        deriv_x_value_y[low, iy, ix]
-                        + 4.0 * deriv_x_value_y[mid, iy, ix]
-                        + deriv_x_value_y[high, iy, ix]
-                    ) / 6.0
+        _window_gradient(coefficients, z0, 0, 0, z1 - z0, ny, nx, out, z0)
     return out
+
+
+@njit(**KERNEL_OPTIONS)
+def subvolume_gradient(coefficients, cz, cy, cx, half):
+    """:func:`gradient_volume`'s values on the subvolume of half size ``half`` around
+    ``(cz, cy, cx)`` (inside the volume), shape (3, 2·half + 1, 2·half + 1, 2·half + 1) float32,
+    equal bit for bit to the whole volume's there."""
+    edge = 2 * half + 1
+    out = np.empty((3, edge, edge, edge), np.float32)
+    _window_gradient(coefficients, cz - half, cy - half, cx - half, edge, edge, edge, out, 0)
+    return out
+
+
+@njit(**KERNEL_OPTIONS)
+def gradient_source(gradient, cz, cy, cx, half):
+    """Where a subvolume's ``∇G`` is read: ``(array, oz, oy, ox)``, voxel ``(z, y, x)`` at
+    ``array[:, z - oz, y - oy, x - ox]``.
+
+    ``gradient`` is ``∇G`` (3, nz, ny, nx), returned as it is with offsets 0, or ``G``'s B-spline
+    coefficients (1, nz, ny, nx), from which the subvolume's ``∇G`` is computed here
+    (:func:`subvolume_gradient`): the same values without a volume of 12 bytes per voxel.
+    """
+    if gradient.shape[0] == 3:
+        return gradient, 0, 0, 0
+    block = subvolume_gradient(gradient[0], cz, cy, cx, half)
+    return block, cz - half, cy - half, cx - half
 
 
 _PAIR = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2]], dtype=np.int64)  # (k, k') -> QUAD_AXES row

@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit, prange
 
 from .._numba_setup import KERNEL_OPTIONS
-from .icgn_reference import reference_terms, translation_h_inverse
+from .icgn_reference import gradient_source, reference_terms, translation_h_inverse
 from .shape_function import cholesky_solve_setup, compose_inverse
 from .uncertainty_sums import affine_sensitivity_sums, quadratic_sensitivity_sums, sensitivity_sums
 
@@ -40,6 +40,7 @@ def subvolume_moments(reference, gradient, mask, use_mask, centers, half, nb, va
         cz = centers[n, 0]
         cy = centers[n, 1]
         cx = centers[n, 2]
+        source, oz, oy, ox = gradient_source(gradient, cz, cy, cx, half)
         count = 0
         sum_g = 0.0
         sum_power = 0.0
@@ -50,7 +51,7 @@ def subvolume_moments(reference, gradient, mask, use_mask, centers, half, nb, va
                         continue
                     sum_g += np.float64(reference[z, y, x])
                     for k in range(3):
-                        gk = np.float64(gradient[k, z, y, x])
+                        gk = np.float64(source[k, z - oz, y - oy, x - ox])
                         sum_power += gk * gk
                     count += 1
         variance[n] = np.nan
@@ -190,6 +191,7 @@ def subvolume_statistics(
         g = np.empty(n_total, np.float32)  # exact copies, as in icgn.match_one
         grad = np.empty((n_total, 3), np.float32)
         xi = np.empty((n_total, 3), np.float32)
+        source, oz, oy, ox = gradient_source(gradient, cz, cy, cx, half)
         count = 0
         for dz in range(-half, half + 1):
             for dy in range(-half, half + 1):
@@ -201,7 +203,7 @@ def subvolume_statistics(
                         continue
                     g[count] = reference[z, y, x]
                     for k in range(3):
-                        grad[count, k] = gradient[k, z, y, x]
+                        grad[count, k] = source[k, z - oz, y - oy, x - ox]
                     xi[count, 0] = dz
                     xi[count, 1] = dy
                     xi[count, 2] = dx

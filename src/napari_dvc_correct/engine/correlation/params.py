@@ -12,6 +12,29 @@ import numpy as np
 MIN_SUBVOLUME = 5
 
 
+def gaussian_window(half: int, std: float) -> np.ndarray:
+    """Gaussian weights ``exp(−|ξ|² / (2 std²))`` over the box ``[−half, half]³``.
+
+    Parameters
+    ----------
+    half : int
+        Box half-size ``M`` (voxels; edge ``2M + 1``).
+    std : float
+        Standard deviation of the window (voxels), > 0.
+
+    Returns
+    -------
+    ndarray (2M + 1, 2M + 1, 2M + 1) float64, axes (z, y, x), 1 at the centre.
+    """
+    if not (np.isfinite(std) and std > 0):
+        raise ValueError(f"the window's standard deviation must be > 0 voxels, got {std!r}")
+    if int(half) < 1:
+        raise ValueError(f"the box half-size must be >= 1 voxel, got {half!r}")
+    r = np.arange(-int(half), int(half) + 1, dtype=np.float64)
+    r2 = r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2
+    return np.exp(-r2 / (2.0 * float(std) ** 2))
+
+
 @dataclass(frozen=True)
 class CorrelationParams:
     """Parameters of local subvolume DVC. The self-correction reuses them unchanged.
@@ -64,6 +87,10 @@ class CorrelationParams:
     repair_attempts_out_of_bounds : int
         The same for a POI whose deformed subvolume left the volume (its guess may be wrong, but
         it is usually at the border for good).
+    window : float or None
+        Gaussian weights over the subvolume at full resolution: a voxel at ``ξ`` from the POI
+        counts ``exp(−|ξ|² / (2 window²))`` in the match (standard deviation in voxels;
+        :mod:`.icgn_weighted`). None (default): every voxel of the subvolume counts the same.
     """
 
     subvolume: int = 31
@@ -81,6 +108,7 @@ class CorrelationParams:
     median_test_min_pois: int = 9
     repair_attempts: int = 3
     repair_attempts_out_of_bounds: int = 1
+    window: float | None = None
 
     def __post_init__(self) -> None:
         problems = []
@@ -118,6 +146,15 @@ class CorrelationParams:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 0:
                 problems.append(f"{name} must be an integer >= 0, got {value!r}")
+        if self.window is not None and not (
+            isinstance(self.window, (int, float, np.integer, np.floating))
+            and np.isfinite(self.window)
+            and self.window > 0
+        ):
+            problems.append(
+                f"window must be None (no weights) or a standard deviation > 0 voxels, "
+                f"got {self.window!r}"
+            )
         if problems:
             raise ValueError("; ".join(problems))
 
@@ -125,6 +162,12 @@ class CorrelationParams:
     def half(self) -> int:
         """Subvolume half-size ``M`` in voxels."""
         return self.subvolume // 2
+
+    def subvolume_weights(self) -> np.ndarray | None:
+        """The subvolume's weights, shape ``(subvolume,)*3`` (None where :attr:`window` is)."""
+        if self.window is None:
+            return None
+        return gaussian_window(self.half, float(self.window))
 
     @property
     def effective_search_radius(self) -> int:

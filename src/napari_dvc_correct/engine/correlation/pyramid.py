@@ -12,11 +12,18 @@ from typing import NamedTuple
 import numpy as np
 
 from ..fields.field import Status
-from . import icgn, icgn_reference, icgn_uncertainty, shape_function
+from . import icgn, icgn_reference, icgn_uncertainty, icgn_weighted, shape_function
 from .initial_guess import bin_volume
 from .interpolation import prefilter
 from .params import CorrelationParams
 from .pyramid_rule import level_reach
+
+#: From this many voxels a CPU level keeps ``G``'s B-spline coefficients (4 bytes per voxel)
+#: instead of ``∇G`` (12), and the kernels compute each subvolume's ``∇G`` from them
+#: (:func:`.icgn_reference.gradient_source`; the same values bit for bit). Below, where memory
+#: is not short, the stored ``∇G`` saves that work: each voxel's gradient is read by every
+#: subvolume over it (about 18 at subvolume 21, step 8).
+GRADIENT_ON_DEMAND_FROM = 2**24
 
 
 def _read_only(volume: np.ndarray) -> np.ndarray:
@@ -60,21 +67,32 @@ class PyramidLevel:
     factor: int
     reference: np.ndarray
     deformed: np.ndarray
-    gradient: np.ndarray
+    gradient: np.ndarray  # ∇G (3, nz, ny, nx), or G's coefficients (1, nz, ny, nx): see build
     coef_deformed: np.ndarray
     mask: np.ndarray
     use_mask: bool
     half: int
     min_std: float
     device: str = "cpu"  # "cuda": IC-GN runs on the GPU (engine.cuda)
+    #: weights of the subvolume's voxels, (edge³,) float64 (:mod:`.icgn_weighted`, on the CPU
+    #: whatever ``device``); None: unweighted
+    weights: np.ndarray | None = None
 
     @classmethod
     def build(
         cls, factor, reference, deformed, mask, half, min_texture, device="cpu", std=None,
-        prefiltered=None,
+        prefiltered=None, weights=None,
     ):  # fmt: skip
         """The level of binning ``factor``; ``prefiltered`` (:class:`Prefiltered`, factor 1 only)
-        gives ``∇G`` and ``F``'s coefficients already computed for these volumes."""
+        gives ``∇G`` and ``F``'s coefficients already computed for these volumes; ``weights``
+        (``(2·half + 1,)*3``, optional) weigh the subvolumes' voxels (:mod:`.icgn_weighted`).
+
+        On the CPU a level of at least :data:`GRADIENT_ON_DEMAND_FROM` voxels holds, as
+        ``gradient``, ``G``'s B-spline coefficients with a leading axis of one (1, nz, ny, nx)
+        rather than ``∇G`` (3, nz, ny, nx); the kernels compute each subvolume's ``∇G`` from them.
+        """
+        if weights is not None:
+            weights = icgn_weighted.check_weights(weights, half)
         if factor > 1:
             reference = bin_volume(reference, factor)
             deformed = bin_volume(deformed, factor)
@@ -91,7 +109,12 @@ class PyramidLevel:
         prefiltered.check(reference.shape)
         gradient = prefiltered.gradient
         if gradient is None:
-            gradient = icgn_reference.gradient_volume(prefilter(reference))
+            coefficients = prefilter(reference)
+            if device != "cuda" and reference.size >= GRADIENT_ON_DEMAND_FROM:
+                gradient = coefficients[None]
+            else:
+                gradient = icgn_reference.gradient_volume(coefficients)
+            del coefficients
         coef_deformed = prefiltered.coef_deformed
         if coef_deformed is None:
             coef_deformed = prefilter(deformed)
@@ -106,6 +129,7 @@ class PyramidLevel:
             half=half,
             min_std=min_texture * std,
             device=device,
+            weights=weights,
         )
 
     def centers_from_fine(self, centers):
@@ -126,12 +150,16 @@ class PyramidLevel:
         var = np.empty(len(centers))
         power = np.empty(len(centers))
         sig = np.empty((len(centers), 3))
-        icgn_uncertainty.subvolume_statistics(
+        kernel, weighted = icgn_uncertainty.subvolume_statistics, ()
+        if self.weights is not None:
+            kernel, weighted = icgn_weighted.weighted_statistics, (self.weights,)
+        kernel(
             self.reference,
             self.gradient,
             self.coef_deformed,
             self.mask,
             self.use_mask,
+            *weighted,
             np.ascontiguousarray(centers, dtype=np.int64),
             self.half,
             shape_function.n_monomials(order),
@@ -151,11 +179,15 @@ class PyramidLevel:
         var = np.full(len(centers), np.nan)
         power = np.full(len(centers), np.nan)
         if len(centers):
-            icgn_uncertainty.subvolume_moments(
+            kernel, weighted = icgn_uncertainty.subvolume_moments, ()
+            if self.weights is not None:
+                kernel, weighted = icgn_weighted.weighted_moments, (self.weights,)
+            kernel(
                 self.reference,
                 self.gradient,
                 self.mask,
                 self.use_mask,
+                *weighted,
                 np.ascontiguousarray(centers, dtype=np.int64),
                 self.half,
                 shape_function.n_monomials(order),
@@ -200,6 +232,19 @@ class PyramidLevel:
             return zncc, status, iterations
         if sigma is not None:
             sigma[:] = 0.0
+        if self.weights is not None:
+            icgn_weighted.match_many_weighted(
+                self.inputs(order, params),
+                self.weights,
+                np.ascontiguousarray(centers, dtype=np.int64),
+                warps,
+                zncc,
+                status,
+                iterations,
+                np.zeros((n, 4)) if sigma is None else sigma,
+                float(noise_power),
+            )
+            return zncc, status, iterations
         if sigma is not None and self.device != "cuda":
             icgn.match_many_sigma(
                 self.inputs(order, params),
