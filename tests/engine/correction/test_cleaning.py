@@ -54,6 +54,41 @@ def test_inpainting_is_exact_for_affine_fields_small_and_large_holes():
     assert np.abs(filled - truth).max() < 1e-3
 
 
+def _open_shell(shape=(20, 20, 20), radius=7.0):
+    """Known nodes inside a cylinder along z; the unknown shell reaches the grid's border."""
+    _, y, x = np.indices(shape)
+    centre = (shape[1] - 1) / 2
+    return (y - centre) ** 2 + (x - centre) ** 2 <= radius**2
+
+
+def test_a_hole_open_to_the_border_is_solved_directly_up_to_its_own_limit(monkeypatch):
+    known = _open_shell()
+    unknown = ~known
+    assert cleaning.DIRECT_SOLVE_LIMIT < unknown.sum() <= cleaning.OPEN_DIRECT_SOLVE_LIMIT
+    assert cleaning.direct_solve_limit(unknown) == cleaning.OPEN_DIRECT_SOLVE_LIMIT
+    enclosed = np.ones((24, 24, 24), bool)
+    enclosed[3:21, 3:21, 2:22] = False
+    assert cleaning.direct_solve_limit(~enclosed) == cleaning.DIRECT_SOLVE_LIMIT
+    affine = synthetic.affine(GRADIENT, (30.0, 30.0, 30.0), (1.0, 2.0, 3.0))
+    truth = _grid_field(affine, known.shape).u
+    values = np.where(known[..., None], truth, np.nan)
+    cg_calls = []
+    jacobi_cg = cleaning.jacobi_cg
+    monkeypatch.setattr(cleaning, "jacobi_cg", lambda *args: cg_calls.append(1) or jacobi_cg(*args))
+    direct = cleaning.inpaint(values, known, STEP)
+    assert not cg_calls
+    assert np.abs(direct - truth).max() < 1e-6
+    # the same system by conjugate gradients: one solution within the solver's tolerance
+    monkeypatch.setattr(cleaning, "OPEN_DIRECT_SOLVE_LIMIT", cleaning.DIRECT_SOLVE_LIMIT)
+    rough = values + np.random.default_rng(5).normal(scale=0.3, size=values.shape)
+    iterated = cleaning.inpaint(rough, known, STEP)
+    assert cg_calls
+    monkeypatch.undo()
+    solved = cleaning.inpaint(rough, known, STEP)
+    assert np.array_equal(solved[known], rough[known])
+    assert np.abs(solved - iterated).max() < 1e-5
+
+
 def test_columns_at_once_equal_scipy_cg_column_by_column_to_the_bit():
     from scipy import sparse
     from scipy.sparse import linalg as sparse_linalg
