@@ -13,9 +13,9 @@ weighted:
 
 With every weight 1 these are the sums of :func:`.icgn.match_one` (equal to rounding; the
 unweighted kernels stay as they are, this module is used only where a window is asked for).
-``H₁`` comes from :func:`.icgn_reference.affine_terms` / :func:`.quadratic_reference_terms` with
-``∇G`` scaled by ``√w`` (``Σ (√w ∇G)(√w ∇G)ᵀ ⊗ b bᵀ``): the same moments, the same cost; the
-deformed side reuses IC-GN's sampling and sums with ``w ∇G`` and ``w (g − ḡ)``.
+``H₁`` comes from one moment pass (:func:`.icgn_weighted_moments.weighted_reference_moments`)
+that also gives what the uncertainty reads with the weights squared (``H₂ = Σ w² JᵀJ`` and the
+like); the deformed side reuses IC-GN's sampling and sums with ``w ∇G`` and ``w (g − ḡ)``.
 
 The uncertainty is the weighted sandwich (:mod:`.icgn_weighted_uncertainty`). Units: voxels,
 gray levels; axis order (z, y, x).
