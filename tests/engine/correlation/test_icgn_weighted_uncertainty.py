@@ -66,19 +66,35 @@ def test_the_window_lowers_the_scatter_it_predicts():
     assert narrow[0] > 1.5 * wide[0] and narrow[1] > 1.5 * wide[1]
 
 
-def test_the_squared_weight_terms_of_unit_weights():
-    """``W₂ = n``, ``Σ w² (g − ḡ) = 0`` and the power is the plain mean for unit weights."""
-    rng = np.random.default_rng(1)
-    count = 27
-    g = rng.random(count).astype(np.float32)
-    grad = rng.random((count, 3)).astype(np.float32)
-    xi = np.array(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), np.float32)
-    xi = xi.reshape(3, -1).T.copy()
-    mean_g = float(np.mean(g.astype(np.float64)))
-    total2, w2d, w2dd, s2j, _, power = icgn_weighted_uncertainty.squared_weight_terms(
-        g, grad, xi, np.ones(count), count, 4, mean_g
-    )
-    assert total2 == count and abs(w2d) < 1e-12
-    np.testing.assert_allclose(w2dd, np.sum((g - mean_g) ** 2), rtol=1e-6)
-    np.testing.assert_allclose(s2j[[0, 4, 8]], grad.astype(np.float64).sum(axis=0), rtol=1e-12)
-    np.testing.assert_allclose(power, np.mean(np.sum(grad.astype(np.float64) ** 2, 1)))
+@pytest.mark.parametrize("sensitive", [False, True])
+def test_the_sandwich_does_not_depend_on_the_weights_scale(sensitive):
+    """Weights times 3 (``H₁``, ``H₂``, ``W``, ``W₂`` all rescaled) give the same uncertainty to
+    rounding: the estimate reads the weights' shape, not their unit."""
+    pattern = lambda s: synthetic.textured_volume(s, 2.5, seed=5)  # noqa: E731
+    reference, deformed = synthetic.make_pair(pattern, (N,) * 3, synthetic.translation(SHIFT))
+    reference = np.float32(synthetic.add_noise(reference, 0.1 * np.std(reference), seed=1))
+    level = PyramidLevel.build(1, reference, np.float32(deformed), None, HALF, 0.05)
+    window = icgn_weighted.check_weights(icgn_weighted.gaussian_window(HALF, 3.5), HALF)
+    p = np.zeros(30)
+    p[[0, 10, 20]] = SHIFT
+    out = []
+    for scale in (1.0, 3.0):
+        n = (2 * HALF + 1) ** 3
+        g, w = np.empty(n, np.float32), np.empty(n)
+        grad, xi = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        count, _, _ = icgn_weighted._gather(
+            level.reference, level.gradient, level.mask, False, scale * window, 18, 18, 18, HALF,
+            g, grad, xi, w,
+        )  # fmt: skip
+        mean_g, delta_g, ok, _, sum_j, sum_jg, total, second = icgn_weighted.weighted_terms(
+            g, grad, xi, w, count, 10
+        )
+        assert ok
+        sigma = np.empty(3)
+        icgn_weighted_uncertainty.weighted_sigma_at(
+            level.coef_deformed, g, grad, xi, w, count, 10, mean_g, delta_g, second, sum_j,
+            sum_jg, total, 0.98, p, 18, 18, 18, sensitive, sigma,
+        )  # fmt: skip
+        out.append(sigma)
+    assert np.all(np.isfinite(out[0])) and np.all(out[0] > 0)
+    np.testing.assert_allclose(out[1], out[0], rtol=1e-9)

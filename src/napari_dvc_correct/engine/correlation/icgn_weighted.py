@@ -13,9 +13,9 @@ weighted:
 
 With every weight 1 these are the sums of :func:`.icgn.match_one` (equal to rounding; the
 unweighted kernels stay as they are, this module is used only where a window is asked for).
-``H₁`` comes from :func:`.icgn_reference.affine_terms` / :func:`.quadratic_reference_terms` with
-``∇G`` scaled by ``√w`` (``Σ (√w ∇G)(√w ∇G)ᵀ ⊗ b bᵀ``): the same moments, the same cost; the
-deformed side reuses IC-GN's sampling and sums with ``w ∇G`` and ``w (g − ḡ)``.
+``H₁`` comes from one moment pass (:func:`.icgn_weighted_moments.weighted_reference_moments`)
+that also gives what the uncertainty reads with the weights squared (``H₂ = Σ w² JᵀJ`` and the
+like); the deformed side reuses IC-GN's sampling and sums with ``w ∇G`` and ``w (g − ḡ)``.
 
 The uncertainty is the weighted sandwich (:mod:`.icgn_weighted_uncertainty`). Units: voxels,
 gray levels; axis order (z, y, x).
@@ -31,13 +31,8 @@ from ..fields.field import Status
 from .icgn import STALL_FACTOR, STALL_ITERATIONS, _noise_converged
 from .icgn_pass import _affine_samples, _affine_sums, _quadratic_samples, _quadratic_sums
 from .icgn_reference import gradient_source, translation_h_inverse
-from .icgn_weighted_uncertainty import (
-    gradient_sums,
-    scaled_hessian,
-    weighted_power,
-    weighted_sigma,
-    weighted_sigma_at,
-)
+from .icgn_weighted_moments import weighted_reference_moments
+from .icgn_weighted_uncertainty import weighted_sigma, weighted_sigma_at
 from .params import gaussian_window  # noqa: F401  (the weights of CorrelationParams.window)
 from .shape_function import (
     cholesky_solve,
@@ -82,24 +77,16 @@ def check_weights(weights, half: int) -> np.ndarray:
 
 @njit(**KERNEL_OPTIONS)
 def weighted_terms(g, grad, xi, w, count, nb):
-    """Weighted reference terms: ``(ḡ, Δg, ok, low, Σ w J, Σ w J (g − ḡ), W)`` with ``low`` the
-    Cholesky factor of ``H₁ = Σ w JᵀJ`` (``ok`` False where it is not positive definite)."""
-    m_par = 3 * nb
-    total = 0.0
-    mean_g = 0.0
-    for i in range(count):
-        total += w[i]
-        mean_g += w[i] * g[i]
-    mean_g /= total
-    ss_g = 0.0
-    root = np.empty(count)
-    for i in range(count):
-        dg = g[i] - mean_g
-        ss_g += w[i] * dg * dg
-        root[i] = np.sqrt(w[i])
-    sum_j, sum_jg = gradient_sums(g, grad, xi, w, count, nb, mean_g)
-    ok, low = cholesky_solve_setup(scaled_hessian(g, grad, xi, root, count, nb), m_par)
-    return mean_g, np.sqrt(ss_g), ok, low, sum_j, sum_jg, total
+    """Weighted reference terms: ``(ḡ, Δg, ok, low, Σ w J, Σ w J (g − ḡ), W, second)`` with
+    ``low`` the Cholesky factor of ``H₁ = Σ w JᵀJ`` (``ok`` False where it is not positive
+    definite) and ``second`` what the uncertainty reads, from the same pass
+    (:func:`.icgn_weighted_moments.weighted_reference_moments`): ``(H₁, H₂, Σ w² J,
+    Σ w² J (g − ḡ), W₂, Σ w² (g − ḡ), Σ w² (g − ḡ)², Σ w |∇G|² / W)``."""
+    (mean_g, ss_g, total, total2, w2d, w2dd, power, h1, h2, sum_j, sum_jg, s2j,
+     s2jd) = weighted_reference_moments(g, grad, xi, w, count, nb)  # fmt: skip
+    ok, low = cholesky_solve_setup(h1, 3 * nb)
+    second = (h1, h2, s2j, s2jd, total2, w2d, w2dd, power)
+    return mean_g, np.sqrt(ss_g), ok, low, sum_j, sum_jg, total, second
 
 
 @njit(**KERNEL_OPTIONS)
@@ -148,15 +135,12 @@ def _scaled_inputs(g, grad, w, count, mean_g, gw, gradw):
 
 
 @njit(**KERNEL_OPTIONS)
-def _noise_scale(low, m_par, nb, total, w, count, h_inv):
+def _noise_scale(low, m_par, nb, total, total2, h_inv):
     """The noise stop's inputs for weights: ``diag(H₁⁻¹)`` times ``W₂/W``, the effective voxel
     count ``W²/W₂`` (``W₂ = Σ w²``) and the factor ``√(W/W₂)`` on ``Δg``, so that
     :func:`.icgn._noise_converged` reads the weighted residual variance and about the weighted
     translation noise (``H₂ ≈ (W₂/W) H₁``; a stopping rule only, the uncertainty is the
     sandwich). All 1 and ``n`` for unit weights."""
-    total2 = 0.0
-    for i in range(count):
-        total2 += w[i] * w[i]
     translation_h_inverse(low, m_par, nb, h_inv)
     factor = total2 / total
     for k in range(3):
@@ -193,7 +177,9 @@ def match_one_weighted(
     )
     if kept < min_mask_fraction * whole_weight or count < m_par + 1:
         return np.nan, _MASKED, 0
-    mean_g, delta_g, ok, low, sum_j, sum_jg, total = weighted_terms(g, grad, xi, w, count, nb)
+    mean_g, delta_g, ok, low, sum_j, sum_jg, total, second = weighted_terms(
+        g, grad, xi, w, count, nb
+    )
     if delta_g <= min_std * np.sqrt(total) or delta_g == 0.0:
         return np.nan, _LOW_TEXTURE, 0
     if not ok:
@@ -205,7 +191,7 @@ def match_one_weighted(
     for k in range(3):
         start[k] = p[k * nb]
     h_inv = np.empty(3)
-    n_eff, norm_scale = _noise_scale(low, m_par, nb, total, w, count, h_inv)
+    n_eff, norm_scale = _noise_scale(low, m_par, nb, total, second[4], h_inv)
     previous = np.inf
     shortest = np.inf
     since_shortest = 0
@@ -239,13 +225,13 @@ def match_one_weighted(
                 kept_weight += w[i]
             if kept_weight < min_mask_fraction * whole_weight or count < m_par + 1:
                 return zncc, _OUT_OF_BOUNDS, iteration
-            mean_g, delta_g, ok, low, sum_j, sum_jg, total = weighted_terms(
+            mean_g, delta_g, ok, low, sum_j, sum_jg, total, second = weighted_terms(
                 g, grad, xi, w, count, nb
             )
             if not ok or delta_g == 0.0:
                 return zncc, _OUT_OF_BOUNDS, iteration
             _scaled_inputs(g, grad, w, count, mean_g, gw, gradw)
-            n_eff, norm_scale = _noise_scale(low, m_par, nb, total, w, count, h_inv)
+            n_eff, norm_scale = _noise_scale(low, m_par, nb, total, second[4], h_inv)
             previous = np.inf
             continue
         if nb == 4:
@@ -304,7 +290,7 @@ def match_one_weighted(
         if stop:
             if sigma_out is not None and whole:
                 weighted_sigma(
-                    coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, low, sum_j,
+                    coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, second, sum_j,
                     sum_jg, total, zncc, p, cz, cy, cx, noise_power, sigma_out,
                 )  # fmt: skip
             return zncc, _CONVERGED, iteration
@@ -317,7 +303,7 @@ def match_one_weighted(
                 return zncc, _DIVERGED, iteration
     if sigma_out is not None and whole:
         weighted_sigma(
-            coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, low, sum_j, sum_jg,
+            coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, second, sum_j, sum_jg,
             total, zncc, p, cz, cy, cx, noise_power, sigma_out,
         )  # fmt: skip
     return zncc, _MAX_ITERATIONS, max_iterations
@@ -374,13 +360,15 @@ def weighted_statistics(
         gradient_power[n] = np.nan
         if count < m_par + 3:
             continue
-        mean_g, delta_g, ok, low, sum_j, sum_jg, total = weighted_terms(g, grad, xi, w, count, nb)
+        mean_g, delta_g, ok, low, sum_j, sum_jg, total, second = weighted_terms(
+            g, grad, xi, w, count, nb
+        )
         variance[n] = delta_g * delta_g / total
-        gradient_power[n] = weighted_power(grad, w, count)
+        gradient_power[n] = second[7]
         if not ok or delta_g == 0.0 or not np.isfinite(zncc[n]):
             continue
         weighted_sigma_at(
-            coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, low, sum_j, sum_jg, total,
+            coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, second, sum_j, sum_jg, total,
             zncc[n], params[n], cz, cy, cx, sensitivity[n], sigma[n],
         )  # fmt: skip
 

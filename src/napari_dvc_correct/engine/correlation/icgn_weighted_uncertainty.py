@@ -23,43 +23,12 @@ from numba import njit
 from .._numba_setup import KERNEL_OPTIONS
 from .icgn_reference import (
     _QUADRATIC_INDEX,
-    _QUADRATIC_POWERS,
     _QUADRATIC_PRODUCT,
-    _fold_moments,
     add_to_rows,
-    affine_terms,
     fold_quartic_row,
-    quadratic_reference_terms,
 )
-from .icgn_uncertainty import perpendicular_hessian
 from .shape_function import cholesky_solve_setup, compose_inverse, monomials
 from .uncertainty_sums import value_and_gradient
-
-
-@njit(**KERNEL_OPTIONS)
-def scaled_hessian(g, grad, xi, scale, count, nb):
-    """``Σ scale² ∇G∇Gᵀ ⊗ b bᵀ`` (full matrix; NaN where not positive definite, second order)
-    from IC-GN's moments (:mod:`.icgn_reference`) with ``∇G`` scaled per voxel by ``scale``."""
-    m_par = 3 * nb
-    scaled = np.empty((count, 3))
-    for i in range(count):
-        for k in range(3):
-            scaled[i, k] = np.float64(grad[i, k]) * scale[i]
-    if nb == 4:
-        _, hessian, _, _ = affine_terms(g, scaled, xi, count, 0.0)
-        return hessian
-    _, _, ok, low, _, _ = quadratic_reference_terms(g, scaled, xi, count)
-    hessian = np.empty((m_par, m_par))
-    for r in range(m_par):
-        for c in range(r + 1):
-            v = 0.0
-            for k in range(c + 1):
-                v += low[r, k] * low[c, k]
-            hessian[r, c] = v
-            hessian[c, r] = v
-    if not ok:
-        hessian[:, :] = np.nan
-    return hessian
 
 
 @njit(**KERNEL_OPTIONS)
@@ -140,85 +109,19 @@ def weighted_sensitivity_sums(coef, g, grad, xi, w, count, mean_g, cz, cy, cx, p
 
 
 @njit(**KERNEL_OPTIONS)
-def gradient_sums(g, grad, xi, scale, count, nb, mean_g):
-    """``Σ s J`` and ``Σ s J (g − ḡ)`` (``J = ∇G ⊗ b``, ``s`` per voxel, (count,)): the six
-    quantities ``s g_k`` and ``s g_k (g − ḡ)`` summed along each x-row times ``1, x, x²`` and
-    folded into the ten second-order monomials once per row (voxels in (z, y, x) row order)."""
-    m_par = 3 * nb
-    linear = np.zeros((6, 10))
-    rows = np.zeros((3, 6))
-    values = np.empty(6)
-    zp = np.empty(5)
-    yp = np.empty(5)
-    current_z = np.float64(xi[0, 0]) if count else 0.0
-    current_y = np.float64(xi[0, 1]) if count else 0.0
-    for i in range(count + 1):
-        if i == count or xi[i, 0] != current_z or xi[i, 1] != current_y:
-            _fold_moments(linear, rows, _QUADRATIC_POWERS, current_z, current_y, zp, yp)
-            rows[:] = 0.0
-            if i == count:
-                break
-            current_z = np.float64(xi[i, 0])
-            current_y = np.float64(xi[i, 1])
-        dg = g[i] - mean_g
-        for k in range(3):
-            v = scale[i] * np.float64(grad[i, k])
-            values[k] = v
-            values[3 + k] = v * dg
-        add_to_rows(rows, values, np.float64(xi[i, 2]))
-    sum_j = np.empty(m_par)
-    sum_jg = np.empty(m_par)
-    for k in range(3):
-        for j in range(nb):
-            sum_j[k * nb + j] = linear[k, j]
-            sum_jg[k * nb + j] = linear[3 + k, j]
-    return sum_j, sum_jg
-
-
-@njit(**KERNEL_OPTIONS)
-def weighted_power(grad, w, count):
-    """The weighted gradient power ``Σ w |∇G|² / Σ w`` (gray²/voxel²)."""
-    total = 0.0
-    power = 0.0
-    for i in range(count):
-        total += w[i]
-        for k in range(3):
-            power += w[i] * np.float64(grad[i, k]) ** 2
-    return power / total
-
-
-@njit(**KERNEL_OPTIONS)
-def squared_weight_terms(g, grad, xi, w, count, nb, mean_g):
-    """``W₂ = Σ w²``, ``Σ w² (g − ḡ)``, ``Σ w² (g − ḡ)²``, ``Σ w² J``, ``Σ w² J (g − ḡ)`` and
-    the weighted gradient power ``Σ w |∇G|² / Σ w``."""
-    total2 = 0.0
-    w2d = 0.0
-    w2dd = 0.0
-    squared = np.empty(count)
-    for i in range(count):
-        weight2 = w[i] * w[i]
-        dg = g[i] - mean_g
-        squared[i] = weight2
-        total2 += weight2
-        w2d += weight2 * dg
-        w2dd += weight2 * dg * dg
-    s2j, s2jd = gradient_sums(g, grad, xi, squared, count, nb, mean_g)
-    return total2, w2d, w2dd, s2j, s2jd, weighted_power(grad, w, count)
-
-
-@njit(**KERNEL_OPTIONS)
 def weighted_sigma(
-    coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, low, sum_j, sum_jg, total, zncc,
-    p, cz, cy, cx, noise_power, out,
+    coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, second, sum_j, sum_jg, total,
+    zncc, p, cz, cy, cx, noise_power, out,
 ):  # fmt: skip
     """The weighted sandwich uncertainty of a match, from the terms the weighted IC-GN holds
-    (``low``: Cholesky factor of ``H₁``): ``out[:3]`` the standard deviations of
+    (``second``: :func:`.icgn_weighted.weighted_terms`' last return): ``out[:3]`` the
+    standard deviations of
     ``(uz, uy, ux)`` (voxels; NaN where they cannot be told, ``inf`` where ``A`` is singular),
     ``out[3]`` 1, or 2 where the weighted gradient power is below ``noise_power`` (then with the
     sensitivity pass). See :func:`weighted_sigma_at`."""
-    sensitive = noise_power > 0.0 and weighted_power(grad, w, count) < noise_power
+    sensitive = noise_power > 0.0 and second[7] < noise_power
     weighted_sigma_at(
-        coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, low, sum_j, sum_jg, total,
+        coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, second, sum_j, sum_jg, total,
         zncc, p, cz, cy, cx, sensitive, out[:3],
     )  # fmt: skip
     out[3] = 2.0 if sensitive else 1.0
@@ -226,11 +129,12 @@ def weighted_sigma(
 
 @njit(**KERNEL_OPTIONS)
 def weighted_sigma_at(
-    coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, low, sum_j, sum_jg, total, zncc,
-    p, cz, cy, cx, sensitive, out,
+    coef_deformed, g, grad, xi, w, count, nb, mean_g, delta_g, second, sum_j, sum_jg, total,
+    zncc, p, cz, cy, cx, sensitive, out,
 ):  # fmt: skip
     """``out`` (3,): ``sqrt(diag(σ_r² A₁⁻¹ C A₁⁻ᵀ))`` at the translations (module docstring),
-    with the sensitivity measured from ``F`` where ``sensitive``; NaN where fewer than
+    from ``H₁``, ``H₂`` and the squared-weight sums of ``second``
+    (:func:`.icgn_weighted.weighted_terms`), with the sensitivity measured from ``F`` where ``sensitive``; NaN where fewer than
     ``3·nb + 3`` voxels, no gray variance, no finite ZNCC or part of the warped subvolume
     outside ``F``."""
     m_par = 3 * nb
@@ -239,13 +143,16 @@ def weighted_sigma_at(
     if count < m_par + 3 or delta_g == 0.0 or not np.isfinite(zncc):
         return
     ss_g = delta_g * delta_g
-    total2, w2d, w2dd, s2j, s2jd, _ = squared_weight_terms(g, grad, xi, w, count, nb, mean_g)
-    h1p = perpendicular_hessian(low, sum_j, sum_jg, total, ss_g, m_par)
-    h2 = scaled_hessian(g, grad, xi, w, count, nb)
+    h1, h2, s2j, s2jd, total2, w2d, w2dd, _ = second
     m = sum_j / total
     c = sum_jg / ss_g
+    h1p = np.empty((m_par, m_par))
     h2p = np.empty((m_par, m_par))
     for r in range(m_par):
+        for q in range(r + 1):
+            v = h1[r, q] - sum_j[r] * m[q] - sum_jg[r] * c[q]
+            h1p[r, q] = v
+            h1p[q, r] = v
         for q in range(m_par):
             h2p[r, q] = (
                 h2[r, q]
