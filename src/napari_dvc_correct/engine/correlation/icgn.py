@@ -56,6 +56,40 @@ _SINGULAR = int(Status.SINGULAR)
 NOISE_STOP_MAX_ZNCC = 0.999
 
 
+@njit(inline="always", **KERNEL_OPTIONS)
+def update_motion(dp, nb, half, corner):
+    """The largest displacement (voxels) the update ``dp`` gives a corner of the subvolume of
+    half size ``half``: IC-GN's convergence measure. ``corner`` is scratch of ``nb`` values."""
+    largest = 0.0
+    for sz in (-half, half):
+        for sy in (-half, half):
+            for sx in (-half, half):
+                monomials(float(sz), float(sy), float(sx), nb, corner)
+                norm2 = 0.0
+                for k in range(3):
+                    moved = 0.0
+                    for j in range(nb):
+                        moved += dp[k * nb + j] * corner[j]
+                    norm2 += moved * moved
+                largest = max(largest, norm2)
+    return np.sqrt(largest)
+
+
+@njit(inline="always", **KERNEL_OPTIONS)
+def diverged(p, m_par, nb, start, max_update):
+    """True where a parameter of ``p`` is not finite or its translation moved more than
+    ``max_update`` voxels from ``start`` along an axis."""
+    finite = True
+    for r in range(m_par):
+        if not np.isfinite(p[r]):
+            finite = False
+    moved_far = False
+    for k in range(3):
+        if abs(p[k * nb] - start[k]) > max_update:
+            moved_far = True
+    return not finite or moved_far
+
+
 @njit(**KERNEL_OPTIONS)
 def _noise_converged(dp, nb, h_inv, delta_g, zncc, count, previous, noise_fraction):
     """Noise stop: True when the remaining translation error is below ``noise_fraction`` of its noise.
@@ -232,29 +266,9 @@ def match_one(
         m_new = compose_inverse(m_current, m_update, nb)
         parameters_from_matrix(m_new, nb, p)
 
-        largest = 0.0
-        for sz in (-half, half):
-            for sy in (-half, half):
-                for sx in (-half, half):
-                    monomials(float(sz), float(sy), float(sx), nb, corner)
-                    norm2 = 0.0
-                    for k in range(3):
-                        moved = 0.0
-                        for j in range(nb):
-                            moved += dp[k * nb + j] * corner[j]
-                        norm2 += moved * moved
-                    largest = max(largest, norm2)
-        finite = True
-        for r in range(m_par):
-            if not np.isfinite(p[r]):
-                finite = False
-        moved_far = False
-        for k in range(3):
-            if abs(p[k * nb] - start[k]) > max_update:
-                moved_far = True
-        if not finite or moved_far:
+        if diverged(p, m_par, nb, start, max_update):
             return zncc, _DIVERGED, iteration
-        motion = np.sqrt(largest)
+        motion = update_motion(dp, nb, half, corner)
         if motion < tolerance:
             if sigma_out is not None:
                 _sigma_into(

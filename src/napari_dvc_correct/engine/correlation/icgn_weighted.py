@@ -28,7 +28,7 @@ from numba import njit, prange
 
 from .._numba_setup import KERNEL_OPTIONS
 from ..fields.field import Status
-from .icgn import STALL_FACTOR, STALL_ITERATIONS, _noise_converged
+from .icgn import STALL_FACTOR, STALL_ITERATIONS, _noise_converged, diverged, update_motion
 from .icgn_pass import _affine_samples, _affine_sums, _quadratic_samples, _quadratic_sums
 from .icgn_reference import gradient_source, translation_h_inverse
 from .icgn_weighted_moments import weighted_reference_moments
@@ -38,7 +38,6 @@ from .shape_function import (
     cholesky_solve,
     cholesky_solve_setup,
     compose_inverse,
-    monomials,
     parameters_from_matrix,
     warp_matrix,
 )
@@ -259,29 +258,9 @@ def match_one_weighted(
         m_current = warp_matrix(p, nb, product_table, quad_axes)
         m_update = warp_matrix(dp, nb, product_table, quad_axes)
         parameters_from_matrix(compose_inverse(m_current, m_update, nb), nb, p)
-        largest = 0.0
-        for sz in (-half, half):
-            for sy in (-half, half):
-                for sx in (-half, half):
-                    monomials(float(sz), float(sy), float(sx), nb, corner)
-                    norm2 = 0.0
-                    for k in range(3):
-                        moved = 0.0
-                        for j in range(nb):
-                            moved += dp[k * nb + j] * corner[j]
-                        norm2 += moved * moved
-                    largest = max(largest, norm2)
-        finite = True
-        for r in range(m_par):
-            if not np.isfinite(p[r]):
-                finite = False
-        moved_far = False
-        for k in range(3):
-            if abs(p[k * nb] - start[k]) > max_update:
-                moved_far = True
-        if not finite or moved_far:
+        if diverged(p, m_par, nb, start, max_update):
             return zncc, _DIVERGED, iteration
-        motion = np.sqrt(largest)
+        motion = update_motion(dp, nb, half, corner)
         stop = motion < tolerance
         if not stop and noise_fraction > 0.0:
             stop, previous = _noise_converged(
