@@ -27,12 +27,12 @@ def _pair(truth, seed=3, noise=0.0):
     return np.float32(reference), np.float32(deformed)
 
 
-def _match(reference, deformed, order, half, weights, start=None):
+def _match(reference, deformed, order, half, weights, start=None, **stop):
     level = PyramidLevel.build(1, reference, deformed, None, half, 0.05, weights=weights)
     nb = shape_function.n_monomials(order)
     warps = np.zeros((len(CENTERS), 3 * nb)) if start is None else start.copy()
     sigma = np.zeros((len(CENTERS), 4))
-    params = CorrelationParams(subvolume=2 * half + 1, order=order)
+    params = CorrelationParams(subvolume=2 * half + 1, order=order, **stop)
     zncc, status, _ = level.match(CENTERS, warps, order, params, sigma=sigma)
     return warps.reshape(len(CENTERS), 3, nb), zncc, status, sigma, level
 
@@ -46,19 +46,23 @@ AFFINE = synthetic.affine(
 @pytest.mark.parametrize("order", [1, 2])
 def test_unit_weights_give_the_unweighted_match(order):
     """Weights all 1: the same displacement, ZNCC, status and uncertainty as the unweighted
-    kernels (to rounding: the sums are taken in another order), in IC-GN and in the judge's
-    statistics pass with and without the sensitivity pass."""
+    kernels, in IC-GN and in the judge's statistics pass with and without the sensitivity pass.
+    The weighted step takes the Hessian of the mean-free residual (the unweighted one leaves out
+    ``W J̄ J̄ᵀ``), so the two walk to the same solution by different steps: both are run to
+    convergence (no noise stop, a tolerance of 1e-8 voxel), where they agree to rounding."""
     reference, deformed = _pair(AFFINE, noise=0.2)
-    plain = _match(reference, deformed, order, 6, None)
-    ones = _match(reference, deformed, order, 6, np.ones((13, 13, 13)))
+    stop = dict(tolerance=1e-6, noise_tolerance=0.0, max_iterations=200)
+    plain = _match(reference, deformed, order, 6, None, **stop)
+    ones = _match(reference, deformed, order, 6, np.ones((13, 13, 13)), **stop)
     np.testing.assert_array_equal(ones[2], plain[2])
-    # second order: 30 parameters from a Hessian of condition ~1e6, summed in another order
-    # (under noise a POI may stop one noise-stop iteration apart: 6e-8 voxel measured)
-    np.testing.assert_allclose(ones[0][:, :, 0], plain[0][:, :, 0], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(ones[0], plain[0], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(ones[1], plain[1], rtol=0, atol=1e-8)
+    # two corner POIs of the second-order match stall in both at ~1e-6 (float32 samples)
+    done = plain[2] == 0
+    assert done.sum() >= len(CENTERS) - 2
+    np.testing.assert_allclose(ones[0][done, :, 0], plain[0][done, :, 0], rtol=0, atol=2e-6)
+    np.testing.assert_allclose(ones[0][done], plain[0][done], rtol=0, atol=2e-6)
+    np.testing.assert_allclose(ones[1][done], plain[1][done], rtol=0, atol=1e-7)
     np.testing.assert_array_equal(ones[3][:, 3], plain[3][:, 3])
-    np.testing.assert_allclose(ones[3][:, :3], plain[3][:, :3], rtol=1e-5)
+    np.testing.assert_allclose(ones[3][done, :3], plain[3][done, :3], rtol=1e-5)
     warps = plain[0].reshape(len(CENTERS), -1)
     for sensitive in (False, True):
         flags = np.full(len(CENTERS), sensitive)
@@ -95,6 +99,26 @@ def test_a_weighted_match_finds_known_fields_on_noiseless_texture():
         plain_error = np.sqrt(np.mean((plain[0][:, :, 0] - expected) ** 2))
         assert error < 4e-4 and error < 3.0 * plain_error + 1e-5, (order, error, plain_error)
         assert np.all(weighted[3][:, 3] == 1.0) and np.all(np.isfinite(weighted[3][:, :3]))
+
+
+def test_a_narrow_window_converges_as_fast_as_the_box():
+    """A second-order match under a narrow window (std 3 on 15³) of a noiseless translation
+    from a zero start takes about the iterations of the uniform box (the step's Hessian is the
+    mean-free one: with ``H₁`` alone the window took 18.0 iterations on average here where the
+    box takes 10.8; now 9.3) and finds the shift to 1.5e-3 voxel."""
+    shift = (0.3, 0.2, -0.4)
+    reference, deformed = _pair(synthetic.translation(shift), seed=5)
+    counts = {}
+    for name, weights in (("box", None), ("window", icgn_weighted.gaussian_window(7, 3.0))):
+        level = PyramidLevel.build(1, reference, deformed, None, 7, 0.05, weights=weights)
+        warps = np.zeros((len(CENTERS), 30))
+        params = CorrelationParams(subvolume=15, order=2)
+        _, status, iterations = level.match(CENTERS, warps, 2, params)
+        assert np.all(status == 0), name
+        error = warps.reshape(len(CENTERS), 3, 10)[:, :, 0] - np.array(shift)
+        assert np.max(np.abs(error)) < 1.5e-3, (name, np.max(np.abs(error)))
+        counts[name] = float(np.mean(iterations))
+    assert counts["window"] <= 1.25 * counts["box"] + 0.25, counts
 
 
 def test_correlate_with_a_window_and_without():
