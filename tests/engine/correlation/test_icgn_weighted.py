@@ -47,9 +47,9 @@ AFFINE = synthetic.affine(
 def test_unit_weights_give_the_unweighted_match(order):
     """Weights all 1: the same displacement, ZNCC, status and uncertainty as the unweighted
     kernels, in IC-GN and in the judge's statistics pass with and without the sensitivity pass.
-    The weighted step takes the Hessian of the mean-free residual (the unweighted one leaves out
-    ``W J̄ J̄ᵀ``), so the two walk to the same solution by different steps: both are run to
-    convergence (no noise stop, a tolerance of 1e-8 voxel), where they agree to rounding."""
+    The weighted step takes the projected Gauss-Newton Hessian ``H₁⊥`` (the unweighted one steps
+    with ``H₁``), so the two walk to the same solution by different steps: both are run to
+    convergence (no noise stop, a tolerance of 1e-6 voxel), where they agree to rounding."""
     reference, deformed = _pair(AFFINE, noise=0.2)
     stop = dict(tolerance=1e-6, noise_tolerance=0.0, max_iterations=200)
     plain = _match(reference, deformed, order, 6, None, **stop)
@@ -104,8 +104,8 @@ def test_a_weighted_match_finds_known_fields_on_noiseless_texture():
 def test_a_narrow_window_converges_as_fast_as_the_box():
     """A second-order match under a narrow window (std 3 on 15³) of a noiseless translation
     from a zero start takes about the iterations of the uniform box (the step's Hessian is the
-    mean-free one: with ``H₁`` alone the window took 18.0 iterations on average here where the
-    box takes 10.8; now 9.3) and finds the shift to 1.5e-3 voxel."""
+    projected ``H₁⊥``: with ``H₁`` the window took 18.0 iterations on average here where the
+    box takes 10.8; 4.0 now) and finds the shift to 1.5e-3 voxel."""
     shift = (0.3, 0.2, -0.4)
     reference, deformed = _pair(synthetic.translation(shift), seed=5)
     counts = {}

@@ -9,13 +9,14 @@ weighted:
 * means and norms: ``ḡ = Σ w g / W``, ``Δg² = Σ w (g − ḡ)²`` (``W = Σ w``), the same for ``f``;
   ``ZNCC = Σ w (g − ḡ)(f − f̄) / (Δg Δf)``;
 * the Hessian ``H₁ = Σ w JᵀJ`` and the steepest-descent sums ``Σ w J``, ``Σ w J (g − ḡ)``,
-  ``Σ w J f``; the step solves ``(H₁ − W J̄ J̄ᵀ) Δp = −Σ w Jᵀ [(g − ḡ) − (Δg/Δf)(f − f̄)]``
-  with ``J̄ = Σ w J / W``: the Gauss-Newton Hessian of the mean-free residual. :func:`.icgn.match_one`
-  leaves ``W J̄ J̄ᵀ`` out, which costs little on a uniform box (the mean gradient of many voxels
-  is small) but under a narrow window made the second-order match walk at a rate of ~0.6 per
-  iteration (7.4 iterations on the 100³ shear band's first correcting pass, 4.2 with it).
-  The step's Hessian changes only the path: the solution (the right-hand side at zero) is the
-  same.
+  ``Σ w J f``; the step solves ``H₁⊥ Δp = −Σ w Jᵀ [(g − ḡ) − (Δg/Δf)(f − f̄)]`` with
+  ``H₁⊥ = Σ w J⊥ J⊥ᵀ`` (:func:`_projected_hessian`: ``J`` less its weighted mean and its part
+  along ``g − ḡ``), the Gauss-Newton Hessian of the zero-mean, normalised residual.
+  :func:`.icgn.match_one` steps with ``H₁`` itself, which costs little on a uniform box (the
+  mean gradient of many voxels is small) but under a narrow window made the second-order match
+  walk at a rate of ~0.6 per iteration (7.4 iterations on the 100³ shear band's first
+  correcting pass; 4.2 with the mean removed, 3.1 with ``H₁⊥``). The step's Hessian changes
+  only the path: the solution (the right-hand side at zero) is the same.
 
 With every weight 1 these are the sums of :func:`.icgn.match_one` and the same solution (to
 rounding when both are converged tightly; the stop rules may end the two walks a stop's
@@ -83,26 +84,29 @@ def check_weights(weights, half: int) -> np.ndarray:
 
 
 @njit(**KERNEL_OPTIONS)
-def _mean_free_hessian(h1, sum_j, total, m):
-    """``H₁ − (Σ w J)(Σ w J)ᵀ / W = Σ w (J − J̄)ᵀ(J − J̄)``: the Gauss-Newton Hessian of the
-    weighted ZNSSD, whose residual is mean-free (``J̄ = Σ w J / W``)."""
+def _projected_hessian(h1, sum_j, sum_jg, total, ss_g, m):
+    """``H₁⊥ = H₁ − (Σ w J)(Σ w J)ᵀ / W − (Σ w J (g − ḡ))(Σ w J (g − ḡ))ᵀ / Δg²``
+    ``= Σ w J⊥ J⊥ᵀ``: the Gauss-Newton Hessian of the weighted ZNSSD, whose Jacobian ``J⊥`` is
+    ``J`` less its weighted mean and its part along ``g − ḡ`` (the gray offset and scale that
+    ZNSSD ignores; the same ``H₁⊥`` as the uncertainty's, :mod:`.icgn_weighted_uncertainty`)."""
     out = np.empty((m, m))
     for a in range(m):
         for b in range(m):
-            out[a, b] = h1[a, b] - sum_j[a] * sum_j[b] / total
+            out[a, b] = h1[a, b] - sum_j[a] * sum_j[b] / total - sum_jg[a] * sum_jg[b] / ss_g
     return out
 
 
 @njit(**KERNEL_OPTIONS)
 def weighted_terms(g, grad, xi, w, count, nb):
     """Weighted reference terms: ``(ḡ, Δg, ok, low, Σ w J, Σ w J (g − ḡ), W, second)`` with
-    ``low`` the Cholesky factor of the step's Hessian :func:`_mean_free_hessian` (``ok`` False
+    ``low`` the Cholesky factor of the step's Hessian :func:`_projected_hessian` (``ok`` False
     where it is not positive definite) and ``second`` what the uncertainty reads, from the same pass
     (:func:`.icgn_weighted_moments.weighted_reference_moments`): ``(H₁, H₂, Σ w² J,
     Σ w² J (g − ḡ), W₂, Σ w² (g − ḡ), Σ w² (g − ḡ)², Σ w |∇G|² / W)``."""
     (mean_g, ss_g, total, total2, w2d, w2dd, power, h1, h2, sum_j, sum_jg, s2j,
      s2jd) = weighted_reference_moments(g, grad, xi, w, count, nb)  # fmt: skip
-    ok, low = cholesky_solve_setup(_mean_free_hessian(h1, sum_j, total, 3 * nb), 3 * nb)
+    hessian = _projected_hessian(h1, sum_j, sum_jg, total, ss_g, 3 * nb)
+    ok, low = cholesky_solve_setup(hessian, 3 * nb)
     second = (h1, h2, s2j, s2jd, total2, w2d, w2dd, power)
     return mean_g, np.sqrt(ss_g), ok, low, sum_j, sum_jg, total, second
 
