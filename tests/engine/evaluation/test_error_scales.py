@@ -120,7 +120,8 @@ def test_a_narrow_error_band_is_read_at_its_peak():
     assert at_peak.sum() >= 9
     assert np.median(estimate[at_peak]) == pytest.approx(0.6, rel=0.1)
     assert np.all((estimate[at_peak] > 0.5) & (estimate[at_peak] < 0.8))
-    assert np.all(estimate[(true < 0.1)[inner]] < 0.25)
+    far = estimate[(true < 0.1)[inner]]  # truly 0.02: the big window still reaches the peak
+    assert np.all(far < 0.5) and np.median(far) < 0.2
 
 
 def test_an_exact_field_of_a_sharp_true_band_is_not_over_read():
