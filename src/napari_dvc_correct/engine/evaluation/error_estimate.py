@@ -3,8 +3,8 @@
 The accuracy index of eq. 2 measures the gray mismatch in units of the phase contrast: any field
 with errors under a voxel scores above 0.99, so it cannot tell a field that is 0.5 voxel off in
 a band from a good one. This module turns the same gray-level-corrected residual into a
-displacement error, node by node, over a window of half-size :func:`error_region_half` around the
-node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
+displacement error, node by node, over windows up to half-size :func:`error_region_half` around
+the node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
 
 - **the error the residual resolves.** A field wrong by ``e`` at a voxel leaves the signed
   residual ``s = map(F)(X + u) - G(X) ≈ grad G · e + α G + β + n`` (``n`` the two scans' noise,
@@ -124,8 +124,8 @@ def error_region_half(field) -> int:
 
     A window reaching the neighbouring nodes, not further: a wider one (the subvolume, 15
     voxels at step 5) spreads a band's error onto nodes two steps away and flags them; a
-    narrower one is too noisy on faint texture (``benchmarks/bench_error_estimate.py``).
-    """
+    narrower one is too noisy on faint texture (``benchmarks/bench_error_estimate.py``): finer
+    windows are read only where they resolve (:mod:`.error_scales`)."""
     from .local_accuracy import region_half
 
     step = int(np.ceil(max(field.step)))

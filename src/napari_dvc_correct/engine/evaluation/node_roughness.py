@@ -23,8 +23,9 @@ quadratic true field exactly. For errors independent from node to node with vari
 returns ``|d| / √(1 + Σ a_j²)``, in voxels.
 
 It is not a measurement of the images: a true field that bends at the scale of a grid step (a
-crack, a band narrower than a subvolume) also shows in it, and there the field cannot be right
-either (the subvolumes average the bend). Measured in ``docs/evaluation.md``.
+crack, a band narrower than a subvolume) also shows in it, also where the field follows the bend
+(a corrected field): the error estimate takes it at most as large as its windows' steps read
+along it (:func:`.error_scales.node_error_bound`). Measured in ``docs/evaluation.md``.
 """
 
 from __future__ import annotations
