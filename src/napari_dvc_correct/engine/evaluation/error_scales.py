@@ -7,9 +7,10 @@ less three voxels away, and a window of half-size 6 reads those nodes at 0.2-0.4
 window reads the node's own error, but with more noise (its resolution grows about as the
 window's volume to the power -1/2). The windows' moments are gathered at half-sizes from 2
 voxels up to the largest (:func:`window_ladder`), and each node takes the finest window whose
-resolution is at most :data:`FINE_RESOLUTION` voxel (the largest where none does): on clear
-texture the node is read at 2 voxels, on noisy texture where the noise allows, on faint texture
-in the largest window as before.
+resolution is at most :data:`FINE_RESOLUTION` voxel and whose reading is at least
+:data:`RESOLVED_RATIO` times that resolution (the largest where none is): on clear texture a
+node well off is read at 2 voxels, on noisy texture where the noise allows, on faint texture and
+below a finer window's noise in the largest window as before.
 
 The node's departure from its neighbourhood ``d`` (:mod:`.node_roughness`) stands for an error
 confined to the node, which the windows hold only in part. A true field that bends at the
