@@ -193,3 +193,21 @@ def test_a_correcting_run_drops_the_judged_fields_pull_back(pair):
     assert residuals._last is None  # not held while the correcting DVC runs
     delta = run_to_completion(run)
     assert np.all(np.abs(delta.u[delta.valid]) < 0.05)  # the true field leaves nothing to do
+
+
+@pytest.mark.parametrize("frame", ["loaded", "reference"])
+def test_large_volumes_let_go_of_the_judged_pull_back_when_aligning(monkeypatch, pair, frame):
+    reference, deformed = pair
+    field = _uniform(SHIFT)
+    results = {}
+    for release_from in (np.inf, 0):
+        monkeypatch.setattr(V, "RELEASE_PULL_BACK_FROM", release_from)
+        volumes = V.InMemoryVolumes(reference, deformed, frame)
+        run_to_completion(volumes.fit_gray_levels(field))
+        residuals = run_to_completion(volumes.residuals())
+        held = residuals._last
+        results[release_from] = run_to_completion(volumes.align(field))
+        assert (residuals._last is held) == (release_from == np.inf)
+    kept, released = results[np.inf], results[0]
+    np.testing.assert_array_equal(kept[0], released[0])
+    assert kept[1] == released[1]

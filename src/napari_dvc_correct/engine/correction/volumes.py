@@ -144,6 +144,13 @@ def noise_hint(field) -> float | None:
     return NOISE_HINT_FRACTION * float(sigma) ** 2
 
 
+#: From this many voxels, warping the pair (:meth:`InMemoryVolumes.align`) lets go of the pull-back
+#: the residuals hold for the last field judged: the set-up's peak then holds one volume of float32
+#: less. Below, it is kept: a run that ends on that field with flagged nodes would pull it back
+#: again for the discontinuity test (one warp, CPU for a volume's worth of memory).
+RELEASE_PULL_BACK_FROM = 2**24
+
+
 class InMemoryVolumes(CorrectionVolumes):
     """The two volumes as arrays with their spline coefficients, prefiltered once for every pass.
 
@@ -225,6 +232,8 @@ class InMemoryVolumes(CorrectionVolumes):
         yield
 
     def align(self, field):
+        if self._residuals is not None and np.prod(self.shape) >= RELEASE_PULL_BACK_FROM:
+            self._residuals.forget()
         spline = FieldSpline.from_field(field)
         gray = self.gray_levels
         if self.frame == "reference":
