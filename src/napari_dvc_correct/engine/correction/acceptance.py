@@ -142,7 +142,7 @@ class ReferenceResiduals:
         last = self._last
         if last is not None and last[0] == _field_key(field) and np.array_equal(last[1], field.u):
             return last[2]
-        self._last = None  # the old pull-back is freed before the new one is made
+        self._last = last = None  # the old pull-back is freed before the new one is made
         spline = FieldSpline.from_field(field)
         moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
         self.remember(field, moved)
