@@ -119,22 +119,29 @@ def run(case: str, seed: int = 4) -> None:
     plain = correlate(reference, deformed, params)
     plain_seconds = time.perf_counter() - started
     select = None if selector is None else selector(plain.points)
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), time.process_time()
     corrected = correct(reference, deformed, plain)
     seconds = time.perf_counter() - started
+    cpu = time.process_time() - cpu_started
     before, after = node_errors(plain, truth), node_errors(corrected, truth)
     passes = correction_table(corrected)
     trail = ", ".join(
         f"{p.accepted_nodes}/{p.accepted_nodes + p.rejected_nodes} kept, {p.improved_nodes} better"
         for p in passes[1:]
     )
+    oriented = corrected.metadata["correction"].get("oriented") or {}
+    if oriented.get("ran"):
+        trail += (
+            f"; oriented: {oriented['accepted_nodes']}/{oriented['planar_nodes']} kept, "
+            f"{oriented['directions']} directions"
+        )
     good_after = np.isin(corrected.status.reshape(-1), [int(g) for g in GOOD_STATUSES])
     flagged = 1.0 - float(np.mean(good_after if select is None else good_after[select]))
     line = (
         f"| {case:<13} | {rmse(before, select):6.3f} | {rmse(after, select):6.3f} | "
         f"{flagged:6.1%} | "
         f"{plain_seconds:5.1f} | {seconds:5.1f} | {seconds / plain_seconds + 1:4.1f}x | "
-        f"{len(passes) - 1} | {trail} |"
+        f"{len(passes) - 1} | {trail}; correction CPU {cpu:.1f} s |"
     )
     if case == "fault":
         good = np.isin(corrected.status.reshape(-1), [int(s) for s in GOOD_STATUSES])

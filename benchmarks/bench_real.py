@@ -151,6 +151,7 @@ def run(
     gray = corrected.metadata.get("gray_levels", {}).get("description", "")
     print(f"gray-level map of the correction: {gray}")
     print(f"correction: {corrected.metadata['correction']['stop_reason']}")
+    print(f"oriented step: {corrected.metadata['correction'].get('oriented')}")
     for record in corrected.metadata["correction_passes"][1:]:
         print(
             f"  pass {record['pass']}: order {record['order']}, {record['subvolume']}³, "

@@ -54,6 +54,7 @@ from ..engine.evaluation.accuracy_pair import (
 )
 from ..engine.evaluation.binning import node_voxels
 from ..engine.evaluation.error_estimate import error_region_half
+from ..engine.evaluation.error_scales import window_ladder
 from ..engine.evaluation.gray_levels import (
     DEFAULT_CELL,
     CellSums,
@@ -316,7 +317,7 @@ def _evaluate_block(reference, deformed, splines, block, setup, outputs, region=
         result, _, residual, mapped = field_block(
             own, sampler, spline, block, mode, other_thresholds, own_labels,
             plan.bin_fields[index], centers[index], halves[index], mapping,
-            error_region_half(plan.named[index][1]), gradient, inside,
+            window_ladder(error_region_half(plan.named[index][1])), gradient, inside,
         )  # fmt: skip
         for key, values in ((("residual", name), residual), (("labels_mapped", name), mapped)):
             if key in outputs:
@@ -555,7 +556,10 @@ strain_window, n_bins, bin_edges, shared_background, bin_by, gray_levels, backgr
             client.close()
 
     phase_totals = [PhaseTotals(t.size + 1) for t in thresholds]
-    accumulators = [FieldAccumulator(item, plan.bin_fields[k]) for k, item in enumerate(items)]
+    accumulators = [
+        FieldAccumulator(item, plan.bin_fields[k], window_ladder(error_region_half(item)))
+        for k, item in enumerate(items)
+    ]
     for block_phases, block_fields in results:
         for total, part in zip(phase_totals, block_phases):
             total.merge(part)

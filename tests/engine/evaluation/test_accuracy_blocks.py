@@ -7,6 +7,7 @@ from napari_dvc_correct.engine.evaluation.binning import (
     cell_sums,
     cell_sums_block,
     node_box_sums,
+    node_box_sums_nested,
     node_voxels,
 )
 from napari_dvc_correct.engine.evaluation.local_accuracy import local_mean_residual
@@ -57,6 +58,29 @@ def test_node_box_sums_are_the_brute_force_box_means_in_any_tiling(residual):
     with np.errstate(invalid="ignore"):
         np.testing.assert_allclose(sums / counts, expected, rtol=1e-12)
     assert np.isnan(expected).any() and np.isfinite(expected).any()
+
+
+def test_nested_node_box_sums_are_one_call_per_half_size_in_any_tiling(residual):
+    """Several half-sizes in one pass: the very numbers of one :func:`node_box_sums` per
+    half-size, block by block (nodes whose smaller boxes miss a block add 0)."""
+    item = field()
+    centers = node_voxels(item, SHAPE)
+    halves = (4, 1, 2)
+    for box in tiles(SHAPE, (5, 7, 4)):
+        parts = node_box_sums_nested(residual[box], box, centers, halves)
+        for half, part in zip(halves, parts):
+            one = node_box_sums(residual[box], box, centers, half)
+            sums, counts = np.zeros(item.shape), np.zeros(item.shape, np.int64)
+            expected_sums, expected_counts = np.zeros(item.shape), np.zeros(item.shape, np.int64)
+            part.add_to(sums, counts)
+            one.add_to(expected_sums, expected_counts)
+            np.testing.assert_array_equal(counts, expected_counts)
+            np.testing.assert_array_equal(sums, expected_sums)
+    outside = (slice(0, 2), slice(0, 2), slice(0, 2))
+    far = tuple(c[-1:] + 100 for c in centers)
+    assert all(
+        p.sums.size == 0 for p in node_box_sums_nested(residual[outside], outside, far, halves)
+    )
 
 
 def test_cell_sums_of_blocks_add_up_to_the_whole_volume(residual):

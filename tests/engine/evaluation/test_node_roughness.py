@@ -88,3 +88,21 @@ def test_small_grids_invalid_nodes_and_bad_input():
         node_roughness(np.zeros((4, 4, 4)))
     with pytest.raises(ValueError, match="not on the grid"):
         node_roughness(np.zeros((4, 4, 4, 3)), np.ones((3, 4, 4), bool))
+
+
+def test_the_deviation_vectors_are_what_the_roughness_measures():
+    """node_deviation's vectors: their norms are node_roughness (0 under the floor, NaN at
+    invalid nodes), and a lone node error reads along its own direction."""
+    from napari_dvc_correct.engine.evaluation.node_roughness import node_deviation
+
+    rng = np.random.default_rng(9)
+    values = rng.normal(0.0, 0.1, (6, 7, 5, 3))
+    values[2, 3, 1] = np.nan
+    deviation = node_deviation(values)
+    expected = node_roughness(values)
+    norms = np.linalg.norm(deviation, axis=-1)
+    np.testing.assert_allclose(np.where(norms < 1e-4, 0.0, norms), expected, equal_nan=True)
+    lone = np.zeros((5, 5, 5, 3))
+    lone[2, 2, 2] = (0.0, 0.3, 0.4)
+    d = node_deviation(lone)[2, 2, 2]
+    np.testing.assert_allclose(d / np.linalg.norm(d), [0.0, 0.6, 0.8], atol=1e-12)

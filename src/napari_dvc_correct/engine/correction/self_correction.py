@@ -78,6 +78,7 @@ from .acceptance import (
 from .cleaning import clean, masked_nodes
 from .noise_fit import regularise
 from .options import CorrectionOptions
+from .oriented import oriented_step
 from .pass_method import correction_grid, node_bend, nothing_to_correct, pass_method
 from .pass_update import (
     correction_sigma,
@@ -510,7 +511,17 @@ def _correction_loop(
             break
         next_pass = (changed, node_change, tolerance, change_vectors)
 
-    moved = mixed_moved = None  # the last field's moved volume is not needed (close() frees it)
+    mixed_moved = None  # the same volume as moved, which goes on to the oriented step
+    # where the noise kept the passes on cubes that a band bends: the original pair re-matched
+    # under windows along the field's own plane, through the same acceptance
+    oriented = yield from oriented_step(
+        volumes, judge, current, local_current, params, pass_params, masked | shielded | crack,
+        moved, residual,
+    )  # fmt: skip
+    current, local_current, moved, residual = (
+        oriented.field, oriented.local, oriented.moved, oriented.residual,
+    )  # fmt: skip
+    oriented.moved = moved = None  # the last field's moved volume is not needed (close() frees it)
     # after the passes, unexplained nodes are flagged but keep their value: refilling them from
     # neighbours that the same fault may have spoiled does not make them any more right
     # flagged nodes whose residual is one-signed straddle a discontinuity (a crack): their own
@@ -551,6 +562,7 @@ def _correction_loop(
         "pass_order": int(pass_params.order),
         "pass_subvolume": int(pass_params.subvolume),
         "pass_method": method,
+        "oriented": oriented.summary,
         "pass_grid_shape": [int(n) for n in pass_grid[2]],
         "flagged_before": int(flagged),
         "flagged_after": int(flagged_after),

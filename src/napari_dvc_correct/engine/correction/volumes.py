@@ -97,6 +97,11 @@ class CorrectionVolumes:
     def release(self, moved) -> None:
         """``moved`` (from :meth:`align`) is no longer needed."""
 
+    def original_pair(self) -> tuple | None:
+        """``(G, F, mask)`` as given, for re-matches of the original pair (:mod:`.oriented`);
+        None where the back-end does not hold them as arrays."""
+        return None
+
     def close(self) -> None:
         """Free what the back-end holds (temporary files, connections); called once at the end."""
 
@@ -198,6 +203,9 @@ class InMemoryVolumes(CorrectionVolumes):
             g, f, params, mask=mask, grid=grid, initial=initial, active=active,
             prefiltered=self._unchanged_side(), noise_hint=self._noise_hint,
         )  # fmt: skip
+
+    def original_pair(self):
+        return self._inputs
 
     def _unchanged_side(self) -> Prefiltered | None:
         """``F``'s coefficients in the loaded frame, whose every pass matches ``(G', F)``: held

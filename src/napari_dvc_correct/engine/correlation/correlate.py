@@ -189,6 +189,7 @@ def match_iter(
     active=None,
     prefiltered=None,
     noise_hint=None,
+    weights=None,
 ) -> Generator[Progress, None, tuple[MatchedGrid, PyramidLevel]]:
     """The first half of :func:`correlate_iter` (same parameters): the POIs matched, not judged.
 
@@ -240,7 +241,7 @@ def match_iter(
             device.kind,
             std=None if texture_std is None else texture_std[1],
             prefiltered=prefiltered,
-            weights=params.subvolume_weights(),
+            weights=params.subvolume_weights() if weights is None else weights,
         )
         timings["prefilter_s"] = time.perf_counter() - started
         yield Progress("prefilter", 1, 1, "volumes prefiltered")
@@ -450,6 +451,7 @@ def correlate_iter(
     active=None,
     prefiltered=None,
     noise_hint=None,
+    weights=None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F), yielding progress; returns the field.
 
@@ -501,6 +503,10 @@ def correlate_iter(
         0: no POI is expected noisy. Default: on the CPU, the median noise estimate of a first
         batch of POIs spread over the grid (:func:`.noise.noise_estimates`, as the judge
         estimates the run's noise), for the other POIs.
+    weights : ndarray, shape (subvolume,)*3, optional
+        Weights of the subvolume's voxels (any non-negative weights, e.g. an oriented window
+        of :mod:`..correction.oriented`) instead of ``params.subvolume_weights()``: the weighted
+        IC-GN (:mod:`.icgn_weighted`, on the CPU). Default: those of ``params.window``.
     device : {"cpu", "cuda", "auto"} or backend.Device
         Where IC-GN runs (:func:`.backend.select_device`; a missing GPU falls back to the CPU with
         a warning). The field's ``metadata["device"]`` says which was used.
@@ -532,6 +538,7 @@ def correlate_iter(
         active=active,
         prefiltered=prefiltered,
         noise_hint=noise_hint,
+        weights=weights,
     )
     field, _ = yield from judge_iter(matched, fine, params)
     return field
@@ -555,6 +562,7 @@ def correlate(
     active=None,
     prefiltered=None,
     noise_hint=None,
+    weights=None,
 ) -> DisplacementField:
     """Blocking form of :func:`correlate_iter` (same parameters, no progress)."""
     return run_to_completion(
@@ -573,5 +581,6 @@ def correlate(
             active=active,
             prefiltered=prefiltered,
             noise_hint=noise_hint,
+            weights=weights,
         )
     )

@@ -443,6 +443,7 @@ def evaluate_iter(
     from .accuracy_blocks import FieldAccumulator, field_block, field_partial, halo_gradient
     from .binning import node_voxels
     from .error_estimate import error_region_half
+    from .error_scales import window_ladder
 
     reference = np.asanyarray(reference)
     deformed = np.asanyarray(deformed)
@@ -510,7 +511,8 @@ def evaluate_iter(
     for index, (name, item) in enumerate(plan.named):
         yield Progress("residual", index, len(plan.named), f"gray residual of {name}")
         spline = FieldSpline.from_field(item)
-        totals = FieldAccumulator(item, plan.bin_fields[index])
+        halves = window_ladder(error_region_half(item))  # the error estimate's windows
+        totals = FieldAccumulator(item, plan.bin_fields[index], halves)
         centers, half = node_voxels(item, own.shape), region_half(item)
         residual = np.empty(own.shape, np.float32) if keep_volumes else None
         mapped = np.empty(own.shape, np.uint8) if keep_volumes else None
@@ -525,7 +527,7 @@ def evaluate_iter(
             block, _, block_residual, block_mapped = field_block(
                 own[z], sampler, spline, box, mode, other_thresholds,
                 None if own_labels is None else own_labels[z], plan.bin_fields[index], centers,
-                half, mapping, error_region_half(item), gradient,
+                half, mapping, halves, gradient,
                 None if region is None else region[z],
             )  # fmt: skip
             totals.add(block)

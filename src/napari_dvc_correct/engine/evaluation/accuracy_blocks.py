@@ -36,7 +36,7 @@ from ..fields.warp import (
     pull_back_block,
 )
 from ..slabs import iter_slabs
-from .binning import GridPart, cell_sums_block, node_box_sums
+from .binning import GridPart, cell_sums_block, node_box_sums, node_box_sums_nested
 from .error_estimate import MOMENTS, ErrorMoments, moment_volumes
 from .gray_levels import GrayLevelMap
 from .phase_sums import residual_phase_sums
@@ -184,7 +184,7 @@ class BlockTotals:
     cells: GridPart  # residual per node cell of the binning field's grid
     nodes: GridPart  # residual per node box of this field (local residual)
     error_nodes: GridPart | None = None  # residual per node window (the error estimate's region)
-    moments: list | None = None  # GridPart per error_estimate.MOMENTS, over the same windows
+    moments: list | None = None  # per window half: GridPart per error_estimate.MOMENTS
 
 
 def field_block(
@@ -238,9 +238,11 @@ def field_block(
         Node voxels of the field (:func:`node_voxels`) and the half-size of their regions.
     gray_levels : GrayLevelMap, optional
         The pair's gray-level map (None: the raw residual).
-    error_half : int, optional
+    error_half : int or tuple of int, optional
         Half-size of the boxes of the error estimate (:func:`.error_estimate.error_region_half`;
-        default ``half``).
+        default ``half``), or the half-sizes of its windows from the finest to the largest
+        (:func:`.error_scales.window_ladder`): the moments are gathered over each, the
+        mean residual over the largest.
     gradient : ndarray, shape (3 or 6, *box_shape(box)), optional
         ``grad own`` of the block, and its smoothed gradient (:func:`halo_gradient` with
         ``instrument``; default: from the block alone, one-sided at its faces), with the signed
@@ -279,7 +281,7 @@ def field_block(
         moved = np.where(region_block, moved, np.float32(np.nan)).astype(np.float32)
     if own_labels is None:
         own_labels = label_phases(own_block, thresholds_other)
-    error_half = half if error_half is None else int(error_half)
+    halves = (half,) if error_half is None else tuple(int(h) for h in np.atleast_1d(error_half))
     sums = residual_phase_sums(own_block, moved, own_labels, thresholds_other)
     residual = sums.residual
     totals = BlockTotals(
@@ -290,23 +292,23 @@ def field_block(
         max_label=sums.max_label,
         cells=cell_sums_block(residual, box, bin_field, positions),
         nodes=node_box_sums(residual, box, centers, half),
-        error_nodes=node_box_sums(residual, box, centers, error_half),
-        moments=[
-            node_box_sums(volume, box, centers, error_half)
-            for volume in moment_volumes(
-                np.where(np.isfinite(residual), moved - own_block, np.float32(np.nan)),
-                own_block,
-                gradient_components(own_block) if gradient is None else gradient,
-            )
-        ],
+        error_nodes=node_box_sums(residual, box, centers, halves[-1]),
+        moments=[[] for _ in halves],
     )
+    for volume in moment_volumes(
+        np.where(np.isfinite(residual), moved - own_block, np.float32(np.nan)),
+        own_block,
+        gradient_components(own_block) if gradient is None else gradient,
+    ):
+        for parts, part in zip(totals.moments, node_box_sums_nested(volume, box, centers, halves)):
+            parts.append(part)
     return totals, moved, residual, sums.mapped
 
 
 class FieldAccumulator:
     """The totals of one field over all blocks; :meth:`result` gives the evaluation's numbers."""
 
-    def __init__(self, field: DisplacementField, bin_field: DisplacementField) -> None:
+    def __init__(self, field: DisplacementField, bin_field: DisplacementField, halves=None) -> None:
         self.field, self.bin_field = field, bin_field
         self.residual_sum, self.residual_count = 0.0, 0
         self.same_sums = np.zeros(NO_PHASE)
@@ -316,8 +318,10 @@ class FieldAccumulator:
         self.cell_counts = np.zeros(bin_field.shape, np.int64)
         self.node_sums = np.zeros(field.shape)
         self.node_counts = np.zeros(field.shape, np.int64)
-        self.moment_sums = np.zeros((len(MOMENTS), *field.shape))
-        self.moment_counts = np.zeros(field.shape, np.int64)  # the same for every moment
+        # per window half (``halves``: field_block's ``error_half``; None: one window)
+        self.halves = (None,) if halves is None else tuple(int(h) for h in np.atleast_1d(halves))
+        self.moment_sums = np.zeros((len(self.halves), len(MOMENTS), *field.shape))
+        self.moment_counts = np.zeros((len(self.halves), *field.shape), np.int64)
         self.error_sums = np.zeros(field.shape)
         self.error_counts = np.zeros(field.shape, np.int64)
 
@@ -329,12 +333,20 @@ class FieldAccumulator:
         self.max_label = max(self.max_label, block.max_label)
         block.cells.add_to(self.cell_sums, self.cell_counts)
         block.nodes.add_to(self.node_sums, self.node_counts)
-        for k, part in enumerate(block.moments or ()):
-            if k == 0:
-                part.add_to(self.moment_sums[0], self.moment_counts)
-            elif part.sums.size:  # the same voxels: only the sums
-                where = tuple(slice(int(a), int(a) + n) for a, n in zip(part.lo, part.sums.shape))
-                self.moment_sums[k][where] += part.sums
+        if block.moments and len(block.moments) != len(self.moment_sums):
+            raise ValueError(
+                f"the block has moments over {len(block.moments)} windows, the accumulator "
+                f"{len(self.moment_sums)}: give it the same error_half"
+            )
+        for sums, counts, parts in zip(self.moment_sums, self.moment_counts, block.moments or ()):
+            for k, part in enumerate(parts):
+                if k == 0:
+                    part.add_to(sums[0], counts)
+                elif part.sums.size:  # the same voxels: only the sums
+                    where = tuple(
+                        slice(int(a), int(a) + n) for a, n in zip(part.lo, part.sums.shape)
+                    )
+                    sums[k][where] += part.sums
         if block.error_nodes is not None:
             block.error_nodes.add_to(self.error_sums, self.error_counts)
 
@@ -366,9 +378,13 @@ class FieldAccumulator:
                 self.error_counts > 0, self.error_sums / np.maximum(self.error_counts, 1), np.nan
             )
 
-    def error_moments(self) -> ErrorMoments:
-        """Window means of the error estimate's moments (:class:`.error_estimate.ErrorMoments`)."""
-        return ErrorMoments.from_sums(self.moment_sums, self.moment_counts)
+    def error_moments(self) -> tuple[ErrorMoments, ...]:
+        """Window means of the error estimate's moments (:class:`.error_estimate.ErrorMoments`),
+        one per window half, in field_block's ``error_half`` order."""
+        return tuple(
+            ErrorMoments.from_sums(sums, counts, half)
+            for sums, counts, half in zip(self.moment_sums, self.moment_counts, self.halves)
+        )
 
     def local_residual(self) -> np.ndarray:
         """Mean residual over every node's box (NaN where it holds no finite voxel)."""
@@ -401,7 +417,7 @@ def field_partial(plan, index: int, totals: FieldAccumulator, residual, mapped):
         ),
         local_residual=totals.local_residual(),
         error_moments=moments,
-        local_gradient=moments.rms_gradient,
+        local_gradient=moments[-1].rms_gradient,
         cell_residual=totals.cell_residual(),
         residual=residual,
         labels_mapped=mapped,

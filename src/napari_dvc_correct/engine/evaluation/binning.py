@@ -193,6 +193,106 @@ def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
     return GridPart(lo, sums, counts)
 
 
+def node_box_sums_nested(values: np.ndarray, box, centers, halves) -> list[GridPart]:
+    """:func:`node_box_sums` for several half-sizes at once (one pass over the block's voxels;
+    the same numbers as one call per half-size).
+
+    Parameters
+    ----------
+    values, box, centers
+        As :func:`node_box_sums`.
+    halves : sequence of int
+        The half-sizes ``M``, any order.
+
+    Returns
+    -------
+    list of GridPart
+        One per half-size, in ``halves``' order, all over the sub-grid of the nodes whose
+        largest boxes meet the block (a node whose smaller box misses it adds 0).
+    """
+    halves = [int(h) for h in halves]
+    largest = max(halves)
+    ranges, bounds = [], []
+    for s, c in zip(box, centers):
+        meets = np.flatnonzero((c + largest >= s.start) & (c - largest < s.stop))
+        if meets.size == 0:
+            return [_empty_part() for _ in halves]
+        ranges.append(meets)
+        n = s.stop - s.start
+        low = np.stack([np.clip(c[meets] - h - s.start, 0, n) for h in halves])
+        high = np.stack([np.clip(c[meets] + h + 1 - s.start, 0, n) for h in halves])
+        bounds += [np.ascontiguousarray(low, np.int64), np.ascontiguousarray(high, np.int64)]
+    lo = tuple(int(r[0]) for r in ranges)
+    sums = np.empty((len(halves), *(len(r) for r in ranges)))
+    counts = np.empty(sums.shape, np.int64)
+    _nested_box_sums(np.ascontiguousarray(values, dtype=np.float32), *bounds, sums, counts)
+    return [GridPart(lo, sums[k], counts[k]) for k in range(len(halves))]
+
+
+@njit(parallel=True, **KERNEL_OPTIONS)
+def _nested_box_sums(residual, z_low, z_high, y_low, y_high, x_low, x_high, sums, counts):
+    """:func:`_box_sums` for ``H`` sets of boxes (bounds of shape ``(H, g)``, ``sums`` and
+    ``counts`` of shape ``(H, gz, gy, gx)``): the running sums along x once, their differences
+    for every set, then y and z per set over the row sums (the same operations, in the same
+    order, as one :func:`_box_sums` per set)."""
+    nz, ny, nx = residual.shape
+    nh = z_low.shape[0]
+    gz, gy, gx = z_low.shape[1], y_low.shape[1], x_low.shape[1]
+    rows = np.empty((nh, nz, ny, gx))
+    row_counts = np.empty((nh, nz, ny, gx), np.int64)
+    for z in prange(nz):
+        running = np.empty(nx + 1)
+        running_count = np.empty(nx + 1, np.int64)
+        for y in range(ny):
+            total = 0.0
+            count = 0
+            running[0] = 0.0
+            running_count[0] = 0
+            for x in range(nx):
+                value = residual[z, y, x]
+                if np.isfinite(value):
+                    total += value
+                    count += 1
+                running[x + 1] = total
+                running_count[x + 1] = count
+            for h in range(nh):
+                for k in range(gx):
+                    rows[h, z, y, k] = running[x_high[h, k]] - running[x_low[h, k]]
+                    row_counts[h, z, y, k] = (
+                        running_count[x_high[h, k]] - running_count[x_low[h, k]]
+                    )
+    planes = np.empty((nh, nz, gy, gx))
+    plane_counts = np.empty((nh, nz, gy, gx), np.int64)
+    for z in prange(nz):
+        running = np.empty(ny + 1)
+        running_count = np.empty(ny + 1, np.int64)
+        for h in range(nh):
+            for k in range(gx):
+                running[0] = 0.0
+                running_count[0] = 0
+                for y in range(ny):
+                    running[y + 1] = running[y] + rows[h, z, y, k]
+                    running_count[y + 1] = running_count[y] + row_counts[h, z, y, k]
+                for j in range(gy):
+                    planes[h, z, j, k] = running[y_high[h, j]] - running[y_low[h, j]]
+                    plane_counts[h, z, j, k] = (
+                        running_count[y_high[h, j]] - running_count[y_low[h, j]]
+                    )
+    for j in prange(gy):
+        running = np.empty(nz + 1)
+        running_count = np.empty(nz + 1, np.int64)
+        for h in range(nh):
+            for k in range(gx):
+                running[0] = 0.0
+                running_count[0] = 0
+                for z in range(nz):
+                    running[z + 1] = running[z] + planes[h, z, j, k]
+                    running_count[z + 1] = running_count[z] + plane_counts[h, z, j, k]
+                for i in range(gz):
+                    sums[h, i, j, k] = running[z_high[h, i]] - running[z_low[h, i]]
+                    counts[h, i, j, k] = running_count[z_high[h, i]] - running_count[z_low[h, i]]
+
+
 def _cell_index(coords: np.ndarray, origin: float, step: float, n: int):
     """Nearest node index along one axis, and whether ``coords`` lie in the grid's cells."""
     position = (coords - origin) / step + 0.5  # cell k spans [k - 1/2, k + 1/2) steps

@@ -3,8 +3,8 @@
 The accuracy index of eq. 2 measures the gray mismatch in units of the phase contrast: any field
 with errors under a voxel scores above 0.99, so it cannot tell a field that is 0.5 voxel off in
 a band from a good one. This module turns the same gray-level-corrected residual into a
-displacement error, node by node, over a window of half-size :func:`error_region_half` around the
-node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
+displacement error, node by node, over windows up to half-size :func:`error_region_half` around
+the node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
 
 - **the error the residual resolves.** A field wrong by ``e`` at a voxel leaves the signed
   residual ``s = map(F)(X + u) - G(X) ≈ grad G · e + α G + β + n`` (``n`` the two scans' noise,
@@ -43,6 +43,10 @@ node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   to one node, below its noise on faint texture, and the field's own shape shows it. Below the
   resolution the residual cannot rank the nodes; a match's error is then its noise error or its
   departure from its neighbourhood, the larger.
+- **windows of several sizes** (:mod:`.error_scales`): ``e_r`` is read in the finest window
+  (half-size 2 voxels up to :func:`error_region_half`) that resolves the node's error well, and
+  ``d`` is bounded by what the windows' steps read along it (a true field that bends at the
+  grid's scale is not an error).
 
 ``σ`` is the scans' noise, from the pair's ``r0`` (eq. 1: the residual's noise has variance
 ``π r0²/2``), half of it each scan's. Where the window has no texture (``H_t`` near 0: air, a
@@ -59,7 +63,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .node_roughness import node_roughness
+from .error_scales import finest_resolved, node_error_bound
+from .node_roughness import deviation_size, node_deviation
 
 #: Nodes whose error is likely above this many voxels are counted as likely bad
 #: (:func:`probability_above`).
@@ -119,8 +124,8 @@ def error_region_half(field) -> int:
 
     A window reaching the neighbouring nodes, not further: a wider one (the subvolume, 15
     voxels at step 5) spreads a band's error onto nodes two steps away and flags them; a
-    narrower one is too noisy on faint texture (``benchmarks/bench_error_estimate.py``).
-    """
+    narrower one is too noisy on faint texture (``benchmarks/bench_error_estimate.py``): finer
+    windows are read only where they resolve (:mod:`.error_scales`)."""
     from .local_accuracy import region_half
 
     step = int(np.ceil(max(field.step)))
@@ -220,18 +225,24 @@ class ErrorMoments:
         Voxels with a defined residual in each node's window.
     means : ndarray, shape (len(MOMENTS), nz, ny, nx), float64
         Their means, in :data:`MOMENTS`'s order (NaN where ``count`` is 0).
+    half : int or None
+        The windows' half-size in voxels (None: not known; the estimate then reads this one
+        window alone).
     """
 
     count: np.ndarray
     means: np.ndarray
+    half: int | None = None
 
     @classmethod
-    def from_sums(cls, sums: np.ndarray, count: np.ndarray) -> ErrorMoments:
-        """From the window sums ``(len(MOMENTS), nz, ny, nx)`` and the voxel count."""
+    def from_sums(
+        cls, sums: np.ndarray, count: np.ndarray, half: int | None = None
+    ) -> ErrorMoments:
+        """From the window sums ``(len(MOMENTS), nz, ny, nx)``, the voxel count and the half-size."""
         count = np.asarray(count, np.int64)
         with np.errstate(invalid="ignore", divide="ignore"):
             means = np.where(count > 0, sums / np.maximum(count, 1), np.nan)
-        return cls(count, means)
+        return cls(count, means, None if half is None else int(half))
 
     def mean(self, name: str) -> np.ndarray:
         return self.means[MOMENTS.index(name)]
@@ -398,10 +409,12 @@ def noise_error(field) -> np.ndarray:
 
 
 def error_estimate(
-    field, moments: ErrorMoments, background: float, own_share: float = 0.5
+    field, moments, background: float, own_share: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
     """Estimated displacement error per node and the residual's resolution there (voxels);
-    ``background`` and ``own_share`` as in :func:`residual_error`.
+    ``background`` and ``own_share`` as in :func:`residual_error`. ``moments`` is one
+    :class:`ErrorMoments` or one per window, finest first (:mod:`.error_scales`; windows of
+    known half-size also bound ``d``).
 
     Returns
     -------
@@ -413,10 +426,18 @@ def error_estimate(
         The noise of the residual's estimate: where ``estimate`` is not above it, the residual
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
-    residual = residual_error(moments, background, own_share)
-    node = np.maximum(noise_error(field), np.nan_to_num(node_roughness(field.u), nan=0.0))
-    estimate = np.sqrt(residual.resolved**2 + node**2)
-    return estimate, residual.resolution
+    windows = (moments,) if isinstance(moments, ErrorMoments) else tuple(moments)
+    residuals = [residual_error(m, background, own_share) for m in windows]
+    deviation = node_deviation(field.u)
+    roughness = np.nan_to_num(deviation_size(deviation), nan=0.0)
+    halves = [m.half for m in windows]
+    if None not in halves:  # the node's departure, as far as its windows' steps allow it
+        bound = node_error_bound(residuals, halves, field.step, deviation)
+        roughness = np.minimum(roughness, bound)
+    resolved, resolution = finest_resolved(residuals)
+    node = np.maximum(noise_error(field), roughness)
+    estimate = np.sqrt(resolved**2 + node**2)
+    return estimate, resolution
 
 
 def probability_above(estimate, resolution=None, limit: float = LIKELY_BAD) -> np.ndarray:

@@ -23,8 +23,9 @@ quadratic true field exactly. For errors independent from node to node with vari
 returns ``|d| / √(1 + Σ a_j²)``, in voxels.
 
 It is not a measurement of the images: a true field that bends at the scale of a grid step (a
-crack, a band narrower than a subvolume) also shows in it, and there the field cannot be right
-either (the subvolumes average the bend). Measured in ``docs/evaluation.md``.
+crack, a band narrower than a subvolume) also shows in it, also where the field follows the bend
+(a corrected field): the error estimate takes it at most as large as its windows' steps read
+along it (:func:`.error_scales.node_error_bound`). Measured in ``docs/evaluation.md``.
 """
 
 from __future__ import annotations
@@ -90,6 +91,20 @@ def node_roughness(values: np.ndarray, valid: np.ndarray | None = None) -> np.nd
     ValueError
         If ``values`` is not a grid of 3-vectors or ``valid`` is not on its grid.
     """
+    return deviation_size(node_deviation(values, valid))
+
+
+def deviation_size(deviation: np.ndarray) -> np.ndarray:
+    """:func:`node_roughness` from :func:`node_deviation`'s vectors: their norms, 0 under
+    :data:`ROUGHNESS_FLOOR`, NaN at invalid nodes."""
+    size = np.linalg.norm(deviation, axis=-1)
+    return np.where(size < ROUGHNESS_FLOOR, 0.0, size)
+
+
+def node_deviation(values: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """The deviation vectors ``d / √(1 + Σ a²)`` whose norms :func:`node_roughness` gives
+    (voxels, shape ``(nz, ny, nx, 3)``; 0 where the neighbourhood is too small to fit, NaN at
+    invalid nodes; same parameters and errors)."""
     values = np.asarray(values, dtype=np.float64)
     if values.ndim != 4 or values.shape[-1] != 3:
         raise ValueError(f"values must have shape (nz, ny, nx, 3), got {values.shape}")
@@ -105,7 +120,7 @@ def node_roughness(values: np.ndarray, valid: np.ndarray | None = None) -> np.nd
         if i != _CENTRE:
             near = padded[1 + dz : 1 + dz + shape[0], 1 + dy : 1 + dy + shape[1]]
             masks |= near[:, :, 1 + dx : 1 + dx + shape[2]].astype(np.int64) << i
-    out = np.where(valid, 0.0, np.nan)
+    out = np.where(valid[..., None], 0.0, np.nan) * np.ones(3)
     for mask in np.unique(masks[valid]):
         weights = leave_one_out_weights(int(mask))
         if weights is None:
@@ -116,6 +131,5 @@ def node_roughness(values: np.ndarray, valid: np.ndarray | None = None) -> np.nd
         for a, (dz, dy, dx) in zip(weights, _OFFSETS):
             if a != 0.0:
                 deviation -= a * filled[index[0] + 1 + dz, index[1] + 1 + dy, index[2] + 1 + dx]
-        size = np.linalg.norm(deviation, axis=-1) / np.sqrt(1.0 + np.sum(weights * weights))
-        out[where] = np.where(size < ROUGHNESS_FLOOR, 0.0, size)
+        out[where] = deviation / np.sqrt(1.0 + np.sum(weights * weights))
     return out
