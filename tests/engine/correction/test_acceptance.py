@@ -227,3 +227,126 @@ def test_a_refused_node_keeps_its_own_uncertainty():
     mixed = mix_fields(current, candidate, accept)
     assert np.all(mixed.uncertainty[0] == 0.03) and np.all(mixed.uncertainty[1:] == 0.2)
     assert np.all(mixed.u[1:] == 0.0)
+
+
+def _small_slabs(shape, voxels=None):
+    """iter_slabs with 5-plane slabs: many slab borders in a small volume."""
+    for start in range(0, int(shape[0]), 5):
+        yield slice(start, min(int(shape[0]), start + 5))
+
+
+@pytest.mark.parametrize("gray", ["identity", "global", "local", "flat"])
+@pytest.mark.parametrize("slabs", ["default", "small"])
+def test_residuals_made_slab_by_slab_equal_the_whole_volume_formulas(monkeypatch, gray, slabs):
+    """local_means, signed_means and gradient_means read the pull-back, the gray-level map, the
+    residual and the gradient slab by slab: the same numbers, to the bit, as the whole volumes
+    they were computed from before (with 5-plane slabs too, every border of the gradient's
+    reach crossed), from a 16-bit reference held as it is or as float32."""
+    from scipy import ndimage
+
+    from napari_dvc_correct.engine import slabs as slab_module
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correction import acceptance
+    from napari_dvc_correct.engine.evaluation.gray_levels import GrayLevelMap, fit_gray_levels
+    from napari_dvc_correct.engine.evaluation.local_accuracy import local_mean_residual
+    from napari_dvc_correct.engine.evaluation.phase_sums import residual_phase_sums
+    from napari_dvc_correct.engine.evaluation.phases import label_phases, phase_thresholds
+    from napari_dvc_correct.engine.fields import warp
+
+    if slabs == "small":
+        monkeypatch.setattr(slab_module, "iter_slabs", _small_slabs)
+        monkeypatch.setattr(acceptance, "iter_slabs", _small_slabs)
+    shape = (33, 28, 30)
+    texture = synthetic.two_phase_volume(shape, seed=6)
+    reference = np.rint(1000.0 + 20000.0 * texture).astype(np.uint16)
+    if gray == "flat":  # one gray value: no phases, no eq. 1
+        reference[:] = 7000
+    moved_true = synthetic.deform_volume(
+        texture, synthetic.affine(np.diag([0.01, -0.02, 0.015]), (16.0, 14.0, 15.0), (0.4, 0, 0))
+    )
+    deformed = (900.0 + 18000.0 * moved_true).astype(np.float32)
+    field = DisplacementField.zeros((4.0, 3.0, 5.0), (5.0, 6.0, 5.0), (6, 4, 5))
+    rng = np.random.default_rng(1)
+    field = field.replace(u=rng.normal(0.0, 0.4, field.u.shape))
+    coefficients = prefilter_of(deformed)
+    spline = acceptance.FieldSpline.from_field(field)
+    pulled = warp.pull_back(deformed, spline, coefficients=coefficients, cval=np.nan)
+    as_float = reference.astype(np.float32)
+    maps = {
+        "identity": GrayLevelMap.identity(shape),
+        "flat": GrayLevelMap.identity(shape),
+        "global": GrayLevelMap(contrast=1.07, offset=-31.5, volume_shape=shape),
+        "local": fit_gray_levels(as_float, pulled, cell=8),
+    }
+    assert maps["local"].is_local or gray != "local"
+    gray_map = maps[gray]
+    halves = (2, 7)
+    # before: the whole volumes
+    moved = gray_map.apply(pulled)
+    if gray == "flat":
+        residual, floor = np.abs(moved - as_float), float("inf")
+    else:
+        thresholds = phase_thresholds(as_float, "auto", 2)
+        sums = residual_phase_sums(as_float, moved, label_phases(as_float, thresholds), thresholds)
+        residual, floor = sums.residual, sums.same_phase_mean
+    local_before = [local_mean_residual(residual, field, h) for h in halves]
+    signed_before = local_mean_residual(as_float - moved, field, 2)
+    magnitude = ndimage.gaussian_gradient_magnitude(as_float, 1.0)
+    gradient_before = [local_mean_residual(magnitude, field, h) for h in halves]
+    for held in (reference, as_float):
+        residuals = acceptance.ReferenceResiduals(held, deformed, coefficients, gray_map)
+        assert residuals.reference is held  # no copy of a scan float32 holds exactly
+        residuals.remember(field, pulled)
+        local, r0 = residuals.local_means(field, halves)
+        for new, old in zip(local, local_before, strict=True):
+            np.testing.assert_array_equal(new, old)
+        assert r0 == floor or (np.isinf(r0) and not np.isfinite(floor))
+        np.testing.assert_array_equal(residuals.signed_means(field, 2), signed_before)
+        np.testing.assert_array_equal(residuals.gradient_means(field, 7), gradient_before[1])
+        np.testing.assert_array_equal(residuals.gradient_means(field, 2), gradient_before[0])
+    # a float64 reference is read as its float32 copy
+    residuals = acceptance.ReferenceResiduals(as_float.astype(np.float64), deformed, coefficients)
+    assert residuals.reference.dtype == np.float32
+
+
+def test_the_gradient_is_computed_once_per_grid_and_a_forgotten_pull_back_is_made_again(
+    monkeypatch,
+):
+    from scipy import ndimage
+
+    from napari_dvc_correct.engine import synthetic
+    from napari_dvc_correct.engine.correction import acceptance
+    from napari_dvc_correct.engine.fields import warp
+
+    reference = synthetic.textured_volume((20, 22, 24), feature_size=3.0, seed=2) * 100.0
+    deformed = synthetic.deform_volume(reference, synthetic.translation((0.3, 0.2, -0.4)))
+    residuals = acceptance.ReferenceResiduals(
+        reference.astype(np.float32), deformed, prefilter_of(deformed)
+    )
+    field = DisplacementField.zeros((3.0, 3.0, 3.0), (4.0, 4.0, 4.0), (4, 5, 5))
+    other = DisplacementField.zeros((2.0, 3.0, 3.0), (4.0, 4.0, 4.0), (4, 5, 5))
+    gradients, pulls = [], []
+    magnitude = ndimage.gaussian_gradient_magnitude
+    monkeypatch.setattr(
+        acceptance.ndimage, "gaussian_gradient_magnitude",
+        lambda *a, **k: gradients.append(1) or magnitude(*a, **k),
+    )  # fmt: skip
+    pull_back = warp.pull_back
+    monkeypatch.setattr(warp, "pull_back", lambda *a, **k: pulls.append(1) or pull_back(*a, **k))
+    residuals.local_means(field, (2, 5))
+    first = residuals.gradient_means(field, 2)
+    n = len(gradients)  # one slab here: one gradient for both halves of local_means
+    assert n == 1
+    np.testing.assert_array_equal(residuals.gradient_means(field, 5), residuals.gradient_means(
+        field, 5))  # fmt: skip
+    residuals.gradient_means(field, 2)
+    assert len(gradients) == n  # kept per grid and half
+    residuals.gradient_means(other, 2)
+    assert len(gradients) == n + 1  # another grid: other nodes
+    assert len(pulls) == 1
+    held = residuals.pulled_back(field)
+    residuals.forget()
+    again = residuals.pulled_back(field)
+    assert len(pulls) == 2 and again is not held
+    np.testing.assert_array_equal(again, held)
+    np.testing.assert_array_equal(first, residuals.gradient_means(field, 2))

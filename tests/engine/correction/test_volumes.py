@@ -117,3 +117,97 @@ def test_the_correcting_runs_noise_hint_is_half_the_input_fields_noise_variance(
     assert noise_hint(field) == NOISE_HINT_FRACTION * 4.0 == 2.0
     field.metadata["noise"] = {"sigma": 0.0}
     assert noise_hint(field) is None
+
+
+def test_the_aligned_volume_is_filled_in_place():
+    made = np.array([1.0, np.nan, 3.0], np.float32)
+    assert V._finite_or_fill(made, 2.0) is made
+    np.testing.assert_array_equal(made, [1.0, 2.0, 3.0])
+
+
+@pytest.fixture(scope="module")
+def sheared_uint16_pair():
+    from napari_dvc_correct.engine.correlation.correlate import correlate
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+
+    truth = synthetic.shear_band((20.0,) * 3, width=6.0, slip=3.0, shift=(0.5, -0.7, 1.2))
+    reference, deformed = synthetic.make_pair(
+        lambda s: synthetic.two_phase_volume(s, seed=2), (40,) * 3, truth, margin=8
+    )
+    rng = np.random.default_rng(3)
+    reference, deformed = (
+        np.rint(2000.0 + 200.0 * v + rng.normal(0.0, 150.0, v.shape)).astype(np.uint16)
+        for v in (reference, deformed)
+    )
+    field = correlate(reference, deformed, CorrelationParams(subvolume=15, step=5))
+    return reference, deformed, field
+
+
+@pytest.mark.parametrize("frame", ["loaded", "reference"])
+def test_integer_scans_are_held_as_they_are_and_correct_to_the_same_bits(
+    monkeypatch, sheared_uint16_pair, frame
+):
+    """A 16-bit pair (large ones: the threshold is lowered here) is held without float32
+    copies; the corrected field, its quality arrays and every pass's record equal those of the
+    same scans given as float32 (the copies held before), bit for bit."""
+    from napari_dvc_correct.engine.correction.self_correction import correct
+    from napari_dvc_correct.engine.correlation import correlate as correlate_module
+
+    reference, deformed, field = sheared_uint16_pair
+    mask = None
+    if frame == "loaded":  # the mask's forward warp too
+        mask = np.zeros(reference.shape, bool)
+        mask[2:38, 3:37, 1:39] = True
+    monkeypatch.setattr(correlate_module, "KEEP_INTEGER_FROM", 0)
+    volumes = V.InMemoryVolumes(reference, deformed, frame, mask)
+    assert volumes.reference is reference and volumes.deformed is deformed
+    as_float = [v.astype(np.float32) for v in (reference, deformed)]
+    held = correct(reference, deformed, field, frame=frame, mask=mask, max_passes=2)
+    copied = correct(*as_float, field, frame=frame, mask=mask, max_passes=2)
+    assert held.metadata["correction"]["passes_applied"] >= 1  # the passes ran
+    names = ("u", "zncc", "status", "iterations", "provenance", "uncertainty", "gradient")
+    for name in names:
+        np.testing.assert_array_equal(getattr(held, name), getattr(copied, name), err_msg=name)
+    for before, after in zip(
+        copied.metadata["correction_passes"], held.metadata["correction_passes"], strict=True
+    ):
+        before, after = dict(before), dict(after)
+        before.pop("seconds"), after.pop("seconds")
+        assert before == after
+
+
+def test_a_correcting_run_drops_the_judged_fields_pull_back(pair):
+    from napari_dvc_correct.engine.correction.pass_update import zero_start
+    from napari_dvc_correct.engine.correlation.params import CorrelationParams
+
+    reference, deformed = pair
+    volumes = V.InMemoryVolumes(reference, deformed, "loaded")
+    field = _uniform(SHIFT)
+    run_to_completion(volumes.fit_gray_levels(field))
+    residuals = run_to_completion(volumes.residuals())
+    assert residuals._last is not None  # the gray-level fit's pull-back, handed over
+    moved, _ = run_to_completion(volumes.align(field))
+    pair_ = run_to_completion(volumes.matching_pair(moved, field))
+    grid = (field.origin, field.step, field.shape)
+    run = volumes.correlate(CorrelationParams(15, 6), pair_, grid=grid, initial=zero_start(grid))
+    assert residuals._last is None  # not held while the correcting DVC runs
+    delta = run_to_completion(run)
+    assert np.all(np.abs(delta.u[delta.valid]) < 0.05)  # the true field leaves nothing to do
+
+
+@pytest.mark.parametrize("frame", ["loaded", "reference"])
+def test_large_volumes_let_go_of_the_judged_pull_back_when_aligning(monkeypatch, pair, frame):
+    reference, deformed = pair
+    field = _uniform(SHIFT)
+    results = {}
+    for release_from in (np.inf, 0):
+        monkeypatch.setattr(V, "RELEASE_PULL_BACK_FROM", release_from)
+        volumes = V.InMemoryVolumes(reference, deformed, frame)
+        run_to_completion(volumes.fit_gray_levels(field))
+        residuals = run_to_completion(volumes.residuals())
+        held = residuals._last
+        results[release_from] = run_to_completion(volumes.align(field))
+        assert (residuals._last is held) == (release_from == np.inf)
+    kept, released = results[np.inf], results[0]
+    np.testing.assert_array_equal(kept[0], released[0])
+    assert kept[1] == released[1]

@@ -45,3 +45,38 @@ def test_honest_accuracy_counts_undefined_regions_as_failed():
     # clipped to [0, 1]: 1.2 counts 1, -0.5 counts 0; NaN counts 0
     assert A.honest_accuracy(np.array([1.2, 0.5, -0.5, np.nan])) == pytest.approx(1.5 / 4)
     assert np.isnan(A.honest_accuracy(np.array([])))
+
+
+def _local_mean_as_before(residual, field, half):
+    """local_mean_residual as it was written before NodeBoxMeans."""
+    from napari_dvc_correct.engine.evaluation.binning import node_box_sums, node_voxels
+    from napari_dvc_correct.engine.slabs import iter_slabs
+
+    shape = residual.shape
+    centers = node_voxels(field, shape)
+    sums = np.zeros(field.shape)
+    counts = np.zeros(field.shape, np.int64)
+    for zs in iter_slabs(shape):
+        box = (zs, slice(0, shape[1]), slice(0, shape[2]))
+        node_box_sums(np.asarray(residual[zs], np.float32), box, centers, half).add_to(sums, counts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+
+
+def test_node_box_means_of_slabs_made_one_at_a_time_equal_the_whole_volume_s():
+    """A volume of two default slabs (38 + 2 planes of 330 x 330): the slabs handed over one at
+    a time give local_mean_residual's means to the bit, for two halves at once."""
+    from napari_dvc_correct.engine.slabs import iter_slabs
+
+    rng = np.random.default_rng(5)
+    residual = (rng.random((40, 330, 330), np.float32) * 7.3).astype(np.float32)
+    residual[rng.random(residual.shape) < 0.05] = np.nan
+    field = DisplacementField.zeros((3.0, 5.0, 2.0), (6.0, 25.0, 30.0), (7, 13, 11))
+    assert len(list(iter_slabs(residual.shape))) == 2
+    means = A.NodeBoxMeans(field, residual.shape, (2, 9))
+    for zs in iter_slabs(residual.shape):
+        means.add(zs, np.array(residual[zs], np.float64))  # any float dtype, read as float32
+    for half, values in zip((2, 9), means.means(), strict=True):
+        before = _local_mean_as_before(residual, field, half)
+        np.testing.assert_array_equal(values, before)
+        np.testing.assert_array_equal(A.local_mean_residual(residual, field, half), before)

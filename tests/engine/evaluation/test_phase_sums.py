@@ -52,3 +52,53 @@ def test_shapes_must_agree():
     with pytest.raises(ValueError, match="same 3-D shape"):
         residual_phase_sums(np.zeros((2, 2, 2)), np.zeros((2, 2, 3), np.float32),
                             np.zeros((2, 2, 2), np.uint8), [1.0])  # fmt: skip
+
+
+def _whole_volume_sums(own, moved, labels, thresholds):
+    """residual_phase_sums as it was written before PhaseRows: one kernel call on the whole
+    volume, the rows added up."""
+    from napari_dvc_correct.engine.evaluation import phase_sums
+
+    nz = own.shape[0]
+    residual = np.empty(own.shape, np.float32)
+    mapped = np.empty(own.shape, np.uint8)
+    sums = np.zeros((nz, NO_PHASE + 1))
+    counts = np.zeros((nz, NO_PHASE + 2), np.int64)
+    phase_sums._residual_phase_planes(
+        own, moved, labels, np.asarray(thresholds, np.float64), residual, mapped, sums, counts
+    )
+    return residual, mapped, sums[:, :NO_PHASE].sum(axis=0), counts[:, :NO_PHASE].sum(axis=0), (
+        float(sums[:, NO_PHASE].sum()), int(counts[:, NO_PHASE].sum()),
+        int(counts[:, NO_PHASE + 1].max()),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("planes", [1, 2, 4, 9])
+def test_rows_added_slab_by_slab_give_the_whole_volume_s_numbers_to_the_bit(planes):
+    from napari_dvc_correct.engine.evaluation.phase_sums import PhaseRows
+
+    own, moved, labels = _pair(np.float32, seed=3)
+    moved = moved * np.float32(1.7)  # sums that float64 rounds
+    thresholds = [310.0, 640.0]
+    residual, mapped, same_sums, same_counts, totals = _whole_volume_sums(
+        own, moved, labels, thresholds
+    )
+    whole = residual_phase_sums(own, moved, labels, thresholds)
+    rows = PhaseRows(own.shape[0])
+    parts = []
+    for start in range(0, own.shape[0], planes):
+        zs = slice(start, min(start + planes, own.shape[0]))
+        parts.append(rows.add(zs, own[zs], moved[zs], labels[zs], thresholds))
+    slabbed = rows.total()
+    for sums in (whole, slabbed):
+        np.testing.assert_array_equal(sums.same_sums, same_sums)
+        np.testing.assert_array_equal(sums.same_counts, same_counts)
+        assert (sums.residual_sum, sums.residual_count, sums.max_label) == totals
+        assert sums.same_phase_mean == whole.same_phase_mean
+    np.testing.assert_array_equal(whole.residual, residual)
+    np.testing.assert_array_equal(whole.mapped, mapped)
+    np.testing.assert_array_equal(np.concatenate([p[0] for p in parts]), residual)
+    np.testing.assert_array_equal(np.concatenate([p[1] for p in parts]), mapped)
+    assert slabbed.residual is None and slabbed.mapped is None
+    with pytest.raises(ValueError, match="planes"):
+        rows.add(slice(0, 2), own[:3], moved[:3], labels[:3], thresholds)

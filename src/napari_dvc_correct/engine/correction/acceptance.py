@@ -19,13 +19,15 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from ..correlation.correlate import EXACT_IN_FLOAT32
 from ..evaluation.gray_levels import GrayLevelMap
-from ..evaluation.local_accuracy import local_mean_residual
-from ..evaluation.phase_sums import residual_phase_sums
+from ..evaluation.local_accuracy import NodeBoxMeans
+from ..evaluation.phase_sums import PhaseRows
 from ..evaluation.phases import label_phases, phase_thresholds
 from ..fields import warp
 from ..fields.field import GOOD_STATUSES, DisplacementField, Provenance, Status
 from ..fields.field_spline import FieldSpline
+from ..slabs import iter_slabs
 from .cleaning import clean
 
 #: One-sided z-score of the local acceptance test: a node's local residual must rise by more than
@@ -95,9 +97,17 @@ class ReferenceResiduals:
     ``gradient_means(field, half)`` the mean gray gradient magnitude of ``G`` (Gaussian,
     sigma 1 voxel) over each node's box. ``napari_dvc_correct.tiled.correction`` gives the same
     numbers block by block from lazily read volumes.
+
+    Only the last field's pull-back is held whole: the mapped pull-back, the residual and the
+    gradient are made and used slab by slab (:class:`.local_accuracy.NodeBoxMeans`), the same
+    numbers as from whole volumes. ``reference`` may be of any real dtype whose values float32
+    holds exactly (it is read as float32, a slab at a time).
     """
 
     def __init__(self, reference, deformed, deformed_coefficients, gray_levels=None):
+        reference = np.asarray(reference)
+        if reference.dtype.type not in (np.float32, *EXACT_IN_FLOAT32):
+            reference = np.ascontiguousarray(reference, dtype=np.float32)
         self.reference = reference
         self.deformed = deformed
         self.coefficients = deformed_coefficients
@@ -109,7 +119,8 @@ class ReferenceResiduals:
             self.labels_g = label_phases(self.reference, self.thresholds_g)
         except ValueError:  # a volume with a single gray value: no phases, no eq. 1
             self.labels_g = None
-        self._gradient = None
+        self._gradient = {}  # (grid, half) -> the nodes' mean gradient
+        self._halves = set()  # the halves asked of local_means: their gradients come together
         self._last = None  # the last field pulled back and its pull-back (one volume)
 
     def remember(self, field: DisplacementField, pulled_back: np.ndarray) -> None:
@@ -119,6 +130,11 @@ class ReferenceResiduals:
         again."""
         self._last = (_field_key(field), np.array(field.u, copy=True), pulled_back)
 
+    def forget(self) -> None:
+        """Drop the pull-back held for the last field (a volume): nothing will judge that field
+        again soon (e.g. while a correcting DVC runs)."""
+        self._last = None
+
     def pulled_back(self, field: DisplacementField) -> np.ndarray:
         """``F(X + u(X))`` (NaN where undefined, the loaded scan's gray levels); the last field's
         pull-back is kept, so judging the same field again (the setup's checks, the final
@@ -126,6 +142,7 @@ class ReferenceResiduals:
         last = self._last
         if last is not None and last[0] == _field_key(field) and np.array_equal(last[1], field.u):
             return last[2]
+        self._last = last = None  # the old pull-back is freed before the new one is made
         spline = FieldSpline.from_field(field)
         moved = warp.pull_back(self.deformed, spline, coefficients=self.coefficients, cval=np.nan)
         self.remember(field, moved)
@@ -136,31 +153,72 @@ class ReferenceResiduals:
         undefined."""
         return self.gray_levels.apply(self.pulled_back(field))
 
+    def _slabs(self, field: DisplacementField | None = None):
+        """``(planes, G, map(F~))`` slab by slab (:func:`.slabs.iter_slabs`), float32; without
+        ``field``, ``map(F~)`` is None."""
+        pulled = None if field is None else self.pulled_back(field)
+        shape = self.reference.shape
+        for zs in iter_slabs(shape):
+            own = np.ascontiguousarray(self.reference[zs], dtype=np.float32)
+            if pulled is None:
+                yield zs, own, None
+                continue
+            region = (zs, slice(0, shape[1]), slice(0, shape[2]))
+            yield zs, own, self.gray_levels.apply(pulled[zs], region)
+
     def local_means(self, field: DisplacementField, halves) -> tuple[list, float]:
         """Per-node box means of the gray-level-corrected residual ``|map(F~) - G|`` of
         ``field`` for each half-size, and eq. 1's r0 of that residual."""
-        moved = self.moved(field)
-        if self.labels_g is None:
-            residual = np.abs(moved - self.reference)
-            floor = float("inf")
-        else:  # eq. 1 (inf where no voxel holds the same phase in both states); the moved
-            # volume is in the reference's gray levels, so the reference's thresholds phase it
-            sums = residual_phase_sums(self.reference, moved, self.labels_g, self.thresholds_g)
-            residual, floor = sums.residual, sums.same_phase_mean
+        self._halves.update(int(h) for h in halves)
+        means = NodeBoxMeans(field, self.reference.shape, halves)
+        rows = None if self.labels_g is None else PhaseRows(self.reference.shape[0])
+        for zs, own, moved in self._slabs(field):
+            if rows is None:
+                residual = np.abs(moved - own)
+            else:  # eq. 1 (inf where no voxel holds the same phase in both states); the moved
+                # volume is in the reference's gray levels, so the reference's thresholds phase it
+                residual, _ = rows.add(zs, own, moved, self.labels_g[zs], self.thresholds_g)
+            means.add(zs, residual)
+        floor = float("inf")
+        if rows is not None:
+            floor = rows.total().same_phase_mean
             floor = floor if np.isfinite(floor) else float("inf")
-        means = [local_mean_residual(residual, field, half) for half in halves]
-        return means, floor
+        return means.means(), floor
 
     def signed_means(self, field: DisplacementField, half: int) -> np.ndarray:
         """Per-node mean of the signed residual ``G - map(F~)`` over the node's box (reference
         gray levels; NaN where the box holds no defined voxel)."""
-        return local_mean_residual(self.reference - self.moved(field), field, half)
+        means = NodeBoxMeans(field, self.reference.shape, (half,))
+        for zs, own, moved in self._slabs(field):
+            means.add(zs, own - moved)
+        return means.means()[0]
 
     def gradient_means(self, field: DisplacementField, half: int) -> np.ndarray:
-        """Per-node mean gray gradient magnitude of ``G`` over the node's box."""
-        if self._gradient is None:
-            self._gradient = ndimage.gaussian_gradient_magnitude(self.reference, 1.0)
-        return local_mean_residual(self._gradient, field, half)
+        """Per-node mean gray gradient magnitude of ``G`` over the node's box (kept per grid and
+        half; the halves of :meth:`local_means` computed with it, in one pass)."""
+        key = (_field_key(field), int(half))
+        if key not in self._gradient:
+            halves = sorted(self._halves | {int(half)})
+            means = NodeBoxMeans(field, self.reference.shape, halves)
+            for zs, _, _ in self._slabs():
+                means.add(zs, _gradient_magnitude(self.reference, zs))
+            for h, values in zip(halves, means.means(), strict=True):
+                self._gradient[(key[0], h)] = values
+        return self._gradient[key]
+
+
+#: Planes beyond a slab that its Gaussian gradient (sigma 1 voxel, scipy's truncation at 4 sigma)
+#: reads: with them, a slab's gradient equals the whole volume's to the bit.
+GRADIENT_REACH = int(4.0 * 1.0 + 0.5)
+
+
+def _gradient_magnitude(volume, zs: slice) -> np.ndarray:
+    """``ndimage.gaussian_gradient_magnitude(volume as float32, 1.0)[zs]``, from the planes
+    ``zs`` and :data:`GRADIENT_REACH` on either side."""
+    low = max(0, zs.start - GRADIENT_REACH)
+    high = min(volume.shape[0], zs.stop + GRADIENT_REACH)
+    block = np.ascontiguousarray(volume[low:high], dtype=np.float32)
+    return ndimage.gaussian_gradient_magnitude(block, 1.0)[zs.start - low : zs.stop - low]
 
 
 def _field_key(field: DisplacementField) -> tuple:

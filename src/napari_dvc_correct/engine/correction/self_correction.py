@@ -369,6 +369,7 @@ def _correction_loop(
             f"correction pass {number}",
         )
         volumes.release(pair[2])
+        del pair  # its moved volume is `moved`, let go of below when the pass is applied
         add_stages(stages, delta, warp_s=t1 - t0, correcting_dvc_s=time.perf_counter() - t1)
         t0 = time.perf_counter()
         if selection is not None and previous_raw is None:
@@ -429,7 +430,9 @@ def _correction_loop(
         applied = n_accepted > 0
         t1 = time.perf_counter()
         add_stages(stages, None, acceptance_s=t1 - t0)
-        if applied:
+        if applied:  # the pass's moved volume is not needed beside the mixed field's
+            volumes.release(moved)
+            moved = mixed_moved = None  # (the last pass's mixed_moved is this pass's moved)
             mixed_moved, mixed_residual = yield from volumes.align(mixed)
             add_stages(stages, None, warp_s=time.perf_counter() - t1)
         else:
@@ -484,7 +487,6 @@ def _correction_loop(
             break
         excess = record.local_residual_before - min(floor_before, judge.floor)
         removed = record.local_residual_before - record.local_residual_after
-        volumes.release(moved)
         current, moved, residual, local_current = mixed, mixed_moved, mixed_residual, local_mixed
         # a further pass can change only what this one moved by enough (pass_reach)
         # ... and only what it moved by enough, at the rate the passes contract
@@ -509,6 +511,7 @@ def _correction_loop(
             break
         next_pass = (changed, node_change, tolerance, change_vectors)
 
+    mixed_moved = None  # the same volume as moved, which goes on to the oriented step
     # where the noise kept the passes on cubes that a band bends: the original pair re-matched
     # under windows along the field's own plane, through the same acceptance
     oriented = yield from oriented_step(
@@ -518,6 +521,7 @@ def _correction_loop(
     current, local_current, moved, residual = (
         oriented.field, oriented.local, oriented.moved, oriented.residual,
     )  # fmt: skip
+    oriented.moved = moved = None  # the last field's moved volume is not needed (close() frees it)
     # after the passes, unexplained nodes are flagged but keep their value: refilling them from
     # neighbours that the same fault may have spoiled does not make them any more right
     # flagged nodes whose residual is one-signed straddle a discontinuity (a crack): their own

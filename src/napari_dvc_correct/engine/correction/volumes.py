@@ -28,7 +28,7 @@ from collections.abc import Generator
 
 import numpy as np
 
-from ..correlation.correlate import correlate_iter
+from ..correlation.correlate import correlate_iter, kept_as_integers
 from ..correlation.interpolation import prefilter
 from ..correlation.params import CorrelationParams
 from ..correlation.pyramid import Prefiltered
@@ -107,12 +107,25 @@ class CorrectionVolumes:
 
 
 def _finite_or_fill(volume: np.ndarray, fill: float) -> np.ndarray:
+    """``volume`` (float32, made for the caller: filled in place) with ``fill`` where it is not
+    finite."""
     volume = np.asarray(volume, dtype=np.float32)
-    bad = ~np.isfinite(volume)
-    if bad.any():
-        volume = volume.copy()
-        volume[bad] = fill
+    volume[~np.isfinite(volume)] = fill
     return volume
+
+
+def _held(volume) -> np.ndarray:
+    """A scan as the correction holds it: as it is where a correlation reads it so
+    (:func:`.correlate.kept_as_integers`: every value exact in float32, read as float32 slab by
+    slab), else a float32 copy."""
+    if kept_as_integers(volume):
+        return np.ascontiguousarray(volume)
+    return np.ascontiguousarray(volume, dtype=np.float32)
+
+
+def _float32_mean(volume: np.ndarray) -> float:
+    """``np.mean`` of ``volume`` as float32 (float32 sums, as of the float32 copy once held)."""
+    return float(np.mean(np.asarray(volume, dtype=np.float32)))
 
 
 def _hull_mean(difference: np.ndarray, hull) -> float:
@@ -136,13 +149,22 @@ def noise_hint(field) -> float | None:
     return NOISE_HINT_FRACTION * float(sigma) ** 2
 
 
+#: From this many voxels, warping the pair (:meth:`InMemoryVolumes.align`) lets go of the pull-back
+#: the residuals hold for the last field judged: the set-up's peak then holds one volume of float32
+#: less. Below, it is kept: a run that ends on that field with flagged nodes would pull it back
+#: again for the discontinuity test (one warp, CPU for a volume's worth of memory).
+RELEASE_PULL_BACK_FROM = 2**24
+
+
 class InMemoryVolumes(CorrectionVolumes):
     """The two volumes as arrays with their spline coefficients, prefiltered once for every pass.
 
     Parameters
     ----------
     reference, deformed : ndarray, shape (nz, ny, nx)
-        ``G`` and ``F`` (checked by the caller), any real dtype; held as float32.
+        ``G`` and ``F`` (checked by the caller), any real dtype; held as float32, except large
+        8- and 16-bit scans, held as they are (the caller's arrays, no copy) and read as float32
+        where used: the same numbers.
     frame : {"loaded", "reference"}
     mask : ndarray, optional
         Reference-space material mask (non-zero = inside).
@@ -150,8 +172,8 @@ class InMemoryVolumes(CorrectionVolumes):
 
     def __init__(self, reference, deformed, frame: str, mask=None):
         self._inputs = (reference, deformed, mask)
-        self.reference = np.ascontiguousarray(reference, dtype=np.float32)
-        self.deformed = np.ascontiguousarray(deformed, dtype=np.float32)
+        self.reference = _held(reference)
+        self.deformed = _held(deformed)
         self.shape = self.reference.shape
         self.frame = frame
         self.mask = None if mask is None else np.asarray(mask) != 0
@@ -159,12 +181,13 @@ class InMemoryVolumes(CorrectionVolumes):
         self._fitted_with = None
         self._noise_hint = None
         self._inverse = None  # (field, its u, the forward warp's coarse stage) of align
+        self._residuals = None
         if frame == "reference":
+            self.fill = _float32_mean(self.deformed)
             self.coefficients = prefilter(self.deformed)
-            self.fill = float(np.mean(self.deformed))
         else:
+            self.fill = _float32_mean(self.reference)
             self.coefficients = prefilter(self.reference)
-            self.fill = float(np.mean(self.reference))
             self.mask_coefficients = (
                 None if self.mask is None else prefilter(self.mask.astype(np.float32))
             )
@@ -174,6 +197,8 @@ class InMemoryVolumes(CorrectionVolumes):
             reference, deformed, mask = self._inputs
             return correlate_iter(reference, deformed, params, mask=mask)
         g, f, mask = pair
+        if self._residuals is not None:  # the judged field's pull-back is not needed meanwhile
+            self._residuals.forget()
         return correlate_iter(
             g, f, params, mask=mask, grid=grid, initial=initial, active=active,
             prefiltered=self._unchanged_side(), noise_hint=self._noise_hint,
@@ -215,6 +240,8 @@ class InMemoryVolumes(CorrectionVolumes):
         yield
 
     def align(self, field):
+        if self._residuals is not None and np.prod(self.shape) >= RELEASE_PULL_BACK_FROM:
+            self._residuals.forget()
         spline = FieldSpline.from_field(field)
         gray = self.gray_levels
         if self.frame == "reference":
@@ -262,5 +289,6 @@ class InMemoryVolumes(CorrectionVolumes):
         if self._fitted_with is not None:
             residuals.remember(*self._fitted_with)
             self._fitted_with = None
+        self._residuals = residuals
         return residuals
         yield

@@ -37,7 +37,7 @@ _GOOD = np.array([int(s) for s in GOOD_STATUSES])
 
 #: Integer dtypes whose every value float32 holds exactly: volumes of one of these are not copied
 #: to float32 by :func:`match_iter` (its kernels read them as they are, with the same values).
-_EXACT_IN_FLOAT32 = (np.uint8, np.int8, np.uint16, np.int16)
+EXACT_IN_FLOAT32 = (np.uint8, np.int8, np.uint16, np.int16)
 
 #: ... from this many voxels (64 MiB as float32): below, the copy costs less than loading the
 #: prefilter's kernel for one more dtype at start-up.
@@ -98,9 +98,17 @@ def validate_pair(
 def _float32_or_exact(volume, exact: bool) -> np.ndarray:
     """``volume`` as C-ordered float32, or as it is where ``exact`` allows (see
     :func:`validate_pair`)."""
-    if exact and volume.dtype.type in _EXACT_IN_FLOAT32 and volume.size >= KEEP_INTEGER_FROM:
+    if exact and kept_as_integers(volume):
         return np.ascontiguousarray(volume)
     return np.ascontiguousarray(volume, dtype=np.float32)
+
+
+def kept_as_integers(volume) -> bool:
+    """Whether a CPU correlation reads ``volume`` as it is rather than as a float32 copy: 8- or
+    16-bit integers (every value exact in float32) of at least :data:`KEEP_INTEGER_FROM`
+    voxels."""
+    volume = np.asanyarray(volume)
+    return volume.dtype.type in EXACT_IN_FLOAT32 and volume.size >= KEEP_INTEGER_FROM
 
 
 def _grid_centers(grid, volume_shape, half):

@@ -39,21 +39,61 @@ def local_mean_residual(residual: np.ndarray, field: DisplacementField, half: in
     Notes
     -----
     Computed slab by slab from integral images in float64 (:func:`.binning.node_box_sums`, the
-    code tiled evaluation runs block by block).
+    code tiled evaluation runs block by block); :class:`NodeBoxMeans` gives the same numbers from
+    slabs made one at a time.
     """
     from ..slabs import iter_slabs
-    from .binning import node_box_sums, node_voxels
 
     shape = np.shape(residual)
-    centers = node_voxels(field, shape)
-    sums = np.zeros(field.shape)
-    counts = np.zeros(field.shape, np.int64)
+    means = NodeBoxMeans(field, shape, (half,))
     for zs in iter_slabs(shape):
-        box = (zs, slice(0, shape[1]), slice(0, shape[2]))
-        part = node_box_sums(np.asarray(residual[zs], np.float32), box, centers, half)
-        part.add_to(sums, counts)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+        means.add(zs, residual[zs])
+    return means.means()[0]
+
+
+class NodeBoxMeans:
+    """:func:`local_mean_residual` of a volume that is never held whole: its slabs along z are
+    added one at a time, in the order of :func:`..slabs.iter_slabs` ``(shape)`` (the sums are
+    float64 and added slab by slab, so these slabs give the same numbers to the bit), for one or
+    several half-sizes at once.
+
+    Parameters
+    ----------
+    field : DisplacementField
+        Gives the node positions.
+    shape : tuple of 3 ints
+        ``(nz, ny, nx)`` of the volume.
+    halves : sequence of int
+        Half-sizes of the nodes' boxes.
+    """
+
+    def __init__(self, field: DisplacementField, shape, halves) -> None:
+        from .binning import node_voxels
+
+        self.shape = tuple(int(n) for n in shape)
+        self.centers = node_voxels(field, self.shape)
+        self.halves = tuple(int(h) for h in halves)
+        self.sums = [np.zeros(field.shape) for _ in self.halves]
+        self.counts = [np.zeros(field.shape, np.int64) for _ in self.halves]
+
+    def add(self, zs: slice, slab: np.ndarray) -> None:
+        """Add the planes ``zs`` of the volume (``slab``: shape ``(len, ny, nx)``, any float; NaN
+        where undefined)."""
+        from .binning import node_box_sums
+
+        box = (zs, slice(0, self.shape[1]), slice(0, self.shape[2]))
+        slab = np.asarray(slab, np.float32)
+        for half, sums, counts in zip(self.halves, self.sums, self.counts, strict=True):
+            node_box_sums(slab, box, self.centers, half).add_to(sums, counts)
+
+    def means(self) -> list[np.ndarray]:
+        """Per half-size, each node's mean (float64, the grid's shape; NaN where its box holds
+        no finite voxel)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return [
+                np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+                for sums, counts in zip(self.sums, self.counts, strict=True)
+            ]
 
 
 def local_accuracy_map(local_residual: np.ndarray, background, contrast: float) -> np.ndarray:

@@ -106,27 +106,53 @@ def residual_phase_sums(own, moved, own_labels, thresholds_moved) -> ResidualPha
     thresholds_moved : sequence of float
         Increasing phase thresholds of the other state.
     """
-    own = np.asarray(own)
-    moved = np.ascontiguousarray(moved, dtype=np.float32)
-    own_labels = np.asarray(own_labels, dtype=np.uint8)
-    if not (own.shape == moved.shape == own_labels.shape) or own.ndim != 3:
-        raise ValueError(
-            f"own {own.shape}, moved {moved.shape} and labels {own_labels.shape} must be the "
-            "same 3-D shape"
+    rows = PhaseRows(np.shape(own)[0] if np.ndim(own) == 3 else 0)
+    planes = slice(0, rows.sums.shape[0])
+    residual, mapped = rows.add(planes, own, moved, own_labels, thresholds_moved)
+    return rows.total(residual, mapped)
+
+
+class PhaseRows:
+    """The per-plane sums of :func:`residual_phase_sums` for a volume given slab by slab along
+    z: each :meth:`add` fills its planes' rows, :meth:`total` adds the rows up as
+    :func:`residual_phase_sums` does, so the same numbers come out to the bit whatever the slabs,
+    without the whole volume's residual."""
+
+    def __init__(self, nz: int) -> None:
+        self.sums = np.zeros((int(nz), NO_PHASE + 1))
+        self.counts = np.zeros((int(nz), NO_PHASE + 2), np.int64)
+
+    def add(self, zs: slice, own, moved, own_labels, thresholds_moved):
+        """The planes ``zs`` (arrays of the slab's shape, as :func:`residual_phase_sums`'s);
+        returns their ``(residual, mapped)``."""
+        own = np.asarray(own)
+        moved = np.ascontiguousarray(moved, dtype=np.float32)
+        own_labels = np.asarray(own_labels, dtype=np.uint8)
+        if not (own.shape == moved.shape == own_labels.shape) or own.ndim != 3:
+            raise ValueError(
+                f"own {own.shape}, moved {moved.shape} and labels {own_labels.shape} must be the "
+                "same 3-D shape"
+            )
+        if zs.stop - zs.start != own.shape[0]:
+            raise ValueError(f"planes {zs} do not match the slab's {own.shape[0]} planes")
+        thresholds = np.atleast_1d(np.asarray(thresholds_moved, dtype=np.float64))
+        residual = np.empty(own.shape, np.float32)
+        mapped = np.empty(own.shape, np.uint8)
+        _residual_phase_planes(
+            own, moved, own_labels, thresholds, residual, mapped, self.sums[zs], self.counts[zs]
         )
-    thresholds = np.atleast_1d(np.asarray(thresholds_moved, dtype=np.float64))
-    nz = own.shape[0]
-    residual = np.empty(own.shape, np.float32)
-    mapped = np.empty(own.shape, np.uint8)
-    sums = np.zeros((nz, NO_PHASE + 1))
-    counts = np.zeros((nz, NO_PHASE + 2), np.int64)
-    _residual_phase_planes(own, moved, own_labels, thresholds, residual, mapped, sums, counts)
-    return ResidualPhaseSums(
-        residual=residual,
-        mapped=mapped,
-        same_sums=sums[:, :NO_PHASE].sum(axis=0),
-        same_counts=counts[:, :NO_PHASE].sum(axis=0),
-        residual_sum=float(sums[:, NO_PHASE].sum()),
-        residual_count=int(counts[:, NO_PHASE].sum()),
-        max_label=int(counts[:, NO_PHASE + 1].max()) if nz else -1,
-    )
+        return residual, mapped
+
+    def total(self, residual=None, mapped=None) -> ResidualPhaseSums:
+        """The sums over every plane added (``residual`` and ``mapped``: what to return as the
+        volume's, if held)."""
+        sums, counts = self.sums, self.counts
+        return ResidualPhaseSums(
+            residual=residual,
+            mapped=mapped,
+            same_sums=sums[:, :NO_PHASE].sum(axis=0),
+            same_counts=counts[:, :NO_PHASE].sum(axis=0),
+            residual_sum=float(sums[:, NO_PHASE].sum()),
+            residual_count=int(counts[:, NO_PHASE].sum()),
+            max_label=int(counts[:, NO_PHASE + 1].max()) if len(counts) else -1,
+        )

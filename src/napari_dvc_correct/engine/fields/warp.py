@@ -338,18 +338,29 @@ def warp_forward_with_residual(
     shape = check_shape(deformed.shape)
     spline = as_field_spline(field)
     sampler = spline_sampler(coefficients)
-    result, in_hull = warp_forward_block(
-        sampler, spline, whole_box(shape), max_iterations, tolerance, accuracy, chunk_voxels,
-        inverter,
-    )  # fmt: skip
+    whole = None
+    if accuracy is None:  # Newton at every voxel, over the whole box
+        whole = warp_forward_block(
+            sampler, spline, whole_box(shape), max_iterations, tolerance, None, chunk_voxels
+        )
+    elif inverter is None:
+        inverter = LatticeInverter(spline, whole_box(shape), max_iterations, tolerance, accuracy)
+    # else the coarse stage once, then G' sampled slab by slab (the same values as the whole
+    # box's): no whole-volume hull mask
+    result = np.empty(shape, np.float32) if whole is None else whole[0]
     total, count = 0.0, 0
     for z in iter_slabs(shape, chunk_voxels):
-        values = result[z]
+        if whole is None:
+            values, in_hull = inverter.warp(sampler.coefficients, z)
+            result[z] = values
+            values = result[z]
+        else:
+            values, in_hull = result[z], whole[1][z]
         defined = np.isfinite(values)
         own = deformed[z].astype(np.float32)
         if gray_levels is not None:
             own = gray_levels.apply(own, (z, slice(0, shape[1]), slice(0, shape[2])))
-        difference = np.abs(own - values)[defined & in_hull[z]]
+        difference = np.abs(own - values)[defined & in_hull]
         total += float(np.sum(difference, dtype=np.float64))
         count += int(difference.size)
         values[~defined] = cval
