@@ -90,65 +90,6 @@ def node_voxels(field: DisplacementField, volume_shape) -> tuple[np.ndarray, ...
     )
 
 
-@njit(parallel=True, **KERNEL_OPTIONS)
-def _box_sums(residual, z_low, z_high, y_low, y_high, x_low, x_high, sums, counts):
-    """Sums (float64) and counts of the finite voxels of ``residual`` in the boxes
-    ``z_low[i]:z_high[i], y_low[j]:y_high[j], x_low[k]:x_high[k]`` into ``sums[i, j, k]``.
-
-    Separable running sums (integral lines): along each x row every node's x range is one
-    difference, then the same along y over those row sums and along z over the plane sums; one
-    pass over the voxels whatever the boxes' size and overlap.
-    """
-    nz, ny, nx = residual.shape
-    gz, gy, gx = z_low.shape[0], y_low.shape[0], x_low.shape[0]
-    rows = np.empty((nz, ny, gx))
-    row_counts = np.empty((nz, ny, gx), np.int64)
-    for z in prange(nz):
-        running = np.empty(nx + 1)
-        running_count = np.empty(nx + 1, np.int64)
-        for y in range(ny):
-            total = 0.0
-            count = 0
-            running[0] = 0.0
-            running_count[0] = 0
-            for x in range(nx):
-                value = residual[z, y, x]
-                if np.isfinite(value):
-                    total += value
-                    count += 1
-                running[x + 1] = total
-                running_count[x + 1] = count
-            for k in range(gx):
-                rows[z, y, k] = running[x_high[k]] - running[x_low[k]]
-                row_counts[z, y, k] = running_count[x_high[k]] - running_count[x_low[k]]
-    planes = np.empty((nz, gy, gx))
-    plane_counts = np.empty((nz, gy, gx), np.int64)
-    for z in prange(nz):
-        running = np.empty(ny + 1)
-        running_count = np.empty(ny + 1, np.int64)
-        for k in range(gx):
-            running[0] = 0.0
-            running_count[0] = 0
-            for y in range(ny):
-                running[y + 1] = running[y] + rows[z, y, k]
-                running_count[y + 1] = running_count[y] + row_counts[z, y, k]
-            for j in range(gy):
-                planes[z, j, k] = running[y_high[j]] - running[y_low[j]]
-                plane_counts[z, j, k] = running_count[y_high[j]] - running_count[y_low[j]]
-    for j in prange(gy):
-        running = np.empty(nz + 1)
-        running_count = np.empty(nz + 1, np.int64)
-        for k in range(gx):
-            running[0] = 0.0
-            running_count[0] = 0
-            for z in range(nz):
-                running[z + 1] = running[z] + planes[z, j, k]
-                running_count[z + 1] = running_count[z] + plane_counts[z, j, k]
-            for i in range(gz):
-                sums[i, j, k] = running[z_high[i]] - running[z_low[i]]
-                counts[i, j, k] = running_count[z_high[i]] - running_count[z_low[i]]
-
-
 def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
     """Sums and counts of the finite residual voxels of ``box`` in every node's ``(2M+1)^3`` box.
 
@@ -170,27 +111,7 @@ def node_box_sums(residual: np.ndarray, box, centers, half: int) -> GridPart:
         the block's share. Summed over blocks that tile a volume, the whole boxes (clipped at the
         volume's borders).
     """
-    half = int(half)
-    ranges, local = [], []
-    for s, c in zip(box, centers):
-        meets = np.flatnonzero((c + half >= s.start) & (c - half < s.stop))
-        if meets.size == 0:
-            return _empty_part()
-        ranges.append(meets)
-        low = np.clip(c[meets] - half - s.start, 0, s.stop - s.start)
-        high = np.clip(c[meets] + half + 1 - s.start, 0, s.stop - s.start)
-        local.append((low, high))
-    lo = tuple(int(r[0]) for r in ranges)
-    # the nodes meeting the block form an index range per axis (centres increase with the index)
-    sums = np.empty(tuple(len(r) for r in ranges))
-    counts = np.empty(sums.shape, np.int64)
-    _box_sums(
-        np.ascontiguousarray(residual, dtype=np.float32),
-        *[np.ascontiguousarray(bound, dtype=np.int64) for pair in local for bound in pair],
-        sums,
-        counts,
-    )
-    return GridPart(lo, sums, counts)
+    return node_box_sums_nested(residual, box, centers, [half])[0]
 
 
 def node_box_sums_nested(values: np.ndarray, box, centers, halves) -> list[GridPart]:
@@ -231,10 +152,14 @@ def node_box_sums_nested(values: np.ndarray, box, centers, halves) -> list[GridP
 
 @njit(parallel=True, **KERNEL_OPTIONS)
 def _nested_box_sums(residual, z_low, z_high, y_low, y_high, x_low, x_high, sums, counts):
-    """:func:`_box_sums` for ``H`` sets of boxes (bounds of shape ``(H, g)``, ``sums`` and
-    ``counts`` of shape ``(H, gz, gy, gx)``): the running sums along x once, their differences
-    for every set, then y and z per set over the row sums (the same operations, in the same
-    order, as one :func:`_box_sums` per set)."""
+    """Sums (float64) and counts of the finite voxels of ``residual`` in ``H`` sets of boxes:
+    set ``h``'s box ``(i, j, k)`` is ``z_low[h, i]:z_high[h, i], y_low[h, j]:y_high[h, j],
+    x_low[h, k]:x_high[h, k]`` (bounds of shape ``(H, g)``), into ``sums[h, i, j, k]``.
+
+    Separable running sums (integral lines): along each x row every box's x range is one
+    difference of the row's running sum (computed once for all sets), then the same along y over
+    those row sums and along z over the plane sums, per set; one pass over the voxels whatever
+    the boxes' size and overlap, and each set's numbers do not depend on the other sets."""
     nz, ny, nx = residual.shape
     nh = z_low.shape[0]
     gz, gy, gx = z_low.shape[1], y_low.shape[1], x_low.shape[1]
