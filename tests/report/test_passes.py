@@ -85,3 +85,22 @@ def test_the_regularised_nodes_in_words():
     assert "169 nodes" in line and "3³" in line and "187 tested" in line and "x0.14" in line
     field.metadata["correction"]["noise_fit"]["not_run"] = "the field carries no uncertainty"
     assert passes.noise_fit_line(field) == "regularised: no node (the field carries no uncertainty)"
+
+
+def test_the_oriented_step_in_words():
+    field = DisplacementField.zeros((8, 8, 8), (4, 4, 4), (2, 2, 2))
+    assert passes.oriented_line(field) == ""
+    field.metadata["correction"] = {"oriented": {"ran": False, "reason": "no node varies"}}
+    assert passes.oriented_line(field) == ""  # the usual case says nothing
+    field.metadata["correction"]["oriented"] = {
+        "ran": True,
+        "planar_nodes": 120,
+        "matched_nodes": 118,
+        "accepted_nodes": 97,
+        "across": 2.5,
+        "along": 10.0,
+        "subvolume": 31,
+    }
+    line = passes.oriented_line(field)
+    assert "97 of 120 nodes" in line and "std 2.5 voxels across" in line
+    assert "10 along" in line and "31³ boxes" in line

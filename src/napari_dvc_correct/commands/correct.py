@@ -192,6 +192,7 @@ def pass_table(field) -> str:
         method_lines,
         noise_fit_line,
         order_text,
+        oriented_line,
         subvolume_text,
     )
 
@@ -218,7 +219,8 @@ def pass_table(field) -> str:
             f"{subvolume_text(params['subvolume'])} subvolume"
         )
     lines.extend(f"correcting matches, {line}" for line in method_lines(field))
-    for line in (gray_level_line(field), flag_line(field), noise_fit_line(field)):
+    words = (gray_level_line(field), oriented_line(field), flag_line(field), noise_fit_line(field))
+    for line in words:
         lines.extend([line] if line else [])
     if table and table[-1].stop:
         lines.append(f"stopped: {table[-1].stop}")

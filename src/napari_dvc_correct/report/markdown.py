@@ -8,7 +8,14 @@ from pathlib import Path
 from ..engine.evaluation.error_estimate import bounded_text
 from ..engine.evaluation.results import Evaluation
 from ..io.atomic import atomic_path
-from .passes import first_run_parameters, method_lines, order_text, pass_rows, subvolume_text
+from .passes import (
+    first_run_parameters,
+    method_lines,
+    order_text,
+    oriented_line,
+    pass_rows,
+    subvolume_text,
+)
 from .tables import (
     background_rows,
     bin_rows,
@@ -109,6 +116,9 @@ def _correction_section(evaluation: Evaluation) -> str:
             else ""
         )
         why = " ".join(f"Correcting matches, {line}." for line in method_lines(item.field))
+        oriented = oriented_line(item.field)
+        if oriented:
+            why += f" Then {oriented}."
         parts.append(
             f"### {item.name}\n\n{markdown_table(rows, PASS_COLUMNS)}\n\n{chosen}{why}".rstrip()
         )

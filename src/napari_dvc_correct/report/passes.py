@@ -144,3 +144,20 @@ def noise_fit_line(field: DisplacementField) -> str:
     if info.get("median_variance_ratio") is not None:
         text += f"; their variance x{info['median_variance_ratio']:.2f} (median)"
     return text
+
+
+def oriented_line(field: DisplacementField) -> str:
+    """The correction's oriented step in words ("" where it did not run): after the passes,
+    nodes whose field varies across a plane re-matched on the original pair under windows
+    narrow across that plane and wide along it (``metadata["correction"]["oriented"]``)."""
+    info = (field.metadata.get("correction") or {}).get("oriented") or {}
+    if not info.get("ran"):
+        return ""
+    return (
+        f"re-matched along the field's plane: {int(info.get('accepted_nodes', 0))} of "
+        f"{int(info.get('planar_nodes', 0))} nodes whose field varies across a plane took a "
+        "first-order match of the original pair under a window of std "
+        f"{float(info.get('across', 0.0)):g} voxels across that plane and "
+        f"{float(info.get('along', 0.0)):g} along it ({int(info.get('subvolume', 0))}³ boxes), "
+        "where the noise kept the passes on first-order cubes that the field bends"
+    )

@@ -142,9 +142,10 @@ def summary_message(field: DisplacementField) -> str:
     method = method_message(field)
     if method:
         text += " " + method
-    from ..report.passes import flag_line, gray_level_line, noise_fit_line
+    from ..report.passes import flag_line, gray_level_line, noise_fit_line, oriented_line
 
-    for line in (gray_level_line(field), flag_line(field), noise_fit_line(field)):
+    lines = (gray_level_line(field), oriented_line(field), flag_line(field), noise_fit_line(field))
+    for line in lines:
         if line:
             text += " " + line[0].upper() + line[1:] + "."
     return text
