@@ -37,6 +37,7 @@ from ..correlation.pyramid import GRADIENT_ON_DEMAND_FROM, Prefiltered
 from ..fields.field import GOOD_STATUSES, DisplacementField
 from ..progress import Progress
 from .acceptance import accept_locally
+from .oriented_deblur import deblur_across, window_moments
 from .pass_method import CURVATURE_VOXELS, field_curvature
 
 #: The oriented window's standard deviation across the plane, in units of the first run's
@@ -274,8 +275,7 @@ def oriented_rematch(
     for number, k in enumerate(used):
         yield Progress("oriented", number, len(used), f"direction {number + 1} of {len(used)}")
         group = direction == k
-        # the box shrinks to what the group's nodes have room for (never below the first run's)
-        half = int(np.clip(room[group].min(), params.half, match_params.half))
+        half = group_half(room, group, params)
         weights = oriented_window(half, directions[k], across, along)
         run = yield from correlate_iter(
             reference, deformed, match_params.replace(subvolume=2 * half + 1), mask=mask,
@@ -287,6 +287,28 @@ def oriented_rematch(
         raise ValueError("no node to re-match with an oriented window")
     yield Progress("oriented", len(used), len(used), f"{int(nodes.sum())} nodes re-matched")
     return result, direction
+
+
+def group_half(room: np.ndarray, group: np.ndarray, params: CorrelationParams) -> int:
+    """The box half-width of one direction's run: :func:`oriented_params`' box, shrunk to what
+    the group's nodes have room for (``room``: :func:`border_room`), never below the first run's."""
+    return int(np.clip(room[group].min(), params.half, oriented_params(params)[0].half))
+
+
+def deblur_matches(matched, took, direction, normals, params, shape):
+    """The oriented matches at ``took`` less their windows' blur
+    (:func:`.oriented_deblur.deblur_across`; each node with the moments of the window its
+    direction's run used). Returns the displacements and the nodes deblurred."""
+    directions = direction_set(DIRECTION_TOLERANCE)
+    _, across, along = oriented_params(params)
+    room = border_room(matched, shape)
+    moments = np.zeros(matched.shape + (3, 3))
+    for k in np.unique(direction[took]):
+        group = took & (direction == k)
+        window = oriented_window(group_half(room, group, params), directions[k], across, along)
+        moments[group] = window_moments(window)
+    points = matched.points.reshape(*matched.shape, 3)
+    return deblur_across(matched.u, points, took, normals, moments, matched.step, along)
 
 
 def border_room(field: DisplacementField, shape) -> np.ndarray:
@@ -375,7 +397,8 @@ def oriented_step(
     )
     candidate = current.copy()
     took = nodes & np.isin(matched.status, [int(s) for s in GOOD_STATUSES])
-    candidate.u[took] = matched.u[took]
+    deblurred, sharpened = deblur_matches(matched, took, direction, normals, params, volumes.shape)
+    candidate.u[took] = deblurred[took]
     if candidate.gradient is not None and matched.gradient is not None:
         candidate.gradient[took] = matched.gradient[took]
     mixed, local_mixed, accept, improved = accept_locally(
@@ -391,6 +414,7 @@ def oriented_step(
             f"it, first order on {match_params.subvolume}³ boxes"
         ),
         "planar_nodes": int(nodes.sum()),
+        "deblurred_nodes": int(sharpened.sum()),
         "matched_nodes": int(took.sum()),
         "accepted_nodes": int(accept.sum()),
         "improved_nodes": int(improved.sum()),
