@@ -41,12 +41,15 @@ from .oriented_deblur import deblur_across, window_moments
 from .pass_method import CURVATURE_VOXELS, field_curvature
 
 #: The oriented window's standard deviation across the plane, in units of the first run's
-#: subvolume half-width (2.5 voxels for 21³): narrow enough to read a band of half-width 4.
-ACROSS_FRACTION = 0.25
+#: subvolume half-width (2.0 voxels for 21³): narrow enough to read a band of half-width 4; the
+#: blur it leaves (its second moment times the band's curvature) is taken out afterwards
+#: (:mod:`.oriented_deblur`), so the narrower window's smaller higher-order blur wins over its
+#: larger noise (2.5 voxels before the deblur, measured in docs/method.md).
+ACROSS_FRACTION = 0.2
 
-#: ... along the plane, in the same units (10 voxels for 21³): the voxels of a 21³ cube spread
-#: over the plane.
-ALONG_FRACTION = 1.0
+#: ... along the plane, in the same units (12 voxels for 21³): the voxels of a 21³ cube spread
+#: over the plane (and more: the bending it blurs along the plane is taken out with the rest).
+ALONG_FRACTION = 1.2
 
 #: The oriented match's box edge over the first run's subvolume (31³ for 21³): holds the window
 #: to beyond two standard deviations along the plane.
