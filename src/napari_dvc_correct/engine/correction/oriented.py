@@ -307,7 +307,7 @@ def deblur_matches(matched, took, direction, normals, params, shape):
     room = border_room(matched, shape)
     moments = np.zeros(matched.shape + (3, 3))
     for k in np.unique(direction[took]):
-        group = took & (direction == k)
+        group = direction == k  # the run's box came from all of its nodes, failed ones too
         window = oriented_window(group_half(room, group, params), directions[k], across, along)
         moments[group] = window_moments(window)
     points = matched.points.reshape(*matched.shape, 3)
@@ -414,7 +414,8 @@ def oriented_step(
             f"the field bends a {params.subvolume}³ subvolume by {bend:.2g} voxel but the noise "
             "kept the passes on first-order cubes: planar nodes re-matched on the original pair "
             f"under windows of std {across:g} voxels across the field's plane, {along:g} along "
-            f"it, first order on {match_params.subvolume}³ boxes"
+            f"it, first order on {match_params.subvolume}³ boxes, less the windows' blur (from "
+            "the matches' local quadratic)"
         ),
         "planar_nodes": int(nodes.sum()),
         "deblurred_nodes": int(sharpened.sum()),
