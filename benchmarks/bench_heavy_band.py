@@ -28,8 +28,13 @@ unchanged on other seeds, so they show what is possible, not what a data-driven 
 give. Results and discussion: docs/method.md ("The heavy-noise narrow
 band: regularised estimates, measured").
 
+6. **Deblur** (``deblur``): the self-correction's own oriented step split into bias and scatter:
+   its re-match (planes from the data, the step's windows) from the field the passes leave, on
+   the heavy pair and on the noise-free pair (``narrow_clean``, same start and planes), raw and
+   after :func:`~.oriented_deblur.deblur_across`; ``--stds A B``: other stds (voxels).
+
 Run: ``python benchmarks/bench_heavy_band.py [--seed N] [--case NAME] [part ...]`` (parts: split
-tgv passes oriented global; default all; seed default 4; case default narrow_heavy, any case of
+tgv passes oriented global deblur; default all but deblur; seed default 4; case default narrow_heavy, any case of
 :mod:`bench_correction_cases` with a band: the zones are distances from its mid-plane; "split"
 needs narrow_heavy).
 """
@@ -51,13 +56,14 @@ from scipy.interpolate import RegularGridInterpolator
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_correction_cases import CENTER, make_case  # noqa: E402
 
-from napari_dvc_correct.engine.correction import self_correction  # noqa: E402
+from napari_dvc_correct.engine.correction import oriented, self_correction  # noqa: E402
 from napari_dvc_correct.engine.correction.pass_update import zero_start  # noqa: E402
 from napari_dvc_correct.engine.correction.self_correction import correct  # noqa: E402
 from napari_dvc_correct.engine.correlation.correlate import correlate  # noqa: E402
 from napari_dvc_correct.engine.correlation.params import CorrelationParams  # noqa: E402
 from napari_dvc_correct.engine.fields.field import GOOD_STATUSES  # noqa: E402
 from napari_dvc_correct.engine.fields.warp import pull_back  # noqa: E402
+from napari_dvc_correct.engine.progress import run_to_completion  # noqa: E402
 
 ZONES = [(0, 3), (3, 6), (6, 10), (10, 15), (15, 1e9)]
 NORMAL = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)  # the band's mid-plane (points' axes)
@@ -374,8 +380,55 @@ def field_half(field) -> int:
     return int(field.params.get("subvolume", 21)) // 2
 
 
+def deblur_split(reference, deformed, plain, params, target, distance, seed, stds=None) -> None:
+    """The oriented step's re-match and its deblur, on the heavy and the noise-free pair."""
+    captured = {}
+    step = self_correction.oriented_step
+
+    def spy(volumes, judge, current, *rest):
+        captured["current"] = current.copy()
+        return (yield from step(volumes, judge, current, *rest))
+
+    self_correction.oriented_step = spy
+    try:
+        corrected = correct(reference, deformed, plain)
+    finally:
+        self_correction.oriented_step = step
+    zone_row("corrected (default, with the step)", corrected.u - target, distance)
+    current = captured["current"]
+    good = np.isin(current.status, [int(s) for s in GOOD_STATUSES])
+    normals, planarity, _ = oriented.plane_normals(current, usable=good)
+    nodes = good & (planarity >= oriented.PLANARITY)
+    nodes &= oriented.border_room(current, reference.shape) >= params.half
+    clean_pair = make_case("narrow_clean", seed)[:2]
+    saved = oriented.ACROSS_FRACTION, oriented.ALONG_FRACTION
+    if stds is not None:
+        oriented.ACROSS_FRACTION, oriented.ALONG_FRACTION = (v / params.half for v in stds)
+    try:
+        runs = {}
+        for name, pair in (("heavy", (reference, deformed)), ("clean", clean_pair)):
+            matched, direction = run_to_completion(
+                oriented.oriented_rematch(*pair, current, nodes, normals, params)
+            )
+            took = nodes & np.all(np.isfinite(matched.u), axis=-1)
+            deblurred, _ = oriented.deblur_matches(
+                matched, took, direction, normals, params, reference.shape
+            )
+            runs[name] = matched.u, deblurred, took
+    finally:
+        oriented.ACROSS_FRACTION, oriented.ALONG_FRACTION = saved
+    _, across, along = oriented.oriented_params(params)
+    both = runs["heavy"][2] & runs["clean"][2]
+    for index, label in ((0, "re-match"), (1, "deblurred")):
+        heavy, clean = runs["heavy"][index], runs["clean"][index]
+        name = f"{label} (std {across:g} / {along:g})"
+        zone_row(name, heavy - target, distance, "", both)
+        zone_row(f"  {label}: bias (noise-free pair)", clean - target, distance, "", both)
+        zone_row(f"  {label}: scatter (heavy - noise-free)", heavy - clean, distance, "", both)
+
+
 # --- the parts ---------------------------------------------------------------------------------
-def main(parts, seed: int, case: str = "narrow_heavy") -> None:
+def main(parts, seed: int, case: str = "narrow_heavy", stds=None) -> None:
     reference, deformed, truth, params, _ = make_case(case, seed)
     plain = correlate(reference, deformed, params)
     points = plain.points.reshape(-1, 3)
@@ -449,6 +502,8 @@ def main(parts, seed: int, case: str = "narrow_heavy") -> None:
             name = f"corrected, oriented passes order {order} {box}³ (std {across} / {along})"
             note = f"{time.perf_counter() - started:.0f} s; oracle plane"
             zone_row(name, corrected.u - target, distance, note)
+    if "deblur" in parts:
+        deblur_split(reference, deformed, plain, params, target, distance, seed, stds)
     if "global" in parts:
         mesh = GlobalDvc(reference, deformed, plain)
         bending = sp.vstack(
@@ -496,4 +551,10 @@ if __name__ == "__main__":
     chosen_case = "narrow_heavy"
     if arguments[:1] == ["--case"]:
         chosen_case, arguments = arguments[1], arguments[2:]
-    main(arguments or ["split", "tgv", "passes", "oriented", "global"], chosen_seed, chosen_case)
+    chosen_stds = None
+    if arguments[:1] == ["--stds"]:
+        chosen_stds, arguments = (float(arguments[1]), float(arguments[2])), arguments[3:]
+    main(
+        arguments or ["split", "tgv", "passes", "oriented", "global"],
+        chosen_seed, chosen_case, chosen_stds,
+    )  # fmt: skip

@@ -37,15 +37,19 @@ from ..correlation.pyramid import GRADIENT_ON_DEMAND_FROM, Prefiltered
 from ..fields.field import GOOD_STATUSES, DisplacementField
 from ..progress import Progress
 from .acceptance import accept_locally
+from .oriented_deblur import deblur_across, window_moments
 from .pass_method import CURVATURE_VOXELS, field_curvature
 
 #: The oriented window's standard deviation across the plane, in units of the first run's
-#: subvolume half-width (2.5 voxels for 21³): narrow enough to read a band of half-width 4.
-ACROSS_FRACTION = 0.25
+#: subvolume half-width (2.0 voxels for 21³): narrow enough to read a band of half-width 4; the
+#: blur it leaves (its second moment times the band's curvature) is taken out afterwards
+#: (:mod:`.oriented_deblur`), so the narrower window's smaller higher-order blur wins over its
+#: larger noise (2.5 voxels before the deblur, measured in docs/method.md).
+ACROSS_FRACTION = 0.2
 
-#: ... along the plane, in the same units (10 voxels for 21³): the voxels of a 21³ cube spread
-#: over the plane.
-ALONG_FRACTION = 1.0
+#: ... along the plane, in the same units (12 voxels for 21³): the voxels of a 21³ cube spread
+#: over the plane (and more: the bending it blurs along the plane is taken out with the rest).
+ALONG_FRACTION = 1.2
 
 #: The oriented match's box edge over the first run's subvolume (31³ for 21³): holds the window
 #: to beyond two standard deviations along the plane.
@@ -274,8 +278,7 @@ def oriented_rematch(
     for number, k in enumerate(used):
         yield Progress("oriented", number, len(used), f"direction {number + 1} of {len(used)}")
         group = direction == k
-        # the box shrinks to what the group's nodes have room for (never below the first run's)
-        half = int(np.clip(room[group].min(), params.half, match_params.half))
+        half = group_half(room, group, params)
         weights = oriented_window(half, directions[k], across, along)
         run = yield from correlate_iter(
             reference, deformed, match_params.replace(subvolume=2 * half + 1), mask=mask,
@@ -287,6 +290,28 @@ def oriented_rematch(
         raise ValueError("no node to re-match with an oriented window")
     yield Progress("oriented", len(used), len(used), f"{int(nodes.sum())} nodes re-matched")
     return result, direction
+
+
+def group_half(room: np.ndarray, group: np.ndarray, params: CorrelationParams) -> int:
+    """The box half-width of one direction's run: :func:`oriented_params`' box, shrunk to what
+    the group's nodes have room for (``room``: :func:`border_room`), never below the first run's."""
+    return int(np.clip(room[group].min(), params.half, oriented_params(params)[0].half))
+
+
+def deblur_matches(matched, took, direction, normals, params, shape):
+    """The oriented matches at ``took`` less their windows' blur
+    (:func:`.oriented_deblur.deblur_across`; each node with the moments of the window its
+    direction's run used). Returns the displacements and the nodes deblurred."""
+    directions = direction_set(DIRECTION_TOLERANCE)
+    _, across, along = oriented_params(params)
+    room = border_room(matched, shape)
+    moments = np.zeros(matched.shape + (3, 3))
+    for k in np.unique(direction[took]):
+        group = direction == k  # the run's box came from all of its nodes, failed ones too
+        window = oriented_window(group_half(room, group, params), directions[k], across, along)
+        moments[group] = window_moments(window)
+    points = matched.points.reshape(*matched.shape, 3)
+    return deblur_across(matched.u, points, took, normals, moments, matched.step, along)
 
 
 def border_room(field: DisplacementField, shape) -> np.ndarray:
@@ -375,7 +400,8 @@ def oriented_step(
     )
     candidate = current.copy()
     took = nodes & np.isin(matched.status, [int(s) for s in GOOD_STATUSES])
-    candidate.u[took] = matched.u[took]
+    deblurred, sharpened = deblur_matches(matched, took, direction, normals, params, volumes.shape)
+    candidate.u[took] = deblurred[took]
     if candidate.gradient is not None and matched.gradient is not None:
         candidate.gradient[took] = matched.gradient[took]
     mixed, local_mixed, accept, improved = accept_locally(
@@ -388,9 +414,11 @@ def oriented_step(
             f"the field bends a {params.subvolume}³ subvolume by {bend:.2g} voxel but the noise "
             "kept the passes on first-order cubes: planar nodes re-matched on the original pair "
             f"under windows of std {across:g} voxels across the field's plane, {along:g} along "
-            f"it, first order on {match_params.subvolume}³ boxes"
+            f"it, first order on {match_params.subvolume}³ boxes, less the windows' blur (from "
+            "the matches' local quadratic)"
         ),
         "planar_nodes": int(nodes.sum()),
+        "deblurred_nodes": int(sharpened.sum()),
         "matched_nodes": int(took.sum()),
         "accepted_nodes": int(accept.sum()),
         "improved_nodes": int(improved.sum()),
