@@ -104,3 +104,7 @@ def test_the_oriented_step_in_words():
     line = passes.oriented_line(field)
     assert "97 of 120 nodes" in line and "std 2.5 voxels across" in line
     assert "10 along" in line and "31³ boxes" in line
+    assert "blur" not in line
+    field.metadata["correction"]["oriented"]["deblurred_nodes"] = 90
+    line = passes.oriented_line(field)
+    assert "90 of them less the window's blur" in line and line.endswith("the field bends")

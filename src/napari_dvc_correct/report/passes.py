@@ -153,11 +153,16 @@ def oriented_line(field: DisplacementField) -> str:
     info = (field.metadata.get("correction") or {}).get("oriented") or {}
     if not info.get("ran"):
         return ""
-    return (
+    text = (
         f"re-matched along the field's plane: {int(info.get('accepted_nodes', 0))} of "
         f"{int(info.get('planar_nodes', 0))} nodes whose field varies across a plane took a "
         "first-order match of the original pair under a window of std "
         f"{float(info.get('across', 0.0)):g} voxels across that plane and "
-        f"{float(info.get('along', 0.0)):g} along it ({int(info.get('subvolume', 0))}³ boxes), "
-        "where the noise kept the passes on first-order cubes that the field bends"
+        f"{float(info.get('along', 0.0)):g} along it ({int(info.get('subvolume', 0))}³ boxes)"
     )
+    if info.get("deblurred_nodes"):
+        text += (
+            f", {int(info['deblurred_nodes'])} of them less the window's blur (a local quadratic "
+            "of the matches across and along the plane)"
+        )
+    return text + ", where the noise kept the passes on first-order cubes that the field bends"
