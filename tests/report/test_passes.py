@@ -107,4 +107,4 @@ def test_the_oriented_step_in_words():
     assert "blur" not in line
     field.metadata["correction"]["oriented"]["deblurred_nodes"] = 90
     line = passes.oriented_line(field)
-    assert "90 of them less the window's blur" in line and line.endswith("the field bends")
+    assert "blur taken out of 90 of them" in line and line.endswith("the field bends")

@@ -162,7 +162,7 @@ def oriented_line(field: DisplacementField) -> str:
     )
     if info.get("deblurred_nodes"):
         text += (
-            f", {int(info['deblurred_nodes'])} of them less the window's blur (a local quadratic "
-            "of the matches across and along the plane)"
+            f", the window's blur taken out of {int(info['deblurred_nodes'])} of them (a local "
+            "quadratic of the matches across and along the plane)"
         )
     return text + ", where the noise kept the passes on first-order cubes that the field bends"
