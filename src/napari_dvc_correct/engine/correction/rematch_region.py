@@ -6,9 +6,10 @@ the nodes whose value pass ``k`` changed: the dense field is a cubic B-spline th
 values, whose response to one node's change decays by about ``2 - sqrt(3) = 0.27`` per grid step
 (:func:`spline_tail`). So:
 
-* the **changed nodes** are those whose change in pass ``k`` is large enough that the next pass
-  could still improve their region above the noise floor (:func:`changed_nodes`); where fewer
-  than the stop rule's share of the nodes could, the next pass can only confirm;
+* the **changed nodes** are those whose change in pass ``k`` is large enough, and whose region's
+  residual still stands far enough above the noise floor, that the next pass could still
+  improve their region above that floor (:func:`changed_nodes`); where fewer than the stop
+  rule's share of the nodes could, the next pass can only confirm;
 * the **spline's reach** ``S`` is the fewest grid steps beyond which the largest change, through
   the spline, moves the warped volume by less than that tolerance (:func:`spline_reach`);
 * the correcting matches that can change (**matched**) are the pass-grid nodes within
