@@ -77,6 +77,24 @@ def test_a_change_counts_only_if_its_region_could_improve_above_the_floor():
     assert not changed_nodes(change, np.zeros(4), 0.0)[0].any()
 
 
+def test_a_change_counts_only_where_its_region_stays_above_the_floor_by_what_it_needs():
+    useful = np.full(4, 0.5 * MIN_USEFUL_CHANGE * 20.0)  # 0.1 gray levels
+    change = np.full(4, 0.5)  # each moved far more than the change bound
+    region_tolerance = 0.3  # an improvement above the floor needs a fall of 0.4 gray levels
+    # regions 0.1, 0.39 (less than a fall the noise allows), 0.41 above the floor; one unknown
+    excess = np.array([0.1, 0.39, 0.41, np.nan])
+    changed, tolerance = changed_nodes(change, useful, region_tolerance, excess)
+    assert changed.tolist() == [False, False, True, True]
+    assert tolerance == pytest.approx(MIN_USEFUL_CHANGE * (1.0 + region_tolerance / useful[0]))
+    # ... and so another pass only confirms where too few such regions are left
+    measured = np.ones(4, bool)
+    stop, changed, _ = only_confirms(1, change, None, useful, region_tolerance, measured, 0.5,
+                                     np.array([0.1, 0.2, 0.3, 0.41]))  # fmt: skip
+    assert stop.startswith("only 1 nodes moved in pass 1")
+    assert changed.tolist() == [False, False, False, True]
+    assert only_confirms(1, change, None, useful, region_tolerance, measured, 0.5, excess)[0] == ""
+
+
 def _grid(shape=(12, 12, 12), origin=(7.0, 7.0, 7.0), step=4.0):
     return (origin, (step,) * 3, shape)
 

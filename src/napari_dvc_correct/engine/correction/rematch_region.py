@@ -6,9 +6,10 @@ the nodes whose value pass ``k`` changed: the dense field is a cubic B-spline th
 values, whose response to one node's change decays by about ``2 - sqrt(3) = 0.27`` per grid step
 (:func:`spline_tail`). So:
 
-* the **changed nodes** are those whose change in pass ``k`` is large enough that the next pass
-  could still improve their region above the noise floor (:func:`changed_nodes`); where fewer
-  than the stop rule's share of the nodes could, the next pass can only confirm;
+* the **changed nodes** are those whose change in pass ``k`` is large enough, and whose region's
+  residual still stands far enough above the noise floor, that the next pass could still
+  improve their region above that floor (:func:`changed_nodes`); where fewer than the stop
+  rule's share of the nodes could, the next pass can only confirm;
 * the **spline's reach** ``S`` is the fewest grid steps beyond which the largest change, through
   the spline, moves the warped volume by less than that tolerance (:func:`spline_reach`);
 * the correcting matches that can change (**matched**) are the pass-grid nodes within
@@ -109,8 +110,9 @@ class Selection:
     tolerance: float
 
 
-def changed_nodes(change: np.ndarray, useful: np.ndarray, region_tolerance: float):
-    """Nodes whose last change is large enough that the next pass might improve them.
+def changed_nodes(change: np.ndarray, useful: np.ndarray, region_tolerance: float, excess=None):
+    """Nodes whose last change, and the residual left above the noise floor, are large enough
+    that the next pass might improve them.
 
     A pass counts a node as improved when the residual over its subvolume falls by more than
     the noise allows (``region_tolerance``) plus what :data:`.acceptance.MIN_USEFUL_CHANGE`
@@ -120,13 +122,20 @@ def changed_nodes(change: np.ndarray, useful: np.ndarray, region_tolerance: floa
     it made (the passes contract). So a node whose last change ``c`` has
     ``½ |∇G| c <= region_tolerance + useful``, that is
     ``c <= MIN_USEFUL_CHANGE (1 + region_tolerance / useful)``, cannot improve above the floor
-    in the next pass. Returns that mask and the median of that bound over the changed nodes
-    (voxels; ``MIN_USEFUL_CHANGE`` if none).
+    in the next pass. Nor can a node whose region's residual is already within
+    ``region_tolerance + useful`` of the noise floor (``excess``, the region's mean residual less
+    the floor, gray levels, the grid's shape; optional): to improve above the floor the residual
+    would have to fall below the noise of the images (NaN: not known, the change decides).
+    Returns that mask and the median of the change bound over the changed nodes (voxels;
+    ``MIN_USEFUL_CHANGE`` if none).
     """
     useful = np.nan_to_num(np.asarray(useful, np.float64), nan=0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         bound = np.where(useful > 0, MIN_USEFUL_CHANGE * (1.0 + region_tolerance / useful), np.inf)
     changed = np.nan_to_num(change, nan=0.0) > bound
+    if excess is not None:
+        excess = np.asarray(excess, np.float64).reshape(changed.shape)
+        changed &= ~(excess <= region_tolerance + useful)
     tolerance = float(np.median(bound[changed])) if changed.any() else MIN_USEFUL_CHANGE
     return changed, tolerance
 
@@ -166,6 +175,7 @@ def only_confirms(
     region_tolerance: float,
     measured: np.ndarray,
     min_fraction: float,
+    excess: np.ndarray | None = None,
 ) -> tuple[str, np.ndarray, float]:
     """Why pass ``number + 1`` could only confirm pass ``number`` (``""``: it could improve),
     and :func:`changed_nodes` of the ``measured`` nodes (mask and tolerance).
@@ -173,13 +183,14 @@ def only_confirms(
     Fewer than ``min_fraction`` of the ``measured`` nodes moved by enough to improve above the
     noise floor in another pass (:func:`changed_nodes` of ``change``, pass ``number``'s node
     changes in voxels), or would at the rate the passes contract (:func:`expected_change`, with
-    ``previous``, the changes of pass ``number - 1``). ``useful`` and ``region_tolerance``
-    as :func:`changed_nodes` takes them.
+    ``previous``, the changes of pass ``number - 1``). ``useful``, ``region_tolerance`` and
+    ``excess`` (the residual left above the noise floor in each node's region after pass
+    ``number``) as :func:`changed_nodes` takes them.
     """
     measured = np.asarray(measured, bool)
     tolerance = region_tolerance
     least = min_fraction * max(1, int(measured.sum()))
-    changed, bound = changed_nodes(change, useful, tolerance)
+    changed, bound = changed_nodes(change, useful, tolerance, excess)
     changed &= measured
     if changed.sum() < least:
         return (
@@ -190,7 +201,7 @@ def only_confirms(
             bound,
         )
     expected = expected_change(change, previous, measured)
-    likely = changed_nodes(expected, useful, tolerance)[0] & measured
+    likely = changed_nodes(expected, useful, tolerance, excess)[0] & measured
     if likely.sum() < least:
         size = float(np.sum(np.nan_to_num(change[measured]) ** 2))
         ratio = np.sqrt(np.sum(expected[measured] ** 2) / size) if size > 0 else 0.0

@@ -493,6 +493,7 @@ def _correction_loop(
         confirm, changed, tolerance = only_confirms(
             number, node_change, None if next_pass is None else next_pass[1],
             judge.useful(current), judge.region_tolerance, ~masked, MIN_CHANGED_FRACTION,
+            judge.last_region - judge.floor,  # each region's residual left above the floor
         )  # fmt: skip
         if number < max_passes and confirm:
             stop = confirm
