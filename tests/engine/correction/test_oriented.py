@@ -123,7 +123,9 @@ def test_oriented_rematch_beats_the_cube_on_a_noisy_band():
     nodes = np.ones(cubes.shape, bool)
     normals = np.broadcast_to(NORMAL, cubes.u.shape)
     matched, direction = run_to_completion(
-        oriented.oriented_rematch(reference, deformed, cubes, nodes, normals, params)
+        oriented.oriented_rematch(
+            oriented.ArrayMatcher(reference, deformed), cubes, nodes, normals, params
+        )
     )
     assert np.all(direction == direction.flat[0])  # one plane: one run
     ok = np.all(np.isfinite(matched.u), axis=-1)
@@ -141,7 +143,7 @@ def test_rematch_refuses_nodes_of_another_grid():
     with pytest.raises(ValueError, match="grid shape"):
         run_to_completion(
             oriented.oriented_rematch(
-                volume, volume, field, np.ones((2, 2, 2), bool),
+                oriented.ArrayMatcher(volume, volume), field, np.ones((2, 2, 2), bool),
                 np.zeros((3, 3, 3, 3)), CorrelationParams(subvolume=15, step=6),
             )
         )  # fmt: skip
