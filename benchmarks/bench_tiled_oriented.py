@@ -12,7 +12,7 @@ arrays; ``--mode tiled``: ``correct_tiled_iter`` on the .npy files read lazily, 
 ``--batch`` nodes, 2 workers, default warp blocks) with a thread sampling the resident memory
 every 2 ms, and prints the peak RSS (and above the RSS before the call), the process's CPU
 seconds (``time.process_time``: every thread) and wall seconds, the RMSE against the true field,
-the oriented step's record and the largest RSS per stage. The field is saved as
+the oriented step's record and the largest RSS per progress report (stage and message). The field is saved as
 ``u_<mode>.npy`` in ``--data``; ``--compare`` prints the largest node difference of the two
 modes' fields. Run each mode twice: numba compiles on a first call (its memory and seconds).
 
@@ -99,7 +99,8 @@ def run(data: Path, mode: str, batch) -> None:
         )
     try:
         while True:
-            stage[0] = next(generator).stage
+            report = next(generator)
+            stage[0] = f"{report.stage}: {report.message[:40]}"
     except StopIteration as stop:
         result = stop.value
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall

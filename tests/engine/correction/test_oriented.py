@@ -57,6 +57,21 @@ def test_directions_cover_the_sphere_within_the_tolerance():
         oriented.direction_set(0.1)
 
 
+def test_quantise_in_parts_is_the_nearest_direction_of_all():
+    """Thousands of normals (several parts of QUANTISE_ROWS), some NaN: each gets the direction
+    of largest |cosine| over the whole set, NaN ones -1, in the normals' shape."""
+    directions = oriented.direction_set(4.0)
+    rng = np.random.default_rng(1)
+    normals = rng.standard_normal((7, 700, 3))
+    normals[2, 5:9] = np.nan
+    index = oriented.quantise(normals, directions)
+    assert index.shape == (7, 700) and oriented.QUANTISE_ROWS < index.size
+    expected = np.argmax(np.abs(normals.reshape(-1, 3) @ directions.T), axis=1).reshape(7, 700)
+    finite = np.all(np.isfinite(normals), axis=-1)
+    np.testing.assert_array_equal(index[finite], expected[finite])
+    assert np.all(index[~finite] == -1) and (~finite).sum() == 4
+
+
 @pytest.mark.parametrize("normal", [NORMAL, np.array([0.2, 0.9, -0.4])])
 def test_plane_of_a_band_with_rotation_and_bending_is_recovered(normal):
     normal = normal / np.linalg.norm(normal)
