@@ -380,7 +380,8 @@ def oriented_step(
     volume back-end; only the matches differ: ``volumes``' matcher of the original pair
     (:meth:`.volumes.CorrectionVolumes.original_matcher`: the whole arrays in memory, batch by
     batch with each box's margins in the tiled back-end, which then gives the in-memory step's
-    nodes, counts and values). Where the step does not run, the summary says why.
+    nodes and counts, and its values but where a chain of repaired matches crosses a batch face,
+    as in any tiled DVC; ``docs/method.md``). Where the step does not run, the summary says why.
     """
     started = time.perf_counter()
     unchanged = OrientedStep(current, local_current, moved, residual, {"ran": False})
