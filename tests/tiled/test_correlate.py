@@ -12,12 +12,13 @@ from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.interpolation import prefilter
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
 from napari_dvc_correct.engine.fields.field import Status
-from napari_dvc_correct.engine.progress import Progress
+from napari_dvc_correct.engine.progress import Progress, run_to_completion
 from napari_dvc_correct.io.lazy import ArrayVolume
 from napari_dvc_correct.tiled import (
     MemoryBudgetError,
     correlate_tiled,
     correlate_tiled_iter,
+    whole_volume,
 )
 from napari_dvc_correct.tiled import correlate as tiled
 from napari_dvc_correct.tiled.memory import PREFILTER_MARGIN
@@ -349,3 +350,58 @@ def test_noisy_run_judges_every_batch_at_the_whole_run_noise():
     np.testing.assert_allclose(b.u, a.u, rtol=0, atol=1e-6)  # NaN where both are NaN
     np.testing.assert_allclose(b.zncc, a.zncc, rtol=0, atol=1e-6)
     np.testing.assert_allclose(b.uncertainty, a.uncertainty, rtol=1e-3, atol=1e-4)
+
+
+def test_weighted_matches_from_a_field_as_in_memory_reading_the_whole_volume_once(
+    pair, monkeypatch
+):
+    """Every subvolume weighted by an anisotropic window (the self-correction's oriented step),
+    some POIs matched from a field: the in-memory weighted run's field to the bit (measured;
+    the weights move the plain answer by 8e-3 voxel on this noisy pair, so they are used). A
+    second run given the first's whole-volume pass reads no whole volume again."""
+    from napari_dvc_correct.engine.correction.oriented import oriented_window
+
+    reference, deformed, _ = pair
+    deformed = synthetic.add_noise(deformed, 0.05 * float(np.std(deformed)), seed=3)
+    measured = correlate(reference, deformed, PARAMS)
+    weights = oriented_window(PARAMS.half, (1.0, 0.0, 1.0), 2.0, 6.0)
+    active = np.zeros(measured.shape, bool)
+    active[1:4, :, 3:12] = True  # in 3 of the 4 batches
+    options = dict(initial=measured, active=active)
+    a = correlate(reference, deformed, PARAMS, weights=weights, **options)
+    plain = correlate(reference, deformed, PARAMS, **options)
+    assert np.nanmax(np.abs(a.u - plain.u)) > 1e-3
+    reads = []
+    volume_tasks = whole_volume.volume_tasks
+    monkeypatch.setattr(
+        whole_volume, "volume_tasks", lambda *args: reads.append(args) or volume_tasks(*args)
+    )
+    runs = []
+    for whole in (None, "reused"):
+        if whole == "reused":
+            lazy = [ArrayVolume(v) for v in (reference, deformed)]
+            whole = run_to_completion(
+                whole_volume.whole_volume_iter(*lazy, None, 0, (None, 2, None))
+            )
+            reads.clear()
+        runs.append(
+            correlate_tiled(
+                reference, deformed, PARAMS, weights=weights, whole=whole, batch_shape=BATCH,
+                **options,
+            )
+        )  # fmt: skip
+        assert len(reads) == (1 if whole is None else 0)
+    for b in runs:
+        assert b.metadata["tiled"]["batches"] == 3  # only those with POIs to match
+        np.testing.assert_array_equal(b.status, a.status)
+        np.testing.assert_array_equal(b.iterations, a.iterations)
+        np.testing.assert_allclose(b.u, a.u, rtol=0, atol=1e-6)  # NaN where both are NaN
+        np.testing.assert_allclose(b.uncertainty, a.uncertainty, rtol=0, atol=1e-6)
+
+
+def test_refuses_bad_weights_and_a_reused_pass_without_a_field_before_any_work(pair):
+    reference, deformed, _ = pair
+    with pytest.raises(ValueError, match="subvolume's shape"):
+        next(correlate_tiled_iter(reference, deformed, PARAMS, weights=np.ones((3, 3, 3))))
+    with pytest.raises(ValueError, match="initial field"):
+        next(correlate_tiled_iter(reference, deformed, PARAMS, whole=object()))

@@ -13,9 +13,8 @@ for the same statuses and provenance and the displacements within 1e-4 voxel, te
 the IC-GN tolerance; the summary's mean gray residuals (block sums of float32 residuals against
 slab sums in memory) within 1e-4 relative. Measured: the uncorrected series equal to the bit,
 the corrected ones within 4.5e-7 voxel (one pass per state applied), the mean gray residuals
-within 6e-9 relative. The tiled correction has no oriented step (it does not re-match the original
-pair, and records why): the in-memory series is run without it (tests/tiled/test_correction.py
-measures what the step changes).
+within 6e-9 relative. Where a correction ends with the oriented step (re-matches of the original
+pair under oriented windows), the tiled one runs it batch by batch (tests/tiled/test_correction.py).
 """
 
 import threading
@@ -26,11 +25,11 @@ import tifffile
 import zarr
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.correction.volumes import InMemoryVolumes
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
 from napari_dvc_correct.engine.fields.field import Status
 from napari_dvc_correct.engine.series.strategies import series
 from napari_dvc_correct.tiled import correlate as tiled_correlate
+from napari_dvc_correct.tiled import whole_volume
 from napari_dvc_correct.tiled.memory import MemoryBudgetError
 from napari_dvc_correct.tiled.series import series_tiled, series_tiled_iter
 
@@ -81,9 +80,7 @@ def test_equals_the_in_memory_series(states, case, tmp_path):
     options = dict(CASES[case])
     masked = options.pop("masked", False)
     options["correction_options"] = CORRECTION
-    with pytest.MonkeyPatch.context() as patch:  # as the tiled back-end: no original pair
-        patch.setattr(InMemoryVolumes, "original_pair", lambda self: None)
-        a = series(volumes, PARAMS, mask=mask.astype(bool) if masked else None, **options)
+    a = series(volumes, PARAMS, mask=mask.astype(bool) if masked else None, **options)
     b = series_tiled(
         paths, PARAMS, mask=folder / "mask.npy" if masked else None, temp_dir=tmp_path,
         **options, **RUN,
@@ -128,7 +125,7 @@ def test_the_plan_comes_first_and_names_every_kind_of_run(states):
 def test_refuses_a_run_over_max_memory_before_any_work(states, tmp_path, monkeypatch):
     _, _, paths, _ = states
     started = []
-    monkeypatch.setattr(tiled_correlate, "volume_tasks", lambda *a: started.append(a))
+    monkeypatch.setattr(whole_volume, "volume_tasks", lambda *a: started.append(a))
     generator = series_tiled_iter(paths, PARAMS, max_memory="1MB", temp_dir=tmp_path)
     with pytest.raises(MemoryBudgetError, match="--max-memory"):
         next(generator)

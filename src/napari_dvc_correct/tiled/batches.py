@@ -46,6 +46,11 @@ class BatchJob:
     grid_anchor: tuple | None = None  # (whole-grid index of the sub-grid's first POI, grid shape)
     seeds: GivenSeeds | None = None  # the seed pass's seeds for this sub-grid
     active: np.ndarray | None = None  # (*sub_shape,) bool: the POIs to match (None: all)
+    weights: np.ndarray | None = None  # (subvolume,)*3 voxel weights (None: the params' window)
+
+    def subvolume_weights(self):
+        """The weights every match of the batch uses (``weights``, else the params' window)."""
+        return self.params.subvolume_weights() if self.weights is None else self.weights
 
     @property
     def region_voxels(self) -> int:
@@ -127,6 +132,7 @@ def match_batch(job: BatchJob, reference, deformed, mask=None) -> BatchMatch:
             grid_anchor=job.grid_anchor,
             seeds=job.seeds,
             active=job.active,
+            weights=job.subvolume_weights(),
             noise_hint=0.0,  # measure_plain_sigma below keeps the noise-free estimate only
         )
     )
@@ -163,7 +169,7 @@ class _RegionLevel:
                 job.params.min_texture,
                 select_device(job.device).kind,
                 std=None if job.texture_std is None else job.texture_std[1],
-                weights=job.params.subvolume_weights(),
+                weights=job.subvolume_weights(),
             )
             self._timings["judge_prefilter_s"] = time.perf_counter() - started
         return self._level

@@ -62,6 +62,7 @@ from collections.abc import Generator
 
 import numpy as np
 
+from ..engine.correlation.icgn_weighted import check_weights
 from ..engine.correlation.noise import noise_metadata, uncertainty_bound, zncc_floor
 from ..engine.correlation.params import CorrelationParams
 from ..engine.fields.field import (
@@ -88,7 +89,7 @@ from .memory import (
     parse_memory,
 )
 from .seeds import give_seeds, match_seeds, seed_jobs
-from .whole_volume import combine, volume_tasks
+from .whole_volume import WholeVolume, whole_volume_iter
 
 #: Default memory per concurrent batch when neither ``batch_shape`` nor ``max_memory`` is given.
 DEFAULT_BATCH_BYTES = 1 << 30
@@ -213,6 +214,8 @@ def correlate_tiled_iter(
     device="cpu",
     seed_pass: bool = True,
     active=None,
+    weights=None,
+    whole: WholeVolume | None = None,
 ) -> Generator[Progress, None, DisplacementField]:
     """Correlate ``reference`` (G) with ``deformed`` (F) batch by batch; yields progress, returns the field.
 
@@ -262,6 +265,14 @@ def correlate_tiled_iter(
         Match only these POIs (as :func:`..engine.correlation.correlate.correlate_iter`'s ``active``); a
         batch with none of its own POIs active is not run. The others get
         ``Status.NOT_COMPUTED``.
+    weights : ndarray, shape (subvolume,)*3, optional
+        Weights of the subvolume's voxels for every match (as
+        :func:`..engine.correlation.correlate.correlate_iter`'s ``weights``, e.g. the
+        self-correction's oriented windows). Default: those of ``params.window``.
+    whole : WholeVolume, optional
+        The whole-volume pass of these volumes and mask (:func:`.whole_volume.whole_volume_iter`),
+        from an earlier run with an initial field: several runs on one pair read it once. Only
+        with ``initial`` (a search needs the pyramid's binned moments).
 
     Yields
     ------
@@ -288,6 +299,11 @@ def correlate_tiled_iter(
     shape = tuple(int(n) for n in reference.shape)
     if not isinstance(margin, (int, np.integer)) or margin < 0:
         raise ValueError(f"margin must be an integer >= 0, got {margin!r}")
+    if whole is not None and initial is None:
+        raise ValueError("a whole-volume pass can be reused only by a run from an initial field")
+    if weights is not None:  # here, not in a batch's task after the whole-volume pass
+        check_weights(weights, params.half)
+        weights = np.asarray(weights, np.float64)
     if grid is None:
         grid = grid_for_volume(shape, params.subvolume, params.step)
     grid = _check_grid(grid)
@@ -355,16 +371,10 @@ def correlate_tiled_iter(
         )
 
         t0 = time.perf_counter()
-        tasks, factor = volume_tasks(reference, deformed, mask, levels)
-        results = []
-        with scheduling.running(tasks, scheduler, workers, client) as finished:
-            for done, (_, result) in enumerate(finished, start=1):
-                results.append(result)
-                yield Progress(
-                    "whole volume", done, len(tasks), f"read block {done} of {len(tasks)}"
-                )
-        whole = combine(results, shape, factor, levels)
-        del results
+        if whole is None:
+            whole = yield from whole_volume_iter(
+                reference, deformed, mask, levels, (scheduler, workers, client)
+            )
         if masked and whole.mask_count == 0:
             raise ValueError("the mask is empty: no voxel is selected")
         shift = None if initial is not None else whole.shift
@@ -379,7 +389,7 @@ def correlate_tiled_iter(
             whole,
             margin,
             initial,
-            dict(threads=threads_per_task, use_mask=masked, device=device),
+            dict(threads=threads_per_task, use_mask=masked, device=device, weights=weights),
         )
         if active is not None:  # only the batches with POIs to match, each told which
             jobs = _active_jobs(jobs, np.asarray(active, bool).reshape(grid_shape))

@@ -9,12 +9,15 @@ finite. :func:`combine` assembles the blocks' shares into a :class:`WholeVolume`
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..engine.correlation.initial_guess import bin_volume, global_shift
+from ..engine.progress import Progress
 from ..io.lazy import iter_blocks
+from . import scheduling
 from .memory import SHIFT_BLOCK_VOXELS
 
 
@@ -140,3 +143,22 @@ def combine(results, shape, factor, levels) -> WholeVolume:
     # the binned volumes are at most 96 voxels per edge: global_shift bins them no further
     shift = (global_shift(g, f) * factor).astype(np.int64)
     return WholeVolume(shift, {k: v.std for k, v in moments.items()}, mask_count)
+
+
+def whole_volume_iter(
+    reference, deformed, mask, levels: int, run
+) -> Generator[Progress, None, WholeVolume]:
+    """The whole-volume pass: every block of the lazy volumes read once (Dask tasks), combined.
+
+    ``levels``: the pyramid levels whose binned gray moments the low-texture test needs (0 for a
+    run from an initial field); ``run``: ``(scheduler, workers, client)`` for
+    :func:`.scheduling.running`. Yields one progress report per block.
+    """
+    scheduler, workers, client = run
+    tasks, factor = volume_tasks(reference, deformed, mask, levels)
+    results = []
+    with scheduling.running(tasks, scheduler, workers, client) as finished:
+        for done, (_, result) in enumerate(finished, start=1):
+            results.append(result)
+            yield Progress("whole volume", done, len(tasks), f"read block {done} of {len(tasks)}")
+    return combine(results, tuple(int(n) for n in reference.shape), factor, levels)

@@ -57,6 +57,21 @@ def test_directions_cover_the_sphere_within_the_tolerance():
         oriented.direction_set(0.1)
 
 
+def test_quantise_in_parts_is_the_nearest_direction_of_all():
+    """Thousands of normals (several parts of QUANTISE_ROWS), some NaN: each gets the direction
+    of largest |cosine| over the whole set, NaN ones -1, in the normals' shape."""
+    directions = oriented.direction_set(4.0)
+    rng = np.random.default_rng(1)
+    normals = rng.standard_normal((7, 700, 3))
+    normals[2, 5:9] = np.nan
+    index = oriented.quantise(normals, directions)
+    assert index.shape == (7, 700) and oriented.QUANTISE_ROWS < index.size
+    expected = np.argmax(np.abs(normals.reshape(-1, 3) @ directions.T), axis=1).reshape(7, 700)
+    finite = np.all(np.isfinite(normals), axis=-1)
+    np.testing.assert_array_equal(index[finite], expected[finite])
+    assert np.all(index[~finite] == -1) and (~finite).sum() == 4
+
+
 @pytest.mark.parametrize("normal", [NORMAL, np.array([0.2, 0.9, -0.4])])
 def test_plane_of_a_band_with_rotation_and_bending_is_recovered(normal):
     normal = normal / np.linalg.norm(normal)
@@ -123,7 +138,9 @@ def test_oriented_rematch_beats_the_cube_on_a_noisy_band():
     nodes = np.ones(cubes.shape, bool)
     normals = np.broadcast_to(NORMAL, cubes.u.shape)
     matched, direction = run_to_completion(
-        oriented.oriented_rematch(reference, deformed, cubes, nodes, normals, params)
+        oriented.oriented_rematch(
+            oriented.ArrayMatcher(reference, deformed), cubes, nodes, normals, params
+        )
     )
     assert np.all(direction == direction.flat[0])  # one plane: one run
     ok = np.all(np.isfinite(matched.u), axis=-1)
@@ -148,7 +165,7 @@ def test_rematch_refuses_nodes_of_another_grid():
     with pytest.raises(ValueError, match="grid shape"):
         run_to_completion(
             oriented.oriented_rematch(
-                volume, volume, field, np.ones((2, 2, 2), bool),
+                oriented.ArrayMatcher(volume, volume), field, np.ones((2, 2, 2), bool),
                 np.zeros((3, 3, 3, 3)), CorrelationParams(subvolume=15, step=6),
             )
         )  # fmt: skip

@@ -14,7 +14,8 @@ voxels. This module
 * quantises the normals to a fixed set of directions (:func:`direction_set`, worst angle a few
   degrees) so that one weighted run serves every node of one direction;
 * re-matches the original pair at the chosen nodes, one run per direction
-  (:func:`oriented_rematch`), from the field's own values.
+  (:func:`oriented_rematch`), from the field's own values, through a matcher of the volume
+  back-end (:class:`ArrayMatcher` for arrays; the tiled back-end's reads them block by block).
 
 The self-correction calls it as one step after its passes (:func:`oriented_step`); the new values
 go through its usual local acceptance. See ``docs/method.md`` (the heavy-noise narrow band).
@@ -128,17 +129,23 @@ def direction_set(tolerance: float = DIRECTION_TOLERANCE) -> np.ndarray:
     return points[z >= 0.0]
 
 
+#: Normals quantised at a time by :func:`quantise` (bounds its working memory).
+QUANTISE_ROWS = 2048
+
+
 def quantise(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Index into ``directions`` of the direction nearest to each normal (up to sign).
 
     ``normals``: shape (..., 3); NaN normals get -1.
     """
     flat = np.asarray(normals, np.float64).reshape(-1, 3)
-    finite = np.all(np.isfinite(flat), axis=1)
+    finite = np.flatnonzero(np.all(np.isfinite(flat), axis=1))
     index = np.full(len(flat), -1, np.int64)
-    if finite.any():
-        cosines = np.abs(flat[finite] @ directions.T)
-        index[finite] = np.argmax(cosines, axis=1)
+    # a few thousand normals at a time: the cosines of every node with every direction (~2000)
+    # would take 16 kB per node at once (0.2 GB for 12 725 nodes, measured in a tiled run)
+    for start in range(0, len(finite), QUANTISE_ROWS):
+        rows = finite[start : start + QUANTISE_ROWS]
+        index[rows] = np.argmax(np.abs(flat[rows] @ directions.T), axis=1)
     return index.reshape(np.shape(normals)[:-1])
 
 
@@ -227,27 +234,30 @@ def oriented_params(params: CorrelationParams) -> tuple[CorrelationParams, float
 
 
 def oriented_rematch(
-    reference: np.ndarray,
-    deformed: np.ndarray,
+    match,
     field: DisplacementField,
     nodes: np.ndarray,
     normals: np.ndarray,
     params: CorrelationParams,
     *,
-    mask: np.ndarray | None = None,
     tolerance: float = DIRECTION_TOLERANCE,
-    noise_hint: float | None = None,
 ) -> Generator[Progress, None, tuple[DisplacementField, np.ndarray]]:
-    """Match ``(reference, deformed)`` at ``nodes`` of ``field``'s grid under oriented windows.
+    """Match the original pair at ``nodes`` of ``field``'s grid under oriented windows.
 
     The normals are quantised to :func:`direction_set` (worst angle ``tolerance`` degrees); per
     direction one first-order weighted run (:func:`oriented_params`) matches that direction's
-    nodes, started from ``field``'s values and gradients.
+    nodes, started from ``field``'s values and gradients. This is the planning, shared by every
+    volume back-end; ``match`` runs the matches.
 
     Parameters
     ----------
-    reference, deformed : ndarray, shape (nz, ny, nx)
-        The original pair ``G``, ``F``.
+    match : matcher
+        The original pair's matcher: ``match.shape`` is the volumes' ``(nz, ny, nx)``, and
+        ``match(params, initial, active, weights)`` is a generator (progress) returning the
+        DVC of the original pair ``(G, F)`` (and its mask) on ``initial``'s grid from its values,
+        at the nodes of ``active`` only (the others ``Status.NOT_COMPUTED``), every subvolume
+        weighted by ``weights`` (shape ``(subvolume,)*3``): :class:`ArrayMatcher` in memory,
+        the tiled back-end's block by block.
     field : DisplacementField
         The field whose values start the matches (its grid is the matches' grid).
     nodes : ndarray of bool, shape of the grid
@@ -270,9 +280,7 @@ def oriented_rematch(
     directions = direction_set(tolerance)
     direction = np.where(nodes, quantise(normals, directions), -1)
     match_params, across, along = oriented_params(params)
-    grid = (field.origin, field.step, field.shape)
-    room = border_room(field, reference.shape)
-    shared = shared_side(reference, deformed)
+    room = border_room(field, match.shape)
     result = None
     used = np.unique(direction[direction >= 0])
     for number, k in enumerate(used):
@@ -280,11 +288,7 @@ def oriented_rematch(
         group = direction == k
         half = group_half(room, group, params)
         weights = oriented_window(half, directions[k], across, along)
-        run = yield from correlate_iter(
-            reference, deformed, match_params.replace(subvolume=2 * half + 1), mask=mask,
-            grid=grid, initial=field, active=group, weights=weights, noise_hint=noise_hint,
-            prefiltered=shared,
-        )  # fmt: skip
+        run = yield from match(match_params.replace(subvolume=2 * half + 1), field, group, weights)
         result = run if result is None else _merge(result, run, group)
     if result is None:
         raise ValueError("no node to re-match with an oriented window")
@@ -314,20 +318,50 @@ def deblur_matches(matched, took, direction, normals, params, shape):
     return deblur_across(matched.u, points, took, normals, moments, matched.step, along)
 
 
+class ArrayMatcher:
+    """:func:`oriented_rematch`'s matcher of a pair of arrays: :func:`.correlate.correlate_iter`.
+
+    ``F``'s coefficients (``coef_deformed``, or computed here) and, below the size where a level
+    computes it on demand, ``∇G`` are computed once for every direction's run (the same
+    volumes); they are let go with the matcher.
+
+    Parameters
+    ----------
+    reference, deformed : ndarray, shape (nz, ny, nx)
+        The original pair ``G``, ``F``.
+    mask : ndarray, shape (nz, ny, nx), optional
+        Reference-space material mask (non-zero = inside).
+    coef_deformed : ndarray, float32, shape (nz, ny, nx), optional
+        ``F``'s B-spline coefficients (:func:`.interpolation.prefilter`), when already held.
+    noise_hint : float, optional
+        As :func:`.correlate.correlate_iter`'s.
+    """
+
+    def __init__(self, reference, deformed, mask=None, *, coef_deformed=None, noise_hint=None):
+        self.shape = tuple(int(n) for n in np.shape(reference))
+        self._pair = (reference, deformed, mask)
+        self._noise_hint = noise_hint
+        gradient = None
+        if np.size(reference) < GRADIENT_ON_DEMAND_FROM:
+            gradient = gradient_volume(prefilter(np.asarray(reference, np.float32)))
+        if coef_deformed is None:
+            coef_deformed = prefilter(np.asarray(deformed, np.float32))
+        self._shared = Prefiltered(gradient=gradient, coef_deformed=coef_deformed)
+
+    def __call__(self, params, initial, active, weights):
+        reference, deformed, mask = self._pair
+        return correlate_iter(
+            reference, deformed, params, mask=mask,
+            grid=(initial.origin, initial.step, initial.shape), initial=initial, active=active,
+            weights=weights, noise_hint=self._noise_hint, prefiltered=self._shared,
+        )  # fmt: skip
+
+
 def border_room(field: DisplacementField, shape) -> np.ndarray:
     """Per node, the largest box half-width (voxels) that fits in volumes of ``shape``."""
     points = field.points.reshape(*field.shape, 3)
     high = np.asarray(shape, np.float64) - 1.0 - points
     return np.floor(np.minimum(points, high).min(axis=-1)).astype(np.int64)
-
-
-def shared_side(reference: np.ndarray, deformed: np.ndarray) -> Prefiltered:
-    """``F``'s coefficients, and ``∇G`` below the size where a level computes it on demand,
-    once for every direction's run (they are the same volumes)."""
-    gradient = None
-    if reference.size < GRADIENT_ON_DEMAND_FROM:
-        gradient = gradient_volume(prefilter(np.asarray(reference, np.float32)))
-    return Prefiltered(gradient=gradient, coef_deformed=prefilter(np.asarray(deformed, np.float32)))
 
 
 def _merge(into: DisplacementField, run: DisplacementField, take: np.ndarray):
@@ -367,8 +401,12 @@ def oriented_step(
     (masked, cracked, shielded). Those nodes are re-matched on the original pair under oriented
     windows (:func:`oriented_rematch`) from the current values; the new values go through the
     correction's local acceptance (:func:`.acceptance.accept_locally`), failed matches refused.
-    ``volumes`` must give the original pair (:meth:`.volumes.CorrectionVolumes.original_pair`;
-    the tiled back-end does not: the step is then skipped and says so).
+    The planning (normals, directions, nodes, boxes, acceptance) is this one code path for every
+    volume back-end; only the matches differ: ``volumes``' matcher of the original pair
+    (:meth:`.volumes.CorrectionVolumes.original_matcher`: the whole arrays in memory, batch by
+    batch with each box's margins in the tiled back-end, which then gives the in-memory step's
+    nodes and counts, and its values but where a chain of repaired matches crosses a batch face,
+    as in any tiled DVC; ``docs/method.md``). Where the step does not run, the summary says why.
     """
     started = time.perf_counter()
     unchanged = OrientedStep(current, local_current, moved, residual, {"ran": False})
@@ -378,10 +416,6 @@ def oriented_step(
             "the passes' own boxes follow the field (second order, or no bend above "
             f"{CURVATURE_VOXELS:g} voxel)"
         )
-        return unchanged
-    pair = volumes.original_pair()
-    if pair is None:
-        unchanged.summary["reason"] = "this volume back-end does not re-match the original pair"
         return unchanged
     good = np.isin(current.status, [int(s) for s in GOOD_STATUSES]) & ~excluded
     good &= np.all(np.isfinite(current.u), axis=-1)
@@ -394,9 +428,9 @@ def oriented_step(
     if not nodes.any():
         unchanged.summary["reason"] = f"no node varies across a plane (planarity < {PLANARITY:g})"
         return unchanged
-    reference, deformed, mask = pair
+    # the matcher (and what it holds: F's coefficients, ∇G) lives as long as the re-match
     matched, direction = yield from oriented_rematch(
-        reference, deformed, current, nodes, normals, params, mask=mask
+        volumes.original_matcher(), current, nodes, normals, params
     )
     candidate = current.copy()
     took = nodes & np.isin(matched.status, [int(s) for s in GOOD_STATUSES])

@@ -14,6 +14,8 @@ compose, accept node by node, stop). Everything it does to the *volumes* goes th
 * :meth:`~CorrectionVolumes.residuals`: the reference-frame residuals the local acceptance
   (:class:`.acceptance.Judge`) judges nodes by (:class:`.acceptance.ReferenceResiduals`
   in memory);
+* :meth:`~CorrectionVolumes.original_matcher`: re-matches of the original pair at chosen nodes
+  with given subvolume weights (the oriented step, :mod:`.oriented`);
 * :meth:`~CorrectionVolumes.release` and :meth:`~CorrectionVolumes.close`: drop a moved volume
   that is no longer needed, and everything at the end (also on error or cancel).
 
@@ -40,6 +42,7 @@ from ..fields.field import DisplacementField
 from ..fields.field_spline import FieldSpline
 from ..progress import Progress
 from .acceptance import ReferenceResiduals
+from .oriented import ArrayMatcher
 
 
 class CorrectionVolumes:
@@ -97,10 +100,11 @@ class CorrectionVolumes:
     def release(self, moved) -> None:
         """``moved`` (from :meth:`align`) is no longer needed."""
 
-    def original_pair(self) -> tuple | None:
-        """``(G, F, mask)`` as given, for re-matches of the original pair (:mod:`.oriented`);
-        None where the back-end does not hold them as arrays."""
-        return None
+    def original_matcher(self):
+        """A matcher of the original pair ``(G, F)`` with the input mask, for the re-matches of
+        :func:`.oriented.oriented_rematch` (see there: ``shape`` and
+        ``match(params, initial, active, weights)``); what it holds is let go with it."""
+        raise NotImplementedError
 
     def close(self) -> None:
         """Free what the back-end holds (temporary files, connections); called once at the end."""
@@ -204,8 +208,11 @@ class InMemoryVolumes(CorrectionVolumes):
             prefiltered=self._unchanged_side(), noise_hint=self._noise_hint,
         )  # fmt: skip
 
-    def original_pair(self):
-        return self._inputs
+    def original_matcher(self):
+        reference, deformed, mask = self._inputs
+        # F's coefficients are the ones held for the residuals (the same numbers as a float32
+        # copy's prefilter)
+        return ArrayMatcher(reference, deformed, mask, coef_deformed=self._deformed_coefficients())
 
     def _unchanged_side(self) -> Prefiltered | None:
         """``F``'s coefficients in the loaded frame, whose every pass matches ``(G', F)``: held
