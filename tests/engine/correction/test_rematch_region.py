@@ -90,7 +90,7 @@ def test_a_change_counts_only_where_its_region_stays_above_the_floor_by_what_it_
     measured = np.ones(4, bool)
     stop, changed, _ = only_confirms(1, change, None, useful, region_tolerance, measured, 0.5,
                                      np.array([0.1, 0.2, 0.3, 0.41]))  # fmt: skip
-    assert stop.startswith("only 1 nodes moved in pass 1")
+    assert stop.startswith("only 1 node moved in pass 1")
     assert changed.tolist() == [False, False, False, True]
     assert only_confirms(1, change, None, useful, region_tolerance, measured, 0.5, excess)[0] == ""
 
@@ -252,10 +252,10 @@ def test_another_pass_only_confirms_where_too_few_nodes_would_still_move_enough(
     # the pass before moved them 20 times as far: the next would move them 0.0025
     stop, changed, _ = only_confirms(2, change, 20.0 * change, useful, 0.0, measured, 0.01)
     assert changed.sum() == 5  # the changed nodes (for the next selection) are unchanged
-    assert "0.05 times as far as pass 1" in stop and "only 0 nodes" in stop
+    assert "0.05 times as far as pass 1" in stop and "at that rate no node would move" in stop
     # ... 4 times as far: 0.0125 > 0.01, another pass may still improve them
     assert only_confirms(2, change, 4.0 * change, useful, 0.0, measured, 0.01)[0] == ""
     # too few (under 1 %) moved by enough at all
     change[:5] = 0.005
     stop = only_confirms(1, change, None, useful, 0.0, measured, 0.01)[0]
-    assert stop.startswith("only 0 nodes moved in pass 1")
+    assert stop.startswith("no node moved in pass 1")

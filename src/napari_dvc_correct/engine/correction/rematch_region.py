@@ -194,7 +194,7 @@ def only_confirms(
     changed &= measured
     if changed.sum() < least:
         return (
-            f"only {int(changed.sum())} nodes moved in pass {number} by enough to improve "
+            f"{_few_nodes(changed.sum())} moved in pass {number} by enough to improve "
             f"above the noise floor in another pass (about {bound:.3g} voxel): it could "
             "only confirm",
             changed,
@@ -207,7 +207,7 @@ def only_confirms(
         ratio = np.sqrt(np.sum(expected[measured] ** 2) / size) if size > 0 else 0.0
         return (
             f"pass {number} moved the nodes {ratio:.2g} times as far as pass {number - 1}: "
-            f"at that rate only {int(likely.sum())} nodes would move by enough to improve "
+            f"at that rate {_few_nodes(likely.sum())} would move by enough to improve "
             "above the noise floor in another pass",
             changed,
             bound,
@@ -405,3 +405,9 @@ def reuse(
     if applied is not None:
         merged.u[target] -= np.asarray(applied, np.float64).reshape(-1, 3)
     return merged
+
+
+def _few_nodes(count) -> str:
+    """``"no node"``, ``"only 1 node"``, ``"only N nodes"``: the stop reasons' counts in words."""
+    count = int(count)
+    return "no node" if count == 0 else f"only {count} node{'s' if count > 1 else ''}"
