@@ -7,15 +7,21 @@ Self-correct, then Evaluate; nothing is drawn by hand.
 
 from __future__ import annotations
 
+import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-from qtpy.QtWidgets import QApplication
+# napari keeps the window's dock sizes in its settings: a fresh settings file per run, so every
+# run lays the window out alike (set NAPARI_CONFIG to use another)
+os.environ.setdefault("NAPARI_CONFIG", str(Path(tempfile.mkdtemp()) / "settings.yaml"))
 
-from napari_dvc_correct import viewer_layers as V
-from napari_dvc_correct.demo import make_viewer
+import numpy as np  # noqa: E402
+from qtpy.QtWidgets import QApplication  # noqa: E402
+
+from napari_dvc_correct import viewer_layers as V  # noqa: E402
+from napari_dvc_correct.demo import make_viewer  # noqa: E402
 
 IMAGES = Path(__file__).resolve().parent / "images"
 SIZE = (1500, 950)
