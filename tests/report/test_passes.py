@@ -25,6 +25,14 @@ def test_a_field_whose_passes_changed_method(changed_method_field):
     assert rows[1]["accepted_nodes"] == 20 and rows[1]["refused_nodes"] == 7
 
 
+def test_a_field_with_no_pass_says_its_method_once():
+    # no pass ran: the fallback words must not repeat the callers' own "correcting matches"
+    field = DisplacementField.zeros((8, 8, 8), (4, 4, 4), (2, 2, 2))
+    method = "the first run's parameters (first order, 31³)"
+    field.metadata["correction"] = {"pass_method": method}
+    assert passes.method_lines(field) == [method]
+
+
 def test_an_uncorrected_field_has_no_words():
     field = DisplacementField.zeros((8, 8, 8), (4, 4, 4), (2, 2, 2))
     assert passes.pass_rows(field) == [] and passes.method_lines(field) == []

@@ -50,8 +50,9 @@ def method_lines(field: DisplacementField) -> list[str]:
         else:
             groups.append(([entry.number], entry.method))
     if not groups:
+        # no pass ran: the words alone (every caller names the correcting matches itself)
         method = field.metadata.get("correction", {}).get("pass_method")
-        return [f"correcting matches: {method}"] if method else []
+        return [str(method)] if method else []
     lines = []
     for numbers, method in groups:
         span = f"pass {numbers[0]}" if len(numbers) == 1 else f"passes {numbers[0]}–{numbers[-1]}"
