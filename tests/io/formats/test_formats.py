@@ -63,3 +63,13 @@ def test_a_point_given_twice_with_two_values_is_refused():
     other = ScatteredField(points=points, u=np.array([[0.1, 0, 0], [0.3, 0, 0], [0.2, 0, 0]]))
     with pytest.raises(ValueError, match=r"f.csv: 1 point\(s\) .* in rows 1, 2"):
         F.refuse_conflicting_duplicates("f.csv", other)
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".hdf5", ".vti", ".vtk", ".vtu", ".tif", ".TIFF"])
+def test_an_export_for_other_programs_is_refused_in_words(tmp_path, suffix):
+    # `export` writes these for ParaView, ImageJ...; given back as --field they used to fail
+    # with "not a table of numbers ('utf-8' codec can't decode byte 0x89 ...)"
+    path = tmp_path / f"corrected{suffix}"
+    path.write_bytes(b"\x89HDF\r\n\x1a\n\x00\xff\xfe binary")
+    with pytest.raises(ValueError, match=r"export for other programs.*\.dvcfield or \.npz"):
+        F.read_points(path)

@@ -56,12 +56,23 @@ def _npz_kind(path: Path) -> str:
     )
 
 
+#: Formats the exports write for other programs but that are not read back as a field.
+EXPORT_ONLY = {".h5": "HDF5", ".hdf5": "HDF5", ".vti": "VTK", ".vtk": "VTK", ".vtu": "VTK",
+               ".tif": "TIFF", ".tiff": "TIFF"}  # fmt: skip
+
+
 def sniff_format(path: str | os.PathLike) -> str:
     """The format of a field file, from its suffix and, for text tables, its header line."""
     path = Path(path)
     suffix = path.suffix.lower()
     if not path.is_file():
         raise FileNotFoundError(f"field file not found: {path}")
+    if suffix in EXPORT_ONLY:
+        raise ValueError(
+            f"{path}: a {EXPORT_ONLY[suffix]} file is an export for other programs and is not "
+            "read back as a field: give the field file it was exported from (.dvcfield or "
+            ".npz), or a spam .tsv, pyALDVC .npz/.mat, iDVC .disp or CSV table"
+        )
     if suffix == ".disp":
         return "idvc"
     if suffix == ".mat":
