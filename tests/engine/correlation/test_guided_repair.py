@@ -148,3 +148,39 @@ def test_the_batched_repair_repairs_exactly_as_one_match_at_a_time(band):
         assert counts["repair_trials"] == calls
         assert counts["repair_matches"] >= calls
         assert counts["repair_calls"] < calls
+
+
+class _RecordingLevel:
+    """A level whose matches always succeed at ZNCC 0.99 and record the centres asked for."""
+
+    def __init__(self, shape, half):
+        self.reference = np.zeros(shape, np.float32)
+        self.half = half
+        self.asked = []
+
+    def match(self, centers, warps, order, params):
+        self.asked.append(np.array(centers))
+        n = len(centers)
+        return np.full(n, 0.99), np.zeros(n, np.int64), np.ones(n, np.int64)
+
+
+def test_the_repair_never_matches_a_poi_whose_subvolume_leaves_the_volume():
+    # a given grid (an imported field corrected with a larger subvolume) has nodes whose
+    # subvolume does not fit; they are OUT_OF_BOUNDS, and re-matching them read outside the
+    # volume (a segfault on a 48³ pair, subvolume 31, nodes 8..40)
+    half, shape = 15, (48, 48, 48)
+    axis = np.arange(8, 41, 4)
+    grid_shape = (len(axis),) * 3
+    centers = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    fits = np.all((centers >= half) & (centers <= 47 - half), axis=1)
+    status = np.where(fits, int(Status.CONVERGED), int(Status.OUT_OF_BOUNDS)).astype(np.int64)
+    status[np.flatnonzero(fits)[::4]] = int(Status.DIVERGED)  # some that fit failed too
+    zncc = np.where(status == int(Status.CONVERGED), 0.95, np.nan)
+    params = np.zeros((len(centers), 12))
+    level = _RecordingLevel(shape, half)
+    repair(level, centers, grid_shape, params, zncc, status, np.zeros(len(centers), np.int64),
+           1, PARAMS)  # fmt: skip
+    asked = np.concatenate(level.asked)
+    assert len(asked) > 0  # the failed POIs that fit were re-matched
+    assert np.all((asked >= half) & (asked <= 47 - half))
+    assert np.all(status[~fits] == int(Status.OUT_OF_BOUNDS))

@@ -144,6 +144,12 @@ def _lookahead(first, heap, bad, attempts, max_attempts, neighbours, trials, lim
     return pairs
 
 
+def _subvolume_fits(level, centers):
+    """POIs (N,) whose ``2·half + 1`` subvolume lies inside ``level``'s reference volume."""
+    high = np.asarray(level.reference.shape[:3], np.int64) - 1 - int(level.half)
+    return np.all((centers >= int(level.half)) & (centers <= high), axis=1)
+
+
 def repair(
     level,
     centers,
@@ -199,6 +205,9 @@ def repair(
             ],
         )
     )
+    # a POI whose subvolume does not fit in the volume around its centre (a node of a given
+    # grid near the border) cannot be matched: the kernels read its subvolume unchecked
+    bad &= _subvolume_fits(level, centers)
     if not bad.any() or not good.any():
         return int(bad.sum())
     neighbours = _neighbour_table(grid_shape)
