@@ -174,6 +174,14 @@ class _RegionLevel:
             self._timings["judge_prefilter_s"] = time.perf_counter() - started
         return self._level
 
+    @property
+    def reference(self):
+        return self._built().reference
+
+    @property
+    def half(self):
+        return self._args[0].params.half
+
     def match(self, centers, warps, order, params):
         return self._built().match(centers, warps, order, params)
 

@@ -205,11 +205,12 @@ def repair(
             ],
         )
     )
-    # a POI whose subvolume does not fit in the volume around its centre (a node of a given
-    # grid near the border) cannot be matched: the kernels read its subvolume unchecked
-    bad &= _subvolume_fits(level, centers)
     if not bad.any() or not good.any():
         return int(bad.sum())
+    # a POI whose subvolume does not fit in the volume around its centre (a node of a given
+    # grid near the border) cannot be matched: the kernels read its subvolume unchecked
+    unfit = bad & ~_subvolume_fits(level, centers)
+    bad &= ~unfit
     neighbours = _neighbour_table(grid_shape)
     heap = [(-zncc[i], i) for i in np.flatnonzero(good)]
     heapq.heapify(heap)
@@ -256,7 +257,7 @@ def repair(
         counts["repair_trials"] = counts.get("repair_trials", 0) + read
         counts["repair_matches"] = counts.get("repair_matches", 0) + trials.computed
         counts["repair_calls"] = counts.get("repair_calls", 0) + trials.calls
-    return int(bad.sum())
+    return int(bad.sum() + unfit.sum())
 
 
 def _whole_seed_axis(total, stride):
