@@ -73,3 +73,14 @@ def test_an_export_for_other_programs_is_refused_in_words(tmp_path, suffix):
     path.write_bytes(b"\x89HDF\r\n\x1a\n\x00\xff\xfe binary")
     with pytest.raises(ValueError, match=r"export for other programs.*\.dvcfield or \.npz"):
         F.read_points(path)
+
+
+def test_a_position_that_is_not_a_number_is_refused_with_the_file_and_the_point(tmp_path):
+    # used to say only "point positions must be finite", with neither the file nor the row
+    path = tmp_path / "field.csv"
+    rows = "\n".join(f"{z},4,5,0.1,0.2,0.3" for z in range(7)) + "\nnan,4,5,0.1,0.2,0.3\n"
+    path.write_text("z,y,x,uz,uy,ux\n" + rows)
+    with pytest.raises(ValueError, match=r"field\.csv: point positions must be finite: 1 of 8"):
+        F.read_points(path)
+    with pytest.raises(ValueError, match=r"the first is point 7 counted from 0"):
+        F.read_points(path)

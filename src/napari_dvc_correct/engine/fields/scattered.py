@@ -78,7 +78,12 @@ class ScatteredField:
         if self.points.ndim != 2 or self.points.shape[1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {self.points.shape}")
         if not np.all(np.isfinite(self.points)):
-            raise ValueError("point positions must be finite")
+            bad = np.flatnonzero(~np.all(np.isfinite(self.points), axis=1))
+            raise ValueError(
+                f"point positions must be finite: {len(bad)} of {len(self.points)} are not (the "
+                f"first is point {bad[0]} counted from 0 in the file's order, at "
+                f"{self.points[bad[0]].tolist()})"
+            )
         n = len(self.points)
         self.u = np.asarray(self.u, dtype=np.float64)
         if self.u.shape != (n, 3):

@@ -115,7 +115,11 @@ def read_points(path: str | os.PathLike, format: str | None = None, **options) -
         return scattered
     try:
         points = module.read(path, **options)
-    except (ValueError, OSError, MemoryError):
+    except ValueError as error:  # the engine's checks do not know the file: name it
+        if str(path) in str(error):
+            raise
+        raise ValueError(f"{path}: {error}") from None
+    except (OSError, MemoryError):
         raise
     except Exception as error:  # a library's own error (scipy's MatReadError, KeyError...)
         raise ValueError(
