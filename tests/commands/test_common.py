@@ -42,6 +42,27 @@ def test_side_files_and_output_folders_never_replace_an_input(tmp_path):
     )
 
 
+def test_an_existing_output_folder_that_takes_no_changes_is_refused_in_words(tmp_path, monkeypatch):
+    # the folder is replaced whole; one that cannot change (read-only, immutable) failed only at
+    # the swap, after the work, with "[Errno 1] Operation not permitted: 'ro' -> '.ro.ndc-tmp-...'"
+    import os
+    from pathlib import Path
+
+    locked = tmp_path / "ro"
+    locked.mkdir()
+    real_open = os.open
+
+    def refusing_open(path, *args, **kwargs):
+        if Path(path).parent == locked:
+            raise PermissionError(1, "Operation not permitted", str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refusing_open)
+    with pytest.raises(PermissionError, match="--out-dir: cannot write into .*ro"):
+        C.check_output_dir(str(locked))
+    assert C.check_output_dir(str(tmp_path / "new")) == tmp_path / "new"
+
+
 def test_every_input_option_is_an_input():
     args = Namespace(reference="G.tif", deformed="F.tif", field=None, mask="m.tif",
                      volumes=["a.tif", "b.tif"], points="p.csv", out="o.npz")  # fmt: skip

@@ -182,6 +182,8 @@ def check_output_dir(
     out = Path(path)
     folder = out.parent if str(out.parent) else Path(".")
     _check_folder_writable(folder, option)
+    if out.is_dir():  # replaced whole: the folder itself must take changes too
+        _check_folder_writable(out, option)
     for item in inputs:
         if item and (_same_file(out, Path(item)) or _inside(Path(item), out)):
             raise ValueError(
