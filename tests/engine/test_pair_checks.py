@@ -124,3 +124,11 @@ def test_correct_iter_refuses_an_empty_mask_and_a_field_outside_in_both_frames(p
         next(correct_iter(*pair, field_on(), frame=frame, mask=np.zeros(SHAPE, bool)))
     with pytest.raises(ValueError, match="grid does not fit the volume"):
         next(correct_iter(*pair, field_on(shape=(48, 48, 48)), frame=frame))
+
+
+def test_a_named_field_outside_the_volume_reads_without_a_doubled_quote():
+    # "field 'foam''s grid does not fit" (a quoted name then 's) read badly in the panels
+    from napari_dvc_correct.engine.pair_checks import check_field_on_volume
+
+    with pytest.raises(ValueError, match=r"^field 'foam': its grid does not fit the volume"):
+        check_field_on_volume(field_on(shape=(48, 48, 48)), SHAPE, name="field 'foam'")

@@ -169,7 +169,7 @@ def check_field_on_volume(field, volume_shape, name: str = "the field") -> None:
     for axis, (coords, n) in enumerate(zip(field.axis_coordinates(), volume_shape)):
         if coords[0] < -0.5 or coords[-1] > n - 0.5:
             raise ValueError(
-                f"{name}'s grid does not fit the volume: along axis {'zyx'[axis]} its nodes span "
+                f"{name}: its grid does not fit the volume: along axis {'zyx'[axis]} its nodes span "
                 f"{coords[0]:g}..{coords[-1]:g} voxels but the volume has {n} voxels "
                 f"(0..{n - 1}); was the field computed on another volume?"
             )
