@@ -84,3 +84,13 @@ def test_a_position_that_is_not_a_number_is_refused_with_the_file_and_the_point(
         F.read_points(path)
     with pytest.raises(ValueError, match=r"the first is point 7 counted from 0"):
         F.read_points(path)
+
+
+def test_points_in_one_plane_are_refused_with_the_files_name(tmp_path):
+    # CCPi's repository .disp holds 5 points in one plane; File ▸ Open in napari said only
+    # "the field's usable points are all in one plane or line ..." without the file
+    path = tmp_path / "plane.csv"
+    rows = [(2, 3), (9, 3), (2, 8), (9, 9), (5, 6)]  # scattered, not a grid
+    path.write_text("z,y,x,uz,uy,ux\n" + "".join(f"5,{y},{x},0,0,1\n" for y, x in rows))
+    with pytest.raises(ValueError, match=r"plane\.csv: .*one plane"):
+        F.read_field(path)

@@ -179,7 +179,13 @@ def read_field(
     **options
         Passed to the format's reader (``xyz``, ``voxel_size``, ``frame``, ``bin_ratio``...).
     """
-    return to_grid(read_points(path, format, **options), grid=grid)
+    points = read_points(path, format, **options)
+    try:
+        return to_grid(points, grid=grid)
+    except ValueError as error:  # e.g. points in one plane: say which file (napari's File ▸ Open)
+        if str(path) in str(error):
+            raise
+        raise ValueError(f"{path}: {error}") from None
 
 
 def default_suffix(format: str) -> str:
