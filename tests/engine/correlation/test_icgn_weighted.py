@@ -159,3 +159,63 @@ def test_a_bad_window_is_refused(window):
         CorrelationParams(window=window)
     with pytest.raises(ValueError, match="standard deviation"):
         icgn_weighted.gaussian_window(3, -1.0)
+
+
+def _former_weighted_moments(reference, gradient, mask, use_mask, weights, center, half, nb):
+    """The judge's moments as the kernel computed them from the gathered copies (float32
+    values, float64 sums in the gather's order): the reference for the bit-for-bit test."""
+    cz, cy, cx = center
+    w, g, grad = [], [], []
+    n = 0
+    for z in range(cz - half, cz + half + 1):
+        for y in range(cy - half, cy + half + 1):
+            for x in range(cx - half, cx + half + 1):
+                weight = float(weights[n])
+                n += 1
+                if weight == 0.0 or (use_mask and not mask[z, y, x]):
+                    continue
+                w.append(weight)
+                g.append(float(np.float32(reference[z, y, x])))
+                grad.append([float(np.float32(gradient[k, z, y, x])) for k in range(3)])
+    if len(w) < 3 * nb + 3:
+        return np.nan, np.nan
+    total = mean_g = power = 0.0
+    for weight, value, gk in zip(w, g, grad):
+        total += weight
+        mean_g += weight * value
+        for k in range(3):
+            power += weight * (gk[k] * gk[k])
+    mean_g /= total
+    ss_g = 0.0
+    for weight, value in zip(w, g):
+        ss_g += weight * ((value - mean_g) * (value - mean_g))
+    return ss_g / total, power / total
+
+
+def test_the_judges_weighted_moments_are_those_of_the_gathered_subvolume():
+    """Read from the volumes without copying each subvolume: the same bits as the sums over
+    the gathered copies, with a mask and with weights that are zero at the window's corners."""
+    rng = np.random.default_rng(5)
+    shape = (24, 24, 24)
+    reference = rng.normal(100.0, 20.0, shape).astype(np.float32)
+    gradient = rng.normal(0.0, 5.0, (3, *shape)).astype(np.float32)
+    mask = rng.random(shape) > 0.3
+    half, nb = 4, 10
+    r = np.arange(-half, half + 1, dtype=np.float64)
+    z, y, x = np.meshgrid(r, r, r, indexing="ij")
+    window = np.exp(-(z**2 + y**2 + x**2) / (2 * 2.5**2))
+    window[z**2 + y**2 + x**2 > 20] = 0.0
+    weights = icgn_weighted.check_weights(window, half)
+    centers = np.array([[6, 6, 6], [12, 9, 15], [17, 17, 17], [8, 15, 10]], np.int64)
+    for use_mask in (False, True):
+        variance = np.empty(len(centers))
+        power = np.empty(len(centers))
+        icgn_weighted.weighted_moments(
+            reference, gradient, mask, use_mask, weights, centers, half, nb, variance, power
+        )
+        former = np.array([
+            _former_weighted_moments(reference, gradient, mask, use_mask, weights, c, half, nb)
+            for c in centers
+        ])  # fmt: skip
+        assert np.array_equal(variance, former[:, 0])
+        assert np.array_equal(power, former[:, 1])

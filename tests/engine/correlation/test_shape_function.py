@@ -57,3 +57,33 @@ def test_displacement_and_gradient_survive_the_parameters_of_either_order():
         np.testing.assert_allclose(back_u, u)
         np.testing.assert_allclose(back_gradient, gradient)
     assert [shape_function.n_monomials(k) for k in (1, 2)] == [4, 10]
+
+
+def test_inverse_rows_are_compose_inverse_rows_to_the_bit():
+    """The uncertainty's rows of ``A⁻¹`` equal ``compose_inverse(I, A)``'s bit for bit, and
+    are the inverse's rows (a pivoting, non-symmetric, an SPD and a nearly singular
+    matrix)."""
+    rng = np.random.default_rng(3)
+    n = 30
+    spd = rng.normal(size=(n, n))
+    spd = spd @ spd.T + n * np.eye(n)
+    general = rng.normal(size=(n, n))  # pivots on most columns
+    permuted = np.eye(n)[rng.permutation(n)] * rng.uniform(0.5, 2.0, n)
+    near_singular = spd.copy()  # (an exactly zero pivot raises in both, as numba divides)
+    near_singular[5] = near_singular[7] * (1.0 + 1e-12)
+    rows = np.array([0, 10, 20])
+    for matrix in (spd, general, permuted, near_singular):
+        full = shape_function.compose_inverse(np.eye(n), matrix, n)
+        part = shape_function.inverse_rows(matrix, rows, n)
+        assert part.shape == (3, n)
+        assert np.array_equal(part, full[rows], equal_nan=True)
+    for matrix in (spd, general, permuted):
+        exact = np.linalg.inv(matrix)[rows]
+        np.testing.assert_allclose(
+            shape_function.inverse_rows(matrix, rows, n), exact, rtol=1e-9, atol=1e-12
+        )
+    small = rng.normal(size=(12, 12))
+    assert np.array_equal(
+        shape_function.inverse_rows(small, np.array([0, 4, 8]), 12),
+        shape_function.compose_inverse(np.eye(12), small, 12)[[0, 4, 8]],
+    )

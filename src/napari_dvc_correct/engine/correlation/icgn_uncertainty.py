@@ -14,7 +14,7 @@ from numba import njit, prange
 
 from .._numba_setup import KERNEL_OPTIONS
 from .icgn_reference import gradient_source, reference_terms, translation_h_inverse
-from .shape_function import cholesky_solve_setup, compose_inverse
+from .shape_function import cholesky_solve_setup, inverse_rows
 from .uncertainty_sums import affine_sensitivity_sums, quadratic_sensitivity_sums, sensitivity_sums
 
 
@@ -269,24 +269,22 @@ def sandwich_sigma(
     if not (ss_f > 0.0):
         return
     ratio = delta_g / np.sqrt(ss_f)
-    identity = np.eye(m_par)
     for r in range(m_par):
         for c in range(m_par):
             cross[r, c] = ratio * (
                 cross[r, c] - sum_j[r] * sum_jf[c] / count - sum_jg[r] * sum_jfg[c] / ss_g
             )
-    inverse = compose_inverse(identity, cross, m_par)
+    inverse = inverse_rows(cross, np.array([0, nb, 2 * nb]), m_par)  # A⁻¹ at the translations
     # Cov Φ = σ_r² (H⊥ + sym A) / 2: see subvolume_statistics
     for r in range(m_par):
         for c in range(m_par):
             h_perp[r, c] = 0.5 * h_perp[r, c] + 0.25 * (cross[r, c] + cross[c, r])
     for k in range(3):
-        row = k * nb
         quad = 0.0
         for r in range(m_par):
             t = 0.0
             for c in range(m_par):
-                t += h_perp[r, c] * inverse[row, c]
-            quad += inverse[row, r] * t
+                t += h_perp[r, c] * inverse[k, c]
+            quad += inverse[k, r] * t
         value = np.sqrt(residual * max(quad, 0.0))
         out[k] = value if np.isfinite(value) else np.inf

@@ -379,34 +379,47 @@ def weighted_statistics(
 def weighted_moments(reference, gradient, mask, use_mask, weights, centers, half, nb, variance,
                      power):  # fmt: skip
     """:func:`.icgn_uncertainty.subvolume_moments` on weighted subvolumes: ``Δg² / W`` and
-    ``Σ w |∇G|² / W`` (NaN where fewer than ``3·nb + 3`` voxels count)."""
+    ``Σ w |∇G|² / W`` (NaN where fewer than ``3·nb + 3`` voxels count).
+
+    Read from the volumes where they lie (the voxels of non-zero weight inside the mask, in
+    :func:`_gather`'s order and with the same sums, so the same bits), without copying each
+    subvolume first: the judge's moments of every node of a correcting pass."""
     m_par = 3 * nb
-    edge = 2 * half + 1
-    n_total = edge * edge * edge
     for n in prange(centers.shape[0]):
-        g = np.empty(n_total, np.float32)
-        grad = np.empty((n_total, 3), np.float32)
-        xi = np.empty((n_total, 3), np.float32)
-        w = np.empty(n_total)
-        count, _, _ = _gather(
-            reference, gradient, mask, use_mask, weights, centers[n, 0], centers[n, 1],
-            centers[n, 2], half, g, grad, xi, w,
-        )  # fmt: skip
+        cz, cy, cx = centers[n, 0], centers[n, 1], centers[n, 2]
+        source, oz, oy, ox = gradient_source(gradient, cz, cy, cx, half)
+        count = 0
+        total = 0.0
+        mean_g = 0.0
+        sum_power = 0.0
+        i = 0
+        for z in range(cz - half, cz + half + 1):
+            for y in range(cy - half, cy + half + 1):
+                for x in range(cx - half, cx + half + 1):
+                    weight = weights[i]
+                    i += 1
+                    if weight == 0.0 or (use_mask and not mask[z, y, x]):
+                        continue
+                    total += weight  # float32 values as the gathered copies hold them
+                    mean_g += weight * np.float32(reference[z, y, x])
+                    for k in range(3):
+                        gk = np.float64(np.float32(source[k, z - oz, y - oy, x - ox]))
+                        sum_power += weight * gk**2
+                    count += 1
         variance[n] = np.nan
         power[n] = np.nan
         if count < m_par + 3:
             continue
-        total = 0.0
-        mean_g = 0.0
-        sum_power = 0.0
-        for i in range(count):
-            total += w[i]
-            mean_g += w[i] * g[i]
-            for k in range(3):
-                sum_power += w[i] * np.float64(grad[i, k]) ** 2
         mean_g /= total
         ss_g = 0.0
-        for i in range(count):
-            ss_g += w[i] * (g[i] - mean_g) ** 2
+        i = 0
+        for z in range(cz - half, cz + half + 1):
+            for y in range(cy - half, cy + half + 1):
+                for x in range(cx - half, cx + half + 1):
+                    weight = weights[i]
+                    i += 1
+                    if weight == 0.0 or (use_mask and not mask[z, y, x]):
+                        continue
+                    ss_g += weight * (np.float32(reference[z, y, x]) - mean_g) ** 2
         variance[n] = ss_g / total
         power[n] = sum_power / total

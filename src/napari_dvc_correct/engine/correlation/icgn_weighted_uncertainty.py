@@ -27,7 +27,7 @@ from .icgn_reference import (
     add_to_rows,
     fold_quartic_row,
 )
-from .shape_function import cholesky_solve_setup, compose_inverse, monomials
+from .shape_function import cholesky_solve_setup, inverse_rows, monomials
 from .uncertainty_sums import value_and_gradient
 
 
@@ -192,14 +192,14 @@ def weighted_sigma_at(
             return
         a1 = h1p
         middle = h2p
-    inverse = compose_inverse(np.eye(m_par), a1, m_par)
+    translations = np.array([0, nb, 2 * nb])
+    inverse = inverse_rows(a1, translations, m_par)  # A₁⁻¹ at the translations
     for k in range(3):
-        row = k * nb
         quad = 0.0
         for r in range(m_par):
             t = 0.0
             for q in range(m_par):
-                t += middle[r, q] * inverse[row, q]
-            quad += inverse[row, r] * t
+                t += middle[r, q] * inverse[k, q]
+            quad += inverse[k, r] * t
         value = np.sqrt(residual * max(quad, 0.0))
         out[k] = value if np.isfinite(value) else np.inf

@@ -126,6 +126,47 @@ def compose_inverse(m_current, m_update, n):
 
 
 @njit(**KERNEL_OPTIONS)
+def inverse_rows(matrix, rows, n):
+    """Rows ``rows`` of ``inv(matrix)`` (n×n), (len(rows), n): the same bits as
+    ``compose_inverse(np.eye(n), matrix, n)[rows]`` at a third of its cost for 3 rows of 30.
+
+    The same Gauss–Jordan elimination, keeping only the right-hand side's columns that give the
+    wanted rows (each column is eliminated on its own) and only the columns of ``a`` that a later
+    step still reads (those right of the pivot: the others are never read again). The
+    uncertainty needs ``A⁻¹`` only at the three translations.
+    """
+    k = rows.shape[0]
+    a = matrix.T.copy()
+    rhs = np.zeros((n, k))
+    for t in range(k):
+        rhs[rows[t], t] = 1.0
+    for col in range(n):
+        pivot = col
+        for r in range(col + 1, n):
+            if abs(a[r, col]) > abs(a[pivot, col]):
+                pivot = r
+        if pivot != col:
+            for c in range(col, n):
+                a[col, c], a[pivot, c] = a[pivot, c], a[col, c]
+            for c in range(k):
+                rhs[col, c], rhs[pivot, c] = rhs[pivot, c], rhs[col, c]
+        d = a[col, col]
+        for c in range(col + 1, n):
+            a[col, c] /= d
+        for c in range(k):
+            rhs[col, c] /= d
+        for r in range(n):
+            if r != col:
+                factor = a[r, col]
+                if factor != 0.0:
+                    for c in range(col + 1, n):
+                        a[r, c] -= factor * a[col, c]
+                    for c in range(k):
+                        rhs[r, c] -= factor * rhs[col, c]
+    return rhs.T.copy()
+
+
+@njit(**KERNEL_OPTIONS)
 def cholesky_solve_setup(h, m):
     """In-place Cholesky factor of the m×m SPD matrix ``h``; returns False if not positive definite.
 
