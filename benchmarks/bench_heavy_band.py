@@ -407,13 +407,13 @@ def deblur_split(reference, deformed, plain, params, target, distance, seed, std
     try:
         runs = {}
         for name, pair in (("heavy", (reference, deformed)), ("clean", clean_pair)):
-            matched, direction = run_to_completion(
-                oriented.oriented_rematch(*pair, current, nodes, normals, params)
+            matched, oriented_runs = run_to_completion(
+                oriented.oriented_rematch(
+                    oriented.ArrayMatcher(*pair), current, nodes, normals, params
+                )
             )
             took = nodes & np.all(np.isfinite(matched.u), axis=-1)
-            deblurred, _ = oriented.deblur_matches(
-                matched, took, direction, normals, params, reference.shape
-            )
+            deblurred, _ = oriented.deblur_matches(matched, took, oriented_runs, normals)
             runs[name] = matched.u, deblurred, took
     finally:
         oriented.ACROSS_FRACTION, oriented.ALONG_FRACTION = saved
