@@ -33,8 +33,14 @@ band: regularised estimates, measured").
    the heavy pair and on the noise-free pair (``narrow_clean``, same start and planes), raw and
    after :func:`~.oriented_deblur.deblur_across`; ``--stds A B``: other stds (voxels).
 
+7. **Deblur speed** (``deblur_speed``, alone): :func:`~.oriented_deblur.deblur_across` on
+   synthetic grids of 7³, 15³ and 25³ nodes, step 6 (a noisy band, the step's window of std 2 /
+   12 on a 31³ box, every node matched), process CPU seconds (``time.process_time``: run it
+   with ``NUMBA_NUM_THREADS=1``) per node, best of ``--repeats`` (default 3) after a warm-up;
+   the nodes deblurred and a checksum of the values, to compare two versions of the code.
+
 Run: ``python benchmarks/bench_heavy_band.py [--seed N] [--case NAME] [part ...]`` (parts: split
-tgv passes oriented global deblur; default all but deblur; seed default 4; case default narrow_heavy, any case of
+tgv passes oriented global deblur deblur_speed; default all but deblur and deblur_speed; seed default 4; case default narrow_heavy, any case of
 :mod:`bench_correction_cases` with a band: the zones are distances from its mid-plane; "split"
 needs narrow_heavy).
 """
@@ -407,13 +413,13 @@ def deblur_split(reference, deformed, plain, params, target, distance, seed, std
     try:
         runs = {}
         for name, pair in (("heavy", (reference, deformed)), ("clean", clean_pair)):
-            matched, direction = run_to_completion(
-                oriented.oriented_rematch(*pair, current, nodes, normals, params)
+            matched, oriented_runs = run_to_completion(
+                oriented.oriented_rematch(
+                    oriented.ArrayMatcher(*pair), current, nodes, normals, params
+                )
             )
             took = nodes & np.all(np.isfinite(matched.u), axis=-1)
-            deblurred, _ = oriented.deblur_matches(
-                matched, took, direction, normals, params, reference.shape
-            )
+            deblurred, _ = oriented.deblur_matches(matched, took, oriented_runs, normals)
             runs[name] = matched.u, deblurred, took
     finally:
         oriented.ACROSS_FRACTION, oriented.ALONG_FRACTION = saved
@@ -425,6 +431,44 @@ def deblur_split(reference, deformed, plain, params, target, distance, seed, std
         zone_row(name, heavy - target, distance, "", both)
         zone_row(f"  {label}: bias (noise-free pair)", clean - target, distance, "", both)
         zone_row(f"  {label}: scatter (heavy - noise-free)", heavy - clean, distance, "", both)
+
+
+def deblur_speed(repeats: int = 3, sizes=(7, 15, 25)) -> None:
+    """CPU seconds per node of the deblur on synthetic grids (see the module's part 7)."""
+    from napari_dvc_correct.engine.correction import oriented_deblur
+
+    params = CorrelationParams(subvolume=21, step=6)
+    _, across, along = oriented.oriented_params(params)
+    half = oriented.oriented_params(params)[0].half
+    window = oriented.oriented_window(half, NORMAL, across, along)
+    rng = np.random.default_rng(0)
+
+    def case(n):
+        axes = [10.0 + 6.0 * np.arange(n)] * 3
+        points = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+        t = (points - points.reshape(-1, 3).mean(0)) @ NORMAL
+        u = np.stack([1.4 * np.tanh(t / 4.0), 0.001 * t**2, 0.3 + 0.02 * t], -1)
+        u += rng.normal(0.0, 0.1, u.shape)
+        moments = np.broadcast_to(oriented_deblur.window_moments(window), (n, n, n, 3, 3))
+        nodes, normals = np.ones((n,) * 3, bool), np.broadcast_to(NORMAL, points.shape)
+        return u, points, nodes, normals, moments, 6.0, along
+
+    oriented_deblur.deblur_across(*case(5))  # warm-up (compilation or cache load)
+    print(f"| grid | nodes | deblurred | CPU s (best of {repeats}) | ms per node | checksum |")
+    print("|---|---|---|---|---|---|")
+    for n in sizes:
+        arguments = case(n)
+        best = np.inf
+        for _ in range(repeats):
+            started = time.process_time()
+            deblurred, taken = oriented_deblur.deblur_across(*arguments)
+            best = min(best, time.process_time() - started)
+        checksum = float(np.sum(deblurred[taken]))
+        print(
+            f"| {n}³ | {n**3} | {int(taken.sum())} | {best:.3f} | {1e3 * best / n**3:.4f} | "
+            f"{checksum:.15g} |",
+            flush=True,
+        )
 
 
 # --- the parts ---------------------------------------------------------------------------------
@@ -554,6 +598,13 @@ if __name__ == "__main__":
     chosen_stds = None
     if arguments[:1] == ["--stds"]:
         chosen_stds, arguments = (float(arguments[1]), float(arguments[2])), arguments[3:]
+    if arguments[:1] == ["--repeats"]:
+        chosen_repeats, arguments = int(arguments[1]), arguments[2:]
+    else:
+        chosen_repeats = 3
+    if arguments == ["deblur_speed"]:
+        deblur_speed(chosen_repeats)
+        sys.exit(0)
     main(
         arguments or ["split", "tgv", "passes", "oriented", "global"],
         chosen_seed, chosen_case, chosen_stds,

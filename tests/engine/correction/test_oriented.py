@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.engine import synthetic
-from napari_dvc_correct.engine.correction import oriented
+from napari_dvc_correct.engine.correction import oriented, oriented_deblur
 from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.params import CorrelationParams, gaussian_window
 from napari_dvc_correct.engine.fields.field import DisplacementField
@@ -137,12 +137,21 @@ def test_oriented_rematch_beats_the_cube_on_a_noisy_band():
     target = truth(cubes.points.reshape(-1, 3)).reshape(cubes.u.shape)
     nodes = np.ones(cubes.shape, bool)
     normals = np.broadcast_to(NORMAL, cubes.u.shape)
-    matched, direction = run_to_completion(
+    matched, runs = run_to_completion(
         oriented.oriented_rematch(
             oriented.ArrayMatcher(reference, deformed), cubes, nodes, normals, params
         )
     )
+    direction = runs.direction
     assert np.all(direction == direction.flat[0])  # one plane: one run
+    # the run's window, as its own parameters give it (what the deblur takes the blur of)
+    k = int(direction.flat[0])
+    half = oriented.group_half(oriented.border_room(cubes, reference.shape), nodes, params)
+    _, across, along = oriented.oriented_params(params)
+    window = oriented.oriented_window(half, oriented.direction_set()[k], across, along)
+    assert runs.half == {k: half} and runs.along == along
+    np.testing.assert_array_equal(runs.moments[k], oriented_deblur.window_moments(window))
+    np.testing.assert_array_equal(runs.node_moments()[0, 0, 0], runs.moments[k])
     ok = np.all(np.isfinite(matched.u), axis=-1)
     assert ok.mean() > 0.9
 
@@ -151,9 +160,7 @@ def test_oriented_rematch_beats_the_cube_on_a_noisy_band():
 
     assert rmse(matched.u) < 0.75 * rmse(cubes.u)
     # the windows' blur taken out of the matches (the band's curvature across its plane)
-    deblurred, taken = oriented.deblur_matches(
-        matched, ok, direction, normals, params, reference.shape
-    )
+    deblurred, taken = oriented.deblur_matches(matched, ok, runs, normals)
     assert taken.mean() > 0.5
     # 0.128 -> 0.120 voxel when written (a 5³ grid: little plane to average the noise over)
     assert rmse(deblurred) < 0.97 * rmse(matched.u)

@@ -122,3 +122,108 @@ def test_isolated_nodes_keep_their_match_and_bad_input_is_refused():
         oriented_deblur.deblur_across(u, points, nodes[:2], normals, moments, 6, 10.0)
     with pytest.raises(ValueError):
         oriented_deblur.deblur_across(u, points, nodes, normals, moments, 6, 0.0)
+
+
+def _deblur_loop(u, points, nodes, normals, moments, step, along):
+    """The per-node loop :func:`.oriented_deblur.deblur_across` ran before its kernel (numpy,
+    line for line), with why each node kept its match: the reference of the kernel."""
+    columns = 10
+    nodes = nodes & np.all(np.isfinite(u), axis=-1)
+    step = np.broadcast_to(np.asarray(step, np.float64), (3,))
+    across_reach = oriented_deblur.ACROSS_REACH * float(step.min())
+    along_reach = oriented_deblur.ALONG_REACH * float(along)
+    radius = np.ceil(np.sqrt(-2.0 * np.log(oriented_deblur.MIN_WEIGHT)) * along_reach / step)
+    radius = radius.astype(int)
+    deblurred, taken, reasons = u.copy(), np.zeros(u.shape[:3], bool), []
+    for index in zip(*np.nonzero(nodes)):
+        box = tuple(
+            slice(max(i - r, 0), min(i + r + 1, n)) for i, r, n in zip(index, radius, u.shape)
+        )
+        data = nodes[box]
+        offsets = points[box][data] - points[index]
+        normal = normals[index] / np.linalg.norm(normals[index])
+        helper = np.zeros(3)
+        helper[int(np.argmin(np.abs(normal)))] = 1.0
+        first = np.cross(normal, helper)
+        first /= np.linalg.norm(first)
+        frame = np.stack([normal, first, np.cross(normal, first)])
+        t, a, b = (offsets @ frame.T).T
+        weight = np.exp(-0.5 * (t / across_reach) ** 2 - 0.5 * (a * a + b * b) / along_reach**2)
+        keep = weight >= oriented_deblur.MIN_WEIGHT
+        if int(keep.sum()) < 2 * columns:
+            reasons.append("few")
+            continue
+        t, a, b, weight = t[keep], a[keep], b[keep], weight[keep]
+        design = np.stack([np.ones_like(t), t, a, b, t * t, a * a, b * b, a * b, t * a, t * b], 1)
+        root = np.sqrt(weight)[:, None]
+        normal_matrix = (design * root).T @ (design * root)
+        sigma = frame @ moments[index] @ frame.T
+        read = np.array(
+            [1.0, 0, 0, 0, -sigma[0, 0], -sigma[1, 1], -sigma[2, 2],
+             -sigma[1, 2], -sigma[0, 1], -sigma[0, 2]]
+        )  # fmt: skip
+        try:
+            solved = np.linalg.solve(normal_matrix, read)
+        except np.linalg.LinAlgError:
+            reasons.append("singular")
+            continue
+        if not np.all(np.isfinite(solved)) or np.linalg.cond(normal_matrix) > 1e12:
+            reasons.append("singular")
+            continue
+        linear = (design @ solved) * weight
+        if float(np.linalg.norm(linear)) > oriented_deblur.MAX_NOISE_GAIN:
+            reasons.append("gain")
+            continue
+        deblurred[index] = linear @ u[box][data][keep]
+        taken[index] = True
+        reasons.append("taken")
+    return deblurred, taken, reasons
+
+
+def _random_case(seed, shape, share, along):
+    """A field with a band, noise, every node its own normal (±20° about one plane) and its
+    own window; ``share`` of the nodes hold a match."""
+    rng = np.random.default_rng(seed)
+    points = _grid(shape) + rng.uniform(-0.5, 0.5, shape + (3,))
+    centre = points.reshape(-1, 3).mean(0)
+    t = (points - centre) @ NORMAL
+    u = np.stack([_band_profile(t), 0.01 * t**2 / 6.0, 0.3 + 0.02 * t], -1)
+    u = u + rng.normal(0.0, 0.05, u.shape)
+    normals = NORMAL + rng.normal(0.0, 0.25, u.shape)
+    spread = rng.normal(0.0, 1.0, shape + (3, 3))
+    moments = spread @ np.swapaxes(spread, -1, -2) + along**2 * np.eye(3) / 4.0
+    nodes = rng.random(shape) < share
+    return u, points, nodes, normals, moments
+
+
+@pytest.mark.parametrize(
+    "seed, shape, share, along, step",
+    [
+        (0, (9, 10, 11), 0.85, 10.0, STEP),  # inner nodes taken, faces' gain refused
+        (1, (7, 8, 9), 0.3, 6.0, STEP),  # few neighbours
+        (2, (2, 12, 13), 1.0, 10.0, STEP),  # two layers across: no quadratic across
+        (3, (6, 7, 8), 0.9, 12.0, (6.0, 5.0, 7.0)),  # uneven step
+    ],
+)
+def test_the_kernel_gives_the_loop_s_numbers(seed, shape, share, along, step):
+    """Against the former per-node loop on random cases, fall-backs included: the same nodes
+    taken, the same values to 1e-12 relative (rounding of the sums' order)."""
+    u, points, nodes, normals, moments = _random_case(seed, shape, share, along)
+    if shape[0] == 2:  # the layers exactly planar, across their plane
+        points, normals = _grid(shape), np.broadcast_to((1.0, 0.0, 0.0), u.shape)
+    u[tuple(np.argwhere(nodes)[0])] = np.nan  # a failed match is neither datum nor deblurred
+    expected, expected_taken, reasons = _deblur_loop(
+        u, points, nodes, normals, moments, step, along
+    )
+    restored, taken = oriented_deblur.deblur_across(u, points, nodes, normals, moments, step, along)
+    np.testing.assert_array_equal(taken, expected_taken)
+    scale = np.abs(u[taken]).max(initial=1.0)
+    np.testing.assert_allclose(restored, expected, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(restored[~taken], u[~taken])
+    counts = {reason: reasons.count(reason) for reason in set(reasons)}
+    if seed == 0:
+        assert counts["taken"] > 100 and counts["gain"] > 5, counts
+    if seed == 1:
+        assert counts["few"] > 5, counts
+    if seed == 2:
+        assert counts == {"singular": int(np.isfinite(u).all(-1)[nodes].sum())}, counts

@@ -241,7 +241,7 @@ def oriented_rematch(
     params: CorrelationParams,
     *,
     tolerance: float = DIRECTION_TOLERANCE,
-) -> Generator[Progress, None, tuple[DisplacementField, np.ndarray]]:
+) -> Generator[Progress, None, tuple[DisplacementField, OrientedRuns]]:
     """Match the original pair at ``nodes`` of ``field``'s grid under oriented windows.
 
     The normals are quantised to :func:`direction_set` (worst angle ``tolerance`` degrees); per
@@ -271,8 +271,9 @@ def oriented_rematch(
     -------
     matched : DisplacementField
         On ``field``'s grid: the oriented matches at ``nodes``, ``Status.NOT_COMPUTED`` elsewhere.
-    direction : ndarray of int, shape of the grid
-        The direction index each node was matched with (-1: not matched).
+    runs : OrientedRuns
+        The direction each node was matched with and each direction's window (what
+        :func:`deblur_matches` takes the blur of).
     """
     nodes = np.asarray(nodes, bool)
     if nodes.shape != field.shape:
@@ -282,18 +283,53 @@ def oriented_rematch(
     match_params, across, along = oriented_params(params)
     room = border_room(field, match.shape)
     result = None
+    runs = OrientedRuns(direction, {}, {}, along)
     used = np.unique(direction[direction >= 0])
     for number, k in enumerate(used):
         yield Progress("oriented", number, len(used), f"direction {number + 1} of {len(used)}")
         group = direction == k
         half = group_half(room, group, params)
         weights = oriented_window(half, directions[k], across, along)
+        runs.half[int(k)], runs.moments[int(k)] = half, window_moments(weights)
         run = yield from match(match_params.replace(subvolume=2 * half + 1), field, group, weights)
         result = run if result is None else _merge(result, run, group)
     if result is None:
         raise ValueError("no node to re-match with an oriented window")
     yield Progress("oriented", len(used), len(used), f"{int(nodes.sum())} nodes re-matched")
-    return result, direction
+    return result, runs
+
+
+@dataclasses.dataclass(frozen=True)
+class OrientedRuns:
+    """What :func:`oriented_rematch` ran, whatever the matcher: each node's direction and, per
+    direction, the window of its run.
+
+    Attributes
+    ----------
+    direction : ndarray of int, shape of the grid
+        The direction index (into :func:`direction_set`) each node was matched with (-1: not
+        matched).
+    half : dict of int to int
+        Per direction index, the run's box half-width (voxels; :func:`group_half`).
+    moments : dict of int to ndarray, shape (3, 3)
+        Per direction index, the second moments (voxel², z, y, x) of the run's window
+        (:func:`.oriented_deblur.window_moments`).
+    along : float
+        The windows' standard deviation along the plane (voxels).
+    """
+
+    direction: np.ndarray
+    half: dict
+    moments: dict
+    along: float
+
+    def node_moments(self) -> np.ndarray:
+        """Per node, the moments of the window it was matched with (0 where not matched);
+        shape ``direction.shape + (3, 3)``."""
+        moments = np.zeros(self.direction.shape + (3, 3))
+        for k, value in self.moments.items():
+            moments[self.direction == k] = value
+        return moments
 
 
 def group_half(room: np.ndarray, group: np.ndarray, params: CorrelationParams) -> int:
@@ -302,20 +338,15 @@ def group_half(room: np.ndarray, group: np.ndarray, params: CorrelationParams) -
     return int(np.clip(room[group].min(), params.half, oriented_params(params)[0].half))
 
 
-def deblur_matches(matched, took, direction, normals, params, shape):
+def deblur_matches(matched: DisplacementField, took: np.ndarray, runs: OrientedRuns, normals):
     """The oriented matches at ``took`` less their windows' blur
     (:func:`.oriented_deblur.deblur_across`; each node with the moments of the window its
-    direction's run used). Returns the displacements and the nodes deblurred."""
-    directions = direction_set(DIRECTION_TOLERANCE)
-    _, across, along = oriented_params(params)
-    room = border_room(matched, shape)
-    moments = np.zeros(matched.shape + (3, 3))
-    for k in np.unique(direction[took]):
-        group = direction == k  # the run's box came from all of its nodes, failed ones too
-        window = oriented_window(group_half(room, group, params), directions[k], across, along)
-        moments[group] = window_moments(window)
+    direction's run used, from ``runs``: :func:`oriented_rematch`'s). Returns the
+    displacements and the nodes deblurred."""
     points = matched.points.reshape(*matched.shape, 3)
-    return deblur_across(matched.u, points, took, normals, moments, matched.step, along)
+    return deblur_across(
+        matched.u, points, took, normals, runs.node_moments(), matched.step, runs.along
+    )
 
 
 class ArrayMatcher:
@@ -429,12 +460,12 @@ def oriented_step(
         unchanged.summary["reason"] = f"no node varies across a plane (planarity < {PLANARITY:g})"
         return unchanged
     # the matcher (and what it holds: F's coefficients, ∇G) lives as long as the re-match
-    matched, direction = yield from oriented_rematch(
+    matched, runs = yield from oriented_rematch(
         volumes.original_matcher(), current, nodes, normals, params
     )
     candidate = current.copy()
     took = nodes & np.isin(matched.status, [int(s) for s in GOOD_STATUSES])
-    deblurred, sharpened = deblur_matches(matched, took, direction, normals, params, volumes.shape)
+    deblurred, sharpened = deblur_matches(matched, took, runs, normals)
     candidate.u[took] = deblurred[took]
     if candidate.gradient is not None and matched.gradient is not None:
         candidate.gradient[took] = matched.gradient[took]
@@ -456,7 +487,7 @@ def oriented_step(
         "matched_nodes": int(took.sum()),
         "accepted_nodes": int(accept.sum()),
         "improved_nodes": int(improved.sum()),
-        "directions": int(len(np.unique(direction[direction >= 0]))),
+        "directions": len(runs.half),
         "across": float(across),
         "along": float(along),
         "subvolume": int(match_params.subvolume),

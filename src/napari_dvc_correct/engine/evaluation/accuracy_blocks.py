@@ -10,7 +10,7 @@
 - the curves against strain (Figs. 10–11): residual sums and counts of every node's cell
   (:func:`.binning.cell_sums_block`);
 - the local residual: residual sums and counts over every node's ``(2M + 1)^3`` box
-  (:func:`node_box_sums`, from an integral image of the block).
+  (:func:`.binning.node_box_sums_nested`, from an integral image of the block).
 
 A block's node and cell sums cover only the sub-grid the block touches (:class:`GridPart`), so a
 block's result stays small on a large grid. Whole-volume statistics that are not sums (the
@@ -36,7 +36,7 @@ from ..fields.warp import (
     pull_back_block,
 )
 from ..slabs import iter_slabs
-from .binning import GridPart, cell_sums_block, node_box_sums, node_box_sums_nested
+from .binning import GridPart, cell_sums_block, node_box_sums_nested
 from .error_estimate import MOMENTS, ErrorMoments, moment_volumes
 from .gray_levels import GrayLevelMap
 from .phase_sums import residual_phase_sums
@@ -284,6 +284,9 @@ def field_block(
     halves = (half,) if error_half is None else tuple(int(h) for h in np.atleast_1d(error_half))
     sums = residual_phase_sums(own_block, moved, own_labels, thresholds_other)
     residual = sums.residual
+    # the node windows and the error estimate's (the same numbers as one call each, one pass)
+    windows = (half,) if halves[-1] == half else (half, halves[-1])
+    node_parts = node_box_sums_nested(residual, box, centers, windows)
     totals = BlockTotals(
         residual_sum=sums.residual_sum,
         residual_count=sums.residual_count,
@@ -291,8 +294,8 @@ def field_block(
         same_counts=sums.same_counts,
         max_label=sums.max_label,
         cells=cell_sums_block(residual, box, bin_field, positions),
-        nodes=node_box_sums(residual, box, centers, half),
-        error_nodes=node_box_sums(residual, box, centers, halves[-1]),
+        nodes=node_parts[0],
+        error_nodes=node_parts[-1],
         moments=[[] for _ in halves],
     )
     for volume in moment_volumes(
