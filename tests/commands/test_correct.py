@@ -59,6 +59,9 @@ def test_correct_writes_a_corrected_field_and_prints_the_passes(volumes, tmp_pat
     assert f"{passes[1]['subvolume']}³" in printed
     assert corrected.metadata["correction"]["pass_method"] in printed
     assert "you chose: first order, " in printed
+    # the residual column's frame and the noise floor's, which are not on one scale
+    assert "mean gray residual: mean of |map(F) − G'|, loaded frame" in printed
+    assert "noise floor: the local acceptance's, node windows in the reference frame" in printed
     # the gray-level map the residuals were judged with, and what was flagged
     assert corrected.metadata["gray_levels"]["description"] in printed
     assert "flagged after the passes: " in printed

@@ -116,3 +116,12 @@ def test_the_oriented_step_in_words():
     field.metadata["correction"]["oriented"]["deblurred_nodes"] = 90
     line = passes.oriented_line(field)
     assert "blur taken out of 90 of them" in line and line.endswith("the field bends")
+
+
+def test_the_correction_residual_says_its_frame_and_gray_levels():
+    field = DisplacementField.zeros((8.0, 8.0, 8.0), (4.0, 4.0, 4.0), (2, 2, 2))
+    field.metadata["correction"] = {"frame": "reference"}
+    assert passes.residual_frame(field) == "|F(X + u) − G(X)|, reference frame, raw gray levels"
+    field.metadata["correction"]["frame"] = "loaded"
+    field.metadata["gray_levels"] = {"description": "G ≈ 2·F"}
+    assert passes.residual_frame(field) == "|map(F) − G'|, loaded frame, reference gray levels"

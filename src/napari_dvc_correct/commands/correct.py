@@ -193,6 +193,7 @@ def pass_table(field) -> str:
         noise_fit_line,
         order_text,
         oriented_line,
+        residual_frame,
         subvolume_text,
     )
 
@@ -211,6 +212,11 @@ def pass_table(field) -> str:
             f"{entry.mean_change:>11.3f}  {entry.max_change:>10.3f}"
             f"  {entry.accepted_nodes:>8}  {entry.rejected_nodes:>7}  {entry.noise_floor:>11.4f}"
             f"  {entry.matched_nodes:>7}"
+        )
+    if table:  # the two residual columns are not on one scale: say what each is
+        lines.append(
+            f"mean gray residual: mean of {residual_frame(field)}, over the grid's hull; "
+            "noise floor: the local acceptance's, node windows in the reference frame"
         )
     params = field.params or {}
     if table and params.get("order") and params.get("subvolume"):

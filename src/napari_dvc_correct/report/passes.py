@@ -167,3 +167,15 @@ def oriented_line(field: DisplacementField) -> str:
             "quadratic of the matches across and along the plane)"
         )
     return text + ", where the noise kept the passes on first-order cubes that the field bends"
+
+
+def residual_frame(field: DisplacementField) -> str:
+    """What the correction's mean gray residual is, as Evaluate states it (same definition:
+    Evaluate in the same frame gives the same number, docs/evaluation.md)."""
+    info = field.metadata.get("correction", {})
+    mapped = bool(field.metadata.get("gray_levels"))
+    f = "map(F)" if mapped else "F"
+    levels = "reference gray levels" if mapped else "raw gray levels"
+    if info.get("frame", "loaded") == "loaded":
+        return f"|{f} − G'|, loaded frame, {levels}"
+    return f"|{f}(X + u) − G(X)|, reference frame, {levels}"

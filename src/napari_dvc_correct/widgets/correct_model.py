@@ -113,22 +113,12 @@ def method_message(field: DisplacementField) -> str:
     return head + ": " + "; ".join(lines) + "."
 
 
-def residual_frame(field: DisplacementField) -> str:
-    """What the correction's mean gray residual is, as Evaluate states it (same definition:
-    Evaluate in the same frame gives the same number, docs/evaluation.md)."""
-    info = field.metadata.get("correction", {})
-    mapped = bool(field.metadata.get("gray_levels"))
-    f = "map(F)" if mapped else "F"
-    levels = "reference gray levels" if mapped else "raw gray levels"
-    if info.get("frame", "loaded") == "loaded":
-        return f"|{f} − G'|, loaded frame, {levels}"
-    return f"|{f}(X + u) − G(X)|, reference frame, {levels}"
-
-
 def summary_message(field: DisplacementField) -> str:
     """The panel's line after a correction: the mean gray residual before → after, the passes
     applied, why the loop stopped (``metadata["correction"]["stop_reason"]``), and the
     correcting matches' order and subvolume with the reason (:func:`method_message`)."""
+    from ..report.passes import residual_frame
+
     info = field.metadata.get("correction", {})
     before = float(info.get("mean_gray_residual_before", float("nan")))
     after = float(info.get("mean_gray_residual_after", float("nan")))

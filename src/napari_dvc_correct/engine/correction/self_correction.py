@@ -506,7 +506,7 @@ def _correction_loop(
             break  # no region improves above the noise floor any more
         if excess > 0 and removed <= min_improvement * excess:
             stop = (
-                f"pass {number} removed {removed / excess:.1%} of the residual above the floor "
+                f"pass {number} removed {removed / excess:.1%} of the local residual above the floor "
                 f"(at most min_improvement {min_improvement:.0%})"
             )
             break
