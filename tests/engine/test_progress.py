@@ -1,6 +1,6 @@
 """Progress records and driving an engine generator to its end."""
 
-from napari_dvc_correct.engine.progress import Progress, run_to_completion
+from napari_dvc_correct.engine.progress import Progress, forward_progress, run_to_completion
 
 
 def test_fraction_is_done_over_total_clipped():
@@ -21,3 +21,42 @@ def test_run_to_completion_returns_the_generator_s_value():
 
     assert run_to_completion(work()) == "result"
     assert seen == [0, 1, 2]  # every step ran
+
+
+def test_forward_progress_prefixes_the_stages_and_returns_the_value():
+    def inner():
+        yield Progress("IC-GN", 1, 2, "half")
+        yield Progress("IC-GN", 2, 2, "all")
+        return 42
+
+    def outer():
+        value = yield from forward_progress(inner(), "pass 1")
+        return value + 1
+
+    reports = []
+    generator = outer()
+    while True:
+        try:
+            reports.append(next(generator))
+        except StopIteration as stop:
+            result = stop.value
+            break
+    assert [p.stage for p in reports] == ["pass 1: IC-GN", "pass 1: IC-GN"]
+    assert [(p.done, p.total, p.message) for p in reports] == [(1, 2, "half"), (2, 2, "all")]
+    assert result == 43
+
+
+def test_a_closed_forwarder_closes_the_inner_generator():
+    closed = []
+
+    def inner():
+        try:
+            yield Progress("work", 0, 1)
+            yield Progress("work", 1, 1)
+        finally:
+            closed.append(True)
+
+    generator = forward_progress(inner(), "outer")
+    next(generator)
+    generator.close()  # a cancelled caller
+    assert closed == [True]

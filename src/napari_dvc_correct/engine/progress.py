@@ -36,3 +36,21 @@ def run_to_completion(generator):
             next(generator)
         except StopIteration as stop:
             return stop.value
+
+
+def _relabel(progress: Progress, prefix: str) -> Progress:
+    return Progress(f"{prefix}: {progress.stage}", progress.done, progress.total, progress.message)
+
+
+def forward_progress(generator, prefix: str):
+    """Re-yield an engine generator's progress with stages prefixed by ``prefix``; return its
+    result (use as ``result = yield from forward_progress(gen, "pass 1")``)."""
+    try:
+        while True:
+            try:
+                progress = next(generator)
+            except StopIteration as stop:
+                return stop.value
+            yield _relabel(progress, prefix)
+    finally:
+        generator.close()  # a cancelled caller stops the inner run too (its Dask work, its files)

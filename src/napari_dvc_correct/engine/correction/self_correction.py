@@ -64,7 +64,7 @@ from ..correlation.params import CorrelationParams
 from ..fields.absurd_nodes import flag_absurd_nodes
 from ..fields.field import DisplacementField, Provenance, Status
 from ..pair_checks import check_pair_and_fields
-from ..progress import Progress, run_to_completion
+from ..progress import Progress, forward_progress, run_to_completion
 from .acceptance import (
     Judge,
     accept_locally,
@@ -114,24 +114,6 @@ MIN_IMPROVED_FRACTION = 0.01
 #: (:func:`.rematch_region.changed_nodes`): the same share, predicted before the pass instead of
 #: found after it.
 MIN_CHANGED_FRACTION = MIN_IMPROVED_FRACTION
-
-
-def _relabel(progress: Progress, prefix: str) -> Progress:
-    return Progress(f"{prefix}: {progress.stage}", progress.done, progress.total, progress.message)
-
-
-def forward_progress(generator, prefix: str):
-    """Re-yield an engine generator's progress with stages prefixed by ``prefix``; return its
-    result (use as ``result = yield from forward_progress(gen, "pass 1")``)."""
-    try:
-        while True:
-            try:
-                progress = next(generator)
-            except StopIteration as stop:
-                return stop.value
-            yield _relabel(progress, prefix)
-    finally:
-        generator.close()  # a cancelled caller stops the inner run too (its Dask work, its files)
 
 
 def correct_iter(

@@ -33,13 +33,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..correction.cleaning import clean
-from ..correction.self_correction import forward_progress
 from ..correlation.correlate_points import correlate_points
 from ..correlation.params import CorrelationParams
 from ..fields.compose import compose
 from ..fields.field import DisplacementField, Provenance, Status, grid_for_volume
 from ..fields.scattered import ScatteredField
-from ..progress import Progress, run_to_completion
+from ..progress import Progress, forward_progress, run_to_completion
 from .volumes import InMemorySeries, SeriesVolumes
 
 STRATEGIES = ("total", "incremental")
