@@ -18,8 +18,10 @@ from napari_dvc_correct.engine.correction.self_correction import (
     CorrectionPass,
     correct,
     correct_iter,
+    correct_volumes_iter,
     correction_table,
 )
+from napari_dvc_correct.engine.correction.volumes import InMemoryVolumes
 from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
 from napari_dvc_correct.engine.evaluation import residual
@@ -31,7 +33,7 @@ from napari_dvc_correct.engine.fields.field import (
     Status,
     grid_for_volume,
 )
-from napari_dvc_correct.engine.progress import Progress
+from napari_dvc_correct.engine.progress import Progress, run_to_completion
 
 # --- the shear band --------------------------------------------------------------------------
 SIZE = 64
@@ -163,6 +165,41 @@ def test_passes_are_reported_and_corrected_nodes_marked(shear_band_case):
     info = corrected.metadata["correction"]
     assert info["frame"] == "loaded" and info["update"] == "exact"
     assert info["mean_gray_residual_after"] < info["mean_gray_residual_before"]
+
+
+class _RisingVolumes(InMemoryVolumes):
+    """The in-memory back-end whose mean gray residual of a field with corrected nodes reads
+    ``rise`` gray levels higher: a pass whose nodes' local gains do not add up."""
+
+    rise = 5.0
+
+    def align(self, field):
+        moved, mean = yield from super().align(field)
+        corrected = np.any(field.provenance == Provenance.CORRECTED)
+        return moved, mean + self.rise if corrected else mean
+
+
+def test_a_pass_that_would_raise_the_mean_residual_is_not_applied(shear_band_case):
+    reference, deformed, measured, corrected = shear_band_case
+    assert correction_table(corrected)[1].accepted  # the pass is applied as it is
+    volumes = _RisingVolumes(reference, deformed, "loaded")
+    kept = run_to_completion(correct_volumes_iter(volumes, measured, max_passes=2))
+    table = correction_table(kept)
+    before = table[0].mean_gray_residual
+    assert len(table) == 2 and not table[1].accepted and table[1].accepted_nodes == 0
+    assert table[1].mean_gray_residual == before  # the field's, not the refused one's
+    stop = table[1].stop
+    head, tail = "pass 1 would raise the mean gray residual to ", ": not applied"
+    assert stop.startswith(head) and stop.endswith(tail), stop
+    rising = float(stop.removeprefix(head).removesuffix(tail))
+    applied_pass = correction_table(corrected)[1]  # what the same pass gives, applied
+    assert rising == pytest.approx(applied_pass.mean_gray_residual + _RisingVolumes.rise, abs=0.01)
+    info = kept.metadata["correction"]
+    assert info["passes_applied"] == 0
+    assert info["mean_gray_residual_after"] == info["mean_gray_residual_before"]
+    # no node moved by the pass (the applied run's did)
+    assert table[1].max_change == 0.0 and applied_pass.max_change > 0.1
+    assert not np.any(kept.provenance == Provenance.CORRECTED)
 
 
 # --- no harm ---------------------------------------------------------------------------------

@@ -409,15 +409,21 @@ def _correction_loop(
         accept[masked] = False
         improved[masked] = False
         n_accepted = int(np.count_nonzero(accept))
-        applied = n_accepted > 0
+        applied, raised = n_accepted > 0, None
         t1 = time.perf_counter()
         add_stages(stages, None, acceptance_s=t1 - t0)
         if applied:  # the pass's moved volume is not needed beside the mixed field's
             volumes.release(moved)
             moved = mixed_moved = None  # (the last pass's mixed_moved is this pass's moved)
             mixed_moved, mixed_residual = yield from volumes.align(mixed)
+            if mixed_residual > residual:  # the nodes' local gains did not add up: not applied
+                raised, applied = mixed_residual, False
+                accept[:], improved[:] = False, False
+                volumes.release(mixed_moved)
+                mixed_moved = None
+                moved, residual = yield from volumes.align(current)
             add_stages(stages, None, warp_s=time.perf_counter() - t1)
-        else:
+        if not applied:
             mixed, mixed_moved, mixed_residual, local_mixed = (
                 current,
                 moved,
@@ -436,7 +442,7 @@ def _correction_loop(
             local_residual_before=_mean(local_current),
             local_residual_after=_mean(local_mixed),
             accepted=applied,
-            accepted_nodes=n_accepted,
+            accepted_nodes=int(np.count_nonzero(accept)),
             rejected_nodes=int(np.count_nonzero(judged & ~accept & ~masked)),
             improved_nodes=int(np.count_nonzero(improved)),
             fraction_changed=float(np.mean(change > CHANGE_THRESHOLD)) if change.size else 0.0,
@@ -464,6 +470,9 @@ def _correction_loop(
             f"{record.improved_nodes} improved above the noise floor {judge.floor:.4g}; "
             f"mean gray residual {residual:.4g} -> {mixed_residual:.4g}",
         )
+        if raised is not None:
+            stop = f"pass {number} would raise the mean gray residual to {raised:.4g}: not applied"
+            break
         if not applied:
             stop = f"pass {number} kept no node"
             break
