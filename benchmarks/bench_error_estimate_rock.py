@@ -41,8 +41,17 @@ def main(folder: Path) -> None:
             f"r0 {result.pair.background.mean:.3f}; mean residual {item.mean_residual:.3f}; "
             f"p {item.accuracy:.4f}; measured {item.measured_nodes}/{cleaned.n_points}; "
             f"estimate median {error['median']:.3f}, 95 % {error['p95']:.3f}, "
-            f"likely > 0.5: {100 * error['likely_bad']:.1f} %"
+            f"likely > 0.5: {100 * error['likely_bad']:.1f} %, "
+            f"resolution median {error['resolution']:.3f}"
         )
+        correlation = getattr(result.pair, "noise_correlation", None)
+        if correlation is not None:
+            lags = "; ".join(
+                f"{axis} {np.round(correlation.along(a), 3).tolist()}"
+                for a, axis in enumerate("zyx")
+            )
+            factors = {k: round(v, 2) for k, v in correlation.factors.items()}
+            print(f"  noise correlation at lags 1-3: {lags}; window factors {factors}")
         # the crack: nodes the DVC could not match, and their neighbours
         unmatched = ~measured_mask(field)
         near = ndimage.binary_dilation(unmatched) & ~unmatched

@@ -439,7 +439,7 @@ strain_window, n_bins, bin_edges, shared_background, bin_by, gray_levels, backgr
             noises = scan_noises(reference, deformed, read=lambda v, box: v.read_region(box))
             pair = yield from measure_pair(
                 volumes, candidates, blocks, shape, moved_thresholds, gray_levels, start, run,
-                region_task, noises,
+                region_task, noises, (reference, deformed, region),
             )  # fmt: skip
         mapping = None if pair.gray_levels.is_identity else pair.gray_levels
 

@@ -13,7 +13,9 @@ import numpy as np
 from ..engine.evaluation.accuracy_pair import (
     background_from_sums,
     choose_best,
+    residual_box,
     same_phase_block,
+    with_noise_correlation,
 )
 from ..engine.evaluation.gray_levels import (
     DEFAULT_CELL,
@@ -23,7 +25,7 @@ from ..engine.evaluation.gray_levels import (
     cells_shape,
     fit_from_passes,
 )
-from ..engine.evaluation.gray_noise import pair_noise
+from ..engine.evaluation.gray_noise import noise_box, pair_noise
 from ..engine.evaluation.phases import label_phases
 from ..engine.fields.field_spline import FieldSpline
 from ..engine.fields.warp import pull_back_block
@@ -63,14 +65,18 @@ def _pair_background_block(reference, deformed, spline, block, thresholds, gray,
 
 
 def measure_pair(
-    volumes, candidates, blocks, shape, thresholds, fit, start, run, region=None, noises=None
-):
+    volumes, candidates, blocks, shape, thresholds, fit, start, run, region=None, noises=None,
+    sources=None,
+):  # fmt: skip
     """:func:`..engine.evaluation.accuracy_pair.measure_pair` block by block (generator): for every
     candidate two passes fit its map, one more measures its ``r0``. ``noises``: the scans' noise
-    variances (:func:`..engine.evaluation.gray_noise.scan_noises`) for the map's fit."""
+    variances (:func:`..engine.evaluation.gray_noise.scan_noises`) for the map's fit;
+    ``sources``: the reference, the deformed volume and the region themselves, to read the
+    residual on the central block the noise correlation is measured on (None: not measured)."""
     import dask
 
-    measured = {}
+    measured, residuals = {}, {}
+    central = noise_box(shape)
     for name, field in candidates.items():
         spline = dask.delayed(FieldSpline.from_field(field))
 
@@ -100,4 +106,11 @@ def measure_pair(
         same_counts = sum(p[1] for p in parts)
         largest = max(p[2] for p in parts)
         measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
-    return choose_best(measured)
+        if sources is not None:
+            here = FieldSpline.from_field(field)
+            g, moved = _pair_moved(*sources[:2], here, central, sources[2])
+            residuals[str(name)] = residual_box(g, moved, gray, central)
+    if sources is None:
+        return choose_best(measured)
+    fields = {str(k): v for k, v in candidates.items()}
+    return with_noise_correlation(choose_best(measured), residuals, g, fields)

@@ -62,9 +62,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .error_moments import _PAIRS, ErrorMoments, instrument_noise_pairing
+from .error_moments import _PAIRS, ErrorMoments
 from .error_scales import finest_resolved, node_error_bound
 from .node_roughness import deviation_size, node_deviation
+from .noise_correlation import NoiseCorrelation
 
 #: Nodes whose error is likely above this many voxels are counted as likely bad
 #: (:func:`probability_above`).
@@ -138,7 +139,10 @@ class ResidualError:
 
 
 def residual_error(
-    moments: ErrorMoments, background: float, own_share: float = 0.5
+    moments: ErrorMoments,
+    background: float,
+    own_share: float = 0.5,
+    correlation: NoiseCorrelation | None = None,
 ) -> ResidualError:
     """The error each node's window residual resolves (see the module for the model).
 
@@ -155,7 +159,13 @@ def residual_error(
         whose gradient is used): 1/2 for the same noise in both scans in the reference's gray
         levels. (A map's gain cannot tell which: a real rescaling of the loaded scan scales its
         noise too, the dilution of a least-squares map by noise does not.)
+    correlation : NoiseCorrelation, optional
+        The scans' noise correlation in space (:mod:`.noise_correlation`, measured on the
+        pair's residual): the noise's pairings of ``g`` and ``h`` and the variance of the window
+        sums follow it. None: white noise.
     """
+    correlation = NoiseCorrelation.white() if correlation is None else correlation
+    own_pairing = correlation.pairing("g", "g")  # σ²/2 I for white noise
     total = 0.5 * np.pi * float(background) ** 2  # the residual's noise variance
     sigma2 = total * float(own_share)  # the gradient's state's noise variance
     n = np.maximum(moments.count.astype(np.float64), 1.0)
@@ -187,14 +197,15 @@ def residual_error(
     b_s = (b - a * lift[..., None]) / contrast[..., None]
     w, v = np.linalg.eigh(h_s)
     w = np.maximum(w, 0.0)
-    w_t = np.maximum(w - 0.5 * sigma2, MIN_TEXTURE_SHARE * w)  # texture's part (noise out)
+    noise_share = np.trace(own_pairing) / 3.0
+    w_t = np.maximum(w - noise_share * sigma2, MIN_TEXTURE_SHARE * w)  # texture's part
     textured = np.all(w_t > 1e-12 * max(1.0, sigma2), axis=-1) & defined
     safe = np.where(textured[..., None], w_t, 1.0)
     coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # plain Δu in the eigenbasis
     # the step with the instrument w = (g + h)/2 (see the module): its sensitivity, the
     # noise's pairings of w with g taken out (σ²/2 for central differences, c σ² for h)
     smooth = ("hz", "hy", "hx")
-    pairing = 0.5 * sigma2 * (0.5 + instrument_noise_pairing())
+    pairing = 0.5 * sigma2 * (own_pairing + correlation.pairing("h", "g"))
     sensitivity = np.empty(h.shape)
     spread = np.empty(h.shape)
     for i in range(3):
@@ -206,7 +217,7 @@ def residual_error(
                 + cov(smooth[i], axes[j])
                 + cov(smooth[i], smooth[j])
             )
-        sensitivity[..., i, i] -= pairing
+    sensitivity -= pairing
     a_w = 0.5 * (a + np.stack([cov(k, "G") for k in smooth], axis=-1))
     b_w = 0.5 * (b + np.stack([cov(k, "s") for k in smooth], axis=-1))
     sensitivity -= (
@@ -228,6 +239,7 @@ def residual_error(
     shift = np.einsum("...ij,...j->...i", inverse, b_w)
     covariance = inverse @ spread @ np.swapaxes(inverse, -1, -2)
     variance = total / n * np.trace(covariance, axis1=-2, axis2=-1) / contrast**2
+    variance = variance * correlation.factor(moments.half)  # correlated noise: the step's scatter
     textured = solvable & np.isfinite(variance)
     variance = np.where(textured, variance, 0.0)
     resolution = np.where(textured, np.sqrt(variance), np.inf)
@@ -236,7 +248,7 @@ def residual_error(
     # the residual's excess variance (gray offset and gain out) against what the step explains
     excess = cov("s", "s") - lift**2 * gray - total
     explained = contrast**2 * np.sum(w_t * coordinates * coordinates, axis=-1)
-    noise = np.sqrt(2.0) * total / np.sqrt(n)
+    noise = np.sqrt(2.0 * correlation.square_sum) * total / np.sqrt(n)
     unexplained = (
         defined
         & (1.0 + lift < MATCHED_CONTRAST)
@@ -263,10 +275,10 @@ def noise_error(field) -> np.ndarray:
 
 
 def error_estimate(
-    field, moments, background: float, own_share: float = 0.5
+    field, moments, background: float, own_share: float = 0.5, correlation=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Estimated displacement error per node and the residual's resolution there (voxels);
-    ``background`` and ``own_share`` as in :func:`residual_error`. ``moments`` is one
+    ``background``, ``own_share`` and ``correlation`` as in :func:`residual_error`. ``moments`` is one
     :class:`ErrorMoments` or one per window, finest first (:mod:`.error_scales`; windows of
     known half-size also bound ``d``).
 
@@ -281,7 +293,7 @@ def error_estimate(
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
     windows = (moments,) if isinstance(moments, ErrorMoments) else tuple(moments)
-    residuals = [residual_error(m, background, own_share) for m in windows]
+    residuals = [residual_error(m, background, own_share, correlation) for m in windows]
     deviation = node_deviation(field.u)
     roughness = np.nan_to_num(deviation_size(deviation), nan=0.0)
     halves = [m.half for m in windows]
