@@ -170,19 +170,22 @@ def autocovariance(values: np.ndarray, valid: np.ndarray | None = None):
     -------
     covariance, pairs : ndarray, shape (2L+1, 2L+1, 2L+1)
     """
-    from scipy.signal import fftconvolve
+    from scipy import fft
 
     v = np.asarray(values, np.float64)
     mask = np.isfinite(v) if valid is None else (np.asarray(valid, bool) & np.isfinite(v))
     if mask.sum() < 2:
         return np.zeros((_BOX,) * 3), np.zeros((_BOX,) * 3)
     centred = np.where(mask, v - v[mask].mean(), 0.0)
-    weight = mask.astype(np.float64)
-    flip = (slice(None, None, -1),) * 3
-    centre = tuple(n - 1 for n in v.shape)
-    lags = tuple(slice(c - _L, c + _L + 1) for c in centre)
-    products = fftconvolve(centred, centred[flip], mode="full")[lags]
-    pairs = np.rint(fftconvolve(weight, weight[flip], mode="full")[lags])
+    size = [fft.next_fast_len(n + _L, real=True) for n in v.shape]  # linear up to lag L
+    lags = np.ix_(*(np.arange(-_L, _L + 1) % n for n in size))
+
+    def correlation(a):
+        spectrum = fft.rfftn(a, s=size)
+        return fft.irfftn(spectrum * np.conj(spectrum), s=size)[lags]
+
+    products = correlation(centred)
+    pairs = np.rint(correlation(mask.astype(np.float64)))
     with np.errstate(invalid="ignore", divide="ignore"):
         covariance = np.where(pairs > 0, products / np.maximum(pairs, 1.0), 0.0)
     return covariance, pairs
