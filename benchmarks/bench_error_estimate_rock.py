@@ -62,7 +62,7 @@ def main(folder: Path) -> None:
             if values.size:
                 print(
                     f"  {label}: {values.size} nodes, median {np.median(values):.3f}, "
-                    f"share > 0.5 {100 * np.mean(values > 0.5):.0f} %"
+                    f"share > 0.5 {100 * np.mean(values > 0.5):.1f} % ({np.sum(values > 0.5)} nodes)"
                 )
         z = np.argmax(np.nansum(e > 0.5, axis=(1, 2)))
         rows = np.where(np.isfinite(e[z]), np.minimum(e[z], 9.9), np.nan)
