@@ -49,7 +49,10 @@ the node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   grid's scale is not an error).
 
 ``σ`` is the scans' noise, from the pair's ``r0`` (eq. 1: the residual's noise has variance
-``π r0²/2``), half of it each scan's. Where the window has no texture (``H_t`` near 0: air, a
+``π r0²/2``), half of it each scan's. The pairings above are white noise's; where the scans'
+noise is correlated in space (measured on the pair's residual, :mod:`.noise_correlation`) they
+follow its correlation, and the resolution's variance is multiplied by the window sums' factor
+under it (:meth:`.noise_correlation.NoiseCorrelation.factor`). Where the window has no texture (``H_t`` near 0: air, a
 flat region) the resolution is infinite. Measured against true errors in
 ``docs/evaluation.md`` (``benchmarks/bench_error_estimate.py``). Arrays are on the field's grid
 ``(nz, ny, nx)``.

@@ -42,7 +42,7 @@ MAX_LAG = 3
 
 #: A lag's measured correlation counts where it is at least this many standard errors
 #: (``1/√pairs``) from 0.
-SIGNIFICANCE = 4.0
+SIGNIFICANCE = 5.0
 
 #: The residual's voxels farther than this many robust standard deviations from its median are
 #: left out (a crack, a missed region).
