@@ -23,6 +23,8 @@ the match's recorded noise uncertainty ``|σ_u|`` that the estimate adds below t
     python benchmarks/bench_error_estimate.py              # all cases, a table on stdout
     python benchmarks/bench_error_estimate.py --quick      # one texture, fewer fields
     python benchmarks/bench_error_estimate.py --correlated # the correlated-noise textures only
+    python benchmarks/bench_error_estimate.py --apply-correlation  # the estimate uses the measured
+                                                                  # noise correlation (off by default)
 
 Two textures carry spatially correlated noise (white noise smoothed by a Gaussian of ``s`` voxels,
 then scaled back to its σ: correlation ``exp(−k²/(4s²))`` at lag ``k``), as CT reconstruction
@@ -369,5 +371,14 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--correlated", action="store_true")
+    parser.add_argument(
+        "--apply-correlation", action="store_true",
+        help="the estimate uses the pair's measured noise correlation "
+        "(error_estimate.NOISE_CORRELATION_APPLIED)",
+    )  # fmt: skip
     arguments = parser.parse_args()
+    if arguments.apply_correlation:
+        from napari_dvc_correct.engine.evaluation import error_estimate
+
+        error_estimate.NOISE_CORRELATION_APPLIED = True
     main(arguments.quick, arguments.correlated)

@@ -70,6 +70,13 @@ from .error_scales import finest_resolved, node_error_bound
 from .node_roughness import deviation_size, node_deviation
 from .noise_correlation import NoiseCorrelation
 
+#: Whether :func:`error_estimate` uses the pair's measured noise correlation
+#: (:mod:`.noise_correlation`). Off (white noise, as before): measured on the best field's
+#: residual, the correlation also reads that field's own errors on clear texture (a band on a
+#: two-phase texture, our DVC's fields of the band cases) and moves white-noise cases
+#: (docs/evaluation.md, "Spatially correlated noise"); the pair still measures and reports it.
+NOISE_CORRELATION_APPLIED = False
+
 #: Nodes whose error is likely above this many voxels are counted as likely bad
 #: (:func:`probability_above`).
 LIKELY_BAD = 0.5
@@ -281,7 +288,8 @@ def error_estimate(
     field, moments, background: float, own_share: float = 0.5, correlation=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Estimated displacement error per node and the residual's resolution there (voxels);
-    ``background``, ``own_share`` and ``correlation`` as in :func:`residual_error`. ``moments`` is one
+    ``background``, ``own_share`` and ``correlation`` as in :func:`residual_error` (the
+    correlation is used only where :data:`NOISE_CORRELATION_APPLIED`). ``moments`` is one
     :class:`ErrorMoments` or one per window, finest first (:mod:`.error_scales`; windows of
     known half-size also bound ``d``).
 
@@ -296,6 +304,7 @@ def error_estimate(
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
     windows = (moments,) if isinstance(moments, ErrorMoments) else tuple(moments)
+    correlation = correlation if NOISE_CORRELATION_APPLIED else None
     residuals = [residual_error(m, background, own_share, correlation) for m in windows]
     deviation = node_deviation(field.u)
     roughness = np.nan_to_num(deviation_size(deviation), nan=0.0)
