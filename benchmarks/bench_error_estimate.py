@@ -20,8 +20,16 @@ best; independent node errors average out in it) and, for our DVC's fields, the 
 the match's recorded noise uncertainty ``|σ_u|`` that the estimate adds below the resolution
 (a corrected field's record decides its reading there).
 
-    python benchmarks/bench_error_estimate.py            # all cases, a table on stdout
-    python benchmarks/bench_error_estimate.py --quick    # one texture, fewer fields
+    python benchmarks/bench_error_estimate.py              # all cases, a table on stdout
+    python benchmarks/bench_error_estimate.py --quick      # one texture, fewer fields
+    python benchmarks/bench_error_estimate.py --correlated # the correlated-noise textures only
+    python benchmarks/bench_error_estimate.py --apply-correlation  # the estimate uses the measured
+                                                                  # noise correlation (off by default)
+
+Two textures carry spatially correlated noise (white noise smoothed by a Gaussian of ``s`` voxels,
+then scaled back to its σ: correlation ``exp(−k²/(4s²))`` at lag ``k``), as CT reconstruction
+leaves it; the pair's measured noise correlation (``pair.noise_correlation``, lags 1-3 along z)
+is printed with each texture.
 
 Results are written in docs/evaluation.md ("An error estimate in voxels").
 """
@@ -85,41 +93,60 @@ def band_error(points, amplitude, width=12.0, center=32.0, direction=(0.3, 0.8, 
     return amplitude * profile[:, None] * d[None, :]
 
 
-def textures():
-    """(label, pattern, noise as a share of the p1-p99 range or a gray sigma, warp order,
-    cylinder specimen)."""
+def textures(correlated_only=False):
+    """(label, pattern, noise as a share of the p1-p99 range or a gray sigma, and the Gaussian
+    smoothing of the noise in voxels (0: white), warp order, cylinder specimen)."""
+    if not correlated_only:
+        yield from _white_textures()
+    yield (
+        "concrete CT, 3 % noise smoothed 0.7",
+        lambda s: concrete_ct_volume(s, aggregate_fraction=0.4, seed=3),
+        ("share", 0.03, 0.7),
+        5,
+        True,
+    )
+    yield (  # held out: another texture, another correlation length
+        "two-phase, sigma 3 smoothed 1.0, cubic warp",
+        lambda s: two_phase_volume(s, phase_grays=(100.0, 170.0), texture=4.0, seed=9),
+        ("sigma", 3.0, 1.0),
+        3,
+        False,
+    )
+
+
+def _white_textures():
     yield (
         "concrete CT, 3 % noise",
         lambda s: concrete_ct_volume(s, aggregate_fraction=0.4, seed=3),
-        ("share", 0.03),
+        ("share", 0.03, 0.0),
         5,
         True,
     )
     yield (
         "two-phase, sigma 3",
         lambda s: two_phase_volume(s, phase_grays=(100.0, 170.0), texture=4.0, seed=5),
-        ("sigma", 3.0),
+        ("sigma", 3.0, 0.0),
         5,
         False,
     )
     yield (
         "concrete CT seed 8, 5 % noise, trilinear warp",
         lambda s: concrete_ct_volume(s, aggregate_fraction=0.3, seed=8),
-        ("share", 0.05),
+        ("share", 0.05, 0.0),
         1,
         True,
     )
     yield (
         "concrete CT seed 21, 4 % noise, cubic warp",
         lambda s: concrete_ct_volume(s, aggregate_fraction=0.35, seed=21),
-        ("share", 0.04),
+        ("share", 0.04, 0.0),
         3,
         True,
     )
     yield (
         "speckle 1.5, sigma 4, cubic warp",
         lambda s: 200.0 * textured_volume(s, 1.5, seed=7),
-        ("sigma", 4.0),
+        ("sigma", 4.0, 0.0),
         3,
         False,
     )
@@ -170,25 +197,39 @@ def dvc_field(reference, deformed):
     return correlate(reference, deformed, CorrelationParams(subvolume=SUBVOLUME, step=STEP))
 
 
-def noisy_pair(make, truth, order, kind, noise, seeds):
+def smoothed_noise(volume, sigma, smoothing, seed):
+    """``volume`` plus Gaussian noise of standard deviation ``sigma`` smoothed by a Gaussian of
+    ``smoothing`` voxels and scaled back to ``sigma`` (0: white, :func:`synthetic.add_noise`)."""
+    if smoothing <= 0:
+        return add_noise(volume, sigma, seed=seed)
+    noise = np.random.default_rng(seed).normal(0.0, 1.0, volume.shape)
+    noise = ndimage.gaussian_filter(noise, smoothing, mode="wrap")
+    return (volume + sigma * noise / noise.std()).astype(np.float32)
+
+
+def noisy_pair(make, truth, order, kind, noise, seeds, smoothing=0.0):
     """The reference and the deformed scan of ``truth`` (warped with a 5th-order spline, or with
     scipy's ``order`` where it is not 5), each with its own noise: ``noise`` as a share of the
-    texture's contrast (``kind == "share"``) or as a gray-level σ."""
+    texture's contrast (``kind == "share"``) or as a gray-level σ, smoothed by ``smoothing``
+    voxels (:func:`smoothed_noise`)."""
     if order == 5:
         reference, deformed = make_pair(make, SHAPE, truth, 12)
     else:
         reference, deformed = make_pair_with(make, SHAPE, truth, order)
     sigma = ct_noise_sigma(reference, noise) if kind == "share" else noise
-    return add_noise(reference, sigma, seed=seeds[0]), add_noise(deformed, sigma, seed=seeds[1])
+    return (
+        smoothed_noise(reference, sigma, smoothing, seeds[0]),
+        smoothed_noise(deformed, sigma, smoothing, seeds[1]),
+    )
 
 
-def band_fields(make, kind, noise, order, fields, truths):
+def band_fields(make, kind, noise, order, fields, truths, smoothing=0.0):
     """Our DVC's field, plain and corrected, of a pair whose true field is a narrow shear band
     (half-width 4 voxels, slip 2.8: narrower than a subvolume) on a rotation, bending and a
     translation: a true field that is not smooth at the grid's scale, which the plain field
     misses at the band's core (0-13 nodes truly more than 0.5 voxel off, by texture)."""
     truth = band_rotation_bending((SHAPE[0] / 2,) * 3, 4.0, 2.8)
-    reference, deformed = noisy_pair(make, truth, order, kind, noise, seeds=(21, 22))
+    reference, deformed = noisy_pair(make, truth, order, kind, noise, (21, 22), smoothing)
     params = CorrelationParams(subvolume=SUBVOLUME, step=STEP)
     measured = dvc_field(reference, deformed)
     corrected = correct(reference, deformed, measured, params)
@@ -242,12 +283,15 @@ def percent(value):
     return "—" if np.isnan(value) else f"{100 * value:.0f} %"
 
 
-def main(quick=False):
+def main(quick=False, correlated_only=False):
     gradient = np.array([[-0.01, 0.004, 0.0], [0.0, 0.006, 0.003], [0.002, 0.0, 0.008]])
     truth_function = affine(gradient, center=np.array(SHAPE) / 2.0, shift=(1.3, -0.7, 2.2))
     rows = []
-    for label, make, (kind, noise), order, cylinder in list(textures())[: 1 if quick else None]:
-        reference, deformed = noisy_pair(make, truth_function, order, kind, noise, seeds=(11, 12))
+    chosen = list(textures(correlated_only))[: 1 if quick else None]
+    for label, make, (kind, noise, smoothing), order, cylinder in chosen:
+        reference, deformed = noisy_pair(
+            make, truth_function, order, kind, noise, (11, 12), smoothing
+        )
         origin, step, shape = grid_for_volume(SHAPE, SUBVOLUME, STEP)
         base = DisplacementField.zeros(origin, step, shape, params={"subvolume": SUBVOLUME})
         points = base.points
@@ -259,7 +303,7 @@ def main(quick=False):
             truths[name] = np.linalg.norm(e, axis=1).reshape(shape)
             windows[name] = window_truth(base, e, error_region_half(base))
         if not quick:
-            band_fields(make, kind, noise, order, fields, truths)
+            band_fields(make, kind, noise, order, fields, truths, smoothing)
             measured = dvc_field(reference, deformed)
             corrected = correct(
                 reference,
@@ -299,7 +343,13 @@ def main(quick=False):
                 noise_error(item.field) if item.field.uncertainty is not None else None,
             )
             rows.append((label, item.name, numbers, item.accuracy))
-        print(f"{label}: r0 {result.pair.background.mean:.4g}, {seconds:.1f} s", flush=True)
+        correlation = getattr(result.pair, "noise_correlation", None)
+        lags = "not measured" if correlation is None else np.round(correlation.along(0), 3)
+        print(
+            f"{label}: r0 {result.pair.background.mean:.4g}, {seconds:.1f} s; "
+            f"noise correlation at lags 1-3 along z {lags}",
+            flush=True,
+        )
     print(
         "| texture | field | true median | window's true median | estimated median | ratio "
         "| Spearman | caught likely / possibly (of) | false flags likely / possibly "
@@ -320,4 +370,15 @@ def main(quick=False):
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
-    main(parser.parse_args().quick)
+    parser.add_argument("--correlated", action="store_true")
+    parser.add_argument(
+        "--apply-correlation", action="store_true",
+        help="the estimate uses the pair's measured noise correlation "
+        "(error_estimate.NOISE_CORRELATION_APPLIED)",
+    )  # fmt: skip
+    arguments = parser.parse_args()
+    if arguments.apply_correlation:
+        from napari_dvc_correct.engine.evaluation import error_estimate
+
+        error_estimate.NOISE_CORRELATION_APPLIED = True
+    main(arguments.quick, arguments.correlated)

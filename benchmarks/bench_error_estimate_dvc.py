@@ -14,7 +14,7 @@ evaluation, kernels loaded from numba's cache included: set ``NUMBA_NUM_THREADS=
 unbounded (the estimate before the windows of several sizes, :mod:`.error_scales`), for a side by
 side on the same fields.
 
-    python benchmarks/bench_error_estimate_dvc.py [--seed 4] [--single-window] [case ...]
+    python benchmarks/bench_error_estimate_dvc.py [--seed 4] [--single-window] [--apply-correlation] [case ...]
 
 Cases by name: ``narrow_clean narrow_noisy narrow_heavy weak "shear band" "noisy band"`` (default
 all). Results in docs/evaluation.md ("Windows of several sizes").
@@ -85,9 +85,12 @@ def main(argv=None) -> list:
     parser.add_argument("cases", nargs="*", default=list(CASES))
     parser.add_argument("--seed", type=int, default=4)
     parser.add_argument("--single-window", action="store_true")
+    parser.add_argument("--apply-correlation", action="store_true")
     args = parser.parse_args(argv)
     if args.single_window:
         single_window()
+    if args.apply_correlation:  # the pair's measured noise correlation in the estimate
+        error_estimate.NOISE_CORRELATION_APPLIED = True
     rows = []
     for name in args.cases:
         rows += run(name, args.seed)

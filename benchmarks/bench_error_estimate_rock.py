@@ -6,7 +6,10 @@ Prints the pair's gray-level map, r0, p, the estimate's median / 95th percentile
 0.5 voxel, and (lower crop) the estimate near the crack (nodes the correlation could not match
 or flagged as discontinuous, and their neighbours) against the rest.
 
-    python benchmarks/bench_error_estimate_rock.py [../shared/data/real-rock]
+    python benchmarks/bench_error_estimate_rock.py [../shared/data/real-rock] [--apply-correlation]
+
+The pair's measured noise correlation is printed; ``--apply-correlation`` lets the estimate use it
+(``error_estimate.NOISE_CORRELATION_APPLIED``, off by default).
 """
 
 from __future__ import annotations
@@ -41,8 +44,17 @@ def main(folder: Path) -> None:
             f"r0 {result.pair.background.mean:.3f}; mean residual {item.mean_residual:.3f}; "
             f"p {item.accuracy:.4f}; measured {item.measured_nodes}/{cleaned.n_points}; "
             f"estimate median {error['median']:.3f}, 95 % {error['p95']:.3f}, "
-            f"likely > 0.5: {100 * error['likely_bad']:.1f} %"
+            f"likely > 0.5: {100 * error['likely_bad']:.1f} %, "
+            f"resolution median {error['resolution']:.3f}"
         )
+        correlation = getattr(result.pair, "noise_correlation", None)
+        if correlation is not None:
+            lags = "; ".join(
+                f"{axis} {np.round(correlation.along(a), 3).tolist()}"
+                for a, axis in enumerate("zyx")
+            )
+            factors = {k: round(v, 2) for k, v in correlation.factors.items()}
+            print(f"  noise correlation at lags 1-3: {lags}; window factors {factors}")
         # the crack: nodes the DVC could not match, and their neighbours
         unmatched = ~measured_mask(field)
         near = ndimage.binary_dilation(unmatched) & ~unmatched
@@ -53,7 +65,7 @@ def main(folder: Path) -> None:
             if values.size:
                 print(
                     f"  {label}: {values.size} nodes, median {np.median(values):.3f}, "
-                    f"share > 0.5 {100 * np.mean(values > 0.5):.0f} %"
+                    f"share > 0.5 {100 * np.mean(values > 0.5):.1f} % ({np.sum(values > 0.5)} nodes)"
                 )
         z = np.argmax(np.nansum(e > 0.5, axis=(1, 2)))
         rows = np.where(np.isfinite(e[z]), np.minimum(e[z], 9.9), np.nan)
@@ -64,4 +76,9 @@ def main(folder: Path) -> None:
 
 if __name__ == "__main__":
     here = Path(__file__).resolve().parents[1]
+    if "--apply-correlation" in sys.argv:  # the pair's measured noise correlation in the estimate
+        from napari_dvc_correct.engine.evaluation import error_estimate
+
+        error_estimate.NOISE_CORRELATION_APPLIED = True
+        sys.argv.remove("--apply-correlation")
     main(Path(sys.argv[1]) if len(sys.argv) > 1 else here.parent / "shared/data/real-rock")

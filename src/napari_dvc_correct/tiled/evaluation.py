@@ -47,23 +47,12 @@ from ..engine.evaluation.accuracy_blocks import (
     halo_gradient,
 )
 from ..engine.evaluation.accuracy_pair import (
-    background_from_sums,
-    choose_best,
     pair_start_map,
-    same_phase_block,
 )
 from ..engine.evaluation.binning import node_voxels
 from ..engine.evaluation.error_estimate import error_region_half
 from ..engine.evaluation.error_scales import window_ladder
-from ..engine.evaluation.gray_levels import (
-    DEFAULT_CELL,
-    CellSums,
-    GrayLevelMap,
-    block_sums,
-    cells_shape,
-    fit_from_passes,
-)
-from ..engine.evaluation.gray_noise import pair_noise, scan_noises
+from ..engine.evaluation.gray_noise import scan_noises
 from ..engine.evaluation.local_accuracy import region_half
 from ..engine.evaluation.options import EvaluationOptions
 from ..engine.evaluation.phases import (
@@ -77,13 +66,13 @@ from ..engine.evaluation.phases import (
     validate_thresholds,
 )
 from ..engine.fields.field_spline import FieldSpline
-from ..engine.fields.warp import pull_back_block
 from ..engine.pair_checks import check_field_on_volume
 from ..engine.progress import Progress, run_to_completion
 from ..engine.run_options import RunOptions
 from ..io.lazy import as_lazy, open_volume
 from ..io.lazy_outputs import create_output
 from . import scheduling
+from .evaluation_pair import measure_pair, region_block
 from .memory import (
     PREFILTER_MARGIN,
     SPLINE_SUPPORT,
@@ -186,19 +175,10 @@ def _read_finite(volume, block, name):
     return values
 
 
-def _region_block(region, block):
-    """The specimen region at ``block`` (bool), or None for the whole volume."""
-    if region is None:
-        return None
-    if hasattr(region, "read_region"):
-        return np.asarray(region.read_region(block)) != 0
-    return np.asarray(region[block]) != 0
-
-
 def _scan_block(reference, deformed, block, stride, region=None):
     """Finite check, gray range and the multi-Otsu lattice sample of both states in one block
     (range and sample over the specimen region's voxels, with one)."""
-    inside = _region_block(region, block)
+    inside = region_block(region, block)
     out = []
     for volume, name in ((reference, "reference volume"), (deformed, "deformed volume")):
         values = _read_finite(volume, block, name)
@@ -212,76 +192,12 @@ def _scan_block(reference, deformed, block, stride, region=None):
     return out
 
 
-def _pair_moved(reference, deformed, spline, block, region):
-    g = reference.read_region(block)
-    moved = pull_back_block(LazySampler(deformed), spline, block, "nan")
-    inside = _region_block(region, block)
-    if inside is not None:
-        moved[~inside] = np.nan
-    return g, moved
-
-
-def _pair_sums_block(reference, deformed, spline, block, shape, cell, previous, region=None):
-    """The gray-level map's cell sums of one block (:func:`..engine.evaluation.gray_levels.block_sums`)."""
-    g, moved = _pair_moved(reference, deformed, spline, block, region)
-    return block_sums(g, moved, block, shape, cell, previous)
-
-
-def _pair_background_block(reference, deformed, spline, block, thresholds, gray, region=None):
-    """Eq. 1's same-phase sums of one block with the map ``gray`` (``thresholds``: the
-    reference's, then the moved scan's)."""
-    g, moved = _pair_moved(reference, deformed, spline, block, region)
-    labels = label_phases(g, thresholds[0])
-    return same_phase_block(g, moved, labels, thresholds[1], gray, block)
-
-
-def _measure_pair(
-    volumes, candidates, blocks, shape, thresholds, fit, start, run, region=None, noises=None
-):
-    """:func:`..engine.evaluation.accuracy_pair.measure_pair` block by block (generator): for every
-    candidate two passes fit its map, one more measures its ``r0``. ``noises``: the scans' noise
-    variances (:func:`..engine.evaluation.gray_noise.scan_noises`) for the map's fit."""
-    import dask
-
-    measured = {}
-    for name, field in candidates.items():
-        spline = dask.delayed(FieldSpline.from_field(field))
-
-        def sums_with(previous, spline=spline, name=name):
-            task = dask.delayed(_pair_sums_block, pure=False)
-            tasks = [
-                task(*volumes, spline, block, shape, DEFAULT_CELL, previous, region)
-                for block in blocks
-            ]
-            parts = yield from run(tasks, f"gray levels ({name})")
-            total = CellSums.zeros(cells_shape(shape, DEFAULT_CELL))
-            for part in parts:
-                total.add(part)
-            return total
-
-        if isinstance(fit, GrayLevelMap):
-            gray = fit
-        elif fit:
-            noise = None if noises is None else pair_noise(*noises, field.displacement)
-            gray = yield from fit_from_passes(sums_with, start, shape, DEFAULT_CELL, noise=noise)
-        else:
-            gray = GrayLevelMap.identity(shape)
-        task = dask.delayed(_pair_background_block, pure=False)
-        tasks = [task(*volumes, spline, block, thresholds, gray, region) for block in blocks]
-        parts = yield from run(tasks, f"background ({name})")
-        same_sums = sum(p[0] for p in parts)
-        same_counts = sum(p[1] for p in parts)
-        largest = max(p[2] for p in parts)
-        measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
-    return choose_best(measured)
-
-
 def _evaluate_block(reference, deformed, splines, block, setup, outputs, region=None):
     """Phases of both states and every field's totals in one block; writes the volumes asked."""
     mode, thresholds, plan, centers, halves, mapping, mapped_levels = setup
     g = reference.read_region(block)
     f = deformed.read_region(block)
-    inside = _region_block(region, block)
+    inside = region_block(region, block)
     labels = [label_phases(g, thresholds[0]), label_phases(f, thresholds[1])]
     grays = (g, f)
     if inside is not None:  # outside the specimen: no phase, no gray range
@@ -521,9 +437,9 @@ strain_window, n_bins, bin_edges, shared_background, bin_by, gray_levels, backgr
             )
             moved_thresholds = (thresholds[0], thresholds[0] if mapped_levels else thresholds[1])
             noises = scan_noises(reference, deformed, read=lambda v, box: v.read_region(box))
-            pair = yield from _measure_pair(
+            pair = yield from measure_pair(
                 volumes, candidates, blocks, shape, moved_thresholds, gray_levels, start, run,
-                region_task, noises,
+                region_task, noises, (reference, deformed, region),
             )  # fmt: skip
         mapping = None if pair.gray_levels.is_identity else pair.gray_levels
 

@@ -159,7 +159,7 @@ def test_the_smoothed_gradient_of_a_block_with_its_halo_is_the_whole_volume_s():
     the whole volume's values, at inner faces and at the volume's faces; on a linear ramp it is
     the slope away from the faces."""
     from napari_dvc_correct.engine.evaluation import accuracy_blocks
-    from napari_dvc_correct.engine.evaluation.error_estimate import (
+    from napari_dvc_correct.engine.evaluation.error_moments import (
         INSTRUMENT_RADIUS,
         smoothed_gradient,
     )

@@ -270,7 +270,9 @@ def assemble_evaluation(plan, thresholds, tables, phase_pair, partial, labels, p
         r0 = shared if plan.options["shared_background"] else p["background"].mean
         local_accuracy = local_accuracy_map(p["local_residual"], r0, contrast)
         own = {k: v for k, v in p.items() if k != "error_moments"}
-        estimate, resolution = error_estimate(p["field"], p["error_moments"], shared)
+        estimate, resolution = error_estimate(
+            p["field"], p["error_moments"], shared, correlation=pair.noise_correlation
+        )
         results.append(
             FieldEvaluation(
                 **own,

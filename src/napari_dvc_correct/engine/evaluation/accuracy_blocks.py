@@ -37,7 +37,7 @@ from ..fields.warp import (
 )
 from ..slabs import iter_slabs
 from .binning import GridPart, cell_sums_block, node_box_sums_nested
-from .error_estimate import MOMENTS, ErrorMoments, moment_volumes
+from .error_moments import MOMENTS, ErrorMoments, moment_volumes
 from .gray_levels import GrayLevelMap
 from .phase_sums import residual_phase_sums
 from .phases import NO_PHASE, label_phases
@@ -151,11 +151,11 @@ def halo_gradient(
     ``read_region(slices)`` returns the voxels of a region of the state the residual lives on;
     ``gray_levels`` (a map, or None) is applied to them first (the loaded state, mapped). With
     ``instrument``, the block is read with a halo of
-    :data:`.error_estimate.INSTRUMENT_RADIUS` voxels and the result holds 6 components: the
-    central differences, then the smoothed gradient (:func:`.error_estimate.smoothed_gradient`),
+    :data:`.error_moments.INSTRUMENT_RADIUS` voxels and the result holds 6 components: the
+    central differences, then the smoothed gradient (:func:`.error_moments.smoothed_gradient`),
     both the whole volume's.
     """
-    from .error_estimate import INSTRUMENT_RADIUS, smoothed_gradient
+    from .error_moments import INSTRUMENT_RADIUS, smoothed_gradient
 
     reach = max(1, INSTRUMENT_RADIUS) if instrument else 1
     grown = tuple(
@@ -184,7 +184,7 @@ class BlockTotals:
     cells: GridPart  # residual per node cell of the binning field's grid
     nodes: GridPart  # residual per node box of this field (local residual)
     error_nodes: GridPart | None = None  # residual per node window (the error estimate's region)
-    moments: list | None = None  # per window half: GridPart per error_estimate.MOMENTS
+    moments: list | None = None  # per window half: GridPart per error_moments.MOMENTS
 
 
 def field_block(
@@ -246,7 +246,7 @@ def field_block(
     gradient : ndarray, shape (3 or 6, *box_shape(box)), optional
         ``grad own`` of the block, and its smoothed gradient (:func:`halo_gradient` with
         ``instrument``; default: from the block alone, one-sided at its faces), with the signed
-        residual the error estimate's moments (:func:`.error_estimate.moment_volumes`).
+        residual the error estimate's moments (:func:`.error_moments.moment_volumes`).
     region_block : ndarray of bool, shape box_shape(box), optional
         The specimen region at the block's voxels: outside it the residual is undefined (NaN)
         and takes no part in any number.
@@ -382,7 +382,7 @@ class FieldAccumulator:
             )
 
     def error_moments(self) -> tuple[ErrorMoments, ...]:
-        """Window means of the error estimate's moments (:class:`.error_estimate.ErrorMoments`),
+        """Window means of the error estimate's moments (:class:`.error_moments.ErrorMoments`),
         one per window half, in field_block's ``error_half`` order."""
         return tuple(
             ErrorMoments.from_sums(sums, counts, half)

@@ -16,7 +16,7 @@ reference's gray levels; the reference's phase thresholds phase both sides.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -31,7 +31,8 @@ from .gray_levels import (
     fit_from_passes,
     start_map,
 )
-from .gray_noise import pair_noise, scan_noises
+from .gray_noise import noise_box, pair_noise, scan_noises
+from .noise_correlation import NoiseCorrelation, measure_noise_correlation
 from .phase_sums import residual_phase_sums
 from .phases import otsu_stride
 
@@ -54,22 +55,29 @@ class PairStatistics:
         Name of the field both were measured with.
     candidates : dict of str -> float
         Each candidate field's same-phase residual (the smallest was kept).
+    noise_correlation : NoiseCorrelation or None
+        The scans' noise correlation in space, measured on that field's residual
+        (:mod:`.noise_correlation`; None: not measured, taken as white).
     """
 
     gray_levels: GrayLevelMap
     background: BackgroundResidual
     measured_with: str
     candidates: dict
+    noise_correlation: NoiseCorrelation | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready (reports, layer metadata)."""
-        return {
+        out = {
             "background_residual": float(self.background.mean),
             "background_voxels": int(self.background.voxels),
             "measured_with": self.measured_with,
             "candidates": {k: float(v) for k, v in self.candidates.items()},
             "gray_levels": self.gray_levels.to_dict(),
         }
+        if self.noise_correlation is not None:
+            out["noise_correlation"] = self.noise_correlation.to_dict()
+        return out
 
 
 def background_from_sums(same_sums, same_counts, max_label) -> BackgroundResidual:
@@ -115,6 +123,24 @@ def choose_best(candidates: dict) -> PairStatistics:
         )
     values = {k: float(v[1].mean) for k, v in candidates.items()}
     return PairStatistics(gray, background, name, values)
+
+
+def residual_box(reference_box, moved_box, gray, box) -> np.ndarray:
+    """``map(F~) − G`` on the block ``box`` (float64, NaN where undefined): what the noise
+    correlation is measured on (:func:`with_noise_correlation`)."""
+    moved = gray.apply(moved_box, box).astype(np.float64)
+    return moved - np.asarray(reference_box, np.float64)
+
+
+def with_noise_correlation(pair: PairStatistics, residuals: dict, reference_box, fields):
+    """``pair`` with the scans' noise correlation measured on its best field's residual on the
+    central block (``residuals[name]``: :func:`residual_box` on :func:`.gray_noise.noise_box`;
+    ``fields[name]``: the field, for the pull-back's fractional parts)."""
+    name = pair.measured_with
+    correlation = measure_noise_correlation(
+        residuals[name], reference_box, fields[name].displacement
+    )
+    return replace(pair, noise_correlation=correlation)
 
 
 def _slabs(shape):
@@ -175,7 +201,8 @@ def measure_pair(
     shape = tuple(int(n) for n in reference.shape)
     start = pair_start_map(lattice(reference), lattice(deformed))
     noises = scan_noises(reference, deformed) if fit_map and gray_levels is None else None
-    measured = {}
+    central = noise_box(shape)
+    measured, residuals = {}, {}
     for name, field in candidates.items():
         moved = warp.pull_back(
             deformed,
@@ -208,4 +235,6 @@ def measure_pair(
             )
             same_sums, same_counts, largest = same_sums + s, same_counts + c, max(largest, m)
         measured[str(name)] = (gray, background_from_sums(same_sums, same_counts, largest))
-    return choose_best(measured)
+        residuals[str(name)] = residual_box(reference[central], moved[central], gray, central)
+    fields = {str(k): v for k, v in candidates.items()}
+    return with_noise_correlation(choose_best(measured), residuals, reference[central], fields)

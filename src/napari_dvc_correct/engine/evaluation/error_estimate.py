@@ -17,11 +17,11 @@ the node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   That step is taken with an **instrument**: the noise of ``G``'s gradient pairs with itself in
   ``cov(g, g)`` and makes the step noisy where the noise is a large share of the gradient
   (faint CT texture). The step uses ``w = (g + h)/2`` instead of ``g`` on the left of every
-  covariance, ``h`` the gradient of ``G`` smoothed by a Gaussian of :data:`INSTRUMENT_SIGMA`
-  voxel (:func:`smoothed_gradient`, the same texture with less noise):
+  covariance, ``h`` the gradient of ``G`` smoothed by a Gaussian of :data:`.error_moments.INSTRUMENT_SIGMA`
+  voxel (:func:`.error_moments.smoothed_gradient`, the same texture with less noise):
   ``Δu = A⁻¹ (cov(w, s) − a_w (cov(G, s) + σ²) / v)``, ``A = cov(w, g) − a_w aᵀ / v − p σ² I``
   with ``a_w = cov(w, G)`` and ``p = (1/2 + c)/2`` the noise's pairing of ``w`` with ``g`` at a
-  voxel (``c``: :func:`instrument_noise_pairing`; ``w`` and ``s`` do not pair: the derivative
+  voxel (``c``: :func:`.error_moments.instrument_noise_pairing`; ``w`` and ``s`` do not pair: the derivative
   kernels are odd). Its noise has covariance ``C = 2σ²/n A⁻¹ W A⁻ᵀ``, ``W = cov(w, w) −
   a_w a_wᵀ / v``, over ``n`` voxels: ``√tr C`` is the node's **resolution** (errors below it
   do not show in the residual) and the resolved error is ``e_r = √max(|Δu|² − tr C, 0)``.
@@ -49,7 +49,10 @@ the node (the sums are gathered block by block, :mod:`.accuracy_blocks`):
   grid's scale is not an error).
 
 ``σ`` is the scans' noise, from the pair's ``r0`` (eq. 1: the residual's noise has variance
-``π r0²/2``), half of it each scan's. Where the window has no texture (``H_t`` near 0: air, a
+``π r0²/2``), half of it each scan's. The pairings above are white noise's; where the scans'
+noise is correlated in space (measured on the pair's residual, :mod:`.noise_correlation`) they
+follow its correlation, and the resolution's variance is multiplied by the window sums' factor
+under it (:meth:`.noise_correlation.NoiseCorrelation.factor`). Where the window has no texture (``H_t`` near 0: air, a
 flat region) the resolution is infinite. Measured against true errors in
 ``docs/evaluation.md`` (``benchmarks/bench_error_estimate.py``). Arrays are on the field's grid
 ``(nz, ny, nx)``.
@@ -57,14 +60,22 @@ flat region) the resolution is infinite. Measured against true errors in
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from .error_moments import _PAIRS, ErrorMoments
 from .error_scales import finest_resolved, node_error_bound
 from .node_roughness import deviation_size, node_deviation
+from .noise_correlation import NoiseCorrelation
+
+#: Whether :func:`error_estimate` uses the pair's measured noise correlation
+#: (:mod:`.noise_correlation`). Off (white noise, as before): measured on the best field's
+#: residual, the correlation also reads that field's own errors on clear texture (a band on a
+#: two-phase texture, our DVC's fields of the band cases) and moves white-noise cases
+#: (docs/evaluation.md, "Spatially correlated noise"); the pair still measures and reports it.
+NOISE_CORRELATION_APPLIED = False
 
 #: Nodes whose error is likely above this many voxels are counted as likely bad
 #: (:func:`probability_above`).
@@ -93,30 +104,6 @@ MATCHED_CONTRAST = 0.5
 #: reach before it counts as an error beyond the linear range.
 UNEXPLAINED_SIGMAS = 4.0
 
-#: Standard deviation (voxels) of the Gaussian whose derivative gives the smoothed gradient
-#: ``h`` of the state, the instrument of the step (see :func:`residual_error`), and the
-#: truncation of its kernel in standard deviations: the kernel reaches
-#: :data:`INSTRUMENT_RADIUS` voxels, the halo a block reads for it.
-INSTRUMENT_SIGMA = 1.0
-INSTRUMENT_TRUNCATE = 3.0
-INSTRUMENT_RADIUS = int(INSTRUMENT_TRUNCATE * INSTRUMENT_SIGMA + 0.5)
-
-#: Order of the moments gathered per node (:class:`ErrorMoments`): the signed residual ``s``, the
-#: state's gray value ``G``, its gradient ``g = (gz, gy, gx)`` and its smoothed gradient
-#: ``h = (hz, hy, hx)``, then their products.
-MOMENTS = (
-    "s", "G", "gz", "gy", "gx",
-    "gzgz", "gzgy", "gzgx", "gygy", "gygx", "gxgx",
-    "gzG", "gyG", "gxG", "GG",
-    "gzs", "gys", "gxs", "Gs", "ss",
-    "hz", "hy", "hx",
-    "hzgz", "hzgy", "hzgx", "hygz", "hygy", "hygx", "hxgz", "hxgy", "hxgx",
-    "hzhz", "hzhy", "hzhx", "hyhy", "hyhx", "hxhx",
-    "hzG", "hyG", "hxG",
-    "hzs", "hys", "hxs",
-)  # fmt: skip
-_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
 
 def error_region_half(field) -> int:
     """Half-size of a node's window for the error estimate: one grid step (the largest), within
@@ -135,128 +122,6 @@ def error_region_half(field) -> int:
 def noise_sigma(background: float) -> float:
     """Standard deviation of one scan's noise from eq. 1's ``r0 = E|n_F - n_G| = 2σ/√π``."""
     return float(background) * np.sqrt(np.pi) / 2.0
-
-
-def smoothed_gradient(values: np.ndarray) -> np.ndarray:
-    """``h``: the gradient of ``values`` smoothed by a Gaussian of :data:`INSTRUMENT_SIGMA`
-    voxels (its derivative, components ``(z, y, x)``, float32; the volume's edges repeated).
-    A voxel's value depends on the voxels within :data:`INSTRUMENT_RADIUS` only, so a block read
-    with that halo gives the whole volume's values."""
-    from scipy import ndimage
-
-    values = np.asarray(values, dtype=np.float64)
-    out = np.zeros((3, *values.shape), np.float32)
-    for axis in range(3):
-        order = [0, 0, 0]
-        order[axis] = 1
-        out[axis] = ndimage.gaussian_filter(
-            values, INSTRUMENT_SIGMA, order=order, mode="nearest", truncate=INSTRUMENT_TRUNCATE
-        )
-    return out
-
-
-@functools.cache
-def instrument_noise_pairing() -> float:
-    """``E[h_i g_i] / σ²`` for white noise of variance ``σ²``: the pairing of the noise's
-    smoothed gradient with its central difference at the same voxel (the same noise in both;
-    0 across components)."""
-    n = 4 * INSTRUMENT_RADIUS + 3
-    impulse = np.zeros((n, n, n))
-    impulse[n // 2, n // 2, n // 2] = 1.0
-    smoothed = smoothed_gradient(impulse)[0].astype(np.float64)
-    central = np.gradient(impulse, axis=0)
-    return float(np.sum(smoothed * central))
-
-
-def moment_volumes(signed: np.ndarray, own: np.ndarray, gradient: np.ndarray):
-    """The voxel quantities whose window means make :class:`ErrorMoments`, one at a time in
-    :data:`MOMENTS`'s order (a generator of float32 arrays, NaN where ``signed`` is: a block
-    holds one product at a time, not forty).
-
-    Parameters
-    ----------
-    signed : ndarray, shape (nz, ny, nx)
-        Signed residual ``s`` (gray levels; NaN where undefined).
-    own : ndarray, shape (nz, ny, nx)
-        The state the residual lives on, ``G`` (gray levels).
-    gradient : ndarray, shape (3 or 6, nz, ny, nx)
-        Its gradient ``g``, components ``(z, y, x)`` (gray levels per voxel), then (6
-        components) its smoothed gradient ``h`` (:func:`smoothed_gradient`, read with a halo:
-        :func:`.accuracy_blocks.halo_gradient`); with 3, ``h`` is taken from ``own`` alone.
-    """
-    s = np.asarray(signed, np.float32)
-    valid = np.isfinite(s)
-    nan = np.float32(np.nan)
-    gray = np.where(valid, np.asarray(own, np.float32), nan)
-    gradient = np.asarray(gradient, np.float32)
-    if gradient.shape[0] == 3:
-        gradient = np.concatenate([gradient, smoothed_gradient(own)])
-    g = np.where(valid[None], gradient[:3], nan)
-    h = np.where(valid[None], gradient[3:6], nan)
-    yield from (s, gray, g[0], g[1], g[2])
-    for i, j in _PAIRS:
-        yield g[i] * g[j]
-    for i in range(3):
-        yield g[i] * gray
-    yield gray * gray
-    for i in range(3):
-        yield g[i] * s
-    yield gray * s
-    yield s * s
-    yield from (h[0], h[1], h[2])
-    for i in range(3):
-        for j in range(3):
-            yield h[i] * g[j]
-    for i, j in _PAIRS:
-        yield h[i] * h[j]
-    for i in range(3):
-        yield h[i] * gray
-    for i in range(3):
-        yield h[i] * s
-
-
-@dataclass(frozen=True)
-class ErrorMoments:
-    """Window means per node of the quantities of :func:`moment_volumes`.
-
-    Attributes
-    ----------
-    count : ndarray, shape (nz, ny, nx), int64
-        Voxels with a defined residual in each node's window.
-    means : ndarray, shape (len(MOMENTS), nz, ny, nx), float64
-        Their means, in :data:`MOMENTS`'s order (NaN where ``count`` is 0).
-    half : int or None
-        The windows' half-size in voxels (None: not known; the estimate then reads this one
-        window alone).
-    """
-
-    count: np.ndarray
-    means: np.ndarray
-    half: int | None = None
-
-    @classmethod
-    def from_sums(
-        cls, sums: np.ndarray, count: np.ndarray, half: int | None = None
-    ) -> ErrorMoments:
-        """From the window sums ``(len(MOMENTS), nz, ny, nx)``, the voxel count and the half-size."""
-        count = np.asarray(count, np.int64)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            means = np.where(count > 0, sums / np.maximum(count, 1), np.nan)
-        return cls(count, means, None if half is None else int(half))
-
-    def mean(self, name: str) -> np.ndarray:
-        return self.means[MOMENTS.index(name)]
-
-    def covariance(self, a: str, b: str) -> np.ndarray:
-        """``<a b> - <a><b>`` over each window (``a``, ``b`` among ``s, G, gz, gy, gx, hz, hy,
-        hx``)."""
-        key = a + b if a + b in MOMENTS else b + a
-        return self.mean(key) - self.mean(a) * self.mean(b)
-
-    @property
-    def rms_gradient(self) -> np.ndarray:
-        """``sqrt(<|grad G|²>)`` (gray levels per voxel), noise included."""
-        return np.sqrt(self.mean("gzgz") + self.mean("gygy") + self.mean("gxgx"))
 
 
 @dataclass(frozen=True)
@@ -284,7 +149,10 @@ class ResidualError:
 
 
 def residual_error(
-    moments: ErrorMoments, background: float, own_share: float = 0.5
+    moments: ErrorMoments,
+    background: float,
+    own_share: float = 0.5,
+    correlation: NoiseCorrelation | None = None,
 ) -> ResidualError:
     """The error each node's window residual resolves (see the module for the model).
 
@@ -292,7 +160,7 @@ def residual_error(
     ----------
     moments : ErrorMoments
         Window means of the signed residual, the gray value, its gradient and its smoothed
-        gradient, and their products (:func:`moment_volumes`).
+        gradient, and their products (:func:`.error_moments.moment_volumes`).
     background : float
         ``r0`` of the scan pair (eq. 1), gray levels: the residual's noise has variance
         ``π r0² / 2`` (``2σ²`` for two scans of noise ``σ``).
@@ -301,7 +169,13 @@ def residual_error(
         whose gradient is used): 1/2 for the same noise in both scans in the reference's gray
         levels. (A map's gain cannot tell which: a real rescaling of the loaded scan scales its
         noise too, the dilution of a least-squares map by noise does not.)
+    correlation : NoiseCorrelation, optional
+        The scans' noise correlation in space (:mod:`.noise_correlation`, measured on the
+        pair's residual): the noise's pairings of ``g`` and ``h`` and the variance of the window
+        sums follow it. None: white noise.
     """
+    correlation = NoiseCorrelation.white() if correlation is None else correlation
+    own_pairing = correlation.pairing("g", "g")  # σ²/2 I for white noise
     total = 0.5 * np.pi * float(background) ** 2  # the residual's noise variance
     sigma2 = total * float(own_share)  # the gradient's state's noise variance
     n = np.maximum(moments.count.astype(np.float64), 1.0)
@@ -333,14 +207,15 @@ def residual_error(
     b_s = (b - a * lift[..., None]) / contrast[..., None]
     w, v = np.linalg.eigh(h_s)
     w = np.maximum(w, 0.0)
-    w_t = np.maximum(w - 0.5 * sigma2, MIN_TEXTURE_SHARE * w)  # texture's part (noise out)
+    noise_share = np.trace(own_pairing) / 3.0
+    w_t = np.maximum(w - noise_share * sigma2, MIN_TEXTURE_SHARE * w)  # texture's part
     textured = np.all(w_t > 1e-12 * max(1.0, sigma2), axis=-1) & defined
     safe = np.where(textured[..., None], w_t, 1.0)
     coordinates = np.einsum("...ji,...j->...i", v, b_s) / safe  # plain Δu in the eigenbasis
     # the step with the instrument w = (g + h)/2 (see the module): its sensitivity, the
     # noise's pairings of w with g taken out (σ²/2 for central differences, c σ² for h)
     smooth = ("hz", "hy", "hx")
-    pairing = 0.5 * sigma2 * (0.5 + instrument_noise_pairing())
+    pairing = 0.5 * sigma2 * (own_pairing + correlation.pairing("h", "g"))
     sensitivity = np.empty(h.shape)
     spread = np.empty(h.shape)
     for i in range(3):
@@ -352,7 +227,7 @@ def residual_error(
                 + cov(smooth[i], axes[j])
                 + cov(smooth[i], smooth[j])
             )
-        sensitivity[..., i, i] -= pairing
+    sensitivity -= pairing
     a_w = 0.5 * (a + np.stack([cov(k, "G") for k in smooth], axis=-1))
     b_w = 0.5 * (b + np.stack([cov(k, "s") for k in smooth], axis=-1))
     sensitivity -= (
@@ -374,6 +249,7 @@ def residual_error(
     shift = np.einsum("...ij,...j->...i", inverse, b_w)
     covariance = inverse @ spread @ np.swapaxes(inverse, -1, -2)
     variance = total / n * np.trace(covariance, axis1=-2, axis2=-1) / contrast**2
+    variance = variance * correlation.factor(moments.half)  # correlated noise: the step's scatter
     textured = solvable & np.isfinite(variance)
     variance = np.where(textured, variance, 0.0)
     resolution = np.where(textured, np.sqrt(variance), np.inf)
@@ -382,7 +258,7 @@ def residual_error(
     # the residual's excess variance (gray offset and gain out) against what the step explains
     excess = cov("s", "s") - lift**2 * gray - total
     explained = contrast**2 * np.sum(w_t * coordinates * coordinates, axis=-1)
-    noise = np.sqrt(2.0) * total / np.sqrt(n)
+    noise = np.sqrt(2.0 * correlation.square_sum) * total / np.sqrt(n)
     unexplained = (
         defined
         & (1.0 + lift < MATCHED_CONTRAST)
@@ -409,10 +285,11 @@ def noise_error(field) -> np.ndarray:
 
 
 def error_estimate(
-    field, moments, background: float, own_share: float = 0.5
+    field, moments, background: float, own_share: float = 0.5, correlation=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Estimated displacement error per node and the residual's resolution there (voxels);
-    ``background`` and ``own_share`` as in :func:`residual_error`. ``moments`` is one
+    ``background``, ``own_share`` and ``correlation`` as in :func:`residual_error` (the
+    correlation is used only where :data:`NOISE_CORRELATION_APPLIED`). ``moments`` is one
     :class:`ErrorMoments` or one per window, finest first (:mod:`.error_scales`; windows of
     known half-size also bound ``d``).
 
@@ -427,7 +304,8 @@ def error_estimate(
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
     windows = (moments,) if isinstance(moments, ErrorMoments) else tuple(moments)
-    residuals = [residual_error(m, background, own_share) for m in windows]
+    correlation = correlation if NOISE_CORRELATION_APPLIED else None
+    residuals = [residual_error(m, background, own_share, correlation) for m in windows]
     deviation = node_deviation(field.u)
     roughness = np.nan_to_num(deviation_size(deviation), nan=0.0)
     halves = [m.half for m in windows]
