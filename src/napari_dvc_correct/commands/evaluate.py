@@ -298,6 +298,8 @@ def run(args) -> int:
         f"{evaluation.gray_levels.describe()}; background r0 {evaluation.pair.background.mean:.4g}"
         f" (the pair's, measured with '{evaluation.pair.measured_with}')"
     )
+    if evaluation.pair.noise_text():
+        print(evaluation.pair.noise_text())
     for item in evaluation.fields:
         error = item.error
         if not item.meaningful:

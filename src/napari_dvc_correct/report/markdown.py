@@ -173,6 +173,7 @@ def render_markdown(
         f"{evaluation.gray_levels.describe()}, fitted once for the scan pair. Background "
         f"residual r̄0 = {pair.background.mean:.4g} (eq. 1, the pair's, measured with "
         f"'{pair.measured_with}'; a field's p does not depend on which others are evaluated)."
+        + (f" {pair.noise_text()[0].upper()}{pair.noise_text()[1:]}." if pair.noise_text() else "")
     )
     parts.append(
         f"Residual: {residual_kind}, defined inside the box spanned by the grid nodes. "

@@ -286,6 +286,7 @@ def evaluation_report(evaluation) -> dict:
         "gray levels": evaluation.gray_levels.describe(),
         "background residual r0 (pair)": float(evaluation.pair.background.mean),
         "r0 measured with": evaluation.pair.measured_with,
+        "scan noise": evaluation.pair.noise_text(),
         "thresholds (reference)": [float(t) for t in evaluation.thresholds_reference],
         "thresholds (deformed)": [float(t) for t in evaluation.thresholds_deformed],
         "phase pair": [int(p) for p in evaluation.phase_pair],
@@ -384,6 +385,8 @@ def summary_text(evaluation) -> str:
         f"'{pair.measured_with}'); mean gray per phase (reference): {gray}; contrast "
         f"{evaluation.contrast:.1f}",
     ]
+    if pair.noise_text():
+        lines.append(pair.noise_text()[0].upper() + pair.noise_text()[1:])
     for item in evaluation.fields:
         lines.extend(field_lines(item))
     return "\n".join(lines)

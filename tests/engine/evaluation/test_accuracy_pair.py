@@ -170,3 +170,15 @@ def test_the_pairs_map_keeps_the_full_contrast_under_noise(pair):
     assert gray.fit == "errors in variables"
     assert gray.contrast == pytest.approx(1.0, abs=0.03)  # least squares: 0.88
     assert result.pair.to_dict()["gray_levels"]["fit"] == "errors in variables"
+
+
+def test_the_pair_s_noise_in_words_is_empty_where_not_measured():
+    from dataclasses import replace
+
+    from napari_dvc_correct.engine.evaluation.accuracy_pair import PairStatistics
+    from napari_dvc_correct.engine.evaluation.noise_correlation import NoiseCorrelation
+
+    pair = PairStatistics(None, None, "field", {})
+    assert pair.noise_text() == ""
+    white = replace(pair, noise_correlation=NoiseCorrelation.white())
+    assert white.noise_text() == NoiseCorrelation.white().describe()

@@ -170,3 +170,17 @@ def test_the_resolution_follows_the_step_s_scatter_under_correlated_noise():
     correlation, (plain, measured) = _scatter_against_resolution(0.7)
     assert correlation.along(0)[0] == pytest.approx(0.6, abs=0.03)
     assert plain > 2.0 and 0.85 < measured < 1.25
+
+
+def test_the_correlation_in_words_gives_one_voxel_lags_and_the_resolution_s_shortfall():
+    assert NoiseCorrelation.white().describe() == (
+        "scan noise white in space (no correlation 1–3 voxels apart)"
+    )
+    lags = np.arange(-MAX_LAG, MAX_LAG + 1)
+    rho = np.exp(
+        -(lags[:, None, None] ** 2 + 2 * lags[None, :, None] ** 2 + lags[None, None, :] ** 2)
+    )
+    text = NoiseCorrelation(rho, {2: 3.0, 6: 6.25}).describe()
+    one = np.exp(-1.0), np.exp(-2.0), np.exp(-1.0)  # z, y, x
+    assert f"z/y/x: {one[0]:.2f}/{one[1]:.2f}/{one[2]:.2f}" in text
+    assert "up to 2.5× small" in text  # √6.25: the largest variance factor as a spread

@@ -66,6 +66,10 @@ class PairStatistics:
     candidates: dict
     noise_correlation: NoiseCorrelation | None = None
 
+    def noise_text(self) -> str:
+        """The scans' noise correlation in words ("" where not measured)."""
+        return "" if self.noise_correlation is None else self.noise_correlation.describe()
+
     def to_dict(self) -> dict:
         """JSON-ready (reports, layer metadata)."""
         out = {

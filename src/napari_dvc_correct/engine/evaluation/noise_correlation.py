@@ -117,6 +117,19 @@ class NoiseCorrelation:
             return (0.5 if first == "g" else instrument_noise_pairing()) * np.eye(3)
         return _pairing(first, second, _key(self.rho))
 
+    def describe(self) -> str:
+        """One line for the reports: the correlation one voxel apart along z, y, x and what it
+        does to the error estimate's resolution, which takes the noise as white
+        (:data:`.error_estimate.NOISE_CORRELATION_APPLIED` off)."""
+        if self.is_white:
+            return "scan noise white in space (no correlation 1–3 voxels apart)"
+        one = "/".join(f"{self.along(axis)[0]:.2f}" for axis in range(3))
+        spread = np.sqrt(max(self.factors.values(), default=1.0))
+        return (
+            f"scan noise correlated in space (ρ one voxel apart, z/y/x: {one}): the error "
+            f"estimate takes it as white, so its resolution may read up to {spread:.1f}× small"
+        )
+
     def to_dict(self) -> dict:
         return {
             "lags_zyx": [self.along(a).round(4).tolist() for a in range(3)],
