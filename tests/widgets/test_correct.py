@@ -183,3 +183,34 @@ def test_two_fields_with_one_name_can_both_be_chosen(viewer_pair):
     chosen = widget.choices()
     assert float(chosen["aldvc"].u[0, 0, 0, 0]) == 0.5
     assert float(chosen["aldvc [1]"].u[0, 0, 0, 0]) == 1.0
+
+
+def test_correcting_an_opened_field_keeps_its_name_and_the_other_s_layers(correlated, run_panel):
+    """A field from a file ('aldvc') corrects into '(aldvc, corrected)' layers; correcting the
+    panel's own field afterwards leaves them alone (user audit, item 2)."""
+    from napari.layers import Layer
+
+    from napari_dvc_correct.layers import field_layers, plugin_metadata
+
+    viewer = correlated.viewer
+    opened = field_of(viewer.layers["|u| (uncorrected)"]).copy()  # as if saved and opened
+    for data, kwargs, layer_type in field_layers(opened, "aldvc"):
+        viewer.add_layer(Layer.create(data, kwargs, layer_type))
+    widget = _dock(viewer)
+    widget.max_passes.setValue(1)
+    widget.field.setCurrentText("aldvc")
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    assert "|u| (aldvc, corrected)" in viewer.layers
+    assert "|u| (corrected)" not in viewer.layers
+    from_file = field_of(viewer.layers["|u| (aldvc, corrected)"])
+    widget.field.setCurrentText("uncorrected")
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    sources = [(plugin_metadata(x) or {}).get("source") for x in viewer.layers]
+    assert sources.count("aldvc, corrected") == 2 and sources.count("corrected") == 2
+    assert field_of(viewer.layers["|u| (aldvc, corrected)"]) is from_file
+    assert [widget.field.itemText(i) for i in range(widget.field.count())] == [
+        "uncorrected",
+        "aldvc",
+    ]

@@ -39,3 +39,18 @@ def test_the_summary_says_before_after_why_it_stopped_and_in_which_frame():
         "Gray levels of the loaded scan mapped onto the reference's: G ≈ 2·F; residuals are in "
         "the reference's gray levels."
     )
+
+
+def test_a_corrected_field_is_named_after_its_source():
+    """Correcting an opened field 'aldvc' never replaces another field's '(corrected)' layers
+    (user audit, item 2); the corrected ones are not offered again."""
+    corrected_source, is_corrected = model.corrected_source, model.is_corrected
+    cases = {
+        "uncorrected": "corrected",
+        "series (total)": "series (total, corrected)",
+        "aldvc": "aldvc, corrected",
+        "aldvc [1]": "aldvc [1], corrected",
+    }
+    assert {source: corrected_source(source) for source in cases} == cases
+    assert all(is_corrected(name) for name in cases.values())
+    assert not any(is_corrected(source) for source in cases)

@@ -19,6 +19,23 @@ UPDATES = {
 }
 
 
+def corrected_source(source: str) -> str:
+    """Name of the corrected field of the field ``source``: ``"uncorrected"`` (the field the
+    Correlate panel made) -> ``"corrected"``, ``"series (total)"`` -> ``"series (total,
+    corrected)"``, a field opened from a file, ``"aldvc"`` -> ``"aldvc, corrected"``; so
+    correcting one field never replaces the corrected layers of another."""
+    if source == "uncorrected":
+        return "corrected"
+    if source.endswith(")"):
+        return source[:-1] + ", corrected)"
+    return source + ", corrected"
+
+
+def is_corrected(source: str) -> bool:
+    """True for a name :func:`corrected_source` gives (such fields are not offered again)."""
+    return source == "corrected" or source.endswith((", corrected)", ", corrected"))
+
+
 @dataclass
 class CorrectionResult:
     """The corrected field and where to show it."""
