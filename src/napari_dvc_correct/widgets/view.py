@@ -172,6 +172,8 @@ class ViewWidget(QWidget):
         inserted = getattr(event, "value", None)
         entry = L.plugin_metadata(inserted) if inserted is not None else None
         if entry is not None and entry.get("kind") == "quantity":
+            if inserted.visible:  # a field opened from a file comes on view alone, as a result
+                V.hide_other_fields(self.viewer, [inserted])
             quantity = entry.get("quantity")
             if quantity != self.quantity.currentData():
                 self.quantity.blockSignals(True)
