@@ -54,3 +54,16 @@ def test_a_corrected_field_is_named_after_its_source():
     assert {source: corrected_source(source) for source in cases} == cases
     assert all(is_corrected(name) for name in cases.values())
     assert not any(is_corrected(source) for source in cases)
+
+
+def test_before_after_pairs_a_field_with_its_own_corrected_one():
+    """View ▸ Before ⇄ after toggles the opened field 'aldvc' with 'aldvc, corrected', not only
+    the panel's own 'uncorrected' / 'corrected'."""
+    sources = ["uncorrected", "aldvc", "corrected", "aldvc, corrected"]
+    pair = model.before_after_pair
+    assert pair(sources, ["aldvc"]) == ("aldvc", "aldvc, corrected")
+    assert pair(sources, ["aldvc, corrected"]) == ("aldvc, corrected", "aldvc")
+    assert pair(sources, ["uncorrected"]) == ("uncorrected", "corrected")
+    assert pair(sources, ["corrected"]) == ("corrected", "uncorrected")
+    assert pair(sources, sources)[1] == "corrected"  # all overlaid: as before
+    assert pair(["aldvc", "snow48"], ["aldvc"]) is None  # nothing corrected yet

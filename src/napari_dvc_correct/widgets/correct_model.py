@@ -36,6 +36,26 @@ def is_corrected(source: str) -> bool:
     return source == "corrected" or source.endswith((", corrected)", ", corrected"))
 
 
+def before_after_pair(sources: list[str], visible: list[str]) -> tuple[str, str] | None:
+    """The field on view and its corrected one (or the other way round), as the View panel's
+    *Before ⇄ after* toggles them: ``(shown, target)``; ``("uncorrected", "corrected")`` when
+    neither of a pair is alone on view; None without a pair."""
+    for shown in visible[:1] if len(visible) == 1 else []:
+        partner = corrected_source(shown)
+        if partner in sources:
+            return shown, partner
+        before = [s for s in sources if not is_corrected(s) and corrected_source(s) == shown]
+        if before:
+            return shown, before[0]
+    if "uncorrected" in sources and "corrected" in sources:
+        return (
+            ("uncorrected", "corrected")
+            if visible != ["corrected"]
+            else ("corrected", "uncorrected")
+        )
+    return None
+
+
 @dataclass
 class CorrectionResult:
     """The corrected field and where to show it."""
