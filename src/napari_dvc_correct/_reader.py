@@ -10,7 +10,8 @@ the user's reader preferences. Our field files are written as ``*.dvcfield``
 (:data:`.io.npz.FIELD_SUFFIX`), a name only this plugin claims, so File ▸ Open, drag-and-drop and
 ``viewer.open(path, plugin=None)`` open them as field layers without a dialog, with fresh
 settings. A field file named ``*.npz`` is still read (its contents are checked), but napari's own
-reader claims every ``*.npz`` too, so napari asks which reader to use; an ``.npz`` that is
+reader claims every ``*.npz`` too, so napari asks which reader to use. An ``.npz`` of several
+volumes opens as one Image layer each (:func:`read_npz_volumes`); any other ``.npz`` that is
 neither our field file nor another tool's is handed to napari's built-in reader.
 """
 
@@ -105,6 +106,8 @@ def napari_get_reader(path):
         return None  # our field file, broken: nothing can read it (napari's reader would raise)
     if suffix in (*FOREIGN_SUFFIXES, ".npz") and foreign_field_format(path):
         return read_foreign_field
+    if suffix == ".npz" and len(_npz_volumes(path)) > 1:
+        return read_npz_volumes
     if suffix == ".npz":  # not a field: napari's own reader, as if ours were not there
         return _builtin_reader(path)
     if suffix in TIFF_SUFFIXES and path.is_file():
@@ -169,6 +172,34 @@ def read_tiff_slices(paths) -> list[tuple]:
 
     paths = [Path(p) for p in paths]
     return [(tifffile.imread(paths), {"name": paths[0].parent.name or paths[0].stem}, "image")]
+
+
+def _npz_volumes(path) -> list[str]:
+    """Names of the 3-D real arrays of an ``.npz`` (headers only; [] if it cannot tell)."""
+    from .io.sizes import npz_members
+
+    try:
+        members = npz_members(path)
+    except ValueError:
+        return []
+    return [
+        name
+        for name, member in members.items()
+        if len(member.shape) == 3 and np.dtype(member.dtype).kind in "uif"
+    ]
+
+
+def read_npz_volumes(path) -> list[tuple]:
+    """An ``.npz`` holding several volumes (the real-rock crops: ``reference``, ``deformed``):
+    one Image layer each, named ``FILE:NAME`` as the command line names them. napari's own
+    reader gave one layer under the file's name holding one of them (the deformed scan)."""
+    from .io.volumes import read_volume
+
+    path = Path(path[0] if isinstance(path, (list, tuple)) else path)
+    return [
+        (read_volume(f"{path}:{name}"), {"name": f"{path.stem}:{name}"}, "image")
+        for name in _npz_volumes(path)
+    ]
 
 
 def read_field_file(path) -> list[tuple]:

@@ -179,6 +179,17 @@ def text_overlay(viewer):
     return canvas_overlay(viewer, "text")
 
 
+def hide_other_fields(viewer, keep) -> None:
+    """Hide the quantity layers and arrows of every field but the layers ``keep`` (and their
+    colorbars): one field on view at a time, not stacked."""
+    for layer in viewer.layers:
+        kind = (plugin_metadata(layer) or {}).get("kind")
+        if kind in ("quantity", "vectors") and layer not in keep:
+            layer.visible = False
+            if kind == "quantity":
+                layer.colorbar.visible = False
+
+
 def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
     """Show a new field's layers and make them the ones on view (toggled, not stacked).
 
@@ -191,12 +202,7 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
         quantity = plugin_metadata(current).get("quantity")
     added = show_layers(viewer, layer_tuples)
     new = [x for x in added if (plugin_metadata(x) or {}).get("kind") == "quantity"]
-    for layer in viewer.layers:
-        kind = (plugin_metadata(layer) or {}).get("kind")
-        if kind in ("quantity", "vectors") and layer not in added:
-            layer.visible = False
-            if kind == "quantity":
-                layer.colorbar.visible = False
+    hide_other_fields(viewer, added)
     for layer in new:
         if quantity and quantity != plugin_metadata(layer).get("quantity"):
             try:

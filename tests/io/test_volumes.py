@@ -1,6 +1,7 @@
 """read_volume: every supported layout gives back the stored volume; every bad file is named."""
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -140,3 +141,31 @@ def test_folder_without_slices_or_with_mismatched_slices(tmp_path):
     tifffile.imwrite(mixed / "s2.tif", np.zeros((8, 9), np.uint8))
     with pytest.raises(ValueError, match=f"{_named(mixed)}: the TIFF slices could not be read"):
         read_volume(mixed)
+
+
+def test_one_array_of_several_named_after_a_colon(tmp_path, volume):
+    """rock_lower.npz holds reference, deformed and box_zyx: 'rock_lower.npz:deformed' reads one
+    (user audit, item 5); the refusal without a name says how to give one."""
+    from napari_dvc_correct.io.lazy import open_volume
+    from napari_dvc_correct.io.volumes import split_member
+
+    path = tmp_path / "pair.npz"
+    np.savez(path, reference=volume, deformed=volume + 1, box_zyx=np.array([0, 12, 0, 10, 0, 9]))
+    np.testing.assert_array_equal(read_volume(f"{path}:deformed"), volume + 1)
+    np.testing.assert_array_equal(read_volume(f"{path}:reference"), volume)
+    lazy = open_volume(f"{path}:deformed")
+    np.testing.assert_array_equal(lazy.read_region((slice(None),) * 3), volume + 1)
+    with pytest.raises(ValueError, match="name the one to read: .*pair.npz:reference"):
+        read_volume(path)
+    with pytest.raises(ValueError, match="holds no array 'nope'; it holds reference, deformed"):
+        read_volume(f"{path}:nope")
+    with pytest.raises(ValueError, match="3-D"):  # box_zyx is no volume
+        read_volume(f"{path}:box_zyx")
+    with pytest.raises(FileNotFoundError):
+        read_volume(f"{tmp_path / 'absent.npz'}:reference")
+    # only after an .npz, and never over a file that exists under the whole name
+    assert split_member("scan.tif:x") == (Path("scan.tif:x"), None)
+    odd = tmp_path / "odd.npz:x"
+    np.savez(tmp_path / "odd.npz", x=volume)
+    odd.write_bytes(b"")
+    assert split_member(odd) == (odd, None)

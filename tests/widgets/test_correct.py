@@ -148,3 +148,69 @@ def test_the_panel_says_when_the_correction_changed_the_method(
     assert "G ≈ 2.3·F − 23 (local, 32-voxel cells)" in message
     assert "3 nodes whose residual no small error explains" in message
     assert "11 along a discontinuity" in message and "6 nodes near it kept" in message
+
+
+def _opened_field(viewer, value: float, stem: str) -> None:
+    """What napari does with our reader's tuples: Layer.create and add, no show_layers."""
+    from napari.layers import Layer
+
+    from napari_dvc_correct.engine.fields.field import DisplacementField
+    from napari_dvc_correct.layers import field_layers
+
+    field = DisplacementField.zeros((7, 7, 7), (4, 4, 4), (2, 3, 4))
+    field.u[...] = value
+    for data, kwargs, layer_type in field_layers(field, stem):
+        viewer.add_layer(Layer.create(data, kwargs, layer_type))
+
+
+def test_two_fields_with_one_name_can_both_be_chosen(viewer_pair):
+    """aldvc.npz then aldvc.mat: both in Self-correct's and Evaluate's lists (user audit, 1)."""
+    from napari_dvc_correct.widgets.evaluate import EvaluateWidget
+
+    widget = _dock(viewer_pair)
+    evaluate = EvaluateWidget(viewer_pair)
+    viewer_pair.window.add_dock_widget(evaluate)
+    _opened_field(viewer_pair, 0.5, "aldvc")
+    _opened_field(viewer_pair, 1.0, "aldvc")
+    assert [widget.field.itemText(i) for i in range(widget.field.count())] == [
+        "aldvc",
+        "aldvc [1]",
+    ]
+    assert [evaluate.fields.item(i).text() for i in range(evaluate.fields.count())] == [
+        "aldvc",
+        "aldvc [1]",
+    ]
+    chosen = widget.choices()
+    assert float(chosen["aldvc"].u[0, 0, 0, 0]) == 0.5
+    assert float(chosen["aldvc [1]"].u[0, 0, 0, 0]) == 1.0
+
+
+def test_correcting_an_opened_field_keeps_its_name_and_the_other_s_layers(correlated, run_panel):
+    """A field from a file ('aldvc') corrects into '(aldvc, corrected)' layers; correcting the
+    panel's own field afterwards leaves them alone (user audit, item 2)."""
+    from napari.layers import Layer
+
+    from napari_dvc_correct.layers import field_layers, plugin_metadata
+
+    viewer = correlated.viewer
+    opened = field_of(viewer.layers["|u| (uncorrected)"]).copy()  # as if saved and opened
+    for data, kwargs, layer_type in field_layers(opened, "aldvc"):
+        viewer.add_layer(Layer.create(data, kwargs, layer_type))
+    widget = _dock(viewer)
+    widget.max_passes.setValue(1)
+    widget.field.setCurrentText("aldvc")
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    assert "|u| (aldvc, corrected)" in viewer.layers
+    assert "|u| (corrected)" not in viewer.layers
+    from_file = field_of(viewer.layers["|u| (aldvc, corrected)"])
+    widget.field.setCurrentText("uncorrected")
+    run_panel(widget)
+    assert widget.last_error is None, widget.last_error
+    sources = [(plugin_metadata(x) or {}).get("source") for x in viewer.layers]
+    assert sources.count("aldvc, corrected") == 2 and sources.count("corrected") == 2
+    assert field_of(viewer.layers["|u| (aldvc, corrected)"]) is from_file
+    assert [widget.field.itemText(i) for i in range(widget.field.count())] == [
+        "uncorrected",
+        "aldvc",
+    ]

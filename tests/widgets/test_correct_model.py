@@ -37,3 +37,31 @@ def test_the_summary_says_before_after_why_it_stopped_and_in_which_frame():
         "Gray levels of the loaded scan mapped onto the reference's: G ≈ 2·F; residuals are in "
         "the reference's gray levels."
     )
+
+
+def test_a_corrected_field_is_named_after_its_source():
+    """Correcting an opened field 'aldvc' never replaces another field's '(corrected)' layers
+    (user audit, item 2); the corrected ones are not offered again."""
+    corrected_source, is_corrected = model.corrected_source, model.is_corrected
+    cases = {
+        "uncorrected": "corrected",
+        "series (total)": "series (total, corrected)",
+        "aldvc": "aldvc, corrected",
+        "aldvc [1]": "aldvc [1], corrected",
+    }
+    assert {source: corrected_source(source) for source in cases} == cases
+    assert all(is_corrected(name) for name in cases.values())
+    assert not any(is_corrected(source) for source in cases)
+
+
+def test_before_after_pairs_a_field_with_its_own_corrected_one():
+    """View ▸ Before ⇄ after toggles the opened field 'aldvc' with 'aldvc, corrected', not only
+    the panel's own 'uncorrected' / 'corrected'."""
+    sources = ["uncorrected", "aldvc", "corrected", "aldvc, corrected"]
+    pair = model.before_after_pair
+    assert pair(sources, ["aldvc"]) == ("aldvc", "aldvc, corrected")
+    assert pair(sources, ["aldvc, corrected"]) == ("aldvc, corrected", "aldvc")
+    assert pair(sources, ["uncorrected"]) == ("uncorrected", "corrected")
+    assert pair(sources, ["corrected"]) == ("corrected", "uncorrected")
+    assert pair(sources, sources)[1] == "corrected"  # all overlaid: as before
+    assert pair(["aldvc", "snow48"], ["aldvc"]) is None  # nothing corrected yet

@@ -33,3 +33,44 @@ def test_regions_and_points_are_the_user_s():
     assert K.is_user_points(Points(np.zeros((2, 3))))
     assert not K.is_user_points(Points(np.zeros((2, 3)), metadata=_ours("preview")))
     assert not K.is_user_points(Shapes())
+
+
+def _field_layers(value: float, source: str) -> list:
+    from napari.layers import Layer
+
+    from napari_dvc_correct.engine.fields.field import DisplacementField
+    from napari_dvc_correct.layers import field_layers
+
+    field = DisplacementField.zeros((7, 7, 7), (4, 4, 4), (2, 3, 4))
+    field.u[...] = value
+    return [Layer.create(*t) for t in field_layers(field, source)]
+
+
+def test_a_second_field_with_the_same_name_gets_its_own():
+    """Two files with one stem (aldvc.npz, aldvc.mat): the second field becomes 'aldvc [1]', its
+    arrows follow it, and a third becomes 'aldvc [2]' (user audit, item 1)."""
+    from napari_dvc_correct.layers import plugin_metadata
+
+    layers = _field_layers(0.5, "aldvc")
+    assert [K.distinct_source(layers, x) for x in layers] == [None, None]  # the first keeps it
+    for value, expected in ((1.0, "aldvc [1]"), (2.0, "aldvc [2]")):
+        for layer in _field_layers(value, "aldvc"):
+            layers.append(layer)
+            K.distinct_source(layers, layer)
+            assert plugin_metadata(layer)["source"] == expected
+            assert layer.name.endswith(f"({expected})")
+            # found again under this name where show_layers keyed it
+            assert plugin_metadata(layer).get("name", layer.name) == layer.name
+    sources = [plugin_metadata(x)["source"] for x in layers]
+    assert sources == ["aldvc"] * 2 + ["aldvc [1]"] * 2 + ["aldvc [2]"] * 2
+
+
+def test_a_new_result_replacing_the_old_keeps_its_name():
+    """show_layers removes the old 'corrected' layer before it inserts the new one."""
+    from napari_dvc_correct.layers import plugin_metadata
+
+    layers = _field_layers(0.5, "corrected")
+    new = _field_layers(1.0, "corrected")
+    layers[0] = new[0]  # the quantity replaced, the old arrows not yet
+    assert K.distinct_source(layers, new[0]) is None
+    assert plugin_metadata(new[0])["source"] == "corrected"

@@ -34,3 +34,29 @@ def _rgb(color):
     from matplotlib.colors import to_rgb
 
     return to_rgb(color)
+
+
+def test_a_crowded_dock_shrinks_the_histogram_instead_of_covering_its_label(qtbot):
+    """The Evaluate dock put the threshold slider over the histogram's 'gray value' label when
+    it had less height than it asked for (user audit, item 4): the canvas now shrinks, its
+    labels inside it, and nothing is laid over it."""
+    from qtpy.QtCore import Qt
+    from qtpy.QtWidgets import QLayout, QSlider, QVBoxLayout, QWidget
+
+    host = QWidget()
+    qtbot.addWidget(host)
+    layout = QVBoxLayout(host)
+    layout.setSizeConstraint(QLayout.SizeConstraint.SetNoConstraint)
+    canvas = _plots.HistogramCanvas()
+    slider = QSlider(Qt.Orientation.Horizontal)
+    layout.addWidget(canvas)
+    layout.addWidget(slider)
+    canvas.set_histogram(np.array([5, 50, 500, 50]), np.array([0.0, 1.0, 2.0, 3.0, 4.0]))
+    assert canvas.sizeHint().height() == 162  # what it asks for
+    host.resize(400, 150)  # less than that and the slider
+    host.show()
+    qtbot.waitExposed(host)
+    assert canvas.geometry().bottom() < slider.geometry().top()
+    canvas.draw()
+    label = canvas.axes[0].xaxis.label.get_window_extent(canvas.get_renderer())
+    assert label.y0 >= 0 and label.y1 <= canvas.figure.bbox.height  # inside the figure

@@ -272,3 +272,23 @@ def test_a_new_result_brings_its_strain_computed_in_the_worker(correlated, run_p
     assert layer.visible and view.quantity.currentData() == "εeq"
     assert calls and not any(calls), calls  # computed, and never on the main thread
     np.testing.assert_array_equal(layer.data, L.quantity_values(L.field_of(layer), "εeq"))
+
+
+def test_the_last_field_opened_from_a_file_is_on_view(make_napari_viewer):
+    """Fields opened from files (our reader's layers, added by napari) come on view one at a time,
+    the newest shown, as a new result does (user audit, item 3)."""
+    from napari.layers import Layer
+
+    viewer = make_napari_viewer()
+    view = ViewWidget(viewer)
+    viewer.window.add_dock_widget(view)
+    for scale, stem in ((1.0, "ldic"), (1.1, "aldvc"), (1.2, "snow48")):
+        for data, kwargs, layer_type in L.field_layers(_shear(scale), stem):
+            viewer.add_layer(Layer.create(data, kwargs, layer_type))
+    assert view.shown.currentText() == "snow48"
+    on_view = [x.name for x in viewer.layers if x.visible]
+    assert on_view == ["|u| (snow48)", "displacement (snow48)"]
+    assert viewer.layers["|u| (snow48)"].colorbar.visible
+    assert not viewer.layers["|u| (aldvc)"].colorbar.visible
+    view.show_source("all (overlaid)")  # still there when asked for
+    assert all(x.visible for x in viewer.layers)

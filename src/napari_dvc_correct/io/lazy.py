@@ -28,6 +28,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from .volumes import natural_key as _natural_key  # one slice order for both folder readers
+from .volumes import split_member
 
 #: File suffixes of TIFF stacks and slices.
 TIFF_SUFFIXES = (".tif", ".tiff")
@@ -461,7 +462,7 @@ def open_volume(
     path : str or PathLike
         ``.tif``/``.tiff`` stack, ``.npy``, a Zarr store (``.zarr`` or a folder with Zarr
         metadata, OME-Zarr included) or a folder of TIFF slices. An ``.npz`` is read whole
-        (its arrays are compressed) and wrapped.
+        (its arrays are compressed) and wrapped; ``FILE.npz:NAME`` reads its array ``NAME``.
     component, level : optional
         For Zarr: the array inside a group, or the OME-Zarr multiscale level.
 
@@ -472,6 +473,10 @@ def open_volume(
     ValueError
         For an unsupported format or a file that does not hold a 3-D real volume.
     """
+    if split_member(path)[1] is not None:  # FILE.npz:NAME, one array of several
+        from .volumes import read_volume
+
+        return ArrayVolume(read_volume(path))
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"volume not found: {path}")

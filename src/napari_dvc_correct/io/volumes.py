@@ -21,7 +21,8 @@ def read_volume(path: str | os.PathLike, mmap: bool = True) -> np.ndarray:
     :class:`.lazy.SliceFolderVolume` reads them.
 
     TIFF and ``.npy`` files are memory-mapped when their layout allows it, so only the regions
-    the engine touches are read. An ``.npz`` must hold exactly one array (or one named ``volume``).
+    the engine touches are read. An ``.npz`` must hold exactly one array (or one named ``volume``),
+    or the array is named after a colon: ``rock_lower.npz:reference`` (:func:`split_member`).
 
     Raises
     ------
@@ -30,9 +31,11 @@ def read_volume(path: str | os.PathLike, mmap: bool = True) -> np.ndarray:
     ValueError
         If the file is not what its name claims, or does not hold a 3-D real-valued volume.
     """
-    path = Path(path)
+    path, member = split_member(path)
     if not path.exists():
         raise FileNotFoundError(f"volume not found: {path}")
+    if member is not None:
+        return validate_volume(_read_npz(path, member), f"{path}:{member}")
     if path.is_dir():
         volume = _read_tiff_folder(path)
     else:
@@ -95,17 +98,32 @@ def _read_tiff_folder(path: Path) -> np.ndarray:
         ) from error
 
 
-def _read_npz(path: Path) -> np.ndarray:
+def split_member(path: str | os.PathLike) -> tuple[Path, str | None]:
+    """``FILE.npz:NAME`` -> ``(FILE.npz, NAME)``: one array of an ``.npz`` that holds several
+    (the real-rock crops hold ``reference``, ``deformed`` and ``box_zyx``). Any other path, or
+    a file whose own name has such a colon, is returned whole with ``None``."""
+    text = os.fspath(path)
+    head, colon, name = text.rpartition(":")
+    if colon and name and head.lower().endswith(".npz") and not Path(text).exists():
+        return Path(head), name
+    return Path(text), None
+
+
+def _read_npz(path: Path, member: str | None = None) -> np.ndarray:
     import zipfile
 
     members = npz_members(path)  # headers only: sizes checked before anything is inflated
     names = list(members)
+    if member is not None:
+        if member not in names:
+            raise ValueError(f"{path} holds no array {member!r}; it holds {', '.join(names[:8])}")
+        names = [member]
     if "volume" in names:
         names = ["volume"]
     if len(names) != 1:
         raise ValueError(
             f"{path} holds {len(names)} arrays ({', '.join(names[:5])}); "
-            "store one array, or name it 'volume'"
+            f"store one array, name it 'volume', or name the one to read: {path}:{names[0]}"
         )
     member = members[names[0]]
     check_fits_in_memory(path, member.nbytes, f"a volume {member.shape} {member.dtype}")

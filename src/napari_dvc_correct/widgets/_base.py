@@ -37,6 +37,7 @@ from qtpy.QtWidgets import (
 from superqt.utils import GeneratorWorker, create_worker
 
 from ..engine.progress import Progress
+from . import _layer_kinds as K
 
 log = logging.getLogger(__name__)
 
@@ -100,13 +101,25 @@ def follow_layers(viewer, widget, callback: Callable, moves: bool = False) -> No
 
     The connections are undone when the Qt object goes away, so a closed dock never receives
     events for a deleted widget.
+
+    The panels list fields by source name, so a new field named like one already there (two
+    files with one stem) is renamed first (:func:`._layer_kinds.distinct_source`).
     """
     events = viewer.layers.events
+    layers = viewer.layers
+
+    def distinct(event=None) -> None:
+        inserted = getattr(event, "value", None)
+        if inserted is not None:
+            K.distinct_source(layers, inserted)
+
+    events.inserted.connect(distinct)  # before the panel's callback, which then sees the name
     emitters = (events.inserted, events.removed) + ((events.moved,) if moves else ())
     for emitter in emitters:
         emitter.connect(callback)
 
-    def disconnect(*args, emitters=emitters, callback=callback) -> None:
+    def disconnect(*args, emitters=emitters, callback=callback, distinct=distinct) -> None:
+        events.inserted.disconnect(distinct)
         for emitter in emitters:
             emitter.disconnect(callback)
 

@@ -5,11 +5,14 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
 from matplotlib.figure import Figure
+from qtpy.QtCore import QSize
 
 from ..report.plots import FIELD_COLORS  # one colour per field, the report's (noqa: F401)
 
 BACKGROUND = "#262930"
 FOREGROUND = "#d1d2d4"
+#: Share of its asked height a figure may shrink to in a crowded dock.
+MIN_SHARE = 0.6
 PHASE_COLORS = ("#9c755f", "#bab0ac", "#76b7b2", "#edc948", "#ff9da7", "#59a14f", "#e15759")
 
 
@@ -37,7 +40,14 @@ class PlotCanvas(FigureCanvasQTAgg):
         self.axes = [self.figure.add_subplot(1, ncols, i + 1) for i in range(ncols)]
         for axes in self.axes:
             style_axes(axes)
-        self.setMinimumHeight(int(height * 90))
+        # asks for ``height`` but may get less in a crowded dock: a fixed minimum made Qt lay the
+        # next widget over the figure's bottom (the histogram's x label under the threshold
+        # slider); constrained layout fits the labels into whatever height the canvas gets
+        self._height = int(height * 90)
+        self.setMinimumHeight(int(MIN_SHARE * self._height))
+
+    def sizeHint(self) -> QSize:
+        return QSize(super().sizeHint().width(), self._height)
 
     def redraw(self) -> None:
         self.draw_idle()

@@ -33,6 +33,7 @@ class CorrectWidget(EngineWidget):
 
     def __init__(self, napari_viewer, parent=None) -> None:
         super().__init__(napari_viewer, parent)
+        self._source = "uncorrected"  # the field the running correction started from
         self.field = QComboBox()
         self.form.addRow("Field", self.field)
         self.reference = LayerCombo(self.viewer, is_scan)
@@ -84,7 +85,7 @@ class CorrectWidget(EngineWidget):
         found: dict = {}
         for layer in L.quantity_layers(self.viewer):
             source = L.plugin_metadata(layer)["source"]
-            if source == "corrected" or source.endswith(", corrected)"):
+            if model.is_corrected(source):
                 continue
             series = L.series_of(layer)
             found.setdefault(source, series[1:] if series else L.field_of(layer))
@@ -183,6 +184,7 @@ class CorrectWidget(EngineWidget):
                 "volumes of the same shape"
             )
         mask = self._mask(g, reference)
+        self._source = source
         tiled = self.tiled.isChecked()
         memory = check_tiled("pair", None, self.max_memory.text()) if tiled else None
         self.table.setRowCount(0)
@@ -222,7 +224,7 @@ class CorrectWidget(EngineWidget):
 
     def _series_result(self, result: model.SeriesCorrection) -> None:
         source = self._series_source
-        corrected = source[:-1] + ", corrected)" if source.endswith(")") else source + " corrected"
+        corrected = model.corrected_source(source)
         first = result.results[0]
         placement = {"voxel_size": first.voxel_size, "offset": first.offset}
         V.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
@@ -243,7 +245,10 @@ class CorrectWidget(EngineWidget):
         V.show_field(
             self.viewer,
             L.field_layers(
-                result.field, "corrected", voxel_size=result.voxel_size, offset=result.offset
+                result.field,
+                model.corrected_source(self._source),
+                voxel_size=result.voxel_size,
+                offset=result.offset,
             ),
         )
         self._fill_table(model.PASS_HEADERS, model.pass_rows(result.field))

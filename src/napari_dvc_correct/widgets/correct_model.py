@@ -19,6 +19,43 @@ UPDATES = {
 }
 
 
+def corrected_source(source: str) -> str:
+    """Name of the corrected field of the field ``source``: ``"uncorrected"`` (the field the
+    Correlate panel made) -> ``"corrected"``, ``"series (total)"`` -> ``"series (total,
+    corrected)"``, a field opened from a file, ``"aldvc"`` -> ``"aldvc, corrected"``; so
+    correcting one field never replaces the corrected layers of another."""
+    if source == "uncorrected":
+        return "corrected"
+    if source.endswith(")"):
+        return source[:-1] + ", corrected)"
+    return source + ", corrected"
+
+
+def is_corrected(source: str) -> bool:
+    """True for a name :func:`corrected_source` gives (such fields are not offered again)."""
+    return source == "corrected" or source.endswith((", corrected)", ", corrected"))
+
+
+def before_after_pair(sources: list[str], visible: list[str]) -> tuple[str, str] | None:
+    """The field on view and its corrected one (or the other way round), as the View panel's
+    *Before ⇄ after* toggles them: ``(shown, target)``; ``("uncorrected", "corrected")`` when
+    neither of a pair is alone on view; None without a pair."""
+    for shown in visible[:1] if len(visible) == 1 else []:
+        partner = corrected_source(shown)
+        if partner in sources:
+            return shown, partner
+        before = [s for s in sources if not is_corrected(s) and corrected_source(s) == shown]
+        if before:
+            return shown, before[0]
+    if "uncorrected" in sources and "corrected" in sources:
+        return (
+            ("uncorrected", "corrected")
+            if visible != ["corrected"]
+            else ("corrected", "uncorrected")
+        )
+    return None
+
+
 @dataclass
 class CorrectionResult:
     """The corrected field and where to show it."""

@@ -21,7 +21,7 @@ from qtpy.QtWidgets import QCheckBox, QComboBox, QFormLayout, QLabel, QPushButto
 from .. import layers as L
 from .. import point_layers as P
 from .. import viewer_layers as V
-from . import profile_model
+from . import correct_model, profile_model
 from ._base import LatestWorker, compact, follow_layers
 from ._plots import ProfileCanvas
 
@@ -172,6 +172,8 @@ class ViewWidget(QWidget):
         inserted = getattr(event, "value", None)
         entry = L.plugin_metadata(inserted) if inserted is not None else None
         if entry is not None and entry.get("kind") == "quantity":
+            if inserted.visible:  # a field opened from a file comes on view alone, as a result
+                V.hide_other_fields(self.viewer, [inserted])
             quantity = entry.get("quantity")
             if quantity != self.quantity.currentData():
                 self.quantity.blockSignals(True)
@@ -275,14 +277,13 @@ class ViewWidget(QWidget):
         self._decorate()
 
     def before_after(self) -> str | None:
-        """Toggle between the uncorrected and the corrected field; the source now on view."""
-        sources = self.sources()
-        pair = [s for s in ("uncorrected", "corrected") if s in sources]
-        if len(pair) < 2:
+        """Toggle between the field on view and its corrected one (or the panel's uncorrected and
+        corrected fields); the source now on view."""
+        pair = correct_model.before_after_pair(self.sources(), self._visible_sources())
+        if pair is None:
             self.message.setText("Before/after needs an uncorrected and a corrected field.")
             return None
-        visible = self._visible_sources()
-        target = "uncorrected" if visible == ["corrected"] else "corrected"
+        target = pair[1]
         self.show_source(target)
         return target
 
