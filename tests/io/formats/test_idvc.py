@@ -82,3 +82,16 @@ def test_unknown_objective_is_refused(known, tmp_path, scattered_points):
     path = disp_file(tmp_path / "r.disp", scattered_points, known.translation(scattered_points))
     with pytest.raises(ValueError, match="objective"):
         idvc.read(path, objective="ssd")
+
+
+def test_rows_that_report_a_perfect_match_at_the_search_start_are_failed():
+    codes = np.array([0, 0, 0, 0, -1])
+    objmin = np.array([0.0, 6e-4, 2e-15, 5e-4, 0.0])
+    u_xyz = np.array([[1.0, -1.0, 0.0], [0.7, -1.1, 0.3], [2.0, 0.0, -1.0], [1.0, -1.0, 0.0],
+                      [0.0, 0.0, 0.0]])  # fmt: skip
+    assert idvc.degenerate_rows(codes, objmin, u_xyz).tolist() == [True, False, True, False, False]
+    # a zero objective away from whole voxels is kept (not a search that read nothing)
+    shifted = u_xyz + np.array([0.25, 0.0, 0.0])
+    assert not idvc.degenerate_rows(codes, objmin, shifted).any()
+    # on a noise-free pair every objective may be 0: nothing is called degenerate
+    assert not idvc.degenerate_rows(codes, np.zeros(5), u_xyz).any()

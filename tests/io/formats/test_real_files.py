@@ -78,12 +78,21 @@ def test_spam_ldic_is_a_regular_grid_one_spacing_from_the_origin():
 
 
 def test_ccpi_failures_and_rows_out_of_order():
-    """Rows are in processing order; status -1 (Range_Fail) is not a usable node."""
+    """Rows are in processing order; status -1 (Range_Fail) is not a usable node, nor are the
+    four rows 2-5 that report success with a zero objective at the search's start (1, -1, 0),
+    0.4-1.3 voxel off (the README's degenerate rows)."""
     edge = read_points(FORMATS / "ccpi_dvc/snow48_edge/snow48_edge.disp")
-    assert edge.n_points == 125 and int((~edge.valid).sum()) == 1
+    assert edge.n_points == 125 and int((~edge.valid).sum()) == 5
+    ids = np.asarray(edge.metadata["source"]["point_ids"])
+    assert sorted(ids[~edge.valid].tolist()) == [1, 2, 3, 4, 5]
+    assert edge.metadata["source"]["degenerate_rows"] == 4
     exact, _ = truth()
-    error = np.linalg.norm(edge.u - exact(edge.points), axis=1)[edge.valid]
-    assert np.median(error) < 0.05
+    error = np.linalg.norm(edge.u - exact(edge.points), axis=1)
+    assert np.all(error[np.isin(ids, [2, 3, 4, 5])] > 0.3)  # truly wrong: refused rightly
+    assert np.max(error[edge.valid]) < 0.1  # every row kept is a measurement
+    assert np.median(error[edge.valid]) < 0.05
+    clean = read_points(FORMATS / "ccpi_dvc/snow48/snow48.disp")
+    assert clean.metadata["source"]["degenerate_rows"] == 0
     repository = read_points(FORMATS / "ccpi_dvc/repo_dvc_test/completed_central_grid.disp")
     assert repository.n_points == 5  # 12 columns (with phi the psi), 1-based labels n
     # x, y, z of the file are numpy axes 2, 1, 0
@@ -112,7 +121,7 @@ ON_A_GRID = [
     ("pyaldvc/aldvc.mat", (5, 5, 5), 11.0, 6.0, 0, 0.03),
     ("pyaldvc/csv/aldvc_frame_01.csv", (5, 5, 5), 11.0, 6.0, 0, 0.03),
     ("ccpi_dvc/snow48/snow48.disp", (5, 5, 5), 12.0, 6.0, 0, 0.03),
-    ("ccpi_dvc/snow48_edge/snow48_edge.disp", (5, 5, 5), 12.0, 6.0, 1, 0.05),
+    ("ccpi_dvc/snow48_edge/snow48_edge.disp", (5, 5, 5), 12.0, 6.0, 5, 0.05),
 ]
 
 

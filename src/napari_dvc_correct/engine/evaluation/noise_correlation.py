@@ -125,11 +125,14 @@ class NoiseCorrelation:
             return "scan noise white in space (no correlation 1–3 voxels apart)"
         one = "/".join(f"{self.along(axis)[0]:.2f}" for axis in range(3))
         spread = np.sqrt(max(self.factors.values(), default=1.0))
-        if spread < 1.1:  # the white-noise resolution holds within 10 %
-            return f"scan noise about white in space (ρ one voxel apart, z/y/x: {one})"
+        head = f"scan noise correlated in space (ρ one voxel apart, z/y/x: {one})"
+        if 0.9 <= spread < 1.1:
+            return head + ", which leaves the error estimate's white-noise resolution within 10 %"
+        side = "small" if spread >= 1.1 else "large"
+        by = spread if spread >= 1.1 else 1.0 / max(spread, 1e-3)
         return (
-            f"scan noise correlated in space (ρ one voxel apart, z/y/x: {one}): the error "
-            f"estimate takes it as white, so its resolution may read up to {spread:.1f}× small"
+            head + f": the error estimate takes it as white, so its resolution may read up to "
+            f"{by:.1f}× {side}"
         )
 
     def to_dict(self) -> dict:

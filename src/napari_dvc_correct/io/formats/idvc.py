@@ -29,6 +29,15 @@ come in any order: a regular cloud is recognised as a grid whatever the order.
 
 Mapping of status: 0 → ``CONVERGED``, -1 → ``OUT_OF_BOUNDS``, -2 → ``DIVERGED``, other → ``NOT_COMPUTED``;
 written back: ``CONVERGED``/``MAX_ITERATIONS`` → 0, ``OUT_OF_BOUNDS`` → -1, any other → -2.
+
+**Degenerate rows** (:func:`degenerate_rows`): CCPi ``dvc`` can report ``status 0`` with an
+objective of exactly 0 at a whole-voxel displacement (the search's start, ``rigid_trans``) for
+points whose subvolume it could not read (points at the volume's edge with a large
+``disp_max``; ``../shared/data/formats`` README, ``snow48_edge``: 4 rows 0.4–1.3 voxel off).
+A perfect match of real scans is not a measurement: where the file's other successful rows
+show a non-zero objective, such rows are read as ``DIVERGED`` (failed; counted in
+``metadata["source"]["degenerate_rows"]``), so cleaning replaces them and the evaluation does
+not count them as measured.
 """
 
 from __future__ import annotations
@@ -49,6 +58,27 @@ OBJECTIVES = ("znssd", "none")
 def looks_like(header: str) -> bool:
     names = header.split()
     return names[:6] == ["n", "x", "y", "z", "status", "objmin"]
+
+
+#: An objective at or below this is "exactly 0" (a row's ``objmin`` is printed to ~1e-7 at best;
+#: the degenerate rows of the formats README hold 0 and 2e-15).
+ZERO_OBJECTIVE = 1e-12
+
+
+def degenerate_rows(codes, objmin, u_xyz) -> np.ndarray:
+    """Rows (N,) that report success (``codes == 0``) with an objective of exactly 0 at a
+    whole-voxel displacement, in a file whose other successful rows have a non-zero median
+    objective (real scans: noise and interpolation leave some): searches that read no data."""
+    success = np.asarray(codes) == 0
+    objmin = np.asarray(objmin, np.float64)
+    u_xyz = np.asarray(u_xyz, np.float64)
+    whole = np.all(np.abs(u_xyz - np.rint(u_xyz)) < 1e-9, axis=1)
+    zero = success & (np.abs(objmin) <= ZERO_OBJECTIVE) & whole
+    others = np.abs(objmin[success & ~zero])
+    others = others[np.isfinite(others)]
+    if others.size == 0 or not np.median(others) > ZERO_OBJECTIVE:
+        return np.zeros(len(objmin), bool)  # a noise-free pair: a zero objective can be true
+    return zero
 
 
 def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
@@ -72,6 +102,9 @@ def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
     status[codes == -1] = int(Status.OUT_OF_BOUNDS)
     status[codes == -2] = int(Status.DIVERGED)
     objmin = column(names, rows, "objmin")
+    degenerate = degenerate_rows(codes, objmin, u_xyz)
+    status[degenerate] = int(Status.DIVERGED)
+    codes = np.where(degenerate, -2, codes)
     zncc = 1.0 - objmin / 2.0 if objective == "znssd" else np.full(len(rows), np.nan)
     zncc = np.where(codes == 0, zncc, np.nan)
     provenance = np.where(codes == 0, int(Provenance.MEASURED), int(Provenance.NOT_COMPUTED))
@@ -88,6 +121,7 @@ def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
                 "objective": objective,
                 "point_ids": column(names, rows, "n").astype(int).tolist(),
                 "objmin": objmin.tolist(),
+                "degenerate_rows": int(degenerate.sum()),
             }
         },
     )
