@@ -125,9 +125,12 @@ class NoiseCorrelation:
             return "scan noise white in space (no correlation 1–3 voxels apart)"
         one = "/".join(f"{self.along(axis)[0]:.2f}" for axis in range(3))
         spread = np.sqrt(max(self.factors.values(), default=1.0))
-        head = f"scan noise correlated in space (ρ one voxel apart, z/y/x: {one})"
         if 0.9 <= spread < 1.1:
-            return head + ", which leaves the error estimate's white-noise resolution within 10 %"
+            return (
+                f"scan noise nearly white in space (ρ one voxel apart, z/y/x: {one}): the error "
+                "estimate's white-noise resolution holds within 10 %"
+            )
+        head = f"scan noise correlated in space (ρ one voxel apart, z/y/x: {one})"
         side = "small" if spread >= 1.1 else "large"
         by = spread if spread >= 1.1 else 1.0 / max(spread, 1e-3)
         return (
