@@ -186,9 +186,8 @@ def test_the_correlation_in_words_gives_one_voxel_lags_and_the_resolution_s_shor
     assert "up to 2.5× small" in text  # √6.25: the largest variance factor as a spread
     # a correlation that changes the resolution by less than 10 % says so
     nearly = NoiseCorrelation(rho, {2: 1.05, 6: 1.1})
-    assert nearly.describe().endswith(
-        "leaves the error estimate's white-noise resolution within 10 %"
-    )
+    assert nearly.describe().startswith("scan noise nearly white in space (ρ one voxel apart")
+    assert nearly.describe().endswith("white-noise resolution holds within 10 %")
     # a negative one (anti-correlated noise) makes the resolution read large
     negative = NoiseCorrelation(rho, {2: 0.5, 6: 0.64})
     assert negative.describe().endswith("may read up to 1.2× large")  # 1/√0.64 = 1.25
