@@ -310,8 +310,9 @@ def to_grid(scattered: ScatteredField, grid=None, tolerance: float = 1e-6) -> Di
             triangulation = spatial.Delaunay(known)
         except spatial.QhullError as error:
             raise ValueError(
-                "the field's usable points are all in one plane or line: they span no volume "
-                "to interpolate in; give a grid that passes through them"
+                "the field's usable points are all in one plane or line and not on a regular "
+                "grid: they span no volume to interpolate in (a 2-D result, or columns read "
+                "in the wrong order?); a 3-D field is needed"
             ) from error
         interpolated = np.full((n_nodes, 4), np.nan)
         interpolated[todo] = _linear(triangulation, values, nodes[todo])
