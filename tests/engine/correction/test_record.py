@@ -2,7 +2,11 @@
 
 import math
 
-from napari_dvc_correct.engine.correction.record import CorrectionPass, correction_table
+from napari_dvc_correct.engine.correction.record import (
+    CorrectionPass,
+    correction_table,
+    distinct_values,
+)
 from napari_dvc_correct.engine.fields.field import DisplacementField
 
 
@@ -30,3 +34,10 @@ def test_an_older_record_reads_with_defaults():
     assert entry.number == "1" and entry.residual_before == 3.0  # before = after when unknown
     assert math.isnan(entry.noise_floor) and entry.accepted_nodes == 0
     assert entry.order == 0 and entry.method == ""  # not recorded
+
+
+def test_distinct_values_shows_the_digits_that_differ():
+    assert distinct_values(2.6147, 2.6152) == ("2.6147", "2.6152")  # 4 digits read 2.615 twice
+    assert distinct_values(53.68, 60.36) == ("53.68", "60.36")
+    assert distinct_values(1.0, 1.0) == ("1", "1")  # equal: no search for a difference
+    assert distinct_values(1.0, 1.0 + 1e-14) == ("1", "1")  # beyond 10 digits: stops there

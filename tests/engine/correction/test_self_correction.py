@@ -183,15 +183,26 @@ def test_a_pass_that_would_raise_the_mean_residual_is_not_applied(shear_band_cas
     reference, deformed, measured, corrected = shear_band_case
     assert correction_table(corrected)[1].accepted  # the pass is applied as it is
     volumes = _RisingVolumes(reference, deformed, "loaded")
-    kept = run_to_completion(correct_volumes_iter(volumes, measured, max_passes=2))
+    run = correct_volumes_iter(volumes, measured, max_passes=2)
+    messages = []
+    while True:
+        try:
+            messages.append(next(run).message)
+        except StopIteration as end:
+            kept = end.value
+            break
     table = correction_table(kept)
     before = table[0].mean_gray_residual
     assert len(table) == 2 and not table[1].accepted and table[1].accepted_nodes == 0
     assert table[1].mean_gray_residual == before  # the field's, not the refused one's
     stop = table[1].stop
-    head, tail = "pass 1 would raise the mean gray residual to ", ": not applied"
+    head, tail = "pass 1 would raise the mean gray residual ", ": not applied"
     assert stop.startswith(head) and stop.endswith(tail), stop
-    rising = float(stop.removeprefix(head).removesuffix(tail))
+    said_before, rising = map(float, stop.removeprefix(head).removesuffix(tail).split(" -> "))
+    assert said_before == pytest.approx(before, rel=1e-3)
+    # the pass's progress line says its nodes were accepted one by one, then none changed
+    (line,) = [m for m in messages if m.startswith("pass 1: ")]
+    assert "accepted one by one" in line and line.endswith("no node changed"), line
     applied_pass = correction_table(corrected)[1]  # what the same pass gives, applied
     assert rising == pytest.approx(applied_pass.mean_gray_residual + _RisingVolumes.rise, abs=0.01)
     info = kept.metadata["correction"]

@@ -169,3 +169,12 @@ def failed_pass(
         converged_fraction=converged,
         seconds=time.perf_counter() - started,
     )
+
+
+def distinct_values(before: float, after: float, digits: int = 4) -> tuple[str, str]:
+    """``before`` and ``after`` written with ``digits`` significant digits, or with more (up to
+    10) until they read apart: a pass refused for raising the residual 2.61471 -> 2.61478 must
+    not say "2.615 -> 2.615"."""
+    while digits < 10 and f"{before:.{digits}g}" == f"{after:.{digits}g}" and before != after:
+        digits += 1
+    return f"{before:.{digits}g}", f"{after:.{digits}g}"

@@ -93,6 +93,7 @@ from .record import (
     CorrectionPass,
     add_stages,
     correction_table,
+    distinct_values,
     failed_pass,
 )
 from .rematch_region import (
@@ -462,16 +463,25 @@ def _correction_loop(
             method=method,
         )
         passes.append(record)
-        yield Progress(
-            "residual",
-            1,
-            1,
-            f"pass {number}: {n_accepted} nodes accepted, {record.rejected_nodes} refused, "
-            f"{record.improved_nodes} improved above the noise floor {judge.floor:.4g}; "
-            f"mean gray residual {residual:.4g} -> {mixed_residual:.4g}",
-        )
+        if raised is None:
+            before, after = distinct_values(residual, mixed_residual)
+            text = (
+                f"pass {number}: {n_accepted} nodes accepted, {record.rejected_nodes} refused, "
+                f"{record.improved_nodes} improved above the noise floor {judge.floor:.4g}; "
+                f"mean gray residual {before} -> {after}"
+            )
+        else:
+            before, after = distinct_values(residual, raised)
+            text = (
+                f"pass {number}: {n_accepted} nodes accepted one by one, but together they "
+                f"raise the mean gray residual {before} -> {after}: no node changed"
+            )
+        yield Progress("residual", 1, 1, text)
         if raised is not None:
-            stop = f"pass {number} would raise the mean gray residual to {raised:.4g}: not applied"
+            stop = (
+                f"pass {number} would raise the mean gray residual {before} -> {after}: "
+                "not applied"
+            )
             break
         if not applied:
             stop = f"pass {number} kept no node"
