@@ -33,7 +33,7 @@ from napari_dvc_correct.engine.fields.field import (
     Status,
     grid_for_volume,
 )
-from napari_dvc_correct.engine.progress import Progress, run_to_completion
+from napari_dvc_correct.engine.progress import Progress
 
 # --- the shear band --------------------------------------------------------------------------
 SIZE = 64

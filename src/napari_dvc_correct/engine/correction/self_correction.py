@@ -479,8 +479,7 @@ def _correction_loop(
         yield Progress("residual", 1, 1, text)
         if raised is not None:
             stop = (
-                f"pass {number} would raise the mean gray residual {before} -> {after}: "
-                "not applied"
+                f"pass {number} would raise the mean gray residual {before} -> {after}: not applied"
             )
             break
         if not applied:
