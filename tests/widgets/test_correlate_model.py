@@ -227,3 +227,15 @@ def test_a_series_result_carries_its_fields_as_shown_with_state_0():
     assert len(ahead) == 3 and all(a is b for a, b in zip(ahead, [*states, zero]))
     pair = model.CorrelationJob(volumes=list(volumes[:2]), params=job.params, names=["a", "b"])
     assert run_to_completion(model.run_job(pair)).series is None
+
+
+def test_the_done_message_counts_each_state_and_hints_at_a_region_only_without_one():
+    air = DisplacementField.zeros((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (4, 5, 5))
+    air.status.reshape(-1)[:20] = Status.LOW_TEXTURE  # 20 of 100 nodes
+    result = model.CorrelationResult(fields=[("rock", air)])
+    message = model.done_message(result, region_given=False)
+    assert message.startswith("Done: usable 80 of 100 nodes")
+    assert "20 of 100 nodes (20 %) found no texture" in message and message.endswith("(Region).")
+    assert "found no texture" not in model.done_message(result, region_given=True)
+    series = model.CorrelationResult(fields=[("state 1", air), ("state 2", air)])
+    assert "state 1: usable" in model.done_message(series, True)

@@ -177,4 +177,8 @@ def run(args) -> int:
         field = apply_self_correction(args, field, reference, deformed)
     _field_formats.write_output_field(args, field, out)
     print(summary(field, time.perf_counter() - started))
+    region_given = bool(args.mask or getattr(args, "roi", None) or getattr(args, "cylinder", None))
+    hint = field.node_counts().region_hint(region_given)
+    if hint:
+        print(f"hint: {hint} (--mask, --cylinder or --roi)")
     return 0

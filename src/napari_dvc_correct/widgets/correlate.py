@@ -571,11 +571,17 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         if self._voxel_edited:  # typed but not confirmed yet
             self.apply_voxel_size()
         job = self.job()
-        self._started = (time.perf_counter(), job.shape, job.params, len(job.volumes) - 1)
+        self._started = (
+            time.perf_counter(),
+            job.shape,
+            job.params,
+            len(job.volumes) - 1,
+            job.mask is not None,
+        )
         return model.run_job(job)
 
     def on_result(self, result: model.CorrelationResult) -> None:
-        started, shape, params, n_pairs = self._started
+        started, shape, params, n_pairs, _ = self._started
         model.record_timing(time.perf_counter() - started, shape, params, n_pairs)
         self._set_preview_visible(False)
         placement = {"voxel_size": result.voxel_size, "offset": result.offset}
@@ -588,8 +594,4 @@ class CorrelateWidget(PoiReadout, EngineWidget):
         else:  # a series: one 4-D field, state 0 (no displacement) first, made in the worker
             source = "series " + result.fields[0][0].split(" ", 2)[2]
             V.show_field(self.viewer, L.field_layers(result.series, source, **placement))
-        lines = []
-        for source, field in result.fields:
-            counts = field.node_counts().text()
-            lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
-        self.show_message("Done: " + "; ".join(lines) + ".")
+        self.show_message(model.done_message(result, region_given=self._started[4]))

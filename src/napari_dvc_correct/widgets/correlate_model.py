@@ -129,6 +129,18 @@ class CorrelationResult:
     series: list | None = None
 
 
+def done_message(result: CorrelationResult, region_given: bool) -> str:
+    """The panel's line after a run on the grid: the node counts of each field (by state for
+    a series) and, where many nodes found no texture and the run had no region, the hint to
+    give one (:meth:`..engine.fields.field.NodeCounts.region_hint`)."""
+    lines = []
+    for source, state_field in result.fields:
+        counts = state_field.node_counts().text()
+        lines.append(f"{source}: {counts}" if len(result.fields) > 1 else counts)
+    hint = result.fields[0][1].node_counts().region_hint(region_given)
+    return "Done: " + "; ".join(lines) + "." + (f" {hint} (Region)." if hint else "")
+
+
 def _finish(field: DisplacementField, job: CorrelationJob, names) -> DisplacementField:
     """Record where the field belongs (for display, export, and the other panels)."""
     field.metadata.update(

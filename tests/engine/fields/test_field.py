@@ -68,3 +68,14 @@ def test_node_counts_agree_with_the_counts_by_status():
     # a good status with a non-finite value is not usable, hence not matched either
     field.u[0, 0, 9] = np.nan
     assert field.node_counts().matched == 987
+
+
+def test_a_run_without_a_region_and_many_textureless_nodes_suggests_one():
+    field = DisplacementField.zeros((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (10, 10, 10))
+    flat_status = field.status.reshape(-1)
+    flat_status[:49] = Status.LOW_TEXTURE  # 4.9 %: below the share, no hint
+    assert field.node_counts().region_hint(region_given=False) is None
+    flat_status[49] = Status.LOW_TEXTURE  # 5 %
+    hint = field.node_counts().region_hint(region_given=False)
+    assert hint.startswith("50 of 1000 nodes (5 %) found no texture") and "region" in hint
+    assert field.node_counts().region_hint(region_given=True) is None  # the user gave one

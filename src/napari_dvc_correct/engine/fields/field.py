@@ -125,6 +125,26 @@ class NodeCounts:
             f"{self.matched} matched, {self.filled} filled in; status: {statuses}"
         )
 
+    def region_hint(self, region_given: bool) -> str | None:
+        """A sentence suggesting a specimen region where at least :data:`NO_TEXTURE_SHARE` of
+        the nodes found no texture and the run had no region (``region_given`` False); else
+        None. Such nodes are mostly air or background around a specimen: cleaning fills them
+        from their neighbours, and the correction and the evaluation count them, where a region
+        would have left them out."""
+        none = self.statuses.get(Status.LOW_TEXTURE.label, 0)
+        if region_given or not self.total or none < NO_TEXTURE_SHARE * self.total:
+            return None
+        return (
+            f"{none} of {self.total} nodes ({100 * none / self.total:.0f} %) found no texture "
+            "to match (air or background around the specimen?): a specimen region (a mask, "
+            "cylinder or box) leaves them out instead of filling them from their neighbours"
+        )
+
+
+#: The share of nodes without texture above which a run without a region suggests one
+#: (:meth:`NodeCounts.region_hint`); the cracked real-rock crop without a mask: 9 %.
+NO_TEXTURE_SHARE = 0.05
+
 
 def node_counts(status: np.ndarray, provenance: np.ndarray, u: np.ndarray) -> NodeCounts:
     """The :class:`NodeCounts` of a field's ``status``, ``provenance`` and ``u`` (``(..., 3)``)."""
