@@ -11,11 +11,18 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 import threading
 
-from .commands._common import (  # re-exported: bad input (exit 2), SIGTERM as an exception
+# One BLAS thread unless the user sets OPENBLAS_NUM_THREADS: numba's kernels already use every
+# core, and OpenBLAS's own threads beside them only wait for one (on a loaded 2-core machine the
+# correction's least-squares trend fits of 1 000 × 9 values took 60–80 ms each instead of 0.2 ms;
+# docs/performance.md). Set before anything loads numpy, which reads it once; same results.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from .commands._common import (  # noqa: E402  (re-exported: bad input (exit 2), SIGTERM as an exception)
     Terminated,
     UserError,
     _interrupt,
