@@ -4,7 +4,8 @@ Each subcommand lives in :mod:`napari_dvc_correct.commands` as a module with
 ``add_parser(subparsers)`` and ``run(args) -> int``. Bad input exits with status 2 and a one-line
 reason on stderr; nothing is written when a run fails. SIGINT (Ctrl-C) and SIGTERM stop a run
 the same way (status 130 and 143): temporary files are removed and earlier outputs stay as they
-were (docs/faults.md). The CLI never imports napari or Qt.
+were (docs/faults.md). The CLI never imports napari or Qt. numba's kernels use the cores
+(``NUMBA_NUM_THREADS``); BLAS runs on one thread unless ``OPENBLAS_NUM_THREADS`` says otherwise.
 """
 
 from __future__ import annotations
