@@ -120,13 +120,14 @@ def test_the_pass_table_loads_no_report_writer():
     # modules and the evaluation's results load only when a report is written
     code = (
         "import sys, napari_dvc_correct.report.passes, napari_dvc_correct.report as r; "
-        "print(sorted(m for m in sys.modules if m.startswith('napari_dvc_correct.report')) "
-        "+ ['results' in m for m in sys.modules if m.endswith('evaluation.results')]); "
+        "print(sorted(m for m in sys.modules if m.startswith('napari_dvc_correct.report'))); "
+        "print('napari_dvc_correct.engine.evaluation.results' in sys.modules); "
         "print(r.render_markdown.__module__)"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    loaded, markdown = result.stdout.strip().splitlines()
+    loaded, results, markdown = result.stdout.strip().splitlines()
     assert loaded == str(["napari_dvc_correct.report", "napari_dvc_correct.report.passes"])
+    assert results == "False"
     assert markdown == "napari_dvc_correct.report.markdown"  # still there when asked for
 
 
