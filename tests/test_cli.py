@@ -75,6 +75,30 @@ def test_help_imports_neither_numba_nor_scipy(tmp_path):
     assert not heavy, f"--help imported {sorted(heavy)}"
 
 
+@pytest.mark.parametrize("given", [None, "3"])
+def test_the_command_line_runs_blas_on_one_thread_unless_told(tmp_path, given):
+    # numba's kernels use the cores; OpenBLAS's threads beside them only wait (docs/performance.md)
+    code = """
+        import json, os, sys
+        import napari_dvc_correct.cli
+        assert "numpy" not in sys.modules  # numpy (and OpenBLAS) load later and read it
+        print(json.dumps(os.environ.get("OPENBLAS_NUM_THREADS")))
+    """
+    env = {k: v for k, v in _environment().items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    result = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout.strip().splitlines()[-1]) == (given or "1")
+
+
 def test_plain_correlate_imports_only_what_it_uses_and_loads_each_kernel_once(tmp_path):
     from napari_dvc_correct.engine import synthetic
 

@@ -4,18 +4,26 @@ Each subcommand lives in :mod:`napari_dvc_correct.commands` as a module with
 ``add_parser(subparsers)`` and ``run(args) -> int``. Bad input exits with status 2 and a one-line
 reason on stderr; nothing is written when a run fails. SIGINT (Ctrl-C) and SIGTERM stop a run
 the same way (status 130 and 143): temporary files are removed and earlier outputs stay as they
-were (docs/faults.md). The CLI never imports napari or Qt.
+were (docs/faults.md). The CLI never imports napari or Qt. numba's kernels use the cores
+(``NUMBA_NUM_THREADS``); BLAS runs on one thread unless ``OPENBLAS_NUM_THREADS`` says otherwise.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 import threading
 
-from .commands._common import (  # re-exported: bad input (exit 2), SIGTERM as an exception
+# One BLAS thread unless the user sets OPENBLAS_NUM_THREADS: numba's kernels already use every
+# core, and OpenBLAS's own threads beside them only wait for one (on a loaded 2-core machine the
+# correction's least-squares trend fits of 1 000 × 9 values took 60–80 ms each instead of 0.2 ms;
+# docs/performance.md). Set before anything loads numpy, which reads it once; same results.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from .commands._common import (  # noqa: E402  (re-exported: bad input (exit 2), SIGTERM as an exception)
     Terminated,
     UserError,
     _interrupt,

@@ -115,6 +115,22 @@ def test_file_stems_and_lazy_matplotlib():
     assert result.stdout.strip() == "False", result.stderr
 
 
+def test_the_pass_table_loads_no_report_writer():
+    # `correct` prints its pass table through report.passes: the Markdown, table and plot
+    # modules and the evaluation's results load only when a report is written
+    code = (
+        "import sys, napari_dvc_correct.report.passes, napari_dvc_correct.report as r; "
+        "print(sorted(m for m in sys.modules if m.startswith('napari_dvc_correct.report'))); "
+        "print('napari_dvc_correct.engine.evaluation.results' in sys.modules); "
+        "print(r.render_markdown.__module__)"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    loaded, results, markdown = result.stdout.strip().splitlines()
+    assert loaded == str(["napari_dvc_correct.report", "napari_dvc_correct.report.passes"])
+    assert results == "False"
+    assert markdown == "napari_dvc_correct.report.markdown"  # still there when asked for
+
+
 def test_the_report_gives_the_error_estimate_s_resolution_and_marks_bounds(tmp_path, evaluation):
     """summary.csv: the resolution, whether median and 95th percentile are bounds and their
     bound, the shares likely and possibly > 0.5 voxel; report.md shows a bound as "< x"; the

@@ -9,20 +9,25 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..engine.evaluation.results import Evaluation
-from .markdown import render_markdown, write_markdown
-from .plots import (
-    plot_accuracy_vs_strain,
-    plot_residual_histogram,
-    plot_residual_slices,
-    plot_residual_vs_strain,
-)
-from .tables import background_rows, bin_rows, phase_rows, summary_rows, write_csv
+if TYPE_CHECKING:
+    from ..engine.evaluation.results import Evaluation
 
 __all__ = ["file_stem", "render_markdown", "unique_names", "write_report", "write_volumes"]
+
+
+def __getattr__(name: str):
+    # the Markdown, table and plot modules (and the evaluation's results they read) load when a
+    # report is written: `correct` and `correlate --self-correct` print the pass table through
+    # `report.passes` alone and need none of them (docs/performance.md: start-up)
+    if name == "render_markdown":
+        from .markdown import render_markdown
+
+        return render_markdown
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def file_stem(name: str) -> str:
@@ -140,6 +145,15 @@ def write_report(
     dict of str -> list of Path
         Files written, by kind: ``"tables"``, ``"plots"``, ``"volumes"``, ``"report"``.
     """
+    from .markdown import render_markdown, write_markdown
+    from .plots import (
+        plot_accuracy_vs_strain,
+        plot_residual_histogram,
+        plot_residual_slices,
+        plot_residual_vs_strain,
+    )
+    from .tables import background_rows, bin_rows, phase_rows, summary_rows, write_csv
+
     out_dir = Path(out_dir)
     if not out_dir.parent.exists():
         raise FileNotFoundError(f"the folder that should hold {out_dir} does not exist")
