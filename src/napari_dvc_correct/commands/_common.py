@@ -147,13 +147,17 @@ INPUT_OPTIONS = ("reference", "deformed", "volumes", "field", "compare", "mask",
 
 
 def command_inputs(args) -> list[str]:
-    """Every input path named in ``args`` (volumes, fields, masks, points), in option order."""
+    """Every input file named in ``args`` (volumes, fields, masks, points), in option order; a
+    volume named as one array of an ``.npz`` (``rock.npz:reference``) is its file ``rock.npz``."""
+    from ..io.volumes import split_member
+
     paths = []
     for name in INPUT_OPTIONS:
         value = getattr(args, name, None)
         if value is None:
             continue
-        paths.extend(str(v) for v in (value if isinstance(value, (list, tuple)) else [value]))
+        for item in value if isinstance(value, (list, tuple)) else [value]:
+            paths.append(str(split_member(str(item))[0]))
     return paths
 
 
