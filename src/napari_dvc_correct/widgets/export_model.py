@@ -100,3 +100,27 @@ def check_path(path: str, suffix: str) -> Path:
     if not target.parent.exists():
         raise ValueError(f"the folder {target.parent} does not exist")
     return target
+
+
+def check_not_open(target: Path, open_files) -> None:
+    """Refuse an export that would write over a file a layer was opened from: ``target`` itself
+    (the scans' ``.npz`` chosen as an NPZ export) or a file written next to it, named
+    ``STEM_...`` (TIFF stacks, provenance, strain, residual, report). ``open_files``: the
+    layers' source paths (None for layers not opened from a file)."""
+    import os
+
+    stem = target.with_suffix("")
+    for item in open_files:
+        if not item:
+            continue
+        path = Path(item)
+        try:
+            same = path.exists() and target.exists() and os.path.samefile(path, target)
+            beside = path.exists() and path.parent.resolve() == stem.parent.resolve()
+        except OSError:
+            continue
+        if same or (beside and path.name.startswith(f"{stem.name}_")):
+            raise ValueError(
+                f"the export would write over {path.name}, the file of an open layer: choose "
+                "another file name"
+            )
