@@ -146,7 +146,9 @@ def field_suffix(args, at_points: bool) -> str:
         raise ValueError(
             "--out-format npz holds grids: write a series at --points as table, spam, idvc or aldvc"
         )
-    suffixes = {v: k for k, v in OUTPUT_SUFFIXES.items()}
+    suffixes = {}
+    for suffix, name in OUTPUT_SUFFIXES.items():
+        suffixes.setdefault(name, suffix)  # the first: ours stays .npz
     return suffixes.get(fmt, ".txt")
 
 
