@@ -55,3 +55,18 @@ def test_napari_saves_a_plugin_layer_through_the_writer(tmp_path, make_napari_vi
     )
     assert written == [str(tmp_path / "saved.npz")]
     np.testing.assert_array_equal(load_field(tmp_path / "saved.npz").u, field.u)
+
+
+def test_an_npz_that_is_not_a_field_file_is_never_replaced(tmp_path):
+    # File > Save Selected Layers onto the scans' rock.npz (opened in the viewer) replaced the
+    # scans with the field; an earlier field file may still be saved over
+    scans = tmp_path / "rock.npz"
+    np.savez(scans, reference=np.zeros((4, 4, 4), np.uint8))
+    before = scans.read_bytes()
+    layers = field_layers(_field(0.5), "uncorrected")
+    with pytest.raises(ValueError, match="rock.npz is not a field file"):
+        write_fields(str(scans), layers)
+    assert scans.read_bytes() == before
+    assert write_fields(str(tmp_path / "f.npz"), layers) == [str(tmp_path / "f.npz")]
+    assert write_fields(str(tmp_path / "f.npz"), field_layers(_field(0.25), "x"))  # over a field
+    np.testing.assert_allclose(load_field(tmp_path / "f.npz").u[0, 0, 1], 0.25)

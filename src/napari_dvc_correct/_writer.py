@@ -33,6 +33,7 @@ def write_fields(path: str, layer_data: list[tuple]) -> list[str]:
     ValueError
         If none of the layers was made by the plugin from a field.
     """
+    from ._reader import is_field_file
     from .io.npz import FIELD_SUFFIX, save_field
     from .layers import field_of, plugin_metadata
 
@@ -53,12 +54,20 @@ def write_fields(path: str, layer_data: list[tuple]) -> list[str]:
     suffix = target.suffix.lower()
     if suffix not in (FIELD_SUFFIX, ".npz"):
         target, suffix = target.with_name(target.name + FIELD_SUFFIX), FIELD_SUFFIX
-    written = []
-    for field, source in zip(fields, sources):
+    outs = []
+    for source in sources:
         out = target
         if len(fields) > 1:
             safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in source)
             out = target.with_name(f"{target.stem}_{safe}{suffix}")
+        outs.append(out)
+    for out in outs:  # never over someone's data (the scans' rock.npz): only over a field file
+        if out.exists() and not is_field_file(out):
+            raise ValueError(
+                f"{out.name} is not a field file (it may hold your scans): choose another name"
+            )
+    written = []
+    for field, out in zip(fields, outs):
         save_field(field, out)
         written.append(str(out))
     return written
