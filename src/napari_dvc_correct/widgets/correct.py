@@ -230,12 +230,12 @@ class CorrectWidget(EngineWidget):
         V.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
         rows = model.series_rows(result.results)
         self._fill_table(model.SERIES_HEADERS, rows)
-        methods = dict.fromkeys(model.method_message(r.field) for r in result.results)
+        methods = model.series_method_message(result.results)
         self.show_message(
             "Self-corrected every state: "
             + "; ".join(f"{r[0]} {r[1]}" for r in rows)
             + "."
-            + "".join(f" {method}" for method in methods if method)
+            + (f" {methods}" if methods else "")
         )
 
     def on_result(self, result) -> None:
