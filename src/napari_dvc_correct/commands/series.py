@@ -58,7 +58,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "--strategy",
         choices=("incremental", "total"),
         default="incremental",
-        help="default: incremental",
+        help="total: every state against the first; incremental: each state against the one "
+        "before, the increments composed into the displacement from the first state (default: "
+        "incremental)",
     )
     parser.add_argument("--out-dir", required=True, help="folder for the fields and summary.csv")
     parser.add_argument("--mask", help="mask volume in the first state (non-zero = material)")
@@ -66,6 +68,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     add_correlation_arguments(parser)
     _grid_options.add_grid_arguments(parser)
     _field_formats.add_field_format_arguments(parser, field_input=False)
+    for action in parser._actions:
+        if action.dest == "out_format":
+            action.help = (
+                "format of the field files in --out-dir: npz (ours, state_01.npz...), spam "
+                "(.tsv), aldvc (.mat), idvc (.disp) or table (.csv); default: npz on a grid, "
+                "table at --points"
+            )
     add_self_correct_argument(parser)
     parser.add_argument(
         "--correct",
