@@ -70,3 +70,13 @@ def test_an_npz_that_is_not_a_field_file_is_never_replaced(tmp_path):
     assert write_fields(str(tmp_path / "f.npz"), layers) == [str(tmp_path / "f.npz")]
     assert write_fields(str(tmp_path / "f.npz"), field_layers(_field(0.25), "x"))  # over a field
     np.testing.assert_allclose(load_field(tmp_path / "f.npz").u[0, 0, 1], 0.25)
+
+
+def test_a_series_layer_writes_every_state(tmp_path):
+    # Save Selected Layers on a 4-D series layer wrote its last state alone, under the plain name
+    states = [_field(0.0), _field(0.5), _field(1.0), _field(1.5)]
+    layers = field_layers(states, "series (total)")
+    written = write_fields(str(tmp_path / "run.dvcfield"), layers[:1])
+    assert sorted(written) == [str(tmp_path / f"run_state_{k}_total.dvcfield") for k in (1, 2, 3)]
+    for k, name in enumerate(sorted(written), start=1):
+        np.testing.assert_allclose(load_field(name).u, states[k].u)
