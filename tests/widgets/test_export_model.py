@@ -38,3 +38,12 @@ def test_an_export_never_writes_over_a_file_a_layer_was_opened_from(tmp_path):
         check_not_open(tmp_path / "dvc.tif", [str(stack)])  # writes dvc_uz.tif
     check_not_open(tmp_path / "field.npz", [str(scans), str(stack), None])
     check_not_open(tmp_path / "rock.h5", [str(scans)])
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_a_folder_that_takes_no_files_is_refused_in_words():
+    # the panel tried, and said "[Errno 2] No such file or directory: '/proc/.x.h5.ndc-tmp-...'"
+    from napari_dvc_correct.widgets.export_model import check_path
+
+    with pytest.raises(ValueError, match=r"cannot write into /proc"):
+        check_path("/proc/x.h5", ".h5")
