@@ -107,18 +107,21 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def evaluate_states(volumes, totals, bar) -> list:
-    """Each total against its own pair (``volumes[0]``, ``volumes[k]``): [(label, Evaluation)]."""
+def evaluate_states(volumes, totals, bar, curve: str = "") -> list:
+    """Each total against its own pair (``volumes[0]``, ``volumes[k]``): [(label, Evaluation)].
+
+    ``curve`` names the fields in the report and plot (``"total, corrected"``: the fields are
+    named ``"state k (total, corrected)"``)."""
     from ..engine.evaluation.accuracy import evaluate_iter
     from ._common import drive
     from .evaluate import ready_for_evaluation
 
     results = []
     for k, total in enumerate(totals, start=1):
-        name = f"state {k}"
+        name = f"state {k} ({curve})" if curve else f"state {k}"
         field, _ = ready_for_evaluation(total, name)
         evaluation = drive(evaluate_iter(volumes[0], volumes[k], {name: field}), bar)
-        results.append((name, evaluation))
+        results.append((f"state {k}", evaluation))
     return results
 
 
@@ -256,7 +259,8 @@ def run(args) -> int:
         if evaluate:
             from ..report.series import write_series_report
 
-            states = evaluate_states(volumes, result.totals, ProgressBar(args.quiet))
+            curve = args.strategy + (", corrected" if correct_total else "")
+            states = evaluate_states(volumes, result.totals, ProgressBar(args.quiet), curve)
             write_series_report(states, temp, args.loads, args.load_label)
     for row, total in zip(rows[1:], result.totals):
         print(
