@@ -237,6 +237,12 @@ def test_a_new_field_under_the_same_name_brings_its_own_pair(make_napari_viewer)
     correlated("b")
     assert (widget.reference.currentText(), widget.deformed.currentText()) == ("a", "b")
     correlated("c")  # its layers updated in place: no layer-list event
+    from qtpy.QtGui import QShowEvent
+
+    widget.showEvent(QShowEvent())  # the panel brought to the front shows the new field's pair
+    assert (widget.reference.currentText(), widget.deformed.currentText()) == ("a", "c")
+    widget.deformed.set_layer("b")
+    correlated("c")
     assert widget.run(start=False) is not None, widget.message.text()
     assert (widget.reference.currentText(), widget.deformed.currentText()) == ("a", "c")
     widget.deformed.set_layer("b")  # a choice made for this very field stays

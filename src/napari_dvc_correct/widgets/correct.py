@@ -109,6 +109,11 @@ class CorrectWidget(EngineWidget):
             self._follow_field()
         pair_in_order(self.reference, self.deformed, event)
 
+    def showEvent(self, event) -> None:
+        """Brought to the front: the pair of the field now under the chosen name."""
+        self._follow_field()
+        super().showEvent(event)
+
     def _follow_field(self) -> None:
         """Take the pair of a new field under the chosen name: a new run replaces its layers in
         place (no layer-list event), e.g. Correlate again on (a, c) after (a, b)."""
