@@ -111,16 +111,12 @@ def _check_folder_writable(folder: Path, option: str) -> None:
         raise FileNotFoundError(f"{option}: output folder does not exist: {folder}")
     if not folder.is_dir():
         raise ValueError(f"{option}: {folder} is not a folder")
-    from ..io.atomic import temp_name
+    from ..io.atomic import check_writable
 
-    probe = temp_name(folder / "probe")  # what the write will do: create a file there
     try:
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-    except OSError as error:
-        raise PermissionError(
-            f"{option}: cannot write into {folder} ({error.strerror or error})"
-        ) from None
-    os.unlink(probe)
+        check_writable(folder)
+    except PermissionError as error:
+        raise PermissionError(f"{option}: {error}") from None
 
 
 def check_output_path(

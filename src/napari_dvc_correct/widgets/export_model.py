@@ -99,25 +99,13 @@ def check_path(path: str, suffix: str) -> Path:
         target = target.with_name(target.name + suffix)
     if not target.parent.exists():
         raise ValueError(f"the folder {target.parent} does not exist")
-    _check_writable(target.parent)
+    from ..io.atomic import check_writable
+
+    try:  # (read-only, /proc...: the write would fail on its temporary file's name)
+        check_writable(target.parent)
+    except PermissionError as error:
+        raise ValueError(f"{error}: choose another folder") from None
     return target
-
-
-def _check_writable(folder: Path) -> None:
-    """Refuse, in words, a folder where no file can be made (read-only, /proc...): the write
-    would fail on its temporary file's name."""
-    import os
-
-    from ..io.atomic import temp_name
-
-    probe = temp_name(folder / "probe")
-    try:
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-    except OSError as error:
-        raise ValueError(
-            f"cannot write into {folder} ({error.strerror or error}): choose another folder"
-        ) from None
-    os.unlink(probe)
 
 
 def check_not_open(target: Path, open_files) -> None:
