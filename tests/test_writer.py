@@ -55,3 +55,28 @@ def test_napari_saves_a_plugin_layer_through_the_writer(tmp_path, make_napari_vi
     )
     assert written == [str(tmp_path / "saved.npz")]
     np.testing.assert_array_equal(load_field(tmp_path / "saved.npz").u, field.u)
+
+
+def test_an_npz_that_is_not_a_field_file_is_never_replaced(tmp_path):
+    # File > Save Selected Layers onto the scans' rock.npz (opened in the viewer) replaced the
+    # scans with the field; an earlier field file may still be saved over
+    scans = tmp_path / "rock.npz"
+    np.savez(scans, reference=np.zeros((4, 4, 4), np.uint8))
+    before = scans.read_bytes()
+    layers = field_layers(_field(0.5), "uncorrected")
+    with pytest.raises(ValueError, match="rock.npz is not a field file"):
+        write_fields(str(scans), layers)
+    assert scans.read_bytes() == before
+    assert write_fields(str(tmp_path / "f.npz"), layers) == [str(tmp_path / "f.npz")]
+    assert write_fields(str(tmp_path / "f.npz"), field_layers(_field(0.25), "x"))  # over a field
+    np.testing.assert_allclose(load_field(tmp_path / "f.npz").u[0, 0, 1], 0.25)
+
+
+def test_a_series_layer_writes_every_state(tmp_path):
+    # Save Selected Layers on a 4-D series layer wrote its last state alone, under the plain name
+    states = [_field(0.0), _field(0.5), _field(1.0), _field(1.5)]
+    layers = field_layers(states, "series (total)")
+    written = write_fields(str(tmp_path / "run.dvcfield"), layers[:1])
+    assert sorted(written) == [str(tmp_path / f"run_state_{k}_total.dvcfield") for k in (1, 2, 3)]
+    for k, name in enumerate(sorted(written), start=1):
+        np.testing.assert_allclose(load_field(name).u, states[k].u)

@@ -24,3 +24,12 @@ def test_clean_replaces_a_failed_node_and_an_outlier(tmp_path, capsys):
     said = capsys.readouterr().out
     assert said.startswith("replaced 2 of 125 nodes (1 failed") and "1 outliers" in said
     assert said == f"{clean.counts_text(cleaned)}; wrote {tmp_path / 'clean.npz'}\n"
+
+
+def test_clean_reads_and_writes_our_dvcfield(tmp_path):
+    field = DisplacementField.zeros((10.0, 10.0, 10.0), (5.0, 5.0, 5.0), (5, 5, 5))
+    field.u[:] = (0.5, -0.25, 1.0)
+    save_field(field, tmp_path / "raw.dvcfield")
+    out = tmp_path / "clean.dvcfield"  # was refused: "--out ... must end with .npz"
+    assert main(["clean", str(tmp_path / "raw.dvcfield"), "--out", str(out)]) == 0
+    np.testing.assert_allclose(load_field(out).u, field.u)

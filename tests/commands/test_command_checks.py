@@ -157,3 +157,13 @@ def test_evaluate_cleans_a_field_with_failed_nodes_and_says_so(files, capsys, tm
     assert code == 0, err
     assert "masked: cleaned before evaluating" in printed and "masked nodes filled" in printed
     assert (out / "report.md").is_file()
+
+
+def test_correlate_never_writes_over_the_npz_its_scans_are_named_in(files, capsys):
+    volume = files / "pair.npz"
+    np.savez(volume, reference=np.load(files / "ref.npy"), deformed=np.load(files / "def.npy"))
+    before = volume.read_bytes()
+    code, out, err = run(files, capsys, "correlate", f"{volume}:reference", f"{volume}:deformed",
+                         "--out", "pair.npz", "--quiet")  # fmt: skip
+    assert code == 2 and "is also an input" in err, err
+    assert volume.read_bytes() == before

@@ -85,3 +85,19 @@ def test_drive_returns_the_result_and_the_bar_draws_each_stage(capsys):
     assert capsys.readouterr().err == ""
     C.warn(Namespace(command="correct"), "the mask is empty")
     assert capsys.readouterr().err == "napari-dvc-correct correct: warning: the mask is empty\n"
+
+
+def test_an_npz_member_input_is_its_file(tmp_path):
+    # `correlate rock.npz:reference rock.npz:deformed --out rock.npz` replaced the user's scans
+    # with the field: the check compared the output with "rock.npz:reference", not "rock.npz"
+    scans = tmp_path / "rock.npz"
+    scans.write_bytes(b"scans")
+    args = Namespace(reference=f"{scans}:reference", deformed=f"{scans}:deformed")
+    assert C.command_inputs(args) == [str(scans), str(scans)]
+    with pytest.raises(ValueError, match="is also an input"):
+        C.check_output_path(str(scans), suffixes=None, inputs=C.command_inputs(args))
+    with pytest.raises(ValueError, match="holds the input"):
+        C.check_output_dir(str(tmp_path), inputs=C.command_inputs(args))
+    odd = tmp_path / "a:b.tif"  # a file whose own name has a colon stays whole
+    odd.write_bytes(b"scan")
+    assert C.command_inputs(Namespace(reference=str(odd))) == [str(odd)]

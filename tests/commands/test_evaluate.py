@@ -149,3 +149,15 @@ def test_r0_of_the_pair_a_specimen_region_and_the_error_estimate(scans, capsys):
     code = cli.main(["evaluate", *common, "--field", str(scans / "exact.npz"), "--roi", "4:28,,",
                      "--cylinder", "16,16,10", "--out-dir", str(scans / "two")])  # fmt: skip
     assert code != 0 and "one specimen region" in capsys.readouterr().err
+
+
+def test_the_help_names_every_volume_and_field_format(capsys):
+    # the reference said "(TIFF, folder of TIFF slices, .npy)" and --field "(.npz)", though an
+    # .npz array (rock.npz:reference) and other tools' fields (--format) are read
+    from napari_dvc_correct import cli
+
+    with pytest.raises(SystemExit):
+        cli.main(["evaluate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "reference volume G (TIFF, folder of TIFF slices, .npy, .npz" in text
+    assert "ours (.npz, .dvcfield) or another tool's (see --format)" in text

@@ -327,3 +327,13 @@ def test_the_error_estimate_and_its_resolution_round_trip_in_every_format(fmt, t
     np.testing.assert_allclose(estimate, estimate_of(field), atol=1e-6, equal_nan=True)
     np.testing.assert_allclose(resolution, resolution_of(field), atol=1e-6, equal_nan=True)
     assert np.isnan(resolution[0, 1, 2]) and np.isfinite(resolution).sum() == field.n_points - 1
+
+
+def test_its_errors_name_out_as_the_user_typed_it(source, tmp_path, capsys):
+    # export has a positional OUT, but its refusals said "--out ...", an option it does not have
+    assert main(["export", str(source), str(source), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "OUT " in err and "--out" not in err, err
+    assert main(["export", str(source), "/proc/x.vti", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "OUT: cannot write into /proc" in err and "--out" not in err, err

@@ -204,3 +204,18 @@ def test_a_field_off_whole_voxels_asks_for_a_grid_step(volumes, tmp_path, capsys
     assert main([*args, "--quiet"]) == 2
     assert "--grid-step" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_our_dvcfield_suffix_is_an_output_of_every_command(tmp_path):
+    # the panels and `export` write `.dvcfield`; correlate/correct refused `--out f.dvcfield`
+    # ("must end with .npz, .tsv, ...") and clean asked for .npz
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands import _common
+    from napari_dvc_correct.commands._field_formats import output_format
+    from napari_dvc_correct.commands.series import field_suffix
+
+    assert output_format(Namespace(out_format="auto"), str(tmp_path / "f.dvcfield")) == "npz"
+    assert field_suffix(Namespace(out_format="auto"), at_points=False) == ".npz"  # unchanged
+    assert field_suffix(Namespace(out_format="npz"), at_points=False) == ".npz"
+    assert _common.check_output_path(str(tmp_path / "f.dvcfield"), suffixes=(".npz", ".dvcfield"))

@@ -198,4 +198,21 @@ def test_series_report_plots_residual_p_and_error_against_the_load(volumes, tmp_
     png = (out_dir / "series_plot.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     page = (out_dir / "series_report.md").read_text()
-    assert "![series](series_plot.png)" in page and "| state 2 | 2 | field |" in page
+    # the curve is named for what was evaluated (it read "field")
+    assert "![series](series_plot.png)" in page and "| state 2 | 2 | total |" in page
+    assert {row["field"] for row in rows} == {"total"}
+
+
+def test_the_help_says_what_the_strategies_and_the_field_format_are(capsys):
+    # --strategy said only "default: incremental"; --out-format said "format of --out", an
+    # option the series does not have
+
+    from napari_dvc_correct import cli
+
+    with pytest.raises(SystemExit):
+        cli.main(["series", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "total: every state against the first" in text
+    assert "incremental: each state against the one before" in text
+    assert "format of --out " not in text and "format of --out (" not in text
+    assert "format of the field files in --out-dir" in text

@@ -193,3 +193,15 @@ def test_rewriting_a_set_never_deletes_a_file_its_manifest_does_not_list(tmp_pat
     with atomic_dir(out) as temp:
         (temp / "b.csv").write_text("2")
     assert sorted(p.name for p in out.iterdir()) == [SET_MARKER, "b.csv"]
+
+
+def test_a_folder_that_takes_no_files_is_said_in_words(tmp_path):
+    import os
+
+    from napari_dvc_correct.io.atomic import check_writable
+
+    check_writable(tmp_path)
+    assert list(tmp_path.iterdir()) == []  # the probe is gone
+    if os.path.isdir("/proc/self"):
+        with pytest.raises(PermissionError, match=r"cannot write into /proc \("):
+            check_writable("/proc")

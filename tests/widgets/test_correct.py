@@ -214,3 +214,38 @@ def test_correcting_an_opened_field_keeps_its_name_and_the_other_s_layers(correl
         "uncorrected",
         "aldvc",
     ]
+
+
+def test_a_new_field_under_the_same_name_brings_its_own_pair(make_napari_viewer):
+    # Correlate on (a, b), then again on (a, c): the new 'uncorrected' field replaced the first
+    # under the same name, but the panel kept b as the deformed scan and corrected the a → c
+    # field against b without a word
+    from napari_dvc_correct.engine.fields.field import DisplacementField
+    from napari_dvc_correct.layers import field_layers
+    from napari_dvc_correct.viewer_layers import show_field
+
+    viewer = make_napari_viewer()
+    for name in ("a", "b", "c"):
+        viewer.add_image(np.zeros((16, 16, 16), np.float32), name=name)
+    widget = _dock(viewer)
+
+    def correlated(deformed):
+        field = DisplacementField.zeros((4.0, 4.0, 4.0), (4.0, 4.0, 4.0), (2, 2, 2))
+        field.metadata.update(reference_layer="a", deformed_layer=deformed)
+        show_field(viewer, field_layers(field, "uncorrected"))
+
+    correlated("b")
+    assert (widget.reference.currentText(), widget.deformed.currentText()) == ("a", "b")
+    correlated("c")  # its layers updated in place: no layer-list event
+    from qtpy.QtGui import QShowEvent
+
+    widget.showEvent(QShowEvent())  # the panel brought to the front shows the new field's pair
+    assert (widget.reference.currentText(), widget.deformed.currentText()) == ("a", "c")
+    widget.deformed.set_layer("b")
+    correlated("c")
+    assert widget.run(start=False) is not None, widget.message.text()
+    assert (widget.reference.currentText(), widget.deformed.currentText()) == ("a", "c")
+    widget.deformed.set_layer("b")  # a choice made for this very field stays
+    widget.worker = None
+    assert widget.run(start=False) is not None
+    assert widget.deformed.currentText() == "b"

@@ -65,3 +65,18 @@ def test_before_after_pairs_a_field_with_its_own_corrected_one():
     assert pair(sources, ["corrected"]) == ("corrected", "uncorrected")
     assert pair(sources, sources)[1] == "corrected"  # all overlaid: as before
     assert pair(["aldvc", "snow48"], ["aldvc"]) is None  # nothing corrected yet
+
+
+def test_a_series_says_which_state_each_method_line_is_for(changed_method_field):
+    # the dock printed one "Correcting matches ..." sentence per state with no state named
+    from types import SimpleNamespace
+
+    changed, _ = changed_method_field
+    chosen = changed.copy()
+    chosen.params = {"order": 2, "subvolume": 15}
+    plain = DisplacementField.zeros((8.0, 8.0, 8.0), (4.0, 4.0, 4.0), (2, 2, 2))
+    results = [SimpleNamespace(field=f) for f in (chosen, changed, chosen, plain)]
+    text = model.series_method_message(results)
+    assert text == (
+        f"States 1 and 3: {model.method_message(chosen)} State 2: {model.method_message(changed)}"
+    )

@@ -165,3 +165,23 @@ def test_a_specimen_region_limits_the_evaluation(correlated, run_panel, small):
     voxels = sum(s.voxels for s in widget.evaluation.phases_reference)
     assert voxels == (nz - 4) * (ny - 6) * nx
     assert widget.settings()["region"]["kind"] == "box"
+
+
+def test_every_pair_of_a_series_of_layers_is_named_in_the_summary(make_napari_viewer):
+    # states c0 → c1 ... c0 → c3 as separate layers, the panel's pair c0 → c3: the third block
+    # of the summary was headed "—  —" (the panel's own pair had no label)
+    from napari_dvc_correct.engine.fields.field import DisplacementField
+
+    viewer = make_napari_viewer()
+    for k in range(4):
+        viewer.add_image(np.zeros((12, 12, 12), np.float32) + k, name=f"c{k}")
+    widget = _dock(viewer)
+    widget.reference.set_layer("c0")
+    widget.deformed.set_layer("c3")
+    chosen = {}
+    for k in (1, 2, 3):
+        field = DisplacementField.zeros((4.0, 4.0, 4.0), (4.0, 4.0, 4.0), (2, 2, 2))
+        field.metadata.update(reference_layer="c0", deformed_layer=f"c{k}")
+        chosen[f"state {k}"] = field
+    labels = [group[0] for group in widget._groups(chosen)]
+    assert labels == ["c0 → c1", "c0 → c2", "c0 → c3"]

@@ -179,3 +179,18 @@ def test_points_result_in_every_point_format(points_panel, run_panel, tmp_path):
     reader.SetFileName(str(tmp_path / "pois.vtu"))
     reader.Update()
     assert reader.GetOutput().GetNumberOfPoints() == result.n_points
+
+
+def test_an_export_onto_the_scans_file_is_refused(correlated, tmp_path):
+    # the scans opened from rock.npz, exported as NPZ to rock.npz: the scans were replaced
+    viewer = correlated.viewer
+    scans = tmp_path / "rock.npz"
+    np.savez(scans, reference=np.asarray(viewer.layers[0].data)[:8])
+    before = scans.read_bytes()
+    viewer.open(str(scans), plugin="napari-dvc-correct")
+    widget = _dock(viewer)
+    widget.set_format(".npz")
+    widget.path.setText(str(scans))
+    assert widget.run() is None
+    assert "the file of an open layer" in widget.message.text()
+    assert scans.read_bytes() == before

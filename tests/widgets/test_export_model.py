@@ -23,3 +23,27 @@ def test_points_refuse_what_needs_a_grid(tmp_path):
         with pytest.raises(ValueError, match=message):
             list(model.run_export(request))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_export_never_writes_over_a_file_a_layer_was_opened_from(tmp_path):
+    from napari_dvc_correct.widgets.export_model import check_not_open
+
+    scans = tmp_path / "rock.npz"
+    scans.write_bytes(b"scans")
+    stack = tmp_path / "dvc_uz.tif"
+    stack.write_bytes(b"a scan")
+    with pytest.raises(ValueError, match="rock.npz, the file of an open layer"):
+        check_not_open(tmp_path / "rock.npz", [None, str(scans)])
+    with pytest.raises(ValueError, match="dvc_uz.tif, the file of an open layer"):
+        check_not_open(tmp_path / "dvc.tif", [str(stack)])  # writes dvc_uz.tif
+    check_not_open(tmp_path / "field.npz", [str(scans), str(stack), None])
+    check_not_open(tmp_path / "rock.h5", [str(scans)])
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_a_folder_that_takes_no_files_is_refused_in_words():
+    # the panel tried, and said "[Errno 2] No such file or directory: '/proc/.x.h5.ndc-tmp-...'"
+    from napari_dvc_correct.widgets.export_model import check_path
+
+    with pytest.raises(ValueError, match=r"cannot write into /proc"):
+        check_path("/proc/x.h5", ".h5")

@@ -200,7 +200,8 @@ def test_a_series_as_separate_layers_is_evaluated_state_by_state(
     run_panel(evaluate)
     assert evaluate.last_error is None, evaluate.last_error
     labels = [label for label, _ in evaluate.evaluations]
-    assert labels == ["", "scan0 → scan2"]  # state 1 is the panel's pair, state 2 its own
+    # state 1 is the panel's pair (named too: its block was headed "—  —"), state 2 its own
+    assert labels == ["scan0 → scan1", "scan0 → scan2"]
     thresholds = evaluate.thresholds()
     for (_, evaluation), k in zip(evaluate.evaluations, (1, 2)):
         alone = evaluate_fields(

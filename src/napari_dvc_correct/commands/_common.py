@@ -111,16 +111,12 @@ def _check_folder_writable(folder: Path, option: str) -> None:
         raise FileNotFoundError(f"{option}: output folder does not exist: {folder}")
     if not folder.is_dir():
         raise ValueError(f"{option}: {folder} is not a folder")
-    from ..io.atomic import temp_name
+    from ..io.atomic import check_writable
 
-    probe = temp_name(folder / "probe")  # what the write will do: create a file there
     try:
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-    except OSError as error:
-        raise PermissionError(
-            f"{option}: cannot write into {folder} ({error.strerror or error})"
-        ) from None
-    os.unlink(probe)
+        check_writable(folder)
+    except PermissionError as error:
+        raise PermissionError(f"{option}: {error}") from None
 
 
 def check_output_path(
@@ -147,13 +143,17 @@ INPUT_OPTIONS = ("reference", "deformed", "volumes", "field", "compare", "mask",
 
 
 def command_inputs(args) -> list[str]:
-    """Every input path named in ``args`` (volumes, fields, masks, points), in option order."""
+    """Every input file named in ``args`` (volumes, fields, masks, points), in option order; a
+    volume named as one array of an ``.npz`` (``rock.npz:reference``) is its file ``rock.npz``."""
+    from ..io.volumes import split_member
+
     paths = []
     for name in INPUT_OPTIONS:
         value = getattr(args, name, None)
         if value is None:
             continue
-        paths.extend(str(v) for v in (value if isinstance(value, (list, tuple)) else [value]))
+        for item in value if isinstance(value, (list, tuple)) else [value]:
+            paths.append(str(split_member(str(item))[0]))
     return paths
 
 

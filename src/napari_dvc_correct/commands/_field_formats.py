@@ -21,6 +21,7 @@ from ..io.formats import FORMATS
 #: Output suffix -> format when ``--out-format`` is not given (``.txt`` is not guessed).
 OUTPUT_SUFFIXES = {
     ".npz": "npz",
+    ".dvcfield": "npz",  # the same file, under the name only this plugin's napari reader claims
     ".tsv": "spam",
     ".csv": "table",
     ".disp": "idvc",

@@ -21,8 +21,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Replace the failed and outlying nodes of a displacement field by thin-plate "
         "inpainting from the good nodes (normalised median test); writes the cleaned field.",
     )
-    parser.add_argument("field", help="field file (.npz) from 'correlate'")
-    parser.add_argument("--out", required=True, help="output field file (.npz)")
+    parser.add_argument("field", help="field file (.npz or .dvcfield) from 'correlate'")
+    parser.add_argument("--out", required=True, help="output field file (.npz or .dvcfield)")
     parser.add_argument(
         "--fill-masked",
         action="store_true",
@@ -48,7 +48,7 @@ def run(args) -> int:
     from ..engine.correction.cleaning import clean
     from ..io.npz import load_field, save_field
 
-    out = check_output_path(args.out, inputs=command_inputs(args))
+    out = check_output_path(args.out, (".npz", ".dvcfield"), inputs=command_inputs(args))
     field = load_field(args.field)
     cleaned = clean(
         field,

@@ -31,9 +31,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "and both against equivalent strain. Writes tables (CSV), plots (PNG), volumes (TIFF) and "
         "report.md into --out-dir.",
     )
-    parser.add_argument("reference", help="reference volume G (TIFF, folder of TIFF slices, .npy)")
+    parser.add_argument(
+        "reference",
+        help="reference volume G (TIFF, folder of TIFF slices, .npy, .npz; one array of an .npz "
+        "as FILE.npz:NAME)",
+    )
     parser.add_argument("deformed", help="deformed volume F")
-    parser.add_argument("--field", required=True, help="displacement field to evaluate (.npz)")
+    parser.add_argument(
+        "--field",
+        required=True,
+        help="displacement field to evaluate: ours (.npz, .dvcfield) or another tool's (see --format)",
+    )
     parser.add_argument(
         "--compare",
         action="append",

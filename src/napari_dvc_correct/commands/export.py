@@ -96,7 +96,7 @@ def _check_outputs(field_path: str, out: Path) -> None:
     from ..jobs.export import WITH_METADATA
     from ._common import _same_file, check_output_path
 
-    check_output_path(str(out), suffixes=None, inputs=[field_path])
+    check_output_path(str(out), suffixes=None, inputs=[field_path], option="OUT")
     if out.suffix.lower() in WITH_METADATA:
         return
     stem = out.with_suffix("")

@@ -58,7 +58,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "--strategy",
         choices=("incremental", "total"),
         default="incremental",
-        help="default: incremental",
+        help="total: every state against the first; incremental: each state against the one "
+        "before, the increments composed into the displacement from the first state (default: "
+        "incremental)",
     )
     parser.add_argument("--out-dir", required=True, help="folder for the fields and summary.csv")
     parser.add_argument("--mask", help="mask volume in the first state (non-zero = material)")
@@ -66,6 +68,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     add_correlation_arguments(parser)
     _grid_options.add_grid_arguments(parser)
     _field_formats.add_field_format_arguments(parser, field_input=False)
+    for action in parser._actions:
+        if action.dest == "out_format":
+            action.help = (
+                "format of the field files in --out-dir: npz (ours, state_01.npz...), spam "
+                "(.tsv), aldvc (.mat), idvc (.disp) or table (.csv); default: npz on a grid, "
+                "table at --points"
+            )
     add_self_correct_argument(parser)
     parser.add_argument(
         "--correct",
@@ -98,18 +107,21 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def evaluate_states(volumes, totals, bar) -> list:
-    """Each total against its own pair (``volumes[0]``, ``volumes[k]``): [(label, Evaluation)]."""
+def evaluate_states(volumes, totals, bar, curve: str = "") -> list:
+    """Each total against its own pair (``volumes[0]``, ``volumes[k]``): [(label, Evaluation)].
+
+    ``curve`` names the fields in the report and plot (``"total, corrected"``: the fields are
+    named ``"state k (total, corrected)"``)."""
     from ..engine.evaluation.accuracy import evaluate_iter
     from ._common import drive
     from .evaluate import ready_for_evaluation
 
     results = []
     for k, total in enumerate(totals, start=1):
-        name = f"state {k}"
+        name = f"state {k} ({curve})" if curve else f"state {k}"
         field, _ = ready_for_evaluation(total, name)
         evaluation = drive(evaluate_iter(volumes[0], volumes[k], {name: field}), bar)
-        results.append((name, evaluation))
+        results.append((f"state {k}", evaluation))
     return results
 
 
@@ -146,7 +158,9 @@ def field_suffix(args, at_points: bool) -> str:
         raise ValueError(
             "--out-format npz holds grids: write a series at --points as table, spam, idvc or aldvc"
         )
-    suffixes = {v: k for k, v in OUTPUT_SUFFIXES.items()}
+    suffixes = {}
+    for suffix, name in OUTPUT_SUFFIXES.items():
+        suffixes.setdefault(name, suffix)  # the first: ours stays .npz
     return suffixes.get(fmt, ".txt")
 
 
@@ -245,7 +259,8 @@ def run(args) -> int:
         if evaluate:
             from ..report.series import write_series_report
 
-            states = evaluate_states(volumes, result.totals, ProgressBar(args.quiet))
+            curve = args.strategy + (", corrected" if correct_total else "")
+            states = evaluate_states(volumes, result.totals, ProgressBar(args.quiet), curve)
             write_series_report(states, temp, args.loads, args.load_label)
     for row, total in zip(rows[1:], result.totals):
         print(

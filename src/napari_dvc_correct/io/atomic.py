@@ -132,6 +132,18 @@ def scratch_dir(prefix: str, parent: str | os.PathLike | None = None) -> Path:
     return path
 
 
+def check_writable(folder: str | os.PathLike) -> None:
+    """Raise ``PermissionError`` ("cannot write into FOLDER (why)") if no file can be made in
+    ``folder``: the probe does what a write does first, create a temporary file there."""
+    folder = Path(folder)
+    probe = temp_name(folder / "probe")
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError as error:
+        raise PermissionError(f"cannot write into {folder} ({error.strerror or error})") from None
+    os.unlink(probe)
+
+
 def _folder(path: Path) -> Path:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.exists():

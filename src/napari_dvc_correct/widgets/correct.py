@@ -35,6 +35,7 @@ class CorrectWidget(EngineWidget):
         super().__init__(napari_viewer, parent)
         self._source = "uncorrected"  # the field the running correction started from
         self.field = QComboBox()
+        self._chosen = None  # the field (or series' list of fields) the pair was last set for
         self.form.addRow("Field", self.field)
         self.reference = LayerCombo(self.viewer, is_scan)
         self.deformed = LayerCombo(self.viewer, is_scan)
@@ -104,10 +105,24 @@ class CorrectWidget(EngineWidget):
             self.field.setCurrentText("uncorrected")
         if self.field.currentText() != current:
             self._field_changed()
+        else:
+            self._follow_field()
         pair_in_order(self.reference, self.deformed, event)
+
+    def showEvent(self, event) -> None:
+        """Brought to the front: the pair of the field now under the chosen name."""
+        self._follow_field()
+        super().showEvent(event)
+
+    def _follow_field(self) -> None:
+        """Take the pair of a new field under the chosen name: a new run replaces its layers in
+        place (no layer-list event), e.g. Correlate again on (a, c) after (a, b)."""
+        if not _same(self.choices().get(self.field.currentText()), self._chosen):
+            self._field_changed()
 
     def _field_changed(self, *args) -> None:
         chosen = self.choices().get(self.field.currentText())
+        self._chosen = chosen
         series = isinstance(chosen, list)
         self.reference.setEnabled(not series)  # a series brings its own volumes
         self.deformed.setEnabled(not series)
@@ -147,6 +162,7 @@ class CorrectWidget(EngineWidget):
         )
 
     def prepare(self):
+        self._follow_field()  # never the pair of the field this name had before
         choices = self.choices()
         source = self.field.currentText()
         if source not in choices:
@@ -230,12 +246,12 @@ class CorrectWidget(EngineWidget):
         V.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
         rows = model.series_rows(result.results)
         self._fill_table(model.SERIES_HEADERS, rows)
-        methods = dict.fromkeys(model.method_message(r.field) for r in result.results)
+        methods = model.series_method_message(result.results)
         self.show_message(
             "Self-corrected every state: "
             + "; ".join(f"{r[0]} {r[1]}" for r in rows)
             + "."
-            + "".join(f" {method}" for method in methods if method)
+            + (f" {methods}" if methods else "")
         )
 
     def on_result(self, result) -> None:
@@ -253,3 +269,10 @@ class CorrectWidget(EngineWidget):
         )
         self._fill_table(model.PASS_HEADERS, model.pass_rows(result.field))
         self.show_message(model.summary_message(result.field))
+
+
+def _same(a, b) -> bool:
+    """The same field object, or a series of the same field objects."""
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(x is y for x, y in zip(a, b))
+    return a is b

@@ -225,3 +225,23 @@ def series_rows(results) -> list[tuple[str, ...]]:
         passes = str(info.get("passes_applied", 0))
         rows.append((f"state {k}", f"{before:.3f} → {after:.3f}", passes, matches, moved))
     return rows
+
+
+def series_method_message(results) -> str:
+    """:func:`method_message` of every state of a series, each sentence led by the states it is
+    for (``State 2: ...``, ``States 1 and 3: ...``); "" when no state has one."""
+    states: dict[str, list[int]] = {}
+    for k, result in enumerate(results, start=1):
+        text = method_message(result.field)
+        if text:
+            states.setdefault(text, []).append(k)
+    parts = []
+    for text, numbers in states.items():
+        names = [str(n) for n in numbers]
+        label = (
+            f"State {names[0]}"
+            if len(names) == 1
+            else f"States {', '.join(names[:-1])} and {names[-1]}"
+        )
+        parts.append(f"{label}: {text}")
+    return " ".join(parts)

@@ -413,8 +413,8 @@ class EvaluateWidget(EngineWidget):
         groups: dict = {}
         for name, field in chosen.items():
             pair = keys.get(name, key_of(field))
-            if pair is None:
-                label = ""
+            if pair is None:  # the panel's pair, named as the others are
+                label = f"{panel[0]} → {panel[1]}"
                 volumes = groups[None][1:3] if None in groups else self._panel_pair()
             else:
                 volumes = tuple(named_volume(self.viewer.layers, n) for n in pair)

@@ -239,6 +239,9 @@ class ExportWidget(EngineWidget):
             raise ValueError("no field to export: run Correlate first (or open a field file)")
         field = fields[source]
         path = model.check_path(self.path.text(), self.format.currentData())
+        model.check_not_open(
+            path, [getattr(getattr(x, "source", None), "path", None) for x in self.viewer.layers]
+        )
         if model.is_points(field):  # (no grid: the grid's extras are off in the panel)
             return model.run_export(
                 model.ExportRequest(

@@ -89,7 +89,7 @@ def default_name(source: str, suffix: str = ".dvcfield") -> str:
 
 
 def check_path(path: str, suffix: str) -> Path:
-    """The target path with the format's suffix; its folder must exist."""
+    """The target path with the format's suffix; its folder must exist and take files."""
     if not path or not str(path).strip():
         raise ValueError("choose a file to export to")
     target = Path(str(path).strip()).expanduser()
@@ -99,4 +99,34 @@ def check_path(path: str, suffix: str) -> Path:
         target = target.with_name(target.name + suffix)
     if not target.parent.exists():
         raise ValueError(f"the folder {target.parent} does not exist")
+    from ..io.atomic import check_writable
+
+    try:  # (read-only, /proc...: the write would fail on its temporary file's name)
+        check_writable(target.parent)
+    except PermissionError as error:
+        raise ValueError(f"{error}: choose another folder") from None
     return target
+
+
+def check_not_open(target: Path, open_files) -> None:
+    """Refuse an export that would write over a file a layer was opened from: ``target`` itself
+    (the scans' ``.npz`` chosen as an NPZ export) or a file written next to it, named
+    ``STEM_...`` (TIFF stacks, provenance, strain, residual, report). ``open_files``: the
+    layers' source paths (None for layers not opened from a file)."""
+    import os
+
+    stem = target.with_suffix("")
+    for item in open_files:
+        if not item:
+            continue
+        path = Path(item)
+        try:
+            same = path.exists() and target.exists() and os.path.samefile(path, target)
+            beside = path.exists() and path.parent.resolve() == stem.parent.resolve()
+        except OSError:
+            continue
+        if same or (beside and path.name.startswith(f"{stem.name}_")):
+            raise ValueError(
+                f"the export would write over {path.name}, the file of an open layer: choose "
+                "another file name"
+            )
