@@ -101,3 +101,49 @@ def test_an_error_while_showing_the_result_is_one_line(qtbot):
         worker.start()
     qtbot.waitUntil(lambda: widget.last_error is not None, timeout=5000)
     assert widget.last_error == "KeyError: 'no layer for this result'"
+
+
+def test_a_panel_closed_during_a_run_stops_it_and_the_process_ends_cleanly():
+    """A script that closed its viewer while a run was going (the panel deleted) and then ended
+    aborted the process (rc 134: the worker thread emitted through Qt objects the teardown had
+    deleted). The closed panel's run now stops at its next progress report, and the process's
+    end waits for it."""
+    script = textwrap.dedent(
+        """
+        import sys, time
+        from qtpy.QtWidgets import QApplication
+        from napari_dvc_correct.engine.progress import Progress
+        from napari_dvc_correct.widgets._base import EngineWidget
+
+        app = QApplication(sys.argv)
+        reports = []
+
+        class Slow(EngineWidget):
+            def prepare(self):
+                def generator():
+                    for k in range(400):  # 20 s when nobody stops it
+                        time.sleep(0.05)
+                        reports.append(k)
+                        yield Progress("work", k, 400, "")
+                return generator()
+            def on_result(self, result):
+                pass
+
+        widget = Slow(None)
+        widget.run()
+        end = time.perf_counter() + 0.5
+        while time.perf_counter() < end:
+            app.processEvents(); time.sleep(0.02)
+        widget.deleteLater()
+        app.processEvents()
+        app.sendPostedEvents(None, 0)  # the deferred delete
+        print("closed after", len(reports), "reports", flush=True)
+        """
+    )
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "aborted thread" not in done.stderr and "has been deleted" not in done.stderr
+    assert "closed after" in done.stdout

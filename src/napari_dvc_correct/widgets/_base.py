@@ -14,6 +14,7 @@ logged with their traceback and shown as one line.
 
 from __future__ import annotations
 
+import atexit
 import logging
 from collections.abc import Callable, Generator
 
@@ -34,7 +35,7 @@ from qtpy.QtWidgets import (
     QVBoxLayout,
     QWidget,
 )
-from superqt.utils import GeneratorWorker, create_worker
+from superqt.utils import GeneratorWorker, WorkerBase, create_worker
 
 from ..engine.progress import Progress
 from . import _layer_kinds as K
@@ -48,6 +49,22 @@ class EngineError(Exception):
     superqt's worker treats a :class:`RuntimeError` from the generator as "the worker was
     deleted" and swallows it; wrapping keeps every failure visible.
     """
+
+
+#: How long the end of the process waits for runs still going (their generators stop at the
+#: next progress report: a batch of matches, about a second).
+EXIT_WAIT_MS = 60_000
+
+
+@atexit.register
+def _stop_runs_at_exit() -> None:
+    """A run still going when the process ends (its viewer closed by a script, not by quitting
+    napari, which waits itself) is asked to stop and waited for: a worker thread that outlives
+    the interpreter's teardown emits through deleted Qt objects and aborts the process."""
+    try:
+        WorkerBase.await_workers(msecs=EXIT_WAIT_MS)
+    except RuntimeError:  # a run that did not stop in time: nothing more can be done
+        log.warning("a DVC run did not stop within %d s of the process end", EXIT_WAIT_MS // 1000)
 
 
 def _guarded(generator: Generator) -> Generator:
@@ -386,6 +403,7 @@ class EngineWidget(QWidget):
         worker.returned.connect(self._on_returned)
         worker.aborted.connect(self._on_aborted)
         worker.finished.connect(self._on_finished)
+        self.destroyed.connect(worker.quit)  # a closed panel's run stops at its next report
         self.worker = worker
         self.run_button.setEnabled(False)
         self.cancel_button.setEnabled(True)
