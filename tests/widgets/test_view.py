@@ -292,3 +292,14 @@ def test_the_last_field_opened_from_a_file_is_on_view(make_napari_viewer):
     assert not viewer.layers["|u| (aldvc)"].colorbar.visible
     view.show_source("all (overlaid)")  # still there when asked for
     assert all(x.visible for x in viewer.layers)
+
+
+def test_choosing_a_quantity_hides_the_phase_labels_over_the_field(view, qtbot):
+    """After Evaluate, its phase labels (opacity 0.4) lay over the field: View's uz was read
+    through their colours. Choosing a quantity puts the field alone on view."""
+    viewer = view.viewer
+    V.show_layers(viewer, [L.phase_layer(np.ones((40, 32, 32), np.uint8))])
+    assert viewer.layers["phases"].visible
+    view.set_quantity("uz")
+    settle(qtbot, view)
+    assert not viewer.layers["phases"].visible and viewer.layers["uz (corrected)"].visible

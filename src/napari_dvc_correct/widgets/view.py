@@ -197,6 +197,9 @@ class ViewWidget(QWidget):
             self.quantity.setCurrentIndex(self.quantity.findData(quantity))
             return self._quantity_worker.worker  # the combo's signal came back here
         quantity = self.quantity.currentData()
+        phases = L.find_layer(self.viewer, "phases")  # Evaluate's labels, drawn over the field:
+        if phases is not None:  # its colours mixed into the quantity chosen (ticked back at will)
+            phases.visible = False
         for layer in P.points_result_layers(self.viewer):  # a colour per point: at once
             P.color_points(layer, quantity)
         ready, problems, todo = {}, [], []
