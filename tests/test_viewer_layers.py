@@ -50,3 +50,18 @@ def test_show_layers_keeps_layers_that_share_a_metadata_dict():
     V.show_layers(viewer, [image])
     assert [layer.name for layer in viewer.layers] == ["a", "b"]
     assert L.find_layer(viewer, "a").name == "a" and L.find_layer(viewer, "b").name == "b"
+
+
+def test_a_series_field_comes_on_view_at_its_last_state(field):
+    """State 0 of a series does not move: a series shown at state 0 showed an empty field."""
+    from napari_dvc_correct.layers import series_fields
+
+    viewer = ViewerModel()
+    viewer.add_image(np.zeros((3, 20, 20, 20)), name="scans")  # the series' 4-D scans
+    viewer.dims.set_current_step(0, 0)
+    states = [field, field.copy()]
+    V.show_field(viewer, L.field_layers(series_fields(states), "series (total)"))
+    assert viewer.dims.current_step[0] == 2  # states 0, 1, 2: the last
+    viewer.dims.set_current_step(0, 1)  # the user's choice stays when a field comes again
+    V.show_field(viewer, L.field_layers(series_fields(states), "series (total)"))
+    assert viewer.dims.current_step[0] == 1

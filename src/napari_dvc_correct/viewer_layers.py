@@ -214,4 +214,17 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
         text_overlay(viewer).text = colorbar_title(layer)
         text_overlay(viewer).visible = True
     canvas_overlay(viewer, "scale_bar").visible = True
+    for layer in new[:1]:
+        _last_state_on_view(viewer, layer)
     return added
+
+
+def _last_state_on_view(viewer, layer) -> None:
+    """A series' 4-D field (state, z, y, x) brought on view at state 0, which does not move,
+    showed nothing: the slider goes to its last state (a state chosen before stays)."""
+    if layer.ndim != 4 or layer.data.shape[0] < 2 or viewer.dims.ndim < 4:
+        return
+    axis = viewer.dims.ndim - 4
+    first = float(layer.translate[0])
+    if float(viewer.dims.point[axis]) <= first:
+        viewer.dims.set_point(axis, first + float(layer.scale[0]) * (layer.data.shape[0] - 1))
