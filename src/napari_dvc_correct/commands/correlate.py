@@ -29,7 +29,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "correlate",
         help="correlate a reference and a deformed volume",
         description="Local subvolume DVC (IC-GN) of a reference volume REF and a deformed volume "
-        "DEF; writes the displacement field as an .npz field file.",
+        "DEF; writes the displacement field (our .npz or .dvcfield, or another tool's format: "
+        "see --out-format).",
     )
     parser.add_argument(
         "reference", help="reference volume (TIFF, folder of TIFF slices, .npy, .npz)"
@@ -37,7 +38,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("deformed", help="deformed volume, same shape as the reference")
     add_correlation_arguments(parser)
     parser.add_argument("--mask", help="reference-space mask volume (non-zero = material)")
-    parser.add_argument("--out", required=True, help="output field file (.npz)")
+    parser.add_argument(
+        "--out", required=True, help="output field file (.npz, .dvcfield; see --out-format)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument(
         "--device",
@@ -98,10 +101,10 @@ def add_correlation_arguments(parser: argparse.ArgumentParser) -> None:
         "--min-zncc",
         type=float,
         default=d["min_zncc"],
-        help="a match is flagged LOW_ZNCC below this fraction of the ZNCC a perfect match "
-        "reaches at the scans' noise level (relative; on noise-free scans, and for the seeds "
-        "of the initial guess where that is not estimated, the ZNCC itself; default "
-        "%(default)s)",
+        help="flag a match LOW_ZNCC when its ZNCC is below this fraction of what a perfect "
+        "match reaches through the scans' noise (e.g. 0.9: noise allows 0.96, the match has "
+        "0.85 < 0.9 x 0.96); on noise-free scans, and for the initial guess's seeds, it bounds "
+        "the ZNCC itself (default %(default)s)",
     )
 
 

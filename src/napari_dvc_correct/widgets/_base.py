@@ -439,7 +439,11 @@ class EngineWidget(QWidget):
 
     def _on_errored(self, error: Exception) -> None:
         if not isinstance(error, ValueError):
-            log.error("DVC run failed", exc_info=(type(error), error, error.__traceback__))
+            log.error(
+                "%s's run failed",
+                type(self).__name__.removesuffix("Widget"),
+                exc_info=(type(error), error, error.__traceback__),
+            )
         self.stage_label.setText("failed")
         self.show_message(one_line(error), error=True)
 
