@@ -304,7 +304,8 @@ def error_estimate(
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
     windows = (moments,) if isinstance(moments, ErrorMoments) else tuple(moments)
-    correlation = correlation if NOISE_CORRELATION_APPLIED else None
+    if not NOISE_CORRELATION_APPLIED or correlation is None or correlation.nearly_white:
+        correlation = None  # white noise (within 10 % of the resolution)
     residuals = [residual_error(m, background, own_share, correlation) for m in windows]
     deviation = node_deviation(field.u)
     roughness = np.nan_to_num(deviation_size(deviation), nan=0.0)

@@ -48,6 +48,14 @@ SIGNIFICANCE = 5.0
 #: left out (a crack, a missed region).
 CLIP = 3.5
 
+#: The correlation is read on this share of the block's voxels: those where the texture is
+#: flattest (:func:`flat_voxels`), where a field's own error leaves least in the residual.
+FLAT_SHARE = 0.4
+
+#: Gaussian smoothing (voxels) of the texture before its gradient, and of the gradient's
+#: energy after, that rank the voxels by flatness (:func:`flat_voxels`).
+FLAT_SMOOTHING = (1.0, 2.0)
+
 _L = MAX_LAG
 _BOX = 2 * MAX_LAG + 1
 
@@ -116,6 +124,18 @@ class NoiseCorrelation:
 
             return (0.5 if first == "g" else instrument_noise_pairing()) * np.eye(3)
         return _pairing(first, second, _key(self.rho))
+
+    @property
+    def spread(self) -> float:
+        """``√`` of the largest window factor: how many times the white-noise resolution the
+        resolution under this noise is, at most (1 without factors)."""
+        return float(np.sqrt(max(self.factors.values(), default=1.0)))
+
+    @property
+    def nearly_white(self) -> bool:
+        """White, or changing the resolution by less than 10 % (:attr:`spread` in 0.9–1.1):
+        the error estimate then takes the noise as white (:func:`.error_estimate.error_estimate`)."""
+        return self.is_white or 0.9 <= self.spread < 1.1
 
     def describe(self) -> str:
         """One line for the reports: the correlation one voxel apart along z, y, x and what it
@@ -337,6 +357,29 @@ def window_factors(rho: np.ndarray, instrument: np.ndarray) -> dict:
     return out
 
 
+def flat_voxels(residual: np.ndarray, own: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The :data:`FLAT_SHARE` of the ``valid`` voxels where the texture is flattest: the lowest
+    energy ``|∇ m|²`` of the two scans' mean ``m = G + s/2 = (G + map(F~))/2``, both smoothed
+    (:data:`FLAT_SMOOTHING`).
+
+    A field wrong by ``e`` leaves ``∇G·e`` in the residual, which is correlated in space as the
+    texture's gradient is, and reads as correlated noise; where the texture is flat it leaves
+    (nearly) nothing, while the scans' noise is there as everywhere. ``m`` is used rather than
+    ``G`` so that the selection does not follow ``G``'s own noise alone, and the smoothing
+    makes it depend on the noise only through averages over many voxels (white noise reads
+    white on it, tested, also on a texture-free volume)."""
+    from .accuracy_blocks import gradient_components
+
+    before, after = FLAT_SMOOTHING
+    mean = np.asarray(own, np.float64) + 0.5 * np.where(valid, residual, 0.0)
+    mean = ndimage.gaussian_filter(np.nan_to_num(mean), before, mode="nearest")
+    energy = np.sum(gradient_components(mean).astype(np.float64) ** 2, axis=0)
+    energy = ndimage.gaussian_filter(energy, after, mode="nearest")
+    if valid.sum() < 8:
+        return valid
+    return valid & (energy <= np.quantile(energy[valid], FLAT_SHARE))
+
+
 def measure_noise_correlation(
     residual: np.ndarray, own: np.ndarray, displacement
 ) -> NoiseCorrelation:
@@ -360,7 +403,7 @@ def measure_noise_correlation(
     spread = 1.4826 * np.median(np.abs(s[valid] - centre))
     if spread > 0:
         valid &= np.abs(np.where(valid, s, centre) - centre) <= CLIP * spread
-    covariance, pairs = autocovariance(s, valid)
+    covariance, pairs = autocovariance(s, flat_voxels(s, own, valid))
     if covariance[_L, _L, _L] <= 0:
         return NoiseCorrelation.white()
     unmixed = _unmix(covariance, interpolation_autocorrelation(displacement))
