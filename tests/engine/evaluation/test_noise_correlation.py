@@ -44,7 +44,9 @@ def _pulled(noise, fraction):
 def _residual(smoothing, fraction, seeds=(1, 2), shape=SHAPE):
     """``map(F~) − G`` of two texture-free scans: the pulled-back noise of seed ``seeds[1]``
     less the reference's, of seed ``seeds[0]`` (:func:`_reference`)."""
-    return _pulled(_noise(smoothing, seeds[1], shape), fraction) - _noise(smoothing, seeds[0], shape)
+    return _pulled(_noise(smoothing, seeds[1], shape), fraction) - _noise(
+        smoothing, seeds[0], shape
+    )
 
 
 def _reference(smoothing, seeds=(1, 2), shape=SHAPE):
@@ -72,7 +74,9 @@ def test_smoothed_noise_reads_its_known_correlation(smoothing, fraction):
     shape = (64, 64, 64)
     residual = _residual(smoothing, fraction, shape=shape)
     displacement = np.tile(np.asarray(fraction) + 1.0, (10, 1))
-    correlation = measure_noise_correlation(residual, _reference(smoothing, shape=shape), displacement)
+    correlation = measure_noise_correlation(
+        residual, _reference(smoothing, shape=shape), displacement
+    )
     expected = np.exp(-(np.arange(1, MAX_LAG + 1) ** 2) / (4 * smoothing**2))
     for axis in range(3):
         np.testing.assert_allclose(correlation.along(axis), expected, atol=0.03)
