@@ -267,7 +267,7 @@ def test_the_correlation_in_words_gives_one_voxel_lags_and_the_resolution_s_shor
     rho = np.exp(
         -(lags[:, None, None] ** 2 + 2 * lags[None, :, None] ** 2 + lags[None, None, :] ** 2)
     )
-    text = NoiseCorrelation(rho, {2: 3.0, 6: 6.25}).describe()
+    text = NoiseCorrelation(rho, {2: 3.0, 6: 6.25}).describe(applied=False)
     one = np.exp(-1.0), np.exp(-2.0), np.exp(-1.0)  # z, y, x
     assert f"z/y/x: {one[0]:.2f}/{one[1]:.2f}/{one[2]:.2f}" in text
     assert "up to 2.5× small" in text  # √6.25: the largest variance factor as a spread
@@ -277,4 +277,11 @@ def test_the_correlation_in_words_gives_one_voxel_lags_and_the_resolution_s_shor
     assert nearly.describe().endswith("white-noise resolution holds within 10 %")
     # a negative one (anti-correlated noise) makes the resolution read large
     negative = NoiseCorrelation(rho, {2: 0.5, 6: 0.64})
-    assert negative.describe().endswith("may read up to 1.2× large")  # 1/√0.64 = 1.25
+    assert negative.describe(applied=False).endswith("may read up to 1.2× large")  # 1/√0.64
+    # applied: the estimate's resolution carries it, by the factor given
+    applied = NoiseCorrelation(rho, {2: 3.0, 6: 6.25}).describe(applied=True)
+    assert applied.endswith(
+        "the error estimate takes it into account (its resolution up to 2.5× the white-noise one)"
+    )
+    assert negative.describe(applied=True).endswith("down to 0.8× the white-noise one)")
+    assert nearly.describe(applied=True) == nearly.describe(applied=False)

@@ -137,20 +137,31 @@ class NoiseCorrelation:
         the error estimate then takes the noise as white (:func:`.error_estimate.error_estimate`)."""
         return self.is_white or 0.9 <= self.spread < 1.1
 
-    def describe(self) -> str:
+    def describe(self, applied: bool | None = None) -> str:
         """One line for the reports: the correlation one voxel apart along z, y, x and what it
-        does to the error estimate's resolution, which takes the noise as white
-        (:data:`.error_estimate.NOISE_CORRELATION_APPLIED` off)."""
+        does to the error estimate's resolution. ``applied``: whether the estimate uses it
+        (None: :data:`.error_estimate.NOISE_CORRELATION_APPLIED`); a nearly white one is taken
+        as white either way (:attr:`nearly_white`)."""
         if self.is_white:
             return "scan noise white in space (no correlation 1–3 voxels apart)"
+        if applied is None:
+            from . import error_estimate
+
+            applied = error_estimate.NOISE_CORRELATION_APPLIED
         one = "/".join(f"{self.along(axis)[0]:.2f}" for axis in range(3))
-        spread = np.sqrt(max(self.factors.values(), default=1.0))
-        if 0.9 <= spread < 1.1:
+        spread = self.spread
+        if self.nearly_white:
             return (
                 f"scan noise nearly white in space (ρ one voxel apart, z/y/x: {one}): the error "
                 "estimate's white-noise resolution holds within 10 %"
             )
         head = f"scan noise correlated in space (ρ one voxel apart, z/y/x: {one})"
+        if applied:
+            bound = "up to" if spread >= 1.1 else "down to"
+            return (
+                head + f": the error estimate takes it into account (its resolution {bound} "
+                f"{spread:.1f}× the white-noise one)"
+            )
         side = "small" if spread >= 1.1 else "large"
         by = spread if spread >= 1.1 else 1.0 / max(spread, 1e-3)
         return (
