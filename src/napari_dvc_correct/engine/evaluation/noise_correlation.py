@@ -20,7 +20,10 @@ mixed differences of a two-phase texture under white noise read as a lag-1 corre
 The two scans share the texture and not the noise, so ``ρ`` is read on the pair's residual
 ``s = map(F~) − G`` with the best field (the one ``r0`` is measured with, :mod:`.accuracy_pair`),
 on the central block of :func:`.gray_noise.noise_box` (the same block in memory and tiled): its
-autocovariance at lags up to :data:`MAX_LAG` along each axis (3-D, robust to outliers). The
+autocovariance at lags up to :data:`MAX_LAG` along each axis (3-D, robust to outliers), over the
+block's flattest :data:`FLAT_SHARE` of voxels (:func:`flat_voxels`: a field's own error ``e``
+leaves ``∇G·e`` in the residual, correlated as the texture's gradient is, and least where the
+texture is flat; white noise with a 0.5-voxel band in the field then reads white, tested). The
 pull-back's cubic B-spline correlates ``F``'s noise at fractional positions (a lag-1
 correlation of 0.16 at a fraction 0.3, 0.26 at 0.5); with both scans' noise of one correlation
 and variance, ``R_s = σ² (ρ + Γ ⋆ ρ)``, ``Γ`` the interpolation's autocorrelation at the field's
