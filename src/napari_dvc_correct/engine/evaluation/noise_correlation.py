@@ -378,10 +378,14 @@ def flat_voxels(residual: np.ndarray, own: np.ndarray, valid: np.ndarray) -> np.
 
     A field wrong by ``e`` leaves ``∇G·e`` in the residual, which is correlated in space as the
     texture's gradient is, and reads as correlated noise; where the texture is flat it leaves
-    (nearly) nothing, while the scans' noise is there as everywhere. ``m`` is used rather than
-    ``G`` so that the selection does not follow ``G``'s own noise alone, and the smoothing
-    makes it depend on the noise only through averages over many voxels (white noise reads
-    white on it, tested, also on a texture-free volume)."""
+    (nearly) nothing, while the scans' noise is there as everywhere. ``m`` rather than ``G``:
+    its noise ``(n_F + n_G)/2`` is uncorrelated with the residual's ``n_F − n_G`` (the same
+    noise in both scans), so the voxels are not picked by the residual's own noise, which ``G``
+    alone (holding ``n_G``) would do; the smoothing makes the choice depend on the noise only
+    through averages over many voxels (white noise reads white on them, tested, also on a
+    texture-free pair). Where the "noise" is not stationary (a noise-free pair: the
+    interpolators' difference, smallest where the texture is flat) the flat voxels read it
+    differently from the rest (docs/evaluation.md)."""
     from .accuracy_blocks import gradient_components
 
     before, after = FLAT_SMOOTHING
