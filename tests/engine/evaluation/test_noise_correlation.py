@@ -41,15 +41,24 @@ def _pulled(noise, fraction):
     return ndimage.map_coordinates(noise, grid, order=3, mode="grid-wrap")
 
 
-def _residual(smoothing, fraction, seeds=(1, 2)):
-    return _pulled(_noise(smoothing, seeds[1]), fraction) - _noise(smoothing, seeds[0])
+def _residual(smoothing, fraction, seeds=(1, 2), shape=SHAPE):
+    """``map(F~) − G`` of two texture-free scans: the pulled-back noise of seed ``seeds[1]``
+    less the reference's, of seed ``seeds[0]`` (:func:`_reference`)."""
+    return _pulled(_noise(smoothing, seeds[1], shape), fraction) - _noise(
+        smoothing, seeds[0], shape
+    )
+
+
+def _reference(smoothing, seeds=(1, 2), shape=SHAPE):
+    """``G`` of :func:`_residual`: its noise alone (the residual holds its negative)."""
+    return _noise(smoothing, seeds[0], shape)
 
 
 @pytest.mark.parametrize("fraction", [(0.0, 0.0, 0.0), (0.3, 0.3, 0.2), (0.5, 0.5, 0.5)])
 def test_white_noise_reads_white_after_the_pull_back_is_taken_out(fraction):
     residual = _residual(0.0, fraction)
     displacement = np.tile(np.asarray(fraction) + 2.0, (10, 1))
-    correlation = measure_noise_correlation(residual, np.zeros(SHAPE), displacement)
+    correlation = measure_noise_correlation(residual, _reference(0.0), displacement)
     assert correlation.is_white and correlation.factor(5) == 1.0
     if fraction[0] >= 0.3:  # the residual itself is correlated by the interpolation
         covariance, _ = autocovariance(residual)
@@ -59,13 +68,91 @@ def test_white_noise_reads_white_after_the_pull_back_is_taken_out(fraction):
 @pytest.mark.parametrize("smoothing", [0.7, 1.0])
 @pytest.mark.parametrize("fraction", [(0.0, 0.0, 0.0), (0.3, 0.3, 0.2)])
 def test_smoothed_noise_reads_its_known_correlation(smoothing, fraction):
-    """Gaussian-smoothed noise: ``ρ(k) = exp(−k²/(4 s²))`` along each axis, within 0.03."""
-    residual = _residual(smoothing, fraction)
+    """Gaussian-smoothed noise: ``ρ(k) = exp(−k²/(4 s²))`` along each axis, within 0.03 (on
+    64³: read on 40 % of the voxels, :func:`.flat_voxels`, the lags of one 48³ realisation
+    scatter by up to 0.04)."""
+    shape = (64, 64, 64)
+    residual = _residual(smoothing, fraction, shape=shape)
     displacement = np.tile(np.asarray(fraction) + 1.0, (10, 1))
-    correlation = measure_noise_correlation(residual, np.zeros(SHAPE), displacement)
+    correlation = measure_noise_correlation(
+        residual, _reference(smoothing, shape=shape), displacement
+    )
     expected = np.exp(-(np.arange(1, MAX_LAG + 1) ** 2) / (4 * smoothing**2))
     for axis in range(3):
         np.testing.assert_allclose(correlation.along(axis), expected, atol=0.03)
+
+
+def _ct_residual(error: str, smoothing: float, margin: int = 6):
+    """The residual of a field wrong by ``error`` on a CT-like cylinder in air (64³, 3 % noise
+    smoothed by ``smoothing`` voxels, both scans; the true field a translation of (0.3, 0.3,
+    0.2) voxel, the evaluated one that plus the error, on a grid of step 5 densified by the
+    cubic spline; the pull-back a cubic B-spline): ``(residual, G, node displacements)``."""
+    from napari_dvc_correct.engine.fields.field import DisplacementField, grid_for_volume
+    from napari_dvc_correct.engine.fields.field_spline import densify
+    from napari_dvc_correct.engine.synthetic import concrete_ct_volume, ct_noise_sigma
+
+    shape = (64, 64, 64)
+    shift = np.array([0.3, 0.3, 0.2])
+    big = tuple(n + 2 * margin for n in shape)
+    texture = concrete_ct_volume(big, aggregate_fraction=0.4, seed=3).astype(np.float64)
+    sigma = ct_noise_sigma(texture, 0.03)
+    inner = (slice(margin, margin + shape[0]),) * 3
+    reference = texture[inner] + sigma * _noise(smoothing, 11, shape)
+    deformed = ndimage.shift(texture, shift, order=5, mode="mirror")
+    deformed += sigma * np.pad(_noise(smoothing, 12, shape), margin, mode="wrap")
+    origin, step, grid = grid_for_volume(shape, 15, 5)
+    base = DisplacementField.zeros(origin, step, grid, params={"subvolume": 15})
+    points = base.points
+    rng = np.random.default_rng(5)
+    if error == "band 0.5":  # across x, as benchmarks/bench_error_estimate.py's band_error
+        direction = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
+        profile = np.exp(-0.5 * ((points[:, 2] - 32.0) / (12.0 / 2.355)) ** 2)
+        wrong = 0.5 * profile[:, None] * direction
+    else:  # "random 0.2": independent node errors of 0.2 voxel rms
+        wrong = rng.normal(0.0, 0.2 / np.sqrt(3), points.shape)
+    u = shift + wrong
+    dense = densify(base.replace(u=u.reshape((*grid, 3))), shape=shape, dtype=float)
+    where = np.indices(shape).astype(np.float64) + margin + np.moveaxis(dense, -1, 0)
+    moved = ndimage.map_coordinates(deformed, where, order=3, mode="mirror")
+    return moved - reference, reference, u
+
+
+@pytest.mark.parametrize("error", ["band 0.5", "random 0.2"])
+def test_a_field_s_own_error_does_not_read_as_correlated_noise(error, monkeypatch):
+    """The evaluated field wrong by a 0.5-voxel band or by 0.2 voxel at random: its error
+    ``∇G·e`` in the residual is as correlated as the texture's gradient. Read on the flattest
+    40 % of the block (:func:`.flat_voxels`) white noise reads white (band; measured: all lags
+    0) or nearly white (random: the resolution within 10 %; measured ρ(1) ≤ 0.03, factor 1.17)
+    and smoothed noise its known correlation within 0.03. Read on every voxel (before) the
+    same residuals do not read white (white noise: ρ up to 0.013 and factor 1.04 with the band;
+    2.63 with the random error)."""
+    from napari_dvc_correct.engine.evaluation import noise_correlation
+
+    residual, reference, u = _ct_residual(error, 0.0)
+    correlation = measure_noise_correlation(residual, reference, u)
+    assert correlation.is_white if error == "band 0.5" else correlation.nearly_white
+    smoothed = measure_noise_correlation(*_ct_residual(error, 0.7))
+    expected = np.exp(-(np.arange(1, MAX_LAG + 1) ** 2) / (4 * 0.7**2))
+    for axis in range(3):
+        np.testing.assert_allclose(smoothed.along(axis), expected, atol=0.03)
+    monkeypatch.setattr(noise_correlation, "FLAT_SHARE", 1.0)
+    everywhere = measure_noise_correlation(residual, reference, u)
+    assert not everywhere.is_white
+    assert error == "band 0.5" or everywhere.spread > 1.2
+
+
+def test_the_flat_voxels_are_the_share_with_the_least_texture():
+    """On a half-textured block the flat voxels lie in the flat half, and they are
+    :data:`.FLAT_SHARE` of the valid ones."""
+    from napari_dvc_correct.engine.evaluation.noise_correlation import FLAT_SHARE, flat_voxels
+
+    own = 100.0 * _noise(1.5, 3)
+    own[:, :, :24] = 0.0
+    noise = _noise(0.0, 4)
+    valid = np.ones(SHAPE, bool)
+    flat = flat_voxels(noise, own + 0.5 * noise, valid)
+    assert flat.sum() == pytest.approx(FLAT_SHARE * valid.size, rel=0.01)
+    assert flat[:, :, :20].sum() / flat.sum() > 0.99
 
 
 def test_the_pairings_are_the_known_ones():
@@ -180,7 +267,7 @@ def test_the_correlation_in_words_gives_one_voxel_lags_and_the_resolution_s_shor
     rho = np.exp(
         -(lags[:, None, None] ** 2 + 2 * lags[None, :, None] ** 2 + lags[None, None, :] ** 2)
     )
-    text = NoiseCorrelation(rho, {2: 3.0, 6: 6.25}).describe()
+    text = NoiseCorrelation(rho, {2: 3.0, 6: 6.25}).describe(applied=False)
     one = np.exp(-1.0), np.exp(-2.0), np.exp(-1.0)  # z, y, x
     assert f"z/y/x: {one[0]:.2f}/{one[1]:.2f}/{one[2]:.2f}" in text
     assert "up to 2.5× small" in text  # √6.25: the largest variance factor as a spread
@@ -190,4 +277,11 @@ def test_the_correlation_in_words_gives_one_voxel_lags_and_the_resolution_s_shor
     assert nearly.describe().endswith("white-noise resolution holds within 10 %")
     # a negative one (anti-correlated noise) makes the resolution read large
     negative = NoiseCorrelation(rho, {2: 0.5, 6: 0.64})
-    assert negative.describe().endswith("may read up to 1.2× large")  # 1/√0.64 = 1.25
+    assert negative.describe(applied=False).endswith("may read up to 1.2× large")  # 1/√0.64
+    # applied: the estimate's resolution carries it, by the factor given
+    applied = NoiseCorrelation(rho, {2: 3.0, 6: 6.25}).describe(applied=True)
+    assert applied.endswith(
+        "the error estimate takes it into account (its resolution up to 2.5× the white-noise one)"
+    )
+    assert negative.describe(applied=True).endswith("down to 0.8× the white-noise one)")
+    assert nearly.describe(applied=True) == nearly.describe(applied=False)

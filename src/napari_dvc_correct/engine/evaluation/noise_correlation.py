@@ -20,7 +20,10 @@ mixed differences of a two-phase texture under white noise read as a lag-1 corre
 The two scans share the texture and not the noise, so ``ρ`` is read on the pair's residual
 ``s = map(F~) − G`` with the best field (the one ``r0`` is measured with, :mod:`.accuracy_pair`),
 on the central block of :func:`.gray_noise.noise_box` (the same block in memory and tiled): its
-autocovariance at lags up to :data:`MAX_LAG` along each axis (3-D, robust to outliers). The
+autocovariance at lags up to :data:`MAX_LAG` along each axis (3-D, robust to outliers), over the
+block's flattest :data:`FLAT_SHARE` of voxels (:func:`flat_voxels`: a field's own error ``e``
+leaves ``∇G·e`` in the residual, correlated as the texture's gradient is, and least where the
+texture is flat; white noise with a 0.5-voxel band in the field then reads white, tested). The
 pull-back's cubic B-spline correlates ``F``'s noise at fractional positions (a lag-1
 correlation of 0.16 at a fraction 0.3, 0.26 at 0.5); with both scans' noise of one correlation
 and variance, ``R_s = σ² (ρ + Γ ⋆ ρ)``, ``Γ`` the interpolation's autocorrelation at the field's
@@ -47,6 +50,14 @@ SIGNIFICANCE = 5.0
 #: The residual's voxels farther than this many robust standard deviations from its median are
 #: left out (a crack, a missed region).
 CLIP = 3.5
+
+#: The correlation is read on this share of the block's voxels: those where the texture is
+#: flattest (:func:`flat_voxels`), where a field's own error leaves least in the residual.
+FLAT_SHARE = 0.4
+
+#: Gaussian smoothing (voxels) of the texture before its gradient, and of the gradient's
+#: energy after, that rank the voxels by flatness (:func:`flat_voxels`).
+FLAT_SMOOTHING = (1.0, 2.0)
 
 _L = MAX_LAG
 _BOX = 2 * MAX_LAG + 1
@@ -117,20 +128,43 @@ class NoiseCorrelation:
             return (0.5 if first == "g" else instrument_noise_pairing()) * np.eye(3)
         return _pairing(first, second, _key(self.rho))
 
-    def describe(self) -> str:
+    @property
+    def spread(self) -> float:
+        """``√`` of the largest window factor: how many times the white-noise resolution the
+        resolution under this noise is, at most (1 without factors)."""
+        return float(np.sqrt(max(self.factors.values(), default=1.0)))
+
+    @property
+    def nearly_white(self) -> bool:
+        """White, or changing the resolution by less than 10 % (:attr:`spread` in 0.9–1.1):
+        the error estimate then takes the noise as white (:func:`.error_estimate.error_estimate`)."""
+        return self.is_white or 0.9 <= self.spread < 1.1
+
+    def describe(self, applied: bool | None = None) -> str:
         """One line for the reports: the correlation one voxel apart along z, y, x and what it
-        does to the error estimate's resolution, which takes the noise as white
-        (:data:`.error_estimate.NOISE_CORRELATION_APPLIED` off)."""
+        does to the error estimate's resolution. ``applied``: whether the estimate uses it
+        (None: :data:`.error_estimate.NOISE_CORRELATION_APPLIED`); a nearly white one is taken
+        as white either way (:attr:`nearly_white`)."""
         if self.is_white:
             return "scan noise white in space (no correlation 1–3 voxels apart)"
+        if applied is None:
+            from . import error_estimate
+
+            applied = error_estimate.NOISE_CORRELATION_APPLIED
         one = "/".join(f"{self.along(axis)[0]:.2f}" for axis in range(3))
-        spread = np.sqrt(max(self.factors.values(), default=1.0))
-        if 0.9 <= spread < 1.1:
+        spread = self.spread
+        if self.nearly_white:
             return (
                 f"scan noise nearly white in space (ρ one voxel apart, z/y/x: {one}): the error "
                 "estimate's white-noise resolution holds within 10 %"
             )
         head = f"scan noise correlated in space (ρ one voxel apart, z/y/x: {one})"
+        if applied:
+            bound = "up to" if spread >= 1.1 else "down to"
+            return (
+                head + f": the error estimate takes it into account (its resolution {bound} "
+                f"{spread:.1f}× the white-noise one)"
+            )
         side = "small" if spread >= 1.1 else "large"
         by = spread if spread >= 1.1 else 1.0 / max(spread, 1e-3)
         return (
@@ -337,6 +371,33 @@ def window_factors(rho: np.ndarray, instrument: np.ndarray) -> dict:
     return out
 
 
+def flat_voxels(residual: np.ndarray, own: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The :data:`FLAT_SHARE` of the ``valid`` voxels where the texture is flattest: the lowest
+    energy ``|∇ m|²`` of the two scans' mean ``m = G + s/2 = (G + map(F~))/2``, both smoothed
+    (:data:`FLAT_SMOOTHING`).
+
+    A field wrong by ``e`` leaves ``∇G·e`` in the residual, which is correlated in space as the
+    texture's gradient is, and reads as correlated noise; where the texture is flat it leaves
+    (nearly) nothing, while the scans' noise is there as everywhere. ``m`` rather than ``G``:
+    its noise ``(n_F + n_G)/2`` is uncorrelated with the residual's ``n_F − n_G`` (the same
+    noise in both scans), so the voxels are not picked by the residual's own noise, which ``G``
+    alone (holding ``n_G``) would do; the smoothing makes the choice depend on the noise only
+    through averages over many voxels (white noise reads white on them, tested, also on a
+    texture-free pair). Where the "noise" is not stationary (a noise-free pair: the
+    interpolators' difference, smallest where the texture is flat) the flat voxels read it
+    differently from the rest (docs/evaluation.md)."""
+    from .accuracy_blocks import gradient_components
+
+    before, after = FLAT_SMOOTHING
+    mean = np.asarray(own, np.float64) + 0.5 * np.where(valid, residual, 0.0)
+    mean = ndimage.gaussian_filter(np.nan_to_num(mean), before, mode="nearest")
+    energy = np.sum(gradient_components(mean).astype(np.float64) ** 2, axis=0)
+    energy = ndimage.gaussian_filter(energy, after, mode="nearest")
+    if valid.sum() < 8:
+        return valid
+    return valid & (energy <= np.quantile(energy[valid], FLAT_SHARE))
+
+
 def measure_noise_correlation(
     residual: np.ndarray, own: np.ndarray, displacement
 ) -> NoiseCorrelation:
@@ -360,7 +421,7 @@ def measure_noise_correlation(
     spread = 1.4826 * np.median(np.abs(s[valid] - centre))
     if spread > 0:
         valid &= np.abs(np.where(valid, s, centre) - centre) <= CLIP * spread
-    covariance, pairs = autocovariance(s, valid)
+    covariance, pairs = autocovariance(s, flat_voxels(s, own, valid))
     if covariance[_L, _L, _L] <= 0:
         return NoiseCorrelation.white()
     unmixed = _unmix(covariance, interpolation_autocorrelation(displacement))
