@@ -374,11 +374,11 @@ if __name__ == "__main__":
     parser.add_argument(
         "--apply-correlation", action="store_true",
         help="the estimate uses the pair's measured noise correlation "
-        "(error_estimate.NOISE_CORRELATION_APPLIED)",
+        "(noise_correlation.NOISE_CORRELATION_APPLIED)",
     )  # fmt: skip
     arguments = parser.parse_args()
     if arguments.apply_correlation:
-        from napari_dvc_correct.engine.evaluation import error_estimate
+        from napari_dvc_correct.engine.evaluation import noise_correlation
 
-        error_estimate.NOISE_CORRELATION_APPLIED = True
+        noise_correlation.NOISE_CORRELATION_APPLIED = True
     main(arguments.quick, arguments.correlated)

@@ -33,7 +33,7 @@ from bench_error_estimate import measure
 from napari_dvc_correct.engine.correction.self_correction import correct
 from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
-from napari_dvc_correct.engine.evaluation import error_estimate, error_scales
+from napari_dvc_correct.engine.evaluation import error_estimate, error_scales, noise_correlation
 from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
 from napari_dvc_correct.engine.evaluation.error_estimate import noise_error
 
@@ -90,7 +90,7 @@ def main(argv=None) -> list:
     if args.single_window:
         single_window()
     if args.apply_correlation:  # the pair's measured noise correlation in the estimate
-        error_estimate.NOISE_CORRELATION_APPLIED = True
+        noise_correlation.NOISE_CORRELATION_APPLIED = True
     rows = []
     for name in args.cases:
         rows += run(name, args.seed)

@@ -9,7 +9,7 @@ or flagged as discontinuous, and their neighbours) against the rest.
     python benchmarks/bench_error_estimate_rock.py [../shared/data/real-rock] [--apply-correlation]
 
 The pair's measured noise correlation is printed; ``--apply-correlation`` lets the estimate use it
-(``error_estimate.NOISE_CORRELATION_APPLIED``, off by default).
+(``noise_correlation.NOISE_CORRELATION_APPLIED``, off by default).
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ def main(folder: Path) -> None:
 if __name__ == "__main__":
     here = Path(__file__).resolve().parents[1]
     if "--apply-correlation" in sys.argv:  # the pair's measured noise correlation in the estimate
-        from napari_dvc_correct.engine.evaluation import error_estimate
+        from napari_dvc_correct.engine.evaluation import noise_correlation
 
-        error_estimate.NOISE_CORRELATION_APPLIED = True
+        noise_correlation.NOISE_CORRELATION_APPLIED = True
         sys.argv.remove("--apply-correlation")
     main(Path(sys.argv[1]) if len(sys.argv) > 1 else here.parent / "shared/data/real-rock")

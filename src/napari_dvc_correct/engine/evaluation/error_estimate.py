@@ -65,19 +65,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import noise_correlation
 from .error_moments import _PAIRS, ErrorMoments
 from .error_scales import finest_resolved, node_error_bound
 from .node_roughness import deviation_size, node_deviation
 from .noise_correlation import NoiseCorrelation
-
-#: Whether :func:`error_estimate` uses the pair's measured noise correlation
-#: (:mod:`.noise_correlation`; a nearly white one, within 10 % of the resolution, never). Off
-#: (white noise, as before): read on the flattest voxels of the best field's residual, the
-#: white-noise cases of the benchmarks read white, but where the texture has no flat region (a
-#: noise-free two-phase texture, our DVC's fields of the narrow band cases) the correlation still
-#: reads the field's own error, and applied it loses catches near 0.5 voxel (docs/evaluation.md,
-#: "Spatially correlated noise"); the pair still measures and reports it.
-NOISE_CORRELATION_APPLIED = False
 
 #: Nodes whose error is likely above this many voxels are counted as likely bad
 #: (:func:`probability_above`).
@@ -291,7 +283,7 @@ def error_estimate(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Estimated displacement error per node and the residual's resolution there (voxels);
     ``background``, ``own_share`` and ``correlation`` as in :func:`residual_error` (the
-    correlation is used only where :data:`NOISE_CORRELATION_APPLIED`). ``moments`` is one
+    correlation is used only where :data:`.noise_correlation.NOISE_CORRELATION_APPLIED`). ``moments`` is one
     :class:`ErrorMoments` or one per window, finest first (:mod:`.error_scales`; windows of
     known half-size also bound ``d``).
 
@@ -306,7 +298,11 @@ def error_estimate(
         cannot see the node's error and ``estimate`` is an upper bound, not a rank.
     """
     windows = (moments,) if isinstance(moments, ErrorMoments) else tuple(moments)
-    if not NOISE_CORRELATION_APPLIED or correlation is None or correlation.nearly_white:
+    if (
+        not noise_correlation.NOISE_CORRELATION_APPLIED
+        or correlation is None
+        or correlation.nearly_white
+    ):
         correlation = None  # white noise (within 10 % of the resolution)
     residuals = [residual_error(m, background, own_share, correlation) for m in windows]
     deviation = node_deviation(field.u)

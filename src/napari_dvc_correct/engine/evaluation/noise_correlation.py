@@ -69,6 +69,16 @@ def _white() -> np.ndarray:
     return rho
 
 
+#: Whether :func:`.error_estimate.error_estimate` uses the pair's measured noise correlation
+#: (this module's; a nearly white one, within 10 % of the resolution, never). Off
+#: (white noise, as before): read on the flattest voxels of the best field's residual, the
+#: white-noise cases of the benchmarks read white, but where the texture has no flat region (a
+#: noise-free two-phase texture, our DVC's fields of the narrow band cases) the correlation still
+#: reads the field's own error, and applied it loses catches near 0.5 voxel (docs/evaluation.md,
+#: "Spatially correlated noise"); the pair still measures and reports it.
+NOISE_CORRELATION_APPLIED = False
+
+
 @dataclass(frozen=True)
 class NoiseCorrelation:
     """One scan's noise correlation ``ρ`` (lags ``−MAX_LAG…MAX_LAG`` per axis, ``ρ[L, L, L] =
@@ -143,14 +153,12 @@ class NoiseCorrelation:
     def describe(self, applied: bool | None = None) -> str:
         """One line for the reports: the correlation one voxel apart along z, y, x and what it
         does to the error estimate's resolution. ``applied``: whether the estimate uses it
-        (None: :data:`.error_estimate.NOISE_CORRELATION_APPLIED`); a nearly white one is taken
+        (None: :data:`NOISE_CORRELATION_APPLIED`); a nearly white one is taken
         as white either way (:attr:`nearly_white`)."""
         if self.is_white:
             return "scan noise white in space (no correlation 1–3 voxels apart)"
         if applied is None:
-            from . import error_estimate
-
-            applied = error_estimate.NOISE_CORRELATION_APPLIED
+            applied = NOISE_CORRELATION_APPLIED
         one = "/".join(f"{self.along(axis)[0]:.2f}" for axis in range(3))
         spread = self.spread
         if self.nearly_white:
