@@ -10,11 +10,17 @@ times the slots too, to say which.
 The run is what a user does on the sample pair: Correlate (twice: the first run may compile
 kernels, ``--cold`` forces that with an empty numba cache), Self-correct, Evaluate (two
 phases), Export (one ``.dvcfield``), each through its panel in a shown viewer (run it under
-Xvfb: ``xvfb-run -a``). Figures go to stdout and, with ``--json``, to a file; they belong in
-docs/performance.md with the machine and its load.
+Xvfb: ``xvfb-run -a``). ``--series`` adds a 4-state series (64³ each, as four 3-D layers):
+series Correlate (incremental), series Self-correct (1 pass) and Evaluate of every field
+listed (the pair's and the series'); ``--only-series`` runs only those. ``--main-profile``
+profiles the main thread alone from Run to settled, per run (top functions printed; the
+profiles saved as ``ui_gaps_main_<n>.prof`` in the temporary folder). Figures go to stdout
+and, with ``--json``, to a file; they belong in docs/performance.md with the machine and its
+load.
 
     xvfb-run -a python benchmarks/bench_ui_gaps.py [--size 96] [--subvolume 21] [--step 6]
-                                                   [--tick-ms 5] [--cold] [--json out.json]
+                                                   [--tick-ms 5] [--cold] [--series]
+                                                   [--main-profile] [--json out.json]
 """
 
 from __future__ import annotations
