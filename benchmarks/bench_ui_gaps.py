@@ -10,11 +10,17 @@ times the slots too, to say which.
 The run is what a user does on the sample pair: Correlate (twice: the first run may compile
 kernels, ``--cold`` forces that with an empty numba cache), Self-correct, Evaluate (two
 phases), Export (one ``.dvcfield``), each through its panel in a shown viewer (run it under
-Xvfb: ``xvfb-run -a``). Figures go to stdout and, with ``--json``, to a file; they belong in
-docs/performance.md with the machine and its load.
+Xvfb: ``xvfb-run -a``). ``--series`` adds a 4-state series (64³ each, as four 3-D layers):
+series Correlate (incremental), series Self-correct (1 pass) and Evaluate of every field
+listed (the pair's and the series'); ``--only-series`` runs only those. ``--main-profile``
+profiles the main thread alone from Run to settled, per run (top functions printed; the
+profiles saved as ``ui_gaps_main_<n>.prof`` in the temporary folder). Figures go to stdout
+and, with ``--json``, to a file; they belong in docs/performance.md with the machine and its
+load.
 
     xvfb-run -a python benchmarks/bench_ui_gaps.py [--size 96] [--subvolume 21] [--step 6]
-                                                   [--tick-ms 5] [--cold] [--json out.json]
+                                                   [--tick-ms 5] [--cold] [--series]
+                                                   [--main-profile] [--json out.json]
 """
 
 from __future__ import annotations
@@ -42,9 +48,26 @@ def _arguments(argv=None):
         "--profile", action="store_true", help="profile the result slots (cProfile, top 25)"
     )
     parser.add_argument(
+        "--series",
+        action="store_true",
+        help="also a 4-state series (64³ each): series Correlate, Self-correct, Evaluate",
+    )
+    parser.add_argument(
+        "--only-series", action="store_true", help="the series runs only (not the pair's)"
+    )
+    parser.add_argument(
+        "--main-profile",
+        action="store_true",
+        help="profile the main thread of each run, Run to settled (cProfile, top 30 by own time)",
+    )
+    parser.add_argument(
         "--why", action="store_true", help="print every thread's stack during gaps over 150 ms"
     )
     return parser.parse_args(argv)
+
+
+#: With ``--main-profile``: (panel, cProfile of the main thread) of each run, in order.
+MAIN_PROFILES: list | None = None
 
 
 class GapWatch:
@@ -115,8 +138,14 @@ class SlotClock:
         return max(spans, default=0.0)
 
 
-def run_panel(widget, ticks: list, slots: SlotClock, settle_ms: int = 500) -> dict:
-    """Run ``widget`` as the Run button does; the longest main-thread gap and where it was."""
+def run_panel(
+    widget, ticks: list, slots: SlotClock, settle_ms: int = 500, main_profile=None
+) -> dict:
+    """Run ``widget`` as the Run button does; the longest main-thread gap and where it was.
+
+    ``main_profile`` (a ``cProfile.Profile``) profiles the main thread only (cProfile follows
+    the thread that enables it) from Run to the end of the settling time: the slots and what
+    napari and Qt do after them (drawing the new layers, the plots)."""
     from qtpy.QtCore import QEventLoop, QTimer
 
     ticks.clear()
@@ -127,11 +156,20 @@ def run_panel(widget, ticks: list, slots: SlotClock, settle_ms: int = 500) -> di
     worker.finished.connect(loop.quit)
     started = time.perf_counter()
     ticks.append(started)
+    if main_profile is None and MAIN_PROFILES is not None:
+        import cProfile
+
+        main_profile = cProfile.Profile()
+        MAIN_PROFILES.append((type(widget).__name__, main_profile))
+    if main_profile is not None:
+        main_profile.enable()
     worker.start()
     loop.exec()
     finished = time.perf_counter()
     QTimer.singleShot(settle_ms, loop.quit)  # what the result brings after (drawing the layers)
     loop.exec()
+    if main_profile is not None:
+        main_profile.disable()
     ticks.append(time.perf_counter())
     gaps = [(b - a, a) for a, b in zip(ticks, ticks[1:])]
     gap, at = max(gaps)
@@ -146,8 +184,39 @@ def run_panel(widget, ticks: list, slots: SlotClock, settle_ms: int = 500) -> di
     }
 
 
+def run_series(viewer, panels, ticks, slots, args) -> dict:
+    """A 4-state series (64³ each, the sample's shear) as four 3-D layers: series Correlate
+    (incremental), series Self-correct (1 pass), Evaluate of every field on the panel's list."""
+    from napari_dvc_correct._sample_data import scan_series
+
+    series, _ = scan_series()
+    names = [f"state {k}" for k in range(len(series))]
+    for name, volume in zip(names, series):
+        viewer.add_image(volume, name=name)
+    correlate = panels["Correlate"]
+    correlate.mode.setCurrentIndex(correlate.mode.findData("series"))
+    correlate.set_series_layers(names)
+    correlate.strategy.setCurrentIndex(correlate.strategy.findData("incremental"))
+    correlate.subvolume.setValue(21)
+    correlate.step.setValue(6)
+    correlate._update.flush()
+    results = {"series Correlate": run_panel(correlate, ticks, slots)}
+    correct = panels["Self-correct"]
+    correct.field.setCurrentIndex(correct.field.findText("series (incremental)"))
+    correct.max_passes.setValue(1)
+    results["series Self-correct"] = run_panel(correct, ticks, slots)
+    evaluate = panels["Evaluate"]
+    evaluate.reference.set_layer(names[0])
+    evaluate.deformed.set_layer(names[-1])
+    evaluate.n_phases.setValue(2)
+    results["series Evaluate"] = run_panel(evaluate, ticks, slots)
+    return results
+
+
 def main(argv=None) -> int:
     args = _arguments(argv)
+    global MAIN_PROFILES
+    MAIN_PROFILES = [] if args.main_profile else None
     if args.cold:
         os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="numba-cold-")
     sys.path.insert(0, str(ROOT / "src"))
@@ -186,22 +255,33 @@ def main(argv=None) -> int:
     correlate.step.setValue(args.step)
     correlate.preview.setChecked(False)
     results = {}
-    results["Correlate (first)"] = run_panel(correlate, ticks, slots)
-    results["Correlate (again)"] = run_panel(correlate, ticks, slots)
-    panels["Self-correct"].max_passes.setValue(2)
-    results["Self-correct"] = run_panel(panels["Self-correct"], ticks, slots)
-    panels["Evaluate"].n_phases.setValue(2)
-    results["Evaluate"] = run_panel(panels["Evaluate"], ticks, slots)
-    with tempfile.TemporaryDirectory() as folder:
-        export = panels["Export"]
-        export.set_format(".dvcfield")
-        export.path.setText(str(Path(folder) / "bench.dvcfield"))
-        results["Export"] = run_panel(export, ticks, slots)
+    if not args.only_series:
+        results["Correlate (first)"] = run_panel(correlate, ticks, slots)
+        results["Correlate (again)"] = run_panel(correlate, ticks, slots)
+        panels["Self-correct"].max_passes.setValue(2)
+        results["Self-correct"] = run_panel(panels["Self-correct"], ticks, slots)
+        panels["Evaluate"].n_phases.setValue(2)
+        results["Evaluate"] = run_panel(panels["Evaluate"], ticks, slots)
+        with tempfile.TemporaryDirectory() as folder:
+            export = panels["Export"]
+            export.set_format(".dvcfield")
+            export.path.setText(str(Path(folder) / "bench.dvcfield"))
+            results["Export"] = run_panel(export, ticks, slots)
+    if args.series or args.only_series:
+        results.update(run_series(viewer, panels, ticks, slots, args))
     timer.stop()
     if profile is not None:
         import pstats
 
         pstats.Stats(profile).sort_stats("cumulative").print_stats(40)
+    for index, (panel, main_profile) in enumerate(MAIN_PROFILES or []):
+        import pstats
+
+        main_profile.dump_stats(Path(tempfile.gettempdir()) / f"ui_gaps_main_{index}.prof")
+
+        print(f"==== main thread, {panel}")
+        pstats.Stats(main_profile).sort_stats("tottime").print_stats(30)
+        pstats.Stats(main_profile).sort_stats("cumulative").print_stats(45)
     if watch is not None:
         watch.stop.set()
         print("\n\n".join(watch.samples))

@@ -147,3 +147,26 @@ def test_a_panel_closed_during_a_run_stops_it_and_the_process_ends_cleanly():
     assert done.returncode == 0, done.stderr[-2000:]
     assert "aborted thread" not in done.stderr and "has been deleted" not in done.stderr
     assert "closed after" in done.stdout
+
+
+def test_the_worker_imports_what_napari_needs_to_show_the_result(monkeypatch):
+    """napari's first Vectors layer imports pandas (0.2 s CPU, the window frozen): the worker
+    imports :data:`SHOWING_IMPORTS` after its work, so the main thread finds them loaded; a
+    module that is not installed is left to napari."""
+    from napari_dvc_correct.widgets import _base
+
+    monkeypatch.setattr(_base, "SHOWING_IMPORTS", ("colorsys", "no_such_module_here"))
+    monkeypatch.delitem(sys.modules, "colorsys", raising=False)
+
+    def work():
+        yield Progress("work", 0, 1, "")
+        assert "colorsys" not in sys.modules  # not before the work (a cancelled run needs none)
+        return "result"
+
+    generator = _base._shown_ahead(work(), None)
+    with pytest.raises(StopIteration) as stop:
+        while True:
+            next(generator)
+    assert stop.value.value == "result"
+    assert "colorsys" in sys.modules
+    assert "no_such_module_here" not in sys.modules

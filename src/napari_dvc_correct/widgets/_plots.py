@@ -52,6 +52,24 @@ class PlotCanvas(FigureCanvasQTAgg):
     def redraw(self) -> None:
         self.draw_idle()
 
+    def draw_idle(self) -> None:
+        """Draw at the next turn of the event loop, or, while the canvas cannot be seen (its
+        dock a tab not on top: Qt keeps it "visible" with an empty visible region; or hidden),
+        when it is painted next: a figure drawn unseen took 0.04–0.15 s of main-thread CPU
+        each (constrained layout, text; 0.3–0.7 s of frozen window at load 4-8), after every
+        run that changed the layers."""
+        if not self.isVisible() or self.visibleRegion().isEmpty():
+            self._stale = True
+            return
+        self._stale = False
+        super().draw_idle()
+
+    def paintEvent(self, event) -> None:
+        if getattr(self, "_stale", False):  # seen again: draw what changed meanwhile
+            self._stale = False
+            self.draw()
+        super().paintEvent(event)
+
 
 class HistogramCanvas(PlotCanvas):
     """The gray histogram with the phase thresholds drawn on it."""
