@@ -49,8 +49,8 @@ def install(moment: str) -> None:
 
         np.savez_compressed = partial_savez
     elif moment == "set":
-        from napari_dvc_correct import report
         from napari_dvc_correct.io import npz
+        from napari_dvc_correct.report import markdown  # write_report imports it when it runs
 
         save_field = npz.save_field
         calls = []
@@ -65,7 +65,7 @@ def install(moment: str) -> None:
             pause("set")
 
         npz.save_field = paused_save
-        report.write_markdown = paused_markdown
+        markdown.write_markdown = paused_markdown
     elif moment == "scratch":
         from napari_dvc_correct.tiled import correction
 
