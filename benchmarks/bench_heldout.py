@@ -115,7 +115,11 @@ def cylinder_texture(shape, seed):
     # soft edge about one voxel wide
     inside = 1.0 / (1.0 + np.exp(-(40.0 - radius) / 0.5))
     volume = 20.0 + (material - 20.0) * inside[None]
-    return volume.astype(np.float32), lambda p: np.hypot(p[:, 1] - CENTER, p[:, 2] - CENTER) < 36, 20.0
+    return (
+        volume.astype(np.float32),
+        lambda p: np.hypot(p[:, 1] - CENTER, p[:, 2] - CENTER) < 36,
+        20.0,
+    )
 
 
 def foam_texture(shape, seed):
@@ -268,7 +272,13 @@ def make_case(case: str, seed: int = 1):
     mean_gray = float(np.mean(reference if inside is None else reference[reference > air + 10]))
     reference = add_noise(reference, noise, mean_gray, seed=10 * seed + 1)
     deformed = add_noise(deformed, noise, mean_gray, seed=10 * seed + 2)
-    return np.ascontiguousarray(reference), np.ascontiguousarray(deformed), field[0], inside, field[3]
+    return (
+        np.ascontiguousarray(reference),
+        np.ascontiguousarray(deformed),
+        field[0],
+        inside,
+        field[3],
+    )
 
 
 def run(case: str, seed: int) -> dict:
@@ -305,7 +315,9 @@ def run(case: str, seed: int) -> dict:
         "plain_flagged": float(np.mean(~plain_good[select])),
         "flagged": float(np.mean(~good[select])),
         "truly_bad": float(np.mean(bad[select])),
-        "flagged_bad": float(np.mean(~good[select & bad])) if (select & bad).any() else float("nan"),
+        "flagged_bad": float(np.mean(~good[select & bad]))
+        if (select & bad).any()
+        else float("nan"),
         "flagged_ok": float(np.mean(~good[select & ~bad])),
         "discontinuity": int(np.sum(status[select] == int(Status.DISCONTINUITY))),
         "off": int(np.sum(select & ~bad & (after > 0.5))),

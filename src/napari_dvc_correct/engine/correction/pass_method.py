@@ -133,8 +133,10 @@ def field_curvature(field: DisplacementField, half: int, exclude=None) -> float:
             continue
         second = np.diff(u, n=2, axis=axis) / float(field.step[axis]) ** 2
         n = u.shape[axis]
-        take = lambda a, b: np.take(counted, np.arange(a, n - b), axis=axis)  # noqa: E731
-        inside = take(0, 2) & take(1, 1) & take(2, 0)
+        # a difference counts where its three nodes (i - 1, i, i + 1 along the axis) all do
+        inside = np.ones(second.shape[:3], bool)
+        for start in range(3):
+            inside &= np.take(counted, np.arange(start, n - 2 + start), axis=axis)
         terms.append(np.max(np.abs(second), axis=-1)[inside].reshape(-1))
     if not terms:
         return 0.0
