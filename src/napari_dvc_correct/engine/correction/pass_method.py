@@ -109,7 +109,9 @@ def pass_window(
     return best, best_error, uniform
 
 
-def field_curvature(field: DisplacementField, half: int, exclude=None) -> float:
+def field_curvature(
+    field: DisplacementField, half: int, exclude: np.ndarray | None = None
+) -> float:
     """How far a first-order subvolume is from following ``field``, in voxels.
 
     The second differences of the node displacements (smoothed over one node) give the field's
@@ -300,7 +302,7 @@ def correction_params(field: DisplacementField, params: CorrelationParams) -> Co
 
 
 def pass_method(
-    field: DisplacementField, params: CorrelationParams, exclude=None
+    field: DisplacementField, params: CorrelationParams, exclude: np.ndarray | None = None
 ) -> tuple[CorrelationParams, str]:
     """:func:`correction_params` and, in words, why they differ from the first run's (or not).
 
