@@ -167,6 +167,27 @@ def test_a_flag_needs_an_excess_above_both_a_voxel_s_error_and_the_noise_scatter
     assert not _judged(floor=1.0, excess=1.9)[0]
 
 
+def test_flags_count_from_the_cells_lower_quartile_where_eq_1_reads_below_it():
+    # eq. 1 reads 5.1 gray levels while a right field leaves 7.4-8.6 in every cell (noise large
+    # against the phases' contrast, docs/heldout.md): with a voxel's error worth 0.9 gray
+    # levels, a cell at 7.9 stood 2.8 above the floor and was flagged; over the lower quartile
+    # (7.7 here) it stands 0.2 above, within the noise, and only a cell far above the others is
+    spread = np.sqrt(2.0) * np.sqrt(np.pi / 2 - 1) / np.sqrt(343 / 8)
+    field = DisplacementField.zeros((10.0,) * 3, (6.0,) * 3, (4, 4, 4))
+    local = np.linspace(7.4, 8.6, field.n_points).reshape(field.shape)
+    local[1, 1, 1] = 7.7 + 0.9 + NOISE_Z * spread * 7.7 + 0.2  # just above the quartile's bar
+    judge = Judge(None, None, None, field.step, 10, residuals=_KnownResiduals(local, 5.1, 1.8))
+    local = judge.local(field)
+    assert judge.floor == pytest.approx(5.1)  # the floor itself (the acceptance's) is unchanged
+    quartile = float(np.percentile(local, 25.0))
+    flagged = judge.unexplained(field, local)
+    bar = quartile + 0.9 + NOISE_Z * spread * quartile
+    assert np.array_equal(flagged, local > bar)
+    assert flagged[1, 1, 1] and 0 < flagged.sum() <= 0.1 * field.n_points
+    # the old bar (over eq. 1's floor) flagged three quarters of these right cells
+    assert np.mean(local > 5.1 + 0.9 + NOISE_Z * spread * 5.1) > 0.7
+
+
 def _noise_case(shape=(6, 6, 6), sigma=0.3, seed=0):
     """A measured field, a pass whose corrections are pure matching noise of uncertainty
     ``sigma`` (norm) at every node, and that uncertainty."""

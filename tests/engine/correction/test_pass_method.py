@@ -12,6 +12,7 @@ from napari_dvc_correct.engine.correction.pass_method import (
     field_curvature,
     node_bend,
     nothing_to_correct,
+    pass_method,
     pass_order,
 )
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
@@ -47,6 +48,26 @@ def test_second_order_passes_where_the_field_bends_inside_a_subvolume():
     assert field_curvature(field, params.half) == pytest.approx(a * params.half**2, rel=0.15)
     assert pass_order(field, params) == 2
     assert pass_order(field.copy(), params.replace(order=2)) == 2
+
+
+def test_a_crack_s_jump_is_no_bend_once_its_nodes_are_left_out():
+    field, params, _ = _measured_affine_field()
+    points = field.points.reshape(*field.shape, 3)
+    # a crack opening 2 voxels across the plane x = 32: a jump, not a bend a pass could follow
+    side = points[..., 2] > 32.0
+    field.u[..., 2] += np.where(side, 1.0, -1.0)
+    assert field_curvature(field, params.half) > 0.1  # read as a bend of the whole field
+    crack = np.abs(points[..., 2] - 32.0) < 4.0  # the crack's nodes, a shield of one step
+    shield = np.abs(points[..., 2] - 32.0) < 4.0 + 6.0
+    assert np.any(crack) and not np.all(shield)
+    assert field_curvature(field, params.half, crack | shield) < 0.01
+    assert pass_method(field, params, crack | shield)[0] == params  # the first run's
+    assert pass_method(field, params)[0].order == 2
+    # a real bend away from the crack still counts
+    field.u[..., 0] += 0.002 * (points[..., 1] - 32.0) ** 2
+    assert field_curvature(field, params.half, crack | shield) == pytest.approx(
+        0.002 * params.half**2, rel=0.15
+    )
 
 
 def test_bending_fields_are_corrected_with_smaller_second_order_subvolumes():

@@ -109,26 +109,37 @@ def pass_window(
     return best, best_error, uniform
 
 
-def field_curvature(field: DisplacementField, half: int) -> float:
+def field_curvature(
+    field: DisplacementField, half: int, exclude: np.ndarray | None = None
+) -> float:
     """How far a first-order subvolume is from following ``field``, in voxels.
 
     The second differences of the node displacements (smoothed over one node) give the field's
     curvature; over a
     subvolume of half-size ``M`` a quadratic term ``u'' M^2 / 2`` is what an affine shape function
     cannot follow. Returns the 90th percentile over the interior nodes of the largest such term
-    (any component, any axis), 0 for grids too small to tell.
+    (any component, any axis), 0 for grids too small to tell. ``exclude`` (bool, the grid's
+    shape, optional): nodes whose differences do not count (a crack and the nodes it shields:
+    its jump is no bend a pass could follow, and a pass does not change them).
     """
     u = _smoothed_departure(field)
     if u is None:
         return 0.0
     # nodes next to the grid's border are bent by the smoothing's border handling
-    u = u[tuple(slice(1, -1) if n >= 5 else slice(None) for n in u.shape[:3])]
+    interior = tuple(slice(1, -1) if n >= 5 else slice(None) for n in u.shape[:3])
+    u = u[interior]
+    counted = np.ones(u.shape[:3], bool) if exclude is None else ~np.asarray(exclude)[interior]
     terms = []
     for axis in range(3):
         if u.shape[axis] < 3:
             continue
         second = np.diff(u, n=2, axis=axis) / float(field.step[axis]) ** 2
-        terms.append(np.max(np.abs(second), axis=-1).reshape(-1))
+        n = u.shape[axis]
+        # a difference counts where its three nodes (i - 1, i, i + 1 along the axis) all do
+        inside = np.ones(second.shape[:3], bool)
+        for start in range(3):
+            inside &= np.take(counted, np.arange(start, n - 2 + start), axis=axis)
+        terms.append(np.max(np.abs(second), axis=-1)[inside].reshape(-1))
     if not terms:
         return 0.0
     values = np.concatenate(terms)
@@ -291,16 +302,17 @@ def correction_params(field: DisplacementField, params: CorrelationParams) -> Co
 
 
 def pass_method(
-    field: DisplacementField, params: CorrelationParams
+    field: DisplacementField, params: CorrelationParams, exclude: np.ndarray | None = None
 ) -> tuple[CorrelationParams, str]:
     """:func:`correction_params` and, in words, why they differ from the first run's (or not).
 
     The reason is shown to the user (panel, command line, report): the paper promises "the same
-    DVC parameters", so any change must be said.
+    DVC parameters", so any change must be said. ``exclude``: nodes whose bend does not count
+    (:func:`field_curvature`).
     """
     if params.order == 2:
         return params, f"the first run's parameters (second order, {params.subvolume}³)"
-    bend = field_curvature(field, params.half)
+    bend = field_curvature(field, params.half, exclude)
     if bend <= CURVATURE_VOXELS:
         return params, (
             f"the first run's parameters (first order, {params.subvolume}³): the field bends a "

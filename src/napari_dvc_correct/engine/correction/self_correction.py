@@ -311,7 +311,8 @@ def _correction_loop(
         )
     ]
     grid = (current.origin, current.step, current.shape)
-    pass_params, method = pass_method(current, params)
+    # the bend a pass follows, not a crack's jump (docs/heldout.md)
+    pass_params, method = pass_method(current, params, crack | shielded)
     residual_before = residual
     unmasked = max(1, int(np.count_nonzero(~masked)))
     stop = f"max_passes ({int(max_passes)}) reached"
