@@ -287,7 +287,11 @@ class Judge:
     @property
     def tolerance(self) -> float:
         """How much a node's cell residual may change by noise alone (gray levels)."""
-        return NOISE_Z * self.spread * self.floor
+        return self.tolerance_at(self.floor)
+
+    def tolerance_at(self, level: float) -> float:
+        """:attr:`tolerance` for cells whose noise leaves a residual of ``level`` gray levels."""
+        return NOISE_Z * self.spread * level
 
     @property
     def region_tolerance(self) -> float:
@@ -334,8 +338,9 @@ class Judge:
         if np.isfinite(local).any():
             level = max(level, float(np.nanpercentile(local, 25.0)))
         excess = local - level
-        tolerance = NOISE_Z * self.spread * level
-        return np.isfinite(excess) & (excess > 0.5 * FLAG_ERROR * gradient + tolerance)
+        return np.isfinite(excess) & (
+            excess > 0.5 * FLAG_ERROR * gradient + self.tolerance_at(level)
+        )
 
     def discontinuous(
         self, field: DisplacementField, local: np.ndarray, flagged: np.ndarray
