@@ -174,6 +174,7 @@ class _RisingVolumes(InMemoryVolumes):
     rise = 5.0
 
     def align(self, field):
+        self.aligned = [*getattr(self, "aligned", []), field.u.copy()]
         moved, mean = yield from super().align(field)
         corrected = np.any(field.provenance == Provenance.CORRECTED)
         return moved, mean + self.rise if corrected else mean
@@ -211,6 +212,13 @@ def test_a_pass_that_would_raise_the_mean_residual_is_not_applied(shear_band_cas
     # no node moved by the pass (the applied run's did)
     assert table[1].max_change == 0.0 and applied_pass.max_change > 0.1
     assert not np.any(kept.provenance == Provenance.CORRECTED)
+    # the refused pass's field is not aligned again: its residual is the one it had
+    aligned = volumes.aligned
+    assert not any(
+        np.array_equal(aligned[i], aligned[j])
+        for i in range(len(aligned))
+        for j in range(i + 1, len(aligned))
+    )
 
 
 # --- no harm ---------------------------------------------------------------------------------

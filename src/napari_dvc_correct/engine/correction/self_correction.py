@@ -422,8 +422,10 @@ def _correction_loop(
                 raised, applied = mixed_residual, False
                 accept[:], improved[:] = False, False
                 volumes.release(mixed_moved)
+                # the loop ends here: the field keeps its residual (``residual``, the same number
+                # an align of it gives again) and needs no moved volume (what follows only
+                # releases it), so it is not aligned again (a warp saved)
                 mixed_moved = None
-                moved, residual = yield from volumes.align(current)
             add_stages(stages, None, warp_s=time.perf_counter() - t1)
         if not applied:
             mixed, mixed_moved, mixed_residual, local_mixed = (
