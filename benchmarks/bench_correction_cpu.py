@@ -38,7 +38,9 @@ STAGES = (
     ("cleaning (both; inpainting inside)", "cleaning.py", "clean"),
     ("  of which inpainting CG", "cleaning.py", "jacobi_cg"),
     ("gray-level fit (set-up)", "volumes.py", "fit_gray_levels"),
-    ("first residual / flags (set-up)", "acceptance.py", "local"),
+    # every Judge.local: the set-up's first residual (which reuses the gray fit's pull-back)
+    # and the acceptance's candidate and mixed fields (one pull-back each)
+    ("local residuals (set-up + acceptance)", "acceptance.py", "local"),
     ("forward warps of G (align)", "volumes.py", "align"),
     ("warped mask (matching pair)", "volumes.py", "matching_pair"),
     ("correcting DVC (IC-GN, statistics)", "correlate.py", "correlate_iter"),
