@@ -55,3 +55,39 @@ def test_points_refuse_a_grid_format_and_a_strain_tiff(tmp_path):
 
 def test_provenance_names_the_source():
     assert provenance(_field(), "state 2")["source"] == "state 2"
+
+
+def test_formats_of_one_stem_share_a_provenance_that_lists_its_files(tmp_path):
+    """The same field as VTK and CSV: one ``out_provenance.json`` naming both files."""
+    field = _field()
+    for name in ("out.vti", "out.csv"):
+        run_to_completion(run_export(ExportRequest(field=field, path=tmp_path / name, source="a")))
+    side = json.loads((tmp_path / "out_provenance.json").read_text())
+    assert side["files"] == ["out.csv", "out.vti"] and side["source"] == "a"
+
+
+def test_another_field_may_not_take_over_the_provenance_of_a_stem(tmp_path):
+    """A second field written to the same stem in another format would leave ``out.vti``
+    described by its provenance: refused before any file is written; the same format (it
+    replaces ``out.vti`` too) or a gone ``out.vti`` is fine."""
+    first, second = _field(), _field()
+    second.u[...] += 1.0
+    second.metadata["correction"] = {"passes_applied": 2}
+    run_to_completion(run_export(ExportRequest(field=first, path=tmp_path / "out.vti", source="a")))
+    before = (tmp_path / "out_provenance.json").read_text()
+    request = ExportRequest(field=second, path=tmp_path / "out.csv", source="b")
+    with pytest.raises(ValueError, match="describes out.vti, written from another field"):
+        run_to_completion(run_export(request))
+    assert not (tmp_path / "out.csv").exists()
+    assert (tmp_path / "out_provenance.json").read_text() == before
+    # the same format replaces the file and its provenance together
+    again = ExportRequest(field=second, path=tmp_path / "out.vti", source="b")
+    run_to_completion(run_export(again))
+    side = json.loads((tmp_path / "out_provenance.json").read_text())
+    assert side["source"] == "b" and side["corrected"] and side["files"] == ["out.vti"]
+    # once out.vti is gone, another field may write the stem in any format
+    (tmp_path / "out.vti").unlink()
+    run_to_completion(run_export(ExportRequest(field=first, path=tmp_path / "out.csv", source="a")))
+    side = json.loads((tmp_path / "out_provenance.json").read_text())
+    assert side["source"] == "a" and side["files"] == ["out.csv"]
+    np.testing.assert_allclose(read_field(tmp_path / "out.csv").u, first.u, atol=1e-6)
