@@ -72,17 +72,15 @@ class SeriesResult:
         Each one is evaluated on its own pair ``(V0, Vk)``, as the corrected total is. Without
         self-correction these are the totals themselves (the same objects).
     strategy : str
+    self_corrected : bool
+        Whether the run self-corrected (increments, totals or both).
     """
 
     totals: list = field(default_factory=list)
     increments: list = field(default_factory=list)
     uncorrected: list = field(default_factory=list)
     strategy: str = "incremental"
-
-    @property
-    def self_corrected(self) -> bool:
-        """True when some state's total differs from its uncorrected one (a self-corrected run)."""
-        return any(a is not b for a, b in zip(self.totals, self.uncorrected))
+    self_corrected: bool = False
 
     def summary(self) -> list[dict]:
         """One row per state (the first state included, with zero displacement).
@@ -240,6 +238,7 @@ def _series_loop(volumes, strategy, correct_increments, correct_total):
     n = volumes.n_states
     started = time.perf_counter()
     corrects = correct_increments or correct_total
+    result.self_corrected = bool(corrects)
     for k in range(1, n):
         label = state_of(k, n - 1)
         state_started = time.perf_counter()
