@@ -16,18 +16,26 @@ SHIFT = np.array([1.4, -0.6, 2.2])  # per state
 DVC = ["--subvolume", "15", "--step", "6", "--quiet"]
 
 
-@pytest.fixture(scope="module")
-def volumes(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("states")
-    big = synthetic.textured_volume(tuple(n + 16 for n in SHAPE), 2.0, seed=21)
-    crop = tuple(slice(8, 8 + n) for n in SHAPE)
+def _write_states(folder, shape, margin, seed, field_of) -> list[str]:
+    """States 0, 1, 2 of one textured sample as ``.npy`` files, state k moved by
+    ``field_of(k)`` (``U_0→k`` in the cut volume's voxels), cut from a volume ``margin`` larger
+    on every side."""
+    big = synthetic.textured_volume(tuple(n + 2 * margin for n in shape), 2.0, seed=seed)
+    crop = tuple(slice(margin, margin + n) for n in shape)
     paths = []
     for k in range(3):
-        moved = synthetic.deform_volume(big, synthetic.translation(k * SHIFT))
+        truth = field_of(k)
+        moved = synthetic.deform_volume(big, lambda p, t=truth: t(np.asarray(p) - margin))
         path = folder / f"state{k}.npy"
         np.save(path, np.ascontiguousarray(moved[crop]))
         paths.append(str(path))
     return paths
+
+
+@pytest.fixture(scope="module")
+def volumes(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("states")
+    return _write_states(folder, SHAPE, 8, 21, lambda k: synthetic.translation(k * SHIFT))
 
 
 def test_series_in_a_roi_written_as_spam(volumes, tmp_path):
@@ -216,16 +224,7 @@ def _band(k):
 
 @pytest.fixture(scope="module")
 def bending(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("bending")
-    big = synthetic.textured_volume(tuple(n + 24 for n in BAND_SHAPE), 2.0, seed=5)
-    crop = tuple(slice(12, 12 + n) for n in BAND_SHAPE)
-    paths = []
-    for k in range(3):
-        moved = big if k == 0 else synthetic.deform_volume(big, lambda p, k=k: _band(k)(p - 12))
-        path = folder / f"state{k}.npy"
-        np.save(path, np.ascontiguousarray(moved[crop]))
-        paths.append(str(path))
-    return paths
+    return _write_states(tmp_path_factory.mktemp("bending"), BAND_SHAPE, 12, 5, _band)
 
 
 def test_a_corrected_series_report_has_the_uncorrected_and_corrected_curves(

@@ -21,16 +21,22 @@ def _state_field(k):
     return synthetic.affine(k * GRADIENT, CENTER, k * SHIFT)
 
 
-@pytest.fixture(scope="module")
-def states():
-    big = synthetic.textured_volume(tuple(n + 2 * MARGIN for n in SHAPE), 2.0, seed=11)
+def _series_volumes(field_of, seed):
+    """States 0, 1, 2 of one textured sample, state k moved by ``field_of(k)`` (``U_0→k``),
+    cut from a larger volume so that material enters the view as it would in a scan."""
+    big = synthetic.textured_volume(tuple(n + 2 * MARGIN for n in SHAPE), 2.0, seed=seed)
     crop = tuple(slice(MARGIN, MARGIN + n) for n in SHAPE)
     volumes = [np.ascontiguousarray(big[crop])]
     for k in (1, 2):
-        truth = _state_field(k)
+        truth = field_of(k)
         moved = synthetic.deform_volume(big, lambda p, t=truth: t(np.asarray(p) - MARGIN))
         volumes.append(np.ascontiguousarray(moved[crop]))
     return volumes
+
+
+@pytest.fixture(scope="module")
+def states():
+    return _series_volumes(_state_field, seed=11)
 
 
 def _rmse(field, truth):
@@ -165,13 +171,7 @@ def _band(k):
 
 @pytest.fixture(scope="module")
 def bending_states():
-    big = synthetic.textured_volume(tuple(n + 2 * MARGIN for n in SHAPE), 2.0, seed=5)
-    crop = tuple(slice(MARGIN, MARGIN + n) for n in SHAPE)
-    volumes = [np.ascontiguousarray(big[crop])]
-    for k in (1, 2):
-        moved = synthetic.deform_volume(big, lambda p, k=k: _band(k)(np.asarray(p) - MARGIN))
-        volumes.append(np.ascontiguousarray(moved[crop]))
-    return volumes
+    return _series_volumes(_band, seed=5)
 
 
 def test_where_the_field_bends_the_corrected_totals_beat_the_uncorrected(bending_states):
