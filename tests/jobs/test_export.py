@@ -91,3 +91,55 @@ def test_another_field_may_not_take_over_the_provenance_of_a_stem(tmp_path):
     side = json.loads((tmp_path / "out_provenance.json").read_text())
     assert side["source"] == "a" and side["files"] == ["out.csv"]
     np.testing.assert_allclose(read_field(tmp_path / "out.csv").u, first.u, atol=1e-6)
+
+
+def test_a_failed_side_file_leaves_the_old_field_and_its_provenance(tmp_path, monkeypatch):
+    """The field and its side file are renamed into place together: a failure writing the
+    provenance leaves the earlier ``out.vti`` and ``out_provenance.json`` as they were."""
+    from napari_dvc_correct.io import report_file
+
+    first, second = _field(), _field()
+    second.u[...] += 1.0
+    run_to_completion(run_export(ExportRequest(field=first, path=tmp_path / "out.vti", source="a")))
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def broken(report, path):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(report_file, "export_report", broken)
+    with pytest.raises(OSError, match="disk full"):
+        run_to_completion(
+            run_export(ExportRequest(field=second, path=tmp_path / "out.vti", source="b"))
+        )
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_two_exports_into_one_stem_at_once_take_turns(tmp_path):
+    """Two threads export different fields to ``out.vti`` and ``out.csv`` at the same time:
+    one wins, the other is refused, and the side file describes the file that is there."""
+    import threading
+
+    fields = [_field(), _field()]
+    fields[1].u[...] += 1.0
+    errors = []
+
+    def export(field, name, source):
+        try:
+            request = ExportRequest(field=field, path=tmp_path / name, source=source)
+            run_to_completion(run_export(request))
+        except ValueError as error:
+            errors.append(error)
+
+    threads = [
+        threading.Thread(target=export, args=(fields[0], "out.vti", "a")),
+        threading.Thread(target=export, args=(fields[1], "out.csv", "b")),
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(errors) == 1 and "written from another field" in str(errors[0])
+    side = json.loads((tmp_path / "out_provenance.json").read_text())
+    written = [name for name in ("out.vti", "out.csv") if (tmp_path / name).exists()]
+    assert side["files"] == written and len(written) == 1
+    assert side["source"] == ("a" if written == ["out.vti"] else "b")

@@ -203,6 +203,32 @@ def side_files_kept(side: Path, report: dict, path: Path) -> list[str]:
     return []
 
 
+def write_with_side(write_field, target: Path, side: Path, report: dict) -> list[Path]:
+    """Write a field (``write_field(path)`` writes it to ``path``, returns its files) to
+    ``target`` and its provenance side file ``side`` (``report`` and the ``files`` it describes,
+    :func:`side_files_kept`) as one: under a lock on the folder, so that two exports into it take
+    turns between reading the side file and replacing it, and, for a one-file format, both
+    renamed into place together (:func:`..io.atomic.atomic_files`: an interrupted or failed
+    export leaves the old field with its old provenance). TIFF stacks (several files named after
+    the stem) are written first and the side file after them.
+    """
+    from ..io import report_file
+    from ..io.atomic import atomic_files, locked_folder
+
+    with locked_folder(side.parent):
+        kept = side_files_kept(side, report, target)
+        if target.suffix.lower() in (".tif", ".tiff"):
+            files = write_field(target)
+            names = sorted({*kept, *(p.name for p in files)})
+            report_file.export_report({**report, "files": names}, side)
+            return [*files, side]
+        names = sorted({*kept, target.name})
+        with atomic_files(target, side) as (temp_field, temp_side):
+            write_field(temp_field)
+            report_file.export_report({**report, "files": names}, temp_side)
+        return [target, side]
+
+
 def run_export(request: ExportRequest):
     """Write everything the request asks for; yields Progress per file, returns the paths."""
     from ..io import export, report_file
@@ -222,25 +248,22 @@ def run_export(request: ExportRequest):
             extra = {"equivalent_strain": request.equivalent_strain}
     stem = request.path.with_suffix("")
 
-    field_files: list[Path] = []
-
-    def write_field():
-        field_files[:] = [Path(p) for p in export.export_field(
-            field, request.path, extra=extra, voxel_size=request.voxel_size
+    def write_field(path=request.path):
+        return [Path(p) for p in export.export_field(
+            field, path, extra=extra, voxel_size=request.voxel_size
         )]  # fmt: skip
-        return field_files
 
     jobs = [("field", write_field)]
     if points or suffix not in WITH_METADATA:  # (the points' .npz has no room for it either)
         side = stem.parent / f"{stem.name}_provenance.json"
         report = {"title": "DVC field provenance", **origin, "metadata": field.metadata}
-        kept = side_files_kept(side, report, request.path)  # refused before anything is written
-
-        def write_side():
-            names = sorted({*kept, *(p.name for p in field_files)})
-            return [report_file.export_report({**report, "files": names}, side)]
-
-        jobs.append(("provenance", write_side))
+        side_files_kept(side, report, request.path)  # refused before anything is written
+        jobs = [
+            (
+                "field and its provenance",
+                lambda: write_with_side(write_field, request.path, side, report),
+            )
+        ]
     if request.strain_tiff and request.equivalent_strain is not None:
         placement = {
             "scale": np.asarray(request.field.step) * np.asarray(request.voxel_size),
