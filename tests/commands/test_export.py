@@ -222,6 +222,24 @@ def test_the_provenance_side_file_may_not_be_the_input(tmp_path, capsys):
     assert table.read_bytes() == before and not (tmp_path / "run.vti").exists()
 
 
+def test_two_runs_into_one_stem_keep_each_file_s_provenance(tmp_path, capsys):
+    """Two formats of one field share ``run_provenance.json`` (it lists both); another field
+    written to that stem in a third format is refused: it would re-describe the others."""
+    first, second = known_field(), known_field()
+    second.u = second.u + 0.5
+    save_field(first, tmp_path / "a.dvcfield")
+    save_field(second, tmp_path / "b.dvcfield")
+    for name in ("run.vti", "run.csv"):
+        assert main(["export", str(tmp_path / "a.dvcfield"), str(tmp_path / name)]) == 0
+    side = tmp_path / "run_provenance.json"
+    assert json.loads(side.read_text())["files"] == ["run.csv", "run.vti"]
+    before = side.read_bytes()
+    capsys.readouterr()
+    assert main(["export", str(tmp_path / "b.dvcfield"), str(tmp_path / "run.tsv")]) == 2
+    assert "describes run.csv, run.vti, written from another field" in capsys.readouterr().err
+    assert side.read_bytes() == before and not (tmp_path / "run.tsv").exists()
+
+
 FORMATS_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "formats"
 
 

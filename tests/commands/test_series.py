@@ -16,18 +16,26 @@ SHIFT = np.array([1.4, -0.6, 2.2])  # per state
 DVC = ["--subvolume", "15", "--step", "6", "--quiet"]
 
 
-@pytest.fixture(scope="module")
-def volumes(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("states")
-    big = synthetic.textured_volume(tuple(n + 16 for n in SHAPE), 2.0, seed=21)
-    crop = tuple(slice(8, 8 + n) for n in SHAPE)
+def _write_states(folder, shape, margin, seed, field_of) -> list[str]:
+    """States 0, 1, 2 of one textured sample as ``.npy`` files, state k moved by
+    ``field_of(k)`` (``U_0→k`` in the cut volume's voxels), cut from a volume ``margin`` larger
+    on every side."""
+    big = synthetic.textured_volume(tuple(n + 2 * margin for n in shape), 2.0, seed=seed)
+    crop = tuple(slice(margin, margin + n) for n in shape)
     paths = []
     for k in range(3):
-        moved = synthetic.deform_volume(big, synthetic.translation(k * SHIFT))
+        truth = field_of(k)
+        moved = synthetic.deform_volume(big, lambda p, t=truth: t(np.asarray(p) - margin))
         path = folder / f"state{k}.npy"
         np.save(path, np.ascontiguousarray(moved[crop]))
         paths.append(str(path))
     return paths
+
+
+@pytest.fixture(scope="module")
+def volumes(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("states")
+    return _write_states(folder, SHAPE, 8, 21, lambda k: synthetic.translation(k * SHIFT))
 
 
 def test_series_in_a_roi_written_as_spam(volumes, tmp_path):
@@ -201,6 +209,73 @@ def test_series_report_plots_residual_p_and_error_against_the_load(volumes, tmp_
     # the curve is named for what was evaluated (it read "field")
     assert "![series](series_plot.png)" in page and "| state 2 | 2 | total |" in page
     assert {row["field"] for row in rows} == {"total"}
+
+
+BAND_SHAPE, BAND_WIDTH, BAND_SLIP = (40, 40, 40), 3.0, 3.0  # slip per state, voxels
+
+
+def _band(k):
+    """The known ``U_0→k`` of the bending series: a narrow shear band (half-width 3 voxels,
+    well inside a 15-voxel subvolume, which a first-order match cannot follow) and a shift."""
+    center = np.array(BAND_SHAPE) / 2
+    shift = (0.6 * k, -0.4 * k, 0.8 * k)
+    return synthetic.shear_band(center, width=BAND_WIDTH, slip=k * BAND_SLIP, shift=shift)
+
+
+@pytest.fixture(scope="module")
+def bending(tmp_path_factory):
+    return _write_states(tmp_path_factory.mktemp("bending"), BAND_SHAPE, 12, 5, _band)
+
+
+def test_a_corrected_series_report_has_the_uncorrected_and_corrected_curves(
+    bending, tmp_path, capsys
+):
+    """``--self-correct --evaluate``: two rows per state, ``total`` (the series without
+    correction, as a plain run writes it) and ``total, corrected``, each the evaluation of that
+    field on its own pair; where the known field bends, the corrected one is closer to it."""
+    from napari_dvc_correct.commands.evaluate import ready_for_evaluation
+    from napari_dvc_correct.engine.evaluation.accuracy import evaluate_fields
+
+    dvc = ["--strategy", "total", "--subvolume", "15", "--step", "5", "--quiet"]
+    plain_dir, out_dir = tmp_path / "plain", tmp_path / "corrected"
+    assert main(["series", *bending, "--out-dir", str(plain_dir), *dvc]) == 0
+    command = ["series", *bending, "--out-dir", str(out_dir), *dvc, "--self-correct"]
+    assert main([*command, "--max-passes", "1", "--evaluate"]) == 0
+    printed = capsys.readouterr().out
+    assert "state 2:" in printed and "(uncorrected " in printed
+    with open(out_dir / "series_evaluation.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [(r["state"], r["field"]) for r in rows] == [
+        ("1", "total"), ("1", "total, corrected"), ("2", "total"), ("2", "total, corrected"),
+    ]  # fmt: skip
+    page = (out_dir / "series_report.md").read_text()
+    assert "| state 2 |  | total |" in page and "| state 2 |  | total, corrected |" in page
+    reference = np.load(bending[0])
+    for k in (1, 2):
+        plain = load_field(plain_dir / f"state_{k:02d}.npz")
+        corrected = load_field(out_dir / f"state_{k:02d}.npz")
+        assert corrected.metadata["series"]["corrected_total"] is True
+        fields = {
+            "total": ready_for_evaluation(plain, "a")[0],
+            "total, corrected": ready_for_evaluation(corrected, "b")[0],
+        }
+        items = evaluate_fields(reference, np.load(bending[k]), fields)
+        here = {r["field"]: r for r in rows if r["state"] == str(k)}
+        for name in fields:
+            item = items[name]
+            assert float(here[name]["accuracy"]) == pytest.approx(item.accuracy, abs=1e-5)
+            assert float(here[name]["mean_residual"]) == pytest.approx(item.mean_residual, rel=1e-5)
+        # against the known field: the corrected total is closer where the band bends it
+        truth = _band(k)(corrected.points.reshape(-1, 3))
+        across = np.abs((corrected.points.reshape(-1, 3) - 20.0) @ (np.array([1, 0, 1]) / 2**0.5))
+        band = across < BAND_WIDTH
+        errors = {
+            name: np.linalg.norm(field.u.reshape(-1, 3) - truth, axis=1)[band]
+            for name, field in (("total", plain), ("total, corrected", corrected))
+        }
+        rmse = {name: float(np.sqrt(np.mean(e**2))) for name, e in errors.items()}
+        assert rmse["total, corrected"] < 0.6 * rmse["total"], rmse
+        assert float(here["total, corrected"]["accuracy"]) > float(here["total"]["accuracy"])
 
 
 def test_the_help_says_what_the_strategies_and_the_field_format_are(capsys):

@@ -1,6 +1,11 @@
 """Progress records and driving an engine generator to its end."""
 
-from napari_dvc_correct.engine.progress import Progress, forward_progress, run_to_completion
+from napari_dvc_correct.engine.progress import (
+    Progress,
+    forward_progress,
+    run_to_completion,
+    state_of,
+)
 
 
 def test_fraction_is_done_over_total_clipped():
@@ -60,3 +65,15 @@ def test_a_closed_forwarder_closes_the_inner_generator():
     next(generator)
     generator.close()  # a cancelled caller
     assert closed == [True]
+
+
+def test_a_series_stage_says_which_state_of_how_many_and_other_values_pass():
+    def inner():
+        yield Progress("IC-GN", 1, 2)
+        yield "a partial result"  # not a Progress: forwarded as it is
+        return 7
+
+    generator = forward_progress(inner(), state_of(2, 3))
+    assert next(generator).stage == "state 2 of 3: IC-GN"
+    assert next(generator) == "a partial result"
+    assert run_to_completion(generator) == 7

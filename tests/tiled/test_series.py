@@ -157,10 +157,10 @@ def test_cancel_stops_the_work_and_removes_the_temporary_arrays(states, tmp_path
     stages = []
     for report in generator:
         stages.append(report.stage)
-        if report.stage == "state 2/2: increment: IC-GN" and report.done == 2:
+        if report.stage == "state 2 of 2: increment: IC-GN" and report.done == 2:
             break
     generator.close()
-    assert "state 2/2: mask: warp mask" in stages  # the mask was carried to state 1
+    assert "state 2 of 2: mask: warp mask" in stages  # the mask was carried to state 1
     seen = len(batches)
     assert 5 + 2 <= seen < 5 + 5  # state 1's 5 batches, and not all of state 2's
     assert not [t for t in threading.enumerate() if t.name == "dvc-dask-local"]

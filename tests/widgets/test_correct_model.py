@@ -80,3 +80,29 @@ def test_a_series_says_which_state_each_method_line_is_for(changed_method_field)
     assert text == (
         f"States 1 and 3: {model.method_message(chosen)} State 2: {model.method_message(changed)}"
     )
+
+
+def test_every_stage_of_a_series_correction_says_which_state_of_how_many(monkeypatch):
+    """The stage line named the state only at its start ("state 2/3: self-correcting"), then
+    showed the passes' stages alone; now each of them is led by "state k of n"."""
+    from napari_dvc_correct.engine.progress import Progress
+
+    def fake_correction(reference, deformed, field, **options):
+        yield Progress("correction pass 1", 1, 2, "IC-GN")
+        return model.CorrectionResult(field=field, voxel_size=(1.0,) * 3, offset=(0.0,) * 3)
+
+    monkeypatch.setattr(model, "run_correction", fake_correction)
+    fields = [DisplacementField.zeros((8.0,) * 3, (4.0,) * 3, (2, 2, 2)) for _ in range(3)]
+    pairs = [(None, None)] * 3
+    generator = model.run_series_correction(pairs, fields)
+    stages = []
+    while True:
+        try:
+            stages.append(next(generator).stage)
+        except StopIteration as stop:
+            result = stop.value
+            break
+    assert stages == [
+        f"state {k} of 3{suffix}" for k in (1, 2, 3) for suffix in ("", ": correction pass 1")
+    ]
+    assert len(result.results) == 3

@@ -96,3 +96,27 @@ def test_the_summary_marks_bounds_and_the_field_carries_the_resolution():
     assert report["residual's resolution, median (voxels)"] == pytest.approx(error["resolution"])
     model.attach_estimate(field, item, evaluation)
     np.testing.assert_allclose(resolution_of(field), item.error_resolution, atol=1e-6)
+
+
+def test_every_stage_of_a_series_evaluation_says_which_pair_of_how_many(monkeypatch):
+    from napari_dvc_correct.engine.progress import Progress, run_to_completion
+    from napari_dvc_correct.widgets import evaluate_model
+
+    def fake_evaluation(reference, deformed, fields, *args, **options):
+        yield Progress("residual", 1, 1)
+        return "evaluation"
+
+    monkeypatch.setattr(evaluate_model, "run_evaluation", fake_evaluation)
+    groups = [(f"state {k}", None, None, {}) for k in (1, 2)]
+    stages = []
+
+    def collect():
+        for progress in evaluate_model.run_groups(groups, None):
+            stages.append(progress.stage)
+            yield progress
+
+    run_to_completion(collect())
+    assert stages == [
+        "state 1 (1 of 2)", "state 1 (1 of 2): residual",
+        "state 2 (2 of 2)", "state 2 (2 of 2): residual",
+    ]  # fmt: skip

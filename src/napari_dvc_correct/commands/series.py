@@ -14,6 +14,12 @@ the default is our ``.npz`` on a grid and a ``.csv`` table at ``--points``.
 out of core (:func:`napari_dvc_correct.tiled.series.series_tiled_iter`): the states are read
 lazily, batch by batch and block by block; the same files and summary. A series at ``--points``
 runs in memory only.
+
+``--evaluate`` evaluates each state's total on its own pair (reference state, that state) and
+writes ``series_report.md``, ``series_plot.png`` and ``series_evaluation.csv``
+(:func:`napari_dvc_correct.report.series.write_series_report`); a self-corrected series gives two
+curves, the uncorrected totals (:attr:`..engine.series.strategies.SeriesResult.uncorrected`) and
+the corrected ones, under the names the panel gives them (:func:`series_curves`).
 """
 
 from __future__ import annotations
@@ -90,7 +96,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="evaluate every state against its own pair and write series_report.md, "
         "series_plot.png (mean gray residual, accuracy index p and error estimate per state) "
-        "and series_evaluation.csv into --out-dir (a grid series in memory)",
+        "and series_evaluation.csv into --out-dir (a grid series in memory); with "
+        "--self-correct both the uncorrected and the corrected totals, two curves and two rows "
+        "per state, named as in the panel ('total' and 'total, corrected')",
     )
     group.add_argument(
         "--loads",
@@ -107,22 +115,41 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def evaluate_states(volumes, totals, bar, curve: str = "") -> list:
-    """Each total against its own pair (``volumes[0]``, ``volumes[k]``): [(label, Evaluation)].
+def evaluate_states(volumes, curves: dict, bar) -> list:
+    """Each state against its own pair (``volumes[0]``, ``volumes[k]``): [(label, Evaluation)].
 
-    ``curve`` names the fields in the report and plot (``"total, corrected"``: the fields are
-    named ``"state k (total, corrected)"``)."""
+    ``curves`` maps a curve's name to its totals in state order (``{"total": uncorrected,
+    "total, corrected": corrected}``); state ``k``'s evaluation holds one field per curve, named
+    ``"state k (curve)"`` as the panel names them, all on that state's pair at once (one
+    gray-level map and ``r0``, as the Evaluate panel measures a pair's fields). Progress stages
+    say the state: ``"state k of n: ..."``."""
     from ..engine.evaluation.accuracy import evaluate_iter
+    from ..engine.progress import forward_progress, state_of
     from ._common import drive
     from .evaluate import ready_for_evaluation
 
     results = []
-    for k, total in enumerate(totals, start=1):
-        name = f"state {k} ({curve})" if curve else f"state {k}"
-        field, _ = ready_for_evaluation(total, name)
-        evaluation = drive(evaluate_iter(volumes[0], volumes[k], {name: field}), bar)
-        results.append((f"state {k}", evaluation))
+    n = min(len(totals) for totals in curves.values())
+    for k in range(1, n + 1):
+        fields = {}
+        for curve, totals in curves.items():
+            name = f"state {k} ({curve})"
+            fields[name], _ = ready_for_evaluation(totals[k - 1], name)
+        job = forward_progress(evaluate_iter(volumes[0], volumes[k], fields), state_of(k, n))
+        results.append((f"state {k}", drive(job, bar)))
     return results
+
+
+def series_curves(result, strategy: str, correct_total: bool) -> dict:
+    """The curves of a series' report: ``{name: totals}``, the uncorrected totals
+    (``result.uncorrected``) as ``strategy`` and, where the run self-corrected, the corrected
+    totals as ``"strategy, corrected"`` (``"strategy, corrected increments"`` where only the
+    increments were corrected) — the names the panel gives a series and its self-correction."""
+    curves = {strategy: result.uncorrected or result.totals}
+    if result.self_corrected:
+        corrected = "corrected" if correct_total else "corrected increments"
+        curves[f"{strategy}, {corrected}"] = result.totals
+    return curves
 
 
 def _format(value) -> str:
@@ -259,14 +286,18 @@ def run(args) -> int:
         if evaluate:
             from ..report.series import write_series_report
 
-            curve = args.strategy + (", corrected" if correct_total else "")
-            states = evaluate_states(volumes, result.totals, ProgressBar(args.quiet), curve)
+            curves = series_curves(result, args.strategy, correct_total)
+            states = evaluate_states(volumes, curves, ProgressBar(args.quiet))
             write_series_report(states, temp, args.loads, args.load_label)
     for row, total in zip(rows[1:], result.totals):
+        before = row["mean_gray_residual_uncorrected"]
+        uncorrected = (
+            f" (uncorrected {before:.4f})" if result.self_corrected and before == before else ""
+        )
         print(
             f"state {row['state']}: {total.node_counts().text()}; mean |u| "
             f"{row['mean_displacement']:.3f} voxels, mean gray residual "
-            f"{row['mean_gray_residual']:.4f}"
+            f"{row['mean_gray_residual']:.4f}{uncorrected}"
         )
     print(
         f"{len(result.totals)} states ({args.strategy}) in {time.perf_counter() - started:.2f} s; "

@@ -38,7 +38,9 @@ def run_to_completion(generator):
             return stop.value
 
 
-def _relabel(progress: Progress, prefix: str) -> Progress:
+def _relabel(progress, prefix: str):
+    if not isinstance(progress, Progress):  # anything else a generator yields goes through
+        return progress
     return Progress(f"{prefix}: {progress.stage}", progress.done, progress.total, progress.message)
 
 
@@ -54,3 +56,9 @@ def forward_progress(generator, prefix: str):
             yield _relabel(progress, prefix)
     finally:
         generator.close()  # a cancelled caller stops the inner run too (its Dask work, its files)
+
+
+def state_of(k: int, n: int) -> str:
+    """The stage prefix of state ``k`` of ``n`` in a loop over a series' states (``"state 2 of
+    3"``), so that every stage line of the loop says which state runs and how many there are."""
+    return f"state {k} of {n}"

@@ -318,6 +318,15 @@ def _signals_blocked() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def locked_folder(folder: str | os.PathLike) -> Iterator[None]:
+    """Hold an exclusive advisory lock (``flock``) on ``folder`` for the block: writers that
+    read a file of the folder, decide and write (a side file shared by several outputs) take
+    turns, in this process (other threads) and in others."""
+    with _locked(Path(folder)):
+        yield
+
+
+@contextlib.contextmanager
 def _locked(folder: Path) -> Iterator[None]:
     fd = os.open(folder, os.O_RDONLY)
     try:

@@ -13,6 +13,12 @@ from .npz import _json_default
 
 
 # -- reports -----------------------------------------------------------------------------------
+def to_json(report, **options) -> str:
+    """``report`` as JSON text, numpy scalars and arrays converted as :func:`export_report`
+    writes them (``options``: those of :func:`json.dumps`, e.g. ``sort_keys=True``)."""
+    return json.dumps(report, default=_json_default, **options)
+
+
 def export_report(report: dict, path: str | os.PathLike) -> Path:
     """Write an evaluation report: JSON for ``.json``, readable Markdown otherwise.
 
@@ -25,7 +31,7 @@ def export_report(report: dict, path: str | os.PathLike) -> Path:
     path = Path(path)
     with atomic_path(path) as temp:
         if path.suffix.lower() == ".json":
-            text = json.dumps(report, indent=2, default=_json_default)
+            text = to_json(report, indent=2)
         else:
             text = _markdown(report)
         temp.write_text(text + "\n", encoding="utf-8")

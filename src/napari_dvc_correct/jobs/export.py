@@ -154,6 +154,81 @@ def evaluation_report_files(request: ExportRequest, stem: Path) -> list[Path]:
     return [path for paths in files.values() for path in paths]
 
 
+def side_files_kept(side: Path, report: dict, path: Path) -> list[str]:
+    """The files an existing provenance side file ``side`` describes that it goes on describing
+    once ``path`` is written with ``report`` (the side file's new content, without ``files``).
+
+    All formats of one stem share ``STEM_provenance.json``; its ``files`` names the files it
+    describes. The same field written in another format (the same provenance, metadata
+    included) adds its file to the list. Another field may replace the side file only where it
+    replaces every file the old one described (the same ``path``, or the same TIFF stacks) or
+    those are gone; else the old files would be mis-described, and the export is refused. A
+    side file without ``files`` (written before they were listed) is replaced.
+
+    Raises
+    ------
+    ValueError
+        Another field's files of this stem would be left described by this one's provenance.
+    """
+    import json
+
+    from ..io.report_file import to_json
+
+    try:
+        old = json.loads(side.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []  # none yet, or unreadable: written anew
+    if not isinstance(old, dict):
+        return []
+    named = old.pop("files", None) or []
+    present = [n for n in named if isinstance(n, str) and (side.parent / n).is_file()]
+    if to_json(old, sort_keys=True) == to_json(json.loads(to_json(report)), sort_keys=True):
+        return present  # the same field: one more format of it
+    stem = path.with_suffix("").name
+    tiff = path.suffix.lower() in (".tif", ".tiff")
+
+    def replaced(name: str) -> bool:
+        if name == path.name:
+            return True
+        return tiff and name.startswith(f"{stem}_") and name.lower().endswith(path.suffix.lower())
+
+    others = [n for n in present if not replaced(n)]
+    if others:
+        raise ValueError(
+            f"{side.name} describes {', '.join(others)}, written from another field "
+            f"({old.get('source', 'unknown')}); this export would leave them with the provenance "
+            f"of {report.get('source', 'this field')}: write to another name, or remove "
+            f"{', '.join(others)} first"
+        )
+    return []
+
+
+def write_with_side(write_field, target: Path, side: Path, report: dict) -> list[Path]:
+    """Write a field (``write_field(path)`` writes it to ``path``, returns its files) to
+    ``target`` and its provenance side file ``side`` (``report`` and the ``files`` it describes,
+    :func:`side_files_kept`) as one: under a lock on the folder, so that two exports into it take
+    turns between reading the side file and replacing it, and, for a one-file format, both
+    renamed into place together (:func:`..io.atomic.atomic_files`: an interrupted or failed
+    export leaves the old field with its old provenance). TIFF stacks (several files named after
+    the stem) are written first and the side file after them.
+    """
+    from ..io import report_file
+    from ..io.atomic import atomic_files, locked_folder
+
+    with locked_folder(side.parent):
+        kept = side_files_kept(side, report, target)
+        if target.suffix.lower() in (".tif", ".tiff"):
+            files = write_field(target)
+            names = sorted({*kept, *(p.name for p in files)})
+            report_file.export_report({**report, "files": names}, side)
+            return [*files, side]
+        names = sorted({*kept, target.name})
+        with atomic_files(target, side) as (temp_field, temp_side):
+            write_field(temp_field)
+            report_file.export_report({**report, "files": names}, temp_side)
+        return [target, side]
+
+
 def run_export(request: ExportRequest):
     """Write everything the request asks for; yields Progress per file, returns the paths."""
     from ..io import export, report_file
@@ -173,14 +248,22 @@ def run_export(request: ExportRequest):
             extra = {"equivalent_strain": request.equivalent_strain}
     stem = request.path.with_suffix("")
 
-    def write_field():
-        return export.export_field(field, request.path, extra=extra, voxel_size=request.voxel_size)
+    def write_field(path=request.path):
+        return [Path(p) for p in export.export_field(
+            field, path, extra=extra, voxel_size=request.voxel_size
+        )]  # fmt: skip
 
     jobs = [("field", write_field)]
     if points or suffix not in WITH_METADATA:  # (the points' .npz has no room for it either)
         side = stem.parent / f"{stem.name}_provenance.json"
         report = {"title": "DVC field provenance", **origin, "metadata": field.metadata}
-        jobs.append(("provenance", lambda: [report_file.export_report(report, side)]))
+        side_files_kept(side, report, request.path)  # refused before anything is written
+        jobs = [
+            (
+                "field and its provenance",
+                lambda: write_with_side(write_field, request.path, side, report),
+            )
+        ]
     if request.strain_tiff and request.equivalent_strain is not None:
         placement = {
             "scale": np.asarray(request.field.step) * np.asarray(request.voxel_size),

@@ -350,7 +350,7 @@ def series_tiled_iter(
     ------
     Progress
         ``"plan"`` first (the estimated peak memory of each kind of run), then as
-        :func:`..engine.series.strategies.series_iter`, stages prefixed by ``"state k/n"``, with the
+        :func:`..engine.series.strategies.series_iter`, stages prefixed by ``"state k of n"``, with the
         batches and blocks of every run.
 
     Returns

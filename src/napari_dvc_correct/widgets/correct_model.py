@@ -194,15 +194,18 @@ def run_series_correction(pairs, fields, **options):
 
     Returns a :class:`SeriesCorrection`. ``options`` are those of :func:`run_correction`.
     """
-    from ..engine.progress import Progress
+    from ..engine.progress import Progress, forward_progress, state_of
     from ..layers import series_fields
 
     results = []
     if not options.get("tiled"):  # the region as one array, once for every state
         options["mask"] = whole(options.get("mask"))
     for k, ((reference, deformed), field) in enumerate(zip(pairs, fields), start=1):
-        yield Progress(f"state {k}/{len(fields)}", 0, 1, "self-correcting")
-        result = yield from run_correction(reference, deformed, field, **options)
+        label = state_of(k, len(fields))  # every stage line says the state (and how many)
+        yield Progress(label, 0, 1, "self-correcting")
+        result = yield from forward_progress(
+            run_correction(reference, deformed, field, **options), label
+        )
         results.append(result)
     return SeriesCorrection(results, series_fields([r.field for r in results]))
 

@@ -410,15 +410,16 @@ def run_groups(
     -------
     list of (label, Evaluation)
     """
-    from ..engine.progress import Progress
+    from ..engine.progress import Progress, forward_progress
 
     results = []
     for index, (label, reference, deformed, fields, *known) in enumerate(groups):
-        yield Progress(f"{label} ({index + 1}/{len(groups)})", 0, 1, "evaluating")
-        evaluation = yield from run_evaluation(
+        stage = f"{label} ({index + 1} of {len(groups)})"  # on every stage line of the pair
+        yield Progress(stage, 0, 1, "evaluating")
+        evaluation = yield from forward_progress(run_evaluation(
             reference, deformed, fields, thresholds, mode, max_memory=max_memory, tiled=tiled,
             background_fields=known[0] if known else None, region=region,
-        )  # fmt: skip
+        ), stage)  # fmt: skip
         results.append((label, evaluation))
     return results
 

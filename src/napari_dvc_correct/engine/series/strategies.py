@@ -38,7 +38,7 @@ from ..correlation.params import CorrelationParams
 from ..fields.compose import compose
 from ..fields.field import DisplacementField, Provenance, Status, grid_for_volume
 from ..fields.scattered import ScatteredField
-from ..progress import Progress, forward_progress, run_to_completion
+from ..progress import Progress, forward_progress, run_to_completion, state_of
 from .volumes import InMemorySeries, SeriesVolumes
 
 STRATEGIES = ("total", "incremental")
@@ -51,19 +51,43 @@ class SeriesResult:
     Attributes
     ----------
     totals : list of DisplacementField
-        ``U_0→k`` for ``k = 1 .. n-1`` on the grid of the first state (reference voxels of V0).
+        ``U_0→k`` for ``k = 1 .. n-1`` on the grid of the first state (reference voxels of V0),
+        self-corrected where the run corrects.
     increments : list of DisplacementField
-        ``u_k−1→k`` for the incremental strategy (each in the voxels of state ``k-1``); empty
-        for the total strategy.
+        ``u_k−1→k`` for the incremental strategy (each in the voxels of state ``k-1``, corrected
+        where the run corrects increments, and the first one where it corrects the first
+        total); empty for the total strategy.
+    uncorrected : list of DisplacementField
+        The uncorrected total ``U_0→k`` of each state, the series as if no self-correction had
+        run, on the same grid (first state's nodes, reference voxels of V0):
+
+        * total strategy: the DVC of ``(V0, Vk)``, before its correction;
+        * incremental strategy: the composition of the *measured* increments only,
+          ``Ũ_0→k(X) = Ũ_0→k−1(X) + ũ_k−1→k(X + Ũ_0→k−1(X))``, with ``ũ_k−1→k`` the DVC of
+          ``(Vk−1, Vk)`` before any correction (grid in state ``k-1``'s voxels) and
+          ``Ũ_0→1 = ũ_0→1``. (The increments were measured in a self-corrected run: the only
+          trace of the corrections in ``Ũ`` is the mask carried to state ``k-1``, which moves
+          with the corrected total.)
+
+        Each one is evaluated on its own pair ``(V0, Vk)``, as the corrected total is. Without
+        self-correction these are the totals themselves (the same objects).
     strategy : str
+    self_corrected : bool
+        Whether the run self-corrected (increments, totals or both).
     """
 
     totals: list = field(default_factory=list)
     increments: list = field(default_factory=list)
+    uncorrected: list = field(default_factory=list)
     strategy: str = "incremental"
+    self_corrected: bool = False
 
     def summary(self) -> list[dict]:
-        """One row per state (the first state included, with zero displacement)."""
+        """One row per state (the first state included, with zero displacement).
+
+        ``mean_gray_residual`` is that of the total, ``mean_gray_residual_uncorrected`` that of
+        the uncorrected total (:attr:`uncorrected`; the same number without self-correction).
+        """
         rows = [
             {
                 "state": 0,
@@ -157,7 +181,7 @@ def series_iter(
     Yields
     ------
     Progress
-        Stages prefixed by ``"state k/n"``.
+        Stages prefixed by ``"state k of n"`` (:func:`.progress.state_of`).
     """
     if strategy not in STRATEGIES:
         raise ValueError(f"strategy must be one of {STRATEGIES}, got {strategy!r}")
@@ -213,14 +237,17 @@ def _series_loop(volumes, strategy, correct_increments, correct_total):
     result = SeriesResult(strategy=strategy)
     n = volumes.n_states
     started = time.perf_counter()
+    corrects = correct_increments or correct_total
+    result.self_corrected = bool(corrects)
     for k in range(1, n):
-        label = f"state {k}/{n - 1}"
+        label = state_of(k, n - 1)
         state_started = time.perf_counter()
         if strategy == "total" or k == 1:
             total = yield from forward_progress(volumes.correlate(0, k, volumes.mask), label)
             if strategy == "incremental":
                 result.increments.append(total.copy())
-            corrected_here = correct_increments or correct_total
+            plain = total  # the uncorrected total: the measured one
+            corrected_here = corrects
         else:
             previous = result.totals[-1]
             filled = clean(previous, fill_masked=True)
@@ -233,6 +260,7 @@ def _series_loop(volumes, strategy, correct_increments, correct_total):
                 increment = yield from forward_progress(
                     volumes.correlate(k - 1, k, state_mask), f"{label}: increment"
                 )
+                measured = increment
                 if correct_increments:
                     increment = yield from forward_progress(
                         volumes.correct(k - 1, k, increment, state_mask),
@@ -244,7 +272,8 @@ def _series_loop(volumes, strategy, correct_increments, correct_total):
             increment_filled = clean(increment, fill_masked=True)
             total = compose(previous, increment_filled)
             corrected_here = correct_total
-        uncorrected = total
+            # the uncorrected chain: the measured increments composed onto each other only
+            plain = _compose_filled(result.uncorrected[-1], measured, total) if corrects else total
         passes = 0
         if corrected_here:
             total = yield from forward_progress(
@@ -256,7 +285,9 @@ def _series_loop(volumes, strategy, correct_increments, correct_total):
         yield Progress(label, 0, 1, "gray residual")
         residual = yield from _residual(volumes, k, total, label)
         residual_uncorrected = (
-            (yield from _residual(volumes, k, uncorrected, label)) if corrected_here else residual
+            (yield from _residual(volumes, k, plain, f"{label}: uncorrected"))
+            if plain is not total
+            else residual
         )
         total.metadata["series"] = {
             "state": k,
@@ -269,10 +300,35 @@ def _series_loop(volumes, strategy, correct_increments, correct_total):
             "mean_gray_residual_uncorrected": residual_uncorrected,
             "seconds": time.perf_counter() - state_started,
         }
+        if plain is not total:  # its own dictionary (a corrected field may share one)
+            plain.metadata = {
+                **plain.metadata,
+                "series": {
+                    "state": k,
+                    "strategy": strategy,
+                    "reference_state": 0,
+                    "uncorrected": True,
+                    "mean_gray_residual": residual_uncorrected,
+                },
+            }
         result.totals.append(total)
+        result.uncorrected.append(plain)
         yield Progress(label, 1, 1, f"mean gray residual {residual:.4g}")
     yield Progress("done", n - 1, n - 1, f"{n - 1} states in {time.perf_counter() - started:.1f} s")
     return result
+
+
+def _compose_filled(previous: DisplacementField, increment: DisplacementField, like):
+    """``previous`` followed by ``increment`` (cleaned and filled, :func:`.compose.compose`);
+    where ``increment`` cannot be cleaned (no valid node), ``like``'s grid with every node lost
+    (NaN, ``NOT_COMPUTED``)."""
+    try:
+        return compose(previous, clean(increment, fill_masked=True))
+    except ValueError:
+        lost = like.copy()
+        lost.u[...] = np.nan
+        lost.status[...] = int(Status.NOT_COMPUTED)
+        return lost
 
 
 def _points_series(volumes, params, strategy, mask, points):
@@ -282,7 +338,7 @@ def _points_series(volumes, params, strategy, mask, points):
     n = len(volumes)
     started = time.perf_counter()
     for k in range(1, n):
-        label = f"state {k}/{n - 1}"
+        label = state_of(k, n - 1)
         state_started = time.perf_counter()
         yield Progress(label, 0, 1, f"correlating at {len(points)} points")
         if strategy == "total" or k == 1:
@@ -312,6 +368,7 @@ def _points_series(volumes, params, strategy, mask, points):
             "seconds": time.perf_counter() - state_started,
         }
         result.totals.append(total)
+        result.uncorrected.append(total)  # never corrected at points
         yield Progress(label, 1, 1, f"{int(total.valid.sum())} of {len(points)} points matched")
     yield Progress("done", n - 1, n - 1, f"{n - 1} states in {time.perf_counter() - started:.1f} s")
     return result
