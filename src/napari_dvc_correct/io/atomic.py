@@ -11,7 +11,6 @@ files of other machines (a shared file system) are never touched. Outputs get th
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import os
@@ -24,6 +23,11 @@ import stat
 import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+try:  # POSIX: an advisory lock other processes see too
+    import fcntl
+except ImportError:  # Windows: the lock below holds threads of this process only
+    fcntl = None
 
 #: Part of every temporary name this package makes (files and folders).
 TEMP_MARK = ".ndc-tmp-"
@@ -295,7 +299,9 @@ def _signals_blocked() -> Iterator[None]:
     that only records the signal, and the recorded signal is passed to the previous handler
     once the block is over.
     """
-    if threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread() or not hasattr(
+        signal, "pthread_sigmask"
+    ):  # not the main thread, or Windows (no signal masks): written as is
         yield
         return
     pending: list[int] = []
@@ -326,14 +332,27 @@ def locked_folder(folder: str | os.PathLike) -> Iterator[None]:
         yield
 
 
+_folder_locks: dict[str, threading.Lock] = {}
+_folder_locks_guard = threading.Lock()
+
+
 @contextlib.contextmanager
 def _locked(folder: Path) -> Iterator[None]:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)
+    """The threads of this process take turns on a lock of their own per folder (``flock``
+    alone does not order two threads that each open the folder); on POSIX the folder's
+    ``flock`` then makes other processes wait too."""
+    with _folder_locks_guard:
+        lock = _folder_locks.setdefault(os.path.realpath(folder), threading.Lock())
+    with lock:
+        if fcntl is None:
+            yield
+            return
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)
 
 
 @contextlib.contextmanager
