@@ -130,3 +130,25 @@ def test_from_dict_ignores_unknown_keys_and_fills_missing_ones():
     assert params == CorrelationParams(subvolume=25)
     with pytest.raises(ValueError, match="subvolume must be odd"):
         CorrelationParams.from_dict({"subvolume": 24})
+
+
+def test_the_subvolume_window_is_a_gaussian_truncated_at_three_std():
+    """Voxels farther than ``WINDOW_TRUNCATE`` std (3) from the POI weigh 0, the others the
+    Gaussian's weight: on 15³ under std 3 that drops 19 % of the voxels (652 of 3 375, the
+    box's corners beyond 9 voxels) and 0.8 % of the weight; a window of std 4.5 reaches past
+    the corners (7·√3 ≈ 12.1 voxels) and keeps them all."""
+    from napari_dvc_correct.engine.correlation.params import WINDOW_TRUNCATE, gaussian_window
+
+    assert WINDOW_TRUNCATE == 3.0
+    weights = CorrelationParams(subvolume=15, window=3.0).subvolume_weights()
+    whole = gaussian_window(7, 3.0)
+    r = np.arange(-7, 8)
+    r2 = r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2
+    assert np.array_equal(weights[r2 <= 81], whole[r2 <= 81])
+    assert np.all(weights[r2 > 81] == 0.0) and np.sum(r2 > 81) == 652
+    assert 1.0 - weights.sum() / whole.sum() == pytest.approx(0.0081, abs=1e-4)
+    wide = CorrelationParams(subvolume=15, window=4.5).subvolume_weights()
+    assert np.array_equal(wide, gaussian_window(7, 4.5))
+    assert CorrelationParams(subvolume=15).subvolume_weights() is None
+    with pytest.raises(ValueError, match="radius"):
+        gaussian_window(7, 3.0, 0.0)

@@ -14,7 +14,7 @@ import functools
 import numpy as np
 from scipy import ndimage
 
-from ..correlation.params import CorrelationParams
+from ..correlation.params import WINDOW_TRUNCATE, CorrelationParams, gaussian_window
 from ..fields.field import DisplacementField, Provenance, Status
 from .acceptance import MIN_USEFUL_CHANGE
 
@@ -57,7 +57,8 @@ def window_geometry(half: int, std: float | None, order: int = 2) -> tuple[float
     equivalent kernel ``k = W X (Xᵀ W X)⁻¹ e₀`` of a weighted least-squares fit of the shape
     function's monomials ``X`` (``W = diag w``): the translation's scatter per unit of per-voxel
     noise where the texture is even (the noise through ``Σ w²`` and the fit). ``std`` None: the
-    uniform subvolume.
+    uniform subvolume; else the window the matches use (truncated at
+    :data:`.params.WINDOW_TRUNCATE` std, :meth:`.CorrelationParams.subvolume_weights`).
     """
     r = np.arange(-half, half + 1, dtype=np.float64)
     z, y, x = (a.ravel() for a in np.meshgrid(r, r, r, indexing="ij"))
@@ -65,7 +66,7 @@ def window_geometry(half: int, std: float | None, order: int = 2) -> tuple[float
     if order == 2:
         columns += [z * z, y * y, x * x, z * y, y * x, z * x]
     design = np.stack(columns, 1)
-    w = np.ones_like(z) if std is None else np.exp(-(z * z + y * y + x * x) / (2.0 * std**2))
+    w = np.ones_like(z) if std is None else gaussian_window(half, std, WINDOW_TRUNCATE).ravel()
     normal = design.T @ (w[:, None] * design)
     kernel = w * (design @ np.linalg.solve(normal, np.eye(len(normal))[0]))
     return float(np.sum(w * z * z) / np.sum(w)), float(np.sqrt(np.sum(kernel * kernel)))

@@ -12,7 +12,15 @@ import numpy as np
 MIN_SUBVOLUME = 5
 
 
-def gaussian_window(half: int, std: float) -> np.ndarray:
+#: Radius of a subvolume's Gaussian window, in standard deviations
+#: (:meth:`CorrelationParams.subvolume_weights`): voxels farther than ``WINDOW_TRUNCATE · std``
+#: from the POI (weight below ``exp(−4.5)`` ≈ 0.011) count 0. On a 15³ box under std 3 they
+#: are 19 % of the voxels and 0.8 % of the weight (0.015 % of ``Σ w²``); a voxel of weight 0
+#: is neither gathered nor sampled, so the match's per-voxel work falls by that share.
+WINDOW_TRUNCATE = 3.0
+
+
+def gaussian_window(half: int, std: float, truncate: float | None = None) -> np.ndarray:
     """Gaussian weights ``exp(−|ξ|² / (2 std²))`` over the box ``[−half, half]³``.
 
     Parameters
@@ -21,6 +29,9 @@ def gaussian_window(half: int, std: float) -> np.ndarray:
         Box half-size ``M`` (voxels; edge ``2M + 1``).
     std : float
         Standard deviation of the window (voxels), > 0.
+    truncate : float or None
+        Radius of the window in standard deviations, > 0: voxels with ``|ξ| > truncate · std``
+        (voxels) weigh 0, a truncated Gaussian. None: the whole box is weighted.
 
     Returns
     -------
@@ -30,9 +41,14 @@ def gaussian_window(half: int, std: float) -> np.ndarray:
         raise ValueError(f"the window's standard deviation must be > 0 voxels, got {std!r}")
     if int(half) < 1:
         raise ValueError(f"the box half-size must be >= 1 voxel, got {half!r}")
+    if truncate is not None and not (np.isfinite(truncate) and truncate > 0):
+        raise ValueError(f"the window's radius must be > 0 standard deviations, got {truncate!r}")
     r = np.arange(-int(half), int(half) + 1, dtype=np.float64)
     r2 = r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2
-    return np.exp(-r2 / (2.0 * float(std) ** 2))
+    weights = np.exp(-r2 / (2.0 * float(std) ** 2))
+    if truncate is not None:
+        weights[r2 > (float(truncate) * float(std)) ** 2] = 0.0
+    return weights
 
 
 @dataclass(frozen=True)
@@ -90,7 +106,8 @@ class CorrelationParams:
     window : float or None
         Gaussian weights over the subvolume at full resolution: a voxel at ``ξ`` from the POI
         counts ``exp(−|ξ|² / (2 window²))`` in the match (standard deviation in voxels;
-        :mod:`.icgn_weighted`). None (default): every voxel of the subvolume counts the same.
+        :mod:`.icgn_weighted`) within ``WINDOW_TRUNCATE · window`` of it, 0 beyond.
+        None (default): every voxel of the subvolume counts the same.
     """
 
     subvolume: int = 31
@@ -164,10 +181,11 @@ class CorrelationParams:
         return self.subvolume // 2
 
     def subvolume_weights(self) -> np.ndarray | None:
-        """The subvolume's weights, shape ``(subvolume,)*3`` (None where :attr:`window` is)."""
+        """The subvolume's weights, shape ``(subvolume,)*3`` (None where :attr:`window` is):
+        the Gaussian of std :attr:`window` truncated at :data:`WINDOW_TRUNCATE` std."""
         if self.window is None:
             return None
-        return gaussian_window(self.half, float(self.window))
+        return gaussian_window(self.half, float(self.window), WINDOW_TRUNCATE)
 
     @property
     def effective_search_radius(self) -> int:
