@@ -24,8 +24,9 @@ from ..engine.correlation.params import MIN_SUBVOLUME, CorrelationParams
 from ..engine.run_options import RunOptions
 from . import correlate_model as model
 from . import points_model, regions_model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from ._base import EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._layer_kinds import is_mask, is_scan, is_user_points, layer_role
+from ._workers import Debouncer
 from .poi_readout import PoiReadout, poi_readout_box
 from .regions import RegionBox
 

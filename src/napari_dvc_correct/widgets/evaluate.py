@@ -25,17 +25,10 @@ from .. import layers as L
 from .. import viewer_layers as V
 from ..engine.evaluation.options import MAX_PHASES, EvaluationOptions
 from . import evaluate_model as model
-from ._base import (
-    Debouncer,
-    EngineWidget,
-    LatestWorker,
-    LayerCombo,
-    follow_layers,
-    one_line,
-    pair_in_order,
-)
+from ._base import EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._layer_kinds import is_scan
 from ._plots import CurvesCanvas, HistogramCanvas, SeriesCanvas
+from ._workers import Debouncer, LatestWorker
 from .correlate_model import (
     check_tiled,
     layer_placement,
