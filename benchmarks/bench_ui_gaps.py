@@ -146,7 +146,7 @@ def run_panel(
     ``main_profile`` (a ``cProfile.Profile``) profiles the main thread only (cProfile follows
     the thread that enables it) from Run to the end of the settling time: the slots and what
     napari and Qt do after them (drawing the new layers, the plots)."""
-    from qtpy.QtCore import QEventLoop, QTimer
+    from qtpy.QtCore import QCoreApplication, QEventLoop, QTimer
 
     ticks.clear()
     worker = widget.run(start=False)
@@ -165,6 +165,8 @@ def run_panel(
         main_profile.enable()
     worker.start()
     loop.exec()
+    while widget.running:  # the result shown in steps after the worker ends
+        QCoreApplication.processEvents(QEventLoop.ProcessEventsFlag.WaitForMoreEvents, 50)
     finished = time.perf_counter()
     QTimer.singleShot(settle_ms, loop.quit)  # what the result brings after (drawing the layers)
     loop.exec()

@@ -65,3 +65,26 @@ def test_a_series_field_comes_on_view_at_its_last_state(field):
     viewer.dims.set_current_step(0, 1)  # the user's choice stays when a field comes again
     V.show_field(viewer, L.field_layers(series_fields(states), "series (total)"))
     assert viewer.dims.current_step[0] == 1
+
+
+def test_a_field_comes_one_layer_per_step_the_other_fields_hidden_first(field):
+    """Each step adds one layer (napari builds its visual, controls and colorbar on the main
+    thread: one turn of the event loop each); the end state is that of showing it at once."""
+    viewer = ViewerModel()
+    V.show_field(viewer, L.field_layers(field, "uncorrected"))
+    before = list(viewer.layers)
+    steps = V.show_field_steps(viewer, L.field_layers(field.copy(), "corrected"))
+    next(steps)  # the quantity layer is in, on view; the arrows are not yet
+    assert len(viewer.layers) == 3 and not any(x.visible for x in before)
+    quantity = viewer.layers[-1]
+    assert L.plugin_metadata(quantity)["kind"] == "quantity" and quantity.visible
+    added = V.finish(steps)
+    assert added == list(viewer.layers)[2:] and added[0] is quantity
+    assert [L.plugin_metadata(x)["kind"] for x in viewer.layers] == ["quantity", "vectors"] * 2
+    assert [x.visible for x in viewer.layers] == [False, False, True, True]
+    assert quantity.colorbar.visible and viewer.layers.selection.active is added[1]
+    assert V.text_overlay(viewer).text == L.colorbar_title(quantity)
+    # again: updated in place, one step per layer, the same layers
+    steps = V.show_field_steps(viewer, L.field_layers(field.copy(), "corrected"))
+    assert sum(1 for _ in steps) == 1  # two layers: one yield between them
+    assert list(viewer.layers)[2:] == added

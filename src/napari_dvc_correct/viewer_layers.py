@@ -5,6 +5,8 @@ axes labelled, the units matched and the canvas overlays (the quantity's caption
 
 from __future__ import annotations
 
+from collections.abc import Generator
+
 import numpy as np
 
 from .layers import (
@@ -98,33 +100,61 @@ def show_layers(viewer, layer_tuples) -> list:
     -------
     list of napari layers, in the order of ``layer_tuples``.
     """
+    return finish(show_layers_steps(viewer, layer_tuples))
+
+
+def finish(steps: Generator):
+    """Run ``steps`` (a generator of showing steps) to its end; its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as stop:
+            return stop.value
+
+
+def show_layers_steps(viewer, layer_tuples, each=None) -> Generator[None, None, list]:
+    """:func:`show_layers` one layer at a time: yields between two layers (napari builds a new
+    layer's visual, controls and colorbar on the main thread, 0.1-0.7 s each), so a caller can
+    let the event loop turn between them; returns the layers. ``each(layer)``, if given, is
+    called after each layer is in."""
     from napari.layers import Layer
 
     added = []
     for data, kwargs, layer_type in layer_tuples:
-        kwargs = dict(kwargs)
-        name = kwargs.get("name")
-        metadata = kwargs.get("metadata") or {}
-        entry = metadata.get(MARKER)
-        key = name
-        if isinstance(entry, dict):  # napari may rename the layer; we find it by this name
-            key = entry.get("key", name)
-            kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": key}}
+        if added:
+            yield
+        key, kwargs = _keyed(kwargs)
         old = find_layer(viewer, key)
         if old is not None and _update_in_place(old, data, kwargs, layer_type):
-            added.append(old)
-            continue
-        layer = Layer.create(data, kwargs, layer_type)
-        _same_units(viewer, layer)
-        if old is not None:
-            index = viewer.layers.index(old)
-            viewer.layers.remove(old)
-            viewer.layers.insert(index, layer)
+            layer = old
         else:
-            viewer.layers.append(layer)
+            layer = Layer.create(data, kwargs, layer_type)
+            _same_units(viewer, layer)
+            if old is not None:
+                index = viewer.layers.index(old)
+                viewer.layers.remove(old)
+                viewer.layers.insert(index, layer)
+            else:
+                viewer.layers.append(layer)
         added.append(layer)
+        if each is not None:
+            each(layer)
     label_axes(viewer)
     return added
+
+
+def _keyed(kwargs: dict) -> tuple[str, dict]:
+    """The name the plugin finds a layer by (napari may rename it) and the layer's keyword
+    arguments with that name in its metadata."""
+    kwargs = dict(kwargs)
+    name = kwargs.get("name")
+    metadata = kwargs.get("metadata") or {}
+    entry = metadata.get(MARKER)
+    if not isinstance(entry, dict):
+        return name, kwargs
+    key = entry.get("key", name)
+    kwargs["metadata"] = {**metadata, MARKER: {**entry, "name": key}}
+    return key, kwargs
 
 
 #: Layer types whose plugin layers a new result updates in place (:func:`_update_in_place`).
@@ -197,13 +227,29 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
     back), the new quantity layer shows ``quantity`` (default: what the visible field showed)
     with its colorbar, the scale bar is on and the axes are named.
     """
+    return finish(show_field_steps(viewer, layer_tuples, quantity))
+
+
+def show_field_steps(
+    viewer, layer_tuples, quantity: str | None = None
+) -> Generator[None, None, list]:
+    """:func:`show_field` in steps, one layer per step (:func:`show_layers_steps`), with the
+    same end state; returns the layers.
+
+    Cheaper than adding the layers and then switching: the other fields are hidden first (no
+    draw of them between the steps), and a series' state slider goes to its last state as soon
+    as its first 4-D layer is in, so the next layers are sliced once, at that state."""
     current = next((x for x in quantity_layers(viewer) if x.visible), None)
     if quantity is None and current is not None:
         quantity = plugin_metadata(current).get("quantity")
-    added = show_layers(viewer, layer_tuples)
-    new = [x for x in added if (plugin_metadata(x) or {}).get("kind") == "quantity"]
-    hide_other_fields(viewer, added)
-    for layer in new:
+    kept = [find_layer(viewer, _keyed(kwargs)[0]) for _, kwargs, _ in layer_tuples]
+    hide_other_fields(viewer, [x for x in kept if x is not None])
+    new = []
+
+    def on_view(layer) -> None:
+        if (plugin_metadata(layer) or {}).get("kind") != "quantity":
+            return
+        new.append(layer)
         if quantity and quantity != plugin_metadata(layer).get("quantity"):
             try:
                 show_quantity(layer, quantity)
@@ -213,9 +259,12 @@ def show_field(viewer, layer_tuples, quantity: str | None = None) -> list:
         layer.colorbar.visible = True
         text_overlay(viewer).text = colorbar_title(layer)
         text_overlay(viewer).visible = True
+        if len(new) == 1:
+            _last_state_on_view(viewer, layer)
+
+    added = yield from show_layers_steps(viewer, layer_tuples, each=on_view)
+    hide_other_fields(viewer, added)
     canvas_overlay(viewer, "scale_bar").visible = True
-    for layer in new[:1]:
-        _last_state_on_view(viewer, layer)
     return added
 
 

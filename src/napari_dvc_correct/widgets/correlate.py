@@ -591,8 +591,9 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             return
         if len(result.fields) == 1:
             source, field = result.fields[0]
-            V.show_field(self.viewer, L.field_layers(field, source, **placement))
+            yield from V.show_field_steps(self.viewer, L.field_layers(field, source, **placement))
         else:  # a series: one 4-D field, state 0 (no displacement) first, made in the worker
             source = "series " + result.fields[0][0].split(" ", 2)[2]
-            V.show_field(self.viewer, L.field_layers(result.series, source, **placement))
+            tuples = L.field_layers(result.series, source, **placement)
+            yield from V.show_field_steps(self.viewer, tuples)
         self.show_message(model.done_message(result, region_given=self._started[4]))

@@ -459,7 +459,8 @@ class EvaluateWidget(EngineWidget):
             tuples = model.residual_layers(evaluation, self._placement, outputs, TEMPORARY_KEY)
         self.evaluations = [("", evaluation)]
         self.evaluation = evaluation
-        V.show_layers(self.viewer, tuples)  # replacing layers: their folder is still _writing
+        # replacing layers (one per step): their folder is still _writing
+        yield from V.show_layers_steps(self.viewer, tuples)
         self._writing = None
         self._release_temporary()
         self.summary.setText(model.summary_text(evaluation))
