@@ -217,7 +217,7 @@ def test_a_result_is_shown_one_layer_per_turn_then_shown_is_emitted(qtbot, field
     at_returned, shown = [], []
     panel.shown.connect(lambda: shown.append(len(viewer.layers)))
     _start_with(qtbot, panel, lambda result: at_returned.append(len(viewer.layers)))
-    assert at_returned == [2]  # the scan and the quantity layer: the arrows come next turn
+    assert at_returned == [1]  # the first step hides the other fields; the layers come after
     qtbot.waitUntil(lambda: bool(shown), timeout=10_000)
     assert shown == [3]
     assert [x.name for x in viewer.layers][1:] == [

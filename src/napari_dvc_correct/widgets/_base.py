@@ -490,7 +490,9 @@ class EngineWidget(QWidget):
             if isinstance(error, ValueError):
                 self.show_message(one_line(error), error=True)
             else:  # a bug: log it, show one line, never abort the Qt host
-                log.error("showing the result failed", exc_info=(type(error), error, None))
+                log.error(
+                    "showing the result failed", exc_info=(type(error), error, error.__traceback__)
+                )
                 self.show_message(f"{type(error).__name__}: {one_line(error)}", error=True)
             self._idle()
         except RuntimeError as closed:  # the panel was closed while its result was shown
