@@ -275,7 +275,7 @@ def test_the_process_ends_cleanly_with_a_result_half_shown():
                     return 1
                 return generator()
             def on_result(self, result):
-                for k in range(1000):
+                while True:  # never done
                     yield
 
         widget = Slow(None)
