@@ -90,3 +90,22 @@ def test_steps_of_a_closed_panel_go_on_in_its_window(qtbot, window):
     panel.deleteLater()
     qtbot.waitUntil(lambda: not steps.pending, timeout=5000)
     assert record == [0, 1, 2] and done == [True]
+
+
+def test_a_step_that_asks_to_finish_does_not_reenter(qtbot, window):
+    """An event handled inside a step (a click on Run while napari works) that finishes the
+    pending steps leaves the running step alone; the steps go on in their turns."""
+    record = []
+
+    def steps():
+        record.append(0)
+        yield
+        _showing.finish_all()  # from inside a step: nothing runs twice
+        record.append(1)
+        yield
+        record.append(2)
+
+    runner = _showing.Steps(print)
+    runner.start(steps(), window, lambda: record.append("done"))
+    qtbot.waitUntil(lambda: not runner.pending, timeout=5000)
+    assert record == [0, 1, 2, "done"]

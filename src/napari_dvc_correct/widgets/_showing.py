@@ -49,6 +49,7 @@ class Steps(QObject):
         self._done: Callable[[], None] | None = None
         self._timer: QTimer | None = None
         self._window = None
+        self._in_step = False
 
     @property
     def pending(self) -> bool:
@@ -74,8 +75,9 @@ class Steps(QObject):
         self._next()
 
     def finish(self) -> None:
-        """Run the pending steps now, to the end."""
-        while self.pending:
+        """Run the pending steps now, to the end (not from inside a step: an event handled
+        while napari works in a step must not run the next one)."""
+        while self.pending and not self._in_step:
             self._next(schedule=False)
 
     def drop(self) -> None:
@@ -91,21 +93,28 @@ class Steps(QObject):
 
     def _next(self, schedule: bool = True) -> None:
         steps = self._steps
-        if steps is None:
+        if steps is None or self._in_step:
             return
+        self._in_step = True
+        error = None
         try:
             next(steps)
         except StopIteration:
+            ended = True
+        except Exception as raised:  # shown by the panel; what is left is dropped
+            ended, error = True, raised
+        else:
+            ended = False
+        finally:
+            self._in_step = False
+        if ended:
             done = self._done
             self._end()
-            if done is not None:
+            if error is not None:
+                self.on_error(error)
+            elif done is not None:
                 done()
-            return
-        except Exception as error:  # shown by the panel; what is left is dropped
-            self._end()
-            self.on_error(error)
-            return
-        if schedule and self._timer is not None:
+        elif schedule and self._timer is not None:
             try:
                 self._timer.start()
             except RuntimeError:  # the window was deleted without a close event
