@@ -14,7 +14,10 @@ Xvfb: ``xvfb-run -a``). ``--series`` adds a 4-state series (64³ each, as four 3
 series Correlate (incremental), series Self-correct (1 pass) and Evaluate of every field
 listed (the pair's and the series'); ``--only-series`` runs only those. ``--main-profile``
 profiles the main thread alone from Run to settled, per run (top functions printed; the
-profiles saved as ``ui_gaps_main_<n>.prof`` in the temporary folder). Figures go to stdout
+profiles saved as ``ui_gaps_main_<n>.prof`` in the temporary folder). Beside each run's
+longest wall gap, the longest main-thread CPU of a gap ("gap CPU ms", ``time.thread_time``):
+what the load of a shared machine does not stretch. A result shown in steps (one layer per turn
+of the event loop) is waited for. Figures go to stdout
 and, with ``--json``, to a file; they belong in docs/performance.md with the machine and its
 load.
 
