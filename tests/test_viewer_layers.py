@@ -65,3 +65,32 @@ def test_a_series_field_comes_on_view_at_its_last_state(field):
     viewer.dims.set_current_step(0, 1)  # the user's choice stays when a field comes again
     V.show_field(viewer, L.field_layers(series_fields(states), "series (total)"))
     assert viewer.dims.current_step[0] == 1
+
+
+def test_a_field_comes_one_layer_per_step_the_other_fields_hidden_first(field):
+    """Each step does one thing napari makes expensive on the main thread (a layer's visual,
+    controls and colorbar; one turn of the event loop each); the end state is that of showing
+    the field at once."""
+    viewer = ViewerModel()
+    V.show_field(viewer, L.field_layers(field, "uncorrected"))
+    before = list(viewer.layers)
+    steps = V.show_field_steps(viewer, L.field_layers(field.copy(), "corrected"))
+    next(steps)  # the other field hidden, nothing added yet
+    assert len(viewer.layers) == 2 and not any(x.visible for x in before)
+    next(steps)  # the quantity layer is in, on view; its colorbar not yet
+    quantity = viewer.layers[-1]
+    assert L.plugin_metadata(quantity)["kind"] == "quantity" and quantity.visible
+    assert not quantity.colorbar.visible
+    next(steps)  # its colorbar; the arrows are not in yet
+    assert quantity.colorbar.visible and len(viewer.layers) == 3
+    added = V.finish(steps)
+    assert added == list(viewer.layers)[2:] and added[0] is quantity
+    assert [L.plugin_metadata(x)["kind"] for x in viewer.layers] == ["quantity", "vectors"] * 2
+    assert [x.visible for x in viewer.layers] == [False, False, True, True]
+    assert not any(x.colorbar.visible for x in before if hasattr(x, "colorbar"))
+    assert viewer.layers.selection.active is added[1]
+    assert V.text_overlay(viewer).text == L.colorbar_title(quantity)
+    # again: updated in place (the colorbar already on), the same layers
+    steps = V.show_field_steps(viewer, L.field_layers(field.copy(), "corrected"))
+    assert sum(1 for _ in steps) == 2  # hide the others; the quantity; the arrows
+    assert list(viewer.layers)[2:] == added

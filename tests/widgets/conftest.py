@@ -67,13 +67,16 @@ def lazy_panel(lazy_viewer):
 
 @pytest.fixture
 def run_panel(qtbot):
-    """``run_panel(widget)``: run a panel and wait for its worker (no sleeping); the worker."""
+    """``run_panel(widget)``: run a panel and wait for its worker and for its result on view
+    (the layers are added one per turn of the event loop after the worker ends; no sleeping);
+    the worker."""
 
     def run(widget, timeout: int = 300_000):
         worker = widget.run(start=False)
         assert worker is not None, widget.message.text()
         with qtbot.waitSignal(worker.finished, timeout=timeout):
             worker.start()
+        qtbot.waitUntil(lambda: not widget.running, timeout=30_000)
         return worker
 
     return run

@@ -170,3 +170,126 @@ def test_the_worker_imports_what_napari_needs_to_show_the_result(monkeypatch):
     assert stop.value.value == "result"
     assert "colorsys" in sys.modules
     assert "no_such_module_here" not in sys.modules
+
+
+class FieldResult(EngineWidget):
+    """Returns a small field; shows it as the panels do (one layer per step)."""
+
+    def prepare(self):
+        import numpy as np
+
+        from napari_dvc_correct.engine.fields.field import DisplacementField
+
+        def generator():
+            yield Progress("work", 0, 1, "")
+            u = np.random.default_rng(1).normal(0, 1.0, (4, 5, 6, 3))
+            return DisplacementField(origin=(5.0, 5.0, 5.0), step=(4.0, 4.0, 4.0), u=u)
+
+        return generator()
+
+    def on_result(self, result):
+        from napari_dvc_correct import layers as L
+        from napari_dvc_correct import viewer_layers as V
+
+        yield from V.show_field_steps(self.viewer, L.field_layers(result, "uncorrected"))
+        self.show_message("shown")
+
+
+@pytest.fixture
+def field_panel(make_napari_viewer):
+    viewer = make_napari_viewer()
+    viewer.add_image(__import__("numpy").zeros((30, 30, 30), "float32"), name="scan")
+    panel = FieldResult(viewer)
+    viewer.window.add_dock_widget(panel)
+    return viewer, panel
+
+
+def _start_with(qtbot, panel, on_returned):
+    """Run ``panel``; ``on_returned`` is called right after the panel's own result slot."""
+    worker = panel.run(start=False)
+    worker.returned.connect(on_returned)
+    with qtbot.waitSignal(worker.finished, timeout=30_000):
+        worker.start()
+
+
+def test_a_result_is_shown_one_layer_per_turn_then_shown_is_emitted(qtbot, field_panel):
+    viewer, panel = field_panel
+    at_returned, shown = [], []
+    panel.shown.connect(lambda: shown.append(len(viewer.layers)))
+    _start_with(qtbot, panel, lambda result: at_returned.append(len(viewer.layers)))
+    assert at_returned == [1]  # the first step hides the other fields; the layers come after
+    qtbot.waitUntil(lambda: bool(shown), timeout=10_000)
+    assert shown == [3]
+    assert [x.name for x in viewer.layers][1:] == [
+        "|u| (uncorrected)",
+        "displacement (uncorrected)",
+    ]
+    assert panel.message.text() == "shown" and not panel.running
+    assert panel.run_button.isEnabled() and not panel.cancel_button.isEnabled()
+
+
+def test_a_new_run_first_shows_the_last_result_whole(qtbot, field_panel):
+    viewer, panel = field_panel
+    _start_with(qtbot, panel, lambda result: None)
+    if panel.running:  # its steps pending: a new run finishes them before it reads the layers
+        assert panel.run(start=False) is not None and len(viewer.layers) == 3
+        panel.worker.quit()
+        panel.worker.start()
+    qtbot.waitUntil(lambda: not panel.running, timeout=10_000)
+    assert len(viewer.layers) == 3
+
+
+def test_a_panel_closed_while_its_result_is_shown_leaves_the_field_whole(qtbot, field_panel):
+    viewer, panel = field_panel
+    _start_with(qtbot, panel, lambda result: viewer.window.remove_dock_widget(panel))
+    qtbot.waitUntil(lambda: not panel._steps.pending, timeout=10_000)
+    assert [x.name for x in viewer.layers][1:] == [
+        "|u| (uncorrected)",
+        "displacement (uncorrected)",
+    ]
+
+
+def test_a_viewer_closed_while_a_result_is_shown_drops_the_rest(qtbot, field_panel):
+    viewer, panel = field_panel
+    _start_with(qtbot, panel, lambda result: viewer.close())
+    assert not panel._steps.pending
+    qtbot.wait(50)  # nothing more is added to the closed viewer (pytest-qt fails on an error)
+    assert "displacement (uncorrected)" not in viewer.layers  # (napari empties a closed one)
+
+
+def test_the_process_ends_cleanly_with_a_result_half_shown():
+    """A script whose last run's result is still being shown when it ends (no more turns of
+    the event loop) exits with status 0."""
+    script = textwrap.dedent(
+        """
+        import sys
+        from qtpy.QtWidgets import QApplication
+        from qtpy.QtCore import QTimer
+        app = QApplication(sys.argv)
+        from napari_dvc_correct.widgets._base import EngineWidget
+
+        class Slow(EngineWidget):
+            def prepare(self):
+                def generator():
+                    yield from ()
+                    return 1
+                return generator()
+            def on_result(self, result):
+                while True:  # never done
+                    yield
+
+        widget = Slow(None)
+        worker = widget.run(start=False)
+        worker.finished.connect(app.quit)
+        worker.start()
+        QTimer.singleShot(20_000, app.quit)
+        app.exec_()
+        print("pending:", widget._steps.pending)
+        """
+    )
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "pending: True" in done.stdout

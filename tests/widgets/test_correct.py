@@ -127,11 +127,12 @@ def test_the_panel_says_when_the_correction_changed_the_method(
 ):
     """The paper promises the same DVC parameters: where the correcting matches used another
     order or subvolume than the user's, the table shows them and the message says why."""
+    from napari_dvc_correct.viewer_layers import finish
     from napari_dvc_correct.widgets.correct_model import CorrectionResult
 
     field, method = changed_method_field
     widget = _dock(make_napari_viewer())
-    widget.on_result(CorrectionResult(field, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)))
+    finish(widget.on_result(CorrectionResult(field, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))))
     rows = [
         [widget.table.item(r, c).text() for c in range(widget.table.columnCount())]
         for r in range(widget.table.rowCount())

@@ -5,7 +5,9 @@
 :meth:`EngineWidget.on_result` (turn the result into layers). The base makes the worker unstarted,
 connects ``yielded``/``returned``/``errored``/``aborted``/``finished`` to bound methods, then starts
 it; it drives the progress bar, the Run/Cancel buttons and the message line. Layers are touched only
-in the main-thread slots, so a cancelled run leaves every earlier layer as it was.
+in the main-thread slots, so a cancelled run leaves every earlier layer as it was. An ``on_result``
+that is a generator shows the result in steps, one turn of the event loop each
+(:mod:`._showing`); :attr:`EngineWidget.shown` says when the result is on view.
 
 Errors never show a traceback: bad choices (:class:`ValueError` from ``prepare`` or the engine) go
 to the message line and to ``napari.utils.notifications.show_error``; unexpected errors are
@@ -19,7 +21,7 @@ import logging
 from collections.abc import Callable, Generator
 
 from napari.utils.notifications import show_error
-from qtpy.QtCore import Qt, QTimer
+from qtpy.QtCore import Qt, Signal
 from qtpy.QtWidgets import (
     QAbstractButton,
     QAbstractSpinBox,
@@ -39,6 +41,7 @@ from superqt.utils import GeneratorWorker, WorkerBase, create_worker
 
 from ..engine.progress import Progress
 from . import _layer_kinds as K
+from ._showing import Steps, finish_all
 
 log = logging.getLogger(__name__)
 
@@ -276,14 +279,20 @@ class EngineWidget(QWidget):
 
     Subclasses add their controls to :attr:`form` (a ``QFormLayout``) or :attr:`body` (the
     vertical layout, for anything else), and implement :meth:`prepare` and :meth:`on_result`.
+    The panel is :attr:`running` from Run until its result is on view (or the run failed or was
+    cancelled).
     """
 
     run_text = "Run"
+    #: Emitted when a run's result is on view (after the last step of :meth:`on_result`).
+    shown = Signal()
 
     def __init__(self, napari_viewer, parent=None) -> None:
         super().__init__(parent)
         self.viewer = napari_viewer
         self.worker: GeneratorWorker | None = None
+        self._steps = Steps(self._step_failed)
+        self._stage = ""
         self.body = QVBoxLayout(self)
         self.form = QFormLayout()
         self.body.addLayout(self.form)
@@ -365,8 +374,9 @@ class EngineWidget(QWidget):
         """Validate the choices and return the engine generator to run (raise ValueError)."""
         raise NotImplementedError
 
-    def on_result(self, result) -> None:
-        """Turn the generator's return value into layers (main thread)."""
+    def on_result(self, result) -> Generator | None:
+        """Turn the generator's return value into layers (main thread). May be a generator:
+        each ``yield`` lets the event loop turn (one layer per step)."""
         raise NotImplementedError
 
     def on_partial(self, value) -> None:
@@ -389,7 +399,8 @@ class EngineWidget(QWidget):
     # -- running ------------------------------------------------------------------------------
     @property
     def running(self) -> bool:
-        return self.worker is not None
+        """True from Run until the result is on view (the worker, then the showing steps)."""
+        return self.worker is not None or self._steps.pending
 
     def run(self, start: bool = True) -> GeneratorWorker | None:
         """Validate the choices and run the engine generator in a worker.
@@ -398,6 +409,7 @@ class EngineWidget(QWidget):
         ``start=False`` the worker is returned wired but unstarted, so a caller can connect to
         its signals first (``worker.start()`` then runs it).
         """
+        finish_all()  # the last results whole in the layers this run reads
         if self.running:
             return None
         self.clear_message()
@@ -452,12 +464,40 @@ class EngineWidget(QWidget):
     def _on_returned(self, result) -> None:
         self.progress_bar.setValue(1000)
         try:
-            self.on_result(result)
-        except ValueError as error:
-            self.show_message(one_line(error), error=True)
-        except Exception as error:  # a bug: log it, show one line, never abort the Qt host
-            log.error("showing the result failed", exc_info=True)
-            self.show_message(f"{type(error).__name__}: {one_line(error)}", error=True)
+            steps = self.on_result(result)
+        except Exception as error:
+            self._step_failed(error)
+            return
+        if isinstance(steps, Generator):
+            self._stage = self.stage_label.text()
+            self.stage_label.setText("showing the result…")
+            self._steps.start(steps, self, self._on_shown)
+        else:
+            self._on_shown()
+
+    def _on_shown(self) -> None:
+        try:
+            if self.stage_label.text() == "showing the result…":
+                self.stage_label.setText(self._stage)
+            self._idle()
+            self.shown.emit()
+        except RuntimeError as error:  # the panel was closed while its result was shown
+            if "deleted" not in str(error):
+                raise
+
+    def _step_failed(self, error: Exception) -> None:
+        try:
+            if isinstance(error, ValueError):
+                self.show_message(one_line(error), error=True)
+            else:  # a bug: log it, show one line, never abort the Qt host
+                log.error(
+                    "showing the result failed", exc_info=(type(error), error, error.__traceback__)
+                )
+                self.show_message(f"{type(error).__name__}: {one_line(error)}", error=True)
+            self._idle()
+        except RuntimeError as closed:  # the panel was closed while its result was shown
+            if "deleted" not in str(closed):
+                raise
 
     def _on_errored(self, error: Exception) -> None:
         if not isinstance(error, ValueError):
@@ -476,113 +516,11 @@ class EngineWidget(QWidget):
 
     def _on_finished(self) -> None:
         self.worker = None
-        self.run_button.setEnabled(True)
-        self.cancel_button.setEnabled(False)
+        self.cancel_button.setEnabled(False)  # a returned result is shown whole
+        self._idle()
 
-
-class Debouncer:
-    """Call ``callback`` once, ``delay_ms`` after the last :meth:`trigger` (main thread)."""
-
-    def __init__(self, callback: Callable[[], None], delay_ms: int = 150, parent=None) -> None:
-        self.timer = QTimer(parent)
-        self.timer.setSingleShot(True)
-        self.timer.setInterval(delay_ms)
-        self.timer.timeout.connect(callback)
-
-    def trigger(self, *args) -> None:
-        self.timer.start()
-
-    def flush(self) -> None:
-        """Run a pending call now (tests, and before a run)."""
-        if self.timer.isActive():
-            self.timer.stop()
-            self.timer.timeout.emit()
-
-
-class LatestWorker:
-    """Derived values computed off the main thread, where only the latest request counts.
-
-    :meth:`start` runs a generator function in a thread worker (signals connected before it
-    starts, an ``errored`` handler always). A new :meth:`start` supersedes the running one: that
-    one is asked to stop at its next ``yield`` (a computation between two yields cannot be
-    interrupted) and its later results reach ``on_yielded`` with ``current=False`` (to be cached,
-    not shown); its ``returned`` and errors are dropped. Layers are touched only in the slots,
-    which run on the main thread.
-
-    Parameters
-    ----------
-    on_error : callable(str)
-        Shows the one-line message of an error of the latest computation.
-    """
-
-    def __init__(self, on_error: Callable[[str], None]) -> None:
-        self.on_error = on_error
-        self.generation = 0
-        self.worker: GeneratorWorker | None = None
-
-    @property
-    def busy(self) -> bool:
-        """True while the latest computation runs."""
-        return self.worker is not None
-
-    def start(
-        self,
-        function: Callable[..., Generator],
-        *args,
-        on_yielded: Callable | None = None,
-        on_returned: Callable | None = None,
-    ) -> GeneratorWorker:
-        """Run ``function(*args)`` (a generator function) in a worker; returns the worker.
-
-        ``on_yielded(value, current)`` gets every yielded value; ``on_returned(value)`` the
-        return value, only if no later :meth:`start` came.
-        """
-        self.cancel()
-        self.generation += 1
-        generation = self.generation
-
-        def current() -> bool:
-            return generation == self.generation
-
-        def yielded(value) -> None:
-            if on_yielded is not None:
-                _unless_closed(on_yielded, value, current())
-
-        def returned(value) -> None:
-            if on_returned is not None and current():
-                _unless_closed(on_returned, value)
-
-        def errored(error: Exception) -> None:
-            if not isinstance(error, ValueError):
-                log.error("computing for display failed", exc_info=(type(error), error, None))
-            if current():
-                _unless_closed(self.on_error, one_line(error))
-
-        def finished() -> None:
-            if self.worker is worker:
-                self.worker = None
-
-        worker = create_worker(
-            _guarded, function(*args), _start_thread=False, _connect={"errored": errored}
-        )
-        worker.yielded.connect(yielded)
-        worker.returned.connect(returned)
-        worker.finished.connect(finished)
-        self.worker = worker
-        worker.start()
-        return worker
-
-    def cancel(self) -> None:
-        """Stop the running computation at its next yield; nothing of it is shown."""
-        self.generation += 1
-        if self.worker is not None:
-            self.worker.quit()
-            self.worker = None
-
-
-def _unless_closed(callback: Callable, *args) -> None:
-    try:
-        callback(*args)
-    except RuntimeError as error:  # the dock was closed while the worker ran
-        if "deleted" not in str(error):
-            raise
+    def _idle(self) -> None:
+        """Run enabled again once the worker is done and the result on view."""
+        if not self.running:
+            self.run_button.setEnabled(True)
+            self.cancel_button.setEnabled(False)

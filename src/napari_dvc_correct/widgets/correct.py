@@ -243,7 +243,9 @@ class CorrectWidget(EngineWidget):
         corrected = model.corrected_source(source)
         first = result.results[0]
         placement = {"voxel_size": first.voxel_size, "offset": first.offset}
-        V.show_field(self.viewer, L.field_layers(result.series, corrected, **placement))
+        yield from V.show_field_steps(
+            self.viewer, L.field_layers(result.series, corrected, **placement)
+        )
         rows = model.series_rows(result.results)
         self._fill_table(model.SERIES_HEADERS, rows)
         methods = model.series_method_message(result.results)
@@ -256,9 +258,9 @@ class CorrectWidget(EngineWidget):
 
     def on_result(self, result) -> None:
         if isinstance(result, model.SeriesCorrection):
-            self._series_result(result)
+            yield from self._series_result(result)
             return
-        V.show_field(
+        yield from V.show_field_steps(
             self.viewer,
             L.field_layers(
                 result.field,

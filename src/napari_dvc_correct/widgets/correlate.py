@@ -24,8 +24,9 @@ from ..engine.correlation.params import MIN_SUBVOLUME, CorrelationParams
 from ..engine.run_options import RunOptions
 from . import correlate_model as model
 from . import points_model, regions_model
-from ._base import Debouncer, EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
+from ._base import EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._layer_kinds import is_mask, is_scan, is_user_points, layer_role
+from ._workers import Debouncer
 from .poi_readout import PoiReadout, poi_readout_box
 from .regions import RegionBox
 
@@ -590,8 +591,9 @@ class CorrelateWidget(PoiReadout, EngineWidget):
             return
         if len(result.fields) == 1:
             source, field = result.fields[0]
-            V.show_field(self.viewer, L.field_layers(field, source, **placement))
+            yield from V.show_field_steps(self.viewer, L.field_layers(field, source, **placement))
         else:  # a series: one 4-D field, state 0 (no displacement) first, made in the worker
             source = "series " + result.fields[0][0].split(" ", 2)[2]
-            V.show_field(self.viewer, L.field_layers(result.series, source, **placement))
+            tuples = L.field_layers(result.series, source, **placement)
+            yield from V.show_field_steps(self.viewer, tuples)
         self.show_message(model.done_message(result, region_given=self._started[4]))

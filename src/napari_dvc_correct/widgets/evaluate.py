@@ -25,17 +25,10 @@ from .. import layers as L
 from .. import viewer_layers as V
 from ..engine.evaluation.options import MAX_PHASES, EvaluationOptions
 from . import evaluate_model as model
-from ._base import (
-    Debouncer,
-    EngineWidget,
-    LatestWorker,
-    LayerCombo,
-    follow_layers,
-    one_line,
-    pair_in_order,
-)
+from ._base import EngineWidget, LayerCombo, follow_layers, one_line, pair_in_order
 from ._layer_kinds import is_scan
 from ._plots import CurvesCanvas, HistogramCanvas, SeriesCanvas
+from ._workers import Debouncer, LatestWorker
 from .correlate_model import (
     check_tiled,
     layer_placement,
@@ -466,7 +459,8 @@ class EvaluateWidget(EngineWidget):
             tuples = model.residual_layers(evaluation, self._placement, outputs, TEMPORARY_KEY)
         self.evaluations = [("", evaluation)]
         self.evaluation = evaluation
-        V.show_layers(self.viewer, tuples)  # replacing layers: their folder is still _writing
+        # replacing layers (one per step): their folder is still _writing
+        yield from V.show_layers_steps(self.viewer, tuples)
         self._writing = None
         self._release_temporary()
         self.summary.setText(model.summary_text(evaluation))

@@ -208,7 +208,9 @@ class ExportWidget(EngineWidget):
     def session(self, path, save: bool = True):
         """Save the session to ``path`` (or open it); the message line says what happened."""
         from . import session
+        from ._showing import finish_all
 
+        finish_all()  # the results still being shown, whole in the session
         self.clear_message()
         try:
             if save:

@@ -22,7 +22,8 @@ from qtpy.QtWidgets import (
 
 from .. import layers as L
 from . import regions_model as model
-from ._base import LatestWorker, LayerCombo
+from ._base import LayerCombo
+from ._workers import LatestWorker
 from .correlate_model import is_lazy
 
 

@@ -6,7 +6,7 @@ field is on view (the others are hidden, not stacked), whether the colorbar and 
 an oblique 3-D view that shows a band across the specimen rather than looking down z.
 
 The quantities (strain tensors, principal strains, percentiles) and the line profile are computed
-in thread workers (:class:`._base.LatestWorker`), so the viewer stays responsive on large grids:
+in thread workers (:class:`._workers.LatestWorker`), so the viewer stays responsive on large grids:
 the layers keep showing the previous quantity until the new one is ready, a quick second choice
 supersedes the first (only the latest is shown), and every result is kept per field, so switching
 back to a quantity seen before is instant.
@@ -22,8 +22,9 @@ from .. import layers as L
 from .. import point_layers as P
 from .. import viewer_layers as V
 from . import correct_model, profile_model
-from ._base import LatestWorker, compact, follow_layers
+from ._base import compact, follow_layers
 from ._plots import ProfileCanvas
+from ._workers import LatestWorker
 
 #: Camera of the 3-D view (napari's Euler angles, degrees): tilted 20–30° off the y axis, so a
 #: band that contains y (a shear band slipping in the z-x plane) reads as a band, in depth.
