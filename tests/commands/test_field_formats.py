@@ -219,3 +219,30 @@ def test_our_dvcfield_suffix_is_an_output_of_every_command(tmp_path):
     assert field_suffix(Namespace(out_format="auto"), at_points=False) == ".npz"  # unchanged
     assert field_suffix(Namespace(out_format="npz"), at_points=False) == ".npz"
     assert _common.check_output_path(str(tmp_path / "f.dvcfield"), suffixes=(".npz", ".dvcfield"))
+
+
+def test_points_from_a_ccpi_roi_and_from_other_tools_field_files(tmp_path, capsys):
+    """``--points`` takes the point files DVC users have: a CCPi ``.roi`` cloud (``n x y z``, no
+    header, x the fastest axis) and the points of a spam TSV (``Zpos``...), pyALDVC .npz/.mat,
+    iDVC .disp or our own table (``z [voxel]``), each in its own axis order. All were refused
+    ('the header must name the columns z, y, x', or a UTF-8 error for the .npz)."""
+    from napari_dvc_correct.commands._grid_options import load_points
+
+    points = np.array([[5.0, 7.0, 9.5], [5.0, 8.0, 11.0], [6.0, 7.0, 13.25]])  # z, y, x
+    roi = tmp_path / "cloud.roi"
+    roi.write_text(
+        "".join(f"{n + 1}\t{x:g}\t{y:g}\t{z:g}\n" for n, (z, y, x) in enumerate(points))
+    )
+    np.testing.assert_array_equal(load_points(str(roi)), points)
+    field = ScatteredField(points=points, u=np.tile([0.5, -0.25, 1.0], (3, 1)))
+    for name in ("f.tsv", "f.disp", "f.mat", "f.csv"):
+        write_field(field, tmp_path / name, "aldvc" if name.endswith(".mat") else None)
+        np.testing.assert_allclose(load_points(str(tmp_path / name)), points, atol=1e-9)
+    write_field(field, tmp_path / "al.npz", "aldvc")
+    np.testing.assert_allclose(load_points(str(tmp_path / "al.npz")), points, atol=1e-9)
+    (tmp_path / "bad.roi").write_text("1\t2\n")
+    with pytest.raises(ValueError, match="n x y z"):
+        load_points(str(tmp_path / "bad.roi"))
+    (tmp_path / "cloud.txt").write_text(roi.read_text())  # a headerless cloud, another suffix
+    with pytest.raises(ValueError, match="suffix .roi"):
+        load_points(str(tmp_path / "cloud.txt"))
