@@ -230,9 +230,7 @@ def test_points_from_a_ccpi_roi_and_from_other_tools_field_files(tmp_path, capsy
 
     points = np.array([[5.0, 7.0, 9.5], [5.0, 8.0, 11.0], [6.0, 7.0, 13.25]])  # z, y, x
     roi = tmp_path / "cloud.roi"
-    roi.write_text(
-        "".join(f"{n + 1}\t{x:g}\t{y:g}\t{z:g}\n" for n, (z, y, x) in enumerate(points))
-    )
+    roi.write_text("".join(f"{n + 1}\t{x:g}\t{y:g}\t{z:g}\n" for n, (z, y, x) in enumerate(points)))
     np.testing.assert_array_equal(load_points(str(roi)), points)
     field = ScatteredField(points=points, u=np.tile([0.5, -0.25, 1.0], (3, 1)))
     for name in ("f.tsv", "f.disp", "f.mat", "f.csv"):
@@ -246,3 +244,31 @@ def test_points_from_a_ccpi_roi_and_from_other_tools_field_files(tmp_path, capsy
     (tmp_path / "cloud.txt").write_text(roi.read_text())  # a headerless cloud, another suffix
     with pytest.raises(ValueError, match="suffix .roi"):
         load_points(str(tmp_path / "cloud.txt"))
+
+
+def test_a_disp_grid_is_written_back_in_its_rows_order_under_its_labels(tmp_path):
+    """iDVC's own point clouds run x slowest (and CCPi ``dvc`` writes rows in processing
+    order): a regular cloud read as a grid was written back in the grid's C order under labels
+    1..N, so label 2 named another point than in the user's file. The rows now keep the file's
+    order and labels, each with its own point's value."""
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands._field_formats import read_input_field, write_output_field
+
+    xs = np.arange(3) * 6.0 + 10
+    cloud = np.array([(x, y, z) for x in xs for y in xs[:2] for z in xs])  # x slowest
+    labels = np.arange(len(cloud)) + 101
+    u_xyz = np.column_stack([0.01 * cloud[:, 0], -0.5 + 0.0 * cloud[:, 1], 0.02 * cloud[:, 2]])
+    rows = [f"{n}\t{x:g}\t{y:g}\t{z:g}\t0\t0.01\t{u:.6f}\t{v:.6f}\t{w:.6f}"
+            for n, (x, y, z), (u, v, w) in zip(labels, cloud, u_xyz)]  # fmt: skip
+    source = tmp_path / "run.disp"
+    source.write_text("n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw\n" + "\n".join(rows) + "\n")
+    args = Namespace(format="auto", out_format="auto", idvc_objective="znssd")
+    imported = read_input_field(args, str(source))
+    assert imported.points is None  # a regular grid, kept
+    out = tmp_path / "back.disp"
+    write_output_field(args, imported.field, str(out), points=None, rows=imported.rows)
+    back = read_points(out)
+    assert back.metadata["source"]["point_ids"] == labels.tolist()
+    np.testing.assert_allclose(back.points, read_points(source).points)
+    np.testing.assert_allclose(back.u, read_points(source).u, atol=1e-6)

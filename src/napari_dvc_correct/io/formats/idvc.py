@@ -127,19 +127,23 @@ def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
     )
 
 
-def write(field, path: str | os.PathLike) -> None:
-    """Write a field (grid or points) as an iDVC ``.disp`` file (``n`` from 1, ``znssd`` objmin).
+def write(field, path: str | os.PathLike, point_ids=None) -> None:
+    """Write a field (grid or points) as an iDVC ``.disp`` file (``znssd`` objmin).
 
-    Points without a ZNCC get ``objmin`` NaN.
+    ``point_ids`` (N,) are the labels ``n`` of the rows (default 1..N), e.g. those of the
+    ``.roi`` cloud the points came from. Points without a ZNCC get ``objmin`` NaN.
     """
     field = as_scattered(field)
     n = field.n_points
+    ids = np.arange(1, n + 1) if point_ids is None else np.asarray(point_ids, np.int64)
+    if ids.shape != (n,):
+        raise ValueError(f"point_ids must hold one label per point ({n}), got {ids.shape}")
     codes = np.full(n, -2, np.int64)
     codes[np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS])] = 0
     codes[field.status == int(Status.OUT_OF_BOUNDS)] = -1
     table = np.column_stack(
         [
-            np.arange(1, n + 1),
+            ids,
             flip_vectors(field.points),
             codes,
             2.0 * (1.0 - field.zncc.astype(np.float64)),
