@@ -272,3 +272,26 @@ def test_a_disp_grid_is_written_back_in_its_rows_order_under_its_labels(tmp_path
     assert back.metadata["source"]["point_ids"] == labels.tolist()
     np.testing.assert_allclose(back.points, read_points(source).points)
     np.testing.assert_allclose(back.u, read_points(source).u, atol=1e-6)
+
+
+def test_a_table_without_header_says_how_its_columns_were_read(tmp_path, capsys):
+    """A table without a header is read by position (z y x uz uy ux, or x y z with --xyz): the
+    guess was silent, so an x, y, z table (pyALDVC, OpenCorr order) gave swapped axes without
+    a word. Each command that reads it now warns, naming the order used and --xyz."""
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands._field_formats import read_input_field
+
+    path = tmp_path / "bare.csv"
+    rows = [[z, y, x, 0.5, -0.25, 1.0] for z in (8, 14) for y in (8, 14) for x in (8, 14)]
+    np.savetxt(path, rows, delimiter=",")
+    for xyz, order in ((False, "z y x uz uy ux"), (True, "x y z ux uy uz")):
+        args = Namespace(format="auto", xyz=xyz, voxel_size=None, command="correct")
+        read_input_field(args, str(path))
+        err = capsys.readouterr().err
+        assert "bare.csv has no header line" in err and order in err
+        assert ("--xyz reads" in err) is (not xyz)
+    named = tmp_path / "named.csv"
+    np.savetxt(named, rows, delimiter=",", header="z,y,x,uz,uy,ux", comments="")
+    read_input_field(Namespace(format="auto", xyz=False, voxel_size=None), str(named))
+    assert capsys.readouterr().err == ""

@@ -145,6 +145,18 @@ def read_input_field(
     fmt = "auto" if sniff else getattr(args, "format", "auto")
     fmt = sniff_format(path) if fmt in (None, "auto") else fmt
     points = read_points(path, fmt, **_reader_options(args, fmt))
+    source = points.metadata.get("source", {})
+    if source.get("format") == "table" and source.get("header") is False:
+        from ._common import warn
+
+        order = " ".join(source["columns"][:6])
+        other = "" if getattr(args, "xyz", False) else "; --xyz reads x y z ux uy uz"
+        warn(
+            args,
+            f"{Path(path).name} has no header line: its columns were read by position as "
+            f"{order} (voxels, 0-based){other}; a header naming the columns (z, y, x, uz, uy, "
+            "ux, any order) removes the guess",
+        )
     note = None
     if volume_shape is not None:
         points, note = flag_absurd_nodes(points, volume_shape, f"field {Path(path).name}")

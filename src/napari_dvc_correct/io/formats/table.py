@@ -185,7 +185,14 @@ def read(
         status=status,
         iterations=rows[:, found["iterations"]].astype(np.int32) if "iterations" in found else None,
         provenance=provenance,
-        metadata={"source": {"format": "table", "path": str(path), "columns": names}},
+        metadata={
+            "source": {
+                "format": "table",
+                "path": str(path),
+                "columns": names,
+                "header": _has_header(header),  # False: the columns were read by position
+            }
+        },
     )
 
 
