@@ -111,6 +111,11 @@ def test_opencorr_tables_are_read_by_name(name):
     assert np.allclose(points.points[0], [60.0, 35.0, 35.0])  # (z, y, x) of the first POI
     rows = np.genfromtxt(FORMATS / "opencorr" / name, delimiter=",", names=True, max_rows=3)
     assert np.allclose(points.u[:3], np.column_stack([rows["w"], rows["v"], rows["u"]]))
+    table = np.genfromtxt(FORMATS / "opencorr" / name, delimiter=",", names=True)
+    # its own quality columns are kept: ZNCC, and the IC-GN iterations ('iteration' was not
+    # read; 33 points of the CPU file stopped at its max_iteration 20)
+    np.testing.assert_allclose(points.zncc, table["ZNCC"], rtol=1e-6)
+    np.testing.assert_array_equal(points.iterations, table["iteration"])
 
 
 # file, the grid each tool was asked for: shape, origin and step (z, y, x voxels), nodes failed

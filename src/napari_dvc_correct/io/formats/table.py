@@ -45,7 +45,7 @@ _ALIASES = {
     "status": ("status",),
     "valid": ("valid",),  # pyALDVC's CSV: 1 = a usable node, 0 = not
     "provenance": ("provenance",),
-    "iterations": ("iterations", "iter"),
+    "iterations": ("iterations", "iter", "iteration"),  # OpenCorr: "iteration"
 }
 #: Text columns skipped (the words of the codes in ``status`` and ``provenance``).
 _TEXT_COLUMNS = ("status_name", "provenance_name")
