@@ -157,6 +157,14 @@ def read_input_field(
             f"{order} (voxels, 0-based){other}; a header naming the columns (z, y, x, uz, uy, "
             "ux, any order) removes the guess",
         )
+    if source.get("frames", 1) > 1:
+        from ._common import warn
+
+        warn(
+            args,
+            f"{Path(path).name} holds {source['frames']} frame pairs: read pair "
+            f"{source['frame']} (--frame-pair K reads another)",
+        )
     note = None
     if volume_shape is not None:
         points, note = flag_absurd_nodes(points, volume_shape, f"field {Path(path).name}")
