@@ -138,13 +138,14 @@ def read_input_field(
     """
     from ..engine.fields.absurd_nodes import flag_absurd_nodes
     from ..engine.fields.scattered import to_grid
-    from ..io.formats import read_points, sniff_format
+    from ..io.formats import read_points, refuse_single_point, sniff_format
 
     if not Path(path).is_file():
         raise FileNotFoundError(f"field file not found: {path}")
     fmt = "auto" if sniff else getattr(args, "format", "auto")
     fmt = sniff_format(path) if fmt in (None, "auto") else fmt
     points = read_points(path, fmt, **_reader_options(args, fmt))
+    refuse_single_point(path, points)
     source = points.metadata.get("source", {})
     if source.get("format") == "table" and source.get("header") is False:
         from ._common import warn

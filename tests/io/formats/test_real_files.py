@@ -172,3 +172,13 @@ def test_the_tools_other_files_are_not_taken_for_fields(name):
     assert napari_get_reader(str(FORMATS / name)) is None
     with pytest.raises(ValueError):
         read_points(FORMATS / name)
+
+
+def test_a_spam_registration_is_refused_as_a_field():
+    """A spam-reg TSV is one Φ at the volume's centre: read as points it is that point (above),
+    as a field it is refused with what to give instead. It opened as a 1-node layer, and
+    ``correct`` asked for '--grid-step N' (the point sits at 23.5)."""
+    path = FORMATS / "spam" / "reg_ldic" / "ref-def-registration.tsv"
+    with pytest.raises(ValueError, match=r"single point \(z, y, x = \(23.5, 23.5, 23.5\)\).*"
+                       "spam-reg registration.*-pf"):  # fmt: skip
+        read_field(path)
