@@ -174,17 +174,9 @@ def _npy_points(file: Path) -> np.ndarray:
 
 
 def _roi_points(file: Path) -> np.ndarray:
-    """A CCPi ``dvc`` point cloud: ``n x y z`` per row (tab-separated, no header; ``n`` the
-    label, x along the image's fastest axis, 0-based voxels), or ``x y z``."""
-    from ..io.formats._common import load_numbers
+    from ..io.formats.idvc import read_roi
 
-    rows = load_numbers(file, None)
-    if len(rows) == 0 or rows.shape[1] not in (3, 4):
-        raise ValueError(
-            f"{file}: a .roi point cloud has rows 'n x y z' (or 'x y z'), got "
-            f"{rows.shape[1] if len(rows) else 0} columns"
-        )
-    return _finite(file, rows[:, -3:][:, ::-1])
+    return read_roi(file)
 
 
 def _field_file_points(file: Path) -> np.ndarray:

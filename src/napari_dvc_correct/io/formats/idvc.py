@@ -127,6 +127,29 @@ def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
     )
 
 
+def read_roi(path: str | os.PathLike) -> np.ndarray:
+    """A CCPi ``dvc`` point cloud ``.roi``: the points ``(N, 3)`` in z, y, x (voxels, 0-based).
+
+    Rows ``n x y z`` (tab-separated, no header; ``n`` the label, x along the image's fastest
+    axis; non-integer positions allowed: ``Core/InputRead.cpp``), or ``x y z``.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: not numbers, no rows, or rows of another width.
+    """
+    rows = load_numbers(path, None)
+    if len(rows) == 0 or rows.shape[1] not in (3, 4):
+        raise ValueError(
+            f"{path}: a .roi point cloud has rows 'n x y z' (or 'x y z'), got "
+            f"{rows.shape[1] if len(rows) else 0} columns"
+        )
+    points = flip_vectors(rows[:, -3:])
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{path}: a point has an empty or non-finite coordinate")
+    return points
+
+
 def write(field, path: str | os.PathLike, point_ids=None) -> None:
     """Write a field (grid or points) as an iDVC ``.disp`` file (``znssd`` objmin).
 
