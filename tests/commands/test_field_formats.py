@@ -295,3 +295,27 @@ def test_a_table_without_header_says_how_its_columns_were_read(tmp_path, capsys)
     np.savetxt(named, rows, delimiter=",", header="z,y,x,uz,uy,ux", comments="")
     read_input_field(Namespace(format="auto", xyz=False, voxel_size=None), str(named))
     assert capsys.readouterr().err == ""
+
+
+def test_a_scattered_disp_is_written_back_under_its_labels(tmp_path):
+    """An irregular iDVC cloud is corrected on a grid and written back at its points, in its
+    rows' order: under its own labels ``n`` (were 1..N)."""
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands._field_formats import read_input_field, write_output_field
+
+    rng = np.random.default_rng(5)
+    cloud = rng.uniform(8.0, 30.0, size=(40, 3))  # x, y, z
+    labels = rng.permutation(np.arange(500, 540))
+    rows = [f"{n}\t{x:.4f}\t{y:.4f}\t{z:.4f}\t0\t0.01\t0.25\t-0.5\t0.75"
+            for n, (x, y, z) in zip(labels, cloud)]  # fmt: skip
+    source = tmp_path / "cloud.disp"
+    source.write_text("n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw\n" + "\n".join(rows) + "\n")
+    args = Namespace(format="auto", out_format="auto", idvc_objective="znssd")
+    imported = read_input_field(args, str(source))
+    assert imported.points is not None  # scattered: put on a grid
+    out = tmp_path / "back.disp"
+    write_output_field(args, imported.field, str(out), points=imported.points)
+    back = read_points(out)
+    assert back.metadata["source"]["point_ids"] == labels.tolist()
+    np.testing.assert_allclose(back.points, read_points(source).points, atol=1e-6)

@@ -271,9 +271,21 @@ def write_output_field(args, field, out: str, points=None, rows=None) -> list[Pa
             write_field(field, temp_out, "npz")
             write_field(at_points, temp_side, "table", **_writer_options(args, "table"))
         else:
-            write_field(at_points, temp_out, fmt, **_writer_options(args, fmt))
+            options = _writer_options(args, fmt)
+            ids = _file_labels(points)
+            if fmt == "idvc" and ids is not None:  # the file's own labels n, same rows
+                options["point_ids"] = ids
+            write_field(at_points, temp_out, fmt, **options)
             write_field(field, temp_side, "npz")
     return [out, side]
+
+
+def _file_labels(rows):
+    """The labels ``n`` of an iDVC file's rows (one each, all different), or None."""
+    ids = (getattr(rows, "metadata", None) or {}).get("source", {}).get("point_ids")
+    if ids is None or len(ids) != rows.n_points or len(set(ids)) != len(ids):
+        return None
+    return np.asarray(ids, np.int64)
 
 
 def _in_file_rows(field, rows):
@@ -281,8 +293,8 @@ def _in_file_rows(field, rows):
     with the file's labels; None when ``rows`` are not such a file or not all on its nodes."""
     from ..engine.fields.scattered import from_grid
 
-    ids = (getattr(rows, "metadata", None) or {}).get("source", {}).get("point_ids")
-    if ids is None or len(ids) != rows.n_points or len(set(ids)) != len(ids):
+    ids = _file_labels(rows)
+    if ids is None:
         return None
     index = (np.asarray(rows.points) - np.asarray(field.origin)) / np.asarray(field.step)
     whole = np.rint(index)
@@ -298,7 +310,7 @@ def _in_file_rows(field, rows):
         value = getattr(ordered, name)
         if value is not None:
             setattr(ordered, name, np.asarray(value)[flat])
-    return ordered, np.asarray(ids, np.int64)
+    return ordered, ids
 
 
 def _grid_step(text: str) -> int:
