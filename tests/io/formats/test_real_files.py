@@ -164,7 +164,6 @@ def test_the_napari_reader_refuses_the_repository_run_with_a_reason():
     [
         "opencorr/al_foam4_1_fftcc_icgn1_r30_time.csv",  # OpenCorr's timings
         "ccpi_dvc/snow48/snow48.stat",  # CCPi's run statistics
-        "ccpi_dvc/snow48/grid.roi",  # CCPi's input points, no displacement
         "pyaldvc/aldvc_summary.json",  # pyALDVC's run summary
     ],
 )
@@ -172,6 +171,17 @@ def test_the_tools_other_files_are_not_taken_for_fields(name):
     assert napari_get_reader(str(FORMATS / name)) is None
     with pytest.raises(ValueError):
         read_points(FORMATS / name)
+
+
+def test_ccpi_input_points_open_as_points_not_as_a_field():
+    """CCPi's ``grid.roi`` (input points, no displacement): a Points layer in z, y, x (x is the
+    fastest of its labels 1..125), not a field."""
+    path = FORMATS / "ccpi_dvc/snow48/grid.roi"
+    [(data, _, kind)] = napari_get_reader(str(path))(str(path))
+    assert kind == "points" and data.shape == (125, 3)
+    np.testing.assert_array_equal(data[:2], [[12.0, 12.0, 12.0], [12.0, 12.0, 18.0]])
+    with pytest.raises(ValueError):
+        read_points(path)
 
 
 def test_a_spam_registration_is_refused_as_a_field():
