@@ -64,3 +64,17 @@ def test_tables_and_mat_files_that_are_not_fields_are_declined(tmp_path):
 
     savemat(tmp_path / "other.mat", {"a": np.zeros(3)})
     assert napari_get_reader(str(tmp_path / "other.mat")) is None
+
+
+def test_a_ccpi_point_cloud_opens_as_a_points_layer(tmp_path):
+    """A CCPi ``.roi`` (``n x y z``, no header) opens as a Points layer in z, y, x voxels, which
+    the Correlate panel measures at; napari said 'No compatible readers are available'."""
+    roi = tmp_path / "grid.roi"
+    roi.write_text("1\t12\t14\t16\n2\t18\t14\t16.5\n")
+    reader = napari_get_reader(str(roi))
+    assert reader is not None
+    [(data, kwargs, kind)] = reader(str(roi))
+    assert kind == "points" and kwargs["name"] == "grid"
+    np.testing.assert_array_equal(data, [[16.0, 14.0, 12.0], [16.5, 14.0, 18.0]])
+    (tmp_path / "other.roi").write_text("an ImageJ ROI is binary\n")
+    assert napari_get_reader(str(tmp_path / "other.roi")) is None

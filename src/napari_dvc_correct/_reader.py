@@ -104,6 +104,8 @@ def napari_get_reader(path):
         return read_field_file
     if suffix == ".npz" and _has_format_marker(path):
         return None  # our field file, broken: nothing can read it (napari's reader would raise)
+    if suffix == ".roi" and _is_roi(path):
+        return read_roi_points
     if suffix in (*FOREIGN_SUFFIXES, ".npz") and foreign_field_format(path):
         return read_foreign_field
     if suffix == ".npz" and len(_npz_volumes(path)) > 1:
@@ -247,3 +249,23 @@ def read_foreign_field(path) -> list[tuple]:
     path = Path(path[0] if isinstance(path, (list, tuple)) else path)
     field = read_field(path, foreign_field_format(path))
     return field_layers(field, path.stem)
+
+
+def _is_roi(path: Path) -> bool:
+    from .io.formats.idvc import read_roi
+
+    try:
+        read_roi(path)
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return True
+
+
+def read_roi_points(path) -> list[tuple]:
+    """A CCPi ``dvc`` point cloud (``.roi``) as a Points layer in z, y, x voxels: the points of
+    interest the Correlate panel can measure at (*POIs: the points of a Points layer*)."""
+    from .io.formats.idvc import read_roi
+
+    path = Path(path[0] if isinstance(path, (list, tuple)) else path)
+    points = read_roi(path)
+    return [(points, {"name": path.stem, "size": 2.0, "face_color": "yellow"}, "points")]

@@ -219,3 +219,103 @@ def test_our_dvcfield_suffix_is_an_output_of_every_command(tmp_path):
     assert field_suffix(Namespace(out_format="auto"), at_points=False) == ".npz"  # unchanged
     assert field_suffix(Namespace(out_format="npz"), at_points=False) == ".npz"
     assert _common.check_output_path(str(tmp_path / "f.dvcfield"), suffixes=(".npz", ".dvcfield"))
+
+
+def test_points_from_a_ccpi_roi_and_from_other_tools_field_files(tmp_path, capsys):
+    """``--points`` takes the point files DVC users have: a CCPi ``.roi`` cloud (``n x y z``, no
+    header, x the fastest axis) and the points of a spam TSV (``Zpos``...), pyALDVC .npz/.mat,
+    iDVC .disp or our own table (``z [voxel]``), each in its own axis order. All were refused
+    ('the header must name the columns z, y, x', or a UTF-8 error for the .npz)."""
+    from napari_dvc_correct.commands._grid_options import load_points
+
+    points = np.array([[5.0, 7.0, 9.5], [5.0, 8.0, 11.0], [6.0, 7.0, 13.25]])  # z, y, x
+    roi = tmp_path / "cloud.roi"
+    roi.write_text("".join(f"{n + 1}\t{x:g}\t{y:g}\t{z:g}\n" for n, (z, y, x) in enumerate(points)))
+    np.testing.assert_array_equal(load_points(str(roi)), points)
+    field = ScatteredField(points=points, u=np.tile([0.5, -0.25, 1.0], (3, 1)))
+    for name in ("f.tsv", "f.disp", "f.mat", "f.csv"):
+        write_field(field, tmp_path / name, "aldvc" if name.endswith(".mat") else None)
+        np.testing.assert_allclose(load_points(str(tmp_path / name)), points, atol=1e-9)
+    write_field(field, tmp_path / "al.npz", "aldvc")
+    np.testing.assert_allclose(load_points(str(tmp_path / "al.npz")), points, atol=1e-9)
+    (tmp_path / "bad.roi").write_text("1\t2\n")
+    with pytest.raises(ValueError, match="n x y z"):
+        load_points(str(tmp_path / "bad.roi"))
+    (tmp_path / "cloud.txt").write_text(roi.read_text())  # a headerless cloud, another suffix
+    with pytest.raises(ValueError, match="suffix .roi"):
+        load_points(str(tmp_path / "cloud.txt"))
+
+
+def test_a_disp_grid_is_written_back_in_its_rows_order_under_its_labels(tmp_path):
+    """iDVC's own point clouds run x slowest (and CCPi ``dvc`` writes rows in processing
+    order): a regular cloud read as a grid was written back in the grid's C order under labels
+    1..N, so label 2 named another point than in the user's file. The rows now keep the file's
+    order and labels, each with its own point's value."""
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands._field_formats import read_input_field, write_output_field
+
+    xs = np.arange(3) * 6.0 + 10
+    cloud = np.array([(x, y, z) for x in xs for y in xs[:2] for z in xs])  # x slowest
+    labels = np.arange(len(cloud)) + 101
+    u_xyz = np.column_stack([0.01 * cloud[:, 0], -0.5 + 0.0 * cloud[:, 1], 0.02 * cloud[:, 2]])
+    rows = [f"{n}\t{x:g}\t{y:g}\t{z:g}\t0\t0.01\t{u:.6f}\t{v:.6f}\t{w:.6f}"
+            for n, (x, y, z), (u, v, w) in zip(labels, cloud, u_xyz)]  # fmt: skip
+    source = tmp_path / "run.disp"
+    source.write_text("n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw\n" + "\n".join(rows) + "\n")
+    args = Namespace(format="auto", out_format="auto", idvc_objective="znssd")
+    imported = read_input_field(args, str(source))
+    assert imported.points is None  # a regular grid, kept
+    out = tmp_path / "back.disp"
+    write_output_field(args, imported.field, str(out), points=None, rows=imported.rows)
+    back = read_points(out)
+    assert back.metadata["source"]["point_ids"] == labels.tolist()
+    np.testing.assert_allclose(back.points, read_points(source).points)
+    np.testing.assert_allclose(back.u, read_points(source).u, atol=1e-6)
+
+
+def test_a_table_without_header_says_how_its_columns_were_read(tmp_path, capsys):
+    """A table without a header is read by position (z y x uz uy ux, or x y z with --xyz): the
+    guess was silent, so an x, y, z table (pyALDVC, OpenCorr order) gave swapped axes without
+    a word. Each command that reads it now warns, naming the order used and --xyz."""
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands._field_formats import read_input_field
+
+    path = tmp_path / "bare.csv"
+    rows = [[z, y, x, 0.5, -0.25, 1.0] for z in (8, 14) for y in (8, 14) for x in (8, 14)]
+    np.savetxt(path, rows, delimiter=",")
+    for xyz, order in ((False, "z y x uz uy ux"), (True, "x y z ux uy uz")):
+        args = Namespace(format="auto", xyz=xyz, voxel_size=None, command="correct")
+        read_input_field(args, str(path))
+        err = capsys.readouterr().err
+        assert "bare.csv has no header line" in err and order in err
+        assert ("--xyz reads" in err) is (not xyz)
+    named = tmp_path / "named.csv"
+    np.savetxt(named, rows, delimiter=",", header="z,y,x,uz,uy,ux", comments="")
+    read_input_field(Namespace(format="auto", xyz=False, voxel_size=None), str(named))
+    assert capsys.readouterr().err == ""
+
+
+def test_a_scattered_disp_is_written_back_under_its_labels(tmp_path):
+    """An irregular iDVC cloud is corrected on a grid and written back at its points, in its
+    rows' order: under its own labels ``n`` (were 1..N)."""
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands._field_formats import read_input_field, write_output_field
+
+    rng = np.random.default_rng(5)
+    cloud = rng.uniform(8.0, 30.0, size=(40, 3))  # x, y, z
+    labels = rng.permutation(np.arange(500, 540))
+    rows = [f"{n}\t{x:.4f}\t{y:.4f}\t{z:.4f}\t0\t0.01\t0.25\t-0.5\t0.75"
+            for n, (x, y, z) in zip(labels, cloud)]  # fmt: skip
+    source = tmp_path / "cloud.disp"
+    source.write_text("n\tx\ty\tz\tstatus\tobjmin\tu\tv\tw\n" + "\n".join(rows) + "\n")
+    args = Namespace(format="auto", out_format="auto", idvc_objective="znssd")
+    imported = read_input_field(args, str(source))
+    assert imported.points is not None  # scattered: put on a grid
+    out = tmp_path / "back.disp"
+    write_output_field(args, imported.field, str(out), points=imported.points)
+    back = read_points(out)
+    assert back.metadata["source"]["point_ids"] == labels.tolist()
+    np.testing.assert_allclose(back.points, read_points(source).points, atol=1e-6)

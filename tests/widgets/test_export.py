@@ -10,6 +10,7 @@ import pytest
 import tifffile
 
 from napari_dvc_correct.engine.evaluation.strain import equivalent_strain_field
+from napari_dvc_correct.io.formats import read_field
 from napari_dvc_correct.io.npz import load_field
 from napari_dvc_correct.layers import field_of
 from napari_dvc_correct.widgets import EvaluateWidget
@@ -36,6 +37,9 @@ def test_every_format(correlated, run_panel, tmp_path):
         ".vtk": ["run.vtk"],
         ".csv": ["run.csv"],
         ".tif": [f"run_{q}.tif" for q in ("uz", "uy", "ux", "magnitude", "zncc", "status")],
+        ".tsv": ["run.tsv"],  # the other tools' formats (were offered for points only)
+        ".disp": ["run.disp"],
+        ".mat": ["run.mat"],
     }
     for suffix, names in expected.items():
         widget.set_format(suffix)
@@ -51,6 +55,11 @@ def test_every_format(correlated, run_panel, tmp_path):
         assert h5["grid/equivalent_strain"].shape == field.shape  # strain went with the field
         np.testing.assert_allclose(h5["field"].attrs["voxel_size"], (2.0, 1.5, 1.5))
     np.testing.assert_allclose(tifffile.imread(tmp_path / "run_ux.tif"), field.u[..., 2])
+    for name in ("run.tsv", "run.disp", "run.mat"):  # each reads back as the same grid
+        back = read_field(tmp_path / name)
+        assert back.shape == field.shape, name
+        np.testing.assert_allclose(back.origin, field.origin)
+        np.testing.assert_allclose(back.u, field.u, atol=1e-6, equal_nan=True, err_msg=name)
     assert (tmp_path / "run_equivalent_strain.tif").is_file()  # extra grid array as its own stack
     assert "Wrote" in widget.message.text()
     # formats without room for metadata get the provenance next to them

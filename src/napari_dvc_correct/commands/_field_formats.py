@@ -109,6 +109,9 @@ class InputField:
     format: str
     #: What was done to absurd nodes (:func:`..engine.pair_checks.flag_absurd_nodes`), or None.
     note: str | None = None
+    #: The file's points as read when they form the grid (``points`` is None): their order and
+    #: labels, so a field written back in the file's format keeps them (iDVC's ``n``).
+    rows: object | None = None
 
     def describe(self) -> str:
         scattered = self.field.metadata.get("scattered", {})
@@ -135,13 +138,34 @@ def read_input_field(
     """
     from ..engine.fields.absurd_nodes import flag_absurd_nodes
     from ..engine.fields.scattered import to_grid
-    from ..io.formats import read_points, sniff_format
+    from ..io.formats import read_points, refuse_single_point, sniff_format
 
     if not Path(path).is_file():
         raise FileNotFoundError(f"field file not found: {path}")
     fmt = "auto" if sniff else getattr(args, "format", "auto")
     fmt = sniff_format(path) if fmt in (None, "auto") else fmt
     points = read_points(path, fmt, **_reader_options(args, fmt))
+    refuse_single_point(path, points)
+    source = points.metadata.get("source", {})
+    if source.get("format") == "table" and source.get("header") is False:
+        from ._common import warn
+
+        order = " ".join(source["columns"][:6])
+        other = "" if getattr(args, "xyz", False) else "; --xyz reads x y z ux uy uz"
+        warn(
+            args,
+            f"{Path(path).name} has no header line: its columns were read by position as "
+            f"{order} (voxels, 0-based){other}; a header naming the columns (z, y, x, uz, uy, "
+            "ux, any order) removes the guess",
+        )
+    if source.get("frames", 1) > 1:
+        from ._common import warn
+
+        warn(
+            args,
+            f"{Path(path).name} holds {source['frames']} frame pairs: read pair "
+            f"{source['frame']} (--frame-pair K reads another)",
+        )
     note = None
     if volume_shape is not None:
         points, note = flag_absurd_nodes(points, volume_shape, f"field {Path(path).name}")
@@ -152,7 +176,13 @@ def read_input_field(
         and scattered.get("interpolated", 0) == 0
         and (scattered.get("outside_hull", 0) == 0)
     )
-    return InputField(field=field, points=None if regular else points, format=fmt, note=note)
+    return InputField(
+        field=field,
+        points=None if regular else points,
+        format=fmt,
+        note=note,
+        rows=points if regular else None,
+    )
 
 
 def output_format(args, out: str) -> str:
@@ -196,12 +226,15 @@ def _writer_options(args, fmt: str) -> dict:
     return {}
 
 
-def write_output_field(args, field, out: str, points=None) -> list[Path]:
+def write_output_field(args, field, out: str, points=None, rows=None) -> list[Path]:
     """Write ``field`` to ``out`` in the output format; returns the files written.
 
     ``points`` (a ScatteredField: the user's original points) makes the result be reported there
     too: in another tool's format ``out`` holds the field at those points and ``<stem>_grid.npz``
     the grid; in our ``.npz`` ``out`` holds the grid and ``<stem>_points.csv`` the points.
+    ``rows`` (the points of an iDVC file that formed the grid, :attr:`InputField.rows`) makes an
+    iDVC ``out`` list the nodes in that file's order under its labels ``n`` (iDVC's own clouds
+    run x slowest: the grid's C order under labels 1..N gave each label another point).
     """
     from ..engine.fields.scattered import ScatteredField, sample_field
     from ..io.formats import write_field
@@ -223,7 +256,11 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
         write_field(field, out, fmt, **_writer_options(args, fmt))
         return [out]
     if points is None:
-        write_field(field, out, fmt, **_writer_options(args, fmt))
+        ordered = _in_file_rows(field, rows) if fmt == "idvc" else None
+        if ordered is not None:
+            write_field(ordered[0], out, fmt, point_ids=ordered[1])
+        else:
+            write_field(field, out, fmt, **_writer_options(args, fmt))
         return [out]
     from ..io.atomic import atomic_files
 
@@ -234,9 +271,46 @@ def write_output_field(args, field, out: str, points=None) -> list[Path]:
             write_field(field, temp_out, "npz")
             write_field(at_points, temp_side, "table", **_writer_options(args, "table"))
         else:
-            write_field(at_points, temp_out, fmt, **_writer_options(args, fmt))
+            options = _writer_options(args, fmt)
+            ids = _file_labels(points)
+            if fmt == "idvc" and ids is not None:  # the file's own labels n, same rows
+                options["point_ids"] = ids
+            write_field(at_points, temp_out, fmt, **options)
             write_field(field, temp_side, "npz")
     return [out, side]
+
+
+def _file_labels(rows):
+    """The labels ``n`` of an iDVC file's rows (one each, all different), or None."""
+    ids = (getattr(rows, "metadata", None) or {}).get("source", {}).get("point_ids")
+    if ids is None or len(ids) != rows.n_points or len(set(ids)) != len(ids):
+        return None
+    return np.asarray(ids, np.int64)
+
+
+def _in_file_rows(field, rows):
+    """The grid ``field``'s nodes in the order of an iDVC file's ``rows`` that formed that grid,
+    with the file's labels; None when ``rows`` are not such a file or not all on its nodes."""
+    from ..engine.fields.scattered import from_grid
+
+    ids = _file_labels(rows)
+    if ids is None:
+        return None
+    index = (np.asarray(rows.points) - np.asarray(field.origin)) / np.asarray(field.step)
+    whole = np.rint(index)
+    shape = np.asarray(field.shape)
+    if np.max(np.abs(index - whole)) > 1e-6 or np.any(whole < 0) or np.any(whole >= shape):
+        return None
+    flat = np.ravel_multi_index(tuple(whole.astype(np.intp).T), tuple(field.shape))
+    if len(np.unique(flat)) != field.n_points:  # the rows are not every node once
+        return None
+    ordered = from_grid(field)
+    for name in ("points", "u", "zncc", "status", "iterations", "provenance", "gradient",
+                 "uncertainty"):  # fmt: skip
+        value = getattr(ordered, name)
+        if value is not None:
+            setattr(ordered, name, np.asarray(value)[flat])
+    return ordered, ids
 
 
 def _grid_step(text: str) -> int:

@@ -9,7 +9,9 @@ Syntax (voxels of the reference volume, 0-based, z, y, x):
   radius R and an optional z range (default: the whole height);
 * ``--origin Z,Y,X`` — the first node, whole voxels;
 * ``--points FILE`` — a list of points of interest: a CSV/TSV whose header names the columns
-  ``z, y, x`` (any order, other columns ignored) or an ``.npy`` of shape (N, 3) in z, y, x.
+  ``z, y, x`` (any order, other columns ignored), an ``.npy`` of shape (N, 3) in z, y, x, a CCPi
+  ``.roi`` point cloud (``n x y z``), or a field file whose points are wanted (spam TSV, iDVC
+  ``.disp``, pyALDVC ``.npz``/``.mat``/``.csv``, ours), read in its own axis order.
 """
 
 from __future__ import annotations
@@ -43,8 +45,9 @@ def add_grid_arguments(parser: argparse.ArgumentParser, points: bool = True) -> 
             "--points",
             default=None,
             metavar="FILE",
-            help="points of interest: CSV/TSV with a header naming z,y,x, or .npy (N, 3); "
-            "results at exactly those points",
+            help="points of interest: CSV/TSV with a header naming z,y,x, .npy (N, 3) z,y,x, "
+            "a CCPi .roi (n x y z), or another field file's points (spam .tsv, .disp, "
+            "pyALDVC .npz/.mat/.csv); results at exactly those points",
         )
 
 
@@ -107,31 +110,37 @@ def parse_origin(text: str) -> tuple[int, int, int]:
 
 
 def load_points(path: str) -> np.ndarray:
-    """Points of interest ``(N, 3)`` in z, y, x from a CSV/TSV with a z,y,x header or an .npy."""
+    """Points of interest ``(N, 3)`` in z, y, x.
+
+    From a CSV/TSV whose header names ``z, y, x``; an ``.npy`` (N, 3) in z, y, x; a CCPi ``dvc``
+    point cloud ``.roi`` (``n x y z`` rows, no header: x is the fastest image axis); or the
+    points of a field file another tool (or this program) wrote: a spam TSV (``Zpos Ypos
+    Xpos``), an iDVC ``.disp``, a pyALDVC ``.npz``/``.mat``/``.csv``, our ``.npz`` or table
+    (``z [voxel]``...), each read in its own axis order (:mod:`..io.formats`).
+    """
     file = Path(path)
     if not file.is_file():
         raise FileNotFoundError(f"points file not found: {file}")
-    if file.suffix.lower() == ".npy":
-        try:
-            points = np.load(file, allow_pickle=False, mmap_mode="r")
-        except (ValueError, OSError, EOFError) as error:
-            raise ValueError(f"{file}: not a readable .npy of points ({error})") from None
-        if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-            raise ValueError(
-                f"{file}: an .npy of points must have shape (N, 3), N >= 1, got {points.shape}"
-            )
-        if points.dtype.kind not in "uif":
-            raise ValueError(f"{file}: points must be numbers, got dtype {points.dtype}")
-        points = np.asarray(points, np.float64)
-        if not np.all(np.isfinite(points)):
-            raise ValueError(f"{file}: a point has a non-finite coordinate")
-        return points
-    with open(file, encoding="utf-8") as handle:
+    suffix = file.suffix.lower()
+    if suffix == ".npy":
+        return _npy_points(file)
+    if suffix == ".roi":
+        return _roi_points(file)
+    if suffix in (".npz", ".mat", ".dvcfield"):
+        return _field_file_points(file)
+    with open(file, encoding="utf-8", errors="replace") as handle:
         header = next((line for line in handle if line.strip() and not line.startswith("#")), "")
     delimiter = "\t" if "\t" in header else ("," if "," in header else None)
     names = [n.strip().lower() for n in (header.split(delimiter) if delimiter else header.split())]
     if not all(a in names for a in "zyx"):
-        raise ValueError(f"{file}: the header must name the columns z, y, x (found {names})")
+        from ..io.formats import sniff_format, table
+
+        if sniff_format(file) != "table" or table.looks_like(header):
+            return _field_file_points(file)  # spam's Zpos..., a table with units
+        raise ValueError(
+            f"{file}: the header must name the columns z, y, x (found {names}); a CCPi point "
+            "cloud without a header needs the suffix .roi (n x y z)"
+        )
     from ..io.formats._common import header_row, load_numbers
 
     rows = load_numbers(file, delimiter, header_row(file) + 1, len(names))
@@ -141,10 +150,40 @@ def load_points(path: str) -> np.ndarray:
         raise ValueError(
             f"{file}: the header names {len(names)} columns but the rows have {rows.shape[1]}"
         )
-    points = rows[:, [names.index(a) for a in "zyx"]]
+    return _finite(file, rows[:, [names.index(a) for a in "zyx"]])
+
+
+def _finite(file: Path, points: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(points)):
         raise ValueError(f"{file}: a point has an empty or non-finite coordinate")
-    return points
+    return np.ascontiguousarray(points, dtype=np.float64)
+
+
+def _npy_points(file: Path) -> np.ndarray:
+    try:
+        points = np.load(file, allow_pickle=False, mmap_mode="r")
+    except (ValueError, OSError, EOFError) as error:
+        raise ValueError(f"{file}: not a readable .npy of points ({error})") from None
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(
+            f"{file}: an .npy of points must have shape (N, 3), N >= 1, got {points.shape}"
+        )
+    if points.dtype.kind not in "uif":
+        raise ValueError(f"{file}: points must be numbers, got dtype {points.dtype}")
+    return _finite(file, np.asarray(points, np.float64))
+
+
+def _roi_points(file: Path) -> np.ndarray:
+    from ..io.formats.idvc import read_roi
+
+    return read_roi(file)
+
+
+def _field_file_points(file: Path) -> np.ndarray:
+    from ..io.formats import read_points
+
+    points = read_points(file).points  # every point of the file, failed matches included
+    return _finite(file, np.asarray(points, np.float64))
 
 
 def region_from_args(args, volume_shape=None):

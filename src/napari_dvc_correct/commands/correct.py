@@ -284,7 +284,9 @@ def run(args) -> int:
     corrected.metadata["reference"] = str(args.reference)
     corrected.metadata["deformed"] = str(args.deformed)
     corrected.metadata["corrected_from"] = str(args.field)
-    written = _field_formats.write_output_field(args, corrected, out, points=imported.points)
+    written = _field_formats.write_output_field(
+        args, corrected, out, points=imported.points, rows=imported.rows
+    )
     out = ", ".join(str(p) for p in written)
     print(pass_table(corrected))
     info = corrected.metadata["correction"]

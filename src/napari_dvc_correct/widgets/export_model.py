@@ -30,6 +30,10 @@ FORMATS = {
     "VTK legacy structured points (.vtk)": ".vtk",
     "TIFF stacks (one per component)": ".tif",
     "CSV (one row per POI)": ".csv",
+    # the other tools' formats, one row per node (a field opened from them goes back there)
+    "spam TSV (.tsv, spam-ldic's columns)": ".tsv",
+    "iDVC (.disp)": ".disp",
+    "ALDVC MATLAB (.mat)": ".mat",
 }
 
 #: Formats offered for a result at points of interest: label -> file suffix (the files of

@@ -134,3 +134,31 @@ def test_an_npz_of_another_kind_is_refused(known, tmp_path):
     np.savez(tmp_path / "x.npz", a=np.zeros(3))
     with pytest.raises(ValueError, match="neither ours"):
         sniff_format(tmp_path / "x.npz")
+
+
+def test_frame_pairs_are_chosen_among_those_the_file_holds(tmp_path, capsys):
+    """A .mat or .npz of several frame pairs: the pair asked is read, a pair it does not hold
+    is refused naming those it does ('--frame-pair 0' read a .mat's last pair, 3 of 2 gave
+    'IndexError: list index out of range'), and the commands say which pair they read."""
+    from argparse import Namespace
+
+    from napari_dvc_correct.commands._field_formats import read_input_field
+
+    coords = np.array([[x, y, z] for z in (4.0, 10.0) for y in (4.0, 10.0) for x in (4.0, 10.0)])
+    pairs = [np.tile([0.5, -0.25, 1.0], (8, 1)), np.tile([1.5, 0.75, -2.0], (8, 1))]
+    cells = np.empty(2, dtype=object)
+    cells[0], cells[1] = pairs
+    mat = tmp_path / "run.mat"
+    savemat(mat, {"coordinatesFEM": coords, "ResultDisp": cells, "winsize": 12})
+    npz = tmp_path / "run.npz"
+    np.savez(npz, coordinates=coords, U_1=pairs[0], U_2=pairs[1])
+    for path in (mat, npz):
+        for frame in (1, 2):
+            u = read_points(path, frame=frame).u
+            np.testing.assert_allclose(u, pairs[frame - 1][:, ::-1])  # x, y, z -> z, y, x
+        for frame in (0, 3, -1):
+            with pytest.raises(ValueError, match=r"holds 2 frame pair\(s\) \(1, 2\)"):
+                read_points(path, frame=frame)
+        args = Namespace(format="auto", frame_pair=2, command="correct")
+        read_input_field(args, str(path))
+        assert "holds 2 frame pairs: read pair 2" in capsys.readouterr().err

@@ -95,3 +95,16 @@ def test_rows_that_report_a_perfect_match_at_the_search_start_are_failed():
     assert not idvc.degenerate_rows(codes, objmin, shifted).any()
     # on a noise-free pair every objective may be 0: nothing is called degenerate
     assert not idvc.degenerate_rows(codes, np.zeros(5), u_xyz).any()
+
+
+def test_a_roi_point_cloud_reads_in_z_y_x(tmp_path):
+    """``read_roi``: CCPi's ``n x y z`` rows (or ``x y z``) as z, y, x; other widths refused."""
+    from napari_dvc_correct.io.formats.idvc import read_roi
+
+    (tmp_path / "a.roi").write_text("1\t12\t14\t16\n7\t18.5\t14\t16\n")
+    np.testing.assert_array_equal(read_roi(tmp_path / "a.roi"), [[16, 14, 12], [16, 14, 18.5]])
+    (tmp_path / "b.roi").write_text("12 14 16\n")
+    np.testing.assert_array_equal(read_roi(tmp_path / "b.roi"), [[16, 14, 12]])
+    (tmp_path / "c.roi").write_text("1\t2\n")
+    with pytest.raises(ValueError, match="c.roi: a .roi point cloud has rows 'n x y z'"):
+        read_roi(tmp_path / "c.roi")

@@ -111,6 +111,11 @@ def test_opencorr_tables_are_read_by_name(name):
     assert np.allclose(points.points[0], [60.0, 35.0, 35.0])  # (z, y, x) of the first POI
     rows = np.genfromtxt(FORMATS / "opencorr" / name, delimiter=",", names=True, max_rows=3)
     assert np.allclose(points.u[:3], np.column_stack([rows["w"], rows["v"], rows["u"]]))
+    table = np.genfromtxt(FORMATS / "opencorr" / name, delimiter=",", names=True)
+    # its own quality columns are kept: ZNCC, and the IC-GN iterations ('iteration' was not
+    # read; 33 points of the CPU file stopped at its max_iteration 20)
+    np.testing.assert_allclose(points.zncc, table["ZNCC"], rtol=1e-6)
+    np.testing.assert_array_equal(points.iterations, table["iteration"])
 
 
 # file, the grid each tool was asked for: shape, origin and step (z, y, x voxels), nodes failed
@@ -159,7 +164,6 @@ def test_the_napari_reader_refuses_the_repository_run_with_a_reason():
     [
         "opencorr/al_foam4_1_fftcc_icgn1_r30_time.csv",  # OpenCorr's timings
         "ccpi_dvc/snow48/snow48.stat",  # CCPi's run statistics
-        "ccpi_dvc/snow48/grid.roi",  # CCPi's input points, no displacement
         "pyaldvc/aldvc_summary.json",  # pyALDVC's run summary
     ],
 )
@@ -167,3 +171,24 @@ def test_the_tools_other_files_are_not_taken_for_fields(name):
     assert napari_get_reader(str(FORMATS / name)) is None
     with pytest.raises(ValueError):
         read_points(FORMATS / name)
+
+
+def test_ccpi_input_points_open_as_points_not_as_a_field():
+    """CCPi's ``grid.roi`` (input points, no displacement): a Points layer in z, y, x (x is the
+    fastest of its labels 1..125), not a field."""
+    path = FORMATS / "ccpi_dvc/snow48/grid.roi"
+    [(data, _, kind)] = napari_get_reader(str(path))(str(path))
+    assert kind == "points" and data.shape == (125, 3)
+    np.testing.assert_array_equal(data[:2], [[12.0, 12.0, 12.0], [12.0, 12.0, 18.0]])
+    with pytest.raises(ValueError):
+        read_points(path)
+
+
+def test_a_spam_registration_is_refused_as_a_field():
+    """A spam-reg TSV is one Φ at the volume's centre: read as points it is that point (above),
+    as a field it is refused with what to give instead. It opened as a 1-node layer, and
+    ``correct`` asked for '--grid-step N' (the point sits at 23.5)."""
+    path = FORMATS / "spam" / "reg_ldic" / "ref-def-registration.tsv"
+    with pytest.raises(ValueError, match=r"single point \(z, y, x = \(23.5, 23.5, 23.5\)\).*"
+                       "spam-reg registration.*-pf"):  # fmt: skip
+        read_field(path)

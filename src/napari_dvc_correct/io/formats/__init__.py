@@ -163,6 +163,27 @@ def refuse_conflicting_duplicates(path, points: ScatteredField) -> None:
         )
 
 
+def refuse_single_point(path, points: ScatteredField) -> None:
+    """Refuse a file of one point as a field: a spam-reg registration (one Φ for the whole
+    volume) was put on a 1-node grid, and ``correct`` asked for ``--grid-step``.
+
+    Raises
+    ------
+    ValueError
+        Naming the file, the point (z, y, x voxels) and, for spam, what to give instead.
+    """
+    if points.n_points != 1:
+        return
+    where = tuple(round(float(v), 3) for v in points.points[0])
+    what = (
+        "a spam-reg registration (one Φ for the whole volume), not a field: give the spam-ldic "
+        "TSV computed with -pf on it"
+        if points.metadata.get("source", {}).get("format") == "spam"
+        else "a field needs points spread over the volume"
+    )
+    raise ValueError(f"{path}: holds a single point (z, y, x = {where}): {what}")
+
+
 def read_field(
     path: str | os.PathLike, format: str | None = None, grid=None, **options
 ) -> DisplacementField:
@@ -180,6 +201,7 @@ def read_field(
         Passed to the format's reader (``xyz``, ``voxel_size``, ``frame``, ``bin_ratio``...).
     """
     points = read_points(path, format, **options)
+    refuse_single_point(path, points)
     try:
         return to_grid(points, grid=grid)
     except ValueError as error:  # e.g. points in one plane: say which file (napari's File ▸ Open)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -130,6 +131,9 @@ def read(path: str | os.PathLike, frame: int = 1, accumulated: bool = False) -> 
         return _read_mat(path, frame)
     check_npz_sizes(path)  # headers first: nothing inflated that does not fit in memory
     with np.load(path, allow_pickle=False) as data:
+        pairs = sorted(int(name[2:]) for name in data.files if re.fullmatch(r"U_[0-9]+", name))
+        if "coordinates" in data and pairs:
+            _check_frame(path, frame, len(pairs), pairs)
         if "coordinates" not in data or f"U_{frame}" not in data:
             raise ValueError(
                 f"{path}: not a pyALDVC result (needs 'coordinates' and 'U_{frame}'; "
@@ -158,7 +162,25 @@ def read(path: str | os.PathLike, frame: int = 1, accumulated: bool = False) -> 
             status,
             provenance,
             params,
-            {"format": "aldvc", "path": str(path), "frame": frame, "displacement": key},
+            {
+                "format": "aldvc",
+                "path": str(path),
+                "frame": frame,
+                "frames": len(pairs),
+                "displacement": key,
+            },
+        )
+
+
+def _check_frame(path, frame: int, count: int, labels=None) -> None:
+    """Refuse a frame pair the file does not hold (0 or a negative number read the last one
+    of a .mat, a number past the end gave 'IndexError')."""
+    labels = list(range(1, count + 1)) if labels is None else list(labels)
+    if frame not in labels:
+        raise ValueError(
+            f"{path}: frame pair {frame} asked, but the file holds {count} frame pair(s) "
+            f"({', '.join(map(str, labels[:8]))}{'...' if count > 8 else ''}): choose "
+            "--frame-pair among them (1 = the first)"
         )
 
 
@@ -177,8 +199,8 @@ def _read_mat(path: Path, frame: int) -> ScatteredField:
     if "DVCmesh" in m:  # MATLAB ALDVC: 1-based coordinates, interleaved vectors
         coords = np.asarray(m["DVCmesh"].coordinatesFEM, np.float64).reshape(-1, 3) - 1.0
         disp = _items(m["ResultDisp"])
-        if k >= len(disp):
-            raise ValueError(f"{path}: frame {frame} asked, the file has {len(disp)}")
+        _check_frame(path, frame, len(disp))
+        source["frames"] = len(disp)
         u = np.asarray(disp[k].U, np.float64).reshape(-1, 3)
         grad = None
         if "ResultDefGrad" in m and k < len(_items(m["ResultDefGrad"])):
@@ -201,7 +223,10 @@ def _read_mat(path: Path, frame: int) -> ScatteredField:
         return _field(coords, u, grad, zncc, status, provenance, params, source)
     if "coordinatesFEM" in m:  # pyALDVC's .mat export: 0-based, (N, 3) per frame
         coords = np.asarray(m["coordinatesFEM"], np.float64).reshape(-1, 3)
-        u = np.asarray(_items(m["ResultDisp"])[k], np.float64).reshape(-1, 3)
+        disp = _items(m["ResultDisp"])
+        _check_frame(path, frame, len(disp))
+        source["frames"] = len(disp)
+        u = np.asarray(disp[k], np.float64).reshape(-1, 3)
         grad = None
         if "ResultDefGrad" in m:
             grad = np.asarray(_items(m["ResultDefGrad"])[k], np.float64).reshape(-1, 3, 3)

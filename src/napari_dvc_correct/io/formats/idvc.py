@@ -127,19 +127,46 @@ def read(path: str | os.PathLike, objective: str = "znssd") -> ScatteredField:
     )
 
 
-def write(field, path: str | os.PathLike) -> None:
-    """Write a field (grid or points) as an iDVC ``.disp`` file (``n`` from 1, ``znssd`` objmin).
+def read_roi(path: str | os.PathLike) -> np.ndarray:
+    """A CCPi ``dvc`` point cloud ``.roi``: the points ``(N, 3)`` in z, y, x (voxels, 0-based).
 
-    Points without a ZNCC get ``objmin`` NaN.
+    Rows ``n x y z`` (tab-separated, no header; ``n`` the label, x along the image's fastest
+    axis; non-integer positions allowed: ``Core/InputRead.cpp``), or ``x y z``.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: not numbers, no rows, or rows of another width.
+    """
+    rows = load_numbers(path, None)
+    if len(rows) == 0 or rows.shape[1] not in (3, 4):
+        raise ValueError(
+            f"{path}: a .roi point cloud has rows 'n x y z' (or 'x y z'), got "
+            f"{rows.shape[1] if len(rows) else 0} columns"
+        )
+    points = flip_vectors(rows[:, -3:])
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{path}: a point has an empty or non-finite coordinate")
+    return points
+
+
+def write(field, path: str | os.PathLike, point_ids=None) -> None:
+    """Write a field (grid or points) as an iDVC ``.disp`` file (``znssd`` objmin).
+
+    ``point_ids`` (N,) are the labels ``n`` of the rows (default 1..N), e.g. those of the
+    ``.roi`` cloud the points came from. Points without a ZNCC get ``objmin`` NaN.
     """
     field = as_scattered(field)
     n = field.n_points
+    ids = np.arange(1, n + 1) if point_ids is None else np.asarray(point_ids, np.int64)
+    if ids.shape != (n,):
+        raise ValueError(f"point_ids must hold one label per point ({n}), got {ids.shape}")
     codes = np.full(n, -2, np.int64)
     codes[np.isin(field.status, [Status.CONVERGED, Status.MAX_ITERATIONS])] = 0
     codes[field.status == int(Status.OUT_OF_BOUNDS)] = -1
     table = np.column_stack(
         [
-            np.arange(1, n + 1),
+            ids,
             flip_vectors(field.points),
             codes,
             2.0 * (1.0 - field.zncc.astype(np.float64)),

@@ -45,7 +45,7 @@ _ALIASES = {
     "status": ("status",),
     "valid": ("valid",),  # pyALDVC's CSV: 1 = a usable node, 0 = not
     "provenance": ("provenance",),
-    "iterations": ("iterations", "iter"),
+    "iterations": ("iterations", "iter", "iteration"),  # OpenCorr: "iteration"
 }
 #: Text columns skipped (the words of the codes in ``status`` and ``provenance``).
 _TEXT_COLUMNS = ("status_name", "provenance_name")
@@ -185,7 +185,14 @@ def read(
         status=status,
         iterations=rows[:, found["iterations"]].astype(np.int32) if "iterations" in found else None,
         provenance=provenance,
-        metadata={"source": {"format": "table", "path": str(path), "columns": names}},
+        metadata={
+            "source": {
+                "format": "table",
+                "path": str(path),
+                "columns": names,
+                "header": _has_header(header),  # False: the columns were read by position
+            }
+        },
     )
 
 
