@@ -477,8 +477,8 @@ def oriented_step(
     summary = {
         "ran": True,
         "reason": (
-            f"the field bends a {params.subvolume}³ subvolume by {bend:.2g} voxel but the noise "
-            "kept the passes on first-order cubes: planar nodes re-matched on the original pair "
+            f"the field still bends a first-order {params.subvolume}³ subvolume by {bend:.2g} "
+            "voxel after the passes: planar nodes re-matched on the original pair "
             f"under windows of std {across:g} voxels across the field's plane, {along:g} along "
             f"it, first order on {match_params.subvolume}³ boxes, less the windows' blur (from "
             "the matches' local quadratic)"
