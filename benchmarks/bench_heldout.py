@@ -52,7 +52,10 @@ run and of the correction. DVC: subvolume 21, step 8, first order, no mask (as `
 
 Run: ``python benchmarks/bench_heldout.py [--seed N] [--list] [case ...]`` (a case is
 ``texture/field/warp/noise``, e.g. ``rock/rot10/o1/g2``). The machine is shared: compare seconds
-within one run only.
+within one run only. Experiments (not the product's behaviour): ``--pass-method 1,21`` or
+``2,15,3.5`` forces the correcting matches' order, subvolume and Gaussian window (``-``: none)
+instead of :func:`.pass_method.pass_method`'s choice; ``--noise-fit`` runs the correction with
+``noise_fit=True``.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ import numpy as np
 from scipy import ndimage
 
 from napari_dvc_correct.engine import synthetic
+from napari_dvc_correct.engine.correction import self_correction
 from napari_dvc_correct.engine.correction.self_correction import correct
 from napari_dvc_correct.engine.correlation.correlate import correlate
 from napari_dvc_correct.engine.correlation.params import CorrelationParams
@@ -281,13 +285,32 @@ def make_case(case: str, seed: int = 1):
     )
 
 
-def run(case: str, seed: int) -> dict:
+CHOSEN_PASS_METHOD = self_correction.pass_method
+
+
+def force_pass_method(spec: str | None) -> None:
+    """Make the correction match with ``order,subvolume[,window]`` (None: its own choice)."""
+    if spec is None:
+        self_correction.pass_method = CHOSEN_PASS_METHOD
+        return
+    order, subvolume, *rest = spec.split(",")
+    window = None if not rest or rest[0] in ("", "-") else float(rest[0])
+
+    def forced(field, params, exclude=None):
+        return params.replace(order=int(order), subvolume=int(subvolume), window=window), (
+            f"forced by bench_heldout --pass-method {spec}"
+        )
+
+    self_correction.pass_method = forced
+
+
+def run(case: str, seed: int, noise_fit: bool = False) -> dict:
     reference, deformed, truth, inside, straddles = make_case(case, seed)
     started = time.perf_counter()
     plain = correlate(reference, deformed, PARAMS)
     plain_s = time.perf_counter() - started
     started = time.perf_counter()
-    corrected = correct(reference, deformed, plain, PARAMS)
+    corrected = correct(reference, deformed, plain, PARAMS, noise_fit=noise_fit)
     correction_s = time.perf_counter() - started
     points = plain.points
     expected = truth(points)
@@ -359,13 +382,22 @@ def main() -> None:
     parser.add_argument("cases", nargs="*", help="texture/field/warp/noise; default: the list")
     parser.add_argument("--seed", type=int, default=1, help="texture, crop and noise seed")
     parser.add_argument("--list", action="store_true", help="print the default cases and stop")
+    parser.add_argument(
+        "--pass-method",
+        metavar="ORDER,SUBVOLUME[,WINDOW]",
+        help="experiment: force the correcting matches' parameters (e.g. 1,21 or 2,15,3.5)",
+    )
+    parser.add_argument(
+        "--noise-fit", action="store_true", help="experiment: correct with noise_fit=True"
+    )
     args = parser.parse_args()
     if args.list:
         print("\n".join(CASES))
         return
+    force_pass_method(args.pass_method)
     print(HEADER, flush=True)
     for case in args.cases or CASES:
-        print(line(run(case, args.seed)), flush=True)
+        print(line(run(case, args.seed, args.noise_fit)), flush=True)
 
 
 if __name__ == "__main__":

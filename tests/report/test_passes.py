@@ -115,7 +115,7 @@ def test_the_oriented_step_in_words():
     assert "blur" not in line
     field.metadata["correction"]["oriented"]["deblurred_nodes"] = 90
     line = passes.oriented_line(field)
-    assert "blur taken out of 90 of them" in line and line.endswith("the field bends")
+    assert "blur taken out of 90 of them" in line and line.endswith("cubes after the passes")
 
 
 def test_the_correction_residual_says_its_frame_and_gray_levels():

@@ -166,7 +166,7 @@ def oriented_line(field: DisplacementField) -> str:
             f", the window's blur taken out of {int(info['deblurred_nodes'])} of them (a local "
             "quadratic of the matches across and along the plane)"
         )
-    return text + ", where the noise kept the passes on first-order cubes that the field bends"
+    return text + ", where the field still bent the first run's first-order cubes after the passes"
 
 
 def residual_frame(field: DisplacementField) -> str:

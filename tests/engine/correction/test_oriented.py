@@ -186,17 +186,16 @@ def test_rematch_refuses_nodes_of_another_grid():
         )  # fmt: skip
 
 
-def test_step_does_not_run_where_the_passes_follow_the_field():
-    """Second-order passes, or no bend above the threshold: nothing is done (and the volumes
-    are not touched)."""
+def test_step_does_not_run_where_the_first_run_s_boxes_follow_the_field():
+    """A second-order first run, or no bend above the threshold: nothing is done (and the
+    volumes are not touched)."""
     band = _field_of(synthetic.band_rotation_bending((34.0,) * 3, 4.0, 2.8))
     flat = _field_of(synthetic.translation((1.0, 2.0, 0.5)))
     params = CorrelationParams(subvolume=21, step=6)
-    for field, pass_params in ((band, params.replace(order=2, subvolume=15)), (flat, params)):
+    for field, first in ((band, params.replace(order=2)), (flat, params)):
         step = run_to_completion(
             oriented.oriented_step(
-                None, None, field, None, params, pass_params,
-                np.zeros(field.shape, bool), None, 1.0,
+                None, None, field, None, first, np.zeros(field.shape, bool), None, 1.0,
             )
         )  # fmt: skip
         assert not step.applied and not step.summary["ran"]

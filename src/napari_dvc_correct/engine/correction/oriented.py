@@ -421,13 +421,14 @@ class OrientedStep:
 
 
 def oriented_step(
-    volumes, judge, current, local_current, params, pass_params, excluded, moved, residual
+    volumes, judge, current, local_current, params, excluded, moved, residual
 ) -> Generator[Progress, None, OrientedStep]:
     """The self-correction's oriented step, after its passes.
 
-    It runs only where the passes stayed on the first run's first-order cube although the field
-    bends it by more than :data:`.pass_method.CURVATURE_VOXELS` (the imaging noise forbade the
-    smaller second-order boxes, :func:`.pass_method.pass_method`), on the nodes whose variation
+    It runs where the first run matched first-order cubes and the field after the passes still
+    bends them by more than :data:`.pass_method.CURVATURE_VOXELS`, whatever the passes' own
+    order (after second-order 15³ passes too, which leave a narrow band's bias
+    and, on held-out bands, scatter of their own; docs/heldout.md), on the nodes whose variation
     is planar (:func:`plane_normals`, planarity >= :data:`PLANARITY`) and not ``excluded``
     (masked, cracked, shielded). Those nodes are re-matched on the original pair under oriented
     windows (:func:`oriented_rematch`) from the current values; the new values go through the
@@ -442,9 +443,9 @@ def oriented_step(
     started = time.perf_counter()
     unchanged = OrientedStep(current, local_current, moved, residual, {"ran": False})
     bend = field_curvature(current, params.half)
-    if params.order != 1 or pass_params.order != 1 or bend <= CURVATURE_VOXELS:
+    if params.order != 1 or bend <= CURVATURE_VOXELS:
         unchanged.summary["reason"] = (
-            "the passes' own boxes follow the field (second order, or no bend above "
+            "the first run's own boxes follow the field (second order, or no bend above "
             f"{CURVATURE_VOXELS:g} voxel)"
         )
         return unchanged
@@ -476,8 +477,8 @@ def oriented_step(
     summary = {
         "ran": True,
         "reason": (
-            f"the field bends a {params.subvolume}³ subvolume by {bend:.2g} voxel but the noise "
-            "kept the passes on first-order cubes: planar nodes re-matched on the original pair "
+            f"the field still bends a first-order {params.subvolume}³ subvolume by {bend:.2g} "
+            "voxel after the passes: planar nodes re-matched on the original pair "
             f"under windows of std {across:g} voxels across the field's plane, {along:g} along "
             f"it, first order on {match_params.subvolume}³ boxes, less the windows' blur (from "
             "the matches' local quadratic)"

@@ -516,10 +516,10 @@ def _correction_loop(
         next_pass = (changed, node_change, tolerance, change_vectors)
 
     mixed_moved = None  # the same volume as moved, which goes on to the oriented step
-    # where the noise kept the passes on cubes that a band bends: the original pair re-matched
-    # under windows along the field's own plane, through the same acceptance
+    # where a band still bends the first run's cubes after the passes: the original pair
+    # re-matched under windows along the field's own plane, through the same acceptance
     oriented = yield from oriented_step(
-        volumes, judge, current, local_current, params, pass_params, masked | shielded | crack,
+        volumes, judge, current, local_current, params, masked | shielded | crack,
         moved, residual,
     )  # fmt: skip
     current, local_current, moved, residual = (
