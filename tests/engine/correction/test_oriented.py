@@ -30,7 +30,32 @@ def _angle(a, b) -> np.ndarray:
 
 def test_window_with_equal_stds_is_the_isotropic_window():
     w = oriented.oriented_window(7, (0.3, -0.2, 0.9), 3.0, 3.0)
-    np.testing.assert_allclose(w, gaussian_window(7, 3.0), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(w, gaussian_window(7, 3.0, WINDOW_TRUNCATE), rtol=1e-12, atol=0)
+    whole = oriented.oriented_window(7, (0.3, -0.2, 0.9), 3.0, 3.0, truncate=None)
+    np.testing.assert_allclose(whole, gaussian_window(7, 3.0), rtol=1e-12, atol=0)
+
+
+def test_window_is_truncated_at_window_truncate_stds():
+    """The step's window (std 2 across, 12 along, 31³ box): 0 outside the ellipsoid of 3 std,
+    so the matcher skips the 18 of 31 slices beyond ±6 voxels across the plane and more."""
+    w = oriented.oriented_window(15, (0.0, 0.0, 1.0), 2.0, 12.0)
+    whole = oriented.oriented_window(15, (0.0, 0.0, 1.0), 2.0, 12.0, truncate=None)
+    kept = w > 0
+    np.testing.assert_array_equal(np.any(kept, axis=(0, 1)), np.abs(np.arange(-15, 16)) <= 6)
+    # the in-plane corners lie within 3 std along (15·√2 < 36): the plane's slice is whole
+    assert kept[:, :, 15].all()
+    assert kept.sum() < 0.36 * kept.size  # 10 549 of 29 791 voxels
+    np.testing.assert_array_equal(w[kept], whole[kept])
+    # what the cut drops weighs < 1 % of the window in its box (0.55 %: the tails beyond 3 std)
+    assert whole[~kept].sum() < 0.01 * whole.sum()
+    # an oblique normal: the ellipsoid t²/2² + p²/12² <= 3²
+    w = oriented.oriented_window(15, NORMAL, 2.0, 12.0)
+    r = np.arange(-15, 16, dtype=np.float64)
+    z, y, x = np.meshgrid(r, r, r, indexing="ij")
+    t = z * NORMAL[0] + y * NORMAL[1] + x * NORMAL[2]
+    r2 = t**2 / 4.0 + (z * z + y * y + x * x - t * t) / 144.0
+    # (voxels on the ellipsoid itself fall either side by rounding)
+    assert np.all(r2[w > 0] <= 9.0 + 1e-9) and np.all(r2[w == 0] >= 9.0 - 1e-9)
 
 
 def test_window_is_narrow_across_and_wide_along():
@@ -41,8 +66,12 @@ def test_window_is_narrow_across_and_wide_along():
 
 
 @pytest.mark.parametrize(
-    "bad", [dict(normal=(0.0, 0.0, 0.0)), dict(across=0.0), dict(along=np.nan), dict(half=0)]
-)
+    "bad",
+    [
+        dict(normal=(0.0, 0.0, 0.0)), dict(across=0.0), dict(along=np.nan), dict(half=0),
+        dict(truncate=0.0), dict(truncate=np.inf),
+    ],
+)  # fmt: skip
 def test_window_refuses_bad_input(bad):
     arguments = dict(half=5, normal=(1.0, 0.0, 0.0), across=2.0, along=6.0) | bad
     with pytest.raises(ValueError):
@@ -125,11 +154,8 @@ def test_equal_stds_match_as_the_isotropic_window():
     params = CorrelationParams(subvolume=15, step=8)
     grid = ((24.0,) * 3, (8.0,) * 3, (2, 2, 2))
     isotropic = correlate(reference, deformed, params.replace(window=3.0), grid=grid)
+    # both truncated at WINDOW_TRUNCATE std
     weights = oriented.oriented_window(params.half, NORMAL, 3.0, 3.0)
-    # ``params.window`` is truncated at WINDOW_TRUNCATE std; the oriented windows are not
-    r = np.arange(-params.half, params.half + 1)
-    r2 = r[:, None, None] ** 2 + r[None, :, None] ** 2 + r[None, None, :] ** 2
-    weights = np.where(r2 > (WINDOW_TRUNCATE * 3.0) ** 2, 0.0, weights)
     explicit = correlate(reference, deformed, params, grid=grid, weights=weights)
     np.testing.assert_allclose(explicit.u, isotropic.u, atol=1e-9)
     np.testing.assert_array_equal(explicit.status, isotropic.status)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from napari_dvc_correct.engine.correction import oriented, oriented_deblur
-from napari_dvc_correct.engine.correlation.params import gaussian_window
+from napari_dvc_correct.engine.correlation.params import WINDOW_TRUNCATE, gaussian_window
 
 NORMAL = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
 STEP = 6.0
@@ -15,19 +15,23 @@ def _grid(shape=(9, 9, 9), origin=10.0):
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1)
 
 
-def _moments(normal, across=2.5, along=10.0, half=15):
-    return oriented_deblur.window_moments(oriented.oriented_window(half, normal, across, along))
+def _moments(normal, across=2.5, along=10.0, half=15, truncate=WINDOW_TRUNCATE):
+    return oriented_deblur.window_moments(
+        oriented.oriented_window(half, normal, across, along, truncate)
+    )
 
 
 def test_moments_of_gaussian_windows_are_their_variances():
     np.testing.assert_allclose(
         oriented_deblur.window_moments(gaussian_window(12, 2.0)), 4.0 * np.eye(3), atol=1e-9
     )
-    # across the x axis std 1.5, along it 3: a box of 7 stds holds the Gaussian to 1e-9
-    moments = oriented_deblur.window_moments(oriented.oriented_window(21, (0, 0, 1), 1.5, 3.0))
+    # across the x axis std 1.5, along it 3: a box of 7 stds holds the Gaussian to 1e-9 (the
+    # whole Gaussian: the step's windows, truncated at 3 std, have their own moments)
+    whole = oriented.oriented_window(21, (0, 0, 1), 1.5, 3.0, truncate=None)
+    moments = oriented_deblur.window_moments(whole)
     np.testing.assert_allclose(moments, np.diag([9.0, 9.0, 2.25]), atol=1e-8)
     # an inclined normal: the tensor is across² n nᵀ + along² (I − n nᵀ)
-    moments = _moments(NORMAL, 1.5, 3.0, half=21)
+    moments = _moments(NORMAL, 1.5, 3.0, half=21, truncate=None)
     expected = 2.25 * np.outer(NORMAL, NORMAL) + 9.0 * (np.eye(3) - np.outer(NORMAL, NORMAL))
     np.testing.assert_allclose(moments, expected, atol=1e-8)
 

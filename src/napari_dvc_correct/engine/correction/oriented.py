@@ -33,7 +33,7 @@ from scipy import ndimage
 from ..correlation.correlate import correlate_iter
 from ..correlation.icgn_reference import gradient_volume
 from ..correlation.interpolation import prefilter
-from ..correlation.params import CorrelationParams
+from ..correlation.params import WINDOW_TRUNCATE, CorrelationParams
 from ..correlation.pyramid import GRADIENT_ON_DEMAND_FROM, Prefiltered
 from ..fields.field import GOOD_STATUSES, DisplacementField
 from ..progress import Progress
@@ -71,7 +71,9 @@ TENSOR_SMOOTHING = 2.0
 REGIONAL_SCALE = 3.0
 
 
-def oriented_window(half: int, normal, across: float, along: float) -> np.ndarray:
+def oriented_window(
+    half: int, normal, across: float, along: float, truncate: float | None = WINDOW_TRUNCATE
+) -> np.ndarray:
     """Weights of an anisotropic Gaussian on a ``(2·half + 1)³`` box.
 
     Parameters
@@ -82,6 +84,10 @@ def oriented_window(half: int, normal, across: float, along: float) -> np.ndarra
         The plane's normal ``(z, y, x)`` (any length > 0).
     across, along : float
         Standard deviations (voxels, > 0) along ``normal`` and in the plane normal to it.
+    truncate : float or None
+        The window's radius in standard deviations: voxels with
+        ``t²/across² + p²/along² > truncate²`` weigh 0 (the matcher skips them), as
+        :meth:`.CorrelationParams.subvolume_weights`' Gaussian; None: the whole box is weighted.
 
     Returns
     -------
@@ -104,7 +110,13 @@ def oriented_window(half: int, normal, across: float, along: float) -> np.ndarra
     z, y, x = np.meshgrid(r, r, r, indexing="ij")
     t = z * normal[0] + y * normal[1] + x * normal[2]
     plane = z * z + y * y + x * x - t * t
-    return np.exp(-t * t / (2.0 * across**2) - plane / (2.0 * along**2))
+    if truncate is not None and not (np.isfinite(truncate) and truncate > 0):
+        raise ValueError(f"the window's radius must be > 0 standard deviations, got {truncate!r}")
+    r2 = t * t / across**2 + plane / along**2
+    weights = np.exp(-0.5 * r2)
+    if truncate is not None:
+        weights[r2 > float(truncate) ** 2] = 0.0
+    return weights
 
 
 def direction_set(tolerance: float = DIRECTION_TOLERANCE) -> np.ndarray:
@@ -289,7 +301,7 @@ def oriented_rematch(
         yield Progress("oriented", number, len(used), f"direction {number + 1} of {len(used)}")
         group = direction == k
         half = group_half(room, group, params)
-        weights = oriented_window(half, directions[k], across, along)
+        weights = oriented_window(half, directions[k], across, along, WINDOW_TRUNCATE)
         runs.half[int(k)], runs.moments[int(k)] = half, window_moments(weights)
         run = yield from match(match_params.replace(subvolume=2 * half + 1), field, group, weights)
         result = run if result is None else _merge(result, run, group)
