@@ -167,22 +167,32 @@ def test_ui_stays_responsive_during_a_run(viewer_pair, qtbot, small):
     widget.subvolume.setValue(small.subvolume)
     widget.step.setValue(4)  # ~1000 POIs: long enough to measure
     widget.preview.setChecked(False)
-    ticks = []
-    timer = QTimer()
-    timer.setInterval(10)
-    timer.timeout.connect(lambda: ticks.append(time.perf_counter()))
-    worker = widget.run(start=False)
-    ended = []
-    worker.returned.connect(lambda result: ended.append(time.perf_counter()))
-    timer.start()
-    with qtbot.waitSignal(worker.finished, timeout=300_000):
-        worker.start()
-    timer.stop()
-    during = np.asarray([t for t in ticks if t <= ended[0]])
-    assert ended[0] - ticks[0] > 0.3, "the run was too short to say anything"
-    gaps = np.diff(during)
+    # on a fast, quiet machine one run can be shorter than what a gap needs to mean something:
+    # runs repeat (each measured from its own first tick to its end) until 0.5 s are covered
+    gaps, covered = [], 0.0
+    for _ in range(10):
+        ticks = []
+        timer = QTimer()
+        timer.setInterval(10)
+        timer.timeout.connect(lambda ticks=ticks: ticks.append(time.perf_counter()))
+        worker = widget.run(start=False)
+        ended = []
+        worker.returned.connect(lambda result, ended=ended: ended.append(time.perf_counter()))
+        timer.start()
+        with qtbot.waitSignal(worker.finished, timeout=300_000):
+            worker.start()
+        timer.stop()
+        during = np.asarray([t for t in ticks if t <= ended[0]])
+        if len(during) > 1:
+            gaps.extend(np.diff(during))
+            covered += ended[0] - during[0]
+        qtbot.waitUntil(lambda: not widget.running, timeout=60_000)
+        if covered > 0.5:
+            break
+    assert covered > 0.3, "the runs were too short to say anything"
+    gaps = np.asarray(gaps)
     assert len(gaps) > 10
-    print(f"largest gap {gaps.max() * 1000:.0f} ms over {ended[0] - ticks[0]:.2f} s")
+    print(f"largest gap {gaps.max() * 1000:.0f} ms over {covered:.2f} s")
     assert gaps.max() < 0.2, f"largest gap {gaps.max() * 1000:.0f} ms"
     assert widget.last_error is None
 
